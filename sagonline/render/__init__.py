@@ -1,0 +1,6 @@
+"""Rasterizers: the tiled PyTorch fast path, its brute-force reference, and gsplat on CUDA."""
+
+from sagonline.render.projection import ProjectedSplats, project
+from sagonline.render.rasterize import RasterStats, RenderOutput, TraceChunk, rasterize
+
+__all__ = ["ProjectedSplats", "RasterStats", "RenderOutput", "TraceChunk", "project", "rasterize"]

@@ -1,0 +1,244 @@
+"""Tile-based Gaussian rasterizer in plain PyTorch (same code on CPU and CUDA), with a trace.
+
+Pipeline for one view:
+1. `project` culls and projects the Gaussians (M survive);
+2. every splat is listed in each 16x16 tile its bounding box touches; the (tile, depth rank)
+   keys are sorted once, so each tile holds its splats front to back;
+3. tiles are processed in chunks, their depth lists in blocks of `block` splats: alpha for every
+   (tile, splat, pixel) in the block, transmittance by a cumulative product carried across
+   blocks, and colour/feature accumulation by batched matmul. A chunk stops early once every
+   pixel's transmittance is spent.
+
+Compositing follows the 3DGS reference: alpha clipped at 0.99, skipped below 1/255, and a
+splat is composited only if the transmittance after it stays >= `t_stop` (1e-4); the first
+splat that would break that ends the pixel.
+
+The trace streams, per block, the (pixel, Gaussian) pairs met front to back with T_i (the
+transmittance before the splat), alpha_i and the distance of the splat's projected centre from
+the pixel centre, restricted to T_i > `trace_t_min`. A consumer reduces each `TraceChunk` as it
+arrives (the consensus vote scatter-adds into a per-Gaussian histogram), so a frame never holds
+all of its traces at once.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import torch
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians
+from sagonline.render.projection import ProjectedSplats, project, splat_response
+
+T_STOP = 1e-4
+
+
+@dataclass
+class TraceChunk:
+    """A batch of traced (pixel, Gaussian) contributions, all shapes (E,).
+
+    pixel: linear index y * width + x; gaussian: index into the scene's Gaussians;
+    transmittance: T_i before the splat; alpha: alpha_i; distance: |projected centre - pixel
+    centre| in pixels.
+    """
+
+    pixel: torch.Tensor
+    gaussian: torch.Tensor
+    transmittance: torch.Tensor
+    alpha: torch.Tensor
+    distance: torch.Tensor
+
+    def __len__(self) -> int:
+        return self.pixel.shape[0]
+
+
+TraceConsumer = Callable[[TraceChunk], None]
+
+
+@dataclass
+class RenderOutput:
+    """rgb: (H, W, 3) linear colour over the background; alpha: (H, W) accumulated opacity;
+    depth: (H, W) alpha-weighted camera depth (divide by alpha for the expected surface depth);
+    features: (H, W, F) composited per-Gaussian attributes or None; ids: (H, W) index of the
+    Gaussian with the largest blend weight (-1 where none) or None."""
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    features: torch.Tensor | None = None
+    ids: torch.Tensor | None = None
+
+
+@dataclass
+class RasterStats:
+    """Work counters of the last call: splat-tile intersections and Gaussian-pixel evaluations."""
+
+    splats: int = 0
+    intersections: int = 0
+    evaluations: int = 0
+
+
+def rasterize(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    background: torch.Tensor | None = None,
+    features: torch.Tensor | None = None,
+    return_ids: bool = False,
+    trace: TraceConsumer | None = None,
+    trace_t_min: float = 0.01,
+    trace_max_distance: float | None = None,
+    trace_only: bool = False,
+    t_stop: float = T_STOP,
+    near: float = 0.01,
+    tile_size: int = 16,
+    block: int = 32,
+    max_elements: int = 1 << 22,
+    stats: RasterStats | None = None,
+) -> RenderOutput | None:
+    """Render one view (and optionally stream its trace).
+
+    gaussians: N splats; camera: the view; features: (N, F) attributes to composite alongside
+    RGB (e.g. one-hot labels); background: (3,) colour, black by default. With `trace_only`, no
+    image is accumulated and each pixel stops as soon as T <= trace_t_min (the vote's pass).
+    """
+    device = gaussians.device
+    W, H = camera.width, camera.height
+    proj = project(gaussians, camera, near=near, with_colors=not trace_only)
+    ts = tile_size
+    ntx, nty = math.ceil(W / ts), math.ceil(H / ts)
+    n_tiles, P = ntx * nty, ts * ts
+    feat_dim = 0 if trace_only else 3 + (features.shape[1] if features is not None else 0)
+    if not trace_only:
+        feat_all = proj.colors
+        if features is not None:
+            feat_all = torch.cat([feat_all, features[proj.ids].to(feat_all.dtype)], dim=1)
+    acc_feat = torch.zeros(n_tiles, P, feat_dim, device=device)
+    acc_depth = torch.zeros(n_tiles, P, device=device)
+    final_T = torch.ones(n_tiles, P, device=device)
+    best_id = torch.full((n_tiles, P), -1, dtype=torch.long, device=device) if return_ids else None
+    stop_T = trace_t_min if trace_only else t_stop
+
+    tile_ids, splat_order, tile_offsets, tile_counts = _bin_tiles(proj, ntx, nty, ts)
+    if stats is not None:
+        stats.splats, stats.intersections, stats.evaluations = len(proj), splat_order.numel(), 0
+    params = proj.params()
+    local = torch.arange(P, device=device)
+    lx, ly = (local % ts).float() + 0.5, (local // ts).float() + 0.5
+    kind = proj.kind
+
+    busy = torch.nonzero(tile_counts > 0).squeeze(1)
+    busy = busy[torch.argsort(tile_counts[busy], descending=True)]
+    start = 0
+    while start < busy.numel():
+        longest = int(tile_counts[busy[start]])
+        blk = min(block, longest)
+        n_chunk = max(1, min(busy.numel() - start, max_elements // (blk * P)))
+        tiles = busy[start : start + n_chunk]
+        start += n_chunk
+        counts, offsets = tile_counts[tiles], tile_offsets[tiles]
+        tx, ty = tiles % ntx, tiles // ntx
+        px = (tx[:, None] * ts + lx[None, :]).unsqueeze(1)  # (T, 1, P)
+        py = (ty[:, None] * ts + ly[None, :]).unsqueeze(1)
+        pixel_in = (px < W) & (py < H)
+        pixel_lin = (py.long() * W + px.long()).squeeze(1)  # (T, P)
+        # T: true transmittance before the next splat; T_kept: product over composited splats.
+        T = torch.where(pixel_in, 1.0, 0.0).to(px.dtype)  # padding pixels take no work
+        T_kept = T.clone()
+        feat_c = torch.zeros(tiles.numel(), P, feat_dim, device=device)
+        depth_c = torch.zeros(tiles.numel(), P, device=device)
+        if return_ids:
+            best_w_c = torch.zeros(tiles.numel(), P, device=device)
+            best_id_c = torch.full((tiles.numel(), P), -1, dtype=torch.long, device=device)
+        for b0 in range(0, longest, blk):
+            j = b0 + torch.arange(blk, device=device)
+            in_list = j[None, :] < counts[:, None]  # (T, B)
+            pos = offsets[:, None] + torch.minimum(j[None, :], counts[:, None] - 1)
+            splats = splat_order[pos]  # (T, B) indices into proj
+            alpha, depth_px, dist2 = splat_response(kind, params[splats], px, py)
+            alpha = alpha * in_list.unsqueeze(2)
+            one_minus = 1.0 - alpha
+            T_before = T * torch.cumprod(
+                torch.cat([torch.ones_like(one_minus[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
+            if stats is not None:
+                stats.evaluations += int(in_list.sum()) * P
+            if trace is not None:
+                hit = (T_before > trace_t_min) & (alpha > 0)
+                if trace_max_distance is not None:
+                    hit &= dist2 < trace_max_distance**2
+                t_i, b_i, p_i = torch.nonzero(hit, as_tuple=True)
+                if t_i.numel():
+                    trace(TraceChunk(pixel=pixel_lin[t_i, p_i],
+                                     gaussian=proj.ids[splats[t_i, b_i]],
+                                     transmittance=T_before[t_i, b_i, p_i],
+                                     alpha=alpha[t_i, b_i, p_i],
+                                     distance=dist2[t_i, b_i, p_i].sqrt()))
+            # T is monotone, so the first splat failing this test ends the pixel for good.
+            keep = (T_before * one_minus >= stop_T) & (alpha > 0)
+            if not trace_only:
+                weight = torch.where(keep, alpha * T_before, torch.zeros_like(alpha))  # (T, B, P)
+                feat_c += torch.bmm(weight.transpose(1, 2), feat_all[splats])
+                depth_c += (weight * depth_px).sum(1)
+                if return_ids:
+                    w_max, arg = weight.max(dim=1)
+                    better = w_max > best_w_c
+                    best_w_c = torch.where(better, w_max, best_w_c)
+                    best_id_c = torch.where(better, proj.ids[splats.gather(1, arg)], best_id_c)
+                T_kept = T_kept * torch.where(keep, one_minus, 1.0).prod(dim=1, keepdim=True)
+            T = T_before[:, -1:] * one_minus[:, -1:]
+            if not bool((T * (1.0 - 1.0 / 255.0) >= stop_T).any()):
+                break
+        acc_feat[tiles] = feat_c
+        acc_depth[tiles] = depth_c
+        final_T[tiles] = torch.where(pixel_in.squeeze(1), T_kept.squeeze(1), 1.0)
+        if return_ids:
+            best_id[tiles] = best_id_c
+    if trace_only:
+        return None
+
+    bg = torch.zeros(3, device=device) if background is None else background.to(device)
+    img = _untile(acc_feat, ntx, nty, ts, H, W)
+    T_img = _untile(final_T[..., None], ntx, nty, ts, H, W)[..., 0]
+    rgb = img[..., :3] + T_img[..., None] * bg
+    return RenderOutput(
+        rgb=rgb,
+        alpha=1.0 - T_img,
+        depth=_untile(acc_depth[..., None], ntx, nty, ts, H, W)[..., 0],
+        features=img[..., 3:] if features is not None else None,
+        ids=_untile(best_id[..., None], ntx, nty, ts, H, W)[..., 0] if return_ids else None,
+    )
+
+
+def _bin_tiles(proj: ProjectedSplats, ntx: int, nty: int, ts: int):
+    """Sorted (tile, depth) lists: per-tile offsets/counts into `order` (indices into proj)."""
+    device = proj.means2d.device
+    m = len(proj)
+    x0 = torch.floor(proj.bbox[:, 0] / ts).clamp(0, ntx).long()
+    x1 = (torch.floor(proj.bbox[:, 1] / ts) + 1).clamp(0, ntx).long()
+    y0 = torch.floor(proj.bbox[:, 2] / ts).clamp(0, nty).long()
+    y1 = (torch.floor(proj.bbox[:, 3] / ts) + 1).clamp(0, nty).long()
+    wx, wy = (x1 - x0).clamp_min(0), (y1 - y0).clamp_min(0)
+    n = wx * wy
+    splat = torch.repeat_interleave(torch.arange(m, device=device), n)
+    first = torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
+    local = torch.arange(splat.numel(), device=device) - first
+    tx = x0[splat] + local % wx[splat]
+    ty = y0[splat] + local // wx[splat]
+    tile = ty * ntx + tx
+    rank = torch.empty(m, dtype=torch.long, device=device)
+    rank[torch.sort(proj.depths, stable=True).indices] = torch.arange(m, device=device)
+    key = tile * max(m, 1) + rank[splat]
+    key, perm = torch.sort(key)
+    order = splat[perm]
+    counts = torch.bincount(tile, minlength=ntx * nty)
+    offsets = torch.cumsum(counts, 0) - counts
+    return tile, order, offsets, counts
+
+
+def _untile(x: torch.Tensor, ntx: int, nty: int, ts: int, H: int, W: int) -> torch.Tensor:
+    """(tiles, ts*ts, C) -> (H, W, C)."""
+    c = x.shape[-1]
+    img = x.reshape(nty, ntx, ts, ts, c).permute(0, 2, 1, 3, 4).reshape(nty * ts, ntx * ts, c)
+    return img[:H, :W]
