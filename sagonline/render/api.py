@@ -1,0 +1,63 @@
+"""One entry point for every backend: `render(scene, camera, backend=...)`."""
+
+from __future__ import annotations
+
+import torch
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians
+from sagonline.render.rasterize import RenderOutput, rasterize
+
+BACKENDS = ("torch", "gsplat", "auto")
+
+
+def resolve_backend(backend: str, device: torch.device | str) -> str:
+    """'auto' picks gsplat on CUDA when installed, else the torch rasterizer."""
+    if backend not in BACKENDS:
+        raise ValueError(f"renderer backend {backend!r} is not one of {BACKENDS}")
+    if backend == "auto":
+        from sagonline.render.gsplat_backend import gsplat_available
+
+        return "gsplat" if torch.device(device).type == "cuda" and gsplat_available() else "torch"
+    return backend
+
+
+def render(gaussians: Gaussians, camera: Camera, *, backend: str = "torch",
+           **kwargs) -> RenderOutput | None:
+    """Render (and optionally trace) one view; keyword arguments as in `rasterize`."""
+    if resolve_backend(backend, gaussians.device) == "gsplat":
+        from sagonline.render.gsplat_backend import rasterize_gsplat
+
+        return rasterize_gsplat(gaussians, camera, **kwargs)
+    return rasterize(gaussians, camera, **kwargs)
+
+
+def render_labels(gaussians: Gaussians, camera: Camera, labels: torch.Tensor, num_labels: int,
+                  *, labelled: torch.Tensor | None = None, min_weight: float = 0.2,
+                  mode: str = "onehot", backend: str = "torch", **kwargs) -> torch.Tensor:
+    """(H, W) long label mask from per-Gaussian labels (N,) in [0, num_labels).
+
+    mode "onehot": labels are composited as one-hot attributes over the `labelled` Gaussians
+    (default: labels > 0); a pixel takes the class of largest weight, or 0 where the labelled
+    weight is below `min_weight`. Unlabelled Gaussians still occlude. mode "ids": each pixel
+    takes the label of its single most visible Gaussian (largest blend weight).
+    """
+    labels = labels.to(gaussians.device).long()
+    if labels.shape != (len(gaussians),):
+        raise ValueError(f"labels has shape {tuple(labels.shape)}, expected ({len(gaussians)},)")
+    if labels.numel() and (labels.min() < 0 or labels.max() >= num_labels):
+        raise ValueError(f"label ids must lie in [0, {num_labels}); got "
+                         f"[{int(labels.min())}, {int(labels.max())}]")
+    if mode == "ids":
+        out = rasterize(gaussians, camera, return_ids=True, **kwargs)
+        ids = out.ids
+        return torch.where(ids >= 0, labels[ids.clamp_min(0)], torch.zeros_like(ids))
+    if mode != "onehot":
+        raise ValueError(f"label render mode {mode!r} is not 'onehot' or 'ids'")
+    if labelled is None:
+        labelled = labels > 0
+    onehot = torch.nn.functional.one_hot(labels, num_labels).float() * labelled[:, None].float()
+    out = render(gaussians, camera, features=onehot, backend=backend, **kwargs)
+    weights = out.features
+    best = weights.argmax(dim=-1)
+    return torch.where(weights.sum(-1) >= min_weight, best, torch.zeros_like(best))

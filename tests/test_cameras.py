@@ -1,0 +1,131 @@
+"""Camera conventions checked on real files, and trajectories."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.cameras import (CameraFileError, load_cameras, load_colmap, load_llff,
+                               load_nerf_transforms, load_npz_cameras, read_colmap_points,
+                               write_3dgs_cameras_json)
+from sagonline.io import read_scene
+from sagonline.trajectory import pseudo_temporal_order, smooth_path
+from tests.conftest import shared_data, small_camera
+
+
+def _inside(cam, pts):
+    uv, z = cam.project(torch.as_tensor(pts, dtype=torch.float32))
+    return ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+            & (uv[:, 1] < cam.height)).float().mean().item()
+
+
+def test_fern_colmap_points_project_inside_llff_views():
+    fern = shared_data("llff_fern")
+    cams = load_llff(fern, image_dir="images_8")
+    assert len(cams) == 20 and (cams[0].width, cams[0].height) == (504, 378)
+    assert cams[0].name == "image000"
+    xyz, rgb = read_colmap_points(fern / "sparse" / "0")
+    assert xyz.shape == (10091, 3) and rgb.dtype == np.uint8
+    fractions = [_inside(c, xyz) for c in cams]
+    assert min(fractions) > 0.9, fractions
+    # A flipped axis convention would put most points behind or outside.
+    flipped = cams[0].world_to_cam.clone()
+    flipped[1] *= -1
+    flipped[2] *= -1
+    from dataclasses import replace
+    assert _inside(replace(cams[0], world_to_cam=flipped), xyz) < 0.1
+
+
+def test_garden_points_land_inside_real_cameras():
+    z = np.load(shared_data("garden_points", "test_garden.npz"))
+    cams = load_npz_cameras(shared_data("garden_points", "test_garden.npz"))
+    assert len(cams) == 3 and (cams[0].width, cams[0].height) == (648, 420)
+    for cam in cams:
+        assert _inside(cam, z["means3d"]) > 0.3
+
+
+def test_donut_is_centred_in_its_transforms_camera():
+    cam = load_nerf_transforms(shared_data("donut_3dgs", "transforms.json"))[0]
+    g = read_scene(shared_data("donut_3dgs", "point_cloud.ply"))
+    uv, depth = cam.project(g.means)
+    assert (depth > 0).all()
+    centre = uv.mean(0)
+    assert abs(centre[0] - cam.width / 2) < 0.1 * cam.width
+    assert abs(centre[1] - cam.height / 2) < 0.3 * cam.height
+    assert _inside(cam, g.means) > 0.999
+
+
+def test_colmap_text_and_binary_through_pycolmap(tmp_path):
+    import pycolmap
+
+    (tmp_path / "cameras.txt").write_text("1 PINHOLE 64 48 50 51 32 24\n")
+    (tmp_path / "images.txt").write_text(
+        "2 1 0 0 0 0 0 4 1 b.png\n\n1 0.9238795 0 0.3826834 0 0.5 0 4 1 a.png\n\n")
+    (tmp_path / "points3D.txt").write_text("")
+    cams = load_colmap(tmp_path)
+    assert [c.name for c in cams] == ["a", "b"]
+    assert cams[1].center.tolist() == pytest.approx([0, 0, -4], abs=1e-6)
+    assert cams[0].K[1, 1].item() == 51
+    binary = tmp_path / "bin"
+    binary.mkdir()
+    pycolmap.Reconstruction(str(tmp_path)).write_binary(str(binary))
+    again = load_cameras(binary)
+    for a, b in zip(cams, again, strict=True):
+        assert torch.allclose(a.world_to_cam, b.world_to_cam, atol=1e-6)
+
+
+def test_3dgs_cameras_json_round_trip(tmp_path):
+    cams = [small_camera(name="b", eye=(1, -3, 1)), small_camera(name="a")]
+    path = write_3dgs_cameras_json(tmp_path / "cameras.json", cams)
+    back = load_cameras(path)
+    assert [c.name for c in back] == ["a", "b"]
+    assert torch.allclose(back[1].world_to_cam, cams[0].world_to_cam, atol=1e-5)
+
+
+def test_transforms_json_errors(tmp_path):
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": [{"file_path": "x"}]}))
+    with pytest.raises(CameraFileError, match="transforms.json"):
+        load_cameras(tmp_path / "transforms.json")
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(CameraFileError, match="empty: no cameras found"):
+        load_cameras(empty)
+
+
+def test_llff_name_count_mismatch():
+    with pytest.raises(CameraFileError, match="119 poses but 24 image names"):
+        load_llff(shared_data("mold_cape"), image_dir="images_4")
+
+
+def test_scaled_camera_intrinsics():
+    cam = small_camera(40, 30)
+    half = cam.scaled(20, 15)
+    assert half.K[0, 0] == pytest.approx(cam.K[0, 0] / 2)
+    assert half.K[1, 2] == pytest.approx(cam.K[1, 2] / 2)
+
+
+def test_pseudo_temporal_order_and_smooth_path():
+    cams = [small_camera(name=n, eye=e) for n, e in
+            [("c", (0, -4, 1)), ("a", (4, 0, 1)), ("b", (0, 4, 1))]]
+    assert [c.name for c in pseudo_temporal_order(cams)] == ["a", "b", "c"]
+    path = smooth_path(cams, 9)
+    assert len(path) == 9
+    assert torch.allclose(path[0].world_to_cam, cams[0].world_to_cam, atol=1e-5)
+    assert torch.allclose(path[-1].world_to_cam, cams[-1].world_to_cam, atol=1e-5)
+    assert torch.allclose(path[4].world_to_cam, cams[1].world_to_cam, atol=1e-5)
+    # rotations stay orthonormal and consecutive centres move smoothly
+    for cam in path:
+        R = cam.rotation.double()
+        assert torch.allclose(R @ R.T, torch.eye(3, dtype=torch.float64), atol=1e-5)
+    steps = [float((a.center - b.center).norm()) for a, b in zip(path, path[1:], strict=False)]
+    assert max(steps) < 2.5 * min(steps)
+    looped = smooth_path(cams, 12, loop=True)
+    assert len(looped) == 12
+
+
+def test_smooth_path_rejects_mixed_sizes():
+    with pytest.raises(ValueError, match="different image sizes"):
+        smooth_path([small_camera(20, 10), small_camera(30, 10)], 4)
