@@ -2,7 +2,7 @@
 
 Pipeline for one view:
 1. `project` culls and projects the Gaussians (M survive);
-2. every splat is listed in each 16x16 tile its bounding box touches; the (tile, depth rank)
+2. every splat is listed in each 8x8 tile its bounding box touches; the (tile, depth rank)
    keys are sorted once, so each tile holds its splats front to back;
 3. tiles are processed in chunks, their depth lists in blocks of `block` splats: alpha for every
    (tile, splat, pixel) in the block, transmittance by a cumulative product carried across
@@ -93,9 +93,9 @@ def rasterize(
     trace_only: bool = False,
     t_stop: float = T_STOP,
     near: float = 0.01,
-    tile_size: int = 16,
+    tile_size: int = 8,
     block: int = 32,
-    max_elements: int = 1 << 22,
+    max_elements: int = 1 << 20,
     stats: RasterStats | None = None,
 ) -> RenderOutput | None:
     """Render one view (and optionally stream its trace).
@@ -152,25 +152,32 @@ def rasterize(
         if return_ids:
             best_w_c = torch.zeros(tiles.numel(), P, device=device)
             best_id_c = torch.full((tiles.numel(), P), -1, dtype=torch.long, device=device)
+        rows = torch.arange(tiles.numel(), device=device)  # tiles still being composited
         for b0 in range(0, longest, blk):
+            rows = rows[counts[rows] > b0]
+            if rows.numel() == 0:
+                break
             j = b0 + torch.arange(blk, device=device)
-            in_list = j[None, :] < counts[:, None]  # (T, B)
-            pos = offsets[:, None] + torch.minimum(j[None, :], counts[:, None] - 1)
-            splats = splat_order[pos]  # (T, B) indices into proj
-            alpha, depth_px, dist2 = splat_response(kind, params[splats], px, py)
+            cnt = counts[rows]
+            in_list = j[None, :] < cnt[:, None]  # (R, B)
+            pos = offsets[rows, None] + torch.minimum(j[None, :], cnt[:, None] - 1)
+            splats = splat_order[pos]  # (R, B) indices into proj
+            px_r, py_r = px[rows], py[rows]
+            alpha, depth_px, dist2 = splat_response(kind, params[splats], px_r, py_r)
             alpha = alpha * in_list.unsqueeze(2)
             one_minus = 1.0 - alpha
-            T_before = T * torch.cumprod(
+            T_r = T[rows]
+            T_before = T_r * torch.cumprod(
                 torch.cat([torch.ones_like(one_minus[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
             if stats is not None:
-                stats.evaluations += int(in_list.sum()) * P
+                stats.evaluations += alpha.numel()
             if trace is not None:
                 hit = (T_before > trace_t_min) & (alpha > 0)
                 if trace_max_distance is not None:
                     hit &= dist2 < trace_max_distance**2
                 t_i, b_i, p_i = torch.nonzero(hit, as_tuple=True)
                 if t_i.numel():
-                    trace(TraceChunk(pixel=pixel_lin[t_i, p_i],
+                    trace(TraceChunk(pixel=pixel_lin[rows[t_i], p_i],
                                      gaussian=proj.ids[splats[t_i, b_i]],
                                      transmittance=T_before[t_i, b_i, p_i],
                                      alpha=alpha[t_i, b_i, p_i],
@@ -178,18 +185,21 @@ def rasterize(
             # T is monotone, so the first splat failing this test ends the pixel for good.
             keep = (T_before * one_minus >= stop_T) & (alpha > 0)
             if not trace_only:
-                weight = torch.where(keep, alpha * T_before, torch.zeros_like(alpha))  # (T, B, P)
-                feat_c += torch.bmm(weight.transpose(1, 2), feat_all[splats])
-                depth_c += (weight * depth_px).sum(1)
+                weight = torch.where(keep, alpha * T_before, 0.0)  # (R, B, P)
+                feat_c[rows] += torch.bmm(weight.transpose(1, 2), feat_all[splats])
+                depth_c[rows] += (weight * depth_px).sum(1)
                 if return_ids:
                     w_max, arg = weight.max(dim=1)
-                    better = w_max > best_w_c
-                    best_w_c = torch.where(better, w_max, best_w_c)
-                    best_id_c = torch.where(better, proj.ids[splats.gather(1, arg)], best_id_c)
-                T_kept = T_kept * torch.where(keep, one_minus, 1.0).prod(dim=1, keepdim=True)
-            T = T_before[:, -1:] * one_minus[:, -1:]
-            if not bool((T * (1.0 - 1.0 / 255.0) >= stop_T).any()):
-                break
+                    better = w_max > best_w_c[rows]
+                    best_w_c[rows] = torch.where(better, w_max, best_w_c[rows])
+                    best_id_c[rows] = torch.where(better, proj.ids[splats.gather(1, arg)],
+                                                  best_id_c[rows])
+                T_kept[rows] = T_kept[rows] * torch.where(keep, one_minus, 1.0).prod(
+                    dim=1, keepdim=True)
+            T_r = T_before[:, -1:] * one_minus[:, -1:]
+            T[rows] = T_r
+            # A tile is finished once no pixel could still composite a splat.
+            rows = rows[(T_r * (1.0 - 1.0 / 255.0) >= stop_T).flatten(1).any(1)]
         acc_feat[tiles] = feat_c
         acc_depth[tiles] = depth_c
         final_T[tiles] = torch.where(pixel_in.squeeze(1), T_kept.squeeze(1), 1.0)
