@@ -38,8 +38,10 @@ def _cmd_render(args: argparse.Namespace) -> int:
     g = read_scene(args.scene, drop_nonfinite=args.drop_nonfinite).to(args.device)
     cams = load_cameras(args.cameras)
     if not 0 <= args.view < len(cams):
-        raise SystemExit(f"error: --view {args.view} is out of range: {args.cameras} has "
-                         f"{len(cams)} cameras (0..{len(cams) - 1})")
+        raise SystemExit(
+            f"error: --view {args.view} is out of range: {args.cameras} has "
+            f"{len(cams)} cameras (0..{len(cams) - 1})"
+        )
     cam = cams[args.view]
     if (args.width is None) != (args.height is None):
         raise SystemExit("error: give both --width and --height, or neither")
@@ -66,8 +68,11 @@ def build_parser() -> argparse.ArgumentParser:
     info.set_defaults(func=_cmd_info)
     rend = sub.add_parser("render", help="render one camera to PNG or .npy (float32 HxWx3)")
     rend.add_argument("scene")
-    rend.add_argument("--cameras", required=True,
-                      help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz")
+    rend.add_argument(
+        "--cameras",
+        required=True,
+        help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz",
+    )
     rend.add_argument("--view", type=int, default=0)
     rend.add_argument("--width", type=int)
     rend.add_argument("--height", type=int)

@@ -37,7 +37,9 @@ class Camera:
         if tuple(self.K.shape) != (3, 3) or tuple(self.world_to_cam.shape) != (4, 4):
             raise ValueError(f"camera {self.name!r}: K must be 3x3 and world_to_cam 4x4")
         if self.width <= 0 or self.height <= 0:
-            raise ValueError(f"camera {self.name!r}: size {self.width}x{self.height} is not positive")
+            raise ValueError(
+                f"camera {self.name!r}: size {self.width}x{self.height} is not positive"
+            )
 
     @property
     def rotation(self) -> torch.Tensor:
@@ -76,9 +78,13 @@ class Camera:
 
 
 def make_camera(K, world_to_cam, width: int, height: int, name: str = "") -> Camera:
-    return Camera(torch.as_tensor(np.asarray(K), dtype=torch.float32),
-                  torch.as_tensor(np.asarray(world_to_cam), dtype=torch.float32),
-                  int(width), int(height), name)
+    return Camera(
+        torch.as_tensor(np.asarray(K), dtype=torch.float32),
+        torch.as_tensor(np.asarray(world_to_cam), dtype=torch.float32),
+        int(width),
+        int(height),
+        name,
+    )
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -104,6 +110,7 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
 # --- loaders --------------------------------------------------------------------------------
 
+
 def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     """Load cameras from any supported file or folder, dispatching on its name.
 
@@ -113,15 +120,24 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     """
     path = Path(path)
     if path.is_dir():
-        for candidate in ("cameras.json", "transforms.json", "transforms_train.json",
-                          "poses_bounds.npy", "sparse/0", "sparse"):
+        for candidate in (
+            "cameras.json",
+            "transforms.json",
+            "transforms_train.json",
+            "poses_bounds.npy",
+            "sparse/0",
+            "sparse",
+        ):
             if (path / candidate).exists() and (
-                    not (path / candidate).is_dir() or _is_colmap_dir(path / candidate)):
+                not (path / candidate).is_dir() or _is_colmap_dir(path / candidate)
+            ):
                 return load_cameras(path / candidate, **kwargs)
         if _is_colmap_dir(path):
             return load_colmap(path)
-        raise CameraFileError(f"{path}: no cameras found (looked for cameras.json, transforms.json, "
-                              "poses_bounds.npy, sparse/0 with cameras+images)")
+        raise CameraFileError(
+            f"{path}: no cameras found (looked for cameras.json, transforms.json, "
+            "poses_bounds.npy, sparse/0 with cameras+images)"
+        )
     if not path.exists():
         raise CameraFileError(f"{path}: camera file not found")
     name = path.name
@@ -138,7 +154,8 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
 
 def _is_colmap_dir(path: Path) -> bool:
     return any((path / f"images.{ext}").exists() for ext in ("bin", "txt")) and any(
-        (path / f"cameras.{ext}").exists() for ext in ("bin", "txt"))
+        (path / f"cameras.{ext}").exists() for ext in ("bin", "txt")
+    )
 
 
 def list_images(folder: str | Path) -> list[Path]:
@@ -146,8 +163,9 @@ def list_images(folder: str | Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
 
 
-def load_llff(scene_dir: str | Path, image_dir: str | None = None,
-              names: list[str] | None = None) -> list[Camera]:
+def load_llff(
+    scene_dir: str | Path, image_dir: str | None = None, names: list[str] | None = None
+) -> list[Camera]:
     """LLFF `poses_bounds.npy`: rows of a 3x5 [R | t | (H, W, f)] camera-to-world (axes down,
     right, backwards) and two depth bounds, at the full resolution.
 
@@ -177,8 +195,10 @@ def load_llff(scene_dir: str | Path, image_dir: str | None = None,
     if names is None:
         names = [f"{i:05d}" for i in range(len(arr))]
     if len(names) != len(arr):
-        raise CameraFileError(f"{pb_path}: {len(arr)} poses but {len(names)} image names; "
-                              "pass the full sorted name list (names=...)")
+        raise CameraFileError(
+            f"{pb_path}: {len(arr)} poses but {len(names)} image names; "
+            "pass the full sorted name list (names=...)"
+        )
     sx, sy = width / full_w, height / full_h
     cams = []
     for pose, name in zip(poses, names, strict=True):
@@ -197,8 +217,9 @@ def load_llff_bounds(scene_dir: str | Path) -> np.ndarray:
     return np.load(Path(scene_dir) / "poses_bounds.npy")[:, 15:17]
 
 
-def load_nerf_transforms(path: str | Path, width: int | None = None,
-                         height: int | None = None) -> list[Camera]:
+def load_nerf_transforms(
+    path: str | Path, width: int | None = None, height: int | None = None
+) -> list[Camera]:
     """NeRF/Blender `transforms.json`: camera-to-world in OpenGL axes (x right, y up, z back).
 
     Focal length from `fl_x`/`fl_y` or `camera_angle_x`; size from `w`/`h` (top level or per
@@ -217,7 +238,9 @@ def load_nerf_transforms(path: str | Path, width: int | None = None,
         w = width or info.get("w")
         h = height or info.get("h")
         if w is None or h is None:
-            raise CameraFileError(f"{path}: frame {i} has no image size ('w'/'h'); pass width/height")
+            raise CameraFileError(
+                f"{path}: frame {i} has no image size ('w'/'h'); pass width/height"
+            )
         if "fl_x" in info:
             fx = info["fl_x"]
             fy = info.get("fl_y", fx)
@@ -265,11 +288,18 @@ def write_3dgs_cameras_json(path: str | Path, cameras: list[Camera]) -> Path:
     entries = []
     for i, cam in enumerate(cameras):
         c2w = cam.cam_to_world.double().numpy()
-        entries.append({
-            "id": i, "img_name": cam.name, "width": cam.width, "height": cam.height,
-            "position": c2w[:3, 3].tolist(), "rotation": c2w[:3, :3].tolist(),
-            "fx": float(cam.K[0, 0]), "fy": float(cam.K[1, 1]),
-        })
+        entries.append(
+            {
+                "id": i,
+                "img_name": cam.name,
+                "width": cam.width,
+                "height": cam.height,
+                "position": c2w[:3, 3].tolist(),
+                "rotation": c2w[:3, :3].tolist(),
+                "fx": float(cam.K[0, 0]),
+                "fy": float(cam.K[1, 1]),
+            }
+        )
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     tmp.write_text(json.dumps(entries, indent=1))
@@ -284,8 +314,10 @@ def load_npz_cameras(path: str | Path) -> list[Camera]:
     for key in ("viewmats", "Ks", "width", "height"):
         if key not in z:
             raise CameraFileError(f"{path}: missing array {key!r}")
-    return [make_camera(K, vm, int(z["width"]), int(z["height"]), f"{i:05d}")
-            for i, (K, vm) in enumerate(zip(z["Ks"], z["viewmats"], strict=True))]
+    return [
+        make_camera(K, vm, int(z["width"]), int(z["height"]), f"{i:05d}")
+        for i, (K, vm) in enumerate(zip(z["Ks"], z["viewmats"], strict=True))
+    ]
 
 
 def load_colmap(sparse_dir: str | Path) -> list[Camera]:
@@ -298,8 +330,9 @@ def load_colmap(sparse_dir: str | Path) -> list[Camera]:
 
     sparse_dir = Path(sparse_dir)
     if not _is_colmap_dir(sparse_dir):
-        raise CameraFileError(f"{sparse_dir}: not a COLMAP model (needs cameras and images, "
-                              ".bin or .txt)")
+        raise CameraFileError(
+            f"{sparse_dir}: not a COLMAP model (needs cameras and images, .bin or .txt)"
+        )
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
     except Exception as exc:
@@ -312,11 +345,15 @@ def load_colmap(sparse_dir: str | Path) -> list[Camera]:
             distorted.add(cam.model.name)
         w2c = np.eye(4)
         w2c[:3, :] = image.cam_from_world().matrix()
-        cams.append(make_camera(cam.calibration_matrix(), w2c, cam.width, cam.height,
-                                Path(image.name).stem))
+        cams.append(
+            make_camera(cam.calibration_matrix(), w2c, cam.width, cam.height, Path(image.name).stem)
+        )
     if distorted:
-        warnings.warn(f"{sparse_dir}: camera models {sorted(distorted)} have distortion that the "
-                      "rasterizer ignores; use an undistorted model", stacklevel=2)
+        warnings.warn(
+            f"{sparse_dir}: camera models {sorted(distorted)} have distortion that the "
+            "rasterizer ignores; use an undistorted model",
+            stacklevel=2,
+        )
     return sorted(cams, key=lambda c: c.name)
 
 
@@ -331,8 +368,11 @@ def read_colmap_points(sparse_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
     if bin_path.is_file():
         return _read_points3d_bin(bin_path)
     if txt_path.is_file():
-        rows = [ln.split() for ln in txt_path.read_text().splitlines()
-                if ln.strip() and not ln.startswith("#")]
+        rows = [
+            ln.split()
+            for ln in txt_path.read_text().splitlines()
+            if ln.strip() and not ln.startswith("#")
+        ]
         xyz = np.array([[float(v) for v in r[1:4]] for r in rows]).reshape(-1, 3)
         rgb = np.array([[int(v) for v in r[4:7]] for r in rows], dtype=np.uint8).reshape(-1, 3)
         return xyz, rgb

@@ -48,8 +48,10 @@ class Gaussians:
             if tuple(t.shape) != shape:
                 raise ValueError(f"Gaussians.{name} has shape {tuple(t.shape)}, expected {shape}")
         if self.scales.ndim != 2 or self.scales.shape[0] != n or self.scales.shape[1] not in (2, 3):
-            raise ValueError(f"Gaussians.scales has shape {tuple(self.scales.shape)}, "
-                             f"expected ({n}, 3) for 3DGS or ({n}, 2) for 2DGS")
+            raise ValueError(
+                f"Gaussians.scales has shape {tuple(self.scales.shape)}, "
+                f"expected ({n}, 3) for 3DGS or ({n}, 2) for 2DGS"
+            )
         if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
             raise ValueError(f"Gaussians.sh has shape {tuple(self.sh.shape)}, expected ({n}, K, 3)")
         sh_degree_from_coeffs(self.sh.shape[1])
@@ -96,9 +98,15 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     w, x, y, z = quats.unbind(-1)
     return torch.stack(
         [
-            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+            1 - 2 * (y * y + z * z),
+            2 * (x * y - w * z),
+            2 * (x * z + w * y),
+            2 * (x * y + w * z),
+            1 - 2 * (x * x + z * z),
+            2 * (y * z - w * x),
+            2 * (x * z - w * y),
+            2 * (y * z + w * x),
+            1 - 2 * (x * x + y * y),
         ],
         dim=-1,
     ).reshape(*quats.shape[:-1], 3, 3)

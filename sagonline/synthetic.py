@@ -54,6 +54,7 @@ class SyntheticScene:
 
 # --- surface samplers: each returns points (P, 3), normals (P, 3), uv (P, 2) texture coords ---
 
+
 def _fibonacci_sphere(n: int) -> np.ndarray:
     i = np.arange(n) + 0.5
     phi = np.arccos(1 - 2 * i / n)
@@ -94,8 +95,9 @@ def _cylinder(n: int, r: float, h: float):
     side_n = int(n * (2 * np.pi * r * h) / (2 * np.pi * r * h + np.pi * r * r))
     k_theta = max(8, int(np.sqrt(side_n * 2 * np.pi * r / h)))
     k_z = max(2, side_n // k_theta)
-    th, z = np.meshgrid(np.linspace(0, 2 * np.pi, k_theta, endpoint=False),
-                        (np.arange(k_z) + 0.5) / k_z * h)
+    th, z = np.meshgrid(
+        np.linspace(0, 2 * np.pi, k_theta, endpoint=False), (np.arange(k_z) + 0.5) / k_z * h
+    )
     th, z = th.ravel(), z.ravel()
     side = np.stack([r * np.cos(th), r * np.sin(th), z], 1)
     side_n_ = np.stack([np.cos(th), np.sin(th), np.zeros_like(th)], 1)
@@ -123,20 +125,32 @@ def _cone(n: int, r: float, h: float):
 def _torus(n: int, big: float, small: float):
     k_u = max(8, int(np.sqrt(n * big / small)))
     k_v = max(6, n // k_u)
-    u, v = np.meshgrid(np.linspace(0, 2 * np.pi, k_u, endpoint=False),
-                       np.linspace(0, 2 * np.pi, k_v, endpoint=False))
+    u, v = np.meshgrid(
+        np.linspace(0, 2 * np.pi, k_u, endpoint=False),
+        np.linspace(0, 2 * np.pi, k_v, endpoint=False),
+    )
     u, v = u.ravel(), v.ravel()
-    pts = np.stack([(big + small * np.cos(v)) * np.cos(u), (big + small * np.cos(v)) * np.sin(u),
-                    small * np.sin(v) + small], 1)
+    pts = np.stack(
+        [
+            (big + small * np.cos(v)) * np.cos(u),
+            (big + small * np.cos(v)) * np.sin(u),
+            small * np.sin(v) + small,
+        ],
+        1,
+    )
     nrm = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], 1)
     return pts, nrm, np.stack([u / np.pi, v / np.pi], 1)
 
 
 def _shape_area(spec: ObjectSpec) -> float:
     s = spec.size
-    return {"sphere": 4 * np.pi * s * s, "box": 5 * (2 * s) ** 2,
-            "cylinder": 2 * np.pi * (0.7 * s) * (2 * s) + np.pi * (0.7 * s) ** 2,
-            "cone": np.pi * s * np.hypot(s, 2 * s), "torus": 4 * np.pi**2 * s * (0.35 * s)}[spec.shape]
+    return {
+        "sphere": 4 * np.pi * s * s,
+        "box": 5 * (2 * s) ** 2,
+        "cylinder": 2 * np.pi * (0.7 * s) * (2 * s) + np.pi * (0.7 * s) ** 2,
+        "cone": np.pi * s * np.hypot(s, 2 * s),
+        "torus": 4 * np.pi**2 * s * (0.35 * s),
+    }[spec.shape]
 
 
 def _sample_object(spec: ObjectSpec, n: int, rng):
@@ -187,23 +201,44 @@ def _plane_grid(n: int, x_range, y_range, z: float):
     return pts, np.tile([0.0, 0.0, 1.0], (pts.shape[0], 1)), step
 
 
+FOOTPRINT = {"sphere": 1.0, "box": 2**0.5, "cylinder": 0.7, "cone": 1.0, "torus": 1.35}
+
+
 def _place_objects(count: int, radius: float, min_gap: float, rng, sizes) -> list[np.ndarray]:
+    """Centres on the ground whose footprints (`sizes`: circumscribed radii) never overlap;
+    the disc grows by 10% whenever 500 tries find no room."""
     centers: list[np.ndarray] = []
     for i in range(count):
-        for _ in range(2000):
-            c = rng.uniform(-radius, radius, 2)
-            if np.hypot(*c) > radius:
-                continue
-            if all(np.hypot(*(c - o[:2])) > sizes[i] + sizes[j] + min_gap
-                   for j, o in enumerate(centers)):
-                break
+        placed = False
+        while not placed:
+            for _ in range(500):
+                c = rng.uniform(-radius, radius, 2)
+                if np.hypot(*c) + sizes[i] > radius + 0.3:
+                    continue
+                if all(
+                    np.hypot(*(c - o[:2])) > sizes[i] + sizes[j] + min_gap
+                    for j, o in enumerate(centers)
+                ):
+                    placed = True
+                    break
+            if not placed:
+                radius *= 1.1
         centers.append(np.array([c[0], c[1], 0.0]))
     return centers
 
 
-def make_scene(*, layout: str = "360", num_objects: int = 5, num_gaussians: int = 20000,
-               width: int = 320, height: int = 240, num_train_views: int = 36,
-               num_eval_views: int = 8, seed: int = 0, focal_scale: float = 1.1) -> SyntheticScene:
+def make_scene(
+    *,
+    layout: str = "360",
+    num_objects: int = 5,
+    num_gaussians: int = 20000,
+    width: int = 320,
+    height: int = 240,
+    num_train_views: int = 36,
+    num_eval_views: int = 8,
+    seed: int = 0,
+    focal_scale: float = 1.1,
+) -> SyntheticScene:
     """Build a scene.
 
     layout "forward": one object (instance 1) and distractor-free surroundings, cameras on a
@@ -216,18 +251,41 @@ def make_scene(*, layout: str = "360", num_objects: int = 5, num_gaussians: int 
     rng = np.random.default_rng(seed)
     if layout == "forward":
         num_objects = 1
-    palette = rng.permutation(np.array([
-        [0.85, 0.2, 0.2], [0.2, 0.6, 0.9], [0.95, 0.75, 0.1], [0.3, 0.8, 0.35], [0.7, 0.35, 0.85],
-        [0.95, 0.5, 0.15], [0.1, 0.75, 0.75], [0.9, 0.45, 0.6], [0.55, 0.55, 0.2]]))
+    palette = rng.permutation(
+        np.array(
+            [
+                [0.85, 0.2, 0.2],
+                [0.2, 0.6, 0.9],
+                [0.95, 0.75, 0.1],
+                [0.3, 0.8, 0.35],
+                [0.7, 0.35, 0.85],
+                [0.95, 0.5, 0.15],
+                [0.1, 0.75, 0.75],
+                [0.9, 0.45, 0.6],
+                [0.55, 0.55, 0.2],
+            ]
+        )
+    )
     specs = []
-    sizes = rng.uniform(0.35, 0.6, num_objects) if layout == "360" else np.array([0.7])
+    sizes = rng.uniform(0.28, 0.42, num_objects) if layout == "360" else np.array([0.7])
     shape_order = rng.permutation(len(SHAPES))
-    centers = (_place_objects(num_objects, 1.1, 0.05, rng, sizes) if layout == "360"
-               else [np.zeros(3)])
+    shapes = [SHAPES[shape_order[i % len(SHAPES)]] for i in range(num_objects)]
+    footprints = [FOOTPRINT[sh] * sz for sh, sz in zip(shapes, sizes, strict=True)]
+    centers = (
+        _place_objects(num_objects, 1.0, 0.04, rng, footprints)
+        if layout == "360"
+        else [np.zeros(3)]
+    )
     for i in range(num_objects):
-        specs.append(ObjectSpec(shape=SHAPES[shape_order[i % len(SHAPES)]], center=centers[i],
-                                size=float(sizes[i]), color=palette[i % len(palette)],
-                                pattern=("stripes", "checker", "noise", "plain")[i % 4]))
+        specs.append(
+            ObjectSpec(
+                shape=shapes[i],
+                center=centers[i],
+                size=float(sizes[i]),
+                color=palette[i % len(palette)],
+                pattern=("stripes", "checker", "noise", "plain")[i % 4],
+            )
+        )
 
     # Budget: objects get half the surfels (by area), ground and backdrop share the rest.
     obj_budget = num_gaussians // 2
@@ -244,16 +302,20 @@ def make_scene(*, layout: str = "360", num_objects: int = 5, num_gaussians: int 
         sem.append(np.full(len(p), SEMANTIC_NAMES.index(spec.shape)))
         scl.append(np.full((len(p), 2), 0.6 * spacing))
     rest = num_gaussians - sum(len(p) for p in pts)
-    extent = 3.2 if layout == "360" else 3.0
+    extent = 4.0 if layout == "360" else 3.0
     ground_n = rest // 2 if layout == "forward" else int(rest * 0.45)
     g_pts, g_nrm, step = _plane_grid(ground_n, (-extent, extent), (-extent, extent), 0.0)
     checker = ((np.floor(g_pts[:, 0] / 0.5) + np.floor(g_pts[:, 1] / 0.5)) % 2)[:, None]
-    g_col = np.clip(np.where(checker > 0, 0.55, 0.35) * np.array([[0.9, 0.85, 0.75]])
-                    + rng.normal(0, 0.02, (len(g_pts), 3)), 0, 1)
+    g_col = np.clip(
+        np.where(checker > 0, 0.55, 0.35) * np.array([[0.9, 0.85, 0.75]])
+        + rng.normal(0, 0.02, (len(g_pts), 3)),
+        0,
+        1,
+    )
     b_n = num_gaussians - sum(len(p) for p in pts) - len(g_pts)
     if layout == "forward":
         # A wall behind the object (cameras look along +y).
-        b_pts, _, b_step = _plane_grid(b_n, (-extent, extent), (0.0, 2.5), 0.0)
+        b_pts, _, b_step = _plane_grid(b_n, (-1.5 * extent, 1.5 * extent), (0.0, 3.0), 0.0)
         b_pts = np.stack([b_pts[:, 0], np.full(len(b_pts), extent * 0.8), b_pts[:, 1]], 1)
         b_nrm = np.tile([0.0, -1.0, 0.0], (len(b_pts), 1))
     else:
@@ -261,14 +323,20 @@ def make_scene(*, layout: str = "360", num_objects: int = 5, num_gaussians: int 
         radius, h = extent, 2.5
         k_th = max(16, int(np.sqrt(b_n * 2 * np.pi * radius / h)))
         k_z = max(2, b_n // k_th)
-        th, z = np.meshgrid(np.linspace(0, 2 * np.pi, k_th, endpoint=False),
-                            (np.arange(k_z) + 0.5) / k_z * h)
+        th, z = np.meshgrid(
+            np.linspace(0, 2 * np.pi, k_th, endpoint=False), (np.arange(k_z) + 0.5) / k_z * h
+        )
         b_pts = np.stack([radius * np.cos(th.ravel()), radius * np.sin(th.ravel()), z.ravel()], 1)
         b_nrm = -np.stack([np.cos(th.ravel()), np.sin(th.ravel()), np.zeros(th.size)], 1)
         b_step = 2 * np.pi * radius / k_th
-    stripes = 0.5 + 0.2 * np.sin(b_pts[:, 2] * 5.0) + 0.1 * np.sin(b_pts[:, 0] * 3 + b_pts[:, 1] * 3)
-    b_col = np.clip(stripes[:, None] * np.array([[0.55, 0.65, 0.8]])
-                    + rng.normal(0, 0.02, (len(b_pts), 3)), 0, 1)
+    stripes = (
+        0.5 + 0.2 * np.sin(b_pts[:, 2] * 5.0) + 0.1 * np.sin(b_pts[:, 0] * 3 + b_pts[:, 1] * 3)
+    )
+    b_col = np.clip(
+        stripes[:, None] * np.array([[0.55, 0.65, 0.8]]) + rng.normal(0, 0.02, (len(b_pts), 3)),
+        0,
+        1,
+    )
     pts += [g_pts, b_pts]
     nrm += [g_nrm, b_nrm]
     col += [g_col, b_col]
@@ -292,7 +360,10 @@ def make_scene(*, layout: str = "360", num_objects: int = 5, num_gaussians: int 
         gaussians=gaussians,
         instance=torch.tensor(np.concatenate(inst), dtype=torch.long),
         semantic=torch.tensor(np.concatenate(sem), dtype=torch.long),
-        objects=specs, train_cameras=train, eval_cameras=evals, layout=layout,
+        objects=specs,
+        train_cameras=train,
+        eval_cameras=evals,
+        layout=layout,
         meta={"seed": seed, "num_gaussians": len(pts), "width": width, "height": height},
     )
 
@@ -302,17 +373,23 @@ def _cameras(layout: str, width: int, height: int, n_train: int, n_eval: int, fo
     K = intrinsics(f, f, width / 2.0, height / 2.0)
     if layout == "forward":
         target = np.array([0.0, 0.0, 0.6])
+
         def pose(a):
             return look_at([3.6 * np.sin(a), -3.6 * np.cos(a), 1.6 + 0.3 * np.sin(2 * a)], target)
+
         span = np.deg2rad(30.0)
         train_a = np.linspace(-span, span, n_train)
         eval_a = np.linspace(-span, span, n_eval + 2)[1:-1] + (span / max(n_train, 1))
     else:
-        target = np.array([0.0, 0.0, 0.4])
+        target = np.array([0.0, 0.0, 0.25])
+
         def pose(a):
-            return look_at([2.9 * np.cos(a), 2.9 * np.sin(a), 1.9 + 0.25 * np.sin(3 * a)], target)
+            return look_at([3.0 * np.cos(a), 3.0 * np.sin(a), 1.7 + 0.25 * np.sin(3 * a)], target)
+
         train_a = np.linspace(0, 2 * np.pi, n_train, endpoint=False)
         eval_a = (np.arange(n_eval) + 0.37) * 2 * np.pi / max(n_eval, 1)
-    train = [make_camera(K, pose(a), width, height, f"train_{i:04d}") for i, a in enumerate(train_a)]
+    train = [
+        make_camera(K, pose(a), width, height, f"train_{i:04d}") for i, a in enumerate(train_a)
+    ]
     evals = [make_camera(K, pose(a), width, height, f"eval_{i:04d}") for i, a in enumerate(eval_a)]
     return train, evals

@@ -23,7 +23,9 @@ def smooth_path(keyframes: list[Camera], num_frames: int, *, loop: bool = False)
         raise ValueError("smooth_path needs at least one keyframe and one frame")
     sizes = {(c.width, c.height) for c in keyframes}
     if len(sizes) > 1:
-        raise ValueError(f"keyframes have different image sizes {sorted(sizes)}; rescale them first")
+        raise ValueError(
+            f"keyframes have different image sizes {sorted(sizes)}; rescale them first"
+        )
     keys = list(keyframes) + ([keyframes[0]] if loop else [])
     if len(keys) == 1:
         return [keys[0]] * num_frames
@@ -50,9 +52,20 @@ def smooth_path(keyframes: list[Camera], num_frames: int, *, loop: bool = False)
     return path
 
 
-def orbit(center, radius: float, height: float, num_frames: int, K: np.ndarray, width: int,
-          height_px: int, *, up=(0.0, 0.0, 1.0), start_deg: float = 0.0, span_deg: float = 360.0,
-          prefix: str = "orbit") -> list[Camera]:
+def orbit(
+    center,
+    radius: float,
+    height: float,
+    num_frames: int,
+    K: np.ndarray,
+    width: int,
+    height_px: int,
+    *,
+    up=(0.0, 0.0, 1.0),
+    start_deg: float = 0.0,
+    span_deg: float = 360.0,
+    prefix: str = "orbit",
+) -> list[Camera]:
     """Cameras on a circle around `center` at `height` above it, all looking at `center`."""
     from sagonline.cameras import look_at
 

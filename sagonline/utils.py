@@ -63,8 +63,13 @@ def describe_device(device: str = "cpu") -> dict:
     """CPU model and cores, or GPU name; torch version."""
     import torch
 
-    info = {"torch": torch.__version__, "python": platform.python_version(),
-            "cpu": _cpu_model(), "cpu_cores": os.cpu_count(), "torch_threads": torch.get_num_threads()}
+    info = {
+        "torch": torch.__version__,
+        "python": platform.python_version(),
+        "cpu": _cpu_model(),
+        "cpu_cores": os.cpu_count(),
+        "torch_threads": torch.get_num_threads(),
+    }
     if str(device).startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info

@@ -21,8 +21,9 @@ def shared_data(*parts: str) -> Path:
     return path
 
 
-def random_gaussians(n: int, kind: str = "3dgs", seed: int = 0, sh_degree: int = 1,
-                     spread: float = 1.0) -> Gaussians:
+def random_gaussians(
+    n: int, kind: str = "3dgs", seed: int = 0, sh_degree: int = 1, spread: float = 1.0
+) -> Gaussians:
     """n random Gaussians around the origin, sized to cover a few pixels of `small_camera`."""
     rng = np.random.default_rng(seed)
     q = rng.normal(size=(n, 4))

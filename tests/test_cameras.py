@@ -8,9 +8,16 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.cameras import (CameraFileError, load_cameras, load_colmap, load_llff,
-                               load_nerf_transforms, load_npz_cameras, read_colmap_points,
-                               write_3dgs_cameras_json)
+from sagonline.cameras import (
+    CameraFileError,
+    load_cameras,
+    load_colmap,
+    load_llff,
+    load_nerf_transforms,
+    load_npz_cameras,
+    read_colmap_points,
+    write_3dgs_cameras_json,
+)
 from sagonline.io import read_scene
 from sagonline.trajectory import pseudo_temporal_order, smooth_path
 from tests.conftest import shared_data, small_camera
@@ -18,8 +25,18 @@ from tests.conftest import shared_data, small_camera
 
 def _inside(cam, pts):
     uv, z = cam.project(torch.as_tensor(pts, dtype=torch.float32))
-    return ((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
-            & (uv[:, 1] < cam.height)).float().mean().item()
+    return (
+        (
+            (z > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < cam.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < cam.height)
+        )
+        .float()
+        .mean()
+        .item()
+    )
 
 
 def test_fern_colmap_points_project_inside_llff_views():
@@ -36,6 +53,7 @@ def test_fern_colmap_points_project_inside_llff_views():
     flipped[1] *= -1
     flipped[2] *= -1
     from dataclasses import replace
+
     assert _inside(replace(cams[0], world_to_cam=flipped), xyz) < 0.1
 
 
@@ -63,7 +81,8 @@ def test_colmap_text_and_binary_through_pycolmap(tmp_path):
 
     (tmp_path / "cameras.txt").write_text("1 PINHOLE 64 48 50 51 32 24\n")
     (tmp_path / "images.txt").write_text(
-        "2 1 0 0 0 0 0 4 1 b.png\n\n1 0.9238795 0 0.3826834 0 0.5 0 4 1 a.png\n\n")
+        "2 1 0 0 0 0 0 4 1 b.png\n\n1 0.9238795 0 0.3826834 0 0.5 0 4 1 a.png\n\n"
+    )
     (tmp_path / "points3D.txt").write_text("")
     cams = load_colmap(tmp_path)
     assert [c.name for c in cams] == ["a", "b"]
@@ -108,8 +127,10 @@ def test_scaled_camera_intrinsics():
 
 
 def test_pseudo_temporal_order_and_smooth_path():
-    cams = [small_camera(name=n, eye=e) for n, e in
-            [("c", (0, -4, 1)), ("a", (4, 0, 1)), ("b", (0, 4, 1))]]
+    cams = [
+        small_camera(name=n, eye=e)
+        for n, e in [("c", (0, -4, 1)), ("a", (4, 0, 1)), ("b", (0, 4, 1))]
+    ]
     assert [c.name for c in pseudo_temporal_order(cams)] == ["a", "b", "c"]
     path = smooth_path(cams, 9)
     assert len(path) == 9

@@ -12,8 +12,9 @@ from tests.conftest import shared_data
 
 
 def _run(*args):
-    return subprocess.run([sys.executable, "-m", "sagonline", *args], capture_output=True,
-                          text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "sagonline", *args], capture_output=True, text=True, timeout=120
+    )
 
 
 def test_info_prints_format_count_degree_bbox():
@@ -26,15 +27,35 @@ def test_info_prints_format_count_degree_bbox():
 def test_render_png_and_npy(tmp_path):
     scene = shared_data("donut_3dgs", "point_cloud.ply")
     cams = shared_data("donut_3dgs", "transforms.json")
-    res = _run("render", str(scene), "--cameras", str(cams), "--width", "96", "--height", "54",
-               "--out", str(tmp_path / "d.npy"))
+    res = _run(
+        "render",
+        str(scene),
+        "--cameras",
+        str(cams),
+        "--width",
+        "96",
+        "--height",
+        "54",
+        "--out",
+        str(tmp_path / "d.npy"),
+    )
     assert res.returncode == 0, res.stderr
     arr = np.load(tmp_path / "d.npy")
     assert arr.shape == (54, 96, 3) and arr.dtype == np.float32
     assert arr[0, 0].tolist() == [0, 0, 0]  # black background in a corner
     assert arr[:27].max() > 0.3  # the donut sits in the upper half
-    res = _run("render", str(scene), "--cameras", str(cams), "--width", "96", "--height", "54",
-               "--out", str(tmp_path / "d.png"))
+    res = _run(
+        "render",
+        str(scene),
+        "--cameras",
+        str(cams),
+        "--width",
+        "96",
+        "--height",
+        "54",
+        "--out",
+        str(tmp_path / "d.png"),
+    )
     assert res.returncode == 0, res.stderr
     png = np.asarray(Image.open(tmp_path / "d.png"))
     assert png.shape == (54, 96, 3)
@@ -46,7 +67,14 @@ def test_render_errors_name_the_problem(tmp_path):
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n")
     res = _run("info", str(bad))
     assert res.returncode == 2 and "bad.ply" in res.stderr
-    res = _run("render", str(shared_data("donut_3dgs", "point_cloud.ply")), "--cameras",
-               str(shared_data("donut_3dgs", "transforms.json")), "--view", "5", "--out",
-               str(tmp_path / "x.png"))
+    res = _run(
+        "render",
+        str(shared_data("donut_3dgs", "point_cloud.ply")),
+        "--cameras",
+        str(shared_data("donut_3dgs", "transforms.json")),
+        "--view",
+        "5",
+        "--out",
+        str(tmp_path / "x.png"),
+    )
     assert res.returncode != 0 and "out of range" in res.stderr

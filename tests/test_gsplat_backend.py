@@ -11,8 +11,11 @@ from tests.conftest import random_gaussians, small_camera
 
 
 def _trace_set(chunks):
-    return {(int(p), int(g)): float(t) for c in chunks
-            for p, g, t in zip(c.pixel, c.gaussian, c.transmittance, strict=True)}
+    return {
+        (int(p), int(g)): float(t)
+        for c in chunks
+        for p, g, t in zip(c.pixel, c.gaussian, c.transmittance, strict=True)
+    }
 
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
@@ -40,8 +43,9 @@ def test_trace_step_matches_tiled_trace(kind, n_batches):
     for b in range(n_batches):
         sel = pairs[depth_batch == b]
         sel = sel[torch.randperm(len(sel), generator=torch.Generator().manual_seed(b))]
-        chunk, T = trace_step(sel[:, 0], sel[:, 1], T, local, rank, proj.params(), proj.kind, W,
-                              0.01, None)
+        chunk, T = trace_step(
+            sel[:, 0], sel[:, 1], T, local, rank, proj.params(), proj.kind, W, 0.01, None
+        )
         chunks.append(chunk)
     expected = []
     rasterize(g, cam, trace=expected.append, trace_only=True)

@@ -46,7 +46,9 @@ def test_splat_to_ply_is_within_logit_rounding(tmp_path):
     # where the sigmoid is flat); everything else is exact.
     g = read_scene(shared_data("sh3_scene_3dgs", "model.splat"))
     h = read_scene(write_ply(tmp_path / "s.ply", g))
-    assert all(torch.equal(getattr(g, f), getattr(h, f)) for f in ("means", "quats", "scales", "sh"))
+    assert all(
+        torch.equal(getattr(g, f), getattr(h, f)) for f in ("means", "quats", "scales", "sh")
+    )
     assert not torch.equal(g.opacities, h.opacities)
     assert torch.allclose(g.opacities, h.opacities, rtol=1e-6, atol=0)
 
@@ -66,9 +68,25 @@ def _write_vertex(path, columns: dict, name="vertex"):
 
 
 def _columns(n=4):
-    cols = {k: np.zeros(n, np.float32) for k in ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2",
-                                                  "opacity", "scale_0", "scale_1", "scale_2",
-                                                  "rot_0", "rot_1", "rot_2", "rot_3"]}
+    cols = {
+        k: np.zeros(n, np.float32)
+        for k in [
+            "x",
+            "y",
+            "z",
+            "f_dc_0",
+            "f_dc_1",
+            "f_dc_2",
+            "opacity",
+            "scale_0",
+            "scale_1",
+            "scale_2",
+            "rot_0",
+            "rot_1",
+            "rot_2",
+            "rot_3",
+        ]
+    }
     cols["rot_0"][:] = 1
     return cols
 

@@ -16,11 +16,17 @@ def _fast_trace(g, cam, t_min):
     rasterize(g, cam, trace=lambda c: rows.append(c), trace_t_min=t_min, trace_only=True)
     if not rows:
         return {}
-    cat = {k: torch.cat([getattr(c, k) for c in rows]) for k in
-           ("pixel", "gaussian", "transmittance", "alpha", "distance")}
-    return {(int(p), int(g_)): (float(t), float(a), float(d)) for p, g_, t, a, d in
-            zip(*(cat[k] for k in ("pixel", "gaussian", "transmittance", "alpha", "distance")),
-                strict=True)}
+    cat = {
+        k: torch.cat([getattr(c, k) for c in rows])
+        for k in ("pixel", "gaussian", "transmittance", "alpha", "distance")
+    }
+    return {
+        (int(p), int(g_)): (float(t), float(a), float(d))
+        for p, g_, t, a, d in zip(
+            *(cat[k] for k in ("pixel", "gaussian", "transmittance", "alpha", "distance")),
+            strict=True,
+        )
+    }
 
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
@@ -30,8 +36,15 @@ def test_image_matches_reference(kind, seed, tile_size, block):
     g = random_gaussians(40, kind, seed=seed)
     cam = small_camera(eye=(0.5 * seed, -4.0, 0.6))
     feats = torch.nn.functional.one_hot(torch.arange(40) % 3, 3).float()
-    fast = rasterize(g, cam, features=feats, return_ids=True, tile_size=tile_size, block=block,
-                     background=torch.tensor([0.1, 0.2, 0.3]))
+    fast = rasterize(
+        g,
+        cam,
+        features=feats,
+        return_ids=True,
+        tile_size=tile_size,
+        block=block,
+        background=torch.tensor([0.1, 0.2, 0.3]),
+    )
     ref = reference_render(g, cam, features=feats, background=(0.1, 0.2, 0.3))
     assert ref.alpha.max() > 0.5, "the scene must cover the view for the test to mean anything"
     np.testing.assert_allclose(fast.rgb.numpy(), ref.rgb, atol=2e-4)

@@ -22,8 +22,21 @@ class SceneFileError(ValueError):
     """A scene file is missing, truncated or malformed; the message names the file and field."""
 
 
-_REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
-             "scale_0", "scale_1", "rot_0", "rot_1", "rot_2", "rot_3"]
+_REQUIRED = [
+    "x",
+    "y",
+    "z",
+    "f_dc_0",
+    "f_dc_1",
+    "f_dc_2",
+    "opacity",
+    "scale_0",
+    "scale_1",
+    "rot_0",
+    "rot_1",
+    "rot_2",
+    "rot_3",
+]
 
 
 def read_scene(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
@@ -42,17 +55,22 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     try:
         ply = PlyData.read(str(path))
     except Exception as exc:  # plyfile raises several types for truncated/garbled input
-        raise SceneFileError(f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})") from exc
+        raise SceneFileError(
+            f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})"
+        ) from exc
     names = [e.name for e in ply.elements]
     if "vertex" not in names:
-        raise SceneFileError(f"{path}: no 'vertex' element (found elements {names}); "
-                             "a Gaussian PLY stores one vertex per Gaussian")
+        raise SceneFileError(
+            f"{path}: no 'vertex' element (found elements {names}); "
+            "a Gaussian PLY stores one vertex per Gaussian"
+        )
     vertex = ply["vertex"]
     props = [p.name for p in vertex.properties]
     missing = [p for p in _REQUIRED if p not in props]
     if missing:
-        raise SceneFileError(f"{path}: missing required property {missing[0]!r} "
-                             f"(all missing: {missing})")
+        raise SceneFileError(
+            f"{path}: missing required property {missing[0]!r} (all missing: {missing})"
+        )
     data = vertex.data
     if len(data) == 0:
         raise SceneFileError(f"{path}: the vertex element is empty")
@@ -65,12 +83,16 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
 
     rest_names = sorted((p for p in props if p.startswith("f_rest_")), key=lambda p: int(p[7:]))
     if len(rest_names) % 3:
-        raise SceneFileError(f"{path}: {len(rest_names)} f_rest_* properties is not a multiple of 3")
+        raise SceneFileError(
+            f"{path}: {len(rest_names)} f_rest_* properties is not a multiple of 3"
+        )
     try:
         sh_degree_from_coeffs(len(rest_names) // 3 + 1)
     except ValueError:
-        raise SceneFileError(f"{path}: {len(rest_names)} f_rest_* properties does not match "
-                             "any SH degree 0-3 (expected 0, 9, 24 or 45)") from None
+        raise SceneFileError(
+            f"{path}: {len(rest_names)} f_rest_* properties does not match "
+            "any SH degree 0-3 (expected 0, 9, 24 or 45)"
+        ) from None
     scale_names = ["scale_0", "scale_1"] + (["scale_2"] if "scale_2" in props else [])
     has_normals = all(n in props for n in ("nx", "ny", "nz"))
 
@@ -85,8 +107,12 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     if has_normals:
         raw["normals"] = stack(["nx", "ny", "nz"])
     prop_names = {
-        "means": ["x", "y", "z"], "dc": ["f_dc_0", "f_dc_1", "f_dc_2"], "rest": rest_names,
-        "opacity": ["opacity"], "scales": scale_names, "quats": ["rot_0", "rot_1", "rot_2", "rot_3"],
+        "means": ["x", "y", "z"],
+        "dc": ["f_dc_0", "f_dc_1", "f_dc_2"],
+        "rest": rest_names,
+        "opacity": ["opacity"],
+        "scales": scale_names,
+        "quats": ["rot_0", "rot_1", "rot_2", "rot_3"],
         "normals": ["nx", "ny", "nz"],
     }
     raw = _check_finite(path, raw, prop_names, drop_nonfinite)
@@ -140,8 +166,10 @@ def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
         raise SceneFileError(f"{path}: scene file not found")
     buf = path.read_bytes()
     if len(buf) == 0 or len(buf) % 32:
-        raise SceneFileError(f"{path}: {len(buf)} bytes is not a whole number of 32-byte splats "
-                             "(truncated or not a .splat file)")
+        raise SceneFileError(
+            f"{path}: {len(buf)} bytes is not a whole number of 32-byte splats "
+            "(truncated or not a .splat file)"
+        )
     dtype = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
     data = np.frombuffer(buf, dtype=dtype)
     raw = {"means": data["pos"].copy(), "scales": data["scale"].copy()}
@@ -164,6 +192,7 @@ def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
 
 
 # --- raw <-> activated ------------------------------------------------------------------------
+
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
     return (1.0 / (1.0 + np.exp(-x.astype(np.float64)))).astype(np.float32)
@@ -201,8 +230,9 @@ def _normalize_quats(path: Path, quats: np.ndarray, what: str) -> np.ndarray:
     zero = norm < 1e-12
     if zero.any():
         rows = np.flatnonzero(zero)
-        raise SceneFileError(f"{path}: {len(rows)} zero-norm quaternions in {what} "
-                             f"(first at row {rows[0]})")
+        raise SceneFileError(
+            f"{path}: {len(rows)} zero-norm quaternions in {what} (first at row {rows[0]})"
+        )
     # Rows already unit to float32 precision stay as they are, so a write/read cycle is exact.
     unit = np.abs(norm - 1.0) < 1e-6
     out = (quats.astype(np.float64) / norm[:, None]).astype(np.float32)
@@ -210,8 +240,9 @@ def _normalize_quats(path: Path, quats: np.ndarray, what: str) -> np.ndarray:
     return out
 
 
-def _check_finite(path: Path, raw: dict[str, np.ndarray], names: dict[str, list[str]],
-                  drop: bool) -> dict[str, np.ndarray]:
+def _check_finite(
+    path: Path, raw: dict[str, np.ndarray], names: dict[str, list[str]], drop: bool
+) -> dict[str, np.ndarray]:
     n = next(iter(raw.values())).shape[0]
     bad_rows = np.zeros(n, dtype=bool)
     first_bad: tuple[str, int, int] | None = None
@@ -221,8 +252,11 @@ def _check_finite(path: Path, raw: dict[str, np.ndarray], names: dict[str, list[
             rows, cols = np.nonzero(bad)
             bad_rows[rows] = True
             if first_bad is None:
-                first_bad = (names[key][min(cols[0], len(names[key]) - 1)], int(rows[0]),
-                             int(bad.any(1).sum()))
+                first_bad = (
+                    names[key][min(cols[0], len(names[key]) - 1)],
+                    int(rows[0]),
+                    int(bad.any(1).sum()),
+                )
     if first_bad is None:
         return raw
     prop, row, count = first_bad
@@ -230,9 +264,11 @@ def _check_finite(path: Path, raw: dict[str, np.ndarray], names: dict[str, list[
         raise SceneFileError(
             f"{path}: property {prop!r} has NaN/Inf values ({count} rows, first at row {row}); "
             f"{int(bad_rows.sum())} rows are non-finite in all. Pass drop_nonfinite=True "
-            "(CLI: --drop-nonfinite) to drop them.")
-    warnings.warn(f"{path}: dropped {int(bad_rows.sum())} of {n} Gaussians with NaN/Inf values",
-                  stacklevel=3)
+            "(CLI: --drop-nonfinite) to drop them."
+        )
+    warnings.warn(
+        f"{path}: dropped {int(bad_rows.sum())} of {n} Gaussians with NaN/Inf values", stacklevel=3
+    )
     keep = ~bad_rows
     if not keep.any():
         raise SceneFileError(f"{path}: every Gaussian has NaN/Inf values")

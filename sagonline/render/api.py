@@ -22,8 +22,9 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     return backend
 
 
-def render(gaussians: Gaussians, camera: Camera, *, backend: str = "torch",
-           **kwargs) -> RenderOutput | None:
+def render(
+    gaussians: Gaussians, camera: Camera, *, backend: str = "torch", **kwargs
+) -> RenderOutput | None:
     """Render (and optionally trace) one view; keyword arguments as in `rasterize`."""
     if resolve_backend(backend, gaussians.device) == "gsplat":
         from sagonline.render.gsplat_backend import rasterize_gsplat
@@ -32,9 +33,18 @@ def render(gaussians: Gaussians, camera: Camera, *, backend: str = "torch",
     return rasterize(gaussians, camera, **kwargs)
 
 
-def render_labels(gaussians: Gaussians, camera: Camera, labels: torch.Tensor, num_labels: int,
-                  *, labelled: torch.Tensor | None = None, min_weight: float = 0.2,
-                  mode: str = "onehot", backend: str = "torch", **kwargs) -> torch.Tensor:
+def render_labels(
+    gaussians: Gaussians,
+    camera: Camera,
+    labels: torch.Tensor,
+    num_labels: int,
+    *,
+    labelled: torch.Tensor | None = None,
+    min_weight: float = 0.2,
+    mode: str = "onehot",
+    backend: str = "torch",
+    **kwargs,
+) -> torch.Tensor:
     """(H, W) long label mask from per-Gaussian labels (N,) in [0, num_labels).
 
     mode "onehot": labels are composited as one-hot attributes over the `labelled` Gaussians
@@ -46,8 +56,10 @@ def render_labels(gaussians: Gaussians, camera: Camera, labels: torch.Tensor, nu
     if labels.shape != (len(gaussians),):
         raise ValueError(f"labels has shape {tuple(labels.shape)}, expected ({len(gaussians)},)")
     if labels.numel() and (labels.min() < 0 or labels.max() >= num_labels):
-        raise ValueError(f"label ids must lie in [0, {num_labels}); got "
-                         f"[{int(labels.min())}, {int(labels.max())}]")
+        raise ValueError(
+            f"label ids must lie in [0, {num_labels}); got "
+            f"[{int(labels.min())}, {int(labels.max())}]"
+        )
     if mode == "ids":
         out = rasterize(gaussians, camera, return_ids=True, **kwargs)
         ids = out.ids

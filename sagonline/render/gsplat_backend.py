@@ -33,18 +33,30 @@ def _require_gsplat():
     try:
         import gsplat
     except ImportError as exc:
-        raise RuntimeError("renderer backend 'gsplat' needs the gsplat package: "
-                           "pip install -e '.[gsplat]' (CUDA only)") from exc
+        raise RuntimeError(
+            "renderer backend 'gsplat' needs the gsplat package: "
+            "pip install -e '.[gsplat]' (CUDA only)"
+        ) from exc
     if not torch.cuda.is_available():
         raise RuntimeError("renderer backend 'gsplat' needs CUDA; use backend 'torch' on CPU")
     return gsplat
 
 
-def rasterize_gsplat(gaussians: Gaussians, camera: Camera, *, background=None, features=None,
-                     trace: TraceConsumer | None = None, trace_t_min: float = 0.01,
-                     trace_max_distance: float | None = None, trace_only: bool = False,
-                     near: float = 0.01, tile_size: int = 16, batch: int = 32,
-                     **_: object) -> RenderOutput | None:
+def rasterize_gsplat(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    background=None,
+    features=None,
+    trace: TraceConsumer | None = None,
+    trace_t_min: float = 0.01,
+    trace_max_distance: float | None = None,
+    trace_only: bool = False,
+    near: float = 0.01,
+    tile_size: int = 16,
+    batch: int = 32,
+    **_: object,
+) -> RenderOutput | None:
     """Same contract as `sagonline.render.rasterize` (ids are not produced by this backend)."""
     gsplat = _require_gsplat()
     g = gaussians
@@ -56,30 +68,56 @@ def rasterize_gsplat(gaussians: Gaussians, camera: Camera, *, background=None, f
         colors[proj.ids] = proj.colors
         if features is not None:
             colors = torch.cat([colors, features.to(colors)], dim=1)
-    common = dict(viewmats=viewmats, Ks=Ks, width=cam.width, height=cam.height, near_plane=near,
-                  packed=False, tile_size=tile_size, render_mode="RGB+D")
+    common = dict(
+        viewmats=viewmats,
+        Ks=Ks,
+        width=cam.width,
+        height=cam.height,
+        near_plane=near,
+        packed=False,
+        tile_size=tile_size,
+        render_mode="RGB+D",
+    )
     if g.kind == "3dgs":
-        img, alphas, meta = gsplat.rasterization(g.means, g.quats, g.scales, g.opacities, colors,
-                                                 **common)
+        img, alphas, meta = gsplat.rasterization(
+            g.means, g.quats, g.scales, g.opacities, colors, **common
+        )
         shape_key, indices_fn = "conics", gsplat.rasterize_to_indices_in_range
     else:
-        img, alphas, *_, meta = gsplat.rasterization_2dgs(g.means, g.quats, g.scales, g.opacities,
-                                                          colors, **common)
+        img, alphas, *_, meta = gsplat.rasterization_2dgs(
+            g.means, g.quats, g.scales, g.opacities, colors, **common
+        )
         shape_key, indices_fn = "ray_transforms", gsplat.rasterize_to_indices_in_range_2dgs
     if trace is not None:
-        _walk_trace(indices_fn, meta, shape_key, proj, len(g), cam, trace, trace_t_min,
-                    trace_max_distance, tile_size, batch)
+        _walk_trace(
+            indices_fn,
+            meta,
+            shape_key,
+            proj,
+            len(g),
+            cam,
+            trace,
+            trace_t_min,
+            trace_max_distance,
+            tile_size,
+            batch,
+        )
     if trace_only:
         return None
     img, alpha = img[0], alphas[0, ..., 0]
     bg = torch.zeros(3, device=g.device) if background is None else background.to(g.device)
     rgb = img[..., :3] + (1 - alpha)[..., None] * bg
-    return RenderOutput(rgb=rgb, alpha=alpha, depth=img[..., -1],
-                        features=img[..., 3:-1] if features is not None else None)
+    return RenderOutput(
+        rgb=rgb,
+        alpha=alpha,
+        depth=img[..., -1],
+        features=img[..., 3:-1] if features is not None else None,
+    )
 
 
-def _walk_trace(indices_fn, meta, shape_key, proj, n, cam, consumer, t_min, max_dist, tile_size,
-                batch):
+def _walk_trace(
+    indices_fn, meta, shape_key, proj, n, cam, consumer, t_min, max_dist, tile_size, batch
+):
     W, H = cam.width, cam.height
     device = proj.means2d.device
     local = torch.full((n,), -1, dtype=torch.long, device=device)
@@ -89,24 +127,47 @@ def _walk_trace(indices_fn, meta, shape_key, proj, n, cam, consumer, t_min, max_
     rank[torch.sort(proj.depths, stable=True).indices] = torch.arange(len(proj), device=device)
     T = torch.ones(1, H, W, device=device)
     offsets = meta["isect_offsets"]
-    longest = int(torch.diff(torch.cat([offsets.flatten(),
-                                        offsets.new_tensor([meta["flatten_ids"].numel()])])).max())
+    longest = int(
+        torch.diff(
+            torch.cat([offsets.flatten(), offsets.new_tensor([meta["flatten_ids"].numel()])])
+        ).max()
+    )
     for start in range(0, longest, batch):
-        gids, pids, _ = indices_fn(start, start + batch, T, meta["means2d"], meta[shape_key],
-                                   meta["opacities"], W, H, tile_size, offsets,
-                                   meta["flatten_ids"])
+        gids, pids, _ = indices_fn(
+            start,
+            start + batch,
+            T,
+            meta["means2d"],
+            meta[shape_key],
+            meta["opacities"],
+            W,
+            H,
+            tile_size,
+            offsets,
+            meta["flatten_ids"],
+        )
         if gids.numel() == 0:
             break
-        chunk, T_flat = trace_step(gids, pids, T.view(-1), local, rank, params, proj.kind, W,
-                                   t_min, max_dist)
+        chunk, T_flat = trace_step(
+            gids, pids, T.view(-1), local, rank, params, proj.kind, W, t_min, max_dist
+        )
         T = T_flat.view(1, H, W)
         if len(chunk):
             consumer(chunk)
 
 
-def trace_step(gids: torch.Tensor, pids: torch.Tensor, T: torch.Tensor, local: torch.Tensor,
-               rank: torch.Tensor, params: torch.Tensor, kind: str, width: int, t_min: float,
-               max_dist: float | None) -> tuple[TraceChunk, torch.Tensor]:
+def trace_step(
+    gids: torch.Tensor,
+    pids: torch.Tensor,
+    T: torch.Tensor,
+    local: torch.Tensor,
+    rank: torch.Tensor,
+    params: torch.Tensor,
+    kind: str,
+    width: int,
+    t_min: float,
+    max_dist: float | None,
+) -> tuple[TraceChunk, torch.Tensor]:
     """One depth batch of (Gaussian, pixel) pairs -> the traced chunk and the updated T.
 
     gids/pids: (E,) original Gaussian ids and linear pixel ids in any order; T: (H*W,)
@@ -120,15 +181,17 @@ def trace_step(gids: torch.Tensor, pids: torch.Tensor, T: torch.Tensor, local: t
     gids, pids, li = gids[order], pids[order], li[order]
     px = (pids % width).to(params.dtype) + 0.5
     py = (pids // width).to(params.dtype) + 0.5
-    alpha, _, dist2 = splat_response(kind, params[li][:, None, :], px[:, None, None],
-                                     py[:, None, None])
+    alpha, _, dist2 = splat_response(
+        kind, params[li][:, None, :], px[:, None, None], py[:, None, None]
+    )
     alpha, dist2 = alpha[:, 0, 0], dist2[:, 0, 0]
     log_keep = torch.log1p(-alpha.double())
     csum = torch.cumsum(log_keep, 0)
     first = torch.ones_like(pids, dtype=torch.bool)
     first[1:] = pids[1:] != pids[:-1]
-    seg_start = torch.cummax(torch.where(first, torch.arange(len(pids), device=pids.device), 0),
-                             0).values
+    seg_start = torch.cummax(
+        torch.where(first, torch.arange(len(pids), device=pids.device), 0), 0
+    ).values
     exclusive = csum - log_keep - (csum[seg_start] - log_keep[seg_start])
     T_before = (T[pids].double() * torch.exp(exclusive)).to(alpha.dtype)
     hit = (T_before > t_min) & (alpha > 0)
@@ -136,6 +199,11 @@ def trace_step(gids: torch.Tensor, pids: torch.Tensor, T: torch.Tensor, local: t
         hit &= dist2 < max_dist**2
     T_new = T.clone()
     T_new.index_reduce_(0, pids, (1.0 - alpha).to(T.dtype), "prod")
-    chunk = TraceChunk(pixel=pids[hit], gaussian=gids[hit], transmittance=T_before[hit],
-                       alpha=alpha[hit], distance=dist2[hit].sqrt())
+    chunk = TraceChunk(
+        pixel=pids[hit],
+        gaussian=gids[hit],
+        transmittance=T_before[hit],
+        alpha=alpha[hit],
+        distance=dist2[hit].sqrt(),
+    )
     return chunk, T_new

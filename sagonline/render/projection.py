@@ -56,12 +56,14 @@ class ProjectedSplats:
     def params(self) -> torch.Tensor:
         """(M, P) packed per-splat parameters consumed by `splat_response`."""
         shape_params = self.conics if self.kind == "3dgs" else self.transforms.reshape(-1, 9)
-        return torch.cat([self.means2d, self.opacities[:, None], self.depths[:, None],
-                          shape_params], dim=1)
+        return torch.cat(
+            [self.means2d, self.opacities[:, None], self.depths[:, None], shape_params], dim=1
+        )
 
 
-def project(gaussians: Gaussians, camera: Camera, near: float = 0.01,
-            with_colors: bool = True) -> ProjectedSplats:
+def project(
+    gaussians: Gaussians, camera: Camera, near: float = 0.01, with_colors: bool = True
+) -> ProjectedSplats:
     """Project, cull (behind `near`, degenerate, off-screen) and shade for one camera."""
     g, cam = gaussians, camera.to(gaussians.device)
     R, t = cam.rotation, cam.translation
@@ -74,7 +76,9 @@ def project(gaussians: Gaussians, camera: Camera, near: float = 0.01,
     else:
         valid, means2d, bbox, extra = _project_surfels(g, rot, R, p_cam, cam.K)
     valid &= z > near
-    valid &= (bbox[:, 1] > 0) & (bbox[:, 0] < cam.width) & (bbox[:, 3] > 0) & (bbox[:, 2] < cam.height)
+    valid &= (
+        (bbox[:, 1] > 0) & (bbox[:, 0] < cam.width) & (bbox[:, 3] > 0) & (bbox[:, 2] < cam.height)
+    )
     valid &= g.opacities >= ALPHA_MIN
     ids = torch.nonzero(valid).squeeze(1)
     colors = torch.zeros(0, 3, device=g.device)
@@ -82,8 +86,15 @@ def project(gaussians: Gaussians, camera: Camera, near: float = 0.01,
         dirs = g.means[ids] - cam.center
         dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
         colors = eval_sh(g.sh[ids], dirs)
-    out = ProjectedSplats(kind=g.kind, ids=ids, means2d=means2d[ids], depths=z[ids],
-                          bbox=bbox[ids], opacities=g.opacities[ids], colors=colors)
+    out = ProjectedSplats(
+        kind=g.kind,
+        ids=ids,
+        means2d=means2d[ids],
+        depths=z[ids],
+        bbox=bbox[ids],
+        opacities=g.opacities[ids],
+        colors=colors,
+    )
     if g.kind == "3dgs":
         out.conics = extra[ids]
     else:
@@ -101,10 +112,13 @@ def _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam):
     tx = torch.clamp(p_cam[:, 0] / z, -lim_xn, lim_xp) * z
     ty = torch.clamp(p_cam[:, 1] / z, -lim_yn, lim_yp) * z
     zeros = torch.zeros_like(z)
-    J = torch.stack([
-        torch.stack([fx / z, zeros, -fx * tx / (z * z)], dim=1),
-        torch.stack([zeros, fy / z, -fy * ty / (z * z)], dim=1),
-    ], dim=1)  # (N, 2, 3)
+    J = torch.stack(
+        [
+            torch.stack([fx / z, zeros, -fx * tx / (z * z)], dim=1),
+            torch.stack([zeros, fy / z, -fy * ty / (z * z)], dim=1),
+        ],
+        dim=1,
+    )  # (N, 2, 3)
     M = rot * g.scales[:, None, :]  # R S
     cov_world = M @ M.transpose(1, 2)
     cov_cam = R @ cov_world @ R.T
@@ -119,8 +133,15 @@ def _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam):
     means2d = torch.stack([fx * p_cam[:, 0] / z + cx, fy * p_cam[:, 1] / z + cy], dim=1)
     ext_x = SIGMA_CUTOFF * a.clamp_min(0).sqrt()
     ext_y = SIGMA_CUTOFF * c.clamp_min(0).sqrt()
-    bbox = torch.stack([means2d[:, 0] - ext_x, means2d[:, 0] + ext_x,
-                        means2d[:, 1] - ext_y, means2d[:, 1] + ext_y], dim=1)
+    bbox = torch.stack(
+        [
+            means2d[:, 0] - ext_x,
+            means2d[:, 0] + ext_x,
+            means2d[:, 1] - ext_y,
+            means2d[:, 1] + ext_y,
+        ],
+        dim=1,
+    )
     valid &= torch.isfinite(bbox).all(1)
     return valid, means2d, bbox, conics
 
@@ -141,10 +162,15 @@ def _project_surfels(g, rot, R, p_cam, K):
     hx = ((D[:, 0, 2] ** 2 - D[:, 0, 0] * D[:, 2, 2]).clamp_min(0)).sqrt() / d22s.abs()
     hy = ((D[:, 1, 2] ** 2 - D[:, 1, 1] * D[:, 2, 2]).clamp_min(0)).sqrt() / d22s.abs()
     r_filter = SIGMA_CUTOFF / SURFEL_FILTER_INV_SQ**0.5
-    bbox = torch.stack([
-        torch.minimum(cx - hx, means2d[:, 0] - r_filter), torch.maximum(cx + hx, means2d[:, 0] + r_filter),
-        torch.minimum(cy - hy, means2d[:, 1] - r_filter), torch.maximum(cy + hy, means2d[:, 1] + r_filter),
-    ], dim=1)
+    bbox = torch.stack(
+        [
+            torch.minimum(cx - hx, means2d[:, 0] - r_filter),
+            torch.maximum(cx + hx, means2d[:, 0] + r_filter),
+            torch.minimum(cy - hy, means2d[:, 1] - r_filter),
+            torch.maximum(cy + hy, means2d[:, 1] + r_filter),
+        ],
+        dim=1,
+    )
     valid &= torch.isfinite(bbox).all(1)
     return valid, means2d, bbox, M
 

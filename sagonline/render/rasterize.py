@@ -168,7 +168,8 @@ def rasterize(
             one_minus = 1.0 - alpha
             T_r = T[rows]
             T_before = T_r * torch.cumprod(
-                torch.cat([torch.ones_like(one_minus[:, :1]), one_minus[:, :-1]], dim=1), dim=1)
+                torch.cat([torch.ones_like(one_minus[:, :1]), one_minus[:, :-1]], dim=1), dim=1
+            )
             if stats is not None:
                 stats.evaluations += alpha.numel()
             if trace is not None:
@@ -177,11 +178,15 @@ def rasterize(
                     hit &= dist2 < trace_max_distance**2
                 t_i, b_i, p_i = torch.nonzero(hit, as_tuple=True)
                 if t_i.numel():
-                    trace(TraceChunk(pixel=pixel_lin[rows[t_i], p_i],
-                                     gaussian=proj.ids[splats[t_i, b_i]],
-                                     transmittance=T_before[t_i, b_i, p_i],
-                                     alpha=alpha[t_i, b_i, p_i],
-                                     distance=dist2[t_i, b_i, p_i].sqrt()))
+                    trace(
+                        TraceChunk(
+                            pixel=pixel_lin[rows[t_i], p_i],
+                            gaussian=proj.ids[splats[t_i, b_i]],
+                            transmittance=T_before[t_i, b_i, p_i],
+                            alpha=alpha[t_i, b_i, p_i],
+                            distance=dist2[t_i, b_i, p_i].sqrt(),
+                        )
+                    )
             # T is monotone, so the first splat failing this test ends the pixel for good.
             keep = (T_before * one_minus >= stop_T) & (alpha > 0)
             if not trace_only:
@@ -192,10 +197,12 @@ def rasterize(
                     w_max, arg = weight.max(dim=1)
                     better = w_max > best_w_c[rows]
                     best_w_c[rows] = torch.where(better, w_max, best_w_c[rows])
-                    best_id_c[rows] = torch.where(better, proj.ids[splats.gather(1, arg)],
-                                                  best_id_c[rows])
+                    best_id_c[rows] = torch.where(
+                        better, proj.ids[splats.gather(1, arg)], best_id_c[rows]
+                    )
                 T_kept[rows] = T_kept[rows] * torch.where(keep, one_minus, 1.0).prod(
-                    dim=1, keepdim=True)
+                    dim=1, keepdim=True
+                )
             T_r = T_before[:, -1:] * one_minus[:, -1:]
             T[rows] = T_r
             # A tile is finished once no pixel could still composite a splat.

@@ -32,16 +32,25 @@ class ReferenceRender:
 
 def _rotation(q: np.ndarray) -> np.ndarray:
     w, x, y, z = q
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+            [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+            [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
-def reference_render(gaussians: Gaussians, camera: Camera, *, features: torch.Tensor | None = None,
-                     background=(0.0, 0.0, 0.0), t_stop: float = 1e-4, trace_t_min: float = 0.01,
-                     near: float = 0.01) -> ReferenceRender:
+def reference_render(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    features: torch.Tensor | None = None,
+    background=(0.0, 0.0, 0.0),
+    t_stop: float = 1e-4,
+    trace_t_min: float = 0.01,
+    near: float = 0.01,
+) -> ReferenceRender:
     g = gaussians.to("cpu")
     means = g.means.double().numpy()
     quats = g.quats.double().numpy()
@@ -124,7 +133,7 @@ def reference_render(gaussians: Gaussians, camera: Camera, *, features: torch.Te
                 a = min(ALPHA_MAX, opac[i] * np.exp(-0.5 * m2))
                 if a < ALPHA_MIN:
                     continue
-                if T > trace_t_min:
+                if trace_t_min < T:
                     trace.append((yy * W + xx, int(i), T, a, float(np.sqrt(d @ d))))
                 if T * (1 - a) < t_stop:
                     break

@@ -1,0 +1,43 @@
+# Everything runs from the project's own virtual environment in .venv.
+PYTHON ?= python3
+VENV   := .venv
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.installed
+DATASET ?= synthetic
+ARGS   ?=
+
+.PHONY: install eval test test-fast report bench lint format clean-runs
+
+install: $(STAMP)
+
+# CPU torch first (pinned: an unpinned torch pulls several GB of CUDA wheels), then the package.
+$(STAMP): pyproject.toml
+	$(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet torch==2.13.0
+	$(BIN)/python -m pip install --quiet -e '.[dev,launchers]'
+	touch $(STAMP)
+
+eval: install
+	$(BIN)/python -m bench.eval dataset=$(DATASET) $(ARGS)
+
+test: install
+	$(BIN)/python -m pytest -q -m "not gpu" $(ARGS)
+
+test-fast: install
+	$(BIN)/python -m pytest -q -m "not slow and not gpu" $(ARGS)
+
+report: install
+	$(BIN)/python -m bench.report $(ARGS)
+
+bench: install
+	$(BIN)/python bench/bench_render.py $(ARGS)
+
+lint: install
+	$(BIN)/pre-commit run --all-files
+
+format: install
+	$(BIN)/ruff format . && $(BIN)/ruff check --fix .
+
+clean-runs:
+	rm -rf runs multirun outputs

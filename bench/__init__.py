@@ -1,0 +1,1 @@
+"""Hydra entry points (eval, ablations, timing) and report building. Thin by design."""

@@ -1,0 +1,81 @@
+"""Stage I evaluation: `python -m bench.eval dataset=synthetic segmenter=oracle consensus=rgc`.
+
+Writes metrics.json, per_view.csv and recording.rrd into the Hydra run directory.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import hydra
+from hydra.core.hydra_config import HydraConfig
+from hydra.utils import instantiate
+from omegaconf import DictConfig
+
+from bench.common import (
+    guard_run_dir,
+    plugin_kwargs,
+    print_summary,
+    seed_everything,
+    settings_from,
+    vote_config_from,
+    write_outputs,
+)
+from sagonline.datasets.base import DatasetError
+from sagonline.pipeline import SceneReport, run_stage_one, settings_key, summarize
+from sagonline.recording import Recorder
+
+
+def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
+    guard_run_dir(out_dir, cfg.overwrite)
+    seed_everything(cfg.seed)
+    try:
+        adapter = instantiate(cfg.dataset.adapter)
+        scenes = adapter.scene_names()
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    segmenter = instantiate(plugin_kwargs(cfg.segmenter))
+    vote_cfg = vote_config_from(cfg)
+    settings = settings_from(cfg)
+    recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)
+    reports: list[SceneReport] = []
+    try:
+        for scene in scenes:
+            try:
+                task = adapter.load_scene(scene)
+            except DatasetError as exc:
+                print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
+                reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
+                continue
+            report, _, _ = run_stage_one(
+                task,
+                segmenter,
+                vote_cfg,
+                settings,
+                segmenter_key=plugin_kwargs(cfg.segmenter) | {"name": cfg.segmenter.name},
+                cache_dir=out_dir / "cache" / scene if cfg.cache else None,
+                recorder=recorder,
+            )
+            reports.append(report)
+    finally:
+        recorder.close()
+    metrics = write_outputs(
+        out_dir,
+        cfg,
+        reports,
+        summarize(reports),
+        {"protocol": adapter.describe(), "config_key": settings_key(str(cfg))},
+    )
+    print_summary(out_dir, metrics, reports)
+    return metrics
+
+
+@hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
+def main(cfg: DictConfig) -> None:
+    evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
+
+
+if __name__ == "__main__":
+    main()

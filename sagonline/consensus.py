@@ -1,0 +1,232 @@
+"""Lift 2D label masks to one discrete label per Gaussian.
+
+`rgc` is the paper's Rasterization-aware Geometric Consensus: for every pixel of every selected
+mask, walk its Gaussians front to back; a Gaussian votes for the pixel's label only while the
+transmittance before it is T_i > eps (the walk stops once T falls to eps) and only if its
+projected centre lies within delta px of the pixel centre. One vote histogram per Gaussian;
+the label is the argmax; too few votes (< min_votes) or an ambiguous winner (top-1 share minus
+top-2 share < margin, or a tie) leaves the Gaussian unlabelled.
+
+Two baselines share the interface:
+- `flashsplat`: every traced contribution adds its blend weight alpha_i T_i to its label;
+  normalised per Gaussian, a background slack is added to label 0, argmax.
+- `weighted_mean` (GaussianCut / LUDVIG): the alpha_i T_i-weighted mean of each label's
+  indicator; a Gaussian takes the best non-background label if its mean reaches `threshold`
+  (0.9), else background.
+
+Labels: 0 is background and also the value of unlabelled Gaussians; `labelled` tells them apart.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians
+from sagonline.render.api import render
+from sagonline.render.rasterize import TraceChunk
+
+METHODS = ("rgc", "flashsplat", "weighted_mean")
+
+
+class MaskError(ValueError):
+    """A 2D mask does not fit its view (size, dtype or label range)."""
+
+
+@dataclass
+class VoteConfig:
+    """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
+
+    method: str = "rgc"
+    eps: float = 0.01
+    delta: float = 2.0
+    min_votes: int = 1
+    margin: float = 0.2
+    num_masks: int | None = None
+    stride: int = 1
+    selection: str = "uniform"  # "uniform" (evenly spaced), "first", or "random" (seeded)
+    seed: int = 0
+    background_slack: float = 0.0  # flashsplat
+    threshold: float = 0.9  # weighted_mean
+
+    def __post_init__(self) -> None:
+        if self.method not in METHODS:
+            raise ValueError(f"consensus method {self.method!r} is not one of {METHODS}")
+        if self.selection not in ("uniform", "first", "random"):
+            raise ValueError(f"mask selection {self.selection!r} is not uniform, first or random")
+        if self.eps < 0 or self.delta <= 0 or self.stride < 1 or self.min_votes < 0:
+            raise ValueError("eps >= 0, delta > 0, stride >= 1 and min_votes >= 0 are required")
+
+
+@dataclass
+class VoteResult:
+    """labels: (N,) long; labelled: (N,) bool; histogram: (N, K) float votes or weights;
+    frames: indices of the masks that voted; stats: fractions, counts and timings."""
+
+    labels: torch.Tensor
+    labelled: torch.Tensor
+    histogram: torch.Tensor
+    frames: list[int]
+    stats: dict = field(default_factory=dict)
+
+
+def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:
+    """Indices of the masks that vote: every `stride`-th, then `num_masks` of those."""
+    candidates = list(range(0, num_frames, cfg.stride))
+    n = cfg.num_masks
+    if n is None or n >= len(candidates):
+        return candidates
+    if n <= 0:
+        raise ValueError(f"num_masks must be positive, got {n}")
+    if cfg.selection == "first":
+        return candidates[:n]
+    if cfg.selection == "random":
+        rng = np.random.default_rng(cfg.seed)
+        return sorted(rng.choice(candidates, size=n, replace=False).tolist())
+    picks = np.linspace(0, len(candidates) - 1, n).round().astype(int)
+    return [candidates[i] for i in sorted(set(picks.tolist()))]
+
+
+class VoteAccumulator:
+    """Streaming reduction of trace chunks into an (N, K) histogram for one method."""
+
+    def __init__(
+        self,
+        num_gaussians: int,
+        num_labels: int,
+        cfg: VoteConfig,
+        device: torch.device | str = "cpu",
+    ):
+        self.cfg, self.k = cfg, num_labels
+        self.hist = torch.zeros(num_gaussians * num_labels, dtype=torch.float64, device=device)
+        self.mask: torch.Tensor | None = None
+        self.votes_cast = 0
+
+    def set_mask(self, mask: torch.Tensor) -> None:
+        """(H*W,) long labels of the frame whose trace comes next."""
+        self.mask = mask
+
+    def __call__(self, chunk: TraceChunk) -> None:
+        cfg = self.cfg
+        if cfg.method == "rgc":
+            ok = (chunk.transmittance > cfg.eps) & (chunk.distance < cfg.delta)
+            weight = None
+        else:
+            ok = torch.ones_like(chunk.pixel, dtype=torch.bool)
+            weight = (chunk.alpha * chunk.transmittance)[ok].double()
+        labels = self.mask[chunk.pixel[ok]]
+        index = chunk.gaussian[ok] * self.k + labels
+        if weight is None:
+            self.hist.scatter_add_(0, index, torch.ones_like(index, dtype=torch.float64))
+        else:
+            self.hist.scatter_add_(0, index, weight)
+        self.votes_cast += int(index.numel())
+
+    def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """labels (N,), labelled (N,), histogram (N, K)."""
+        cfg = self.cfg
+        hist = self.hist.view(-1, self.k)
+        total = hist.sum(1)
+        if cfg.method == "rgc":
+            top2 = hist.topk(min(2, self.k), dim=1)
+            labels = top2.indices[:, 0]
+            second = top2.values[:, 1] if self.k > 1 else torch.zeros_like(total)
+            share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
+            labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
+            labelled &= share_gap >= cfg.margin
+        elif cfg.method == "flashsplat":
+            norm = hist / total.clamp_min(1e-12)[:, None]
+            norm[:, 0] += cfg.background_slack
+            labels = norm.argmax(1)
+            labelled = total > 0
+        else:
+            mean = hist / total.clamp_min(1e-12)[:, None]
+            fg = mean[:, 1:]
+            best_val, best = fg.max(1)
+            labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
+            labelled = total > 0
+        labels = torch.where(labelled, labels, torch.zeros_like(labels))
+        return labels, labelled, hist.float()
+
+
+def check_mask(
+    mask: np.ndarray | torch.Tensor, camera: Camera, num_labels: int, where: str
+) -> torch.Tensor:
+    """Validate one frame's mask against its view; returns (H*W,) long."""
+    m = torch.as_tensor(np.asarray(mask))
+    if m.shape != (camera.height, camera.width):
+        raise MaskError(
+            f"{where}: mask is {tuple(m.shape)} but its view '{camera.name}' renders "
+            f"at {camera.height}x{camera.width} (H x W)"
+        )
+    if m.dtype.is_floating_point or m.dtype == torch.bool:
+        if m.dtype == torch.bool:
+            m = m.long()
+        elif not torch.equal(m, m.round()):
+            raise MaskError(f"{where}: mask holds non-integer values; pass label ids")
+    m = m.long()
+    lo, hi = int(m.min()), int(m.max())
+    if lo < 0 or hi >= num_labels:
+        raise MaskError(f"{where}: label ids must lie in [0, {num_labels}), found [{lo}, {hi}]")
+    return m.flatten()
+
+
+def consensus_vote(
+    gaussians: Gaussians,
+    cameras: Sequence[Camera],
+    masks: Sequence,
+    num_labels: int,
+    cfg: VoteConfig | None = None,
+    *,
+    backend: str = "torch",
+    progress: bool = False,
+) -> VoteResult:
+    """Vote every selected (camera, mask) pair into one label per Gaussian.
+
+    cameras: T views; masks: T label maps (H, W) with ids in [0, num_labels), one per view.
+    """
+    cfg = cfg or VoteConfig()
+    if len(cameras) != len(masks):
+        raise MaskError(f"{len(cameras)} cameras but {len(masks)} masks")
+    frames = select_frames(len(cameras), cfg)
+    device = gaussians.device
+    acc = VoteAccumulator(len(gaussians), num_labels, cfg, device=device)
+    rgc = cfg.method == "rgc"
+    iterator = frames
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
+    start = time.perf_counter()
+    for f in iterator:
+        acc.set_mask(check_mask(masks[f], cameras[f], num_labels, f"mask of frame {f}").to(device))
+        render(
+            gaussians,
+            cameras[f],
+            backend=backend,
+            trace=acc,
+            trace_only=True,
+            trace_t_min=cfg.eps if rgc else 1e-4,
+            trace_max_distance=cfg.delta if rgc else None,
+        )
+    labels, labelled, hist = acc.finalize()
+    elapsed = time.perf_counter() - start
+    total = hist.sum(1)
+    voted = total > 0
+    stats = {
+        "num_masks": len(frames),
+        "fraction_labelled": float(labelled.float().mean()),
+        "fraction_voted": float(voted.float().mean()),
+        "fraction_ambiguous": float((voted & ~labelled).float().mean()),
+        "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
+        "votes_per_gaussian_median": float(total[voted].median()) if voted.any() else 0.0,
+        "votes_cast": acc.votes_cast,
+        "aggregation_s": elapsed,
+        "ms_per_mask": 1000.0 * elapsed / max(len(frames), 1),
+    }
+    return VoteResult(labels=labels, labelled=labelled, histogram=hist, frames=frames, stats=stats)

@@ -1,0 +1,65 @@
+"""The common currency of every dataset: a `SceneTask` (what to segment, where to score)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import torch
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians
+from sagonline.segmenters.base import Prompt
+
+
+class DatasetError(RuntimeError):
+    """A dataset folder is missing pieces or has the wrong layout; says what and where."""
+
+
+@dataclass
+class EvalView:
+    """A scored view: its camera and (H_gt, W_gt) ground-truth label map (0 = background)."""
+
+    camera: Camera
+    gt: np.ndarray
+    name: str
+
+
+@dataclass
+class SceneTask:
+    """One scene of one protocol.
+
+    trajectory: the T views the 2D segmenter watches, in video order; trajectory_gt: their
+    ground-truth label maps where the dataset has them (the oracle and `segmenter_miou` use
+    them); eval_views: where the fused labels are scored; num_labels: label count including
+    background; gt_labels3d: (N,) per-Gaussian truth where known (synthetic scenes).
+    """
+
+    dataset: str
+    name: str
+    gaussians: Gaussians
+    trajectory: list[Camera]
+    eval_views: list[EvalView]
+    num_labels: int
+    prompt: Prompt
+    trajectory_gt: list[np.ndarray] | None = None
+    gt_labels3d: torch.Tensor | None = None
+    label_names: list[str] = field(default_factory=list)
+    meta: dict = field(default_factory=dict)
+
+
+class DatasetAdapter:
+    """A dataset: a list of scene names and a loader per scene. Subclasses set `name` and
+    override both methods; a scene that cannot load raises `DatasetError`."""
+
+    name = "dataset"
+
+    def scene_names(self) -> list[str]:
+        raise NotImplementedError
+
+    def load_scene(self, scene: str) -> SceneTask:
+        raise NotImplementedError
+
+    def describe(self) -> dict:
+        """Protocol settings recorded in every report."""
+        return {}

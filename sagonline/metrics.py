@@ -1,0 +1,89 @@
+"""2D mask metrics (IoU, pixel accuracy) and 3D label metrics.
+
+Per view: IoU = TP / (TP + FP + FN) of each foreground label present in the ground truth or the
+prediction, averaged over those labels (one binary foreground gives the usual IoU); accuracy =
+(TP + TN) / all pixels, i.e. plain pixel accuracy over every label. A scene's mIoU / mAcc is
+the mean over its views; a dataset's is the mean over scenes.
+
+Resolution: the prediction is compared at the ground truth's resolution, resized with
+nearest-neighbour (`resize="pred_to_gt"`, the default), or the ground truth at the
+prediction's (`resize="gt_to_pred"`).
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import torch
+
+RESIZE_RULES = {
+    "pred_to_gt": "prediction resized to the ground truth's resolution (nearest neighbour)",
+    "gt_to_pred": "ground truth resized to the prediction's resolution (nearest neighbour)",
+}
+
+
+def _resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    if mask.shape == shape:
+        return mask
+    return cv2.resize(
+        mask.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST
+    ).astype(mask.dtype)
+
+
+def align(pred, gt, resize: str = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:
+    pred, gt = np.asarray(pred), np.asarray(gt)
+    if resize == "pred_to_gt":
+        return _resize_nearest(pred, gt.shape), gt
+    if resize == "gt_to_pred":
+        return pred, _resize_nearest(gt, pred.shape)
+    raise ValueError(f"resize rule {resize!r} is not one of {sorted(RESIZE_RULES)}")
+
+
+def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None) -> dict:
+    """IoU (mean over foreground labels present) and pixel accuracy of one view.
+
+    pred, gt: (H, W) integer label maps, 0 = background. `ignore`: a gt value to skip (e.g. 255).
+    Returns {"iou", "acc", "per_label": {label: iou}}; iou is 1.0 when neither has foreground.
+    """
+    p, g = align(pred, gt, resize)
+    valid = np.ones_like(g, dtype=bool) if ignore is None else g != ignore
+    p, g = p[valid], g[valid]
+    labels = sorted(set(np.unique(g).tolist()) | set(np.unique(p).tolist()) - {0})
+    labels = [lb for lb in labels if lb != 0]
+    per_label = {}
+    for lb in labels:
+        tp = np.count_nonzero((p == lb) & (g == lb))
+        fp = np.count_nonzero((p == lb) & (g != lb))
+        fn = np.count_nonzero((p != lb) & (g == lb))
+        per_label[int(lb)] = tp / (tp + fp + fn)
+    iou = float(np.mean(list(per_label.values()))) if per_label else 1.0
+    acc = float(np.count_nonzero(p == g) / max(p.size, 1))
+    return {"iou": iou, "acc": acc, "per_label": per_label}
+
+
+def labels3d_metrics(
+    labels: torch.Tensor, labelled: torch.Tensor, gt: torch.Tensor, num_labels: int
+) -> dict:
+    """3D label quality against per-Gaussian ground truth.
+
+    accuracy: among labelled Gaussians, the fraction whose label equals the truth;
+    coverage: fraction labelled; per-label IoU over Gaussians (labelled ones only count as
+    predictions, unlabelled ones count as misses of their true label).
+    """
+    labels, labelled, gt = labels.cpu(), labelled.cpu(), gt.cpu()
+    correct = (labels == gt) & labelled
+    out = {
+        "accuracy": float(correct.sum() / labelled.sum().clamp_min(1)),
+        "coverage": float(labelled.float().mean()),
+        "accuracy_all": float(correct.float().mean()),
+    }
+    ious = {}
+    for k in range(1, num_labels):
+        pred_k = labelled & (labels == k)
+        gt_k = gt == k
+        union = (pred_k | gt_k).sum()
+        if union > 0:
+            ious[k] = float((pred_k & gt_k).sum() / union)
+    out["miou"] = float(np.mean(list(ious.values()))) if ious else 1.0
+    out["per_label_iou"] = ious
+    return out

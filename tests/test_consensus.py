@@ -1,0 +1,153 @@
+"""The vote rules, checked on hand-built traces and on a tiny rendered scene."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.consensus import (
+    MaskError,
+    VoteAccumulator,
+    VoteConfig,
+    check_mask,
+    consensus_vote,
+    select_frames,
+)
+from sagonline.render import TraceChunk
+from tests.conftest import small_camera
+
+
+def chunk(pixel, gaussian, T, alpha, dist):
+    t = lambda v, dt=torch.float32: torch.tensor(v, dtype=dt)  # noqa: E731
+    return TraceChunk(t(pixel, torch.long), t(gaussian, torch.long), t(T), t(alpha), t(dist))
+
+
+def test_rgc_votes_only_visible_aligned_gaussians():
+    acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
+    acc.set_mask(torch.tensor([1, 2, 2, 0]))
+    # gaussian 0: visible and aligned at pixel 0 -> votes 1
+    # gaussian 1: T below eps -> no vote;  gaussian 2: centre 3 px away -> no vote
+    # gaussian 3: votes twice for 2 (pixels 1, 2) and once for 0 (pixel 3)
+    acc(
+        chunk(
+            [0, 0, 0, 1, 2, 3],
+            [0, 1, 2, 3, 3, 3],
+            [1.0, 0.005, 0.9, 0.5, 0.4, 0.3],
+            [0.5, 0.9, 0.9, 0.5, 0.5, 0.5],
+            [0.5, 0.5, 3.0, 1.0, 1.9, 0.1],
+        )
+    )
+    labels, labelled, hist = acc.finalize()
+    assert hist.tolist() == [[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 0, 2]]
+    assert labels.tolist() == [1, 0, 0, 2]
+    assert labelled.tolist() == [True, False, False, True]
+
+
+def test_min_votes_margin_and_ties():
+    hist_rows = [[0, 3, 0], [1, 1, 0], [0, 3, 2], [0, 2, 0]]
+
+    def run(cfg):
+        acc = VoteAccumulator(4, 3, cfg)
+        acc.hist = torch.tensor(hist_rows, dtype=torch.float64).flatten()
+        return acc.finalize()
+
+    labels, labelled, _ = run(VoteConfig(margin=0.0))
+    assert labelled.tolist() == [True, False, True, True]  # the tie is ambiguous
+    labels, labelled, _ = run(VoteConfig(margin=0.3))
+    assert labelled.tolist() == [True, False, False, True]  # 3:2 is a 0.2 share gap
+    labels, labelled, _ = run(VoteConfig(margin=0.0, min_votes=3))
+    assert labelled.tolist() == [True, False, True, False]
+    assert labels.tolist() == [1, 0, 1, 0]
+
+
+def test_flashsplat_and_weighted_mean_use_blend_weights():
+    c = chunk([0, 1, 1], [0, 0, 1], [1.0, 0.5, 0.2], [0.8, 0.4, 0.5], [9.0, 9.0, 9.0])
+    mask = torch.tensor([1, 0])
+    fs = VoteAccumulator(2, 2, VoteConfig(method="flashsplat"))
+    fs.set_mask(mask)
+    fs(c)
+    labels, labelled, hist = fs.finalize()
+    assert hist[0].tolist() == pytest.approx([0.2, 0.8])  # distance is ignored
+    assert labels.tolist() == [1, 0]
+    fs.cfg = VoteConfig(method="flashsplat", background_slack=0.7)
+    assert fs.finalize()[0].tolist() == [0, 0]
+    wm = VoteAccumulator(2, 2, VoteConfig(method="weighted_mean", threshold=0.75))
+    wm.set_mask(mask)
+    wm(c)
+    assert wm.finalize()[0].tolist() == [1, 0]  # 0.8 >= 0.75
+    wm.cfg = VoteConfig(method="weighted_mean", threshold=0.9)
+    assert wm.finalize()[0].tolist() == [0, 0]
+
+
+def test_select_frames():
+    assert select_frames(10, VoteConfig()) == list(range(10))
+    assert select_frames(10, VoteConfig(stride=3)) == [0, 3, 6, 9]
+    assert select_frames(10, VoteConfig(num_masks=3)) == [0, 4, 9]
+    assert select_frames(10, VoteConfig(num_masks=3, selection="first")) == [0, 1, 2]
+    r1 = select_frames(100, VoteConfig(num_masks=5, selection="random", seed=1))
+    assert r1 == select_frames(100, VoteConfig(num_masks=5, selection="random", seed=1))
+    assert r1 != select_frames(100, VoteConfig(num_masks=5, selection="random", seed=2))
+    assert len(set(r1)) == 5
+
+
+def test_mask_errors_name_the_frame():
+    cam = small_camera(8, 6)
+    with pytest.raises(MaskError, match=r"frame 3.*\(5, 8\).*6x8"):
+        check_mask(np.zeros((5, 8), int), cam, 2, "mask of frame 3")
+    with pytest.raises(MaskError, match=r"\[0, 2\).*\[7, 7\]"):
+        check_mask(np.full((6, 8), 7), cam, 2, "mask of frame 0")
+    with pytest.raises(MaskError, match="non-integer"):
+        check_mask(np.full((6, 8), 0.5), cam, 2, "m")
+    assert check_mask(np.ones((6, 8), bool), cam, 2, "m").sum() == 48
+
+
+def test_bad_config_rejected():
+    with pytest.raises(ValueError, match="consensus method"):
+        VoteConfig(method="median")
+    with pytest.raises(ValueError, match="selection"):
+        VoteConfig(selection="every")
+
+
+@pytest.fixture(scope="module")
+def tiny_task():
+    from sagonline.datasets.synthetic import load_synthetic
+
+    return load_synthetic(
+        preset="t",
+        layout="360",
+        num_objects=3,
+        num_gaussians=6000,
+        width=96,
+        height=72,
+        num_train_views=12,
+        num_eval_views=3,
+        seed=3,
+    )[0]
+
+
+@pytest.mark.parametrize(
+    "method,floor", [("rgc", 0.97), ("flashsplat", 0.9), ("weighted_mean", 0.8)]
+)
+def test_vote_on_rendered_scene(tiny_task, method, floor):
+    t = tiny_task
+    res = consensus_vote(
+        t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels, VoteConfig(method=method)
+    )
+    ok = res.labelled
+    acc = float((res.labels[ok] == t.gt_labels3d[ok]).float().mean())
+    assert acc > floor, acc
+    assert 0.3 < res.stats["fraction_labelled"] <= 1.0
+    assert res.stats["num_masks"] == 12 and res.histogram.shape == (len(t.gaussians), 4)
+
+
+def test_rgc_eps_controls_depth_of_voting(tiny_task):
+    t = tiny_task
+    crust = consensus_vote(
+        t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels, VoteConfig(eps=0.5)
+    )
+    deep = consensus_vote(
+        t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels, VoteConfig(eps=0.001)
+    )
+    assert crust.stats["votes_cast"] < deep.stats["votes_cast"]
+    assert crust.stats["fraction_voted"] < deep.stats["fraction_voted"]

@@ -1,0 +1,51 @@
+"""Metrics against hand-computed cases."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.metrics import labels3d_metrics, view_metrics
+
+
+def test_binary_iou_and_accuracy_by_hand():
+    gt = np.array([[0, 1, 1, 0], [0, 1, 1, 0]])
+    pred = np.array([[0, 1, 0, 0], [1, 1, 1, 0]])
+    # TP = 3, FP = 1, FN = 1, TN = 3
+    m = view_metrics(pred, gt)
+    assert m["iou"] == pytest.approx(3 / 5)
+    assert m["acc"] == pytest.approx(6 / 8)
+
+
+def test_multilabel_mean_over_present_labels():
+    gt = np.array([[1, 1, 2, 2]])
+    pred = np.array([[1, 2, 2, 3]])
+    m = view_metrics(pred, gt)
+    assert m["per_label"] == {1: pytest.approx(1 / 2), 2: pytest.approx(1 / 3), 3: 0.0}
+    assert m["iou"] == pytest.approx((1 / 2 + 1 / 3 + 0) / 3)
+    assert m["acc"] == pytest.approx(2 / 4)
+
+
+def test_empty_foreground_is_perfect():
+    assert view_metrics(np.zeros((3, 3)), np.zeros((3, 3)))["iou"] == 1.0
+
+
+def test_resize_rules():
+    gt = np.zeros((4, 4), int)
+    gt[:2, :2] = 1
+    pred_small = np.array([[1, 0], [0, 0]])
+    assert view_metrics(pred_small, gt, "pred_to_gt")["iou"] == 1.0
+    assert view_metrics(pred_small, gt, "gt_to_pred")["iou"] == 1.0
+    with pytest.raises(ValueError, match="resize rule"):
+        view_metrics(pred_small, gt, "bilinear")
+
+
+def test_labels3d_metrics():
+    gt = torch.tensor([1, 1, 2, 0, 0])
+    labels = torch.tensor([1, 2, 2, 0, 0])
+    labelled = torch.tensor([True, True, True, True, False])
+    m = labels3d_metrics(labels, labelled, gt, 3)
+    assert m["accuracy"] == pytest.approx(3 / 4)
+    assert m["coverage"] == pytest.approx(4 / 5)
+    assert m["per_label_iou"] == {1: pytest.approx(1 / 2), 2: pytest.approx(1 / 2)}
