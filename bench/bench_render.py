@@ -1,0 +1,108 @@
+"""Rasterizer speed: ms/frame for render and render+trace, and Gaussian-pixel evaluations/s.
+
+    python bench/bench_render.py [--repeats 3] [--devices cpu,cuda] [--out reports/bench_render.csv]
+
+Scenes: the trained donut (3DGS, 45,624 Gaussians, from ../shared/data) and a generated 360-degree
+2DGS scene of 200k surfels, both at 960x540. On CUDA both backends (torch, gsplat) run when
+gsplat is installed. "trace" streams every (pixel, Gaussian) pair with T > 0.01 to a consumer
+that reduces it (as the vote does); "vote pass" is the trace-only pass the vote uses
+(no colour, stops at T <= eps, centre within 2 px).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from sagonline.cameras import load_nerf_transforms  # noqa: E402
+from sagonline.io import read_scene  # noqa: E402
+from sagonline.render import RasterStats, render  # noqa: E402
+from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
+from sagonline.synthetic import make_scene  # noqa: E402
+from sagonline.utils import describe_device  # noqa: E402
+
+
+def scenes():
+    donut_dir = ROOT.parent / "shared" / "data" / "donut_3dgs"
+    if donut_dir.exists():
+        cam = load_nerf_transforms(donut_dir / "transforms.json")[0].scaled(960, 540)
+        yield "donut (3DGS, 45,624)", read_scene(donut_dir / "point_cloud.ply"), cam
+    else:
+        print(f"note: {donut_dir} not found; skipping the donut", file=sys.stderr)
+    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
+    yield f"synthetic 360 (2DGS, {len(s.gaussians):,})", s.gaussians, s.train_cameras[1]
+
+
+def timed(fn, repeats: int, device: str) -> float:
+    def sync():
+        if device.startswith("cuda"):
+            torch.cuda.synchronize()
+
+    fn()  # warm-up
+    sync()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--devices", default="cpu,cuda")
+    ap.add_argument("--out", default=str(ROOT / "reports" / "bench_render.csv"))
+    args = ap.parse_args()
+    devices = [d for d in args.devices.split(",") if d == "cpu" or torch.cuda.is_available()]
+    rows = []
+    for name, gaussians, cam in scenes():
+        for device in devices:
+            g, c = gaussians.to(device), cam.to(device)
+            backends = ["torch"] + (["gsplat"] if device == "cuda" and gsplat_available() else [])
+            for backend in backends:
+                stats = RasterStats()
+                sink = []
+
+                def consume(chunk, sink=sink):
+                    sink.append(len(chunk))
+
+                plain = timed(lambda: render(g, c, backend=backend), args.repeats, device)
+                traced = timed(lambda: render(g, c, backend=backend, trace=consume),
+                               args.repeats, device)
+                vote = timed(lambda: render(g, c, backend=backend, trace=consume,
+                                            trace_only=True, trace_max_distance=2.0),
+                             args.repeats, device)
+                if backend == "torch":
+                    render(g, c, stats=stats)
+                rows.append({
+                    "scene": name, "device": device, "backend": backend,
+                    "render_ms": 1000 * plain, "render_trace_ms": 1000 * traced,
+                    "trace_ratio": traced / plain, "vote_pass_ms": 1000 * vote,
+                    "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
+                    "intersections": stats.intersections or None,
+                })
+    table = pd.DataFrame(rows)
+    info = describe_device(devices[-1])
+    print(f"torch {info['torch']}  cpu {info['cpu']} ({info['cpu_cores']} cores, "
+          f"{info['torch_threads']} threads)" + (f"  gpu {info['gpu']}" if "gpu" in info else ""))
+    print("960x540, median of", args.repeats, "runs after a warm-up\n")
+    print(table.to_string(index=False, float_format=lambda v: f"{v:,.2f}" if v < 1e5 else
+                          f"{v:.3g}"))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    table.assign(**{k: str(v) for k, v in info.items()}).to_csv(args.out, index=False)
+    print(f"\nwrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
