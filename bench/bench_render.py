@@ -15,6 +15,7 @@ import argparse
 import statistics
 import sys
 import time
+from functools import partial
 from pathlib import Path
 
 import pandas as pd
@@ -77,28 +78,39 @@ def main() -> None:
                 def consume(chunk, sink=sink):
                     sink.append(len(chunk))
 
-                plain = timed(lambda: render(g, c, backend=backend), args.repeats, device)
-                traced = timed(lambda: render(g, c, backend=backend, trace=consume),
-                               args.repeats, device)
-                vote = timed(lambda: render(g, c, backend=backend, trace=consume,
-                                            trace_only=True, trace_max_distance=2.0),
-                             args.repeats, device)
+                run = partial(render, g, c, backend=backend)
+                plain = timed(run, args.repeats, device)
+                traced = timed(partial(run, trace=consume), args.repeats, device)
+                vote = timed(
+                    partial(run, trace=consume, trace_only=True, trace_max_distance=2.0),
+                    args.repeats,
+                    device,
+                )
                 if backend == "torch":
                     render(g, c, stats=stats)
-                rows.append({
-                    "scene": name, "device": device, "backend": backend,
-                    "render_ms": 1000 * plain, "render_trace_ms": 1000 * traced,
-                    "trace_ratio": traced / plain, "vote_pass_ms": 1000 * vote,
-                    "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
-                    "intersections": stats.intersections or None,
-                })
+                rows.append(
+                    {
+                        "scene": name,
+                        "device": device,
+                        "backend": backend,
+                        "render_ms": 1000 * plain,
+                        "render_trace_ms": 1000 * traced,
+                        "trace_ratio": traced / plain,
+                        "vote_pass_ms": 1000 * vote,
+                        "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
+                        "intersections": stats.intersections or None,
+                    }
+                )
     table = pd.DataFrame(rows)
     info = describe_device(devices[-1])
-    print(f"torch {info['torch']}  cpu {info['cpu']} ({info['cpu_cores']} cores, "
-          f"{info['torch_threads']} threads)" + (f"  gpu {info['gpu']}" if "gpu" in info else ""))
+    print(
+        f"torch {info['torch']}  cpu {info['cpu']} ({info['cpu_cores']} cores, "
+        f"{info['torch_threads']} threads)" + (f"  gpu {info['gpu']}" if "gpu" in info else "")
+    )
     print("960x540, median of", args.repeats, "runs after a warm-up\n")
-    print(table.to_string(index=False, float_format=lambda v: f"{v:,.2f}" if v < 1e5 else
-                          f"{v:.3g}"))
+    print(
+        table.to_string(index=False, float_format=lambda v: f"{v:,.2f}" if v < 1e5 else f"{v:.3g}")
+    )
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     table.assign(**{k: str(v) for k, v in info.items()}).to_csv(args.out, index=False)
     print(f"\nwrote {args.out}")

@@ -38,34 +38,57 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
     for run in runs:
         m = load(run)
         c = m.get("consensus", {})
-        base = {"run": str(run.relative_to(ROOT)) if run.is_relative_to(ROOT) else str(run),
-                "dataset": m.get("dataset"), "segmenter": m.get("segmenter"),
-                "method": c.get("method"), "eps": c.get("eps"), "delta": c.get("delta"),
-                "min_votes": c.get("min_votes"), "margin": c.get("margin"),
-                "num_masks": c.get("num_masks")}
+        base = {
+            "run": str(run.relative_to(ROOT)) if run.is_relative_to(ROOT) else str(run),
+            "dataset": m.get("dataset"),
+            "segmenter": m.get("segmenter"),
+            "method": c.get("method"),
+            "eps": c.get("eps"),
+            "delta": c.get("delta"),
+            "min_votes": c.get("min_votes"),
+            "margin": c.get("margin"),
+            "num_masks": c.get("num_masks"),
+        }
         l3 = [s["labels3d"]["accuracy"] for s in m.get("scenes", []) if s.get("labels3d")]
-        runs_rows.append({**base, "mIoU": m.get("miou"), "mAcc": m.get("macc"),
-                          "segmenter_mIoU": m.get("segmenter_miou"),
-                          "refined_mIoU": m.get("refined_miou"),
-                          "labels3d_acc": sum(l3) / len(l3) if l3 else None,
-                          "vote_ms_per_mask": m.get("timings", {}).get("vote_ms_per_mask"),
-                          "partial": m.get("partial"), "device": device_text(m.get("device", {})),
-                          "resize": m.get("resize_rule")})
+        runs_rows.append(
+            {
+                **base,
+                "mIoU": m.get("miou"),
+                "mAcc": m.get("macc"),
+                "segmenter_mIoU": m.get("segmenter_miou"),
+                "refined_mIoU": m.get("refined_miou"),
+                "labels3d_acc": sum(l3) / len(l3) if l3 else None,
+                "vote_ms_per_mask": m.get("timings", {}).get("vote_ms_per_mask"),
+                "partial": m.get("partial"),
+                "device": device_text(m.get("device", {})),
+                "resize": m.get("resize_rule"),
+            }
+        )
         for s in m.get("scenes", []):
             l3s = s.get("labels3d") or {}
-            scene_rows.append({**base, "scene": s["scene"], "status": s.get("status"),
-                               "mIoU": s.get("miou"), "mAcc": s.get("macc"),
-                               "segmenter_mIoU": s.get("segmenter_miou"),
-                               "labels3d_acc": l3s.get("accuracy"),
-                               "labels3d_coverage": l3s.get("coverage"),
-                               **{k: v for k, v in s.get("timings", {}).items()},
-                               "error": s.get("error")})
+            scene_rows.append(
+                {
+                    **base,
+                    "scene": s["scene"],
+                    "status": s.get("status"),
+                    "mIoU": s.get("miou"),
+                    "mAcc": s.get("macc"),
+                    "segmenter_mIoU": s.get("segmenter_miou"),
+                    "labels3d_acc": l3s.get("accuracy"),
+                    "labels3d_coverage": l3s.get("coverage"),
+                    **{k: v for k, v in s.get("timings", {}).items()},
+                    "error": s.get("error"),
+                }
+            )
     return pd.DataFrame(runs_rows), pd.DataFrame(scene_rows)
 
 
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
-    pct = [c for c in df.columns if c.endswith(("mIoU", "mAcc", "_acc", "_coverage"))
-           or c in ("mIoU", "mAcc")]
+    pct = [
+        c
+        for c in df.columns
+        if c.endswith(("mIoU", "mAcc", "_acc", "_coverage")) or c in ("mIoU", "mAcc")
+    ]
     shown = df.copy()
     for c in pct:
         shown[c] = shown[c].map(lambda v: f"{100 * v:.2f}" if pd.notna(v) else "-")
@@ -89,8 +112,10 @@ def main(argv: list[str] | None = None) -> None:
         print(f"no runs found under {', '.join(map(str, roots))}: run `make eval` first")
         return
     runs_df, scenes_df = run_rows(runs)
-    notes = ["mIoU / mAcc in percent: mean over views, then over scenes.",
-             "Resize rule and device are per row."]
+    notes = [
+        "mIoU / mAcc in percent: mean over views, then over scenes.",
+        "Resize rule and device are per row.",
+    ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)
     print(runs_df.drop(columns=["run", "device", "resize"]).to_string(index=False))

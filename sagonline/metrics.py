@@ -22,7 +22,7 @@ RESIZE_RULES = {
 }
 
 
-def _resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+def resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     if mask.shape == shape:
         return mask
     return cv2.resize(
@@ -33,9 +33,9 @@ def _resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def align(pred, gt, resize: str = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:
     pred, gt = np.asarray(pred), np.asarray(gt)
     if resize == "pred_to_gt":
-        return _resize_nearest(pred, gt.shape), gt
+        return resize_nearest(pred, gt.shape), gt
     if resize == "gt_to_pred":
-        return pred, _resize_nearest(gt, pred.shape)
+        return pred, resize_nearest(gt, pred.shape)
     raise ValueError(f"resize rule {resize!r} is not one of {sorted(RESIZE_RULES)}")
 
 

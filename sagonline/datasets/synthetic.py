@@ -6,8 +6,8 @@ import numpy as np
 import torch
 
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
+from sagonline.datasets.common import click_prompt
 from sagonline.render.api import render_labels
-from sagonline.segmenters.base import ObjectPrompt, Prompt
 from sagonline.synthetic import SEMANTIC_NAMES, SyntheticScene, make_scene
 
 
@@ -18,32 +18,6 @@ def gt_mask(scene: SyntheticScene, camera, labels: torch.Tensor, num_labels: int
     return render_labels(
         scene.gaussians, camera, labels, num_labels, labelled=everything, min_weight=1e-6
     ).numpy()
-
-
-def click_prompt(masks: np.ndarray, frame: int, num_labels: int, clicks: int, seed: int) -> Prompt:
-    """Seeded random positive clicks on each object's ground truth in one frame (the paper's
-    protocol), kept away from object borders so a click never lands on a neighbour."""
-    import cv2
-
-    rng = np.random.default_rng(seed)
-    objects = []
-    for label in range(1, num_labels):
-        m = (masks == label).astype(np.uint8)
-        if not m.any():
-            continue
-        inner = cv2.erode(m, np.ones((5, 5), np.uint8))
-        ys, xs = np.nonzero(inner if inner.any() else m)
-        pick = rng.choice(len(xs), size=min(clicks, len(xs)), replace=False)
-        pts = np.stack([xs[pick] + 0.5, ys[pick] + 0.5], 1)
-        objects.append(
-            ObjectPrompt(
-                label=label,
-                points=pts,
-                point_labels=np.ones(len(pts), dtype=np.int64),
-                mask=m.astype(bool),
-            )
-        )
-    return Prompt(frame=frame, objects=objects)
 
 
 def load_synthetic(

@@ -1,0 +1,175 @@
+"""Pieces every real-dataset adapter shares: trained scenes, cameras, masks, prompts."""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sagonline.cameras import IMAGE_SUFFIXES, Camera, list_images, load_cameras, load_llff
+from sagonline.datasets.base import DatasetError
+from sagonline.gaussians import Gaussians
+from sagonline.io import SceneFileError, read_scene
+from sagonline.segmenters.base import ObjectPrompt, Prompt
+
+TRAINED_SCENE_HELP = (
+    "put the trained Gaussian scene at {dir}/gaussians/point_cloud.ply (2DGS or 3DGS layout; "
+    "a 3DGS output folder with point_cloud/iteration_*/point_cloud.ply also works), or fit one "
+    "with `make scenes`"
+)
+
+
+def find_trained_scene(scene_dir: Path) -> Path:
+    """The scene's `point_cloud.ply`: gaussians/point_cloud.ply, or the latest
+    gaussians/point_cloud/iteration_*/point_cloud.ply."""
+    base = scene_dir / "gaussians"
+    direct = base / "point_cloud.ply"
+    if direct.is_file():
+        return direct
+    iterations = sorted(
+        base.glob("point_cloud/iteration_*/point_cloud.ply"),
+        key=lambda p: int(re.sub(r"\D", "", p.parent.name) or 0),
+    )
+    if iterations:
+        return iterations[-1]
+    raise DatasetError(
+        f"no trained scene for {scene_dir.name}: expected {direct}; "
+        + TRAINED_SCENE_HELP.format(dir=scene_dir)
+    )
+
+
+def load_trained_scene(scene_dir: Path) -> Gaussians:
+    path = find_trained_scene(scene_dir)
+    try:
+        return read_scene(path)
+    except SceneFileError as exc:
+        raise DatasetError(str(exc)) from exc
+
+
+def scene_cameras(
+    scene_dir: Path, image_dir: str | None, names: list[str] | None = None
+) -> list[Camera]:
+    """Cameras of a scene, sorted by name: the trained scene's `gaussians/cameras.json` when
+    present (its frame is the scene's), else the capture's own poses (LLFF poses_bounds.npy,
+    transforms.json, or a COLMAP model under sparse/0). Rescaled to the images in `image_dir`."""
+    size = None
+    if image_dir is not None and (scene_dir / image_dir).is_dir():
+        images = list_images(scene_dir / image_dir)
+        if images:
+            with open(images[0], "rb"):
+                from PIL import Image
+
+                size = Image.open(images[0]).size
+    gs_cams = scene_dir / "gaussians" / "cameras.json"
+    try:
+        if gs_cams.is_file():
+            cams = load_cameras(gs_cams)
+        elif (scene_dir / "poses_bounds.npy").is_file():
+            cams = load_llff(scene_dir, image_dir=image_dir if size else None, names=names)
+        else:
+            cams = load_cameras(scene_dir)
+    except (ValueError, OSError) as exc:
+        raise DatasetError(f"cameras of {scene_dir}: {exc}") from exc
+    if size is not None:
+        cams = [c if (c.width, c.height) == size else c.scaled(*size) for c in cams]
+    return sorted(cams, key=lambda c: c.name)
+
+
+def load_mask(path: Path, threshold: int = 127, mode: str = "binary") -> np.ndarray:
+    """A ground-truth mask as (H, W) int64.
+
+    mode "binary": foreground where any channel exceeds `threshold` (JPEG masks need this);
+    mode "ids": the PNG's integer values are label ids (single channel or palette).
+    """
+    flag = cv2.IMREAD_UNCHANGED
+    img = cv2.imread(str(path), flag)
+    if img is None:
+        raise DatasetError(f"{path}: not a readable image")
+    if mode == "ids":
+        if img.ndim == 3:
+            raise DatasetError(f"{path}: label-id masks must be single-channel")
+        return img.astype(np.int64)
+    if img.ndim == 3:
+        img = img.max(axis=2)
+    return (img > threshold).astype(np.int64)
+
+
+def match_by_name(masks: list[Path], names: list[str], where: Path) -> dict[str, Path]:
+    """Masks keyed by the view name they belong to (stem, minus a `_mask` suffix)."""
+    out = {}
+    known = set(names)
+    for m in masks:
+        stem = re.sub(r"[_-]?mask$", "", m.stem)
+        if stem not in known:
+            raise DatasetError(
+                f"{m}: no view named {stem!r} in {where} (views: {names[0]} ... {names[-1]})"
+            )
+        out[stem] = m
+    return out
+
+
+def list_masks(folder: Path, exclude: tuple[str, ...] = ()) -> list[Path]:
+    if not folder.is_dir():
+        raise DatasetError(f"mask folder {folder} not found")
+    return sorted(
+        p
+        for p in folder.iterdir()
+        if p.suffix in IMAGE_SUFFIXES and not any(word in p.name.lower() for word in exclude)
+    )
+
+
+def check_mask_size(mask: np.ndarray, camera: Camera, path: Path) -> None:
+    """GT masks may be at another resolution than the render, but not another aspect ratio."""
+    h, w = mask.shape
+    if abs(w / h - camera.width / camera.height) > 0.02:
+        raise DatasetError(
+            f"{path}: mask is {w}x{h} but its view '{camera.name}' is "
+            f"{camera.width}x{camera.height} (different aspect ratio)"
+        )
+
+
+def clicks_from_mask(
+    mask: np.ndarray,
+    label: int,
+    count: int,
+    rng: np.random.Generator,
+    scale: tuple[float, float] = (1.0, 1.0),
+) -> ObjectPrompt | None:
+    """Seeded positive clicks inside `mask == label`, away from its border; pixel centres
+    scaled by `scale` (sx, sy) into the frame the segmenter sees."""
+    m = (mask == label).astype(np.uint8)
+    if not m.any():
+        return None
+    inner = cv2.erode(m, np.ones((5, 5), np.uint8))
+    ys, xs = np.nonzero(inner if inner.any() else m)
+    pick = rng.choice(len(xs), size=min(count, len(xs)), replace=False)
+    pts = np.stack([(xs[pick] + 0.5) * scale[0], (ys[pick] + 0.5) * scale[1]], 1)
+    return ObjectPrompt(label=label, points=pts, point_labels=np.ones(len(pts), np.int64))
+
+
+def click_prompt(
+    mask: np.ndarray,
+    frame: int,
+    num_labels: int,
+    clicks: int,
+    seed: int,
+    scale: tuple[float, float] = (1.0, 1.0),
+) -> Prompt:
+    """Seeded random positive clicks on each object of one ground-truth mask."""
+    rng = np.random.default_rng(seed)
+    objects = []
+    for label in range(1, num_labels):
+        obj = clicks_from_mask(mask, label, clicks, rng, scale)
+        if obj is not None:
+            sy, sx = scale[1], scale[0]
+            h, w = mask.shape
+            full = cv2.resize(
+                (mask == label).astype(np.uint8),
+                (round(w * sx), round(h * sy)),
+                interpolation=cv2.INTER_NEAREST,
+            )
+            obj.mask = full.astype(bool)
+            objects.append(obj)
+    return Prompt(frame=frame, objects=objects)

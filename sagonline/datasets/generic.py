@@ -1,0 +1,325 @@
+"""Any capture with poses and per-view label maps: "a COLMAP or LLFF folder plus masks".
+
+One scene per folder (or the root itself when it holds cameras):
+
+    <scene>/
+      <image_dir>/           images (optional: only their size is read; the segmenter sees renders)
+      poses_bounds.npy | transforms.json | sparse/0/   the cameras
+      <mask_dir>/            one label map per view, matched to views by file name
+      gaussians/point_cloud.ply [+ cameras.json]       the trained scene
+
+Label maps are read by `label_format`:
+- "binary": foreground where a channel exceeds `mask_threshold` (also JPEG masks);
+- "ids": single-channel integer ids (instance or semantic), 0 = background, `ignore` skipped;
+- "palette": RGB colours mapped to ids by `palette` (e.g. UDD);
+- "per_object": `<mask_dir>/<view>/<object>.png`, one binary mask per object (e.g. LERF-Mask);
+  object names become label names in sorted order;
+- "kitti360": KITTI-360 instance maps (uint16 semanticId * 1000 + instanceId); instances of
+  `keep_classes` (Cityscapes ids; vehicles by default) are renumbered 1..K per scene, in order
+  of their global id, so one vehicle keeps one label across the sequence.
+
+The trajectory is every camera in pseudo-temporal (name) order; the scored views are those
+with a label map (optionally without the reference view). The prompt is seeded random clicks
+on the reference view's ground truth (`prompt: clicks`), the classes as text
+(`prompt: text`), or nothing for automatic segmenters (`prompt: none`).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from sagonline.cameras import IMAGE_SUFFIXES, Camera
+from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
+from sagonline.datasets.common import (
+    check_mask_size,
+    click_prompt,
+    list_masks,
+    load_mask,
+    load_trained_scene,
+    match_by_name,
+    scene_cameras,
+)
+from sagonline.metrics import resize_nearest
+from sagonline.segmenters.base import Prompt
+
+LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
+KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
+
+
+class PosedMasksDataset(DatasetAdapter):
+    def __init__(
+        self,
+        root: str | Path,
+        name: str = "generic",
+        scenes: list[str] | None = None,
+        image_dir: str | None = "images_4",
+        mask_dir: str = "masks",
+        label_format: str = "binary",
+        mask_threshold: int = 127,
+        exclude: tuple[str, ...] = ("cutout", "pseudo"),
+        palette: dict | None = None,
+        label_names: list[str] | None = None,
+        ignore: int | None = None,
+        prompt: str = "clicks",
+        clicks: int = 3,
+        reference: str | None = None,
+        exclude_reference: bool = False,
+        expected_counts: dict | None = None,
+        readme: str | None = None,
+        keep_classes: tuple[int, ...] = KITTI360_VEHICLES,
+        seed: int = 0,
+    ):
+        if label_format not in LABEL_FORMATS:
+            raise DatasetError(
+                f"{name}: label_format {label_format!r} is not one of {LABEL_FORMATS}"
+            )
+        if prompt not in ("clicks", "text", "none"):
+            raise DatasetError(f"{name}: prompt {prompt!r} is not clicks, text or none")
+        self.root, self.name = Path(root), name
+        self.selected = list(scenes) if scenes else None
+        self.image_dir, self.mask_dir = image_dir, mask_dir
+        self.label_format, self.threshold = label_format, mask_threshold
+        self.exclude = tuple(w.lower() for w in exclude)
+        self.palette = {
+            tuple(int(c) for c in k.split(",")) if isinstance(k, str) else tuple(k): v
+            for k, v in (palette or {}).items()
+        }
+        self.label_names, self.ignore = label_names, ignore
+        self.prompt_kind, self.clicks, self.reference = prompt, clicks, reference
+        self.exclude_reference, self.seed = exclude_reference, seed
+        self.expected_counts = expected_counts or {}
+        self.readme = readme or f"datasets/{name}/README.md"
+        self.keep_classes = tuple(keep_classes)
+
+    # --- discovery ----------------------------------------------------------------------------
+    def _missing_root(self) -> DatasetError:
+        return DatasetError(
+            f"{self.name}: no data at {self.root.resolve()}\n"
+            f"  Put the dataset there (or pass dataset.root=/path/to/{self.name}).\n"
+            f"  Expected per scene: <scene>/{self.image_dir or '<images>'}/, cameras "
+            f"(poses_bounds.npy, transforms.json or sparse/0), <scene>/{self.mask_dir}/, and the "
+            f"trained scene <scene>/gaussians/point_cloud.ply.\n"
+            f"  Layout, licence and download: {self.readme}"
+        )
+
+    def _has_cameras(self, d: Path) -> bool:
+        return any(
+            (d / n).exists()
+            for n in (
+                "poses_bounds.npy",
+                "transforms.json",
+                "transforms_train.json",
+                "sparse",
+                "gaussians/cameras.json",
+            )
+        )
+
+    def scene_dirs(self) -> dict[str, Path]:
+        if not self.root.is_dir():
+            raise self._missing_root()
+        if self._has_cameras(self.root):
+            found = {self.root.name: self.root}
+        else:
+            found = {
+                d.name: d
+                for d in sorted(self.root.iterdir())
+                if d.is_dir() and self._has_cameras(d)
+            }
+        if self.selected is not None:
+            missing = [s for s in self.selected if s not in found]
+            for s in missing:
+                found[s] = self.root / s  # reported when loaded, so other scenes still run
+            found = {s: found[s] for s in self.selected}
+        if not found:
+            raise self._missing_root()
+        return found
+
+    def scene_names(self) -> list[str]:
+        return list(self.scene_dirs())
+
+    def describe(self) -> dict:
+        return {
+            "label_format": self.label_format,
+            "prompt": self.prompt_kind,
+            "clicks": self.clicks,
+            "exclude_reference": self.exclude_reference,
+            "excluded_mask_words": list(self.exclude),
+            "mask_threshold": self.threshold,
+            "pseudo_temporal_order": "camera names sorted lexicographically",
+        }
+
+    # --- views --------------------------------------------------------------------------------
+    def image_dir_for(self, scene: str) -> str | None:
+        return self.image_dir
+
+    def load_views(self, scene: str) -> tuple[list[Camera], dict[str, Path]]:
+        """Cameras (sorted) and the label-map path of every view that has one."""
+        scene_dir = self.scene_dirs()[scene]
+        if not scene_dir.is_dir():
+            raise DatasetError(f"{self.name}: scene folder {scene_dir} not found")
+        mask_root = scene_dir / self.mask_dir
+        if self.label_format == "per_object":
+            if not mask_root.is_dir():
+                raise DatasetError(f"mask folder {mask_root} not found")
+            entries = sorted(p for p in mask_root.iterdir() if p.is_dir())
+        else:
+            entries = list_masks(mask_root, self.exclude)
+        if not entries:
+            raise DatasetError(f"{mask_root}: no label maps found")
+        names = None
+        pb = scene_dir / "poses_bounds.npy"
+        if pb.is_file() and not (scene_dir / "gaussians" / "cameras.json").is_file():
+            n_poses = len(np.load(pb))
+            image_folder = scene_dir / (self.image_dir_for(scene) or "images")
+            images = (
+                sorted(p.stem for p in image_folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
+                if image_folder.is_dir()
+                else []
+            )
+            mask_names = sorted({e.stem.removesuffix("_mask") for e in entries})
+            # LLFF rows follow the sorted full image list; a capture that ships only some
+            # images (or masks for all) names the views by whichever list is complete.
+            names = next((n for n in (images, mask_names) if len(n) == n_poses), None)
+            if names is None:
+                raise DatasetError(
+                    f"{pb}: {n_poses} poses, but {image_folder} has {len(images)} images and "
+                    f"{mask_root} {len(mask_names)} label maps; cannot tell which pose is whose"
+                )
+        cams = scene_cameras(scene_dir, self.image_dir_for(scene), names)
+        masks = match_by_name(entries, [c.name for c in cams], scene_dir)
+        expected = self.expected_counts.get(scene)
+        if expected is not None and len(masks) != expected:
+            raise DatasetError(
+                f"{mask_root}: {len(masks)} label maps, the protocol expects "
+                f"{expected} (cutout/pseudo files excluded)"
+            )
+        return cams, masks
+
+    def read_label_map(self, path: Path) -> np.ndarray:
+        if self.label_format == "per_object":
+            parts = sorted(p for p in path.iterdir() if p.suffix in IMAGE_SUFFIXES)
+            if not parts:
+                raise DatasetError(f"{path}: no per-object masks")
+            names = self.object_names(path.parent)
+            out = None
+            for p in parts:
+                m = load_mask(p, self.threshold)
+                out = np.zeros_like(m) if out is None else out
+                out[m > 0] = names.index(p.stem) + 1
+            return out
+        if self.label_format == "palette":
+            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+            if img is None:
+                raise DatasetError(f"{path}: not a readable image")
+            rgb = img[..., ::-1].astype(np.int64)
+            key = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
+            out = np.full(key.shape, -1, np.int64)
+            for color, label in self.palette.items():
+                out[key == ((color[0] << 16) | (color[1] << 8) | color[2])] = label
+            if (out < 0).any():
+                bad = rgb[out < 0][0]
+                raise DatasetError(
+                    f"{path}: colour {tuple(int(v) for v in bad)} is not in the dataset palette"
+                )
+            return out
+        if self.label_format == "kitti360":
+            raw = load_mask(path, mode="ids")
+            return np.where(np.isin(raw // 1000, self.keep_classes), raw, 0)
+        return load_mask(path, self.threshold, "ids" if self.label_format == "ids" else "binary")
+
+    def object_names(self, mask_root: Path) -> list[str]:
+        return sorted(
+            {
+                p.stem
+                for d in mask_root.iterdir()
+                if d.is_dir()
+                for p in d.iterdir()
+                if p.suffix in IMAGE_SUFFIXES
+            }
+        )
+
+    # --- task ---------------------------------------------------------------------------------
+    def load_scene(self, scene: str) -> SceneTask:
+        cams, mask_paths = self.load_views(scene)
+        scene_dir = self.scene_dirs()[scene]
+        by_name = {c.name: c for c in cams}
+        gts = {}
+        for name, path in mask_paths.items():
+            gt = self.read_label_map(path)
+            check_mask_size(gt, by_name[name], path)
+            gts[name] = gt
+        if self.label_format == "kitti360":
+            gts, names = _renumber_instances(gts)
+        gaussians = load_trained_scene(scene_dir)
+        num_labels, names = (
+            (len(names), names)
+            if self.label_format == "kitti360"
+            else self.labels_of(scene_dir, gts)
+        )
+        for name, gt in gts.items():
+            valid = gt if self.ignore is None else gt[gt != self.ignore]
+            if valid.size and (valid.min() < 0 or valid.max() >= num_labels):
+                raise DatasetError(f"{mask_paths[name]}: label ids outside [0, {num_labels})")
+        reference = self.reference or sorted(gts)[0]
+        if reference not in gts:
+            raise DatasetError(f"{self.name}/{scene}: reference view {reference!r} has no mask")
+        frame = [c.name for c in cams].index(reference)
+        prompt = self.make_prompt(gts[reference], by_name[reference], frame, num_labels, names)
+        scored = [n for n in sorted(gts) if not (self.exclude_reference and n == reference)]
+        evals = [EvalView(by_name[n], gts[n], n) for n in scored]
+        traj_gt = None
+        if all(c.name in gts for c in cams):
+            traj_gt = [resize_nearest(gts[c.name], (c.height, c.width)) for c in cams]
+        return SceneTask(
+            dataset=self.name,
+            name=scene,
+            gaussians=gaussians,
+            trajectory=cams,
+            eval_views=evals,
+            num_labels=num_labels,
+            prompt=prompt,
+            trajectory_gt=traj_gt,
+            label_names=names,
+            meta={"reference": reference, "scored_views": len(evals), "root": str(scene_dir)},
+        )
+
+    def labels_of(self, scene_dir: Path, gts: dict[str, np.ndarray]) -> tuple[int, list[str]]:
+        if self.label_format == "binary":
+            return 2, ["background", "object"]
+        if self.label_format == "per_object":
+            objs = self.object_names(scene_dir / self.mask_dir)
+            return len(objs) + 1, ["background", *objs]
+        if self.label_names:
+            return len(self.label_names), list(self.label_names)
+        top = max(
+            int(g[g != self.ignore].max(initial=0)) if self.ignore is not None else int(g.max())
+            for g in gts.values()
+        )
+        return top + 1, ["background"] + [str(i) for i in range(1, top + 1)]
+
+    def make_prompt(
+        self, gt: np.ndarray, cam: Camera, frame: int, num_labels: int, names: list[str]
+    ) -> Prompt:
+        if self.prompt_kind == "none":
+            return Prompt(frame=frame)
+        if self.prompt_kind == "text":
+            return Prompt(frame=frame, texts=names[1:])
+        scale = (cam.width / gt.shape[1], cam.height / gt.shape[0])
+        clean = np.where(gt == self.ignore, 0, gt) if self.ignore is not None else gt
+        return click_prompt(clean, frame, num_labels, self.clicks, self.seed, scale)
+
+
+def _renumber_instances(gts: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], list[str]]:
+    """Global instance codes -> 1..K, one mapping for the whole scene."""
+    codes = sorted({int(v) for g in gts.values() for v in np.unique(g) if v != 0})
+    lut = {c: i + 1 for i, c in enumerate(codes)}
+    out = {}
+    for name, g in gts.items():
+        r = np.zeros_like(g)
+        for c, i in lut.items():
+            r[g == c] = i
+        out[name] = r
+    return out, ["background"] + [f"instance_{c}" for c in codes]

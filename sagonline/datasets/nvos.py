@@ -1,0 +1,155 @@
+"""NVOS: 8 single-view segmentation tasks on LLFF scenes, scored as in PROTOCOLS.md.
+
+    <root>/scenes/<scene>/images_4/, poses_bounds.npy, gaussians/point_cloud.ply
+        scenes: fern flower fortress horns leaves orchids trex
+    <root>/masks/<task>/<target>.JPG + <target>_mask.png     ground truth of the target view
+    <root>/reference_image/<task>/<reference>.JPG
+    <root>/scribbles/<task>/pos_*.png, neg_*.png            (vis_* files are ignored)
+
+Each task prompts on its reference view (positive scribbles, optionally negative ones, sampled
+as seeded points; or, as the SAGOnline paper does, seeded random clicks on the ground-truth
+object, which NVOS only provides on the target view) and scores the single target view.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
+from sagonline.datasets.common import (
+    check_mask_size,
+    click_prompt,
+    load_mask,
+    load_trained_scene,
+    scene_cameras,
+)
+from sagonline.segmenters.base import ObjectPrompt, Prompt
+
+TASKS = {
+    "fern": ("IMG_4027", "IMG_4038"),
+    "flower": ("IMG_2962", "IMG_2983"),
+    "fortress": ("IMG_1800", "IMG_1821"),
+    "horns_center": ("DJI_20200223_163024_597", "DJI_20200223_163055_437"),
+    "horns_left": ("DJI_20200223_163024_597", "DJI_20200223_163055_437"),
+    "leaves": ("IMG_2997", "IMG_3011"),
+    "orchids": ("IMG_4480", "IMG_4479"),
+    "trex": ("DJI_20200223_163619_411", "DJI_20200223_163607_906"),
+}
+
+
+class NVOSDataset(DatasetAdapter):
+    name = "nvos"
+
+    def __init__(
+        self,
+        root="datasets/nvos",
+        tasks=None,
+        image_dir="images_4",
+        prompt="scribbles",
+        clicks=3,
+        scribble_points=16,
+        negative=False,
+        seed=0,
+        mask_threshold=127,
+    ):
+        if prompt not in ("scribbles", "clicks"):
+            raise DatasetError(f"nvos: prompt {prompt!r} is not 'scribbles' or 'clicks'")
+        self.root, self.image_dir, self.prompt_kind = Path(root), image_dir, prompt
+        self.tasks = list(tasks) if tasks else list(TASKS)
+        unknown = [t for t in self.tasks if t not in TASKS]
+        if unknown:
+            raise DatasetError(f"nvos: unknown task(s) {unknown}; tasks are {list(TASKS)}")
+        self.clicks, self.points, self.negative = clicks, scribble_points, negative
+        self.seed, self.threshold = seed, mask_threshold
+
+    def scene_names(self) -> list[str]:
+        if not (self.root / "masks").is_dir() or not (self.root / "scenes").is_dir():
+            raise DatasetError(
+                f"nvos: no data at {self.root.resolve()}\n"
+                "  Expected: scenes/<scene>/ (LLFF: images_4/, poses_bounds.npy, "
+                "gaussians/point_cloud.ply), masks/<task>/, reference_image/<task>/, "
+                "scribbles/<task>/.\n"
+                "  Put the dataset there or pass dataset.root=/path/to/nvos. Layout, licence and "
+                "download: datasets/nvos/README.md"
+            )
+        return self.tasks
+
+    def describe(self) -> dict:
+        return {
+            "tasks": {t: {"target": a, "reference": b} for t, (a, b) in TASKS.items()},
+            "prompt": self.prompt_kind,
+            "scored": "the target view of each task",
+            "pseudo_temporal_order": "image names sorted lexicographically",
+        }
+
+    @staticmethod
+    def scene_of(task: str) -> str:
+        return task.split("_")[0]
+
+    def load_scene(self, task: str) -> SceneTask:
+        target, reference = TASKS[task]
+        scene_dir = self.root / "scenes" / self.scene_of(task)
+        if not scene_dir.is_dir():
+            raise DatasetError(f"nvos/{task}: scene folder {scene_dir} not found")
+        cams = scene_cameras(scene_dir, self.image_dir)
+        names = [c.name for c in cams]
+        for role, view in (("target", target), ("reference", reference)):
+            if view not in names:
+                raise DatasetError(
+                    f"nvos/{task}: {role} view {view} is not among the "
+                    f"{len(names)} views of {scene_dir} ({self.image_dir})"
+                )
+        mask_path = self.root / "masks" / task / f"{target}_mask.png"
+        if not mask_path.is_file():
+            raise DatasetError(f"nvos/{task}: ground truth {mask_path} not found")
+        gt = load_mask(mask_path, self.threshold)
+        target_cam = cams[names.index(target)]
+        check_mask_size(gt, target_cam, mask_path)
+        gaussians = load_trained_scene(scene_dir)
+        if self.prompt_kind == "clicks":
+            frame = names.index(target)
+            scale = (target_cam.width / gt.shape[1], target_cam.height / gt.shape[0])
+            prompt = click_prompt(gt, frame, 2, self.clicks, self.seed, scale)
+        else:
+            frame = names.index(reference)
+            prompt = Prompt(frame=frame, objects=[self.scribble_prompt(task, cams[frame])])
+        return SceneTask(
+            dataset="nvos",
+            name=task,
+            gaussians=gaussians,
+            trajectory=cams,
+            eval_views=[EvalView(target_cam, gt, target)],
+            num_labels=2,
+            prompt=prompt,
+            label_names=["background", task],
+            meta={"target": target, "reference": reference, "prompt": self.prompt_kind},
+        )
+
+    def scribble_prompt(self, task: str, cam) -> ObjectPrompt:
+        folder = self.root / "scribbles" / task
+        rng = np.random.default_rng(self.seed)
+        pts, labels = [], []
+        for kind, value in (("pos", 1), ("neg", 0)):
+            if kind == "neg" and not self.negative:
+                continue
+            files = sorted(folder.glob(f"{kind}_*.png"))
+            if kind == "pos" and not files:
+                raise DatasetError(f"nvos/{task}: no positive scribbles {folder}/pos_*.png")
+            for f in files:
+                m = load_mask(f, self.threshold)
+                ys, xs = np.nonzero(m)
+                if len(xs) == 0:
+                    continue
+                pick = rng.choice(len(xs), size=min(self.points, len(xs)), replace=False)
+                sx, sy = cam.width / m.shape[1], cam.height / m.shape[0]
+                pts.append(np.stack([(xs[pick] + 0.5) * sx, (ys[pick] + 0.5) * sy], 1))
+                labels.append(np.full(len(pick), value))
+        if not pts:
+            raise DatasetError(f"nvos/{task}: the scribbles in {folder} are empty")
+        return ObjectPrompt(
+            label=1,
+            points=np.concatenate(pts),
+            point_labels=np.concatenate(labels).astype(np.int64),
+        )

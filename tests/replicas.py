@@ -1,0 +1,79 @@
+"""Tiny on-disk replicas of dataset layouts, built in a temporary folder by the tests."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from sagonline.cameras import Camera, intrinsics, look_at, make_camera
+from sagonline.io import write_ply
+from sagonline.synthetic import make_scene
+
+
+def orbit_cameras(n: int, width: int = 32, height: int = 24) -> list[Camera]:
+    K = intrinsics(width * 1.2, width * 1.2, width / 2, height / 2)
+    return [
+        make_camera(
+            K, look_at([3 * np.cos(a), 3 * np.sin(a), 1.5], [0, 0, 0.3]), width, height, f"v{i}"
+        )
+        for i, a in enumerate(np.linspace(0, 2 * np.pi, n, False))
+    ]
+
+
+def write_poses_bounds(path: Path, cams: list[Camera]) -> None:
+    """Inverse of `load_llff`: (N, 17) rows of [down, right, back, t | h, w, f] + bounds."""
+    rows = []
+    for c in cams:
+        c2w = torch.linalg.inv(c.world_to_cam.double()).numpy()
+        m = np.stack(
+            [
+                c2w[:3, 1],
+                c2w[:3, 0],
+                -c2w[:3, 2],
+                c2w[:3, 3],
+                [c.height, c.width, float(c.K[0, 0])],
+            ],
+            axis=1,
+        )
+        rows.append(np.concatenate([m.ravel(), [0.5, 10.0]]))
+    np.save(path, np.array(rows))
+
+
+def write_image(path: Path, array: np.ndarray) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cv2.imwrite(str(path), array)
+
+
+def llff_scene(
+    root: Path, names: list[str], width=32, height=24, image_dir="images_4", with_scene=True, seed=0
+) -> tuple[list[Camera], object]:
+    """An LLFF scene folder whose views are a tiny synthetic scene; returns cameras + scene."""
+    scene = make_scene(
+        layout="forward",
+        num_gaussians=2500,
+        width=width,
+        height=height,
+        num_train_views=len(names),
+        num_eval_views=1,
+        seed=seed,
+    )
+    cams = [
+        make_camera(c.K, c.world_to_cam, width, height, n)
+        for c, n in zip(scene.train_cameras, names, strict=True)
+    ]
+    root.mkdir(parents=True, exist_ok=True)
+    write_poses_bounds(root / "poses_bounds.npy", cams)
+    for n in names:
+        write_image(root / image_dir / f"{n}.JPG", np.full((height, width, 3), 90, np.uint8))
+    if with_scene:
+        write_ply(root / "gaussians" / "point_cloud.ply", scene.gaussians)
+    return cams, scene
+
+
+def object_mask(scene, cam) -> np.ndarray:
+    from sagonline.datasets.synthetic import gt_mask
+
+    return gt_mask(scene, cam, scene.instance, scene.num_instances)

@@ -1,0 +1,217 @@
+"""Dataset adapters on tiny replicas of each layout, with the traps the protocols warn about."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from sagonline.datasets.base import DatasetError
+from sagonline.datasets.generic import PosedMasksDataset
+from sagonline.datasets.nvos import NVOSDataset
+from sagonline.datasets.spinnerf import SPInNeRFDataset
+from tests.replicas import llff_scene, object_mask, write_image
+
+NAMES = [f"IMG_{i:04d}" for i in range(6)]
+
+
+def _masks(folder: Path, cams, scene, names, suffix=".png", scale=1):
+    for cam, name in zip(cams, names, strict=True):
+        m = (object_mask(scene, cam) > 0).astype(np.uint8) * 255
+        if scale != 1:
+            m = cv2.resize(m, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
+        write_image(folder / f"{name}{suffix}", m)
+
+
+def test_generic_binary_jpeg_masks_pseudo_and_missing_view(tmp_path):
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams[1:], scene, NAMES[1:], suffix=".jpg", scale=2)
+    write_image(tmp_path / "cap" / "masks" / f"{NAMES[2]}_pseudo.png", np.zeros((48, 64), np.uint8))
+    ds = PosedMasksDataset(tmp_path / "cap", image_dir="images_4", mask_dir="masks")
+    assert ds.scene_names() == ["cap"]
+    task = ds.load_scene("cap")
+    assert [v.name for v in task.eval_views] == NAMES[1:]  # view 0 has no mask; pseudo skipped
+    assert task.trajectory_gt is None  # not every frame has a mask
+    assert task.meta["reference"] == NAMES[1] and task.prompt.frame == 1
+    # JPEG ringing is thresholded away: masks are exactly 0/1 and match the render's object
+    gt = task.eval_views[0].gt
+    assert set(np.unique(gt)) == {0, 1} and gt.shape == (48, 64)
+    obj = task.prompt.objects[0]
+    want = object_mask(scene, cams[1]) > 0
+    for x, y in obj.points:
+        assert want[int(y), int(x)]
+
+
+def test_generic_mask_aspect_mismatch_names_the_file(tmp_path):
+    cams, scene = llff_scene(tmp_path / "cap", NAMES[:3])
+    for n in NAMES[:3]:
+        write_image(tmp_path / "cap" / "masks" / f"{n}.png", np.zeros((24, 24), np.uint8))
+    with pytest.raises(DatasetError, match=r"IMG_0000\.png.*24x24.*32x24"):
+        PosedMasksDataset(tmp_path / "cap", mask_dir="masks").load_scene("cap")
+
+
+def test_generic_missing_trained_scene_says_where(tmp_path):
+    cams, scene = llff_scene(tmp_path / "cap", NAMES[:3], with_scene=False)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES[:3])
+    with pytest.raises(DatasetError, match=r"expected .*cap/gaussians/point_cloud\.ply"):
+        PosedMasksDataset(tmp_path / "cap", mask_dir="masks").load_scene("cap")
+
+
+def test_generic_wrong_layout(tmp_path):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(DatasetError, match="no data at"):
+        PosedMasksDataset(tmp_path / "empty").scene_names()
+    with pytest.raises(DatasetError, match="no data at"):
+        PosedMasksDataset(tmp_path / "absent").scene_names()
+
+
+def test_spinnerf_counts_cutout_orchids_and_reference(tmp_path):
+    root = tmp_path / "spin"
+    cams, scene = llff_scene(root / "fern", NAMES)
+    _masks(root / "fern" / "labels", cams, scene, NAMES)
+    write_image(root / "fern" / "labels" / f"{NAMES[0]}_cutout.png", np.zeros((24, 32), np.uint8))
+    with pytest.raises(DatasetError, match="6 label maps, the protocol expects 20"):
+        SPInNeRFDataset(root, scenes=["fern"]).load_scene("fern")
+    ds = SPInNeRFDataset(root, scenes=["fern"], check_counts=False)
+    task = ds.load_scene("fern")
+    assert len(task.eval_views) == 6 and task.meta["reference"] == NAMES[0]
+    assert task.trajectory_gt is not None and len(task.trajectory_gt) == 6
+    excl = SPInNeRFDataset(root, scenes=["fern"], check_counts=False, exclude_reference=True)
+    assert [v.name for v in excl.load_scene("fern").eval_views] == NAMES[1:]
+    # orchids: one image without a mask is matched by name, not index
+    cams2, scene2 = llff_scene(root / "orchids", NAMES)
+    _masks(root / "orchids" / "labels", cams2[:2] + cams2[3:], scene2, NAMES[:2] + NAMES[3:])
+    t2 = SPInNeRFDataset(root, scenes=["orchids"], check_counts=False).load_scene("orchids")
+    assert [v.name for v in t2.eval_views] == NAMES[:2] + NAMES[3:]
+    assert SPInNeRFDataset(root).describe()["resolutions"]["room"] == "images_8"
+
+
+def _nvos(tmp_path, drop_target=False):
+    root = tmp_path / "nvos"
+    target, ref = "DJI_20200223_163024_597", "DJI_20200223_163055_437"
+    names = sorted([target, ref, "DJI_20200223_163100_000", "DJI_20200223_163000_000"])
+    if drop_target:
+        names = [n for n in names if n != target] + ["DJI_20200223_163200_000"]
+        names.sort()
+    cams, scene = llff_scene(root / "scenes" / "horns", names)
+    by = {c.name: c for c in cams}
+    for task in ("horns_center", "horns_left"):
+        if not drop_target:
+            m = (object_mask(scene, by[target]) > 0).astype(np.uint8) * 255
+            write_image(root / "masks" / task / f"{target}_mask.png", m)
+        write_image(root / "reference_image" / task / f"{ref}.JPG", np.zeros((24, 32, 3), np.uint8))
+        scrib = np.zeros((24, 32), np.uint8)
+        scrib[10:13, 12:20] = 255
+        write_image(root / "scribbles" / task / "pos_0.png", scrib)
+        write_image(root / "scribbles" / task / "vis_0.png", scrib)
+    return root, names, target, ref
+
+
+def test_nvos_horns_two_tasks_on_one_image(tmp_path):
+    root, names, target, ref = _nvos(tmp_path)
+    ds = NVOSDataset(root, tasks=["horns_center", "horns_left"])
+    assert ds.scene_names() == ["horns_center", "horns_left"]
+    a, b = ds.load_scene("horns_center"), ds.load_scene("horns_left")
+    assert a.eval_views[0].name == b.eval_views[0].name == target
+    assert a.prompt.frame == names.index(ref)
+    pts = a.prompt.objects[0].points
+    assert len(pts) == 16 and (pts[:, 1] > 9).all() and (pts[:, 1] < 14).all()
+    clicks = NVOSDataset(root, tasks=["horns_center"], prompt="clicks").load_scene("horns_center")
+    assert clicks.prompt.frame == names.index(target)
+
+
+def test_nvos_missing_target_view_and_missing_data(tmp_path):
+    root, *_ = _nvos(tmp_path, drop_target=True)
+    with pytest.raises(DatasetError, match="target view DJI_20200223_163024_597 is not among"):
+        NVOSDataset(root, tasks=["horns_center"]).load_scene("horns_center")
+    with pytest.raises(DatasetError, match=r"(?s)no data at .*datasets/nvos/README\.md"):
+        NVOSDataset(tmp_path / "nothing").scene_names()
+
+
+def test_kitti360_instances_renumbered_consistently(tmp_path):
+    cams, scene = llff_scene(tmp_path / "seg", NAMES[:3])
+    for i, n in enumerate(NAMES[:3]):
+        m = np.zeros((24, 32), np.uint16)
+        m[2:8, 2:8] = 26 * 1000 + 17  # car 17 everywhere
+        m[10:14, 10:20] = 7 * 1000 + 3  # road: dropped
+        if i > 0:
+            m[15:20, 20:30] = 27 * 1000 + 4  # a truck from view 1 on
+        write_image(tmp_path / "seg" / "instance" / f"{n}.png", m)
+    ds = PosedMasksDataset(
+        tmp_path / "seg",
+        name="kitti360",
+        mask_dir="instance",
+        label_format="kitti360",
+        prompt="none",
+    )
+    task = ds.load_scene("seg")
+    assert task.num_labels == 3 and task.label_names == [
+        "background",
+        "instance_26017",
+        "instance_27004",
+    ]
+    assert task.eval_views[0].gt[3, 3] == 1 and task.eval_views[2].gt[16, 22] == 2
+    assert task.eval_views[1].gt[11, 12] == 0 and not task.prompt.objects
+
+
+def test_palette_and_per_object_formats(tmp_path):
+    cams, scene = llff_scene(tmp_path / "u", NAMES[:2])
+    for n in NAMES[:2]:
+        img = np.zeros((24, 32, 3), np.uint8)
+        img[:, 16:] = (156, 102, 102)  # BGR of facade (102, 102, 156)
+        write_image(tmp_path / "u" / "gt" / f"{n}.png", img)
+    ds = PosedMasksDataset(
+        tmp_path / "u",
+        name="udd",
+        mask_dir="gt",
+        label_format="palette",
+        palette={"0,0,0": 0, "102,102,156": 1},
+        label_names=["other", "facade"],
+        prompt="text",
+    )
+    task = ds.load_scene("u")
+    assert task.eval_views[0].gt[0, 20] == 1 and task.prompt.texts == ["facade"]
+    img[0, 0] = (1, 2, 3)
+    write_image(tmp_path / "u" / "gt" / f"{NAMES[0]}.png", img)
+    with pytest.raises(DatasetError, match=r"colour \(3, 2, 1\) is not in the dataset palette"):
+        ds.load_scene("u")
+    cams, scene = llff_scene(tmp_path / "l", NAMES[:2])
+    for n in NAMES[:2]:
+        for obj, sl in (("bear", np.s_[0:5, 0:5]), ("cup", np.s_[10:15, 10:15])):
+            m = np.zeros((24, 32), np.uint8)
+            m[sl] = 255
+            write_image(tmp_path / "l" / "test_mask" / n / f"{obj}.png", m)
+    lerf = PosedMasksDataset(
+        tmp_path / "l",
+        name="lerf_mask",
+        mask_dir="test_mask",
+        label_format="per_object",
+        prompt="text",
+    ).load_scene("l")
+    assert lerf.label_names == ["background", "bear", "cup"]
+    assert lerf.eval_views[0].gt[12, 12] == 2 and lerf.prompt.texts == ["bear", "cup"]
+
+
+def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
+    from hydra import compose, initialize_config_dir
+
+    from bench.eval import evaluate
+    from tests.test_eval_runner import CONF
+
+    root = tmp_path / "data"
+    for scene, with_scene in (("good", True), ("broken", False)):
+        cams, sc = llff_scene(root / scene, NAMES[:4], with_scene=with_scene)
+        _masks(root / scene / "masks", cams, sc, NAMES[:4])
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "eval",
+            overrides=["dataset=generic", f"dataset.root={root}", "progress=false", "record=false"],
+        )
+    m = evaluate(cfg, tmp_path / "run")
+    assert m["partial"] is True and m["scenes_failed"] == ["broken"]
+    good = next(s for s in m["scenes"] if s["scene"] == "good")
+    assert good["status"] == "ok" and good["miou"] > 0.5
+    broken = next(s for s in m["scenes"] if s["scene"] == "broken")
+    assert "gaussians/point_cloud.ply" in broken["error"]
