@@ -57,6 +57,19 @@ def vote_config_from(cfg: DictConfig) -> VoteConfig:
     return VoteConfig(**OmegaConf.to_container(cfg.consensus, resolve=True))
 
 
+def build_plugin(node: DictConfig, what: str):
+    """Instantiate a plug-in; a configuration problem stops with its own message, not a trace."""
+    from hydra.errors import InstantiationException
+    from hydra.utils import instantiate
+
+    try:
+        return instantiate(plugin_kwargs(node))
+    except InstantiationException as exc:
+        cause = exc.__cause__ or exc
+        print(f"error: {what} {node.get('name', '')}: {cause}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def plugin_kwargs(node: DictConfig) -> dict:
     """A plug-in's config without the keys that are ours, not its constructor's."""
     d = OmegaConf.to_container(node, resolve=True)

@@ -14,6 +14,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from bench.common import (
+    build_plugin,
     guard_run_dir,
     plugin_kwargs,
     print_summary,
@@ -36,7 +37,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    segmenter = instantiate(plugin_kwargs(cfg.segmenter))
+    segmenter = build_plugin(cfg.segmenter, "segmenter")
     vote_cfg = vote_config_from(cfg)
     settings = settings_from(cfg)
     recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)

@@ -87,3 +87,42 @@ def labels3d_metrics(
     out["miou"] = float(np.mean(list(ious.values()))) if ious else 1.0
     out["per_label_iou"] = ious
     return out
+
+
+def match_labels(
+    preds: list[np.ndarray], gts: list[np.ndarray], resize: str = "pred_to_gt"
+) -> dict[int, int]:
+    """One scene-wide mapping of predicted ids to ground-truth ids (Hungarian on IoU summed
+    over all views), for automatic segmenters whose ids are arbitrary. Unmatched predicted
+    ids map to fresh ids above every ground-truth id, so they still count as false positives.
+    """
+    from scipy.optimize import linear_sum_assignment
+
+    pairs = [align(p, g, resize) for p, g in zip(preds, gts, strict=True)]
+    n_p = max(int(p.max()) for p, _ in pairs) + 1
+    n_g = max(int(g.max()) for _, g in pairs) + 1
+    conf = np.zeros((n_p, n_g), np.int64)
+    for p, g in pairs:
+        np.add.at(conf, (p.ravel(), g.ravel()), 1)
+    inter = conf[1:, 1:].astype(np.float64)
+    union = conf[1:].sum(1)[:, None] + conf[:, 1:].sum(0)[None, :] - inter
+    iou = inter / np.maximum(union, 1)
+    rows, cols = linear_sum_assignment(-iou)
+    mapping = {0: 0}
+    for r, c in zip(rows, cols, strict=True):
+        if iou[r, c] > 0:
+            mapping[r + 1] = c + 1
+    fresh = n_g
+    present = sorted({int(v) for p, _ in pairs for v in np.unique(p)})
+    for p in present:
+        if p not in mapping:
+            mapping[p] = fresh
+            fresh += 1
+    return mapping
+
+
+def relabel(mask: np.ndarray, mapping: dict[int, int]) -> np.ndarray:
+    lut = np.arange(max(int(mask.max()) + 1, max(mapping) + 1))
+    for a, b in mapping.items():
+        lut[a] = b
+    return lut[mask]

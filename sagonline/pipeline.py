@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
 from sagonline.datasets.base import SceneTask
-from sagonline.metrics import labels3d_metrics, view_metrics
+from sagonline.metrics import labels3d_metrics, match_labels, relabel, view_metrics
 from sagonline.recording import Recorder
 from sagonline.render.api import render, render_labels
 from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
@@ -133,15 +133,21 @@ def run_stage_one(
     report.timings["segment_ms_per_frame"] = seg.ms_per_frame
     # Time to first mask: render the prompt frame, then the segmenter answers on it.
     report.timings["time_to_first_mask_s"] = sec + seg.seconds[task.prompt.frame]
+    automatic = not task.prompt.objects and not task.prompt.texts
     if task.trajectory_gt is not None:
+        seg_masks = seg.masks
+        if automatic:  # arbitrary ids: match them to the ground truth once per scene
+            mapping = match_labels(seg.masks, task.trajectory_gt, settings.resize)
+            seg_masks = [relabel(m, mapping) for m in seg.masks]
         report.segmenter_miou = float(
             np.mean(
                 [
                     view_metrics(m, g, settings.resize)["iou"]
-                    for m, g in zip(seg.masks, task.trajectory_gt, strict=True)
+                    for m, g in zip(seg_masks, task.trajectory_gt, strict=True)
                 ]
             )
         )
+    num_labels = max(task.num_labels, 1 + max(int(m.max()) for m in seg.masks))
 
     vote_key = settings_key(seg_key, asdict(vote_cfg))
     vote = cache.load("vote", vote_key)
@@ -150,7 +156,7 @@ def run_stage_one(
             task.gaussians.to(settings.device),
             task.trajectory,
             seg.masks,
-            task.num_labels,
+            num_labels,
             vote_cfg,
             backend=settings.backend,
             progress=settings.progress,
@@ -160,24 +166,21 @@ def run_stage_one(
     report.timings["vote_s"] = vote.stats["aggregation_s"]
     report.timings["vote_ms_per_mask"] = vote.stats["ms_per_mask"]
 
-    recorder.annotate(
-        task.name, task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
-    )
+    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
+    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
     for i, (frame, mask) in enumerate(zip(frames, seg.masks, strict=True)):
         recorder.trajectory_frame(task.name, i, frame, mask)
 
-    score_views(task, vote, settings, report, recorder)
-    if task.gt_labels3d is not None:
-        report.labels3d = labels3d_metrics(
-            vote.labels, vote.labelled, task.gt_labels3d, task.num_labels
-        )
+    score_views(task, vote, settings, report, recorder, num_labels, automatic)
+    if task.gt_labels3d is not None and not automatic:
+        report.labels3d = labels3d_metrics(vote.labels, vote.labelled, task.gt_labels3d, num_labels)
     recorder.gaussians(
         task.name,
         task.gaussians.means.cpu().numpy(),
         vote.labels.cpu().numpy(),
         vote.labelled.cpu().numpy(),
     )
-    return report, vote, {"frames": frames, "segmentation": seg}
+    return report, vote, {"frames": frames, "segmentation": seg, "num_labels": num_labels}
 
 
 def score_views(
@@ -186,22 +189,26 @@ def score_views(
     settings: PipelineSettings,
     report: SceneReport,
     recorder: Recorder,
+    num_labels: int | None = None,
+    automatic: bool = False,
+    mode: str = "initial",
 ) -> list[np.ndarray]:
-    """Render the fused labels at every eval view and score them against the ground truth."""
+    """Render the fused labels at every eval view and score them against the ground truth.
+    With `automatic` (arbitrary segmenter ids), labels are first matched to the ground truth
+    once for the whole scene."""
     g = task.gaussians.to(settings.device)
+    num_labels = num_labels or task.num_labels
     preds, seconds = [], []
-    for i, view in enumerate(
-        tqdm(
-            task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
-        )
+    for view in tqdm(
+        task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
     ):
         start = time.perf_counter()
-        pred = (
+        preds.append(
             render_labels(
                 g,
                 view.camera,
                 vote.labels,
-                task.num_labels,
+                num_labels,
                 labelled=vote.labelled,
                 min_weight=settings.label_min_weight,
                 backend=settings.backend,
@@ -210,26 +217,40 @@ def score_views(
             .numpy()
         )
         seconds.append(time.perf_counter() - start)
-        m = view_metrics(pred, view.gt, settings.resize)
-        report.views.append(
-            {
-                "scene": task.name,
-                "view": view.name,
-                "mode": "initial",
-                "iou": m["iou"],
-                "acc": m["acc"],
-            }
-        )
-        preds.append(pred)
-        if recorder.enabled:
+    if automatic and preds:
+        mapping = match_labels(preds, [v.gt for v in task.eval_views], settings.resize)
+        preds = [relabel(p, mapping) for p in preds]
+        report.extra["label_matching"] = "hungarian, scene-wide"
+    record_scores(task, preds, settings, report, mode)
+    report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
+    if recorder.enabled:
+        for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
             rgb = to_uint8(render(g, view.camera, backend=settings.backend).rgb)
             recorder.eval_view(task.name, i, rgb, pred, view.gt)
-    ious = [v["iou"] for v in report.views if v["mode"] == "initial"]
-    accs = [v["acc"] for v in report.views if v["mode"] == "initial"]
-    report.miou = float(np.mean(ious)) if ious else None
-    report.macc = float(np.mean(accs)) if accs else None
-    report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     return preds
+
+
+def record_scores(
+    task: SceneTask,
+    preds: list[np.ndarray],
+    settings: PipelineSettings,
+    report: SceneReport,
+    mode: str,
+) -> tuple[float, float]:
+    """Per-view rows for `mode` ("initial" or "refined") and their means; the initial mode's
+    means are the report's `miou`/`macc`."""
+    rows = []
+    for view, pred in zip(task.eval_views, preds, strict=True):
+        m = view_metrics(pred, view.gt, settings.resize)
+        rows.append(
+            {"scene": task.name, "view": view.name, "mode": mode, "iou": m["iou"], "acc": m["acc"]}
+        )
+    report.views.extend(rows)
+    miou = float(np.mean([r["iou"] for r in rows])) if rows else None
+    macc = float(np.mean([r["acc"] for r in rows])) if rows else None
+    if mode == "initial":
+        report.miou, report.macc = miou, macc
+    return miou, macc
 
 
 def summarize(reports: list[SceneReport]) -> dict:

@@ -1,0 +1,190 @@
+"""A weight-free video segmenter: colour models + optical-flow priors + watershed (OpenCV).
+
+Prompt frame: object masks are used as given (unless `use_masks` is off); boxes and clicks seed GrabCut (clicks: definite
+foreground discs, image border definite background, a probable-foreground disc around the
+clicks). Each label (background included) gets a colour histogram (16^3 bins) from that frame.
+Then, frame by frame, forwards and backwards from the prompt frame:
+1. dense optical flow (Farneback) from the new frame back to the previous one warps the
+   previous label map onto the new frame;
+2. each pixel takes the label maximising colour likelihood x spatial prior, the prior
+   decaying with the distance to that label's warped region (`motion_px`), with a floor that
+   lets a strongly coloured object come back after an occlusion;
+3. every label's region, eroded by `band_px`, seeds `cv2.watershed` on the new image, so
+   boundaries snap to image edges instead of drifting with the flow (a region that erodes
+   away keeps its innermost pixel);
+4. the colour histograms adapt slowly (`adapt`) to the new frame's labels.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from sagonline.segmenters.base import Prompt, VideoSegmenter
+
+
+class FlowWatershedSegmenter(VideoSegmenter):
+    name = "classical"
+
+    def __init__(
+        self,
+        band_px: int = 3,
+        flow_levels: int = 4,
+        flow_window: int = 15,
+        grabcut_iters: int = 5,
+        click_radius: int = 4,
+        prior_radius: float = 0.25,
+        motion_px: float = 6.0,
+        prior_floor: float = 1e-3,
+        adapt: float = 0.02,
+        bins: int = 16,
+        use_masks: bool = True,
+    ):
+        self.band_px, self.flow_levels, self.flow_window = band_px, flow_levels, flow_window
+        self.grabcut_iters, self.click_radius = grabcut_iters, click_radius
+        self.prior_radius, self.motion_px, self.prior_floor = prior_radius, motion_px, prior_floor
+        self.adapt, self.bins, self.use_masks = adapt, bins, use_masks
+        self.hists: dict[int, np.ndarray] = {}
+
+    # --- prompt frame -------------------------------------------------------------------------
+    def initial_labels(self, frame: np.ndarray, prompt: Prompt) -> np.ndarray:
+        h, w = frame.shape[:2]
+        labels = np.zeros((h, w), np.int64)
+        if not prompt.objects:
+            raise ValueError(
+                "the classical segmenter needs clicks, boxes or masks on the prompt "
+                "frame (it does not read text prompts)"
+            )
+        for obj in prompt.objects:
+            if obj.mask is not None and self.use_masks:
+                m = np.asarray(obj.mask, bool)
+                if m.shape != (h, w):
+                    raise ValueError(
+                        f"prompt mask of object {obj.label} is {m.shape}, frame is {(h, w)}"
+                    )
+            else:
+                m = self._grabcut(frame, obj)
+            labels[m] = obj.label
+        return labels
+
+    def _grabcut(self, frame: np.ndarray, obj) -> np.ndarray:
+        h, w = frame.shape[:2]
+        bgr = np.ascontiguousarray(frame[..., ::-1])
+        gc = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
+        if obj.box is not None:
+            x0, y0, x1, y1 = (int(round(v)) for v in obj.box)
+            gc[:] = cv2.GC_BGD
+            gc[max(y0, 0) : y1, max(x0, 0) : x1] = cv2.GC_PR_FGD
+        if obj.points is not None and len(obj.points):
+            pts = np.asarray(obj.points)
+            lab = (
+                np.ones(len(pts), int) if obj.point_labels is None else np.asarray(obj.point_labels)
+            )
+            pos = pts[lab > 0]
+            if len(pos) and obj.box is None:
+                centre = pos.mean(0)
+                radius = self.prior_radius * min(h, w) + np.linalg.norm(pos - centre, axis=1).max()
+                cv2.circle(gc, tuple(int(v) for v in centre), int(radius), cv2.GC_PR_FGD, -1)
+            for (x, y), v in zip(pts, lab, strict=True):
+                cv2.circle(
+                    gc, (int(x), int(y)), self.click_radius, cv2.GC_FGD if v > 0 else cv2.GC_BGD, -1
+                )
+        if obj.box is None:
+            border = max(2, min(h, w) // 40)
+            for sl in (np.s_[:border], np.s_[-border:]):
+                gc[sl][gc[sl] != cv2.GC_FGD] = cv2.GC_BGD
+                gc[:, sl][gc[:, sl] != cv2.GC_FGD] = cv2.GC_BGD
+        if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
+            raise ValueError(f"object {obj.label}: no positive click or box to start from")
+        bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        cv2.grabCut(bgr, gc, None, bgd, fgd, self.grabcut_iters, cv2.GC_INIT_WITH_MASK)
+        return (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+
+    # --- propagation --------------------------------------------------------------------------
+    def _bin_index(self, frame: np.ndarray) -> np.ndarray:
+        q = (frame.astype(np.int64) * self.bins) // 256
+        return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2]
+
+    def fit_colors(self, frame: np.ndarray, labels: np.ndarray, rate: float = 1.0) -> None:
+        """Per-label colour histograms (Laplace-smoothed), blended in with weight `rate`."""
+        idx = self._bin_index(frame)
+        for lab in np.unique(labels):
+            h = np.bincount(idx[labels == lab], minlength=self.bins**3).astype(np.float64) + 1.0
+            h /= h.sum()
+            old = self.hists.get(int(lab))
+            self.hists[int(lab)] = h if old is None or rate >= 1.0 else (1 - rate) * old + rate * h
+
+    def classify(self, frame: np.ndarray, warped: np.ndarray) -> np.ndarray:
+        """argmax over labels of log colour likelihood + log distance prior."""
+        idx = self._bin_index(frame)
+        labs = sorted(self.hists)
+        scores = np.empty((len(labs), *warped.shape))
+        for k, lab in enumerate(labs):
+            outside = (warped != lab).astype(np.uint8)
+            dist = cv2.distanceTransform(outside, cv2.DIST_L2, 3)
+            prior = np.maximum(np.exp(-dist / self.motion_px), self.prior_floor)
+            scores[k] = np.log(self.hists[lab][idx]) + np.log(prior)
+        return np.asarray(labs)[scores.argmax(0)]
+
+    def propagate(
+        self, prev_frame: np.ndarray, frame: np.ndarray, prev_labels: np.ndarray
+    ) -> np.ndarray:
+        """Labels of `frame` from the labels of the frame before it in video order."""
+        g0 = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
+        g1 = cv2.cvtColor(prev_frame, cv2.COLOR_RGB2GRAY)
+        flow = cv2.calcOpticalFlowFarneback(
+            g0, g1, None, 0.5, self.flow_levels, self.flow_window, 3, 7, 1.5, 0
+        )
+        h, w = g0.shape
+        gx, gy = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
+        warped = cv2.remap(
+            prev_labels.astype(np.float32),
+            gx + flow[..., 0],
+            gy + flow[..., 1],
+            cv2.INTER_NEAREST,
+            borderMode=cv2.BORDER_REPLICATE,
+        ).astype(np.int64)
+        labels = self.refine(frame, self.classify(frame, warped))
+        self.fit_colors(frame, labels, self.adapt)
+        return labels
+
+    def refine(self, frame: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """Snap label boundaries to image edges: eroded regions seed a watershed."""
+        markers = np.zeros(labels.shape, np.int32)
+        kernel = cv2.getStructuringElement(
+            cv2.MORPH_ELLIPSE, (2 * self.band_px + 1, 2 * self.band_px + 1)
+        )
+        for lab in np.unique(labels):
+            region = (labels == lab).astype(np.uint8)
+            core = cv2.erode(region, kernel)
+            if not core.any():
+                dist = cv2.distanceTransform(region, cv2.DIST_L2, 3)
+                core = (dist == dist.max()) & (region > 0)
+            markers[core > 0] = int(lab) + 1
+        cv2.watershed(np.ascontiguousarray(frame[..., ::-1]), markers)
+        out = markers.astype(np.int64) - 1
+        unresolved = out < 0  # ridges (-1) and any pixel no marker reached
+        out[unresolved] = labels[unresolved]
+        return out
+
+    def _segment(self, frames, prompt: Prompt, ground_truth):
+        import time
+
+        n = len(frames)
+        masks: list[np.ndarray | None] = [None] * n
+        seconds = [0.0] * n
+        start = time.perf_counter()
+        masks[prompt.frame] = self.initial_labels(frames[prompt.frame], prompt)
+        self.hists = {}
+        self.fit_colors(frames[prompt.frame], masks[prompt.frame])
+        initial = dict(self.hists)
+        seconds[prompt.frame] = time.perf_counter() - start
+        order = list(range(prompt.frame + 1, n)) + list(range(prompt.frame - 1, -1, -1))
+        for t in order:
+            if t == prompt.frame - 1:
+                self.hists = dict(initial)  # the backward pass starts from the prompt frame
+            start = time.perf_counter()
+            src = t - 1 if t > prompt.frame else t + 1
+            masks[t] = self.propagate(frames[src], frames[t], masks[src])
+            seconds[t] = time.perf_counter() - start
+        return masks, seconds

@@ -1,0 +1,142 @@
+"""YOLO instance segmentation with a tracker (extra: `pip install -e '.[yolo]'`).
+
+Automatic: no prompt needed. Each frame is segmented by an ultralytics YOLO segmentation
+model, detections are associated across frames by its tracker (ByteTrack or BoT-SORT, config
+files shipped with ultralytics), and every track id gets one label (1, 2, ... in order of
+first appearance), so a vehicle keeps its label through the video (KITTI-360). Detections the
+tracker has not confirmed yet carry no id and are left as background. `classes` filters by
+COCO id or name (default: vehicles); text prompts, when given, name the classes instead.
+
+Nothing is downloaded: `weights` must be a local .pt file; `model_yaml` (e.g.
+"yolo11n-seg.yaml") builds the same network with random weights, for tests.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import cv2
+import numpy as np
+
+from sagonline.segmenters.base import Prompt, VideoSegmenter
+
+VEHICLES = ("car", "bus", "truck", "motorcycle", "train")
+
+
+def _require_ultralytics():
+    from sagonline.compat import import_torchvision
+
+    os.environ.setdefault("YOLO_OFFLINE", "1")
+    try:
+        import_torchvision()
+        from ultralytics import YOLO
+    except ImportError as exc:
+        raise RuntimeError(
+            "segmenter 'yolo' needs ultralytics: pip install -e '.[yolo]' "
+            "(ultralytics-opencv-headless)"
+        ) from exc
+    return YOLO
+
+
+class TrackLabeler:
+    """Maps tracker ids to stable labels 1..K and rasterises one frame's detections."""
+
+    def __init__(self):
+        self.label_of: dict[int, int] = {}
+
+    def label(self, track_id: int) -> int:
+        if track_id not in self.label_of:
+            self.label_of[track_id] = len(self.label_of) + 1
+        return self.label_of[track_id]
+
+    def rasterize(
+        self,
+        shape: tuple[int, int],
+        polygons: list[np.ndarray],
+        track_ids: list[int | None],
+        scores: list[float],
+    ) -> np.ndarray:
+        """Detections drawn in order of increasing score (the most confident on top)."""
+        for tid in track_ids:  # labels follow detection order, drawing follows score
+            if tid is not None:
+                self.label(tid)
+        out = np.zeros(shape, np.int32)  # OpenCV draws into int32, not int64
+        for k in np.argsort(scores, kind="stable"):
+            if track_ids[k] is None or len(polygons[k]) < 3:
+                continue
+            cv2.fillPoly(out, [np.round(polygons[k]).astype(np.int32)], self.label(track_ids[k]))
+        return out.astype(np.int64)
+
+
+class YOLOSegmenter(VideoSegmenter):
+    name = "yolo"
+
+    def __init__(
+        self,
+        weights: str | None = None,
+        model_yaml: str | None = None,
+        classes: list | None = VEHICLES,
+        conf: float = 0.25,
+        iou: float = 0.5,
+        imgsz: int = 640,
+        tracker: str = "bytetrack.yaml",
+        device: str = "cpu",
+    ):
+        if weights is None and model_yaml is None:
+            raise ValueError(
+                "segmenter 'yolo' needs a local weights file: set "
+                "segmenter.weights=/path/to/yolo11n-seg.pt (nothing is downloaded)"
+            )
+        if weights is not None and not os.path.isfile(weights):
+            raise FileNotFoundError(f"segmenter.weights={weights}: no such file")
+        self.weights, self.model_yaml, self.classes = weights, model_yaml, classes
+        self.conf, self.iou, self.imgsz = conf, iou, imgsz
+        self.tracker, self.device = tracker, device
+
+    def class_ids(self, names: dict[int, str], prompt: Prompt) -> list[int] | None:
+        wanted = prompt.texts or self.classes
+        if wanted is None:
+            return None
+        by_name = {v: k for k, v in names.items()}
+        ids = []
+        for c in wanted:
+            if isinstance(c, int) or str(c).isdigit():
+                ids.append(int(c))
+            elif c in by_name:
+                ids.append(by_name[c])
+            else:
+                raise ValueError(
+                    f"segmenter 'yolo': class {c!r} is not one of the model's {len(names)} classes"
+                )
+        return ids
+
+    def _segment(self, frames, prompt: Prompt, ground_truth):
+        YOLO = _require_ultralytics()
+        model = YOLO(self.weights or self.model_yaml, task="segment")
+        classes = self.class_ids(model.names, prompt)
+        labeler = TrackLabeler()
+        masks, seconds = [], []
+        for frame in frames:
+            start = time.perf_counter()
+            r = model.track(
+                np.ascontiguousarray(frame[..., ::-1]),
+                persist=True,
+                tracker=self.tracker,
+                classes=classes,
+                conf=self.conf,
+                iou=self.iou,
+                imgsz=self.imgsz,
+                device=self.device,
+                verbose=False,
+            )[0]
+            polygons, ids, scores = [], [], []
+            if r.masks is not None and r.boxes is not None:
+                track = r.boxes.id
+                for k, poly in enumerate(r.masks.xy):
+                    polygons.append(poly)
+                    ids.append(None if track is None else int(track[k]))
+                    scores.append(float(r.boxes.conf[k]))
+            masks.append(labeler.rasterize(frame.shape[:2], polygons, ids, scores))
+            seconds.append(time.perf_counter() - start)
+        return masks, seconds

@@ -1,0 +1,190 @@
+"""Segmenter plug-ins: the classical one for real, model-backed ones with random weights."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.utils import instantiate
+
+from bench.common import plugin_kwargs
+from sagonline.compat import nms_reference
+from sagonline.metrics import match_labels, relabel, view_metrics
+from sagonline.segmenters import ObjectPrompt, Prompt
+from sagonline.segmenters.classical import FlowWatershedSegmenter
+from sagonline.segmenters.sam3_text import SAM3TextSegmenter, merge_text_masks
+from sagonline.segmenters.yolo import TrackLabeler
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+
+
+def segmenter_from(name: str, *overrides):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("eval", overrides=[f"segmenter={name}", *overrides])
+    return instantiate(plugin_kwargs(cfg.segmenter))
+
+
+@pytest.fixture(scope="module")
+def video():
+    from sagonline.datasets.synthetic import load_synthetic
+    from sagonline.pipeline import PipelineSettings, render_frames
+
+    task = load_synthetic(
+        layout="360",
+        num_objects=3,
+        num_gaussians=6000,
+        width=128,
+        height=96,
+        num_train_views=16,
+        num_eval_views=2,
+        seed=2,
+    )[0]
+    frames, _ = render_frames(task, PipelineSettings(progress=False))
+    return task, frames
+
+
+def test_classical_tracks_objects_through_the_orbit(video):
+    task, frames = video
+    seg = segmenter_from("classical")
+    from sagonline.datasets.common import click_prompt
+
+    prompt = click_prompt(task.trajectory_gt[5], 5, task.num_labels, 3, seed=0)
+    res = seg.segment(frames, prompt, ground_truth=None)
+    ious = [view_metrics(m, g)["iou"] for m, g in zip(res.masks, task.trajectory_gt, strict=True)]
+    assert np.mean(ious) > 0.8, ious
+    assert ious[5] > 0.99  # the prompt frame keeps the given masks
+    assert len(res.seconds) == 16 and res.ms_per_frame > 0
+
+
+def test_classical_grabcut_from_clicks_on_a_single_object():
+    from sagonline.datasets.synthetic import load_synthetic
+    from sagonline.pipeline import PipelineSettings, render_frames
+
+    task = load_synthetic(
+        layout="forward",
+        num_gaussians=5000,
+        width=128,
+        height=96,
+        num_train_views=6,
+        num_eval_views=1,
+    )[0]
+    frames, _ = render_frames(task, PipelineSettings(progress=False))
+    res = FlowWatershedSegmenter(use_masks=False).segment(frames, task.prompt)
+    ious = [view_metrics(m, g)["iou"] for m, g in zip(res.masks, task.trajectory_gt, strict=True)]
+    assert min(ious) > 0.8, ious
+
+
+def test_classical_rejects_text_only_prompts():
+    with pytest.raises(ValueError, match="clicks, boxes or masks"):
+        FlowWatershedSegmenter().segment([np.zeros((8, 8, 3), np.uint8)], Prompt(texts=["car"]))
+
+
+def test_nms_reference():
+    boxes = torch.tensor([[0, 0, 10, 10], [1, 1, 11, 11], [20, 20, 30, 30], [0, 0, 10, 9.0]])
+    scores = torch.tensor([0.5, 0.9, 0.7, 0.6])
+    assert nms_reference(boxes, scores, 0.5).tolist() == [1, 2]
+    assert nms_reference(boxes, scores, 0.99).tolist() == [1, 2, 3, 0]
+    assert nms_reference(boxes[:0], scores[:0], 0.5).numel() == 0
+
+
+def test_track_labeler_keeps_ids_stable():
+    lab = TrackLabeler()
+    sq = lambda x: np.array([[x, 0], [x + 4, 0], [x + 4, 4], [x, 4]], float)  # noqa: E731
+    a = lab.rasterize((8, 20), [sq(0), sq(10)], [7, 3], [0.9, 0.8])
+    b = lab.rasterize((8, 20), [sq(12), sq(1), sq(5)], [3, 7, None], [0.8, 0.9, 0.99])
+    assert a[2, 2] == 1 and a[2, 12] == 2  # first appearance order
+    assert b[2, 13] == 2 and b[2, 2] == 1 and b[2, 7] == 0  # unconfirmed track left out
+
+
+def test_match_labels_for_automatic_ids():
+    gt = [np.array([[1, 1, 2, 2, 0]]), np.array([[2, 2, 1, 1, 0]])]
+    pred = [np.array([[5, 5, 3, 3, 4]]), np.array([[3, 3, 5, 5, 0]])]
+    mapping = match_labels(pred, gt)
+    assert mapping[5] == 1 and mapping[3] == 2 and mapping[4] == 3  # 4 unmatched: fresh id
+    assert relabel(pred[0], mapping).tolist() == [[1, 1, 2, 2, 3]]
+
+
+@pytest.mark.parametrize(
+    "name,option",
+    [
+        ("sam2", "segmenter.checkpoint"),
+        ("yolo", "segmenter.weights"),
+        ("sam3", "segmenter.checkpoint"),
+    ],
+)
+def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
+    from bench.common import build_plugin
+
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("eval", overrides=[f"segmenter={name}"])
+    with pytest.raises(SystemExit):
+        build_plugin(cfg.segmenter, "segmenter")
+    assert option in capsys.readouterr().err
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose("eval", overrides=[f"segmenter={name}", f"{option}=/nope.pt"])
+    with pytest.raises(SystemExit):
+        build_plugin(cfg.segmenter, "segmenter")
+    assert f"{option}=/nope.pt: no such file" in capsys.readouterr().err
+
+
+def test_sam2_random_weights_tiny_video():
+    pytest.importorskip("sam2", reason="install the sam2 extra")
+    from sagonline.segmenters.sam2_video import SAM2VideoSegmenter
+
+    torch.manual_seed(0)
+    seg = SAM2VideoSegmenter(allow_random_weights=True, image_size=256)
+    rng = np.random.default_rng(0)
+    frames = [rng.integers(0, 255, (40, 56, 3), dtype=np.uint8) for _ in range(4)]
+    prompt = Prompt(
+        frame=2,
+        objects=[
+            ObjectPrompt(label=1, points=np.array([[10.0, 10.0]]), point_labels=np.array([1])),
+            ObjectPrompt(label=2, box=np.array([30.0, 5.0, 50.0, 30.0])),
+        ],
+    )
+    res = seg.segment(frames, prompt)
+    assert len(res.masks) == 4 and all(m.shape == (40, 56) for m in res.masks)
+    assert set(np.unique(np.concatenate([m.ravel() for m in res.masks]))) <= {0, 1, 2}
+
+
+def test_sam2_checkpoint_must_fit_the_config(tmp_path):
+    pytest.importorskip("sam2", reason="install the sam2 extra")
+    from sagonline.segmenters.sam2_video import SAM2VideoSegmenter
+
+    bad = tmp_path / "bad.pt"
+    torch.save({"model": {"not_a_key": torch.zeros(1)}}, bad)
+    with pytest.raises(RuntimeError, match="does not fit"):
+        SAM2VideoSegmenter(checkpoint=str(bad), image_size=256).build()
+
+
+def test_yolo_random_weights_tracks_tiny_video():
+    pytest.importorskip("ultralytics", reason="install the yolo extra")
+    from sagonline.segmenters.yolo import YOLOSegmenter
+
+    torch.manual_seed(0)
+    seg = YOLOSegmenter(model_yaml="yolo11n-seg.yaml", classes=None, imgsz=96, conf=0.001)
+    frames = [
+        np.random.default_rng(i).integers(0, 255, (64, 96, 3), dtype=np.uint8) for i in range(3)
+    ]
+    res = seg.segment(frames, Prompt())
+    assert [m.shape for m in res.masks] == [(64, 96)] * 3
+    with pytest.raises(ValueError, match="not one of the model's"):
+        seg.segment(frames, Prompt(texts=["unicorn"]))
+
+
+def test_sam3_label_map_and_requirements(tmp_path):
+    m1 = np.zeros((1, 4, 4), bool)
+    m1[0, :2] = True
+    m2 = np.zeros((2, 4, 4), bool)
+    m2[0, 1:3] = True
+    m2[1, 3:] = True
+    out = merge_text_masks((4, 4), [(m1, np.array([0.9])), (m2, np.array([0.6, 0.3]))], 0.5)
+    assert out[:, 0].tolist() == [1, 1, 2, 0]  # row 1: 0.9 beats 0.6; the 0.3 instance dropped
+    ckpt = tmp_path / "sam3.pt"
+    ckpt.write_bytes(b"0")
+    seg = SAM3TextSegmenter(checkpoint=str(ckpt), device="cpu")
+    with pytest.raises(RuntimeError, match="needs CUDA"):
+        seg.build()
