@@ -1,8 +1,9 @@
 """A weight-free video segmenter: colour models + optical-flow priors + watershed (OpenCV).
 
-Prompt frame: object masks are used as given (unless `use_masks` is off); boxes and clicks seed GrabCut (clicks: definite
-foreground discs, image border definite background, a probable-foreground disc around the
-clicks). Each label (background included) gets a colour histogram (16^3 bins) from that frame.
+Prompt frame: object masks are used as given (unless `use_masks` is off); boxes and clicks
+seed GrabCut (clicks: definite foreground discs, image border definite background, a
+probable-foreground disc around the clicks). Each label (background included) gets a colour
+histogram (16^3 bins) from that frame.
 Then, frame by frame, forwards and backwards from the prompt frame:
 1. dense optical flow (Farneback) from the new frame back to the previous one warps the
    previous label map onto the new frame;
