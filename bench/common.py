@@ -53,6 +53,14 @@ def settings_from(cfg: DictConfig) -> PipelineSettings:
     )
 
 
+def refine_config_from(cfg: DictConfig):
+    from sagonline.refine import RefineConfig
+
+    d = OmegaConf.to_container(cfg.refine, resolve=True)
+    d.pop("enabled", None)
+    return RefineConfig(**d)
+
+
 def vote_config_from(cfg: DictConfig) -> VoteConfig:
     return VoteConfig(**OmegaConf.to_container(cfg.consensus, resolve=True))
 
@@ -123,7 +131,7 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
     ]
     lines.append(
         f"{'scene':<22}{'status':<9}{'mIoU':>8}{'mAcc':>8}{'seg mIoU':>10}"
-        f"{'3D acc':>8}{'3D cov':>8}{'vote ms/mask':>14}"
+        f"{'3D acc':>8}{'3D cov':>8}{'vote ms/mask':>14}{'refined':>9}"
     )
     for r in reports:
         l3 = r.labels3d or {}
@@ -131,7 +139,7 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
             f"{r.scene:<22}{r.status:<9}{fmt(r.miou):>8}{fmt(r.macc):>8}"
             f"{fmt(r.segmenter_miou):>10}{fmt(l3.get('accuracy')):>8}"
             f"{fmt(l3.get('coverage')):>8}"
-            f"{fmt(r.timings.get('vote_ms_per_mask'), False):>14}"
+            f"{fmt(r.timings.get('vote_ms_per_mask'), False):>14}{fmt(r.refined_miou):>9}"
         )
         if r.error:
             lines.append(f"    {r.error}")
@@ -139,6 +147,7 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
         "",
         f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "
         f"segmenter mIoU {fmt(metrics['segmenter_miou'])}"
+        + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
         + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
         f"resize rule: {metrics['resize_rule']}",
         f"outputs: {out_dir}/metrics.json, per_view.csv"

@@ -18,13 +18,20 @@ from bench.common import (
     guard_run_dir,
     plugin_kwargs,
     print_summary,
+    refine_config_from,
     seed_everything,
     settings_from,
     vote_config_from,
     write_outputs,
 )
 from sagonline.datasets.base import DatasetError
-from sagonline.pipeline import SceneReport, run_stage_one, settings_key, summarize
+from sagonline.pipeline import (
+    SceneReport,
+    run_stage_one,
+    run_stage_two,
+    settings_key,
+    summarize,
+)
 from sagonline.recording import Recorder
 
 
@@ -50,7 +57,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                 print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
                 reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
                 continue
-            report, _, _ = run_stage_one(
+            report, vote, artefacts = run_stage_one(
                 task,
                 segmenter,
                 vote_cfg,
@@ -59,6 +66,17 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                 cache_dir=out_dir / "cache" / scene if cfg.cache else None,
                 recorder=recorder,
             )
+            if cfg.refine.enabled:
+                run_stage_two(
+                    task,
+                    vote,
+                    artefacts,
+                    refine_config_from(cfg),
+                    settings,
+                    report,
+                    recorder,
+                    checkpoint=out_dir / "cache" / scene / "refine.pt" if cfg.cache else None,
+                )
             reports.append(report)
     finally:
         recorder.close()

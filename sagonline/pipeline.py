@@ -49,6 +49,8 @@ class SceneReport:
     timings: dict = field(default_factory=dict)
     views: list[dict] = field(default_factory=list)
     error: str | None = None
+    refined_miou: float | None = None
+    refined_macc: float | None = None
     extra: dict = field(default_factory=dict)
 
 
@@ -253,6 +255,89 @@ def record_scores(
     return miou, macc
 
 
+def run_stage_two(
+    task: SceneTask,
+    vote: VoteResult,
+    artefacts: dict,
+    refine_cfg,
+    settings: PipelineSettings,
+    report: SceneReport,
+    recorder: Recorder,
+    checkpoint: str | Path | None = None,
+) -> None:
+    """Train the student in the background while the initial mode keeps answering the eval
+    views, then answer them again in refined mode; both are scored into `report`."""
+    from sagonline.refine import RefinementTrainer
+    from sagonline.refine.service import OnlineSegmentation
+
+    num_labels = artefacts["num_labels"]
+    g = task.gaussians.to(settings.device)
+    service = OnlineSegmentation(
+        g,
+        vote.labels,
+        vote.labelled,
+        num_labels,
+        backend=settings.backend,
+        min_weight=settings.label_min_weight,
+    )
+    coarse = [service.coarse(c) for c in task.trajectory]
+    trainer = RefinementTrainer(
+        refine_cfg,
+        num_labels,
+        artefacts["frames"],
+        coarse,
+        artefacts["segmentation"].masks,
+        checkpoint,
+    )
+    service.trainer = trainer
+    start = time.perf_counter()
+    resumed_done = trainer.done.is_set()
+    trainer.start()
+    initial = []  # the initial mode keeps answering while the student trains
+    while True:
+        for view in task.eval_views:
+            answer = service.answer(view.camera)
+            if answer.mode == "initial":
+                initial.append(answer.ms)
+            if trainer.done.is_set():
+                break
+        if trainer.done.is_set() and initial:
+            break
+        if trainer.done.is_set():  # resumed from a finished checkpoint: time one pass anyway
+            initial += [service.answer(v.camera, "initial").ms for v in task.eval_views]
+            break
+    trainer.wait()
+    switched = time.perf_counter() - start
+    answers = [service.answer(v.camera) for v in task.eval_views]
+    assert all(a.mode == "refined" for a in answers)
+    preds = [a.mask for a in answers]
+    if not task.prompt.objects and not task.prompt.texts and preds:
+        mapping = match_labels(preds, [v.gt for v in task.eval_views], settings.resize)
+        preds = [relabel(p, mapping) for p in preds]
+    report.refined_miou, report.refined_macc = record_scores(
+        task, preds, settings, report, "refined"
+    )
+    report.timings.update(
+        {
+            "initial_ms_per_frame": float(np.mean(initial)),
+            "refined_ms_per_frame": float(np.mean([a.ms for a in answers])),
+            "refine_train_s": trainer.train_s,
+            "refine_switch_s": switched,
+        }
+    )
+    report.extra["refine"] = {
+        "status": trainer.status,
+        "steps": trainer.step,
+        "final_loss": trainer.ema,
+        "resumed_finished": resumed_done,
+        "initial_answers_while_training": len(initial),
+        "encoder": refine_cfg.encoder,
+    }
+    if recorder.enabled:
+        for i, pred in enumerate(preds):
+            recorder.refined_view(task.name, i, pred)
+
+
 def summarize(reports: list[SceneReport]) -> dict:
     """Dataset-level numbers: means over the scenes that finished."""
     ok = [r for r in reports if r.status == "ok" and r.miou is not None]
@@ -266,6 +351,8 @@ def summarize(reports: list[SceneReport]) -> dict:
         "miou": mean("miou"),
         "macc": mean("macc"),
         "segmenter_miou": mean("segmenter_miou"),
+        "refined_miou": mean("refined_miou"),
+        "refined_macc": mean("refined_macc"),
         "scenes_scored": len(ok),
         "scenes_failed": [r.scene for r in reports if r.status != "ok"],
         "partial": len(ok) < len(reports),

@@ -95,7 +95,12 @@ class SAM2VideoSegmenter(VideoSegmenter):
         if self.checkpoint is not None:
             state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
             state = state.get("model", state)
-            missing, unexpected = model.load_state_dict(state, strict=False)
+            try:
+                missing, unexpected = model.load_state_dict(state, strict=False)
+            except RuntimeError as exc:  # shape mismatches raise even when not strict
+                raise RuntimeError(
+                    f"segmenter.checkpoint={self.checkpoint} does not fit {self.config}: {exc}"
+                ) from exc
             if missing or unexpected:
                 raise RuntimeError(
                     f"segmenter.checkpoint={self.checkpoint} does not fit "

@@ -1,0 +1,212 @@
+"""Online distillation of the refinement student, in a background thread, resumable.
+
+Inputs per trajectory view: the rendered RGB frame and the coarse label render of the fused
+Stage I labels (one-hot, lightly smoothed); target: the 2D segmenter's mask of that frame
+(the teacher). Loss: pixel-wise cross-entropy. Training stops when the smoothed loss has not
+improved by `min_delta` for `patience` steps ("converged") or when `max_steps` or
+`time_budget_s` is spent ("budget"). A checkpoint (model, optimiser, step, loss, status) is
+written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
+path resumes from it, and one that finds a finished checkpoint does not train again.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from sagonline.refine.network import DualBranchRefiner
+
+
+@dataclass
+class RefineConfig:
+    encoder: str = "resnet18"  # resnet50 is the paper's; resnet18 for CPU
+    pretrained: str | None = None  # local torchvision-format ImageNet state dict
+    max_steps: int = 400
+    time_budget_s: float = 90.0
+    batch_size: int = 8
+    crop: int = 128  # train on random crops of this size (full frames when larger)
+    decoder_width: int = 32
+    lr: float = 1e-3
+    patience: int = 60
+    min_delta: float = 1e-3
+    checkpoint_every: int = 25
+    coarse_smoothing: float = 0.1
+    seed: int = 0
+    device: str = "cpu"
+
+
+def coarse_input(
+    labels: np.ndarray | torch.Tensor, num_classes: int, smoothing: float = 0.1
+) -> torch.Tensor:
+    """(H, W) coarse label map -> (C, H, W) smoothed one-hot, the student's mask input."""
+    lab = torch.as_tensor(np.asarray(labels), dtype=torch.long)
+    onehot = F.one_hot(lab, num_classes).permute(2, 0, 1).float()
+    return onehot * (1 - smoothing) + smoothing / num_classes
+
+
+def rgb_input(frame: np.ndarray) -> torch.Tensor:
+    """(H, W, 3) uint8 -> (3, H, W) float in [0, 1]."""
+    return torch.from_numpy(np.ascontiguousarray(frame)).permute(2, 0, 1).float() / 255.0
+
+
+class RefinementTrainer:
+    """Trains a `DualBranchRefiner` on (frames, coarse, teacher) in the background."""
+
+    def __init__(
+        self,
+        cfg: RefineConfig,
+        num_classes: int,
+        frames: list[np.ndarray],
+        coarse: list[np.ndarray],
+        teacher: list[np.ndarray],
+        checkpoint: str | Path | None = None,
+    ):
+        if not (len(frames) == len(coarse) == len(teacher)) or not frames:
+            raise ValueError("refinement needs as many frames, coarse renders and teacher masks")
+        self.cfg, self.num_classes = cfg, num_classes
+        self.checkpoint = Path(checkpoint) if checkpoint is not None else None
+        torch.manual_seed(cfg.seed)
+        self.model = DualBranchRefiner(
+            num_classes, cfg.encoder, cfg.pretrained, decoder_width=cfg.decoder_width
+        ).to(cfg.device)
+        self.optim = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.rgb = torch.stack([rgb_input(f) for f in frames])
+        self.coarse = torch.stack(
+            [coarse_input(c, num_classes, cfg.coarse_smoothing) for c in coarse]
+        )
+        self.teacher = torch.stack(
+            [torch.as_tensor(np.asarray(t), dtype=torch.long) for t in teacher]
+        )
+        if int(self.teacher.max()) >= num_classes:
+            raise ValueError(
+                f"teacher masks hold label {int(self.teacher.max())} but the "
+                f"student has {num_classes} classes"
+            )
+        self.step, self.best, self.since_best, self.ema = 0, float("inf"), 0, None
+        self.status, self.train_s, self.losses = "idle", 0.0, []
+        self.done = threading.Event()
+        self._lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._resume()
+
+    # --- checkpoints --------------------------------------------------------------------------
+    def _resume(self) -> None:
+        if self.checkpoint is None or not self.checkpoint.is_file():
+            return
+        state = torch.load(self.checkpoint, map_location="cpu", weights_only=False)
+        if state.get("config") != asdict(self.cfg) or state.get("classes") != self.num_classes:
+            return  # another setting: start over (the old file is replaced at the first save)
+        self.model.load_state_dict(state["model"])
+        self.optim.load_state_dict(state["optim"])
+        self.step, self.best, self.ema = state["step"], state["best"], state["ema"]
+        self.since_best, self.train_s = state["since_best"], state["train_s"]
+        self.losses, self.status = state["losses"], state["status"]
+        if self.status in ("converged", "budget"):
+            self.done.set()
+
+    def save(self) -> None:
+        if self.checkpoint is None:
+            return
+        self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
+        tmp = self.checkpoint.with_name(self.checkpoint.name + ".tmp")
+        with self._lock:
+            torch.save(
+                {
+                    "model": self.model.state_dict(),
+                    "optim": self.optim.state_dict(),
+                    "step": self.step,
+                    "best": self.best,
+                    "ema": self.ema,
+                    "since_best": self.since_best,
+                    "train_s": self.train_s,
+                    "losses": self.losses,
+                    "status": self.status,
+                    "config": asdict(self.cfg),
+                    "classes": self.num_classes,
+                },
+                tmp,
+            )
+        tmp.replace(self.checkpoint)
+
+    # --- training -----------------------------------------------------------------------------
+    def start(self) -> RefinementTrainer:
+        """Train in a background thread (returns at once; `done` is set when it stops)."""
+        if self.done.is_set():
+            return self
+        self._thread = threading.Thread(target=self.run, name="refinement", daemon=True)
+        self._thread.start()
+        return self
+
+    def wait(self, timeout: float | None = None) -> bool:
+        return self.done.wait(timeout)
+
+    def run(self) -> str:
+        cfg = self.cfg
+        self.status = "training"
+        gen = torch.Generator().manual_seed(cfg.seed + self.step)
+        start, session_start = time.perf_counter(), self.train_s
+        while True:
+            if self.step >= cfg.max_steps or self.train_s >= cfg.time_budget_s:
+                self.status = "budget"
+                break
+            if self.since_best >= cfg.patience:
+                self.status = "converged"
+                break
+            rgb, coarse, teacher = self._batch(gen)
+            with self._lock:
+                self.model.train()
+                logits = self.model(rgb.to(cfg.device), coarse.to(cfg.device))
+                loss = F.cross_entropy(logits, teacher.to(cfg.device))
+                self.optim.zero_grad(set_to_none=True)
+                loss.backward()
+                self.optim.step()
+            value = loss.item()
+            self.losses.append(value)
+            self.ema = value if self.ema is None else 0.9 * self.ema + 0.1 * value
+            if self.ema < self.best - cfg.min_delta:
+                self.best, self.since_best = self.ema, 0
+            else:
+                self.since_best += 1
+            self.step += 1
+            self.train_s = session_start + time.perf_counter() - start
+            if self.step % cfg.checkpoint_every == 0:
+                self.save()
+        self.save()
+        self.done.set()
+        return self.status
+
+    def _batch(self, gen: torch.Generator):
+        """A batch of random views, each cropped at a random place to `crop` px."""
+        cfg = self.cfg
+        n = min(cfg.batch_size, len(self.rgb))
+        idx = torch.randint(len(self.rgb), (n,), generator=gen)
+        H, W = self.rgb.shape[-2:]
+        ch, cw = min(cfg.crop, H), min(cfg.crop, W)
+        ys = torch.randint(H - ch + 1, (n,), generator=gen).tolist()
+        xs = torch.randint(W - cw + 1, (n,), generator=gen).tolist()
+        picks = list(zip(idx.tolist(), ys, xs, strict=True))
+
+        def crop(t: torch.Tensor) -> torch.Tensor:
+            return torch.stack([t[i, ..., y : y + ch, x : x + cw] for i, y, x in picks])
+
+        return crop(self.rgb), crop(self.coarse), crop(self.teacher)
+
+    # --- answering ----------------------------------------------------------------------------
+    @torch.no_grad()
+    def predict(self, frame: np.ndarray, coarse: np.ndarray) -> np.ndarray:
+        """(H, W) labels for one view from its RGB render and coarse label render."""
+        with self._lock:
+            self.model.eval()
+            logits = self.model(
+                rgb_input(frame)[None].to(self.cfg.device),
+                coarse_input(coarse, self.num_classes, self.cfg.coarse_smoothing)[None].to(
+                    self.cfg.device
+                ),
+            )
+        return logits[0].argmax(0).cpu().numpy()

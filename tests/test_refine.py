@@ -1,0 +1,156 @@
+"""Stage II: network layout, distillation in the background, checkpoints, answer modes."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.refine import (
+    DualBranchRefiner,
+    RefineConfig,
+    RefinementTrainer,
+    ResNetEncoder,
+    load_imagenet_weights,
+)
+from sagonline.refine.trainer import coarse_input
+
+
+@pytest.mark.parametrize(
+    "arch,params,last",
+    [("resnet18", 11_176_512, (512, 512, 3, 3)), ("resnet50", 23_508_032, (2048, 512, 1, 1))],
+)
+def test_encoder_matches_torchvision_layout(arch, params, last):
+    enc = ResNetEncoder(arch)
+    sd = enc.state_dict()
+    assert sum(p.numel() for p in enc.parameters()) == params  # torchvision's minus the fc layer
+    key = "layer4.1.conv2.weight" if arch == "resnet18" else "layer4.2.conv3.weight"
+    assert tuple(sd[key].shape) == last
+    assert "layer1.0.downsample.0.weight" in sd or arch == "resnet18"
+    try:
+        from sagonline.compat import import_torchvision
+
+        tv = import_torchvision()
+    except ImportError:
+        return
+    ref = getattr(tv.models, arch)(weights=None).state_dict()
+    ref = {k: v.shape for k, v in ref.items() if not k.startswith("fc.")}
+    assert ref == {k: v.shape for k, v in sd.items()}
+
+
+def test_imagenet_checkpoint_loads_and_bad_one_is_named(tmp_path):
+    src = ResNetEncoder("resnet18")
+    state = {**src.state_dict(), "fc.weight": torch.zeros(1000, 512), "fc.bias": torch.zeros(1000)}
+    torch.save(state, tmp_path / "r18.pth")
+    dst = ResNetEncoder("resnet18")
+    load_imagenet_weights(dst, tmp_path / "r18.pth")
+    assert torch.equal(dst.conv1.weight, src.conv1.weight)
+    torch.save({"conv1.weight": torch.zeros(1)}, tmp_path / "bad.pth")
+    with pytest.raises(RuntimeError, match="bad.pth does not fit"):
+        load_imagenet_weights(dst, tmp_path / "bad.pth")
+    with pytest.raises(FileNotFoundError, match="refine.pretrained"):
+        load_imagenet_weights(dst, tmp_path / "missing.pth")
+
+
+def test_untrained_student_answers_the_coarse_mask():
+    net = DualBranchRefiner(3, "resnet18").eval()
+    labels = torch.randint(0, 3, (37, 50))
+    with torch.no_grad():
+        out = net(torch.rand(1, 3, 37, 50), coarse_input(labels, 3)[None])
+    assert out.shape == (1, 3, 37, 50)
+    assert torch.equal(out[0].argmax(0), labels)
+
+
+def _toy(n=6, h=40, w=48):
+    """The teacher's object is one pixel wider than the coarse one, along an RGB edge."""
+    rng = np.random.default_rng(0)
+    frames, coarse, teacher = [], [], []
+    for _ in range(n):
+        x0 = int(rng.integers(5, 20))
+        img = np.full((h, w, 3), 40, np.uint8)
+        img[10:30, x0 : x0 + 16] = 220
+        t = np.zeros((h, w), np.int64)
+        t[10:30, x0 : x0 + 16] = 1
+        c = np.zeros((h, w), np.int64)
+        c[12:28, x0 + 2 : x0 + 14] = 1
+        frames.append(img)
+        coarse.append(c)
+        teacher.append(t)
+    return frames, coarse, teacher
+
+
+def test_distillation_lowers_the_loss_in_the_background(tmp_path):
+    frames, coarse, teacher = _toy()
+    cfg = RefineConfig(
+        max_steps=30, time_budget_s=60, batch_size=4, crop=32, lr=3e-3, patience=1000
+    )
+    tr = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    tr.start()
+    assert not tr.done.is_set() or tr.step == 30  # start() returned before training ended
+    assert tr.wait(120)
+    assert tr.status == "budget" and tr.step == 30
+    assert np.mean(tr.losses[-5:]) < 0.7 * np.mean(tr.losses[:5])
+    pred = tr.predict(frames[0], coarse[0])
+    agree = lambda a, b: (a == b).mean()  # noqa: E731
+    assert agree(pred, teacher[0]) > agree(coarse[0], teacher[0])
+
+
+def test_checkpoint_resume_and_finished_run(tmp_path):
+    frames, coarse, teacher = _toy(3)
+    cfg = RefineConfig(max_steps=4, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
+    first = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    first.cfg = RefineConfig(**{**cfg.__dict__, "max_steps": 2})  # an interrupted run
+    first.run()
+    first.cfg = cfg
+    first.status = "training"
+    first.save()
+    resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert resumed.step == 2 and not resumed.done.is_set()
+    resumed.run()
+    assert resumed.step == 4 and resumed.status == "budget"
+    again = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert again.done.is_set() and again.step == 4
+    other = RefinementTrainer(
+        RefineConfig(max_steps=5, batch_size=2, crop=32),
+        2,
+        frames,
+        coarse,
+        teacher,
+        tmp_path / "s.pt",
+    )
+    assert other.step == 0  # a different setting starts over
+
+
+def test_teacher_label_out_of_range():
+    frames, coarse, teacher = _toy(2)
+    teacher[1][0, 0] = 5
+    with pytest.raises(ValueError, match="label 5"):
+        RefinementTrainer(RefineConfig(), 2, frames, coarse, teacher)
+
+
+def test_eval_with_refinement_reports_both_modes(tmp_path):
+    import pandas as pd
+
+    from bench.eval import evaluate
+    from tests.test_eval_runner import cfg_with
+
+    m = evaluate(
+        cfg_with(
+            "record=false",
+            "dataset=synthetic_ff",
+            "refine=student",
+            "refine.max_steps=3",
+            "refine.batch_size=2",
+        ),
+        tmp_path,
+    )
+    scene = m["scenes"][0]
+    assert scene["refined_miou"] is not None and m["refined_miou"] == scene["refined_miou"]
+    assert scene["extra"]["refine"]["steps"] == 3
+    assert scene["extra"]["refine"]["initial_answers_while_training"] >= 1
+    assert {"initial_ms_per_frame", "refined_ms_per_frame", "refine_train_s"} <= set(
+        scene["timings"]
+    )
+    rows = pd.read_csv(tmp_path / "per_view.csv")
+    assert set(rows["mode"]) == {"initial", "refined"}
+    assert (tmp_path / "cache" / "forward_single" / "refine.pt").is_file()
