@@ -8,7 +8,15 @@ ARGS   ?=
 
 EXTRAS := $(VENV)/.extras
 
-.PHONY: install install-extras eval test test-fast report bench lint format clean-runs
+# basic: one job after another (the first warms the shared stage cache; timings stay clean);
+# local: parallel jobs on this machine (joblib); slurm: a cluster (submitit).
+LAUNCHER ?= basic
+STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
+SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
+            progress=false cache_dir=.cache/stages
+
+.PHONY: install install-extras eval test test-fast report bench lint format clean-runs \
+        tables table-timing table-masks table-ablation table-robustness
 
 install: $(STAMP)
 
@@ -54,3 +62,32 @@ format: install
 
 clean-runs:
 	rm -rf runs multirun outputs
+
+# The paper's tables, one target each (LAUNCHER=slurm runs the same sweep on a cluster).
+table-timing: install
+	$(BIN)/python -m bench.eval dataset=synthetic_360 segmenter=classical refine=student \
+	  record=false progress=false hydra.run.dir=multirun/timing/$(STAMPNOW)/0 $(ARGS)
+	$(BIN)/python -m bench.tables timing
+
+table-masks: install
+	$(SWEEP) dataset=synthetic_360_hd consensus.num_masks=1,3,6,12,25,50,100,null \
+	  hydra.sweep.dir=multirun/masks/$(STAMPNOW) $(ARGS)
+	$(BIN)/python -m bench.tables masks
+
+table-ablation: install
+	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus=rgc,flashsplat,weighted_mean \
+	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/methods $(ARGS)
+	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.eps=0.001,0.1,0.5 \
+	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/eps $(ARGS)
+	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.delta=0.5,1,4,8 \
+	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/delta $(ARGS)
+	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.min_votes=3,10 \
+	  consensus.margin=0,0.5 hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/votes $(ARGS)
+	$(BIN)/python -m bench.tables ablation
+
+table-robustness: install
+	$(SWEEP) dataset=synthetic_360 segmenter=oracle segmenter.boundary_px=0,2,4 \
+	  segmenter.flicker=0,0.1,0.3 hydra.sweep.dir=multirun/robustness/$(STAMPNOW) $(ARGS)
+	$(BIN)/python -m bench.tables robustness
+
+tables: table-timing table-masks table-ablation table-robustness

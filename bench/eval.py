@@ -48,6 +48,9 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     vote_cfg = vote_config_from(cfg)
     settings = settings_from(cfg)
     recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)
+    cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
+    refine_key = settings_key(*(str(cfg[k]) for k in ("dataset", "segmenter", "consensus",
+                                                       "refine", "label_render")))
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
@@ -63,7 +66,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                 vote_cfg,
                 settings,
                 segmenter_key=plugin_kwargs(cfg.segmenter) | {"name": cfg.segmenter.name},
-                cache_dir=out_dir / "cache" / scene if cfg.cache else None,
+                cache_dir=cache_root / scene if cfg.cache else None,
                 recorder=recorder,
             )
             if cfg.refine.enabled:
@@ -75,7 +78,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                     settings,
                     report,
                     recorder,
-                    checkpoint=out_dir / "cache" / scene / "refine.pt" if cfg.cache else None,
+                    checkpoint=cache_root / scene / f"refine-{refine_key}.pt" if cfg.cache else None,
                 )
             reports.append(report)
     finally:
@@ -89,6 +92,14 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     )
     print_summary(out_dir, metrics, reports)
     return metrics
+
+
+def overrides() -> list[str]:
+    """The command-line overrides of this job (what distinguishes it inside a sweep)."""
+    try:
+        return list(HydraConfig.get().overrides.task)
+    except ValueError:  # not running under @hydra.main (tests compose the config directly)
+        return []
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
