@@ -16,7 +16,7 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
             progress=false cache_dir=.cache/stages
 
 .PHONY: install install-extras eval test test-fast report bench lint format clean-runs \
-        tables table-timing table-masks table-ablation table-robustness
+        tables table-timing table-masks table-ablation table-robustness scenes
 
 install: $(STAMP)
 
@@ -62,6 +62,11 @@ format: install
 
 clean-runs:
 	rm -rf runs multirun outputs
+
+# Fit the Gaussian scenes a dataset needs (2DGS; ARGS=fit.kind=3dgs for 3DGS).
+SCENE ?=
+scenes: install
+	$(BIN)/python -m bench.scenes dataset=$(DATASET) $(if $(SCENE),scene=$(SCENE)) $(ARGS)
 
 # The paper's tables, one target each (LAUNCHER=slurm runs the same sweep on a cluster).
 table-timing: install

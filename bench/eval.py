@@ -49,8 +49,9 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     settings = settings_from(cfg)
     recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)
     cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
-    refine_key = settings_key(*(str(cfg[k]) for k in ("dataset", "segmenter", "consensus",
-                                                       "refine", "label_render")))
+    refine_key = settings_key(
+        *(str(cfg[k]) for k in ("dataset", "segmenter", "consensus", "refine", "label_render"))
+    )
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
@@ -78,7 +79,9 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                     settings,
                     report,
                     recorder,
-                    checkpoint=cache_root / scene / f"refine-{refine_key}.pt" if cfg.cache else None,
+                    checkpoint=cache_root / scene / f"refine-{refine_key}.pt"
+                    if cfg.cache
+                    else None,
                 )
             reports.append(report)
     finally:

@@ -37,8 +37,7 @@ def load_runs(sweep: Path) -> list[dict]:
     runs = []
     for path in sorted(sweep.rglob("metrics.json")):
         m = json.loads(path.read_text())
-        m["_dir"] = str(path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else
-                        path.parent)
+        m["_dir"] = str(path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else path.parent)
         runs.append(m)
     if not runs:
         raise SystemExit(f"{sweep}: no finished jobs (metrics.json) yet")
@@ -54,19 +53,24 @@ def timing_rows(runs):
     for m in runs:
         for s in m["scenes"]:
             t = s.get("timings", {})
-            rows.append({
-                "scene": s["scene"], "segmenter": m["segmenter"],
-                "time_to_first_mask_s": t.get("time_to_first_mask_s"),
-                "vote_s": t.get("vote_s"),
-                "refine_train_s": t.get("refine_train_s"),
-                "setup_s": (t.get("vote_s") or 0) + (t.get("refine_train_s") or 0),
-                "segmenter_ms_per_frame": t.get("segment_ms_per_frame"),
-                "initial_ms_per_frame": t.get("initial_ms_per_frame",
-                                              t.get("label_render_ms_per_frame")),
-                "refined_ms_per_frame": t.get("refined_ms_per_frame"),
-                "initial_mIoU": pct(s.get("miou")), "refined_mIoU": pct(s.get("refined_miou")),
-                "overrides": " ".join(m.get("overrides", [])),
-            })
+            rows.append(
+                {
+                    "scene": s["scene"],
+                    "segmenter": m["segmenter"],
+                    "time_to_first_mask_s": t.get("time_to_first_mask_s"),
+                    "vote_s": t.get("vote_s"),
+                    "refine_train_s": t.get("refine_train_s"),
+                    "setup_s": (t.get("vote_s") or 0) + (t.get("refine_train_s") or 0),
+                    "segmenter_ms_per_frame": t.get("segment_ms_per_frame"),
+                    "initial_ms_per_frame": t.get(
+                        "initial_ms_per_frame", t.get("label_render_ms_per_frame")
+                    ),
+                    "refined_ms_per_frame": t.get("refined_ms_per_frame"),
+                    "initial_mIoU": pct(s.get("miou")),
+                    "refined_mIoU": pct(s.get("refined_miou")),
+                    "overrides": " ".join(m.get("overrides", [])),
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -75,14 +79,19 @@ def masks_rows(runs):
     for m in runs:
         for s in m["scenes"]:
             n = s["vote"]["num_masks"]
-            rows.append({"scene": s["scene"], "num_masks": n,
-                         "aggregation_ms": 1000 * s["timings"]["vote_s"],
-                         "ms_per_mask": s["timings"]["vote_ms_per_mask"],
-                         "mIoU": pct(s.get("miou")),
-                         "labels3d_acc": pct((s.get("labels3d") or {}).get("accuracy")),
-                         "coverage": pct((s.get("labels3d") or {}).get("coverage")),
-                         "paper_ms (RTX 4090)": PAPER_MASK_MS.get(n),
-                         "overrides": " ".join(m.get("overrides", []))})
+            rows.append(
+                {
+                    "scene": s["scene"],
+                    "num_masks": n,
+                    "aggregation_ms": 1000 * s["timings"]["vote_s"],
+                    "ms_per_mask": s["timings"]["vote_ms_per_mask"],
+                    "mIoU": pct(s.get("miou")),
+                    "labels3d_acc": pct((s.get("labels3d") or {}).get("accuracy")),
+                    "coverage": pct((s.get("labels3d") or {}).get("coverage")),
+                    "paper_ms (RTX 4090)": PAPER_MASK_MS.get(n),
+                    "overrides": " ".join(m.get("overrides", [])),
+                }
+            )
     return pd.DataFrame(rows).sort_values(["scene", "num_masks"])
 
 
@@ -90,13 +99,22 @@ def ablation_rows(runs):
     rows = []
     for m in runs:
         c = m["consensus"]
-        rows.append({"method": c["method"], "eps": c["eps"], "delta": c["delta"],
-                     "min_votes": c["min_votes"], "margin": c["margin"],
-                     "segmenter": m["segmenter"], "segmenter_mIoU": pct(m.get("segmenter_miou")),
-                     "mIoU": pct(m.get("miou")), "mAcc": pct(m.get("macc")),
-                     "labels3d_acc": pct(_mean3d(m, "accuracy")),
-                     "coverage": pct(_mean3d(m, "coverage")),
-                     "overrides": " ".join(m.get("overrides", []))})
+        rows.append(
+            {
+                "method": c["method"],
+                "eps": c["eps"],
+                "delta": c["delta"],
+                "min_votes": c["min_votes"],
+                "margin": c["margin"],
+                "segmenter": m["segmenter"],
+                "segmenter_mIoU": pct(m.get("segmenter_miou")),
+                "mIoU": pct(m.get("miou")),
+                "mAcc": pct(m.get("macc")),
+                "labels3d_acc": pct(_mean3d(m, "accuracy")),
+                "coverage": pct(_mean3d(m, "coverage")),
+                "overrides": " ".join(m.get("overrides", [])),
+            }
+        )
     return pd.DataFrame(rows).sort_values(["method", "eps", "delta", "min_votes", "margin"])
 
 
@@ -104,12 +122,19 @@ def robustness_rows(runs):
     rows = []
     for m in runs:
         seg = m["config"]["segmenter"]
-        rows.append({"boundary_px": seg.get("boundary_px"), "flicker": seg.get("flicker"),
-                     "swap": seg.get("swap"), "blob_rate": seg.get("blob_rate"),
-                     "segmenter_mIoU": pct(m.get("segmenter_miou")), "fused_mIoU": pct(m["miou"]),
-                     "gain": round(100 * (m["miou"] - m["segmenter_miou"]), 2),
-                     "labels3d_acc": pct(_mean3d(m, "accuracy")),
-                     "overrides": " ".join(m.get("overrides", []))})
+        rows.append(
+            {
+                "boundary_px": seg.get("boundary_px"),
+                "flicker": seg.get("flicker"),
+                "swap": seg.get("swap"),
+                "blob_rate": seg.get("blob_rate"),
+                "segmenter_mIoU": pct(m.get("segmenter_miou")),
+                "fused_mIoU": pct(m["miou"]),
+                "gain": round(100 * (m["miou"] - m["segmenter_miou"]), 2),
+                "labels3d_acc": pct(_mean3d(m, "accuracy")),
+                "overrides": " ".join(m.get("overrides", [])),
+            }
+        )
     return pd.DataFrame(rows).sort_values(["boundary_px", "flicker"])
 
 
@@ -125,14 +150,21 @@ def plot_masks(df: pd.DataFrame, out: Path) -> list[Path]:
     import matplotlib.pyplot as plt
 
     paths = []
-    for col, label, stem in (("mIoU", "mIoU (%) at held-out views", "masks_miou"),
-                             ("aggregation_ms", "3D aggregation time (ms)", "masks_time")):
+    for col, label, stem in (
+        ("mIoU", "mIoU (%) at held-out views", "masks_miou"),
+        ("aggregation_ms", "3D aggregation time (ms)", "masks_time"),
+    ):
         fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
         for scene, part in df.groupby("scene"):
             ax.plot(part["num_masks"], part[col], "o-", label=scene)
         if col == "aggregation_ms":
-            ax.plot(list(PAPER_MASK_MS), list(PAPER_MASK_MS.values()), "s--", color="grey",
-                    label="paper (RTX 4090)")
+            ax.plot(
+                list(PAPER_MASK_MS),
+                list(PAPER_MASK_MS.values()),
+                "s--",
+                color="grey",
+                label="paper (RTX 4090)",
+            )
         ax.set_xscale("log")
         ax.set_xlabel("number of masks voting")
         ax.set_ylabel(label)
@@ -148,12 +180,18 @@ def plot_masks(df: pd.DataFrame, out: Path) -> list[Path]:
     return paths
 
 
-BUILDERS = {"timing": timing_rows, "masks": masks_rows, "ablation": ablation_rows,
-            "robustness": robustness_rows}
-TITLES = {"timing": "Time efficiency (paper Table: time-to-first-mask and inference speed)",
-          "masks": "3D aggregation time and accuracy against the number of masks",
-          "ablation": "Vote ablation: RGC settings and the FlashSplat / weighted-mean baselines",
-          "robustness": "Robustness of the vote to segmenter corruption"}
+BUILDERS = {
+    "timing": timing_rows,
+    "masks": masks_rows,
+    "ablation": ablation_rows,
+    "robustness": robustness_rows,
+}
+TITLES = {
+    "timing": "Time efficiency (paper Table: time-to-first-mask and inference speed)",
+    "masks": "3D aggregation time and accuracy against the number of masks",
+    "ablation": "Vote ablation: RGC settings and the FlashSplat / weighted-mean baselines",
+    "robustness": "Robustness of the vote to segmenter corruption",
+}
 
 
 def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
@@ -161,15 +199,18 @@ def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
     df = BUILDERS[name](runs)
     devices = sorted({device_text(m["device"]) for m in runs})
     first = runs[0]
-    header = [f"# {TITLES[name]}", "",
-              f"- sweep: `{sweep.relative_to(ROOT) if sweep.is_relative_to(ROOT) else sweep}`"
-              f" ({len(runs)} jobs)",
-              f"- device: {'; '.join(devices)}",
-              f"- dataset: {first['dataset']}, renderer: {first['renderer']}, "
-              f"resize rule: {first['resize_rule']}",
-              "- mIoU / accuracy in percent; times are wall clock on the device above.",
-              "- exact per-row config: the `overrides` column (full config in each job's "
-              "metrics.json).", ""]
+    header = [
+        f"# {TITLES[name]}",
+        "",
+        f"- sweep: `{sweep.relative_to(ROOT) if sweep.is_relative_to(ROOT) else sweep}`"
+        f" ({len(runs)} jobs)",
+        f"- device: {'; '.join(devices)}",
+        f"- dataset: {first['dataset']}, renderer: {first['renderer']}, "
+        f"resize rule: {first['resize_rule']}",
+        "- mIoU / accuracy in percent; times are wall clock on the device above.",
+        "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
+        "",
+    ]
     body = df.to_markdown(index=False, floatfmt=".4g")
     plots = plot_masks(df, out) if name == "masks" else []
     images = "".join(f"\n![{p.stem}]({p.name})\n" for p in plots)

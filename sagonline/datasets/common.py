@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import re
 from pathlib import Path
 
@@ -21,10 +22,26 @@ TRAINED_SCENE_HELP = (
 )
 
 
-def find_trained_scene(scene_dir: Path) -> Path:
+SCENES_ROOT = Path(
+    os.environ.get("SAGONLINE_SCENES", Path(__file__).resolve().parents[2] / "scenes")
+)
+
+
+def gaussians_dir(scene_dir: Path, dataset: str | None = None) -> Path:
+    """Where a scene's trained Gaussians live: `<scene>/gaussians/`, or, for data on a
+    read-only disk, `scenes/<dataset>/<scene>/gaussians/` in the project (where `make scenes`
+    writes when the data folder is not writable)."""
+    own = scene_dir / "gaussians"
+    if own.exists() or dataset is None:
+        return own
+    overlay = SCENES_ROOT / dataset / scene_dir.name / "gaussians"
+    return overlay if overlay.exists() else own
+
+
+def find_trained_scene(scene_dir: Path, dataset: str | None = None) -> Path:
     """The scene's `point_cloud.ply`: gaussians/point_cloud.ply, or the latest
-    gaussians/point_cloud/iteration_*/point_cloud.ply."""
-    base = scene_dir / "gaussians"
+    gaussians/point_cloud/iteration_*/point_cloud.ply (in `gaussians_dir`)."""
+    base = gaussians_dir(scene_dir, dataset)
     direct = base / "point_cloud.ply"
     if direct.is_file():
         return direct
@@ -35,13 +52,14 @@ def find_trained_scene(scene_dir: Path) -> Path:
     if iterations:
         return iterations[-1]
     raise DatasetError(
-        f"no trained scene for {scene_dir.name}: expected {direct}; "
+        f"no trained scene for {scene_dir.name}: expected "
+        f"{scene_dir / 'gaussians' / 'point_cloud.ply'}; "
         + TRAINED_SCENE_HELP.format(dir=scene_dir)
     )
 
 
-def load_trained_scene(scene_dir: Path) -> Gaussians:
-    path = find_trained_scene(scene_dir)
+def load_trained_scene(scene_dir: Path, dataset: str | None = None) -> Gaussians:
+    path = find_trained_scene(scene_dir, dataset)
     try:
         return read_scene(path)
     except SceneFileError as exc:
@@ -49,7 +67,10 @@ def load_trained_scene(scene_dir: Path) -> Gaussians:
 
 
 def scene_cameras(
-    scene_dir: Path, image_dir: str | None, names: list[str] | None = None
+    scene_dir: Path,
+    image_dir: str | None,
+    names: list[str] | None = None,
+    dataset: str | None = None,
 ) -> list[Camera]:
     """Cameras of a scene, sorted by name: the trained scene's `gaussians/cameras.json` when
     present (its frame is the scene's), else the capture's own poses (LLFF poses_bounds.npy,
@@ -62,7 +83,7 @@ def scene_cameras(
                 from PIL import Image
 
                 size = Image.open(images[0]).size
-    gs_cams = scene_dir / "gaussians" / "cameras.json"
+    gs_cams = gaussians_dir(scene_dir, dataset) / "cameras.json"
     try:
         if gs_cams.is_file():
             cams = load_cameras(gs_cams)

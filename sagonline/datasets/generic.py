@@ -36,6 +36,7 @@ from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, Scen
 from sagonline.datasets.common import (
     check_mask_size,
     click_prompt,
+    gaussians_dir,
     list_masks,
     load_mask,
     load_trained_scene,
@@ -171,7 +172,8 @@ class PosedMasksDataset(DatasetAdapter):
             raise DatasetError(f"{mask_root}: no label maps found")
         names = None
         pb = scene_dir / "poses_bounds.npy"
-        if pb.is_file() and not (scene_dir / "gaussians" / "cameras.json").is_file():
+        gs_dir = gaussians_dir(scene_dir, self.name)
+        if pb.is_file() and not (gs_dir / "cameras.json").is_file():
             n_poses = len(np.load(pb))
             image_folder = scene_dir / (self.image_dir_for(scene) or "images")
             images = (
@@ -188,7 +190,7 @@ class PosedMasksDataset(DatasetAdapter):
                     f"{pb}: {n_poses} poses, but {image_folder} has {len(images)} images and "
                     f"{mask_root} {len(mask_names)} label maps; cannot tell which pose is whose"
                 )
-        cams = scene_cameras(scene_dir, self.image_dir_for(scene), names)
+        cams = scene_cameras(scene_dir, self.image_dir_for(scene), names, self.name)
         masks = match_by_name(entries, [c.name for c in cams], scene_dir)
         expected = self.expected_counts.get(scene)
         if expected is not None and len(masks) != expected:
@@ -197,6 +199,22 @@ class PosedMasksDataset(DatasetAdapter):
                 f"{expected} (cutout/pseudo files excluded)"
             )
         return cams, masks
+
+    def capture(self, scene: str) -> tuple[Path, list[Camera], dict[str, Path]]:
+        """What `make scenes` fits from: the scene folder, every camera, and the images found
+        (by view name) in the scene's image folder."""
+        cams, _ = self.load_views(scene)
+        scene_dir = self.scene_dirs()[scene]
+        folder = scene_dir / (self.image_dir_for(scene) or "images")
+        if not folder.is_dir():
+            raise DatasetError(f"{self.name}/{scene}: image folder {folder} not found")
+        names = {c.name for c in cams}
+        images = {
+            p.stem: p
+            for p in sorted(folder.iterdir())
+            if p.suffix in IMAGE_SUFFIXES and p.stem in names
+        }
+        return scene_dir, cams, images
 
     def read_label_map(self, path: Path) -> np.ndarray:
         if self.label_format == "per_object":
@@ -253,7 +271,7 @@ class PosedMasksDataset(DatasetAdapter):
             gts[name] = gt
         if self.label_format == "kitti360":
             gts, names = _renumber_instances(gts)
-        gaussians = load_trained_scene(scene_dir)
+        gaussians = load_trained_scene(scene_dir, self.name)
         num_labels, names = (
             (len(names), names)
             if self.label_format == "kitti360"

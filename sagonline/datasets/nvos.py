@@ -93,7 +93,7 @@ class NVOSDataset(DatasetAdapter):
         scene_dir = self.root / "scenes" / self.scene_of(task)
         if not scene_dir.is_dir():
             raise DatasetError(f"nvos/{task}: scene folder {scene_dir} not found")
-        cams = scene_cameras(scene_dir, self.image_dir)
+        cams = scene_cameras(scene_dir, self.image_dir, dataset="nvos")
         names = [c.name for c in cams]
         for role, view in (("target", target), ("reference", reference)):
             if view not in names:
@@ -107,7 +107,7 @@ class NVOSDataset(DatasetAdapter):
         gt = load_mask(mask_path, self.threshold)
         target_cam = cams[names.index(target)]
         check_mask_size(gt, target_cam, mask_path)
-        gaussians = load_trained_scene(scene_dir)
+        gaussians = load_trained_scene(scene_dir, "nvos")
         if self.prompt_kind == "clicks":
             frame = names.index(target)
             scale = (target_cam.width / gt.shape[1], target_cam.height / gt.shape[0])
@@ -126,6 +126,17 @@ class NVOSDataset(DatasetAdapter):
             label_names=["background", task],
             meta={"target": target, "reference": reference, "prompt": self.prompt_kind},
         )
+
+    def capture(self, scene: str) -> tuple[Path, list, dict[str, Path]]:
+        """The LLFF scene behind a task (or a scene name): folder, cameras, images."""
+        from sagonline.cameras import list_images
+
+        scene_dir = self.root / "scenes" / self.scene_of(scene)
+        if not scene_dir.is_dir():
+            raise DatasetError(f"nvos/{scene}: scene folder {scene_dir} not found")
+        cams = scene_cameras(scene_dir, self.image_dir)
+        images = {p.stem: p for p in list_images(scene_dir / self.image_dir)}
+        return scene_dir, cams, images
 
     def scribble_prompt(self, task: str, cam) -> ObjectPrompt:
         folder = self.root / "scribbles" / task

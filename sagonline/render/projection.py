@@ -75,11 +75,11 @@ def project(
         valid, means2d, bbox, extra = _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam)
     else:
         valid, means2d, bbox, extra = _project_surfels(g, rot, R, p_cam, cam.K)
-    valid &= z > near
-    valid &= (
-        (bbox[:, 1] > 0) & (bbox[:, 0] < cam.width) & (bbox[:, 3] > 0) & (bbox[:, 2] < cam.height)
-    )
-    valid &= g.opacities >= ALPHA_MIN
+    valid = valid & (z > near)
+    on_screen = (bbox[:, 1] > 0) & (bbox[:, 0] < cam.width)
+    on_screen = on_screen & (bbox[:, 3] > 0) & (bbox[:, 2] < cam.height)
+    valid = valid & on_screen
+    valid = valid & (g.opacities >= ALPHA_MIN)
     ids = torch.nonzero(valid).squeeze(1)
     colors = torch.zeros(0, 3, device=g.device)
     if with_colors:
@@ -142,7 +142,7 @@ def _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam):
         ],
         dim=1,
     )
-    valid &= torch.isfinite(bbox).all(1)
+    valid = valid & (torch.isfinite(bbox).all(1))
     return valid, means2d, bbox, conics
 
 
@@ -171,7 +171,7 @@ def _project_surfels(g, rot, R, p_cam, K):
         ],
         dim=1,
     )
-    valid &= torch.isfinite(bbox).all(1)
+    valid = valid & (torch.isfinite(bbox).all(1))
     return valid, means2d, bbox, M
 
 

@@ -1,0 +1,154 @@
+"""Fitting scenes: the loss falls, runs resume, outputs land where the adapter looks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.fit import FitConfig, SceneFitter, split_views, ssim
+from sagonline.render import rasterize
+from sagonline.synthetic import make_scene
+
+
+@pytest.fixture(scope="module")
+def views():
+    s = make_scene(
+        layout="forward",
+        num_gaussians=2000,
+        width=32,
+        height=24,
+        num_train_views=9,
+        num_eval_views=1,
+    )
+    imgs = [rasterize(s.gaussians, c).rgb.clamp(0, 1) for c in s.train_cameras]
+    return s.train_cameras, imgs
+
+
+def tiny(**kw):
+    base = dict(
+        iterations=80,
+        init_points=800,
+        densify_from=20,
+        densify_every=20,
+        densify_until=60,
+        sh_degree=0,
+        checkpoint_every=10,
+    )
+    return FitConfig(**{**base, **kw})
+
+
+def test_ssim_and_split():
+    a = torch.rand(16, 16, 3)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
+    assert float(ssim(a, torch.rand(16, 16, 3))) < 0.5
+    from tests.replicas import orbit_cameras
+
+    train, held = split_views(orbit_cameras(17), 8)
+    assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_loss_falls_and_densify_changes_the_count(views, kind):
+    cams, imgs = views
+    f = SceneFitter(tiny(kind=kind), cams, imgs)
+    n0 = len(f)
+    m = f.fit(progress=False)
+    assert np.mean(f.history[-10:]) < 0.9 * np.mean(f.history[:10])
+    assert len(f) != n0 and m["iterations"] == 80
+    assert m["psnr_train"] > 12 and m["heldout_views"]
+    g = f.export()
+    assert g.kind == kind and torch.isfinite(g.means).all()
+
+
+def test_resume_continues_where_it_stopped(views, tmp_path):
+    cams, imgs = views
+    ckpt = tmp_path / "fit.pt"
+    f = SceneFitter(tiny(iterations=20), cams, imgs)
+    f.cfg = tiny(iterations=10)
+    f.fit(progress=False, checkpoint=ckpt)  # an interrupted run
+    state = torch.load(ckpt, weights_only=False)
+    state["config"] = {**state["config"], "iterations": 20}
+    torch.save(state, ckpt)
+    g = SceneFitter(tiny(iterations=20), cams, imgs)
+    assert g.resume(ckpt) and g.step == 10
+    g.fit(progress=False, checkpoint=ckpt)
+    assert g.step == 20
+    other = SceneFitter(tiny(iterations=31), cams, imgs)
+    assert not other.resume(ckpt)
+
+
+def test_bad_inputs(views):
+    cams, imgs = views
+    with pytest.raises(ValueError, match="kind"):
+        SceneFitter(tiny(kind="nerf"), cams, imgs)
+    with pytest.raises(ValueError, match="image of view"):
+        SceneFitter(tiny(), cams, [imgs[0][:10]] + imgs[1:])
+
+
+def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
+    from hydra import compose, initialize_config_dir
+
+    from bench.scenes import fit_scene
+    from sagonline.datasets.generic import PosedMasksDataset
+    from tests.replicas import llff_scene, object_mask, write_image
+    from tests.test_eval_runner import CONF
+
+    names = [f"IMG_{i:04d}" for i in range(9)]
+    cams, scene = llff_scene(tmp_path / "cap", names, with_scene=False)
+    for cam, n in zip(cams, names, strict=True):
+        img = (rasterize(scene.gaussians, cam).rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)
+        write_image(tmp_path / "cap" / "images_4" / f"{n}.JPG", img[..., ::-1])
+        write_image(
+            tmp_path / "cap" / "masks" / f"{n}.png",
+            (object_mask(scene, cam) > 0).astype(np.uint8) * 255,
+        )
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(
+            "scenes",
+            overrides=[
+                "dataset=generic",
+                f"dataset.root={tmp_path / 'cap'}",
+                "progress=false",
+                "fit.iterations=12",
+                "fit.init_points=500",
+                "fit.densify_from=5",
+                "fit.densify_every=5",
+                "fit.densify_until=10",
+                "fit.sh_degree=0",
+            ],
+        )
+    adapter = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
+    metrics = fit_scene(cfg, adapter, "cap")
+    out = tmp_path / "cap" / "gaussians"
+    saved = json.loads((out / "fit_metrics.json").read_text())
+    assert saved["iterations"] == 12 and saved["psnr_heldout"] == metrics["psnr_heldout"]
+    assert (out / "fit_config.json").is_file() and list(out.glob("heldout_*.png"))
+    task = adapter.load_scene("cap")  # the adapter now finds the fitted scene and cameras
+    assert task.gaussians.kind == "2dgs" and len(task.trajectory) == 9
+    again = fit_scene(cfg, adapter, "cap")
+    assert again == {"scene": "cap", "skipped": True}
+
+
+def test_scenes_cli_errors(tmp_path):
+    import subprocess
+    import sys
+
+    res = subprocess.run(
+        [sys.executable, "-m", "bench.scenes", "dataset=synthetic"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 2 and "generated, not fitted" in res.stderr
+    empty = tmp_path / "cap"
+    (empty / "masks").mkdir(parents=True)
+    res = subprocess.run(
+        [sys.executable, "-m", "bench.scenes", "dataset=generic", f"dataset.root={tmp_path}"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert res.returncode == 2 and "no data at" in res.stderr
