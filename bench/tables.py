@@ -212,9 +212,9 @@ def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
         "",
     ]
     body = df.to_markdown(index=False, floatfmt=".4g")
+    out.mkdir(parents=True, exist_ok=True)
     plots = plot_masks(df, out) if name == "masks" else []
     images = "".join(f"\n![{p.stem}]({p.name})\n" for p in plots)
-    out.mkdir(parents=True, exist_ok=True)
     atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
     atomic_write_text(out / f"{name}.md", "\n".join(header) + body + "\n" + images)
     return df
