@@ -93,28 +93,41 @@ def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]
     return [i for i in order if i not in held], held
 
 
-def init_from_views(
-    cameras: list[Camera],
-    images: list[torch.Tensor],
-    count: int,
-    near_far: tuple[float, float],
-    rng: np.random.Generator,
-) -> tuple[np.ndarray, np.ndarray]:
+def init_from_views(cameras: list[Camera], images: list[torch.Tensor], count: int,
+                    near_far: tuple[float, float], rng: np.random.Generator,
+                    min_visible: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
     """Random points in the training frusta: a random pixel of a random view at a random
-    depth between near and far, coloured by that pixel. (P, 3) xyz, (P, 3) rgb in [0, 1]."""
-    xyz, rgb = [], []
+    (log-uniform) depth between near and far, coloured by that pixel, kept when at least
+    `min_visible` of the views see it (for orbits: the region they all look at; a fallback
+    keeps the most visible candidates). (P, 3) xyz, (P, 3) rgb in [0, 1]."""
     near, far = near_far
-    for _ in range(count):
-        i = int(rng.integers(len(cameras)))
+    m = 8 * count
+    views = rng.integers(len(cameras), size=m)
+    u, v = rng.uniform(0, 1, m), rng.uniform(0, 1, m)
+    depth = np.exp(rng.uniform(math.log(near), math.log(far), m))
+    xyz, rgb = np.empty((m, 3)), np.empty((m, 3))
+    for i in range(len(cameras)):
+        sel = views == i
         cam, img = cameras[i], images[i]
-        u, v = rng.uniform(0, cam.width), rng.uniform(0, cam.height)
-        d = math.exp(rng.uniform(math.log(near), math.log(far)))
-        ray = torch.linalg.inv(cam.K.double()) @ torch.tensor([u, v, 1.0], dtype=torch.float64)
-        p_cam = (ray * d).numpy()
+        px, py = u[sel] * cam.width, v[sel] * cam.height
+        rays = np.stack([px, py, np.ones_like(px)], 1) @ np.linalg.inv(cam.K.double().numpy()).T
+        p_cam = rays * depth[sel, None]
         R, t = cam.rotation.double().numpy(), cam.translation.double().numpy()
-        xyz.append(R.T @ (p_cam - t))
-        rgb.append(img[int(v), int(u)].numpy())
-    return np.array(xyz), np.array(rgb)
+        xyz[sel] = (p_cam - t) @ R
+        rgb[sel] = img[py.astype(int).clip(0, cam.height - 1),
+                       px.astype(int).clip(0, cam.width - 1)].cpu().numpy()
+    pts = torch.tensor(xyz, dtype=torch.float32)
+    seen = np.zeros(m)
+    for cam in cameras:
+        uv, z = cam.project(pts)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (
+            uv[:, 1] < cam.height)
+        seen += inside.numpy()
+    order = np.argsort(-seen, kind="stable")
+    keep = order[seen[order] >= min_visible * len(cameras)][:count]
+    if len(keep) < count // 2:
+        keep = order[:count]
+    return xyz[keep], rgb[keep]
 
 
 class SceneFitter:
