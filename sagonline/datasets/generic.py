@@ -94,6 +94,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.expected_counts = expected_counts or {}
         self.readme = readme or f"datasets/{name}/README.md"
         self.keep_classes = tuple(keep_classes)
+        self.render_max_side = render_max_side
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:
@@ -262,6 +263,8 @@ class PosedMasksDataset(DatasetAdapter):
     # --- task ---------------------------------------------------------------------------------
     def load_scene(self, scene: str) -> SceneTask:
         cams, mask_paths = self.load_views(scene)
+        if self.render_max_side:  # render smaller; scores still use the masks' resolution
+            cams = [c.scaled(*_fit_within(c.width, c.height, self.render_max_side)) for c in cams]
         scene_dir = self.scene_dirs()[scene]
         by_name = {c.name: c for c in cams}
         gts = {}
@@ -328,6 +331,11 @@ class PosedMasksDataset(DatasetAdapter):
         scale = (cam.width / gt.shape[1], cam.height / gt.shape[0])
         clean = np.where(gt == self.ignore, 0, gt) if self.ignore is not None else gt
         return click_prompt(clean, frame, num_labels, self.clicks, self.seed, scale)
+
+
+def _fit_within(width: int, height: int, max_side: int) -> tuple[int, int]:
+    scale = min(1.0, max_side / max(width, height))
+    return max(1, round(width * scale)), max(1, round(height * scale))
 
 
 def _renumber_instances(gts: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], list[str]]:
