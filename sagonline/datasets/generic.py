@@ -71,6 +71,7 @@ class PosedMasksDataset(DatasetAdapter):
         expected_counts: dict | None = None,
         readme: str | None = None,
         keep_classes: tuple[int, ...] = KITTI360_VEHICLES,
+        render_max_side: int | None = None,
         seed: int = 0,
     ):
         if label_format not in LABEL_FORMATS:
