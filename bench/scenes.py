@@ -11,6 +11,7 @@ renders of the held-out views to look at. Interrupted fits resume from fit_check
 from __future__ import annotations
 
 import os
+import stat
 import sys
 from pathlib import Path
 
@@ -30,7 +31,12 @@ from sagonline.utils import atomic_write_image
 
 
 def output_dir(scene_dir: Path, dataset: str) -> Path:
+    """`<scene>/gaussians/` when the data folder is writable, else the project's overlay.
+    A folder whose owner-write bit is off counts as read-only even for root (who could
+    write anyway), so shared, read-only data is never modified."""
     own = scene_dir / "gaussians"
+    if not (scene_dir.stat().st_mode & stat.S_IWUSR):
+        return SCENES_ROOT / dataset / scene_dir.name / "gaussians"
     try:
         own.mkdir(parents=True, exist_ok=True)
         probe = own / ".write_test"

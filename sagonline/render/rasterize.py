@@ -94,8 +94,9 @@ def rasterize(
     t_stop: float = T_STOP,
     near: float = 0.01,
     tile_size: int = 8,
-    block: int = 32,
-    max_elements: int = 1 << 20,
+    block: int = 16,
+    max_block: int = 128,
+    max_elements: int = 1 << 21,
     stats: RasterStats | None = None,
 ) -> RenderOutput | None:
     """Render one view (and optionally stream its trace).
@@ -134,8 +135,8 @@ def rasterize(
     start = 0
     while start < busy.numel():
         longest = int(tile_counts[busy[start]])
-        blk = min(block, longest)
-        n_chunk = max(1, min(busy.numel() - start, max_elements // (blk * P)))
+        widest = min(max_block, longest)  # chunk size fits the largest depth block
+        n_chunk = max(1, min(busy.numel() - start, max_elements // (widest * P)))
         tiles = busy[start : start + n_chunk]
         start += n_chunk
         counts, offsets = tile_counts[tiles], tile_offsets[tiles]
@@ -153,7 +154,11 @@ def rasterize(
             best_w_c = torch.zeros(tiles.numel(), P, device=device)
             best_id_c = torch.full((tiles.numel(), P), -1, dtype=torch.long, device=device)
         rows = torch.arange(tiles.numel(), device=device)  # tiles still being composited
-        for b0 in range(0, longest, blk):
+        b0, blk = 0, min(block, longest)
+        while b0 < longest:
+            # depth blocks double in size: opaque tiles finish in the first small blocks,
+            # translucent ones (fresh fits, fog) are not walked in many tiny steps
+            blk = min(blk, longest - b0)
             rows = rows[counts[rows] > b0]
             if rows.numel() == 0:
                 break
@@ -205,6 +210,7 @@ def rasterize(
                 )
             T_r = T_before[:, -1:] * one_minus[:, -1:]
             T[rows] = T_r
+            b0, blk = b0 + blk, min(2 * blk, max_block)
             # A tile is finished once no pixel could still composite a splat.
             rows = rows[(T_r * (1.0 - 1.0 / 255.0) >= stop_T).flatten(1).any(1)]
         acc_feat[tiles] = feat_c
