@@ -93,9 +93,14 @@ def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]
     return [i for i in order if i not in held], held
 
 
-def init_from_views(cameras: list[Camera], images: list[torch.Tensor], count: int,
-                    near_far: tuple[float, float], rng: np.random.Generator,
-                    min_visible: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+def init_from_views(
+    cameras: list[Camera],
+    images: list[torch.Tensor],
+    count: int,
+    near_far: tuple[float, float],
+    rng: np.random.Generator,
+    min_visible: float = 0.5,
+) -> tuple[np.ndarray, np.ndarray]:
     """Random points in the training frusta: a random pixel of a random view at a random
     (log-uniform) depth between near and far, coloured by that pixel, kept when at least
     `min_visible` of the views see it (for orbits: the region they all look at; a fallback
@@ -114,14 +119,22 @@ def init_from_views(cameras: list[Camera], images: list[torch.Tensor], count: in
         p_cam = rays * depth[sel, None]
         R, t = cam.rotation.double().numpy(), cam.translation.double().numpy()
         xyz[sel] = (p_cam - t) @ R
-        rgb[sel] = img[py.astype(int).clip(0, cam.height - 1),
-                       px.astype(int).clip(0, cam.width - 1)].cpu().numpy()
+        rgb[sel] = (
+            img[py.astype(int).clip(0, cam.height - 1), px.astype(int).clip(0, cam.width - 1)]
+            .cpu()
+            .numpy()
+        )
     pts = torch.tensor(xyz, dtype=torch.float32)
     seen = np.zeros(m)
     for cam in cameras:
         uv, z = cam.project(pts)
-        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0) & (
-            uv[:, 1] < cam.height)
+        inside = (
+            (z > 0)
+            & (uv[:, 0] >= 0)
+            & (uv[:, 0] < cam.width)
+            & (uv[:, 1] >= 0)
+            & (uv[:, 1] < cam.height)
+        )
         seen += inside.numpy()
     order = np.argsort(-seen, kind="stable")
     keep = order[seen[order] >= min_visible * len(cameras)][:count]
@@ -305,9 +318,13 @@ class SceneFitter:
         clone = big & (max_scale <= cfg.percent_dense * self.extent)
         split = big & ~clone
         room = cfg.max_gaussians - len(self)
-        if room <= 0:
-            clone[:] = False
-            split[:] = False
+        grow = clone | split  # a split adds one Gaussian net, a clone one
+        if int(grow.sum()) > max(room, 0):  # keep the strongest gradients that fit the cap
+            allowed = torch.zeros_like(grow)
+            if room > 0:
+                allowed[torch.topk(torch.where(grow, avg, -1.0), room).indices] = True
+            clone &= allowed
+            split &= allowed
         p = {k: v.detach() for k, v in self.params.items()}
         new = {k: [v] for k, v in p.items()}
         if clone.any():

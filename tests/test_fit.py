@@ -152,3 +152,26 @@ def test_scenes_cli_errors(tmp_path):
         timeout=120,
     )
     assert res.returncode == 2 and "no data at" in res.stderr
+
+
+def test_read_only_data_is_never_written(tmp_path, monkeypatch):
+    import bench.scenes
+    import sagonline.datasets.common as common
+    from bench.scenes import output_dir
+
+    data = tmp_path / "data" / "cap"
+    data.mkdir(parents=True)
+    overlay = tmp_path / "overlay"
+    monkeypatch.setattr(bench.scenes, "SCENES_ROOT", overlay)
+    monkeypatch.setattr(common, "SCENES_ROOT", overlay)
+    assert output_dir(data, "generic") == data / "gaussians"
+    data.chmod(0o555)
+    try:
+        out = output_dir(data, "generic")
+        assert out == overlay / "generic" / "cap" / "gaussians"
+        assert not (data / "gaussians").exists()
+        out.mkdir(parents=True)
+        (out / "point_cloud.ply").write_text("x")
+        assert common.gaussians_dir(data, "generic") == out  # the adapter finds it there
+    finally:
+        data.chmod(0o755)
