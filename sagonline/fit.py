@@ -9,8 +9,9 @@ cloned (small) or split in two (large), and nearly transparent ones (opacity < 0
 pruned; opacities are reset every `opacity_reset_every` iterations. Every 8th view (sorted by
 name) is held out and scored by PSNR.
 
-The rasterizer is this library's own (autograd through the tiled PyTorch path), so it runs on
-CPU for small scenes and tests; on CUDA the same loop runs on the same code. Simplifications
+On CPU the rasterizer is this library's own (autograd through the tiled PyTorch path), meant for
+small scenes and tests; on CUDA (`backend: auto`) the same loop renders through gsplat, whose
+2DGS and 3DGS rasterization is differentiable there. Simplifications
 against the 2DGS reference, stated here once: the positional gradient is taken in world space
 (scaled by depth over focal length to pixels) rather than on the projected means, the
 optimiser state of new Gaussians starts at zero, and 2DGS's depth-distortion and
@@ -32,6 +33,7 @@ from tqdm import tqdm
 from sagonline.cameras import Camera
 from sagonline.gaussians import SH_C0, Gaussians
 from sagonline.io import write_ply
+from sagonline.render.api import render
 from sagonline.render.rasterize import rasterize
 
 
@@ -61,6 +63,7 @@ class FitConfig:
     time_budget_s: float | None = None
     seed: int = 0
     device: str = "cpu"
+    backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -264,7 +267,7 @@ class SceneFitter:
                 if group["name"] == "means":
                     frac = self.step / max(cfg.iterations, 1)
                     group["lr"] = cfg.lr_means * self.extent * (0.01**frac)
-            out = rasterize(self.gaussians(), self.cams[i], background=bg)
+            out = render(self.gaussians(), self.cams[i], background=bg, backend=cfg.backend)
             gt = self.images[i]
             l1 = (out.rgb - gt).abs().mean()
             loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim(out.rgb, gt))

@@ -47,3 +47,14 @@ def small_camera(width: int = 26, height: int = 19, eye=(0.3, -4.0, 0.8), name: 
 @pytest.fixture
 def tiny_scene():
     return random_gaussians(30, "3dgs", seed=1)
+
+
+@pytest.fixture(autouse=True)
+def _no_global_hydra_leaks():
+    """Importing sam2 (even through pytest.importorskip) initialises Hydra globally; clear it
+    so the next test can compose configs."""
+    yield
+    from hydra.core.global_hydra import GlobalHydra
+
+    if GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()

@@ -159,12 +159,14 @@ def test_read_only_data_is_never_written(tmp_path, monkeypatch):
     import sagonline.datasets.common as common
     from bench.scenes import output_dir
 
-    data = tmp_path / "data" / "cap"
-    data.mkdir(parents=True)
+    writable = tmp_path / "rw" / "cap"
+    writable.mkdir(parents=True)
     overlay = tmp_path / "overlay"
     monkeypatch.setattr(bench.scenes, "SCENES_ROOT", overlay)
     monkeypatch.setattr(common, "SCENES_ROOT", overlay)
-    assert output_dir(data, "generic") == data / "gaussians"
+    assert output_dir(writable, "generic") == writable / "gaussians"
+    data = tmp_path / "ro" / "cap"
+    data.mkdir(parents=True)
     data.chmod(0o555)
     try:
         out = output_dir(data, "generic")

@@ -118,7 +118,10 @@ def test_poses_agree_with_masks(cape):
     assert shifted < 0.5 * right and mirrored < 0.2, (right, shifted, mirrored)
 
 
-def test_needs_a_trained_scene(cape):
+def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
+    import sagonline.datasets.common as common
+
+    monkeypatch.setattr(common, "SCENES_ROOT", tmp_path)  # ignore a scene fitted locally
     root, ds, cams, masks = cape
     with pytest.raises(DatasetError, match="mold_cape/gaussians/point_cloud.ply"):
         ds.load_scene("mold_cape")

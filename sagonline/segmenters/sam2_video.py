@@ -33,16 +33,21 @@ VIDEO_OVERRIDES = {
 
 
 def _require_sam2():
+    from hydra.core.global_hydra import GlobalHydra
+
     from sagonline.compat import import_torchvision
 
+    owned = GlobalHydra.instance().is_initialized()
     try:
         import_torchvision()
-        import sam2  # noqa: F401
+        import sam2  # initialises Hydra globally when nobody else has
     except ImportError as exc:
         raise RuntimeError(
             "segmenter 'sam2' needs the sam2 package: pip install -e '.[sam2]' "
             "--no-build-isolation (after torch is installed)"
         ) from exc
+    if not owned and GlobalHydra.instance().is_initialized():
+        GlobalHydra.instance().clear()  # we build from the config file, not through Hydra's
     return Path(sam2.__file__).parent
 
 
