@@ -171,6 +171,8 @@ def plot_masks(df: pd.DataFrame, out: Path) -> list[Path]:
                 label="paper (RTX 4090)",
             )
         ax.set_xscale("log")
+        if col == "aggregation_ms":
+            ax.set_yscale("log")
         ax.set_xlabel("number of masks voting")
         ax.set_ylabel(label)
         ax.grid(alpha=0.3)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
@@ -96,7 +98,8 @@ class SyntheticDataset(DatasetAdapter):
         return self.selected
 
     def load_scene(self, scene: str) -> SceneTask:
-        return load_synthetic(preset=scene, **self.presets[scene])[0]
+        settings = tuple(sorted(self.presets[scene].items()))
+        return _load_cached(scene, settings)
 
     def describe(self) -> dict:
         return {
@@ -104,3 +107,9 @@ class SyntheticDataset(DatasetAdapter):
             "views in orbit order",
             "presets": self.presets,
         }
+
+
+@functools.lru_cache(maxsize=2)
+def _load_cached(preset: str, settings: tuple) -> SceneTask:
+    """Jobs of a sweep run in one process: generate each scene (and its ground truth) once."""
+    return load_synthetic(preset=preset, **dict(settings))[0]
