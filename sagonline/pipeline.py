@@ -21,7 +21,7 @@ from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
 from sagonline.datasets.base import SceneTask
 from sagonline.metrics import labels3d_metrics, match_labels, relabel, view_metrics
 from sagonline.recording import Recorder
-from sagonline.render.api import render, render_labels
+from sagonline.render.api import render, render_labels, to_uint8
 from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
 
 
@@ -80,10 +80,6 @@ class StageCache:
         tmp = path.with_name(path.name + ".tmp")
         torch.save(value, tmp)
         tmp.replace(path)
-
-
-def to_uint8(rgb: torch.Tensor) -> np.ndarray:
-    return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 def render_frames(task: SceneTask, settings: PipelineSettings) -> tuple[list[np.ndarray], float]:

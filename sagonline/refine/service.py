@@ -17,7 +17,7 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.refine.trainer import RefinementTrainer
-from sagonline.render.api import render, render_labels
+from sagonline.render.api import render, render_labels, to_uint8
 
 
 @dataclass
@@ -25,10 +25,6 @@ class Answer:
     mask: np.ndarray  # (H, W) int64 labels
     mode: str  # "initial" or "refined"
     ms: float
-
-
-def to_uint8(rgb: torch.Tensor) -> np.ndarray:
-    return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 class OnlineSegmentation:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from sagonline.cameras import Camera
@@ -31,6 +32,11 @@ def render(
 
         return rasterize_gsplat(gaussians, camera, **kwargs)
     return rasterize(gaussians, camera, **kwargs)
+
+
+def to_uint8(rgb: torch.Tensor) -> np.ndarray:
+    """(H, W, 3) linear RGB in [0, 1] -> uint8 image (clipped, rounded)."""
+    return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
 def render_labels(
