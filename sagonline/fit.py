@@ -306,10 +306,11 @@ class SceneFitter:
             return
         with torch.no_grad():
             depth = (self.params["means"] @ cam.rotation.T + cam.translation)[:, 2].clamp_min(1e-3)
-            # world-space gradient scaled to pixels: a move of dx in space moves f*dx/z on screen
-            g_px = grad.norm(dim=1) * depth / float(cam.K[0, 0])
+            # a world-space move dx shifts the projection by f*dx/z pixels, so the loss gradient
+            # per pixel is |grad| * z / f; the threshold is in those units times f
+            g = grad.norm(dim=1) * depth
             seen = grad.abs().sum(1) > 0
-            self.grad_accum[seen] += g_px[seen] * float(cam.K[0, 0])
+            self.grad_accum[seen] += g[seen]
             self.grad_count[seen] += 1
 
     @torch.no_grad()

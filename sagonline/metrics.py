@@ -126,3 +126,11 @@ def relabel(mask: np.ndarray, mapping: dict[int, int]) -> np.ndarray:
     for a, b in mapping.items():
         lut[a] = b
     return lut[mask]
+
+
+def match_and_relabel(
+    preds: list[np.ndarray], gts: list[np.ndarray], resize: str = "pred_to_gt"
+) -> list[np.ndarray]:
+    """Predictions with their arbitrary ids mapped onto the ground truth's (`match_labels`)."""
+    mapping = match_labels(preds, gts, resize)
+    return [relabel(p, mapping) for p in preds]

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
 from sagonline.datasets.base import SceneTask
-from sagonline.metrics import labels3d_metrics, match_labels, relabel, view_metrics
+from sagonline.metrics import labels3d_metrics, match_and_relabel, view_metrics
 from sagonline.recording import Recorder
 from sagonline.render.api import render, render_labels, to_uint8
 from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
@@ -135,8 +135,7 @@ def run_stage_one(
     if task.trajectory_gt is not None:
         seg_masks = seg.masks
         if automatic:  # arbitrary ids: match them to the ground truth once per scene
-            mapping = match_labels(seg.masks, task.trajectory_gt, settings.resize)
-            seg_masks = [relabel(m, mapping) for m in seg.masks]
+            seg_masks = match_and_relabel(seg.masks, task.trajectory_gt, settings.resize)
         report.segmenter_miou = float(
             np.mean(
                 [
@@ -216,8 +215,7 @@ def score_views(
         )
         seconds.append(time.perf_counter() - start)
     if automatic and preds:
-        mapping = match_labels(preds, [v.gt for v in task.eval_views], settings.resize)
-        preds = [relabel(p, mapping) for p in preds]
+        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], settings.resize)
         report.extra["label_matching"] = "hungarian, scene-wide"
     record_scores(task, preds, settings, report, mode)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
@@ -308,8 +306,7 @@ def run_stage_two(
     assert all(a.mode == "refined" for a in answers)
     preds = [a.mask for a in answers]
     if not task.prompt.objects and not task.prompt.texts and preds:
-        mapping = match_labels(preds, [v.gt for v in task.eval_views], settings.resize)
-        preds = [relabel(p, mapping) for p in preds]
+        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], settings.resize)
     report.refined_miou, report.refined_macc = record_scores(
         task, preds, settings, report, "refined"
     )
