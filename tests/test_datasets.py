@@ -86,6 +86,10 @@ def test_spinnerf_counts_cutout_orchids_and_reference(tmp_path):
     t2 = SPInNeRFDataset(root, scenes=["orchids"], check_counts=False).load_scene("orchids")
     assert [v.name for v in t2.eval_views] == NAMES[:2] + NAMES[3:]
     assert SPInNeRFDataset(root).describe()["resolutions"]["room"] == "images_8"
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "empty" / "README.md").write_text("layout")
+    with pytest.raises(DatasetError, match="no data at"):
+        SPInNeRFDataset(tmp_path / "empty").scene_names()
 
 
 def _nvos(tmp_path, drop_target=False):

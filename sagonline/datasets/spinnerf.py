@@ -62,9 +62,10 @@ class SPInNeRFDataset(PosedMasksDataset):
         return SCENES.get(scene, ("images_4", None))[0]
 
     def scene_dirs(self):
-        if not self.root.is_dir():
+        dirs = {s: self.root / s for s in self.selected}
+        if not any(d.is_dir() for d in dirs.values()):  # datasets/spinnerf holds only its README
             raise self._missing_root()
-        return {s: self.root / s for s in self.selected}
+        return dirs
 
     def describe(self) -> dict:
         return {
