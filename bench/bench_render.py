@@ -1,4 +1,5 @@
-"""Rasterizer speed: ms/frame for render and render+trace, and Gaussian-pixel evaluations/s.
+"""Rasterizer speed: ms/frame for render and render+trace, Gaussian-pixel evaluations/s, and
+the training step (render + backward of an image loss) that scene fitting repeats.
 
     python bench/bench_render.py [--repeats 3] [--devices cpu,cuda] [--out reports/bench_render.csv]
 
@@ -6,7 +7,9 @@ Scenes: the trained donut (3DGS, 45,624 Gaussians, from ../shared/data) and a ge
 2DGS scene of 200k surfels, both at 960x540. On CUDA both backends (torch, gsplat) run when
 gsplat is installed. "trace" streams every (pixel, Gaussian) pair with T > 0.01 to a consumer
 that reduces it (as the vote does); "vote pass" is the trace-only pass the vote uses
-(no colour, stops at T <= eps, centre within 2 px).
+(no colour, stops at T <= eps, centre within 2 px). On the CPU the compiled kernel ("native")
+renders images only, so its trace columns are empty; "step" is forward + backward through
+every Gaussian parameter, the fitting loop's inner cost.
 """
 
 from __future__ import annotations
@@ -25,9 +28,11 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from sagonline.cameras import load_nerf_transforms  # noqa: E402
+from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402
 from sagonline.render import RasterStats, render  # noqa: E402
 from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
+from sagonline.render.native import native_available  # noqa: E402
 from sagonline.synthetic import make_scene  # noqa: E402
 from sagonline.utils import describe_device  # noqa: E402
 
@@ -41,6 +46,16 @@ def scenes():
         print(f"note: {donut_dir} not found; skipping the donut", file=sys.stderr)
     s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
     yield f"synthetic 360 (2DGS, {len(s.gaussians):,})", s.gaussians, s.train_cameras[1]
+
+
+def training_step(g: Gaussians, cam, backend: str) -> None:
+    """Render with every parameter requiring grad, then backward an L1 loss to a grey image."""
+    leaves = {
+        k: getattr(g, k).detach().clone().requires_grad_(True)
+        for k in ("means", "quats", "scales", "opacities", "sh")
+    }
+    out = render(Gaussians(**leaves), cam, backend=backend)
+    (out.rgb - 0.5).abs().mean().backward()
 
 
 def timed(fn, repeats: int, device: str) -> float:
@@ -70,7 +85,10 @@ def main() -> None:
     for name, gaussians, cam in scenes():
         for device in devices:
             g, c = gaussians.to(device), cam.to(device)
-            backends = ["torch"] + (["gsplat"] if device == "cuda" and gsplat_available() else [])
+            if device == "cuda":
+                backends = ["torch"] + (["gsplat"] if gsplat_available() else [])
+            else:
+                backends = ["torch"] + (["native"] if native_available() else [])
             for backend in backends:
                 stats = RasterStats()
                 sink = []
@@ -80,12 +98,15 @@ def main() -> None:
 
                 run = partial(render, g, c, backend=backend)
                 plain = timed(run, args.repeats, device)
-                traced = timed(partial(run, trace=consume), args.repeats, device)
-                vote = timed(
-                    partial(run, trace=consume, trace_only=True, trace_max_distance=2.0),
-                    args.repeats,
-                    device,
-                )
+                step = timed(partial(training_step, g, c, backend), args.repeats, device)
+                traced = vote = None
+                if backend != "native":  # traces always run on the tiled PyTorch path there
+                    traced = timed(partial(run, trace=consume), args.repeats, device)
+                    vote = timed(
+                        partial(run, trace=consume, trace_only=True, trace_max_distance=2.0),
+                        args.repeats,
+                        device,
+                    )
                 if backend == "torch":
                     render(g, c, stats=stats)
                 rows.append(
@@ -94,9 +115,10 @@ def main() -> None:
                         "device": device,
                         "backend": backend,
                         "render_ms": 1000 * plain,
-                        "render_trace_ms": 1000 * traced,
-                        "trace_ratio": traced / plain,
-                        "vote_pass_ms": 1000 * vote,
+                        "render_trace_ms": 1000 * traced if traced else None,
+                        "trace_ratio": traced / plain if traced else None,
+                        "vote_pass_ms": 1000 * vote if vote else None,
+                        "step_ms": 1000 * step,
                         "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
                         "intersections": stats.intersections or None,
                     }

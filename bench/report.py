@@ -4,7 +4,8 @@
 
 Every `metrics.json` below the given folders (default: runs/ and multirun/) becomes one row of
 `reports/runs.{md,csv}` and one row per scene of `reports/scenes.{md,csv}`. Each table states
-the device, torch version and resize rule of its rows.
+the device, torch version and resize rule of its rows. Every `fit_metrics.json` written by
+`make scenes` (under scenes/ and datasets/) becomes one row of `reports/fits.{md,csv}`.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from sagonline.datasets.common import SCENES_ROOT
 from sagonline.utils import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -83,6 +85,46 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.DataFrame(runs_rows), pd.DataFrame(scene_rows)
 
 
+FIT_COLUMNS = [
+    "dataset",
+    "scene",
+    "kind",
+    "init",
+    "resolution",
+    "images",
+    "iterations",
+    "gaussians",
+    "fit_seconds",
+    "psnr_train",
+    "psnr_heldout",
+    "psnr_heldout_object",
+    "heldout_views",
+    "folder",
+]
+
+
+def fit_rows(roots: list[Path]) -> pd.DataFrame:
+    """One row per fitted scene: its fit_metrics.json and the kind from fit_config.json."""
+    rows = []
+    for path in sorted({p for r in roots if r.exists() for p in r.rglob("fit_metrics.json")}):
+        m = json.loads(path.read_text())
+        cfg_path = path.with_name("fit_config.json")
+        cfg = json.loads(cfg_path.read_text()) if cfg_path.is_file() else {}
+        folder = path.parent
+        rows.append(
+            {
+                **{k: m.get(k) for k in FIT_COLUMNS},
+                "kind": cfg.get("kind"),
+                "resolution": "x".join(map(str, m.get("resolution", []))),
+                "heldout_views": " ".join(m.get("heldout_views", [])),
+                "folder": str(folder.relative_to(ROOT))
+                if folder.is_relative_to(ROOT)
+                else str(folder),
+            }
+        )
+    return pd.DataFrame(rows, columns=FIT_COLUMNS)
+
+
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
     pct = [
         c
@@ -107,6 +149,17 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--out", type=Path, default=ROOT / "reports")
     args = ap.parse_args(argv)
     roots = args.roots or [ROOT / "runs", ROOT / "multirun"]
+    fits = fit_rows([SCENES_ROOT, ROOT / "datasets"])
+    if len(fits):
+        atomic_write_text(args.out / "fits.csv", fits.to_csv(index=False))
+        atomic_write_text(
+            args.out / "fits.md",
+            "# Fitted scenes (`make scenes`)\n\n- PSNR in dB on the training views, the held-out "
+            "views (every 8th by name) and, where the dataset has object masks, inside them.\n\n"
+            + fits.to_markdown(index=False, floatfmt=".4g")
+            + "\n",
+        )
+        print(f"{len(fits)} fitted scenes -> {args.out}/fits.md, fits.csv")
     runs = find_runs(roots)
     if not runs:
         print(f"no runs found under {', '.join(map(str, roots))}: run `make eval` first")

@@ -1,7 +1,8 @@
 """Fit the Gaussian scene a dataset needs: `make scenes DATASET=<name> [SCENE=<scene>]`.
 
 For each scene: read its images and cameras, downsample to `fit.max_side`, initialise from
-COLMAP points where the capture has them (random points in the training frusta otherwise),
+COLMAP points where the capture has them, else from SIFT matches triangulated with the training
+cameras fixed (pycolmap), else random points in the training frusta,
 fit (sagonline.fit), and write point_cloud.ply + cameras.json + fit_config.json +
 fit_metrics.json where the dataset adapter looks (`<scene>/gaussians/`, or
 `scenes/<dataset>/<scene>/gaussians/` when the data folder is read-only), with side-by-side
@@ -25,9 +26,10 @@ from PIL import Image
 from sagonline.cameras import load_llff_bounds, read_colmap_points
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.fit import FitConfig, SceneFitter, write_fitted_scene
-from sagonline.render.rasterize import rasterize
-from sagonline.utils import atomic_write_image
+from sagonline.fit import FitConfig, SceneFitter, psnr_from_mse, split_views, write_fitted_scene
+from sagonline.metrics import resize_nearest
+from sagonline.triangulate import triangulate_known_poses
+from sagonline.utils import atomic_write_image, atomic_write_npz
 
 
 def output_dir(scene_dir: Path, dataset: str) -> Path:
@@ -64,6 +66,79 @@ def load_images(cams, images: dict[str, Path], max_side: int):
     return out_cams, out_imgs
 
 
+def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path], out: Path):
+    """Start points for the fit and what they are: the capture's COLMAP points, else SIFT
+    matches triangulated with the training cameras fixed (cached in `out`), else None (random
+    points in the frusta). Returns ((xyz, rgb) or None, description)."""
+    if cfg.init not in ("auto", "colmap", "triangulate", "random"):
+        raise DatasetError(f"fit.init={cfg.init!r}: use auto, colmap, triangulate or random")
+    if cfg.init in ("auto", "colmap"):
+        for sparse in (scene_dir / "sparse" / "0", scene_dir / "sparse"):
+            if (sparse / "points3D.bin").is_file() or (sparse / "points3D.txt").is_file():
+                xyz, rgb = read_colmap_points(sparse)
+                return (xyz, rgb.astype(np.float32) / 255.0), f"colmap points ({len(xyz)})"
+        if cfg.init == "colmap":
+            raise DatasetError(f"{scene_dir}: fit.init=colmap but there is no sparse/ model")
+    if cfg.init in ("auto", "triangulate"):
+        train_idx, _ = split_views(cams, cfg.holdout_every)  # held-out views stay unseen
+        train = [cams[i] for i in train_idx]
+        cache = out / "init_points.npz"
+        key = ",".join(c.name for c in train)
+        if cache.is_file():
+            with np.load(cache) as z:
+                if str(z["views"]) == key:
+                    return (z["xyz"], z["rgb"]), f"triangulated ({len(z['xyz'])}, cached)"
+        xyz, rgb, summary = triangulate_known_poses(train, images)
+        if len(xyz) >= 100:
+            out.mkdir(parents=True, exist_ok=True)
+            atomic_write_npz(cache, xyz=xyz, rgb=rgb, views=np.array(key))
+            return (xyz, rgb), (
+                f"triangulated ({summary['points']} points, track "
+                f"{summary['mean_track_length']:.2f}, error "
+                f"{summary['mean_reprojection_error_px']:.2f} px)"
+            )
+        if cfg.init == "triangulate":
+            raise DatasetError(f"{scene_dir}: only {len(xyz)} points triangulated")
+    return None, "random in frusta"
+
+
+def near_depth(cams, points, near_far) -> float:
+    """The nearest scene depth the capture records: LLFF's near bound, else the 2nd percentile
+    of the start points' depths over the training views, else 0 (unknown)."""
+    if near_far is not None:
+        return near_far[0] / 0.9  # undo the margin added when reading the bounds
+    if points is None:
+        return 0.0
+    xyz = torch.tensor(points[0], dtype=torch.float32)
+    depths = [cam.project(xyz)[1] for cam in cams]
+    z = torch.cat([d[d > 0] for d in depths])
+    return float(torch.quantile(z, 0.02)) if z.numel() else 0.0
+
+
+def object_psnr(adapter, scene: str, fitter: SceneFitter) -> float | None:
+    """Mean held-out PSNR over the pixels inside the dataset's own object masks (None when the
+    held-out views have none): how well the fit shows what gets segmented, apart from the
+    background that few training views see."""
+    try:
+        _, mask_paths = adapter.load_views(scene)
+    except (AttributeError, DatasetError):
+        return None
+    g = fitter.export()
+    values = []
+    for i in fitter.held_idx:
+        cam = fitter.cams[i]
+        if cam.name not in mask_paths:
+            continue
+        labels = adapter.read_label_map(mask_paths[cam.name])
+        inside = resize_nearest((labels > 0).astype(np.uint8), (cam.height, cam.width)) > 0
+        if not inside.any():
+            continue
+        rgb = fitter.render(g, i).rgb.clamp(0, 1)
+        err = ((rgb - fitter.images[i]) ** 2).mean(-1)[torch.from_numpy(inside)]
+        values.append(psnr_from_mse(float(err.mean())))
+    return float(np.mean(values)) if values else None
+
+
 def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     scene_dir, cams, images = adapter.capture(scene)
     if len(images) < 2:
@@ -74,12 +149,6 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     max_side = fit_d.pop("max_side")
     fit_cfg = FitConfig(**fit_d)
     train_cams, train_imgs = load_images(cams, images, max_side)
-    points = None
-    for sparse in (scene_dir / "sparse" / "0", scene_dir / "sparse"):
-        if (sparse / "points3D.bin").is_file() or (sparse / "points3D.txt").is_file():
-            xyz, rgb = read_colmap_points(sparse)
-            points = (xyz, rgb.astype(np.float32) / 255.0)
-            break
     near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
         b = load_llff_bounds(scene_dir)
@@ -89,7 +158,17 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     if done.is_file() and (out / "point_cloud.ply").is_file() and not cfg.overwrite:
         print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
         return {"scene": scene, "skipped": True}
-    fitter = SceneFitter(fit_cfg, train_cams, train_imgs, points, near_far)
+    points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out)
+    if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
+        fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, near_far)
+    fitter = SceneFitter(
+        fit_cfg,
+        train_cams,
+        train_imgs,
+        points,
+        near_far,
+        other_cameras=[c for c in cams if c.name not in images],
+    )
     ckpt = out / "fit_checkpoint.pt"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
@@ -100,21 +179,25 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
             "dataset": adapter.name,
             "images": len(train_imgs),
             "resolution": [train_cams[0].width, train_cams[0].height],
-            "init": "colmap points" if points is not None else "random in frusta",
+            "init": init,
         }
     )
+    metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter)
     write_fitted_scene(out, fitter, cams, metrics)
     g = fitter.export()
     for i in fitter.held_idx:
-        render = rasterize(g, train_cams[i]).rgb.clamp(0, 1).numpy()
+        render = fitter.render(g, i).rgb.clamp(0, 1).numpy()
         pair = np.concatenate([render, train_imgs[i].numpy()], axis=1)
         atomic_write_image(
             out / f"heldout_{train_cams[i].name}.png", (pair * 255 + 0.5).astype(np.uint8)
         )
     ckpt.unlink(missing_ok=True)
+    on_object = metrics["psnr_heldout_object"]
     print(
         f"{scene}: PSNR train {metrics['psnr_train']:.2f} dB, held-out "
-        f"{metrics['psnr_heldout']:.2f} dB, {metrics['gaussians']} Gaussians, "
+        f"{metrics['psnr_heldout']:.2f} dB"
+        + (f" ({on_object:.2f} dB inside the object masks)" if on_object else "")
+        + f", {metrics['gaussians']} Gaussians, "
         f"{metrics['fit_seconds']:.0f} s -> {out}"
     )
     return metrics

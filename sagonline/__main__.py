@@ -78,7 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--height", type=int)
     rend.add_argument("--out", required=True, help="output .png or .npy (linear RGB)")
     rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
-    rend.add_argument("--backend", default="torch", choices=["torch", "gsplat", "auto"])
+    rend.add_argument("--backend", default="torch", choices=["torch", "native", "gsplat", "auto"])
     rend.add_argument("--device", default="cpu")
     rend.add_argument("--drop-nonfinite", action="store_true")
     rend.set_defaults(func=_cmd_render)

@@ -1,21 +1,27 @@
 """Fit a Gaussian scene (2DGS by default, 3DGS as an option) to posed images.
 
 The same recipe every time: parameters in raw form (log scales, opacity logits, unnormalised
-quaternions, SH), Adam with the 3DGS learning rates (positions scaled by the scene extent and
-decayed exponentially), loss (1 - lambda) L1 + lambda (1 - SSIM) with lambda = 0.2, and the
-3DGS densification schedule: every `densify_every` iterations between `densify_from` and
-`densify_until`, Gaussians whose accumulated positional gradient exceeds `grad_threshold` are
-cloned (small) or split in two (large), and nearly transparent ones (opacity < 0.005) are
-pruned; opacities are reset every `opacity_reset_every` iterations. Every 8th view (sorted by
-name) is held out and scored by PSNR.
+quaternions, SH split into degree 0 and the rest), Adam with the 3DGS learning rates (positions
+scaled by the scene extent and decayed exponentially, higher SH degrees at 1/20 of degree 0),
+loss (1 - lambda) L1 + lambda (1 - SSIM) with lambda = 0.2 (plus an optional needle penalty on
+axis ratios, off by default), and the 3DGS densification schedule: every `densify_every`
+iterations between `densify_from` and `densify_until`, Gaussians whose accumulated positional
+gradient exceeds `grad_threshold` are cloned (small) or split in two (large), and nearly
+transparent ones (opacity < 0.005) are pruned (after the first opacity reset also those wider
+than a tenth of the scene); opacities are reset every `opacity_reset_every` iterations.
+Gaussians closer than `camera_clearance` to any camera of the capture are pruned at the start,
+at every densification step and at the end. Every 8th view (sorted by name) is held out and
+scored by PSNR.
 
-On CPU the rasterizer is this library's own (autograd through the tiled PyTorch path), meant for
-small scenes and tests; on CUDA (`backend: auto`) the same loop renders through gsplat, whose
-2DGS and 3DGS rasterization is differentiable there. Simplifications
-against the 2DGS reference, stated here once: the positional gradient is taken in world space
-(scaled by depth over focal length to pixels) rather than on the projected means, the
-optimiser state of new Gaussians starts at zero, and 2DGS's depth-distortion and
-normal-consistency regularisers are not used.
+On CPU the rasterizer is this library's own: the compiled kernel with its hand-written backward
+(`render.native`, `backend: auto`), or autograd through the tiled PyTorch path
+(`backend: torch`, same values, slower), meant for small scenes and tests; on CUDA
+(`backend: auto`) the same loop renders through gsplat, whose 2DGS and 3DGS rasterization is
+differentiable there. Simplifications against the 2DGS reference, stated here once: the
+positional gradient is taken in world space (scaled by depth over focal length to pixels)
+rather than on the projected means, the optimiser state of new Gaussians starts at zero, all SH
+degrees train from the start, and 2DGS's depth-distortion and normal-consistency regularisers
+are not used.
 """
 
 from __future__ import annotations
@@ -34,21 +40,25 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import SH_C0, Gaussians
 from sagonline.io import write_ply
 from sagonline.render.api import render
-from sagonline.render.rasterize import rasterize
 
 
 @dataclass
 class FitConfig:
     kind: str = "2dgs"
+    init: str = "auto"  # auto: COLMAP points, else triangulated (poses fixed), else random
+    background_points: int = 5000  # random points in the frusta added to a sparse-point start
     iterations: int = 2000
     sh_degree: int = 1
     init_points: int = 20000
     lambda_dssim: float = 0.2
+    lambda_aniso: float = 0.0  # weight of the needle penalty (see `anisotropy_penalty`)
+    max_aspect: float = 10.0  # longest / shortest axis allowed before the penalty starts
     lr_means: float = 1.6e-4  # times the scene extent, decayed to 1% by the end
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3
     lr_opacity: float = 5e-2
-    lr_sh: float = 2.5e-3
+    lr_sh: float = 2.5e-3  # degree 0; higher degrees learn 20x slower (as 3DGS)
+    camera_clearance: float = 0.0  # prune Gaussians this close to any camera centre (0: off)
     densify_from: int = 200
     densify_until: int = 1500
     densify_every: int = 100
@@ -84,9 +94,12 @@ def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5)
     return s.mean()
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
-    mse = float(((a - b) ** 2).mean())
+def psnr_from_mse(mse: float) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
+
+
+def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+    return psnr_from_mse(float(((a - b) ** 2).mean()))
 
 
 def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]]:
@@ -103,16 +116,19 @@ def init_from_views(
     near_far: tuple[float, float],
     rng: np.random.Generator,
     min_visible: float = 0.5,
+    near_per_view: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Random points in the training frusta: a random pixel of a random view at a random
     (log-uniform) depth between near and far, coloured by that pixel, kept when at least
     `min_visible` of the views see it (for orbits: the region they all look at; a fallback
-    keeps the most visible candidates). (P, 3) xyz, (P, 3) rgb in [0, 1]."""
+    keeps the most visible candidates; 0 keeps every point). `near_per_view` (V,) replaces
+    `near` per view. (P, 3) xyz, (P, 3) rgb in [0, 1]."""
     near, far = near_far
-    m = 8 * count
+    m = 8 * count if min_visible > 0 else count
     views = rng.integers(len(cameras), size=m)
     u, v = rng.uniform(0, 1, m), rng.uniform(0, 1, m)
-    depth = np.exp(rng.uniform(math.log(near), math.log(far), m))
+    lo = np.full(m, math.log(near)) if near_per_view is None else np.log(near_per_view[views])
+    depth = np.exp(rng.uniform(lo, math.log(far)))
     xyz, rgb = np.empty((m, 3)), np.empty((m, 3))
     for i in range(len(cameras)):
         sel = views == i
@@ -127,6 +143,8 @@ def init_from_views(
             .cpu()
             .numpy()
         )
+    if min_visible <= 0:
+        return xyz, rgb
     pts = torch.tensor(xyz, dtype=torch.float32)
     seen = np.zeros(m)
     for cam in cameras:
@@ -146,6 +164,14 @@ def init_from_views(
     return xyz[keep], rgb[keep]
 
 
+def _median_depth(cam: Camera, xyz: np.ndarray, default: float) -> float:
+    """Median camera depth of the points `cam` sees (`default` when it sees none)."""
+    uv, z = cam.project(torch.tensor(xyz, dtype=torch.float32))
+    seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
+    seen &= uv[:, 1] < cam.height
+    return float(z[seen].median()) if bool(seen.any()) else default
+
+
 class SceneFitter:
     """Holds the raw parameters and the optimiser; `fit` runs (or resumes) the schedule."""
 
@@ -156,6 +182,7 @@ class SceneFitter:
         images: list[torch.Tensor],
         points: tuple[np.ndarray, np.ndarray] | None = None,
         near_far: tuple[float, float] | None = None,
+        other_cameras: list[Camera] = (),
     ):
         if cfg.kind not in ("2dgs", "3dgs"):
             raise ValueError(f"fit kind {cfg.kind!r} is not '2dgs' or '3dgs'")
@@ -173,18 +200,37 @@ class SceneFitter:
         torch.manual_seed(cfg.seed)
         centers = torch.stack([c.center for c in cameras]).double()
         self.extent = float((centers - centers.mean(0)).norm(dim=1).max()) * 1.1 or 1.0
+        if near_far is None:
+            dist = float((centers - centers.mean(0)).norm(dim=1).mean())
+            near_far = (0.2 * dist, 2.0 * dist)
+        train_cams = [cameras[i] for i in self.train_idx]
+        train_imgs = [images[i] for i in self.train_idx]
         if points is None or len(points[0]) == 0:
-            if near_far is None:
-                dist = float((centers - centers.mean(0)).norm(dim=1).mean())
-                near_far = (0.2 * dist, 2.0 * dist)
-            points = init_from_views(
-                [cameras[i] for i in self.train_idx],
-                [images[i] for i in self.train_idx],
-                cfg.init_points,
+            points = init_from_views(train_cams, train_imgs, cfg.init_points, near_far, rng)
+        elif cfg.background_points:
+            # sparse points sit on textured surfaces; what they miss (walls, floor, sky) gets
+            # random points anywhere in the training frusta
+            # behind what the points already explain: random points in front of the surfaces
+            # would start as floaters that only the training views' overlap can remove
+            behind = np.array([_median_depth(c, points[0], near_far[0]) for c in train_cams])
+            extra = init_from_views(
+                train_cams,
+                train_imgs,
+                cfg.background_points,
                 near_far,
                 rng,
+                min_visible=0.0,
+                near_per_view=np.minimum(behind, near_far[1] * 0.99),
             )
-        self._init_params(*points, rng)
+            points = tuple(np.concatenate([a, b]) for a, b in zip(points, extra, strict=True))
+        # nothing of the scene sits closer than `camera_clearance` to any camera of the capture
+        # (training ones and those without an image): Gaussians there are floaters that no
+        # training view constrains yet every nearby novel view looks through
+        self.camera_centers = torch.stack([c.center for c in [*cameras, *other_cameras]]).to(
+            cfg.device, torch.float32
+        )
+        clear = self._clear_of_cameras(torch.tensor(points[0], dtype=torch.float32)).cpu().numpy()
+        self._init_params(points[0][clear], points[1][clear], rng)
         self.step, self.history, self.elapsed = 0, [], 0.0
 
     # --- parameters ---------------------------------------------------------------------------
@@ -209,7 +255,8 @@ class SceneFitter:
             ].repeat(1, dims),
             "quats": quats / quats.norm(dim=1, keepdim=True),
             "opacity_logit": torch.full((n,), math.log(0.1 / 0.9), device=dev),
-            "sh": sh,
+            "sh_dc": sh[:, :1].contiguous(),
+            "sh_rest": sh[:, 1:].contiguous(),
         }
         self._new_optimizer()
 
@@ -222,7 +269,8 @@ class SceneFitter:
             "log_scales": cfg.lr_scales,
             "quats": cfg.lr_quats,
             "opacity_logit": cfg.lr_opacity,
-            "sh": cfg.lr_sh,
+            "sh_dc": cfg.lr_sh,
+            "sh_rest": cfg.lr_sh / 20,
         }
         self.optim = torch.optim.Adam(
             [{"params": [self.params[k]], "lr": lr, "name": k} for k, lr in lrs.items()], eps=1e-15
@@ -240,7 +288,7 @@ class SceneFitter:
             quats=F.normalize(p["quats"], dim=1),
             scales=torch.exp(p["log_scales"]),
             opacities=torch.sigmoid(p["opacity_logit"]),
-            sh=p["sh"],
+            sh=torch.cat([p["sh_dc"], p["sh_rest"]], dim=1),
         )
 
     def export(self) -> Gaussians:
@@ -252,10 +300,14 @@ class SceneFitter:
             }
         )
 
+    def render(self, gaussians: Gaussians, view: int):
+        """Render training view `view` as the fit sees it (its background and backend)."""
+        bg = torch.tensor(self.cfg.background, device=self.cfg.device)
+        return render(gaussians, self.cams[view], background=bg, backend=self.cfg.backend)
+
     # --- schedule -----------------------------------------------------------------------------
     def fit(self, progress: bool = True, checkpoint: Path | None = None) -> dict:
         cfg = self.cfg
-        bg = torch.tensor(cfg.background, device=cfg.device)
         rng = np.random.default_rng(cfg.seed + self.step)
         bar = tqdm(total=cfg.iterations, initial=self.step, desc="fit", disable=not progress)
         start = time.perf_counter() - self.elapsed
@@ -267,10 +319,12 @@ class SceneFitter:
                 if group["name"] == "means":
                     frac = self.step / max(cfg.iterations, 1)
                     group["lr"] = cfg.lr_means * self.extent * (0.01**frac)
-            out = render(self.gaussians(), self.cams[i], background=bg, backend=cfg.backend)
+            out = self.render(self.gaussians(), i)
             gt = self.images[i]
             l1 = (out.rgb - gt).abs().mean()
             loss = (1 - cfg.lambda_dssim) * l1 + cfg.lambda_dssim * (1 - ssim(out.rgb, gt))
+            if cfg.lambda_aniso:
+                loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()
             self.optim.zero_grad(set_to_none=True)
             loss.backward()
             self._track_gradients(self.cams[i])
@@ -295,10 +349,18 @@ class SceneFitter:
                 self.elapsed = time.perf_counter() - start
                 self.save(checkpoint)
         bar.close()
+        self.prune_near_cameras()
         self.elapsed = time.perf_counter() - start
         if checkpoint is not None:
             self.save(checkpoint)
         return self.evaluate()
+
+    def anisotropy_penalty(self) -> torch.Tensor:
+        """Mean excess of each Gaussian's axis ratio over `max_aspect` (0 when none exceeds
+        it): keeps surfels from turning into needles that look right only edge-on."""
+        log_s = self.params["log_scales"]
+        log_ratio = log_s.max(dim=1).values - log_s.min(dim=1).values
+        return F.relu(torch.exp(log_ratio) - self.cfg.max_aspect).mean()
 
     def _track_gradients(self, cam: Camera) -> None:
         grad = self.params["means"].grad
@@ -347,7 +409,7 @@ class SceneFitter:
                 offset = (rot @ (torch.randn_like(scales) * scales)[..., None])[..., 0]
                 new["means"].append(p["means"][idx] + offset)
                 new["log_scales"].append(p["log_scales"][idx] - math.log(1.6))
-                for k in ("quats", "opacity_logit", "sh"):
+                for k in ("quats", "opacity_logit", "sh_dc", "sh_rest"):
                     new[k].append(p[k][idx])
             keep[idx] = False
         merged = {k: torch.cat(v) for k, v in new.items()}
@@ -358,8 +420,29 @@ class SceneFitter:
             ]
         )
         keep &= torch.sigmoid(merged["opacity_logit"]) >= cfg.prune_opacity
+        keep &= self._clear_of_cameras(merged["means"])
+        if cfg.opacity_reset_every and self.step > cfg.opacity_reset_every:
+            # as 3DGS after its first opacity reset: Gaussians wider than a tenth of the scene
+            keep &= torch.exp(merged["log_scales"]).max(1).values <= 0.1 * self.extent
         self.params = {k: v[keep].contiguous() for k, v in merged.items()}
         self._new_optimizer()
+
+    def _clear_of_cameras(self, means: torch.Tensor) -> torch.Tensor:
+        """(N,) bool: centres at least `camera_clearance` from every camera centre."""
+        if self.cfg.camera_clearance <= 0:
+            return torch.ones(len(means), dtype=torch.bool, device=means.device)
+        nearest = torch.cdist(means, self.camera_centers).min(dim=1).values
+        return nearest >= self.cfg.camera_clearance
+
+    @torch.no_grad()
+    def prune_near_cameras(self) -> int:
+        """Drop Gaussians inside the camera clearance; returns how many."""
+        keep = self._clear_of_cameras(self.params["means"].detach())
+        dropped = int((~keep).sum())
+        if dropped:
+            self.params = {k: v.detach()[keep].contiguous() for k, v in self.params.items()}
+            self._new_optimizer()
+        return dropped
 
     @torch.no_grad()
     def _reset_opacity(self) -> None:
@@ -368,14 +451,10 @@ class SceneFitter:
 
     @torch.no_grad()
     def evaluate(self) -> dict:
-        bg = torch.tensor(self.cfg.background, device=self.cfg.device)
         g = self.gaussians()
 
         def mean_psnr(ids):
-            vals = [
-                psnr(rasterize(g, self.cams[i], background=bg).rgb.clamp(0, 1), self.images[i])
-                for i in ids
-            ]
+            vals = [psnr(self.render(g, i).rgb.clamp(0, 1), self.images[i]) for i in ids]
             return float(np.mean(vals)) if vals else None
 
         return {
@@ -440,4 +519,12 @@ def write_fitted_scene(
     return out_dir / "point_cloud.ply"
 
 
-__all__ = ["FitConfig", "SceneFitter", "psnr", "split_views", "ssim", "write_fitted_scene"]
+__all__ = [
+    "FitConfig",
+    "SceneFitter",
+    "psnr",
+    "psnr_from_mse",
+    "split_views",
+    "ssim",
+    "write_fitted_scene",
+]

@@ -80,6 +80,35 @@ def test_resume_continues_where_it_stopped(views, tmp_path):
     assert not other.resume(ckpt)
 
 
+def test_gaussians_near_cameras_are_pruned(views):
+    cams, imgs = views
+    f = SceneFitter(tiny(camera_clearance=0.5), cams, imgs)
+    near = torch.cdist(f.params["means"].detach(), f.camera_centers).min(1).values
+    assert bool((near >= 0.5).all())  # the start points already keep clear
+    with torch.no_grad():  # move three Gaussians onto camera centres
+        f.params["means"][:3] = f.camera_centers[:3] + 0.01
+    assert f.prune_near_cameras() == 3 and f.prune_near_cameras() == 0
+    off = SceneFitter(tiny(), cams, imgs)
+    with torch.no_grad():
+        off.params["means"][:3] = off.camera_centers[:3]
+    assert off.prune_near_cameras() == 0  # clearance 0: off
+
+
+def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
+    cams, imgs = views
+    f = SceneFitter(tiny(max_aspect=4.0), cams, imgs)
+    with torch.no_grad():
+        f.params["log_scales"][:] = torch.log(torch.tensor([0.02, 0.05]))  # aspect 2.5
+    assert float(f.anisotropy_penalty()) == 0.0
+    with torch.no_grad():
+        f.params["log_scales"][0] = torch.log(torch.tensor([0.01, 0.2]))  # aspect 20
+    penalty = f.anisotropy_penalty()
+    assert float(penalty) == pytest.approx(16.0 / len(f), rel=1e-4)
+    penalty.backward()
+    g = f.params["log_scales"].grad
+    assert g[0, 1] > 0 > g[0, 0] and bool((g[1:] == 0).all())  # descent shortens the needle
+
+
 def test_bad_inputs(views):
     cams, imgs = views
     with pytest.raises(ValueError, match="kind"):
@@ -126,6 +155,11 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     saved = json.loads((out / "fit_metrics.json").read_text())
     assert saved["iterations"] == 12 and saved["psnr_heldout"] == metrics["psnr_heldout"]
     assert (out / "fit_config.json").is_file() and list(out.glob("heldout_*.png"))
+    # the held-out view has a mask, so the PSNR on the object is reported beside the full one
+    assert isinstance(saved["psnr_heldout_object"], float)
+    assert saved["init"].startswith(("triangulated", "random"))
+    # clearance resolved from the LLFF near bound and recorded
+    assert json.loads((out / "fit_config.json").read_text())["camera_clearance"] > 0
     task = adapter.load_scene("cap")  # the adapter now finds the fitted scene and cameras
     assert task.gaussians.kind == "2dgs" and len(task.trajectory) == 9
     again = fit_scene(cfg, adapter, "cap")

@@ -125,3 +125,24 @@ def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
     root, ds, cams, masks = cape
     with pytest.raises(DatasetError, match="mold_cape/gaussians/point_cloud.ply"):
         ds.load_scene("mold_cape")
+
+
+@pytest.mark.slow
+def test_triangulated_points_fall_inside_the_object_masks(cape):
+    """SIFT matches between every other photograph, triangulated with the LLFF poses held fixed
+    (what `make scenes` starts from), must project into the independently drawn object masks."""
+    from sagonline.triangulate import triangulate_known_poses
+
+    root, ds, cams, masks = cape
+    _, _, images = ds.capture("mold_cape")
+    views = [c for c in cams if c.name in images][::2]
+    xyz, _, summary = triangulate_known_poses(views, images, max_features=4096, num_threads=2)
+    assert summary["points"] > 1000 and summary["mean_reprojection_error_px"] < 1.0
+    inside = []
+    for cam in views:
+        mask = ds.read_label_map(masks[cam.name]) > 0
+        uv, z = cam.project(torch.tensor(xyz, dtype=torch.float32))
+        u, v = uv[:, 0].long().numpy(), uv[:, 1].long().numpy()
+        ok = (z.numpy() > 0) & (u >= 0) & (u < mask.shape[1]) & (v >= 0) & (v < mask.shape[0])
+        inside.append(mask[v[ok], u[ok]].mean())
+    assert min(inside) > 0.8, inside

@@ -9,28 +9,40 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.render.rasterize import RenderOutput, rasterize
 
-BACKENDS = ("torch", "gsplat", "auto")
+BACKENDS = ("torch", "native", "gsplat", "auto")
+TRACE_OPTIONS = ("trace", "trace_only", "return_ids")
 
 
 def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """'auto' picks gsplat on CUDA when installed, else the torch rasterizer."""
+    """'auto' picks gsplat on CUDA when installed, the compiled CPU kernel on the CPU when it
+    builds, else the torch rasterizer."""
     if backend not in BACKENDS:
         raise ValueError(f"renderer backend {backend!r} is not one of {BACKENDS}")
     if backend == "auto":
-        from sagonline.render.gsplat_backend import gsplat_available
+        if torch.device(device).type == "cuda":
+            from sagonline.render.gsplat_backend import gsplat_available
 
-        return "gsplat" if torch.device(device).type == "cuda" and gsplat_available() else "torch"
+            return "gsplat" if gsplat_available() else "torch"
+        from sagonline.render.native import native_available
+
+        return "native" if native_available() else "torch"
     return backend
 
 
 def render(
     gaussians: Gaussians, camera: Camera, *, backend: str = "torch", **kwargs
 ) -> RenderOutput | None:
-    """Render (and optionally trace) one view; keyword arguments as in `rasterize`."""
-    if resolve_backend(backend, gaussians.device) == "gsplat":
+    """Render (and optionally trace) one view; keyword arguments as in `rasterize`. The native
+    CPU kernel renders images only: traces and most-visible ids go to the torch path."""
+    chosen = resolve_backend(backend, gaussians.device)
+    if chosen == "gsplat":
         from sagonline.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat(gaussians, camera, **kwargs)
+    if chosen == "native" and not any(kwargs.get(k) for k in TRACE_OPTIONS):
+        from sagonline.render.native import rasterize_native
+
+        return rasterize_native(gaussians, camera, **kwargs)
     return rasterize(gaussians, camera, **kwargs)
 
 

@@ -1,0 +1,364 @@
+// Differentiable tile rasterizer for the CPU: the same compositing as
+// sagonline/render/rasterize.py (3DGS EWA splats and 2DGS ray-splat surfels, alpha clipped at
+// 0.99, skipped below 1/255, a pixel ends at the first splat that would bring its
+// transmittance under t_stop), with a hand-written backward pass (back to front, as the 3DGS
+// reference does) instead of autograd over per-block tensors.
+//
+// Inputs are the tile lists built in Python: `order` (E,) splat indices sorted by (tile, depth),
+// `offsets`/`counts` (n_tiles,). Splat parameters are packed as in ProjectedSplats.params():
+// [mx, my, opacity, depth, then conic a, b, c (3DGS) or the 3x3 transform M row-major (2DGS)].
+
+#include <torch/extension.h>
+#include <ATen/Parallel.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+namespace {
+
+constexpr float kCutoff2 = 9.0f;  // 3-sigma support, squared
+constexpr float kSurfelFilter = 2.0f;
+constexpr float kAlphaMin = 1.0f / 255.0f;
+constexpr float kAlphaMax = 0.99f;
+
+struct Response {
+  float alpha = 0.f;   // after clipping; 0 when the splat does not reach the pixel
+  float raw = 0.f;     // opacity * exp(power) before the 0.99 clip
+  float gauss = 0.f;   // exp(power)
+  float depth = 0.f;   // depth where the ray meets the splat
+  // 2DGS intermediates for the backward pass
+  bool use3d = false;
+  float u = 0.f, v = 0.f, pz = 1.f;
+  bool pz_clamped = false;
+  float k[3] = {0, 0, 0}, l[3] = {0, 0, 0};
+};
+
+inline Response respond(bool surfel, const float* p, float px, float py) {
+  Response r;
+  const float dx = px - p[0], dy = py - p[1];
+  float power;
+  bool inside;
+  if (!surfel) {
+    const float a = p[4], b = p[5], c = p[6];
+    power = -0.5f * (a * dx * dx + c * dy * dy) - b * dx * dy;
+    inside = power >= -0.5f * kCutoff2;
+    r.depth = p[3];
+  } else {
+    const float* m = p + 4;
+    for (int i = 0; i < 3; ++i) {
+      r.k[i] = px * m[6 + i] - m[i];
+      r.l[i] = py * m[6 + i] - m[3 + i];
+    }
+    float pz = r.k[0] * r.l[1] - r.k[1] * r.l[0];
+    if (std::fabs(pz) < 1e-12f) {
+      pz = 1e-12f;
+      r.pz_clamped = true;
+    }
+    r.pz = pz;
+    r.u = (r.k[1] * r.l[2] - r.k[2] * r.l[1]) / pz;
+    r.v = (r.k[2] * r.l[0] - r.k[0] * r.l[2]) / pz;
+    const float rho3d = r.u * r.u + r.v * r.v;
+    const float rho2d = kSurfelFilter * (dx * dx + dy * dy);
+    r.use3d = rho3d <= rho2d;
+    const float rho = r.use3d ? rho3d : rho2d;
+    r.depth = r.use3d ? r.u * m[6] + r.v * m[7] + m[8] : p[3];
+    power = -0.5f * rho;
+    inside = (rho <= kCutoff2) && (r.depth > 1e-2f);
+  }
+  if (!inside) return r;  // alpha stays 0; no exp for the (many) pairs outside the support
+  r.gauss = std::exp(power);
+  r.raw = p[2] * r.gauss;
+  const float alpha = std::min(r.raw, kAlphaMax);
+  r.alpha = alpha >= kAlphaMin ? alpha : 0.f;
+  return r;
+}
+
+// Gradient of (alpha, depth) w.r.t. the packed parameters, added into g (K floats).
+inline void respond_backward(bool surfel, const float* p, float px, float py, const Response& r,
+                             float g_alpha, float g_depth, float* g) {
+  const float dx = px - p[0], dy = py - p[1];
+  float g_power = 0.f;
+  if (r.raw < kAlphaMax) {  // clipped alphas pass no gradient (as clamp_max in autograd)
+    g[2] += g_alpha * r.gauss;
+    g_power = g_alpha * r.raw;
+  }
+  if (!surfel) {
+    const float a = p[4], b = p[5], c = p[6];
+    g[0] += g_power * (a * dx + b * dy);
+    g[1] += g_power * (c * dy + b * dx);
+    g[4] += g_power * (-0.5f * dx * dx);
+    g[5] += g_power * (-dx * dy);
+    g[6] += g_power * (-0.5f * dy * dy);
+    g[3] += g_depth;
+    return;
+  }
+  const float g_rho = -0.5f * g_power;
+  float* gm = g + 4;
+  const float* m = p + 4;
+  if (!r.use3d) {
+    g[0] += g_rho * kSurfelFilter * (-2.f * dx);
+    g[1] += g_rho * kSurfelFilter * (-2.f * dy);
+    g[3] += g_depth;
+    return;
+  }
+  const float gu = g_rho * 2.f * r.u + g_depth * m[6];
+  const float gv = g_rho * 2.f * r.v + g_depth * m[7];
+  gm[6] += g_depth * r.u;
+  gm[7] += g_depth * r.v;
+  gm[8] += g_depth;
+  const float g_nu = gu / r.pz, g_nv = gv / r.pz;
+  const float g_pz = r.pz_clamped ? 0.f : -(gu * r.u + gv * r.v) / r.pz;
+  const float* k = r.k;
+  const float* l = r.l;
+  float gk[3] = {0, 0, 0}, gl[3] = {0, 0, 0};
+  // nu = k1 l2 - k2 l1
+  gk[1] += l[2] * g_nu;
+  gl[2] += k[1] * g_nu;
+  gk[2] -= l[1] * g_nu;
+  gl[1] -= k[2] * g_nu;
+  // nv = k2 l0 - k0 l2
+  gk[2] += l[0] * g_nv;
+  gl[0] += k[2] * g_nv;
+  gk[0] -= l[2] * g_nv;
+  gl[2] -= k[0] * g_nv;
+  // pz = k0 l1 - k1 l0
+  gk[0] += l[1] * g_pz;
+  gl[1] += k[0] * g_pz;
+  gk[1] -= l[0] * g_pz;
+  gl[0] -= k[1] * g_pz;
+  for (int i = 0; i < 3; ++i) {
+    gm[i] -= gk[i];
+    gm[6 + i] += px * gk[i] + py * gl[i];
+    gm[3 + i] -= gl[i];
+  }
+}
+
+// The pixels of a tile a splat's bounding box covers: [x0, x1) x [y0, y1) in tile-local units.
+struct Span {
+  int x0, x1, y0, y1;
+};
+
+inline Span clip(const float* box, int64_t tx0, int64_t ty0, int tile) {
+  // pixel centre x + 0.5 must lie in [xmin, xmax]; a 0.01 px margin keeps rounding at the
+  // support's edge on the safe side (the response itself still decides)
+  constexpr float m = 0.01f;
+  Span s;
+  s.x0 = std::max(0, static_cast<int>(std::ceil(box[0] - 0.5f - m - tx0)));
+  s.x1 = std::min(tile, static_cast<int>(std::floor(box[1] - 0.5f + m - tx0)) + 1);
+  s.y0 = std::max(0, static_cast<int>(std::ceil(box[2] - 0.5f - m - ty0)));
+  s.y1 = std::min(tile, static_cast<int>(std::floor(box[3] - 0.5f + m - ty0)) + 1);
+  return s;
+}
+
+struct Raster {
+  bool surfel;
+  int64_t width, height, tile, tiles_x, K, C;
+  const float *params, *colors, *boxes;
+  const int64_t *order, *offsets, *counts;
+};
+
+// Walk one tile front to back: per pixel feat (C), depth, final T and walked count.
+void forward_tile(const Raster& R, int64_t ti, float stop, float* F, float* D, float* TT,
+                  int32_t* L) {
+  const int tile = static_cast<int>(R.tile);
+  const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
+  const int npix = tile * tile;
+  std::vector<float> T(npix, 1.f), dep(npix, 0.f), feat(npix * R.C, 0.f);
+  std::vector<int32_t> walked(npix, 0);
+  std::vector<char> done(npix, 0);
+  int active = 0;
+  for (int q = 0; q < npix; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    if (x >= R.width || y >= R.height) {
+      done[q] = 1;
+    } else {
+      ++active;
+    }
+  }
+  const int64_t n = R.counts[ti], base = R.offsets[ti];
+  for (int64_t j = 0; j < n && active > 0; ++j) {
+    const int64_t s = R.order[base + j];
+    const float* p = R.params + s * R.K;
+    const Span sp = clip(R.boxes + s * 4, tx0, ty0, tile);
+    for (int ly = sp.y0; ly < sp.y1; ++ly) {
+      for (int lx = sp.x0; lx < sp.x1; ++lx) {
+        const int q = ly * tile + lx;
+        if (done[q]) continue;
+        const Response r = respond(R.surfel, p, tx0 + lx + 0.5f, ty0 + ly + 0.5f);
+        if (r.alpha <= 0.f) continue;
+        const float next = T[q] * (1.f - r.alpha);
+        if (next < stop) {  // T only falls: this pixel is finished
+          done[q] = 1;
+          --active;
+          continue;
+        }
+        const float w = r.alpha * T[q];
+        for (int64_t c = 0; c < R.C; ++c) feat[q * R.C + c] += w * R.colors[s * R.C + c];
+        dep[q] += w * r.depth;
+        T[q] = next;
+        walked[q] = static_cast<int32_t>(j + 1);
+      }
+    }
+  }
+  for (int q = 0; q < npix; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    if (x >= R.width || y >= R.height) continue;
+    const int64_t pix = y * R.width + x;
+    for (int64_t c = 0; c < R.C; ++c) F[pix * R.C + c] = feat[q * R.C + c];
+    D[pix] = dep[q];
+    TT[pix] = T[q];
+    L[pix] = walked[q];
+  }
+}
+
+// Walk one tile back to front, adding parameter and colour gradients into GP, GC.
+void backward_tile(const Raster& R, int64_t ti, const float* TT, const int32_t* L,
+                   const float* GF, const float* GD, const float* GT, float* GP, float* GC) {
+  const int tile = static_cast<int>(R.tile);
+  const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
+  const int npix = tile * tile;
+  std::vector<float> T(npix, 1.f), after(npix * R.C, 0.f), depth_after(npix, 0.f);
+  std::vector<int32_t> last(npix, 0);
+  std::vector<int64_t> pix(npix, -1);
+  int32_t longest = 0;
+  for (int q = 0; q < npix; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    if (x >= R.width || y >= R.height) continue;
+    pix[q] = y * R.width + x;
+    T[q] = TT[pix[q]];
+    last[q] = L[pix[q]];
+    longest = std::max(longest, last[q]);
+  }
+  const int64_t base = R.offsets[ti];
+  for (int64_t j = longest - 1; j >= 0; --j) {
+    const int64_t s = R.order[base + j];
+    const float* p = R.params + s * R.K;
+    const Span sp = clip(R.boxes + s * 4, tx0, ty0, tile);
+    for (int ly = sp.y0; ly < sp.y1; ++ly) {
+      for (int lx = sp.x0; lx < sp.x1; ++lx) {
+        const int q = ly * tile + lx;
+        if (pix[q] < 0 || j >= last[q]) continue;
+        const float px = tx0 + lx + 0.5f, py = ty0 + ly + 0.5f;
+        const Response r = respond(R.surfel, p, px, py);
+        if (r.alpha <= 0.f) continue;
+        const float one_minus = 1.f - r.alpha;
+        const float T_before = T[q] / one_minus;
+        const float w = r.alpha * T_before;
+        const float* gf = GF + pix[q] * R.C;
+        float* aft = after.data() + q * R.C;
+        // d out / d alpha_j = T_j c_j - (sum of later contributions) / (1 - alpha_j)
+        float g_alpha = 0.f;
+        for (int64_t c = 0; c < R.C; ++c) {
+          const float col = R.colors[s * R.C + c];
+          g_alpha += gf[c] * (T_before * col - aft[c] / one_minus);
+          GC[s * R.C + c] += w * gf[c];
+          aft[c] += w * col;
+        }
+        const float gd = GD[pix[q]];
+        g_alpha += gd * (T_before * r.depth - depth_after[q] / one_minus);
+        g_alpha += GT[pix[q]] * (-TT[pix[q]] / one_minus);
+        depth_after[q] += w * r.depth;
+        respond_backward(R.surfel, p, px, py, r, g_alpha, gd * w, GP + s * R.K);
+        T[q] = T_before;
+      }
+    }
+  }
+}
+
+Raster make_raster(bool surfel, const torch::Tensor& params, const torch::Tensor& colors,
+                   const torch::Tensor& boxes, const torch::Tensor& order,
+                   const torch::Tensor& offsets, const torch::Tensor& counts, int64_t width,
+                   int64_t height, int64_t tile) {
+  TORCH_CHECK(params.is_contiguous() && colors.is_contiguous() && boxes.is_contiguous(),
+              "rasterizer inputs must be contiguous");
+  TORCH_CHECK(params.dtype() == torch::kFloat32 && colors.dtype() == torch::kFloat32 &&
+                  boxes.dtype() == torch::kFloat32,
+              "rasterizer inputs must be float32");
+  TORCH_CHECK(params.size(1) == (surfel ? 13 : 7), "packed splat parameters have wrong width");
+  return Raster{surfel,
+                width,
+                height,
+                tile,
+                (width + tile - 1) / tile,
+                params.size(1),
+                colors.size(1),
+                params.data_ptr<float>(),
+                colors.data_ptr<float>(),
+                boxes.data_ptr<float>(),
+                order.data_ptr<int64_t>(),
+                offsets.data_ptr<int64_t>(),
+                counts.data_ptr<int64_t>()};
+}
+
+}  // namespace
+
+// Returns feat (H, W, C), depth (H, W), final transmittance (H, W) and, per pixel, the number of
+// list entries walked up to and including its last composited splat (int32, for backward).
+std::vector<torch::Tensor> forward(bool surfel, torch::Tensor params, torch::Tensor colors,
+                                   torch::Tensor boxes, torch::Tensor order,
+                                   torch::Tensor offsets, torch::Tensor counts, int64_t width,
+                                   int64_t height, int64_t tile, double t_stop) {
+  params = params.contiguous();
+  colors = colors.contiguous();
+  boxes = boxes.contiguous();
+  const Raster R =
+      make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
+  auto feat = torch::zeros({height, width, R.C}, params.options());
+  auto depth = torch::zeros({height, width}, params.options());
+  auto final_T = torch::ones({height, width}, params.options());
+  auto last = torch::zeros({height, width}, order.options().dtype(torch::kInt32));
+  float* F = feat.data_ptr<float>();
+  float* D = depth.data_ptr<float>();
+  float* TT = final_T.data_ptr<float>();
+  int32_t* L = last.data_ptr<int32_t>();
+  const float stop = static_cast<float>(t_stop);
+  at::parallel_for(0, counts.size(0), 1, [&](int64_t begin, int64_t end) {
+    for (int64_t ti = begin; ti < end; ++ti) {
+      if (R.counts[ti] > 0) forward_tile(R, ti, stop, F, D, TT, L);
+    }
+  });
+  return {feat, depth, final_T, last};
+}
+
+// Gradients w.r.t. params (M, K) and colors (M, C) from gradients on feat, depth, final_T.
+std::vector<torch::Tensor> backward(bool surfel, torch::Tensor params, torch::Tensor colors,
+                                    torch::Tensor boxes, torch::Tensor order,
+                                    torch::Tensor offsets, torch::Tensor counts, int64_t width,
+                                    int64_t height, int64_t tile, torch::Tensor final_T,
+                                    torch::Tensor last, torch::Tensor g_feat,
+                                    torch::Tensor g_depth, torch::Tensor g_T) {
+  params = params.contiguous();
+  colors = colors.contiguous();
+  boxes = boxes.contiguous();
+  g_feat = g_feat.contiguous();
+  g_depth = g_depth.contiguous();
+  g_T = g_T.contiguous();
+  const Raster R =
+      make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
+  const int64_t M = params.size(0);
+  const int threads = at::get_num_threads();
+  // one gradient buffer per thread, summed at the end: tiles share splats
+  auto gp_all = torch::zeros({threads, M, R.K}, params.options());
+  auto gc_all = torch::zeros({threads, M, R.C}, params.options());
+  const float* TT = final_T.data_ptr<float>();
+  const int32_t* L = last.data_ptr<int32_t>();
+  const float* GF = g_feat.data_ptr<float>();
+  const float* GD = g_depth.data_ptr<float>();
+  const float* GT = g_T.data_ptr<float>();
+  float* GP0 = gp_all.data_ptr<float>();
+  float* GC0 = gc_all.data_ptr<float>();
+  at::parallel_for(0, counts.size(0), 1, [&](int64_t begin, int64_t end) {
+    const int64_t tid = at::get_thread_num();
+    for (int64_t ti = begin; ti < end; ++ti) {
+      if (R.counts[ti] == 0) continue;
+      backward_tile(R, ti, TT, L, GF, GD, GT, GP0 + tid * M * R.K, GC0 + tid * M * R.C);
+    }
+  });
+  return {gp_all.sum(0), gc_all.sum(0)};
+}
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("forward", &forward, "tile rasterizer forward (CPU)");
+  m.def("backward", &backward, "tile rasterizer backward (CPU)");
+}

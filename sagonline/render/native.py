@@ -1,0 +1,147 @@
+"""The compiled CPU rasterizer: `rasterize`'s compositing in C++ with a hand-written backward.
+
+Same projection (`project`, autograd), same tile lists (`_bin_tiles`), same compositing rules
+as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per tile
+(csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
+tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
+use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached; traces and
+most-visible ids are not produced here, so those calls go to the PyTorch path.
+"""
+
+from __future__ import annotations
+
+import functools
+import logging
+import math
+from pathlib import Path
+
+import torch
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians
+from sagonline.render.projection import project
+from sagonline.render.rasterize import T_STOP, RenderOutput, _bin_tiles
+
+log = logging.getLogger(__name__)
+SOURCE = Path(__file__).parent / "csrc" / "raster_cpu.cpp"
+
+
+class NativeBuildError(RuntimeError):
+    """The C++ rasterizer could not be compiled here (no compiler, no ninja, ...)."""
+
+
+@functools.cache
+def load_extension():
+    """Compile (once per machine, cached by torch) and import the C++ rasterizer."""
+    from torch.utils import cpp_extension
+
+    try:
+        return cpp_extension.load(
+            name="sagonline_raster_cpu",
+            sources=[str(SOURCE)],
+            extra_cflags=["-O3", "-fopenmp"],
+            extra_ldflags=["-fopenmp"],
+            verbose=False,
+        )
+    except Exception as exc:  # compiler missing, ninja missing, build error
+        raise NativeBuildError(f"could not build {SOURCE.name}: {exc}") from exc
+
+
+@functools.cache
+def native_available() -> bool:
+    try:
+        load_extension()
+        return True
+    except NativeBuildError as exc:
+        log.warning("%s; using the PyTorch rasterizer", exc)
+        return False
+
+
+class _Composite(torch.autograd.Function):
+    """(M, K) packed splat parameters, (M, C) colours, (M, 4) pixel bounding boxes of the
+    3-sigma supports -> feat (H, W, C), depth (H, W), final transmittance (H, W); differentiable
+    in params and colours."""
+
+    @staticmethod
+    def forward(
+        ctx, params, colors, surfel, boxes, order, offsets, counts, width, height, tile, t_stop
+    ):
+        ext = load_extension()
+        feat, depth, final_T, last = ext.forward(
+            surfel, params, colors, boxes, order, offsets, counts, width, height, tile, t_stop
+        )
+        ctx.save_for_backward(params, colors, boxes, order, offsets, counts, final_T, last)
+        ctx.settings = (surfel, width, height, tile)
+        return feat, depth, final_T
+
+    @staticmethod
+    def backward(ctx, g_feat, g_depth, g_T):
+        params, colors, boxes, order, offsets, counts, final_T, last = ctx.saved_tensors
+        surfel, width, height, tile = ctx.settings
+        zeros = torch.zeros_like
+        g_params, g_colors = load_extension().backward(
+            surfel,
+            params,
+            colors,
+            boxes,
+            order,
+            offsets,
+            counts,
+            width,
+            height,
+            tile,
+            final_T,
+            last,
+            zeros(final_T)[..., None].expand(-1, -1, colors.shape[1]) if g_feat is None else g_feat,
+            zeros(final_T) if g_depth is None else g_depth,
+            zeros(final_T) if g_T is None else g_T,
+        )
+        return (g_params, g_colors) + (None,) * 9
+
+
+def rasterize_native(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    background: torch.Tensor | None = None,
+    features: torch.Tensor | None = None,
+    t_stop: float = T_STOP,
+    near: float = 0.01,
+    tile_size: int = 8,
+    **unused,
+) -> RenderOutput:
+    """Render one view on the CPU through the C++ kernel; outputs as `rasterize` (no ids)."""
+    if gaussians.device.type != "cpu":
+        raise ValueError("the native rasterizer runs on the CPU; use gsplat or torch on CUDA")
+    W, H = camera.width, camera.height
+    proj = project(gaussians, camera, near=near)
+    ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
+    with torch.no_grad():
+        _, order, offsets, counts = _bin_tiles(proj, ntx, nty, tile_size)
+    colors = proj.colors
+    if features is not None:
+        colors = torch.cat([colors, features[proj.ids].to(colors.dtype)], dim=1)
+    params = proj.params().float()
+    feat, depth, final_T = _Composite.apply(
+        params,
+        colors.float(),
+        proj.kind == "2dgs",
+        proj.bbox.detach().float().contiguous(),
+        order,
+        offsets,
+        counts,
+        W,
+        H,
+        tile_size,
+        float(t_stop),
+    )
+    bg = torch.zeros(3) if background is None else background.to(feat.dtype)
+    return RenderOutput(
+        rgb=feat[..., :3] + final_T[..., None] * bg,
+        alpha=1.0 - final_T,
+        depth=depth,
+        features=feat[..., 3:] if features is not None else None,
+    )
+
+
+__all__ = ["NativeBuildError", "load_extension", "native_available", "rasterize_native"]
