@@ -125,6 +125,25 @@ def fit_rows(roots: list[Path]) -> pd.DataFrame:
     return pd.DataFrame(rows, columns=FIT_COLUMNS)
 
 
+def stack_heldout_renders(folder: Path, out: Path) -> Path | None:
+    """The held-out render | photo pairs `make scenes` wrote, stacked into one PNG in `out`."""
+    import numpy as np
+    from PIL import Image
+
+    from sagonline.utils import atomic_write_image
+
+    pairs = sorted(folder.glob("heldout_*.png"))
+    if not pairs:
+        return None
+    rows = [np.asarray(Image.open(p).convert("RGB")) for p in pairs]
+    width = min(r.shape[1] for r in rows)
+    metrics = json.loads((folder / "fit_metrics.json").read_text())
+    name = f"fit_{metrics.get('dataset', 'scene')}_{metrics.get('scene', folder.parent.name)}"
+    return atomic_write_image(
+        out / f"{name}_heldout.jpg", np.concatenate([r[:, :width] for r in rows])
+    )
+
+
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
     pct = [
         c
@@ -159,6 +178,8 @@ def main(argv: list[str] | None = None) -> None:
             + fits.to_markdown(index=False, floatfmt=".4g")
             + "\n",
         )
+        for folder in fits["folder"]:
+            stack_heldout_renders(ROOT / folder, args.out)
         print(f"{len(fits)} fitted scenes -> {args.out}/fits.md, fits.csv")
     runs = find_runs(roots)
     if not runs:
