@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -311,6 +312,7 @@ class SceneFitter:
         rng = np.random.default_rng(cfg.seed + self.step)
         bar = tqdm(total=cfg.iterations, initial=self.step, desc="fit", disable=not progress)
         start = time.perf_counter() - self.elapsed
+        recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
         while self.step < cfg.iterations:
             if cfg.time_budget_s is not None and time.perf_counter() - start > cfg.time_budget_s:
                 break
@@ -331,6 +333,7 @@ class SceneFitter:
             self.optim.step()
             self.step += 1
             self.history.append(loss.item())
+            recent_psnr.append(psnr(out.rgb.detach().clamp(0, 1), gt))
             if (
                 cfg.densify_from <= self.step <= cfg.densify_until
                 and self.step % cfg.densify_every == 0
@@ -344,7 +347,11 @@ class SceneFitter:
                 self._reset_opacity()
             bar.update(1)
             if self.step % 10 == 0:
-                bar.set_postfix(loss=f"{np.mean(self.history[-10:]):.4f}", n=len(self))
+                bar.set_postfix(
+                    loss=f"{np.mean(self.history[-10:]):.4f}",
+                    psnr=f"{np.mean(recent_psnr):.2f}",
+                    n=len(self),
+                )
             if checkpoint is not None and self.step % cfg.checkpoint_every == 0:
                 self.elapsed = time.perf_counter() - start
                 self.save(checkpoint)
