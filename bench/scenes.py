@@ -88,7 +88,13 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
             with np.load(cache) as z:
                 if str(z["views"]) == key:
                     return (z["xyz"], z["rgb"]), f"triangulated ({len(z['xyz'])}, cached)"
-        xyz, rgb, summary = triangulate_known_poses(train, images)
+        try:
+            xyz, rgb, summary = triangulate_known_poses(train, images)
+        except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
+            if cfg.init == "triangulate":
+                raise DatasetError(f"{scene_dir}: triangulation failed: {exc}") from exc
+            print(f"note: {scene_dir}: triangulation failed ({exc}); random start points")
+            return None, "random in frusta"
         if len(xyz) >= 100:
             out.mkdir(parents=True, exist_ok=True)
             atomic_write_npz(cache, xyz=xyz, rgb=rgb, views=np.array(key))

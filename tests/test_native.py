@@ -98,3 +98,19 @@ def test_rejects_wrong_packing():
             8,
             1e-4,
         )
+
+
+def test_nothing_in_view_and_trace_requests():
+    g = random_gaussians(20, "2dgs", seed=5)
+    away = small_camera(eye=(0.0, 40.0, 0.0))  # far away: a few pixels
+    behind = small_camera(eye=(0.0, -4.0, 0.0))  # turned round: nothing in view
+    behind = type(behind)(
+        behind.K, torch.diag(torch.tensor([-1.0, 1, -1, 1])) @ behind.world_to_cam, 26, 19, "b"
+    )
+    for cam in (away, behind):
+        ref, nat = rasterize(g, cam), rasterize_native(g, cam)
+        torch.testing.assert_close(nat.rgb, ref.rgb, atol=2e-6, rtol=1e-5)
+    empty = rasterize_native(g, behind)
+    assert float(empty.alpha.max()) == 0.0 and float(empty.rgb.abs().max()) == 0.0
+    with pytest.raises(ValueError, match="images only"):
+        rasterize_native(g, away, trace=print)

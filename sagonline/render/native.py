@@ -113,6 +113,9 @@ def rasterize_native(
     """Render one view on the CPU through the C++ kernel; outputs as `rasterize` (no ids)."""
     if gaussians.device.type != "cpu":
         raise ValueError("the native rasterizer runs on the CPU; use gsplat or torch on CUDA")
+    asked = [k for k in ("trace", "trace_only", "return_ids") if unused.get(k)]
+    if asked:
+        raise ValueError(f"the native rasterizer renders images only; {asked} need `rasterize`")
     W, H = camera.width, camera.height
     proj = project(gaussians, camera, near=near)
     ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
