@@ -54,6 +54,23 @@ def test_trace_step_matches_tiled_trace(kind, n_batches):
     assert max(abs(got[k] - want[k]) for k in want) < 1e-5
 
 
+def test_surfels_reach_gsplat_in_its_shapes_and_conventions():
+    """gsplat's own PyTorch reference of its 2DGS projection (runs on CPU) must accept what the
+    backend passes and produce our ray transforms M = K [R t_u s_u | R t_v s_v | R mu + t]."""
+    ref = pytest.importorskip("gsplat.cuda._torch_impl_2dgs")
+    from sagonline.render.gsplat_backend import surfel_scales
+
+    g = random_gaussians(50, "2dgs", seed=6)
+    cam = small_camera(48, 32)
+    ours = project(g, cam)
+    _, _, depths, M, _ = ref._fully_fused_projection_2dgs(
+        g.means, g.quats, surfel_scales(g.scales), cam.world_to_cam[None], cam.K[None], 48, 32
+    )
+    torch.testing.assert_close(M[0, ours.ids], ours.transforms, atol=1e-4, rtol=1e-4)
+    # gsplat's means2d is the centre of its bounding conic, not the projected centre: not compared
+    torch.testing.assert_close(depths[0, ours.ids], ours.depths)
+
+
 gpu = pytest.mark.skipif(not gsplat_available(), reason="gsplat backend needs CUDA and gsplat")
 
 

@@ -29,6 +29,12 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available()
 
 
+def surfel_scales(scales: torch.Tensor) -> torch.Tensor:
+    """(N, 2) surfel scales -> the (N, 3) gsplat's 2DGS functions take (the third axis, the
+    normal, is never used by them: their ray transform keeps the first two columns of R S)."""
+    return torch.cat([scales, torch.zeros_like(scales[:, :1])], dim=1)
+
+
 def _require_gsplat():
     try:
         import gsplat
@@ -85,7 +91,7 @@ def rasterize_gsplat(
         shape_key, indices_fn = "conics", gsplat.rasterize_to_indices_in_range
     else:
         img, alphas, *_, meta = gsplat.rasterization_2dgs(
-            g.means, g.quats, g.scales, g.opacities, colors, **common
+            g.means, g.quats, surfel_scales(g.scales), g.opacities, colors, **common
         )
         shape_key, indices_fn = "ray_transforms", gsplat.rasterize_to_indices_in_range_2dgs
     if trace is not None:
