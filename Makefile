@@ -20,7 +20,8 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
 
 install: $(STAMP)
 
-# The model-backed segmenters' packages, for their tests on CPU (random weights).
+# The model-backed segmenters' packages, for their tests on CPU (random weights), and gsplat,
+# whose PyTorch reference functions check the CUDA backend's conventions on CPU.
 # torchvision is pinned to torch 2.13.0's pair first so nothing upgrades torch; sam2 builds
 # only without build isolation. SAM 3 is left out: its model needs CUDA (see README).
 install-extras: $(EXTRAS)
@@ -28,6 +29,7 @@ install-extras: $(EXTRAS)
 $(EXTRAS): $(STAMP)
 	$(BIN)/python -m pip install --quiet torchvision==0.28.0
 	$(BIN)/python -m pip install --quiet -e '.[yolo]'
+	$(BIN)/python -m pip install --quiet -e '.[gsplat]'
 	$(BIN)/python -m pip install --quiet --no-build-isolation -e '.[sam2]'
 	touch $(EXTRAS)
 
