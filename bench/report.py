@@ -14,10 +14,12 @@ import argparse
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
+from PIL import Image
 
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.utils import atomic_write_text
+from sagonline.utils import atomic_write_image, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -126,12 +128,7 @@ def fit_rows(roots: list[Path]) -> pd.DataFrame:
 
 
 def stack_heldout_renders(folder: Path, out: Path) -> Path | None:
-    """The held-out render | photo pairs `make scenes` wrote, stacked into one PNG in `out`."""
-    import numpy as np
-    from PIL import Image
-
-    from sagonline.utils import atomic_write_image
-
+    """The held-out render | photo pairs `make scenes` wrote, stacked into one JPEG in `out`."""
     pairs = sorted(folder.glob("heldout_*.png"))
     if not pairs:
         return None

@@ -108,11 +108,11 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
     return None, "random in frusta"
 
 
-def near_depth(cams, points, near_far) -> float:
+def near_depth(cams, points, bounds) -> float:
     """The nearest scene depth the capture records: LLFF's near bound, else the 2nd percentile
     of the start points' depths over the training views, else 0 (unknown)."""
-    if near_far is not None:
-        return near_far[0] / 0.9  # undo the margin added when reading the bounds
+    if bounds is not None:
+        return bounds[0]
     if points is None:
         return 0.0
     xyz = torch.tensor(points[0], dtype=torch.float32)
@@ -121,17 +121,16 @@ def near_depth(cams, points, near_far) -> float:
     return float(torch.quantile(z, 0.02)) if z.numel() else 0.0
 
 
-def object_psnr(adapter, scene: str, fitter: SceneFitter) -> float | None:
+def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> float | None:
     """Mean held-out PSNR over the pixels inside the dataset's own object masks (None when the
     held-out views have none): how well the fit shows what gets segmented, apart from the
-    background that few training views see."""
+    background that few training views see. renders: view index -> (H, W, 3) render."""
     try:
         _, mask_paths = adapter.load_views(scene)
     except (AttributeError, DatasetError):
         return None
-    g = fitter.export()
     values = []
-    for i in fitter.held_idx:
+    for i, rgb in renders.items():
         cam = fitter.cams[i]
         if cam.name not in mask_paths:
             continue
@@ -139,7 +138,6 @@ def object_psnr(adapter, scene: str, fitter: SceneFitter) -> float | None:
         inside = resize_nearest((labels > 0).astype(np.uint8), (cam.height, cam.width)) > 0
         if not inside.any():
             continue
-        rgb = fitter.render(g, i).rgb.clamp(0, 1)
         err = ((rgb - fitter.images[i]) ** 2).mean(-1)[torch.from_numpy(inside)]
         values.append(psnr_from_mse(float(err.mean())))
     return float(np.mean(values)) if values else None
@@ -155,10 +153,11 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     max_side = fit_d.pop("max_side")
     fit_cfg = FitConfig(**fit_d)
     train_cams, train_imgs = load_images(cams, images, max_side)
-    near_far = None
+    bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
         b = load_llff_bounds(scene_dir)
-        near_far = (float(b[:, 0].min()) * 0.9, float(b[:, 1].max()) * 1.1)
+        bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
+        near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
     out = output_dir(scene_dir, adapter.name)
     done = out / "fit_metrics.json"
     if done.is_file() and (out / "point_cloud.ply").is_file() and not cfg.overwrite:
@@ -166,7 +165,7 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         return {"scene": scene, "skipped": True}
     points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out)
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
-        fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, near_far)
+        fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)
     fitter = SceneFitter(
         fit_cfg,
         train_cams,
@@ -188,12 +187,12 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
             "init": init,
         }
     )
-    metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter)
-    write_fitted_scene(out, fitter, cams, metrics)
     g = fitter.export()
-    for i in fitter.held_idx:
-        render = fitter.render(g, i).rgb.clamp(0, 1).numpy()
-        pair = np.concatenate([render, train_imgs[i].numpy()], axis=1)
+    renders = {i: fitter.render(g, i).rgb.clamp(0, 1) for i in fitter.held_idx}
+    metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter, renders)
+    write_fitted_scene(out, fitter, cams, metrics)
+    for i, render in renders.items():
+        pair = np.concatenate([render.numpy(), train_imgs[i].numpy()], axis=1)
         atomic_write_image(
             out / f"heldout_{train_cams[i].name}.png", (pair * 255 + 0.5).astype(np.uint8)
         )

@@ -76,6 +76,13 @@ class Camera:
         uvw = cam @ self.K.T
         return uvw[:, :2] / uvw[:, 2:3].clamp_min(1e-12), cam[:, 2]
 
+    def in_frame(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """(N, 3) world points -> (N,) bool: in front of the camera and inside the image, and
+        (N,) camera-space depth."""
+        uv, z = self.project(points)
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < self.width)
+        return inside & (uv[:, 1] >= 0) & (uv[:, 1] < self.height), z
+
 
 def make_camera(K, world_to_cam, width: int, height: int, name: str = "") -> Camera:
     return Camera(

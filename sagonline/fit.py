@@ -149,15 +149,7 @@ def init_from_views(
     pts = torch.tensor(xyz, dtype=torch.float32)
     seen = np.zeros(m)
     for cam in cameras:
-        uv, z = cam.project(pts)
-        inside = (
-            (z > 0)
-            & (uv[:, 0] >= 0)
-            & (uv[:, 0] < cam.width)
-            & (uv[:, 1] >= 0)
-            & (uv[:, 1] < cam.height)
-        )
-        seen += inside.numpy()
+        seen += cam.in_frame(pts)[0].numpy()
     order = np.argsort(-seen, kind="stable")
     keep = order[seen[order] >= min_visible * len(cameras)][:count]
     if len(keep) < count // 2:
@@ -167,9 +159,7 @@ def init_from_views(
 
 def _median_depth(cam: Camera, xyz: np.ndarray, default: float) -> float:
     """Median camera depth of the points `cam` sees (`default` when it sees none)."""
-    uv, z = cam.project(torch.tensor(xyz, dtype=torch.float32))
-    seen = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < cam.width) & (uv[:, 1] >= 0)
-    seen &= uv[:, 1] < cam.height
+    seen, z = cam.in_frame(torch.tensor(xyz, dtype=torch.float32))
     return float(z[seen].median()) if bool(seen.any()) else default
 
 
@@ -210,9 +200,8 @@ class SceneFitter:
             points = init_from_views(train_cams, train_imgs, cfg.init_points, near_far, rng)
         elif cfg.background_points:
             # sparse points sit on textured surfaces; what they miss (walls, floor, sky) gets
-            # random points anywhere in the training frusta
-            # behind what the points already explain: random points in front of the surfaces
-            # would start as floaters that only the training views' overlap can remove
+            # random points in the training frusta, behind what the points already explain
+            # (random points in front of the surfaces would start as floaters)
             behind = np.array([_median_depth(c, points[0], near_far[0]) for c in train_cams])
             extra = init_from_views(
                 train_cams,
