@@ -2,16 +2,21 @@
 
 from __future__ import annotations
 
+import json
+import logging
 import os
 import random
 import sys
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import torch
+from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
+from omegaconf.errors import OmegaConfBaseException
 
 from sagonline.consensus import VoteConfig
 from sagonline.pipeline import PipelineSettings, SceneReport
@@ -19,18 +24,144 @@ from sagonline.utils import atomic_write_json, atomic_write_text, describe_devic
 
 
 class RunExists(SystemExit):
-    pass
+    """A finished run is in the way: refused, nothing of it was touched."""
 
 
-def guard_run_dir(out_dir: Path, overwrite: bool) -> None:
-    """Never overwrite a finished run silently."""
-    if (out_dir / "metrics.json").exists() and not overwrite:
-        print(
-            f"error: {out_dir} already holds a finished run (metrics.json). Choose another "
-            "hydra.run.dir, or pass overwrite=true to replace it.",
-            file=sys.stderr,
-        )
-        raise RunExists(2)
+# Settings that change how a run is shown or stored, never its numbers: a finished run with
+# other values of these is still the same run.
+PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir")
+
+
+def comparable_config(config: dict) -> dict:
+    """A resolved config as flat `a.b.c: value` pairs, without PRESENTATION_KEYS."""
+    return flatten({k: v for k, v in config.items() if k not in PRESENTATION_KEYS and k != "hydra"})
+
+
+def config_fingerprint(cfg: DictConfig) -> tuple[str, dict]:
+    """Digest of the resolved config without PRESENTATION_KEYS, and the flat dict it hashes."""
+    from sagonline.provenance import digest_json
+
+    flat = comparable_config(OmegaConf.to_container(cfg, resolve=True))
+    return digest_json(flat), flat
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def finished_run(out_dir: Path) -> dict | None:
+    """The metrics of a finished run in `out_dir` (one that scored at least one scene), else
+    None: no run, an interrupted one, or one whose every scene failed (rerun freely)."""
+    path = out_dir / "metrics.json"
+    if not path.is_file():
+        return None
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise RunExists(
+            f"error: {path} is unreadable; move it away or pass overwrite=true"
+        ) from None
+    return None if metrics.get("status") == "failed" else metrics
+
+
+def config_difference(old: dict, new: dict, limit: int = 8) -> list[str]:
+    """Lines `key: finished-run value -> this run's value` for every key that differs."""
+    keys = sorted(set(old) | set(new))
+    missing = "<absent>"
+    lines = [
+        f"  {k}: {old.get(k, missing)!r} -> {new.get(k, missing)!r}"
+        for k in keys
+        if old.get(k, missing) != new.get(k, missing)
+    ]
+    return lines[:limit] + ([f"  ... and {len(lines) - limit} more"] if len(lines) > limit else [])
+
+
+def refuse(out_dir: Path, why: list[str]) -> None:
+    print(
+        "\n".join(
+            [f"error: {out_dir} already holds a finished run (metrics.json) {why[0]}", *why[1:]]
+            + [
+                "  Nothing was changed. Choose another hydra.run.dir / hydra.sweep.dir, or pass "
+                "overwrite=true to replace it."
+            ]
+        ),
+        file=sys.stderr,
+    )
+    raise RunExists(2)
+
+
+def write_hydra_files(out_dir: Path, cfg: DictConfig) -> list[str]:
+    """`.hydra/{config,hydra,overrides}.yaml` of this run, written by us once the run is
+    allowed to proceed (Hydra's own copy is off: `hydra.output_subdir: null`), so a refused
+    rerun never rewrites a finished run's record. Returns the command-line overrides."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        hydra_cfg = HydraConfig.get()
+    except ValueError:  # composed directly (tests): no Hydra job
+        return []
+    overrides = list(hydra_cfg.overrides.task)
+    atomic_write_text(out_dir / ".hydra" / "config.yaml", OmegaConf.to_yaml(cfg))
+    atomic_write_text(out_dir / ".hydra" / "hydra.yaml", OmegaConf.to_yaml({"hydra": hydra_cfg}))
+    atomic_write_text(out_dir / ".hydra" / "overrides.yaml", OmegaConf.to_yaml(overrides))
+    return overrides
+
+
+class SweepGuard(Callback):
+    """Refuses a sweep into a folder whose `multirun.yaml` records other overrides (before
+    Hydra rewrites it), unless overwrite=true. The same sweep again resumes: its finished
+    jobs are skipped by `evaluate`."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        recorded = Path(str(config.hydra.sweep.dir)) / "multirun.yaml"
+        if not recorded.is_file() or config.get("overwrite"):
+            return
+        old = list(OmegaConf.load(recorded).hydra.overrides.task)
+        new = list(config.hydra.overrides.task)
+        if old != new:
+            print(
+                f"error: {recorded.parent} holds a sweep with other overrides:\n"
+                f"  finished: {' '.join(old)}\n  this one: {' '.join(new)}\n"
+                "  Nothing was changed. Choose another hydra.sweep.dir, or pass overwrite=true.",
+                file=sys.stderr,
+            )
+            raise RunExists(2)
+
+
+@contextmanager
+def run_log(out_dir: Path):
+    """`<run dir>/eval.log` receives every log record and warning of the run; warnings also
+    reach the console when nothing else prints them."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    root = logging.getLogger()
+    file_handler = logging.FileHandler(out_dir / "eval.log")
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handlers = [file_handler]
+    if not root.handlers:
+        console = logging.StreamHandler(sys.stderr)
+        console.setLevel(logging.WARNING)
+        console.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        handlers.append(console)
+    old_level = root.level
+    root.setLevel(logging.INFO)
+    for h in handlers:
+        root.addHandler(h)
+    logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        logging.captureWarnings(False)
+        for h in handlers:
+            root.removeHandler(h)
+            h.close()
+        root.setLevel(old_level)
 
 
 def seed_everything(seed: int) -> None:
@@ -62,7 +193,42 @@ def refine_config_from(cfg: DictConfig):
 
 
 def vote_config_from(cfg: DictConfig) -> VoteConfig:
-    return VoteConfig(**OmegaConf.to_container(cfg.consensus, resolve=True))
+    """The vote settings, type-checked against `VoteConfig`: a wrong type, an unknown key or
+    an invalid value stops with the key's name."""
+    try:
+        given = OmegaConf.to_container(cfg.consensus, resolve=True)
+        merged = OmegaConf.merge(OmegaConf.structured(VoteConfig), given)
+        return OmegaConf.to_object(merged)
+    except OmegaConfBaseException as exc:
+        key = getattr(exc, "full_key", None) or "?"
+        msg = str(exc).splitlines()[0]
+        print(f"error: consensus.{key}: {msg}", file=sys.stderr)
+        raise SystemExit(2) from None
+    except ValueError as exc:
+        print(f"error: consensus: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def check_device(device: str) -> None:
+    """Stop before any work when the requested device does not exist here."""
+    try:
+        dev = torch.device(device)
+    except RuntimeError as exc:
+        print(f"error: device={device}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        print(
+            f"error: device={device}: CUDA is not available here (torch {torch.__version__}); "
+            "use device=cpu",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
+    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
+        print(
+            f"error: device={device}: only {torch.cuda.device_count()} CUDA device(s) here",
+            file=sys.stderr,
+        )
+        raise SystemExit(2)
 
 
 def build_plugin(node: DictConfig, what: str):
@@ -108,9 +274,9 @@ def write_outputs(
         **(extra or {}),
     }
     rows = [v for r in reports for v in r.views]
+    columns = ["scene", "view", "mode", "iou", "acc", "voted"]
     atomic_write_text(
-        out_dir / "per_view.csv",
-        pd.DataFrame(rows, columns=["scene", "view", "mode", "iou", "acc"]).to_csv(index=False),
+        out_dir / "per_view.csv", pd.DataFrame(rows, columns=columns).to_csv(index=False)
     )
     atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics
@@ -157,4 +323,6 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
             else ""
         ),
     ]
-    print("\n".join(lines))
+    text = "\n".join(lines)
+    print(text)
+    logging.getLogger("sagonline.eval").info("summary\n%s", text)

@@ -1,10 +1,14 @@
 """Stage I evaluation: `python -m bench.eval dataset=synthetic segmenter=oracle consensus=rgc`.
 
-Writes metrics.json, per_view.csv and recording.rrd into the Hydra run directory.
+Writes metrics.json, per_view.csv, eval.log, .hydra/ and recording.rrd into the Hydra run
+directory. A finished run is never rewritten without overwrite=true: rerunning the same config
+on the same inputs skips it (so an interrupted sweep resumes where it stopped), a different
+config or changed inputs are refused with a message naming both.
 """
 
 from __future__ import annotations
 
+import logging
 import sys
 from pathlib import Path
 
@@ -15,62 +19,126 @@ from omegaconf import DictConfig
 
 from bench.common import (
     build_plugin,
-    guard_run_dir,
+    check_device,
+    comparable_config,
+    config_difference,
+    config_fingerprint,
+    finished_run,
     plugin_kwargs,
     print_summary,
     refine_config_from,
+    refuse,
+    run_log,
     seed_everything,
     settings_from,
     vote_config_from,
+    write_hydra_files,
     write_outputs,
 )
 from sagonline.datasets.base import DatasetError
 from sagonline.pipeline import (
     SceneReport,
+    input_digests,
     run_stage_one,
     run_stage_two,
     settings_key,
     summarize,
 )
+from sagonline.provenance import STAGE_VERSIONS, digest_file, git_state
 from sagonline.recording import Recorder
+from sagonline.render.api import resolve_backend
+
+log = logging.getLogger("sagonline.eval")
 
 
 def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
-    guard_run_dir(out_dir, cfg.overwrite)
-    seed_everything(cfg.seed)
+    """Run (or resume, or skip as already finished) one evaluation into `out_dir`."""
+    vote_cfg = vote_config_from(cfg)
+    check_device(cfg.device)
+    settings = settings_from(cfg)
+    fingerprint, flat_cfg = config_fingerprint(cfg)
     try:
         adapter = instantiate(cfg.dataset.adapter)
         scenes = adapter.scene_names()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+
+    previous = finished_run(out_dir)
+    if previous is not None and not cfg.overwrite:
+        return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
+
+    seed_everything(cfg.seed)
     segmenter = build_plugin(cfg.segmenter, "segmenter")
-    vote_cfg = vote_config_from(cfg)
-    settings = settings_from(cfg)
+    try:  # checkpoints and weights are opened now, before anything is rendered
+        segmenter.check()
+        weights = {f: digest_file(f) for f in segmenter.weight_files()}
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"error: segmenter {cfg.segmenter.get('name', '')}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    overrides = write_hydra_files(out_dir, cfg)
+    with run_log(out_dir):
+        reports = run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings)
+        summary = summarize(reports)
+        status = "failed" if not summary["scenes_scored"] else "complete"
+        status = "partial" if status == "complete" and summary["partial"] else status
+        provenance = {
+            "status": status,
+            "config_fingerprint": fingerprint,
+            "overrides": overrides,
+            "git": git_state(),
+            "stage_versions": STAGE_VERSIONS,
+            "renderer_resolved": resolve_backend(settings.backend, settings.device),
+            "segmenter_weights": weights,
+            "protocol": adapter.describe(),
+        }
+        metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
+        print_summary(out_dir, metrics, reports)
+        if status == "failed":
+            log.error("no scene was scored; %s/metrics.json records why", out_dir)
+            print(
+                f"error: no scene was scored ({', '.join(summary['scenes_failed'])} failed); "
+                "fix the data and rerun the same command",
+                file=sys.stderr,
+            )
+            raise SystemExit(1)
+    return metrics
+
+
+def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings):
+    """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
+    scored is reported as failed and the others go on."""
     recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)
     cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
-    refine_key = settings_key(
-        *(str(cfg[k]) for k in ("dataset", "segmenter", "consensus", "refine", "label_render"))
-    )
+    segmenter_key = plugin_kwargs(cfg.segmenter) | {
+        "name": cfg.segmenter.name,
+        "weights": sorted(weights.values()),
+    }
+    segmenter_key.pop("device", None)  # the frames' key already holds the device
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
             try:
                 task = adapter.load_scene(scene)
+                report, vote, artefacts = run_stage_one(
+                    task,
+                    segmenter,
+                    vote_cfg,
+                    settings,
+                    segmenter_key=segmenter_key,
+                    cache_dir=cache_root / scene if cfg.cache else None,
+                    recorder=recorder,
+                )
             except DatasetError as exc:
+                log.warning("scene %s skipped: %s", scene, exc)
                 print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
                 reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
                 continue
-            report, vote, artefacts = run_stage_one(
-                task,
-                segmenter,
-                vote_cfg,
-                settings,
-                segmenter_key=plugin_kwargs(cfg.segmenter) | {"name": cfg.segmenter.name},
-                cache_dir=cache_root / scene if cfg.cache else None,
-                recorder=recorder,
-            )
             if cfg.refine.enabled:
+                refine_key = settings_key(
+                    "refine", STAGE_VERSIONS["refine"], artefacts["keys"], str(cfg.refine)
+                )
+                checkpoint = cache_root / scene / f"refine-{refine_key}.pt"
                 run_stage_two(
                     task,
                     vote,
@@ -79,35 +147,53 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
                     settings,
                     report,
                     recorder,
-                    checkpoint=cache_root / scene / f"refine-{refine_key}.pt"
-                    if cfg.cache
-                    else None,
+                    checkpoint=checkpoint if cfg.cache else None,
                 )
+            log.info("scene %s: stages %s", scene, report.stages)
             reports.append(report)
     finally:
         recorder.close()
-    metrics = write_outputs(
-        out_dir,
-        cfg,
-        reports,
-        summarize(reports),
-        {"protocol": adapter.describe(), "config_key": settings_key(str(cfg))},
-    )
-    print_summary(out_dir, metrics, reports)
-    return metrics
+    return reports
 
 
-def overrides() -> list[str]:
-    """The command-line overrides of this job (what distinguishes it inside a sweep)."""
-    try:
-        return list(HydraConfig.get().overrides.task)
-    except ValueError:  # not running under @hydra.main (tests compose the config directly)
-        return []
+def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes) -> dict:
+    """A finished run is in `out_dir`: skip if it came from this config and these inputs,
+    else refuse naming the difference. Nothing in `out_dir` is written either way."""
+    if previous.get("config_fingerprint") != fingerprint:
+        old_flat = comparable_config(previous.get("config") or {})
+        refuse(out_dir, ["made with another config:", *config_difference(old_flat, flat_cfg)])
+    changed = []
+    recorded = {s["scene"]: s.get("inputs") or {} for s in previous.get("scenes", [])}
+    for scene in scenes:
+        try:
+            now = input_digests(adapter.load_scene(scene))
+        except DatasetError as exc:
+            changed.append(f"  {scene}: cannot load now ({exc})")
+            continue
+        before = recorded.get(scene, {})
+        changed += [
+            f"  {scene}: {k} changed ({str(before.get(k))[:12]} -> {str(v)[:12]})"
+            for k, v in now.items()
+            if before.get(k) != v
+        ]
+    if changed:
+        refuse(out_dir, ["made from other inputs (same config):", *changed])
+    print(f"skipped: {out_dir} already holds this run (same config and inputs)")
+    return previous
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
-    evaluate(cfg, Path(HydraConfig.get().runtime.output_dir))
+    out_dir = Path(HydraConfig.get().runtime.output_dir)
+    try:
+        evaluate(cfg, out_dir)
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted: {out_dir} keeps the finished stages (cache) and the recording so "
+            "far; rerun the same command to resume",
+            file=sys.stderr,
+        )
+        raise SystemExit(130) from None
 
 
 if __name__ == "__main__":

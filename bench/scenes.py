@@ -14,6 +14,7 @@ from __future__ import annotations
 import os
 import stat
 import sys
+import time
 from pathlib import Path
 
 import hydra
@@ -47,6 +48,14 @@ def output_dir(scene_dir: Path, dataset: str) -> Path:
         return own
     except OSError:
         return SCENES_ROOT / dataset / scene_dir.name / "gaussians"
+
+
+def foreign_scene(out: Path) -> Path | None:
+    """A point_cloud.ply in `out` that no fit of ours wrote (neither fit_metrics.json nor an
+    interrupted fit's checkpoint beside it): the user's own scene, never replaced silently."""
+    scene = out / "point_cloud.ply"
+    ours = (out / "fit_metrics.json").is_file() or (out / "fit_checkpoint.pt").is_file()
+    return scene if scene.is_file() and not ours else None
 
 
 def load_images(cams, images: dict[str, Path], max_side: int):
@@ -159,10 +168,19 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
         near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
     out = output_dir(scene_dir, adapter.name)
-    done = out / "fit_metrics.json"
-    if done.is_file() and (out / "point_cloud.ply").is_file() and not cfg.overwrite:
-        print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
-        return {"scene": scene, "skipped": True}
+    foreign = foreign_scene(out)
+    if not cfg.overwrite:
+        if (out / "fit_metrics.json").is_file() and (out / "point_cloud.ply").is_file():
+            print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
+            return {"scene": scene, "skipped": True}
+        if foreign is not None:
+            print(
+                f"{scene}: {foreign} is a trained scene that `make scenes` did not write (no "
+                "fit_metrics.json beside it); it is left as it is. Pass overwrite=true to fit "
+                "anyway (it is then kept as a .bak file).",
+                file=sys.stderr,
+            )
+            return {"scene": scene, "skipped": True}
     points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out)
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
         fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)
@@ -190,6 +208,10 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     g = fitter.export()
     renders = {i: fitter.render(g, i).rgb.clamp(0, 1) for i in fitter.held_idx}
     metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter, renders)
+    if foreign is not None:  # overwrite=true: keep the user's scene beside ours
+        backup = foreign.with_name(f"{foreign.name}.bak-{time.strftime('%Y%m%d-%H%M%S')}")
+        foreign.rename(backup)
+        print(f"{scene}: the scene that was there is now {backup}")
     write_fitted_scene(out, fitter, cams, metrics)
     for i, render in renders.items():
         pair = np.concatenate([render.numpy(), train_imgs[i].numpy()], axis=1)

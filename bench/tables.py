@@ -37,11 +37,12 @@ def load_runs(sweep: Path) -> list[dict]:
     runs = []
     for path in sorted(sweep.rglob("metrics.json")):
         m = json.loads(path.read_text())
-        hydra_overrides = path.parent / ".hydra" / "overrides.yaml"
-        if not m.get("overrides") and hydra_overrides.is_file():
-            from omegaconf import OmegaConf
-
-            m["overrides"] = list(OmegaConf.load(hydra_overrides))
+        if m.get("status") == "failed":
+            continue
+        # Labels come from what the run recorded beside its numbers, never from .hydra/,
+        # which is a separate file.
+        if "overrides" not in m:
+            m["overrides"] = ["(overrides not recorded: run made before provenance)"]
         m["_dir"] = str(path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else path.parent)
         runs.append(m)
     if not runs:

@@ -8,10 +8,36 @@ from pathlib import Path
 
 import numpy as np
 
+OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
+
+
+def scene_file(path: str | Path) -> Path:
+    """The scene file itself, or the point_cloud.ply inside a folder: the folder's own, its
+    gaussians/ one, or the latest point_cloud/iteration_*/ one (a 3DGS output folder)."""
+    from sagonline.io import SceneFileError
+
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    for candidate in (path / "point_cloud.ply", path / "gaussians" / "point_cloud.ply"):
+        if candidate.is_file():
+            return candidate
+    iterations = sorted(
+        path.glob("point_cloud/iteration_*/point_cloud.ply"),
+        key=lambda p: int("".join(filter(str.isdigit, p.parent.name)) or 0),
+    )
+    if iterations:
+        return iterations[-1]
+    raise SceneFileError(
+        f"{path}: is a folder with no point_cloud.ply (looked in it, in gaussians/ and in "
+        "point_cloud/iteration_*/); give the .ply or .splat file"
+    )
+
 
 def _cmd_info(args: argparse.Namespace) -> int:
     from sagonline.io import read_scene
 
+    args.scene = scene_file(args.scene)
     g = read_scene(args.scene, drop_nonfinite=args.drop_nonfinite)
     lo, hi = g.bounding_box()
     fmt = "splat (32 bytes per splat)" if Path(args.scene).suffix == ".splat" else "ply"
@@ -35,6 +61,17 @@ def _cmd_render(args: argparse.Namespace) -> int:
     from sagonline.render import render
     from sagonline.utils import atomic_write_image, atomic_write_npy
 
+    args.scene = scene_file(args.scene)
+    out_path = Path(args.out)
+    if out_path.suffix.lower() not in OUT_SUFFIXES:
+        raise SystemExit(
+            f"error: --out {out_path}: use a .png, .jpg or .npy path (got {out_path.suffix!r})"
+        )
+    inputs = {Path(args.scene).resolve(), Path(args.cameras).resolve()}
+    if out_path.resolve() in inputs:
+        raise SystemExit(f"error: --out {out_path} is one of the inputs; choose another path")
+    if out_path.exists() and not args.overwrite:
+        raise SystemExit(f"error: --out {out_path} exists; pass --overwrite to replace it")
     g = read_scene(args.scene, drop_nonfinite=args.drop_nonfinite).to(args.device)
     cams = load_cameras(args.cameras)
     if not 0 <= args.view < len(cams):
@@ -50,8 +87,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     bg = torch.tensor([float(v) for v in args.background.split(",")])
     out = render(g, cam, background=bg, backend=args.backend)
     rgb = out.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
-    out_path = Path(args.out)
-    if out_path.suffix == ".npy":
+    if out_path.suffix.lower() == ".npy":
         atomic_write_npy(out_path, rgb)
     else:
         atomic_write_image(out_path, (rgb.clip(0, 1) * 255 + 0.5).astype(np.uint8))
@@ -63,7 +99,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="sagonline", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="format, Gaussian count, SH degree, bounding box")
-    info.add_argument("scene", help="point_cloud.ply or .splat")
+    info.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     info.add_argument("--drop-nonfinite", action="store_true", help="drop NaN/Inf rows")
     info.set_defaults(func=_cmd_info)
     rend = sub.add_parser("render", help="render one camera to PNG or .npy (float32 HxWx3)")
@@ -76,7 +112,8 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--view", type=int, default=0)
     rend.add_argument("--width", type=int)
     rend.add_argument("--height", type=int)
-    rend.add_argument("--out", required=True, help="output .png or .npy (linear RGB)")
+    rend.add_argument("--out", required=True, help="output .png/.jpg, or .npy (linear RGB)")
+    rend.add_argument("--overwrite", action="store_true", help="replace an existing --out")
     rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
     rend.add_argument("--backend", default="torch", choices=["torch", "native", "gsplat", "auto"])
     rend.add_argument("--device", default="cpu")

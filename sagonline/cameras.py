@@ -11,6 +11,7 @@ import json
 import struct
 import warnings
 from dataclasses import dataclass, replace
+from numbers import Integral
 from pathlib import Path
 
 import numpy as np
@@ -34,11 +35,27 @@ class Camera:
     name: str = ""
 
     def __post_init__(self) -> None:
+        who = f"camera {self.name!r}"
         if tuple(self.K.shape) != (3, 3) or tuple(self.world_to_cam.shape) != (4, 4):
-            raise ValueError(f"camera {self.name!r}: K must be 3x3 and world_to_cam 4x4")
-        if self.width <= 0 or self.height <= 0:
             raise ValueError(
-                f"camera {self.name!r}: size {self.width}x{self.height} is not positive"
+                f"{who}: K must be 3x3 and world_to_cam 4x4, got {tuple(self.K.shape)} and "
+                f"{tuple(self.world_to_cam.shape)}"
+            )
+        if not (isinstance(self.width, Integral) and isinstance(self.height, Integral)):
+            raise ValueError(f"{who}: size {self.width!r}x{self.height!r} is not two integers")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"{who}: size {self.width}x{self.height} is not positive")
+        if not (torch.isfinite(self.K).all() and torch.isfinite(self.world_to_cam).all()):
+            raise ValueError(f"{who}: intrinsics or pose hold NaN/Inf")
+        fx, fy = float(self.K[0, 0]), float(self.K[1, 1])
+        if fx <= 0 or fy <= 0:
+            raise ValueError(f"{who}: focal lengths fx={fx:g}, fy={fy:g} must be positive")
+        R = self.world_to_cam[:3, :3].double()
+        off = (R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()
+        if off > 1e-3 or torch.linalg.det(R) <= 0:
+            raise ValueError(
+                f"{who}: the pose's rotation is not a rotation (|R R^T - I| = {float(off):.3g}, "
+                f"det {float(torch.linalg.det(R)):.3g}): singular, scaled or mirrored matrix"
             )
 
     @property
@@ -119,13 +136,25 @@ def intrinsics(fx: float, fy: float, cx: float, cy: float) -> np.ndarray:
 
 
 def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
-    """Load cameras from any supported file or folder, dispatching on its name.
+    """Load cameras from any supported file or folder.
 
     `cameras.json` (3DGS output), `transforms*.json` (NeRF/Blender), `poses_bounds.npy` (LLFF),
     a COLMAP sparse folder (`cameras.bin`/`images.bin` or `.txt`), or a `.npz` with `viewmats`,
-    `Ks`, `width`, `height`. A dataset folder is searched for those in that order.
+    `Ks`, `width`, `height`. A JSON file is read as NeRF or 3DGS by its content, whatever its
+    name. A dataset folder is searched for those in that order. Every camera is validated
+    (finite values, positive focal lengths and size, a rotation in the pose): any problem
+    raises CameraFileError naming the file.
     """
     path = Path(path)
+    try:
+        return _load_cameras(path, **kwargs)
+    except CameraFileError:
+        raise
+    except (ValueError, TypeError, KeyError, IndexError, np.linalg.LinAlgError) as exc:
+        raise CameraFileError(f"{path}: {exc}") from exc
+
+
+def _load_cameras(path: Path, **kwargs) -> list[Camera]:
     if path.is_dir():
         for candidate in (
             "cameras.json",
@@ -138,7 +167,7 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
             if (path / candidate).exists() and (
                 not (path / candidate).is_dir() or _is_colmap_dir(path / candidate)
             ):
-                return load_cameras(path / candidate, **kwargs)
+                return _load_cameras(path / candidate, **kwargs)
         if _is_colmap_dir(path):
             return load_colmap(path)
         raise CameraFileError(
@@ -150,10 +179,19 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     name = path.name
     if name == "poses_bounds.npy":
         return load_llff(path.parent, **kwargs)
-    if name.startswith("transforms") and name.endswith(".json"):
-        return load_nerf_transforms(path, **kwargs)
     if name.endswith(".json"):
-        return load_3dgs_cameras_json(path)
+        try:
+            content = json.loads(path.read_text())
+        except (OSError, json.JSONDecodeError) as exc:
+            raise CameraFileError(f"{path}: not a readable JSON file ({exc})") from exc
+        if isinstance(content, dict) and "frames" in content:
+            return load_nerf_transforms(path, **kwargs)
+        if isinstance(content, list):
+            return load_3dgs_cameras_json(path)
+        raise CameraFileError(
+            f"{path}: neither NeRF transforms (an object with 'frames') nor a 3DGS "
+            "cameras.json (a list of cameras)"
+        )
     if name.endswith(".npz"):
         return load_npz_cameras(path)
     raise CameraFileError(f"{path}: unknown camera file type")
@@ -307,11 +345,9 @@ def write_3dgs_cameras_json(path: str | Path, cameras: list[Camera]) -> Path:
                 "fy": float(cam.K[1, 1]),
             }
         )
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(entries, indent=1))
-    tmp.replace(path)
-    return path
+    from sagonline.utils import atomic_write_text
+
+    return atomic_write_text(path, json.dumps(entries, indent=1))
 
 
 def load_npz_cameras(path: str | Path) -> list[Camera]:

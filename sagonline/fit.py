@@ -41,6 +41,7 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import SH_C0, Gaussians
 from sagonline.io import write_ply
 from sagonline.render.api import render
+from sagonline.utils import atomic_write
 
 
 @dataclass
@@ -465,22 +466,17 @@ class SceneFitter:
 
     # --- checkpoints --------------------------------------------------------------------------
     def save(self, path: Path) -> None:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(
-            {
-                "params": {k: v.detach().cpu() for k, v in self.params.items()},
-                "optim": self.optim.state_dict(),
-                "step": self.step,
-                "history": self.history,
-                "elapsed": self.elapsed,
-                "grad_accum": self.grad_accum.cpu(),
-                "grad_count": self.grad_count.cpu(),
-                "config": asdict(self.cfg),
-            },
-            tmp,
-        )
-        tmp.replace(path)
+        state = {
+            "params": {k: v.detach().cpu() for k, v in self.params.items()},
+            "optim": self.optim.state_dict(),
+            "step": self.step,
+            "history": self.history,
+            "elapsed": self.elapsed,
+            "grad_accum": self.grad_accum.cpu(),
+            "grad_count": self.grad_count.cpu(),
+            "config": asdict(self.cfg),
+        }
+        atomic_write(path, lambda tmp: torch.save(state, tmp))
 
     def resume(self, path: Path) -> bool:
         """Continue an interrupted fit with the same settings; False if there is none."""

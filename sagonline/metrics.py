@@ -90,7 +90,10 @@ def labels3d_metrics(
 
 
 def match_labels(
-    preds: list[np.ndarray], gts: list[np.ndarray], resize: str = "pred_to_gt"
+    preds: list[np.ndarray],
+    gts: list[np.ndarray],
+    resize: str = "pred_to_gt",
+    ignore: int | None = None,
 ) -> dict[int, int]:
     """One scene-wide mapping of predicted ids to ground-truth ids (Hungarian on IoU summed
     over all views), for automatic segmenters whose ids are arbitrary. Unmatched predicted
@@ -99,8 +102,10 @@ def match_labels(
     from scipy.optimize import linear_sum_assignment
 
     pairs = [align(p, g, resize) for p, g in zip(preds, gts, strict=True)]
-    n_p = max(int(p.max()) for p, _ in pairs) + 1
-    n_g = max(int(g.max()) for _, g in pairs) + 1
+    if ignore is not None:  # void pixels take part in no match
+        pairs = [(p[g != ignore], g[g != ignore]) for p, g in pairs]
+    n_p = max(int(p.max(initial=0)) for p, _ in pairs) + 1
+    n_g = max(int(g.max(initial=0)) for _, g in pairs) + 1
     conf = np.zeros((n_p, n_g), np.int64)
     for p, g in pairs:
         np.add.at(conf, (p.ravel(), g.ravel()), 1)
@@ -129,8 +134,11 @@ def relabel(mask: np.ndarray, mapping: dict[int, int]) -> np.ndarray:
 
 
 def match_and_relabel(
-    preds: list[np.ndarray], gts: list[np.ndarray], resize: str = "pred_to_gt"
+    preds: list[np.ndarray],
+    gts: list[np.ndarray],
+    resize: str = "pred_to_gt",
+    ignore: int | None = None,
 ) -> list[np.ndarray]:
     """Predictions with their arbitrary ids mapped onto the ground truth's (`match_labels`)."""
-    mapping = match_labels(preds, gts, resize)
+    mapping = match_labels(preds, gts, resize, ignore)
     return [relabel(p, mapping) for p in preds]

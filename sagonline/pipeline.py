@@ -1,15 +1,17 @@
 """Stage I for one scene: render the trajectory, segment it, vote, render labels, score.
 
-Every stage's output is cached in `cache_dir` under a key of the settings that produced it, so
-an interrupted run resumes from the last finished stage and a changed setting recomputes only
-what depends on it. Timings are wall seconds per stage.
+Every stage's output is cached in `cache_dir` under a key of the content it consumed (scene
+parameters, cameras, prompt, segmenter settings and weights, vote settings, the stage's code
+version; see `stage_keys`), so an interrupted run resumes from the last finished stage and a
+changed input recomputes exactly the stages that depend on it. Timings are wall seconds of
+work done by this run; a stage taken from the cache reports `cached` in `report.stages` and its
+original timing under `report.cached_timings`, never as this run's time.
 """
 
 from __future__ import annotations
 
-import hashlib
-import json
 import time
+import warnings
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -18,10 +20,17 @@ import torch
 from tqdm import tqdm
 
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
-from sagonline.datasets.base import SceneTask
+from sagonline.datasets.base import DatasetError, SceneTask
 from sagonline.metrics import labels3d_metrics, match_and_relabel, view_metrics
+from sagonline.provenance import (
+    STAGE_VERSIONS,
+    digest_arrays,
+    digest_cameras,
+    digest_gaussians,
+    digest_json,
+)
 from sagonline.recording import Recorder
-from sagonline.render.api import render, render_labels, to_uint8
+from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
 from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
 
 
@@ -52,34 +61,89 @@ class SceneReport:
     refined_miou: float | None = None
     refined_macc: float | None = None
     extra: dict = field(default_factory=dict)
+    stages: dict = field(default_factory=dict)  # stage -> "computed" | "cached"
+    cached_timings: dict = field(default_factory=dict)  # timings of the run that built a cache
+    inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
 
 
 def settings_key(*parts) -> str:
-    """Short stable hash of JSON-able settings (the cache key of a stage)."""
-    blob = json.dumps(parts, sort_keys=True, default=str)
-    return hashlib.sha1(blob.encode()).hexdigest()[:12]
+    """Stable digest of JSON-able settings."""
+    return digest_json(*parts)
+
+
+def input_digests(task: SceneTask) -> dict:
+    """Content digests of everything a scene's numbers depend on, besides the settings."""
+    return {
+        "scene": digest_gaussians(task.gaussians),
+        "trajectory_cameras": digest_cameras(task.trajectory),
+        "eval_cameras": digest_cameras(v.camera for v in task.eval_views),
+        "eval_ground_truth": digest_arrays(v.gt for v in task.eval_views),
+        "trajectory_ground_truth": digest_arrays(task.trajectory_gt or []),
+        "prompt": task.prompt.digest(),
+        "ignore_label": task.ignore_label,
+        "num_labels": task.num_labels,
+    }
+
+
+def stage_keys(
+    inputs: dict,
+    settings: PipelineSettings,
+    segmenter_key: dict,
+    vote_cfg: VoteConfig,
+) -> dict[str, str]:
+    """Cache keys of the three cached stages, each a digest of exactly what the stage consumes
+    (and, through the upstream key, of what its inputs were made from):
+    frames <- scene, trajectory cameras, renderer, background, device;
+    masks  <- frames, prompt, trajectory ground truth (the oracle reads it), segmenter settings
+              and weight digests;
+    vote   <- masks, scene, trajectory cameras, label count, vote settings, renderer."""
+    backend = resolve_backend(settings.backend, settings.device)
+    device = torch.device(settings.device).type
+    frames = digest_json(
+        "frames", STAGE_VERSIONS["frames"], inputs["scene"], inputs["trajectory_cameras"],
+        backend, list(settings.background), device,
+    )  # fmt: skip
+    masks = digest_json(
+        "masks", STAGE_VERSIONS["masks"], frames, inputs["prompt"],
+        inputs["trajectory_ground_truth"], segmenter_key,
+    )  # fmt: skip
+    vote = digest_json(
+        "vote", STAGE_VERSIONS["vote"], masks, inputs["scene"], inputs["trajectory_cameras"],
+        inputs["num_labels"], asdict(vote_cfg), backend, device,
+    )  # fmt: skip
+    return {"frames": frames, "masks": masks, "vote": vote}
 
 
 class StageCache:
-    """`<dir>/<stage>-<key>.pt` files written atomically; a missing dir disables caching."""
+    """`<dir>/<stage>-<key>.pt` files written atomically; a missing dir disables caching.
+    An unreadable entry is reported by path and treated as missing (so it is recomputed)."""
 
     def __init__(self, directory: str | Path | None):
         self.dir = Path(directory) if directory is not None else None
 
+    def path(self, stage: str, key: str) -> Path | None:
+        return None if self.dir is None else self.dir / f"{stage}-{key}.pt"
+
     def load(self, stage: str, key: str):
-        if self.dir is None:
+        path = self.path(stage, key)
+        if path is None or not path.is_file():
             return None
-        path = self.dir / f"{stage}-{key}.pt"
-        return torch.load(path, weights_only=False) if path.is_file() else None
+        try:
+            return torch.load(path, weights_only=False)
+        except Exception as exc:  # truncated, corrupt or from an incompatible version
+            warnings.warn(
+                f"cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing",
+                stacklevel=2,
+            )
+            path.unlink(missing_ok=True)
+            return None
 
     def save(self, stage: str, key: str, value) -> None:
         if self.dir is None:
             return
-        self.dir.mkdir(parents=True, exist_ok=True)
-        path = self.dir / f"{stage}-{key}.pt"
-        tmp = path.with_name(path.name + ".tmp")
-        torch.save(value, tmp)
-        tmp.replace(path)
+        from sagonline.utils import atomic_write
+
+        atomic_write(self.path(stage, key), lambda p: torch.save(value, p))
 
 
 def render_frames(task: SceneTask, settings: PipelineSettings) -> tuple[list[np.ndarray], float]:
@@ -105,51 +169,69 @@ def run_stage_one(
     recorder: Recorder | None = None,
 ) -> tuple[SceneReport, VoteResult, dict]:
     """Run and score Stage I on one scene. Returns the report, the vote, and the artefacts
-    (frames, masks) that later stages (refinement) reuse."""
+    (frames, masks, stage keys) that later stages (refinement) reuse."""
     recorder = recorder or Recorder(None)
     cache = StageCache(cache_dir)
     report = SceneReport(scene=task.name)
-    scene_key = settings_key(
-        task.dataset, task.name, task.meta, settings.backend, settings.background
+    report.extra["empty_ground_truth_views"] = check_ground_truth(task)
+    report.inputs = input_digests(task)
+    keys = stage_keys(report.inputs, settings, segmenter_key or {"name": segmenter.name}, vote_cfg)
+
+    def cached_or_run(stage: str, compute):
+        value = cache.load(stage, keys[stage])
+        report.stages[stage] = "computed" if value is None else "cached"
+        if value is None:
+            value = compute()
+            cache.save(stage, keys[stage], value)
+        return value
+
+    rendered = cached_or_run(
+        "frames", lambda: dict(zip(("frames", "sec"), render_frames(task, settings), strict=True))
     )
-
-    cached = cache.load("frames", scene_key)
-    if cached is None:
-        frames, sec = render_frames(task, settings)
-        cache.save("frames", scene_key, {"frames": frames, "sec": sec})
-    else:
-        frames, sec = cached["frames"], cached["sec"]
-    report.timings["render_ms_per_frame"] = 1000 * sec
-
-    seg_key = settings_key(scene_key, segmenter_key or segmenter.name)
-    cached = cache.load("masks", seg_key)
-    if cached is None:
-        seg = segmenter.segment(frames, task.prompt, ground_truth=task.trajectory_gt)
-        cache.save("masks", seg_key, seg)
-    else:
-        seg = cached
-    report.timings["segment_ms_per_frame"] = seg.ms_per_frame
+    frames, sec = rendered["frames"], rendered["sec"]
+    seg = cached_or_run(
+        "masks", lambda: segmenter.segment(frames, task.prompt, ground_truth=task.trajectory_gt)
+    )
+    report.inputs["masks"] = digest_arrays(seg.masks)
+    stage_times = {
+        "frames": {"render_ms_per_frame": 1000 * sec},
+        "masks": {"segment_ms_per_frame": seg.ms_per_frame},
+    }
+    for stage, times in stage_times.items():
+        target = report.timings if report.stages[stage] == "computed" else report.cached_timings
+        target.update(times)
     # Time to first mask: render the prompt frame, then the segmenter answers on it.
-    report.timings["time_to_first_mask_s"] = sec + seg.seconds[task.prompt.frame]
+    first_mask = sec + seg.seconds[task.prompt.frame]
+    if report.stages["frames"] == report.stages["masks"] == "computed":
+        report.timings["time_to_first_mask_s"] = first_mask
+    else:
+        report.cached_timings["time_to_first_mask_s"] = first_mask
+
+    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
+    num_labels = max(task.num_labels, 1 + max(int(m.max()) for m in seg.masks))
+    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
+    for i, (frame, mask) in enumerate(zip(frames, seg.masks, strict=True)):
+        recorder.trajectory_frame(task.name, i, frame, mask)
+
     automatic = not task.prompt.objects and not task.prompt.texts
     if task.trajectory_gt is not None:
         seg_masks = seg.masks
         if automatic:  # arbitrary ids: match them to the ground truth once per scene
-            seg_masks = match_and_relabel(seg.masks, task.trajectory_gt, settings.resize)
+            seg_masks = match_and_relabel(
+                seg.masks, task.trajectory_gt, settings.resize, task.ignore_label
+            )
         report.segmenter_miou = float(
             np.mean(
                 [
-                    view_metrics(m, g, settings.resize)["iou"]
+                    view_metrics(m, g, settings.resize, task.ignore_label)["iou"]
                     for m, g in zip(seg_masks, task.trajectory_gt, strict=True)
                 ]
             )
         )
-    num_labels = max(task.num_labels, 1 + max(int(m.max()) for m in seg.masks))
 
-    vote_key = settings_key(seg_key, asdict(vote_cfg))
-    vote = cache.load("vote", vote_key)
-    if vote is None:
-        vote = consensus_vote(
+    vote = cached_or_run(
+        "vote",
+        lambda: consensus_vote(
             task.gaussians.to(settings.device),
             task.trajectory,
             seg.masks,
@@ -157,18 +239,20 @@ def run_stage_one(
             vote_cfg,
             backend=settings.backend,
             progress=settings.progress,
-        )
-        cache.save("vote", vote_key, vote)
+        ),
+    )
     report.vote = {k: v for k, v in vote.stats.items() if k != "aggregation_s"}
-    report.timings["vote_s"] = vote.stats["aggregation_s"]
-    report.timings["vote_ms_per_mask"] = vote.stats["ms_per_mask"]
+    vote_times = {
+        "vote_s": vote.stats["aggregation_s"],
+        "vote_ms_per_mask": vote.stats["ms_per_mask"],
+    }
+    if report.stages["vote"] == "computed":
+        report.timings.update(vote_times)
+    else:
+        report.cached_timings.update(vote_times)
 
-    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
-    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
-    for i, (frame, mask) in enumerate(zip(frames, seg.masks, strict=True)):
-        recorder.trajectory_frame(task.name, i, frame, mask)
-
-    score_views(task, vote, settings, report, recorder, num_labels, automatic)
+    voted = {task.trajectory[i].name for i in vote.frames}
+    score_views(task, vote, settings, report, recorder, num_labels, automatic, voted=voted)
     if task.gt_labels3d is not None and not automatic:
         report.labels3d = labels3d_metrics(vote.labels, vote.labelled, task.gt_labels3d, num_labels)
     recorder.gaussians(
@@ -177,7 +261,40 @@ def run_stage_one(
         vote.labels.cpu().numpy(),
         vote.labelled.cpu().numpy(),
     )
-    return report, vote, {"frames": frames, "segmentation": seg, "num_labels": num_labels}
+    artefacts = {
+        "frames": frames,
+        "segmentation": seg,
+        "num_labels": num_labels,
+        "keys": keys,
+        "voted": voted,
+    }
+    return report, vote, artefacts
+
+
+def check_ground_truth(task: SceneTask) -> list[str]:
+    """Names of the scored views whose ground truth has no foreground (warned about). A scene
+    whose every view is empty cannot be scored (every prediction but an empty one would score
+    0, an empty one 100): it fails with a hint at the label format."""
+
+    def has_foreground(gt: np.ndarray) -> bool:
+        valid = gt if task.ignore_label is None else gt[gt != task.ignore_label]
+        return bool((valid != 0).any())
+
+    empty = [v.name for v in task.eval_views if not has_foreground(v.gt)]
+    if task.eval_views and len(empty) == len(task.eval_views):
+        raise DatasetError(
+            f"{task.dataset}/{task.name}: none of the {len(empty)} ground-truth masks has any "
+            "foreground; check the label format (0/1 masks read as `binary` need "
+            "dataset.adapter.mask_threshold=0, or use label_format=ids)"
+        )
+    if empty:
+        shown = ", ".join(empty[:5]) + (" ..." if len(empty) > 5 else "")
+        warnings.warn(
+            f"{task.dataset}/{task.name}: {len(empty)} of {len(task.eval_views)} ground-truth "
+            f"masks have no foreground ({shown}); they score 100 only if the prediction is empty",
+            stacklevel=2,
+        )
+    return empty
 
 
 def score_views(
@@ -189,6 +306,7 @@ def score_views(
     num_labels: int | None = None,
     automatic: bool = False,
     mode: str = "initial",
+    voted: set[str] | None = None,
 ) -> list[np.ndarray]:
     """Render the fused labels at every eval view and score them against the ground truth.
     With `automatic` (arbitrary segmenter ids), labels are first matched to the ground truth
@@ -215,9 +333,11 @@ def score_views(
         )
         seconds.append(time.perf_counter() - start)
     if automatic and preds:
-        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], settings.resize)
+        preds = match_and_relabel(
+            preds, [v.gt for v in task.eval_views], settings.resize, task.ignore_label
+        )
         report.extra["label_matching"] = "hungarian, scene-wide"
-    record_scores(task, preds, settings, report, mode)
+    record_scores(task, preds, settings, report, mode, voted)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     if recorder.enabled:
         for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
@@ -232,14 +352,23 @@ def record_scores(
     settings: PipelineSettings,
     report: SceneReport,
     mode: str,
+    voted: set[str] | None = None,
 ) -> tuple[float, float]:
     """Per-view rows for `mode` ("initial" or "refined") and their means; the initial mode's
-    means are the report's `miou`/`macc`."""
+    means are the report's `miou`/`macc`. `voted`: names of the views whose masks voted (a
+    row says whether its view is one of them)."""
     rows = []
     for view, pred in zip(task.eval_views, preds, strict=True):
-        m = view_metrics(pred, view.gt, settings.resize)
+        m = view_metrics(pred, view.gt, settings.resize, task.ignore_label)
         rows.append(
-            {"scene": task.name, "view": view.name, "mode": mode, "iou": m["iou"], "acc": m["acc"]}
+            {
+                "scene": task.name,
+                "view": view.name,
+                "mode": mode,
+                "iou": m["iou"],
+                "acc": m["acc"],
+                "voted": view.name in (voted or ()),
+            }
         )
     report.views.extend(rows)
     miou = float(np.mean([r["iou"] for r in rows])) if rows else None
@@ -306,9 +435,11 @@ def run_stage_two(
     assert all(a.mode == "refined" for a in answers)
     preds = [a.mask for a in answers]
     if not task.prompt.objects and not task.prompt.texts and preds:
-        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], settings.resize)
+        preds = match_and_relabel(
+            preds, [v.gt for v in task.eval_views], settings.resize, task.ignore_label
+        )
     report.refined_miou, report.refined_macc = record_scores(
-        task, preds, settings, report, "refined"
+        task, preds, settings, report, "refined", artefacts.get("voted")
     )
     report.timings.update(
         {

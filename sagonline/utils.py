@@ -1,4 +1,4 @@
-"""Small shared helpers: atomic writes, seeding, device description."""
+"""Small shared helpers: atomic writes and the device description."""
 
 from __future__ import annotations
 
@@ -11,13 +11,30 @@ from pathlib import Path
 import numpy as np
 
 
-def _atomic(path: Path, write) -> Path:
+def _umask() -> int:
+    """The process umask, read without changing it where the OS says it (Linux)."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("Umask:"):
+                return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def atomic_write(path: str | Path, write) -> Path:
+    """Write `path` through `write(tmp_path)` into a temporary file beside it, then rename:
+    readers never see a half-written file, and an interrupted write leaves the old one. The
+    result gets the mode a plain `open` would give (0666 less the umask), not mkstemp's 0600."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=path.suffix)
     os.close(fd)
     try:
         write(Path(tmp))
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
@@ -26,7 +43,7 @@ def _atomic(path: Path, write) -> Path:
 
 
 def atomic_write_text(path: str | Path, text: str) -> Path:
-    return _atomic(Path(path), lambda p: p.write_text(text))
+    return atomic_write(Path(path), lambda p: p.write_text(text))
 
 
 def atomic_write_json(path: str | Path, obj) -> Path:
@@ -38,7 +55,7 @@ def atomic_write_npy(path: str | Path, array: np.ndarray) -> Path:
         with open(p, "wb") as f:
             np.save(f, array)
 
-    return _atomic(Path(path), write)
+    return atomic_write(Path(path), write)
 
 
 def atomic_write_npz(path: str | Path, **arrays: np.ndarray) -> Path:
@@ -46,7 +63,7 @@ def atomic_write_npz(path: str | Path, **arrays: np.ndarray) -> Path:
         with open(p, "wb") as f:
             np.savez(f, **arrays)
 
-    return _atomic(Path(path), write)
+    return atomic_write(Path(path), write)
 
 
 def atomic_write_image(path: str | Path, image: np.ndarray) -> Path:
@@ -54,7 +71,7 @@ def atomic_write_image(path: str | Path, image: np.ndarray) -> Path:
     from PIL import Image
 
     fmt = {".jpg": "JPEG", ".jpeg": "JPEG"}.get(Path(path).suffix.lower(), "PNG")
-    return _atomic(Path(path), lambda p: Image.fromarray(image).save(p, format=fmt))
+    return atomic_write(Path(path), lambda p: Image.fromarray(image).save(p, format=fmt))
 
 
 def _json_default(obj):

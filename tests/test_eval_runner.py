@@ -62,17 +62,21 @@ def test_eval_writes_metrics_csv_and_recording(tmp_path):
     assert (tmp_path / "recording.rrd").stat().st_size > 10_000
 
 
-def test_refuses_to_overwrite_and_resumes_from_cache(tmp_path):
+def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
     cfg = cfg_with("record=false", "dataset=synthetic_ff")
-    evaluate(cfg, tmp_path)
-    with pytest.raises(RunExists):
-        evaluate(cfg, tmp_path)
+    first = evaluate(cfg, tmp_path)
+    saved = (tmp_path / "metrics.json").read_bytes()
+    assert evaluate(cfg, tmp_path)["miou"] == first["miou"]  # same config and inputs: skipped
+    with pytest.raises(RunExists):  # another config into a finished run: refused
+        evaluate(cfg_with("record=false", "dataset=synthetic_ff", "consensus.eps=0.1"), tmp_path)
+    assert (tmp_path / "metrics.json").read_bytes() == saved
     caches = sorted((tmp_path / "cache" / "forward_single").glob("*.pt"))
     assert [p.name.split("-")[0] for p in caches] == ["frames", "masks", "vote"]
     stamps = {p: p.stat().st_mtime_ns for p in caches}
     # an interrupted run: metrics never written; the next run reuses every cached stage
     (tmp_path / "metrics.json").unlink()
-    evaluate(cfg, tmp_path)
+    resumed = evaluate(cfg, tmp_path)
+    assert resumed["scenes"][0]["stages"] == dict.fromkeys(("frames", "masks", "vote"), "cached")
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())
     # a changed vote setting recomputes only the vote
     evaluate(

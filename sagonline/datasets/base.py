@@ -32,7 +32,8 @@ class SceneTask:
     trajectory: the T views the 2D segmenter watches, in video order; trajectory_gt: their
     ground-truth label maps where the dataset has them (the oracle and `segmenter_miou` use
     them); eval_views: where the fused labels are scored; num_labels: label count including
-    background; gt_labels3d: (N,) per-Gaussian truth where known (synthetic scenes).
+    background; gt_labels3d: (N,) per-Gaussian truth where known (synthetic scenes);
+    ignore_label: a ground-truth value that is never scored (e.g. 255 for void pixels).
     """
 
     dataset: str
@@ -46,6 +47,7 @@ class SceneTask:
     gt_labels3d: torch.Tensor | None = None
     label_names: list[str] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
+    ignore_label: int | None = None
 
 
 class DatasetAdapter:

@@ -114,6 +114,13 @@ def load_mask(path: Path, threshold: int = 127, mode: str = "binary") -> np.ndar
         return img.astype(np.int64)
     if img.ndim == 3:
         img = img.max(axis=2)
+    top = int(img.max(initial=0))
+    if 0 < top <= threshold and np.unique(img).size <= 2:
+        raise DatasetError(
+            f"{path}: a binary mask whose values are only {{0, {top}}}, all at or below "
+            f"mask_threshold={threshold}, would read as empty: for 0/1 masks set "
+            "dataset.adapter.mask_threshold=0 (or label_format=ids)"
+        )
     return (img > threshold).astype(np.int64)
 
 

@@ -306,6 +306,7 @@ class PosedMasksDataset(DatasetAdapter):
             trajectory_gt=traj_gt,
             label_names=names,
             meta={"reference": reference, "scored_views": len(evals), "root": str(scene_dir)},
+            ignore_label=self.ignore,
         )
 
     def labels_of(self, scene_dir: Path, gts: dict[str, np.ndarray]) -> tuple[int, list[str]]:

@@ -16,6 +16,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from sagonline.gaussians import SH_C0, Gaussians, sh_degree_from_coeffs
+from sagonline.utils import atomic_write
 
 
 class SceneFileError(ValueError):
@@ -152,11 +153,8 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
     record = np.empty(n, dtype=[(name, "f4") for name, _ in columns])
     for name, values in columns:
         record[name] = values
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    PlyData([PlyElement.describe(record, "vertex")], byte_order="<").write(str(tmp))
-    tmp.replace(path)
-    return path
+    data = PlyData([PlyElement.describe(record, "vertex")], byte_order="<")
+    return atomic_write(path, lambda tmp: data.write(str(tmp)))
 
 
 def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:

@@ -21,6 +21,7 @@ import torch
 import torch.nn.functional as F
 
 from sagonline.refine.network import DualBranchRefiner
+from sagonline.utils import atomic_write
 
 
 @dataclass
@@ -113,26 +114,21 @@ class RefinementTrainer:
     def save(self) -> None:
         if self.checkpoint is None:
             return
-        self.checkpoint.parent.mkdir(parents=True, exist_ok=True)
-        tmp = self.checkpoint.with_name(self.checkpoint.name + ".tmp")
         with self._lock:
-            torch.save(
-                {
-                    "model": self.model.state_dict(),
-                    "optim": self.optim.state_dict(),
-                    "step": self.step,
-                    "best": self.best,
-                    "ema": self.ema,
-                    "since_best": self.since_best,
-                    "train_s": self.train_s,
-                    "losses": self.losses,
-                    "status": self.status,
-                    "config": asdict(self.cfg),
-                    "classes": self.num_classes,
-                },
-                tmp,
-            )
-        tmp.replace(self.checkpoint)
+            state = {
+                "model": self.model.state_dict(),
+                "optim": self.optim.state_dict(),
+                "step": self.step,
+                "best": self.best,
+                "ema": self.ema,
+                "since_best": self.since_best,
+                "train_s": self.train_s,
+                "losses": self.losses,
+                "status": self.status,
+                "config": asdict(self.cfg),
+                "classes": self.num_classes,
+            }
+            atomic_write(self.checkpoint, lambda tmp: torch.save(state, tmp))
 
     # --- training -----------------------------------------------------------------------------
     def start(self) -> RefinementTrainer:

@@ -41,6 +41,16 @@ class Prompt:
         ids = [o.label for o in self.objects] + list(range(1, len(self.texts) + 1))
         return max(ids, default=0) + 1
 
+    def digest(self) -> str:
+        """Content digest of the prompt (frame, texts, every object's clicks, box and mask)."""
+        from sagonline.provenance import digest_arrays, digest_json
+
+        objects = [
+            [o.label, o.text, digest_arrays([o.points, o.point_labels, o.box, o.mask])]
+            for o in self.objects
+        ]
+        return digest_json(self.frame, list(self.texts), objects)
+
 
 @dataclass
 class SegmentationResult:
@@ -59,6 +69,15 @@ class VideoSegmenter(ABC):
     """Subclasses implement `_segment`; `segment` checks the output and times it."""
 
     name = "segmenter"
+
+    def weight_files(self) -> list[str]:
+        """Local files the segmenter's answers depend on (checkpoints); their digests join the
+        masks stage's cache key and the run's recorded inputs."""
+        return []
+
+    def check(self) -> None:  # noqa: B027 (optional hook: most segmenters have nothing to check)
+        """Fail fast, before anything is rendered: open and validate weights and settings.
+        Raise ValueError naming the option and the file."""
 
     def segment(
         self,

@@ -75,6 +75,17 @@ class SAM2VideoSegmenter(VideoSegmenter):
         self.image_size, self.use_masks = image_size, use_masks
         self._predictor = None
 
+    def weight_files(self) -> list[str]:
+        return [self.checkpoint] if self.checkpoint else []
+
+    def check(self) -> None:
+        """Build the model now (loading the checkpoint), so a bad file stops the run before
+        anything is rendered."""
+        try:
+            self.build()
+        except (ValueError, RuntimeError, OSError) as exc:
+            raise ValueError(str(exc)) from exc
+
     def build(self):
         from hydra.utils import instantiate
         from omegaconf import OmegaConf
@@ -98,8 +109,19 @@ class SAM2VideoSegmenter(VideoSegmenter):
         OmegaConf.resolve(cfg)
         model = instantiate(cfg.model, _recursive_=True)
         if self.checkpoint is not None:
-            state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
-            state = state.get("model", state)
+            try:
+                state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
+            except Exception as exc:  # pickle/zip errors surface as KeyError, EOFError, ...
+                raise ValueError(
+                    f"segmenter.checkpoint={self.checkpoint}: not a readable PyTorch checkpoint "
+                    f"({type(exc).__name__}: {exc})"
+                ) from exc
+            state = state.get("model", state) if isinstance(state, dict) else state
+            if not isinstance(state, dict):
+                raise ValueError(
+                    f"segmenter.checkpoint={self.checkpoint}: holds a {type(state).__name__}, "
+                    "not a state dict (or a dict with a 'model' state dict)"
+                )
             try:
                 missing, unexpected = model.load_state_dict(state, strict=False)
             except RuntimeError as exc:  # shape mismatches raise even when not strict

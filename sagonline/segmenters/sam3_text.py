@@ -64,6 +64,9 @@ class SAM3TextSegmenter(VideoSegmenter):
         self.device, self.confidence = device, confidence
         self._processor = None
 
+    def weight_files(self) -> list[str]:
+        return [self.checkpoint]
+
     def build(self):
         from sagonline.compat import import_torchvision
 

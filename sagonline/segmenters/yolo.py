@@ -94,6 +94,25 @@ class YOLOSegmenter(VideoSegmenter):
         self.conf, self.iou, self.imgsz = conf, iou, imgsz
         self.tracker, self.device = tracker, device
 
+    def weight_files(self) -> list[str]:
+        return [self.weights] if self.weights else []
+
+    def load_model(self):
+        """The YOLO model from `weights` (or `model_yaml`); a file that does not load stops
+        with the option's name."""
+        YOLO = _require_ultralytics()
+        try:
+            return YOLO(self.weights or self.model_yaml, task="segment")
+        except Exception as exc:  # ultralytics raises many kinds on a bad file
+            option = "weights" if self.weights else "model_yaml"
+            raise ValueError(
+                f"segmenter.{option}={self.weights or self.model_yaml}: YOLO could not load it "
+                f"({type(exc).__name__}: {exc})"
+            ) from exc
+
+    def check(self) -> None:
+        self.load_model()
+
     def class_ids(self, names: dict[int, str], prompt: Prompt) -> list[int] | None:
         wanted = prompt.texts or self.classes
         if wanted is None:
@@ -112,8 +131,7 @@ class YOLOSegmenter(VideoSegmenter):
         return ids
 
     def _segment(self, frames, prompt: Prompt, ground_truth):
-        YOLO = _require_ultralytics()
-        model = YOLO(self.weights or self.model_yaml, task="segment")
+        model = self.load_model()
         classes = self.class_ids(model.names, prompt)
         labeler = TrackLabeler()
         masks, seconds = [], []
