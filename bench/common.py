@@ -135,12 +135,22 @@ class SweepGuard(Callback):
             raise RunExists(2)
 
 
+FILE_ONLY = {"file_only": True}  # `extra=` of records that are for eval.log, not the console
+
+
+def _not_file_only(record: logging.LogRecord) -> bool:
+    return not getattr(record, "file_only", False)
+
+
 @contextmanager
 def run_log(out_dir: Path):
     """`<run dir>/eval.log` receives every log record and warning of the run; warnings also
-    reach the console when nothing else prints them."""
+    reach the console (records logged with `extra=FILE_ONLY` stay out of it)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     root = logging.getLogger()
+    consoles = list(root.handlers)
+    for h in consoles:
+        h.addFilter(_not_file_only)
     file_handler = logging.FileHandler(out_dir / "eval.log")
     file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
     handlers = [file_handler]
@@ -161,6 +171,8 @@ def run_log(out_dir: Path):
         for h in handlers:
             root.removeHandler(h)
             h.close()
+        for h in consoles:
+            h.removeFilter(_not_file_only)
         root.setLevel(old_level)
 
 
@@ -325,4 +337,4 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
     ]
     text = "\n".join(lines)
     print(text)
-    logging.getLogger("sagonline.eval").info("summary\n%s", text)
+    logging.getLogger("sagonline.eval").info("summary\n%s", text, extra=FILE_ONLY)

@@ -18,6 +18,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from bench.common import (
+    FILE_ONLY,
     build_plugin,
     check_device,
     comparable_config,
@@ -78,7 +79,13 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         raise SystemExit(2) from None
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
-        reports = run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings)
+        try:
+            reports = run_scenes(
+                cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings
+            )
+        except KeyboardInterrupt:
+            log.warning("interrupted; finished stages are cached", extra=FILE_ONLY)
+            raise
         summary = summarize(reports)
         status = "failed" if not summary["scenes_scored"] else "complete"
         status = "partial" if status == "complete" and summary["partial"] else status
@@ -149,7 +156,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
                     recorder,
                     checkpoint=checkpoint if cfg.cache else None,
                 )
-            log.info("scene %s: stages %s", scene, report.stages)
+            log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
             reports.append(report)
     finally:
         recorder.close()

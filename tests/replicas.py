@@ -77,3 +77,22 @@ def object_mask(scene, cam) -> np.ndarray:
     from sagonline.datasets.synthetic import gt_mask
 
     return gt_mask(scene, cam, scene.instance, scene.num_instances)
+
+
+def write_colmap_text(folder: Path, cams: list[Camera], scale: float = 1.0) -> None:
+    """A COLMAP text model (PINHOLE, one camera per view) of `cams`, `scale` times their size."""
+    from scipy.spatial.transform import Rotation
+
+    folder.mkdir(parents=True, exist_ok=True)
+    cam_lines, image_lines = [], []
+    for i, c in enumerate(cams, start=1):
+        K = c.K.double().numpy() * scale
+        w, h = round(c.width * scale), round(c.height * scale)
+        cam_lines.append(f"{i} PINHOLE {w} {h} {K[0, 0]} {K[1, 1]} {K[0, 2]} {K[1, 2]}")
+        w2c = c.world_to_cam.double().numpy()
+        x, y, z, qw = Rotation.from_matrix(w2c[:3, :3]).as_quat()
+        t = w2c[:3, 3]
+        image_lines.append(f"{i} {qw} {x} {y} {z} {t[0]} {t[1]} {t[2]} {i} {c.name}.JPG\n")
+    (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
+    (folder / "images.txt").write_text("\n".join(image_lines) + "\n")
+    (folder / "points3D.txt").write_text("")

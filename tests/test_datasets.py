@@ -7,6 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.generic import PosedMasksDataset
@@ -124,6 +125,55 @@ def test_nvos_horns_two_tasks_on_one_image(tmp_path):
     assert len(pts) == 16 and (pts[:, 1] > 9).all() and (pts[:, 1] < 14).all()
     clicks = NVOSDataset(root, tasks=["horns_center"], prompt="clicks").load_scene("horns_center")
     assert clicks.prompt.frame == names.index(target)
+
+
+def test_nvos_scribbles_at_quarter_size_land_on_the_same_pixels(tmp_path):
+    root, names, target, ref = _nvos(tmp_path)
+    small = np.zeros((6, 8), np.uint8)  # the same scribble (rows 10-12, cols 12-19) at 1/4
+    small[2:4, 3:5] = 255
+    folder = root / "scribbles" / "horns_center"
+    (folder / "pos_0.png").unlink()
+    write_image(folder / "pos_3_horns.png", small)  # any numbering, a suffix
+    pts = NVOSDataset(root, tasks=["horns_center"]).load_scene("horns_center")
+    pts = pts.prompt.objects[0].points
+    assert len(pts) == 4  # four scribble pixels, each at its 4x4 block's centre
+    assert (pts[:, 0] >= 12).all() and (pts[:, 0] < 20).all()
+    assert (pts[:, 1] >= 8).all() and (pts[:, 1] < 16).all()
+
+
+def test_nvos_released_layout_with_colmap_undistort_scenes(tmp_path):
+    from tests.replicas import write_colmap_text
+
+    flat, names, target, ref = _nvos(tmp_path)
+    flat_task = NVOSDataset(flat, tasks=["horns_left"]).load_scene("horns_left")
+    root = tmp_path / "release"
+    labels = root / "labels" / "llff"
+    labels.mkdir(parents=True)
+    for part in ("masks", "reference_image"):
+        (flat / part).rename(labels / part)
+    (labels / "scribbles" / "horns_left").mkdir(parents=True)
+    scribble = flat / "scribbles" / "horns_left" / "pos_0.png"
+    scribble.rename(labels / "scribbles" / "horns_left" / "pos_0_horns.png")
+    scene = root / "scenes" / "horns_undistort"  # COLMAP at the full size (4x the masks)
+    write_colmap_text(scene / "sparse" / "0", flat_task.trajectory, scale=4)
+    for n in names:
+        write_image(scene / "images" / f"{n}.JPG", np.zeros((96, 128, 3), np.uint8))
+    (flat / "scenes" / "horns" / "gaussians").rename(scene / "gaussians")
+    task = NVOSDataset(root, tasks=["horns_left"]).load_scene("horns_left")
+    assert [c.name for c in task.trajectory] == names
+    for a, b in zip(task.trajectory, flat_task.trajectory, strict=True):  # scaled to the masks
+        assert (a.width, a.height) == (b.width, b.height) == (32, 24)
+        assert torch.allclose(a.K, b.K, atol=1e-4)
+        assert torch.allclose(a.world_to_cam, b.world_to_cam, atol=1e-5)
+    assert np.array_equal(task.eval_views[0].gt, flat_task.eval_views[0].gt)
+    assert np.allclose(task.prompt.objects[0].points, flat_task.prompt.objects[0].points)
+    # the captures kept elsewhere
+    elsewhere = tmp_path / "captures"
+    (root / "scenes").rename(elsewhere)
+    with pytest.raises(DatasetError, match=r"(?s)labels/llff/masks.*scenes/<scene>/"):
+        NVOSDataset(root, tasks=["horns_left"]).scene_names()
+    moved = NVOSDataset(root, tasks=["horns_left"], scenes_root=elsewhere)
+    assert moved.load_scene("horns_left").eval_views[0].name == target
 
 
 def test_nvos_missing_target_view_and_missing_data(tmp_path):

@@ -1,10 +1,23 @@
-"""NVOS: 8 single-view segmentation tasks on LLFF scenes, scored as in PROTOCOLS.md.
+"""NVOS: 8 single-view segmentation tasks on LLFF scenes, scored as in datasets/nvos/README.md.
 
-    <root>/scenes/<scene>/images_4/, poses_bounds.npy, gaussians/point_cloud.ply
-        scenes: fern flower fortress horns leaves orchids trex
-    <root>/masks/<task>/<target>.JPG + <target>_mask.png     ground truth of the target view
-    <root>/reference_image/<task>/<reference>.JPG
-    <root>/scribbles/<task>/pos_*.png, neg_*.png            (vis_* files are ignored)
+Two layouts are read. The released one (annotations under `labels/llff/`, scenes as COLMAP
+`<scene>_undistort/` folders):
+
+    <root>/labels/llff/masks/<task>/<target>_mask.png        ground truth of the target view
+    <root>/labels/llff/reference_image/<task>/<reference>.JPG
+    <root>/labels/llff/scribbles/<task>/pos_0_<scene>.png, neg_0_<scene>.png
+    <root>/scenes/<scene>_undistort/  images/, sparse/0/ (COLMAP), gaussians/point_cloud.ply
+
+and the flat one (everything at the root, LLFF scenes):
+
+    <root>/masks/<task>/..., <root>/reference_image/<task>/..., <root>/scribbles/<task>/...
+    <root>/scenes/<scene>/    images_4/, poses_bounds.npy, gaussians/point_cloud.ply
+
+`scenes_root` points at captures kept elsewhere; a scene folder is `<scene>` or
+`<scene>_undistort`, with LLFF or COLMAP cameras. Scribbles are `pos_*` / `neg_*` of any
+numbering, at any resolution (the release's are 4x downsampled): each is scaled from its own
+size to the view's. Without `image_dir` images to size the cameras by, they are scaled to the
+ground-truth mask's resolution.
 
 Each task prompts on its reference view (positive scribbles, optionally negative ones, sampled
 as seeded points; or, as the SAGOnline paper does, seeded random clicks on the ground-truth
@@ -53,6 +66,7 @@ class NVOSDataset(DatasetAdapter):
         negative=False,
         seed=0,
         mask_threshold=127,
+        scenes_root=None,
     ):
         if prompt not in ("scribbles", "clicks"):
             raise DatasetError(f"nvos: prompt {prompt!r} is not 'scribbles' or 'clicks'")
@@ -63,16 +77,39 @@ class NVOSDataset(DatasetAdapter):
             raise DatasetError(f"nvos: unknown task(s) {unknown}; tasks are {list(TASKS)}")
         self.clicks, self.points, self.negative = clicks, scribble_points, negative
         self.seed, self.threshold = seed, mask_threshold
+        self.scenes_root = Path(scenes_root) if scenes_root else self.root / "scenes"
+
+    @property
+    def labels(self) -> Path:
+        """Where the annotations are: `labels/llff/` (the release) or the root itself."""
+        released = self.root / "labels" / "llff"
+        return released if released.is_dir() else self.root
+
+    def scene_dir(self, task: str) -> Path:
+        scene = self.scene_of(task)
+        for name in (scene, f"{scene}_undistort"):
+            if (self.scenes_root / name).is_dir():
+                return self.scenes_root / name
+        raise DatasetError(
+            f"nvos/{task}: scene folder {self.scenes_root / scene} (or {scene}_undistort) not found"
+        )
 
     def scene_names(self) -> list[str]:
-        if not (self.root / "masks").is_dir() or not (self.root / "scenes").is_dir():
+        if not (self.labels / "masks").is_dir() or not self.scenes_root.is_dir():
             raise DatasetError(
-                f"nvos: no data at {self.root.resolve()}\n"
-                "  Expected: scenes/<scene>/ (LLFF: images_4/, poses_bounds.npy, "
-                "gaussians/point_cloud.ply), masks/<task>/, reference_image/<task>/, "
-                "scribbles/<task>/.\n"
-                "  Put the dataset there or pass dataset.root=/path/to/nvos. Layout, licence and "
-                "download: datasets/nvos/README.md"
+                f"nvos: no data at {self.root.resolve()} (scenes: {self.scenes_root})\n"
+                "  Expected the released layout:\n"
+                "    labels/llff/masks/<task>/<target>_mask.png\n"
+                "    labels/llff/reference_image/<task>/\n"
+                "    labels/llff/scribbles/<task>/pos_0_<scene>.png (neg_0_... optional)\n"
+                "    scenes/<scene>_undistort/ (COLMAP: images/, sparse/0/) + "
+                "gaussians/point_cloud.ply\n"
+                "  or the flat one: masks/<task>/, reference_image/<task>/, scribbles/<task>/,\n"
+                "    scenes/<scene>/ (LLFF: images_4/, poses_bounds.npy) + "
+                "gaussians/point_cloud.ply\n"
+                "  Put the dataset there or pass dataset.root=/path/to/nvos (and "
+                "dataset.adapter.scenes_root=... for captures kept elsewhere). Layout, licence "
+                "and download: datasets/nvos/README.md"
             )
         return self.tasks
 
@@ -90,9 +127,7 @@ class NVOSDataset(DatasetAdapter):
 
     def load_scene(self, task: str) -> SceneTask:
         target, reference = TASKS[task]
-        scene_dir = self.root / "scenes" / self.scene_of(task)
-        if not scene_dir.is_dir():
-            raise DatasetError(f"nvos/{task}: scene folder {scene_dir} not found")
+        scene_dir = self.scene_dir(task)
         cams = scene_cameras(scene_dir, self.image_dir, dataset="nvos")
         names = [c.name for c in cams]
         for role, view in (("target", target), ("reference", reference)):
@@ -101,12 +136,16 @@ class NVOSDataset(DatasetAdapter):
                     f"nvos/{task}: {role} view {view} is not among the "
                     f"{len(names)} views of {scene_dir} ({self.image_dir})"
                 )
-        mask_path = self.root / "masks" / task / f"{target}_mask.png"
+        mask_path = self.labels / "masks" / task / f"{target}_mask.png"
         if not mask_path.is_file():
             raise DatasetError(f"nvos/{task}: ground truth {mask_path} not found")
         gt = load_mask(mask_path, self.threshold)
         target_cam = cams[names.index(target)]
         check_mask_size(gt, target_cam, mask_path)
+        if not (scene_dir / self.image_dir).is_dir():  # e.g. COLMAP at full size: render at GT's
+            sx, sy = gt.shape[1] / target_cam.width, gt.shape[0] / target_cam.height
+            cams = [c.scaled(round(c.width * sx), round(c.height * sy)) for c in cams]
+            target_cam = cams[names.index(target)]
         gaussians = load_trained_scene(scene_dir, "nvos")
         if self.prompt_kind == "clicks":
             frame = names.index(target)
@@ -131,15 +170,16 @@ class NVOSDataset(DatasetAdapter):
         """The LLFF scene behind a task (or a scene name): folder, cameras, images."""
         from sagonline.cameras import list_images
 
-        scene_dir = self.root / "scenes" / self.scene_of(scene)
-        if not scene_dir.is_dir():
-            raise DatasetError(f"nvos/{scene}: scene folder {scene_dir} not found")
+        scene_dir = self.scene_dir(scene)
         cams = scene_cameras(scene_dir, self.image_dir)
-        images = {p.stem: p for p in list_images(scene_dir / self.image_dir)}
+        folder = scene_dir / self.image_dir
+        images = {
+            p.stem: p for p in list_images(folder if folder.is_dir() else scene_dir / "images")
+        }
         return scene_dir, cams, images
 
     def scribble_prompt(self, task: str, cam) -> ObjectPrompt:
-        folder = self.root / "scribbles" / task
+        folder = self.labels / "scribbles" / task
         rng = np.random.default_rng(self.seed)
         pts, labels = [], []
         for kind, value in (("pos", 1), ("neg", 0)):
