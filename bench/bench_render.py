@@ -7,9 +7,12 @@ Scenes: the trained donut (3DGS, 45,624 Gaussians, from ../shared/data) and a ge
 2DGS scene of 200k surfels, both at 960x540. On CUDA both backends (torch, gsplat) run when
 gsplat is installed. "trace" streams every (pixel, Gaussian) pair with T > 0.01 to a consumer
 that reduces it (as the vote does); "vote pass" is the trace-only pass the vote uses
-(no colour, stops at T <= eps, centre within 2 px). On the CPU the compiled kernel ("native")
-renders images only, so its trace columns are empty; "step" is forward + backward through
-every Gaussian parameter, the fitting loop's inner cost.
+(no colour, stops at T <= eps, centre within 2 px); "vote ms/mask" is one whole RGC vote of a
+3-label mask as `consensus_vote` runs it (projection, tile lists, walk, histogram): the tiled
+PyTorch trace reduced by the vote's accumulator (torch), or the compiled trace-and-vote kernel
+(native), whose "vote speed-up" is the torch row's time over its own. The native kernel streams
+no trace, so its trace columns are empty; "step" is forward + backward through every Gaussian
+parameter, the fitting loop's inner cost.
 """
 
 from __future__ import annotations
@@ -28,6 +31,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from sagonline.cameras import load_nerf_transforms  # noqa: E402
+from sagonline.consensus import VoteConfig, consensus_vote  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402
 from sagonline.render import RasterStats, render  # noqa: E402
@@ -56,6 +60,13 @@ def training_step(g: Gaussians, cam, backend: str) -> None:
     }
     out = render(Gaussians(**leaves), cam, backend=backend)
     (out.rgb - 0.5).abs().mean().backward()
+
+
+def one_vote(g: Gaussians, cam, backend: str) -> None:
+    """One RGC vote of a fixed random 3-label mask, as the pipeline runs it."""
+    gen = torch.Generator().manual_seed(0)
+    mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
+    consensus_vote(g, [cam], [mask], 3, VoteConfig(), backend=backend)
 
 
 def timed(fn, repeats: int, device: str) -> float:
@@ -107,8 +118,10 @@ def main() -> None:
                         args.repeats,
                         device,
                     )
+                vote_ms = 1000 * timed(partial(one_vote, g, c, backend), args.repeats, device)
                 if backend == "torch":
                     render(g, c, stats=stats)
+                    torch_vote_ms = vote_ms
                 rows.append(
                     {
                         "scene": name,
@@ -118,6 +131,8 @@ def main() -> None:
                         "render_trace_ms": 1000 * traced if traced else None,
                         "trace_ratio": traced / plain if traced else None,
                         "vote_pass_ms": 1000 * vote if vote else None,
+                        "vote_ms_per_mask": vote_ms,
+                        "vote_speedup": torch_vote_ms / vote_ms if backend != "torch" else None,
                         "step_ms": 1000 * step,
                         "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
                         "intersections": stats.intersections or None,

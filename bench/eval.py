@@ -31,6 +31,7 @@ from bench.common import (
     refuse,
     run_log,
     seed_everything,
+    set_threads,
     settings_from,
     vote_config_from,
     write_hydra_files,
@@ -70,6 +71,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
 
     seed_everything(cfg.seed)
+    set_threads(cfg)
     segmenter = build_plugin(cfg.segmenter, "segmenter")
     try:  # checkpoints and weights are opened now, before anything is rendered
         segmenter.check()

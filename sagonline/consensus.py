@@ -28,8 +28,8 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
-from sagonline.render.api import render
-from sagonline.render.rasterize import TraceChunk
+from sagonline.render.api import render, resolve_backend
+from sagonline.render.rasterize import T_STOP, TraceChunk
 
 METHODS = ("rgc", "flashsplat", "weighted_mean")
 
@@ -202,17 +202,34 @@ def consensus_vote(
         from tqdm import tqdm
 
         iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
+    t_min = cfg.eps if rgc else T_STOP
+    max_distance = cfg.delta if rgc else None
+    compiled = resolve_backend(backend, device) == "native"
     start = time.perf_counter()
     for f in iterator:
-        acc.set_mask(check_mask(masks[f], cameras[f], num_labels, f"mask of frame {f}").to(device))
+        mask = check_mask(masks[f], cameras[f], num_labels, f"mask of frame {f}").to(device)
+        if compiled:  # the same pairs, reduced in C++ without materialising the trace
+            from sagonline.render.native import vote_native
+
+            acc.votes_cast += vote_native(
+                gaussians,
+                cameras[f],
+                mask,
+                acc.hist,
+                t_min=t_min,
+                max_distance=max_distance,
+                weighted=not rgc,
+            )
+            continue
+        acc.set_mask(mask)
         render(
             gaussians,
             cameras[f],
             backend=backend,
             trace=acc,
             trace_only=True,
-            trace_t_min=cfg.eps if rgc else 1e-4,
-            trace_max_distance=cfg.delta if rgc else None,
+            trace_t_min=t_min,
+            trace_max_distance=max_distance,
         )
     labels, labelled, hist = acc.finalize()
     elapsed = time.perf_counter() - start

@@ -18,7 +18,13 @@ def gt_mask(scene: SyntheticScene, camera, labels: torch.Tensor, num_labels: int
     Gaussian labelled, background 0 included); empty pixels are background."""
     everything = torch.ones(len(scene.gaussians), dtype=torch.bool)
     return render_labels(
-        scene.gaussians, camera, labels, num_labels, labelled=everything, min_weight=1e-6
+        scene.gaussians,
+        camera,
+        labels,
+        num_labels,
+        labelled=everything,
+        min_weight=1e-6,
+        backend="auto",  # the compiled kernel where it builds: same composite, ~10x faster
     ).numpy()
 
 

@@ -1,6 +1,7 @@
 """The compiled CPU rasterizer: `rasterize`'s compositing in C++ with a hand-written backward.
 
-Same projection (`project`, autograd), same tile lists (`_bin_tiles`), same compositing rules
+Same projection (`project`, autograd), same tile lists (`_bin_tiles`'s, built by a counting sort
+in C++), same compositing rules
 as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per tile
 (csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
 tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
@@ -20,7 +21,7 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.render.projection import project
-from sagonline.render.rasterize import T_STOP, RenderOutput, _bin_tiles
+from sagonline.render.rasterize import T_STOP, RenderOutput
 
 log = logging.getLogger(__name__)
 SOURCE = Path(__file__).parent / "csrc" / "raster_cpu.cpp"
@@ -55,6 +56,16 @@ def native_available() -> bool:
     except NativeBuildError as exc:
         log.warning("%s; using the PyTorch rasterizer", exc)
         return False
+
+
+def bin_tiles(proj, ntx: int, nty: int, tile_size: int):
+    """`rasterize._bin_tiles`'s (order, offsets, counts) by a counting sort in C++: the same
+    lists in the same order, in O(splats + intersections) instead of a sort of every
+    intersection."""
+    by_depth = torch.sort(proj.depths.detach(), stable=True).indices
+    return load_extension().bin_tiles(
+        proj.bbox.detach().float().contiguous(), by_depth, ntx, nty, tile_size
+    )
 
 
 class _Composite(torch.autograd.Function):
@@ -119,8 +130,7 @@ def rasterize_native(
     W, H = camera.width, camera.height
     proj = project(gaussians, camera, near=near)
     ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
-    with torch.no_grad():
-        _, order, offsets, counts = _bin_tiles(proj, ntx, nty, tile_size)
+    order, offsets, counts = bin_tiles(proj, ntx, nty, tile_size)
     colors = proj.colors
     if features is not None:
         colors = torch.cat([colors, features[proj.ids].to(colors.dtype)], dim=1)
@@ -147,4 +157,57 @@ def rasterize_native(
     )
 
 
-__all__ = ["NativeBuildError", "load_extension", "native_available", "rasterize_native"]
+def vote_native(
+    gaussians: Gaussians,
+    camera: Camera,
+    labels: torch.Tensor,
+    hist: torch.Tensor,
+    *,
+    t_min: float,
+    max_distance: float | None,
+    weighted: bool,
+    near: float = 0.01,
+    tile_size: int = 8,
+) -> int:
+    """One view's trace-and-vote pass in C++: adds into `hist` ((N * K,) float64, K labels) and
+    returns the number of votes cast. labels: (H * W,) long mask of the view. A splat votes for
+    its pixel's label while T_i > t_min and, with `max_distance`, only if its projected centre is
+    closer than that to the pixel centre: +1 (weighted=False) or alpha_i T_i. The same pairs as
+    the PyTorch trace (`rasterize(trace=..., trace_only=True)`), without materialising them."""
+    if gaussians.device.type != "cpu":
+        raise ValueError("the native vote runs on the CPU; use gsplat or torch on CUDA")
+    W, H = camera.width, camera.height
+    num_labels = hist.numel() // max(len(gaussians), 1)
+    with torch.no_grad():
+        proj = project(gaussians, camera, near=near, with_colors=False)
+        ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
+        order, offsets, counts = bin_tiles(proj, ntx, nty, tile_size)
+        return int(
+            load_extension().vote(
+                proj.kind == "2dgs",
+                proj.params().float().contiguous(),
+                proj.bbox.float().contiguous(),
+                order,
+                offsets,
+                counts,
+                W,
+                H,
+                tile_size,
+                proj.ids.long(),
+                labels.long(),
+                num_labels,
+                float(t_min),
+                -1.0 if max_distance is None else float(max_distance),
+                bool(weighted),
+                hist,
+            )
+        )
+
+
+__all__ = [
+    "NativeBuildError",
+    "load_extension",
+    "native_available",
+    "rasterize_native",
+    "vote_native",
+]

@@ -12,7 +12,9 @@
 #include <ATen/Parallel.h>
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
+#include <thread>
 #include <vector>
 
 namespace {
@@ -72,6 +74,51 @@ inline Response respond(bool surfel, const float* p, float px, float py) {
   const float alpha = std::min(r.raw, kAlphaMax);
   r.alpha = alpha >= kAlphaMin ? alpha : 0.f;
   return r;
+}
+
+// Alpha only, as respond(...).alpha, for the passes that need nothing else (the vote): no
+// intermediates kept, and no exp where the result would fall under 1/255 anyway (3DGS:
+// `log_floor` = log(kAlphaMin / opacity), precomputed per splat; the exp is then still taken on
+// the pairs near that bound, so the skip never changes a result).
+inline float alpha_at(bool surfel, const float* p, float log_floor, float px, float py) {
+  const float dx = px - p[0], dy = py - p[1];
+  float power;
+  if (!surfel) {
+    power = -0.5f * (p[4] * dx * dx + p[6] * dy * dy) - p[5] * dx * dy;
+    if (power < -0.5f * kCutoff2 || power < log_floor - 1e-3f) return 0.f;
+  } else {
+    const float* m = p + 4;
+    const float k0 = px * m[6] - m[0], k1 = px * m[7] - m[1], k2 = px * m[8] - m[2];
+    const float l0 = py * m[6] - m[3], l1 = py * m[7] - m[4], l2 = py * m[8] - m[5];
+    float pz = k0 * l1 - k1 * l0;
+    if (std::fabs(pz) < 1e-12f) pz = 1e-12f;
+    const float u = (k1 * l2 - k2 * l1) / pz, v = (k2 * l0 - k0 * l2) / pz;
+    const float rho3d = u * u + v * v;
+    const float rho2d = kSurfelFilter * (dx * dx + dy * dy);
+    const bool use3d = rho3d <= rho2d;
+    const float rho = use3d ? rho3d : rho2d;
+    const float depth = use3d ? u * m[6] + v * m[7] + m[8] : p[3];
+    if (!((rho <= kCutoff2) && (depth > 1e-2f))) return 0.f;
+    power = -0.5f * rho;
+  }
+  const float alpha = std::min(p[2] * std::exp(power), kAlphaMax);
+  return alpha >= kAlphaMin ? alpha : 0.f;
+}
+
+// Runs fn(tile) for every tile on at::get_num_threads() threads that take tiles one at a time
+// (busy tiles cluster on the object, so a static split would leave one thread idle) and block,
+// not spin, when done: a vote beside another process on shared cores does not fight it.
+template <typename Fn>
+void for_each_tile(int64_t n_tiles, const Fn& fn) {
+  std::atomic<int64_t> next{0};
+  auto worker = [&]() {
+    for (int64_t ti = next++; ti < n_tiles; ti = next++) fn(ti);
+  };
+  const int threads = std::max(1, std::min<int>(at::get_num_threads(), 64));
+  std::vector<std::thread> pool;
+  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
+  worker();
+  for (auto& t : pool) t.join();
 }
 
 // Gradient of (alpha, depth) w.r.t. the packed parameters, added into g (K floats).
@@ -266,6 +313,62 @@ void backward_tile(const Raster& R, int64_t ti, const float* TT, const int32_t* 
   }
 }
 
+// The vote's walk over one tile: each pixel front to back while its transmittance stays above
+// t_min; every splat that reaches the pixel (alpha > 0) with T_i > t_min and, when max_d2 >= 0,
+// its projected centre closer than sqrt(max_d2) to the pixel centre, adds to the histogram bin
+// (gaussian, label of the pixel): 1 (counts) or alpha_i T_i (weighted). Entries are collected per
+// tile and added in tile order afterwards, so the histogram never depends on the thread count.
+int64_t vote_tile(const Raster& R, int64_t ti, const int64_t* ids, const int64_t* labels,
+                  int64_t num_labels, float t_min, float max_d2, bool weighted,
+                  std::vector<std::pair<int64_t, double>>& out) {
+  // tile <= 8: the pixels still walking are the set bits of one 64-bit word, so a splat whose
+  // box covers only finished pixels costs one AND, and finished pixels cost nothing.
+  const int tile = static_cast<int>(R.tile);
+  const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
+  float T[64];
+  int64_t label[64];
+  uint64_t active = 0;
+  for (int q = 0; q < tile * tile; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    T[q] = 1.f;
+    label[q] = 0;
+    if (x < R.width && y < R.height && 1.f > t_min) {
+      label[q] = labels[y * R.width + x];
+      active |= uint64_t{1} << q;
+    }
+  }
+  int64_t cast = 0;
+  const int64_t n = R.counts[ti], base = R.offsets[ti];
+  for (int64_t j = 0; j < n && active; ++j) {
+    const int64_t s = R.order[base + j];
+    const Span sp = clip(R.boxes + s * 4, tx0, ty0, tile);
+    if (sp.x0 >= sp.x1 || sp.y0 >= sp.y1) continue;
+    const uint64_t row = ((uint64_t{1} << (sp.x1 - sp.x0)) - 1) << sp.x0;
+    uint64_t cover = 0;
+    for (int ly = sp.y0; ly < sp.y1; ++ly) cover |= row << (ly * tile);
+    uint64_t bits = cover & active;
+    if (!bits) continue;
+    const float* p = R.params + s * R.K;
+    const float log_floor = p[2] > 0.f ? std::log(kAlphaMin / p[2]) : 0.f;
+    for (; bits; bits &= bits - 1) {
+      const int q = __builtin_ctzll(bits);
+      const float px = tx0 + q % tile + 0.5f, py = ty0 + q / tile + 0.5f;
+      const float alpha = alpha_at(R.surfel, p, log_floor, px, py);
+      if (alpha <= 0.f) continue;
+      const float t_before = T[q];
+      const float dx = px - p[0], dy = py - p[1];
+      if (max_d2 < 0.f || dx * dx + dy * dy < max_d2) {
+        const double w = weighted ? static_cast<double>(alpha * t_before) : 1.0;
+        out.emplace_back(ids[s] * num_labels + label[q], w);
+        ++cast;
+      }
+      T[q] = t_before * (1.f - alpha);
+      if (!(T[q] > t_min)) active &= ~(uint64_t{1} << q);  // T only falls: this pixel is done
+    }
+  }
+  return cast;
+}
+
 Raster make_raster(bool surfel, const torch::Tensor& params, const torch::Tensor& colors,
                    const torch::Tensor& boxes, const torch::Tensor& order,
                    const torch::Tensor& offsets, const torch::Tensor& counts, int64_t width,
@@ -358,7 +461,94 @@ std::vector<torch::Tensor> backward(bool surfel, torch::Tensor params, torch::Te
   return {gp_all.sum(0), gc_all.sum(0)};
 }
 
+// Tile lists, as rasterize._bin_tiles builds them (same order): every splat's bounding box
+// [x0, x1) x [y0, y1) in tiles, splats listed per tile in the order of `by_depth` (splat
+// indices sorted by depth, stable). A counting sort: O(splats + intersections).
+std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth, int64_t ntx,
+                                     int64_t nty, int64_t tile) {
+  bbox = bbox.contiguous();
+  by_depth = by_depth.contiguous();
+  TORCH_CHECK(bbox.dtype() == torch::kFloat32, "bbox: float32");
+  const int64_t m = bbox.size(0), n_tiles = ntx * nty;
+  const float* B = bbox.data_ptr<float>();
+  const int64_t* D = by_depth.data_ptr<int64_t>();
+  const float ts = static_cast<float>(tile);
+  std::vector<int64_t> rect(4 * m);
+  auto cell = [](float v, int64_t hi) {
+    return std::min<int64_t>(std::max<int64_t>(static_cast<int64_t>(v), 0), hi);
+  };
+  auto counts = torch::zeros({n_tiles}, by_depth.options());
+  int64_t* C = counts.data_ptr<int64_t>();
+  for (int64_t i = 0; i < m; ++i) {
+    const float* b = B + 4 * i;
+    int64_t* r = rect.data() + 4 * i;
+    r[0] = cell(std::floor(b[0] / ts), ntx);
+    r[1] = cell(std::floor(b[1] / ts) + 1.f, ntx);
+    r[2] = cell(std::floor(b[2] / ts), nty);
+    r[3] = cell(std::floor(b[3] / ts) + 1.f, nty);
+    for (int64_t ty = r[2]; ty < r[3]; ++ty)
+      for (int64_t tx = r[0]; tx < r[1]; ++tx) ++C[ty * ntx + tx];
+  }
+  auto offsets = torch::zeros({n_tiles}, by_depth.options());
+  int64_t* O = offsets.data_ptr<int64_t>();
+  int64_t total = 0;
+  for (int64_t t = 0; t < n_tiles; ++t) {
+    O[t] = total;
+    total += C[t];
+  }
+  auto order = torch::empty({total}, by_depth.options());
+  int64_t* Ord = order.data_ptr<int64_t>();
+  std::vector<int64_t> fill(O, O + n_tiles);
+  for (int64_t k = 0; k < m; ++k) {
+    const int64_t i = D[k];
+    const int64_t* r = rect.data() + 4 * i;
+    for (int64_t ty = r[2]; ty < r[3]; ++ty)
+      for (int64_t tx = r[0]; tx < r[1]; ++tx) Ord[fill[ty * ntx + tx]++] = i;
+  }
+  return {order, offsets, counts};
+}
+
+// Adds one view's votes into hist (N * num_labels, float64) and returns how many were cast.
+// ids (M,): the Gaussian of each projected splat; labels (H * W,): the view's mask.
+int64_t vote(bool surfel, torch::Tensor params, torch::Tensor boxes, torch::Tensor order,
+             torch::Tensor offsets, torch::Tensor counts, int64_t width, int64_t height,
+             int64_t tile, torch::Tensor ids, torch::Tensor labels, int64_t num_labels,
+             double t_min, double max_distance, bool weighted, torch::Tensor hist) {
+  params = params.contiguous();
+  boxes = boxes.contiguous();
+  ids = ids.contiguous();
+  labels = labels.contiguous();
+  TORCH_CHECK(hist.is_contiguous() && hist.dtype() == torch::kFloat64, "hist: float64");
+  TORCH_CHECK(ids.dtype() == torch::kInt64 && labels.dtype() == torch::kInt64, "ids, labels: int64");
+  TORCH_CHECK(labels.numel() == width * height, "labels must hold one id per pixel");
+  TORCH_CHECK(tile >= 1 && tile <= 8, "the vote walks tiles of at most 8x8 pixels");
+  auto colors = torch::zeros({params.size(0), 0}, params.options());
+  const Raster R =
+      make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
+  const int64_t n_tiles = counts.size(0);
+  std::vector<std::vector<std::pair<int64_t, double>>> per_tile(n_tiles);
+  std::vector<int64_t> cast(n_tiles, 0);
+  const int64_t* I = ids.data_ptr<int64_t>();
+  const int64_t* Lab = labels.data_ptr<int64_t>();
+  const float tmin = static_cast<float>(t_min);
+  // as the PyTorch path compares float32 distances with the double delta^2 cast to float32
+  const float max_d2 = max_distance < 0 ? -1.f : static_cast<float>(max_distance * max_distance);
+  for_each_tile(n_tiles, [&](int64_t ti) {
+    if (R.counts[ti] > 0)
+      cast[ti] = vote_tile(R, ti, I, Lab, num_labels, tmin, max_d2, weighted, per_tile[ti]);
+  });
+  double* H = hist.data_ptr<double>();
+  int64_t total = 0;
+  for (int64_t ti = 0; ti < n_tiles; ++ti) {
+    for (const auto& e : per_tile[ti]) H[e.first] += e.second;
+    total += cast[ti];
+  }
+  return total;
+}
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("bin_tiles", &bin_tiles, "per-tile splat lists sorted by depth (CPU)");
+  m.def("vote", &vote, "trace-and-vote pass into a per-Gaussian label histogram (CPU)");
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
 }

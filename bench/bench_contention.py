@@ -1,0 +1,112 @@
+"""Two votes at once on shared cores: each one's ms per mask against the same vote alone.
+
+    python bench/bench_contention.py [--masks 5] [--out reports/bench_contention.csv]
+
+Parallel sweeps (`LAUNCHER=local`), Stage II training beside the initial mode and shared cluster
+nodes all run a vote beside other work. For each backend (torch: the tiled PyTorch trace reduced
+by the vote's accumulator; native: the compiled trace-and-vote kernel) and thread count, the
+vote pass on the donut at 960x540 (the generated 200k-surfel scene when the donut is absent) is
+timed alone in this process, then in two processes started together; "slowdown" is the median
+per-mask time together over alone. Numbers depend on what else the machine runs: the table's
+header says how many cores there are and the load before it started.
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing as mp
+import os
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def scene():
+    from sagonline.cameras import load_nerf_transforms
+    from sagonline.io import read_scene
+    from sagonline.synthetic import make_scene
+
+    donut = ROOT.parent / "shared" / "data" / "donut_3dgs"
+    if donut.exists():
+        cam = load_nerf_transforms(donut / "transforms.json")[0].scaled(960, 540)
+        return "donut (3DGS, 45,624)", read_scene(donut / "point_cloud.ply"), cam
+    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
+    return f"synthetic 360 (2DGS, {len(s.gaussians):,})", s.gaussians, s.train_cameras[1]
+
+
+def vote_times(backend: str, threads: int, masks: int, start_at: float | None = None) -> list:
+    """ms per mask of `masks` RGC votes (after one warm-up), optionally waiting until
+    `start_at` (time.time()) so that two processes start together."""
+    import torch
+
+    from sagonline.consensus import VoteConfig, consensus_vote
+
+    torch.set_num_threads(threads)
+    _, g, cam = scene()
+    gen = torch.Generator().manual_seed(0)
+    mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
+    run = lambda n: consensus_vote(g, [cam] * n, [mask] * n, 3, VoteConfig(), backend=backend)  # noqa: E731
+    run(1)
+    if start_at is not None:
+        time.sleep(max(0.0, start_at - time.time()))
+    return [run(1).stats["ms_per_mask"] for _ in range(masks)]
+
+
+def _child(args, queue) -> None:
+    queue.put(vote_times(*args))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--masks", type=int, default=5)
+    ap.add_argument("--out", default=str(ROOT / "reports" / "bench_contention.csv"))
+    args = ap.parse_args()
+    from sagonline.render.native import native_available
+    from sagonline.utils import describe_device
+
+    backends = ["torch"] + (["native"] if native_available() else [])
+    cores = os.cpu_count() or 1
+    load = os.getloadavg()[0]
+    ctx = mp.get_context("spawn")
+    rows = []
+    for backend in backends:
+        for threads in sorted({1, cores}):
+            alone = statistics.median(vote_times(backend, threads, args.masks))
+            queue = ctx.Queue()
+            start_at = time.time() + 8.0  # both children have loaded the scene by then
+            procs = [
+                ctx.Process(target=_child, args=((backend, threads, args.masks, start_at), queue))
+                for _ in range(2)
+            ]
+            for p in procs:
+                p.start()
+            together = [statistics.median(queue.get()) for _ in procs]
+            for p in procs:
+                p.join()
+            rows.append(
+                {
+                    "backend": backend,
+                    "threads_per_vote": threads,
+                    "alone_ms_per_mask": alone,
+                    "together_ms_per_mask": max(together),
+                    "slowdown": max(together) / alone,
+                }
+            )
+    table = pd.DataFrame(rows)
+    info = describe_device("cpu")
+    print(f"{scene()[0]} at 960x540; cpu {info['cpu']} ({cores} cores), load before {load:.2f}")
+    print(f"median of {args.masks} masks; together = the slower of two votes started at once\n")
+    print(table.to_string(index=False, float_format=lambda v: f"{v:,.2f}"))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    table.assign(cpu=info["cpu"], cores=cores, load_before=load).to_csv(args.out, index=False)
+    print(f"\nwrote {args.out}")
+
+
+if __name__ == "__main__":
+    main()
