@@ -24,11 +24,12 @@ import time
 from functools import partial
 from pathlib import Path
 
-import pandas as pd
-import torch
-
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+
+import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy before torch loads)
+import pandas as pd  # noqa: E402
+import torch  # noqa: E402
 
 from sagonline.cameras import load_nerf_transforms  # noqa: E402
 from sagonline.consensus import VoteConfig, consensus_vote  # noqa: E402
