@@ -55,6 +55,7 @@ report: install
 
 bench: install
 	$(BIN)/python bench/bench_render.py $(ARGS)
+	$(BIN)/python bench/bench_contention.py
 
 lint: install
 	$(BIN)/pre-commit run --all-files

@@ -65,6 +65,12 @@ class SceneReport:
     cached_timings: dict = field(default_factory=dict)  # timings of the run that built a cache
     inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
 
+    def add_timings(self, stages: tuple[str, ...], **times: float) -> None:
+        """This run's timings when it computed every one of `stages`, else the cached run's
+        (kept apart, under `cached_timings`)."""
+        fresh = all(self.stages.get(s) == "computed" for s in stages)
+        (self.timings if fresh else self.cached_timings).update(times)
+
 
 def settings_key(*parts) -> str:
     """Stable digest of JSON-able settings."""
@@ -185,27 +191,17 @@ def run_stage_one(
             cache.save(stage, keys[stage], value)
         return value
 
-    rendered = cached_or_run(
-        "frames", lambda: dict(zip(("frames", "sec"), render_frames(task, settings), strict=True))
-    )
-    frames, sec = rendered["frames"], rendered["sec"]
+    frames, sec = cached_or_run("frames", lambda: render_frames(task, settings))
     seg = cached_or_run(
         "masks", lambda: segmenter.segment(frames, task.prompt, ground_truth=task.trajectory_gt)
     )
     report.inputs["masks"] = digest_arrays(seg.masks)
-    stage_times = {
-        "frames": {"render_ms_per_frame": 1000 * sec},
-        "masks": {"segment_ms_per_frame": seg.ms_per_frame},
-    }
-    for stage, times in stage_times.items():
-        target = report.timings if report.stages[stage] == "computed" else report.cached_timings
-        target.update(times)
+    report.add_timings(("frames",), render_ms_per_frame=1000 * sec)
+    report.add_timings(("masks",), segment_ms_per_frame=seg.ms_per_frame)
     # Time to first mask: render the prompt frame, then the segmenter answers on it.
-    first_mask = sec + seg.seconds[task.prompt.frame]
-    if report.stages["frames"] == report.stages["masks"] == "computed":
-        report.timings["time_to_first_mask_s"] = first_mask
-    else:
-        report.cached_timings["time_to_first_mask_s"] = first_mask
+    report.add_timings(
+        ("frames", "masks"), time_to_first_mask_s=sec + seg.seconds[task.prompt.frame]
+    )
 
     names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
     num_labels = max(task.num_labels, 1 + max(int(m.max()) for m in seg.masks))
@@ -242,14 +238,9 @@ def run_stage_one(
         ),
     )
     report.vote = {k: v for k, v in vote.stats.items() if k != "aggregation_s"}
-    vote_times = {
-        "vote_s": vote.stats["aggregation_s"],
-        "vote_ms_per_mask": vote.stats["ms_per_mask"],
-    }
-    if report.stages["vote"] == "computed":
-        report.timings.update(vote_times)
-    else:
-        report.cached_timings.update(vote_times)
+    report.add_timings(
+        ("vote",), vote_s=vote.stats["aggregation_s"], vote_ms_per_mask=vote.stats["ms_per_mask"]
+    )
 
     voted = {task.trajectory[i].name for i in vote.frames}
     score_views(task, vote, settings, report, recorder, num_labels, automatic, voted=voted)
