@@ -112,8 +112,9 @@ def test_nothing_in_view_and_trace_requests():
         torch.testing.assert_close(nat.rgb, ref.rgb, atol=2e-6, rtol=1e-5)
     empty = rasterize_native(g, behind)
     assert float(empty.alpha.max()) == 0.0 and float(empty.rgb.abs().max()) == 0.0
-    with pytest.raises(ValueError, match="images only"):
+    with pytest.raises(ValueError, match="streams no trace"):
         rasterize_native(g, away, trace=print)
+    assert (rasterize_native(g, behind, return_ids=True).ids == -1).all()
 
 
 # --- the compiled vote -------------------------------------------------------------------
@@ -202,3 +203,21 @@ def test_counting_sort_bins_like_the_pytorch_sort(kind):
     assert order.numel() > 500
     for a, b in zip(got, (order, offsets, counts), strict=True):
         assert torch.equal(a, b)
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+@pytest.mark.parametrize("seed", [0, 1])
+def test_native_most_visible_ids_and_label_renders_match(kind, seed):
+    from sagonline.render import render_labels
+
+    g = random_gaussians(300, kind, seed=seed, spread=0.8)
+    cam = small_camera(37, 29)
+    ref = rasterize(g, cam, return_ids=True).ids
+    got = rasterize_native(g, cam, return_ids=True).ids
+    assert (ref >= 0).any() and (ref < 0).any()
+    assert torch.equal(got, ref)
+    labels = torch.randint(0, 4, (len(g),), generator=torch.Generator().manual_seed(seed))
+    for mode in ("ids", "onehot"):
+        a = render_labels(g, cam, labels, 4, mode=mode, backend="torch")
+        b = render_labels(g, cam, labels, 4, mode=mode, backend="native")
+        assert torch.equal(a, b), mode

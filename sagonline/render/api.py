@@ -10,7 +10,7 @@ from sagonline.gaussians import Gaussians
 from sagonline.render.rasterize import RenderOutput, rasterize
 
 BACKENDS = ("torch", "native", "gsplat", "auto")
-TRACE_OPTIONS = ("trace", "trace_only", "return_ids")
+TRACE_OPTIONS = ("trace", "trace_only")
 
 
 def resolve_backend(backend: str, device: torch.device | str) -> str:
@@ -33,7 +33,8 @@ def render(
     gaussians: Gaussians, camera: Camera, *, backend: str = "torch", **kwargs
 ) -> RenderOutput | None:
     """Render (and optionally trace) one view; keyword arguments as in `rasterize`. The native
-    CPU kernel renders images only: traces and most-visible ids go to the torch path."""
+    CPU kernel renders images, features and most-visible ids; traces go to the torch path (the
+    vote has its own compiled pass, `consensus_vote`)."""
     chosen = resolve_backend(backend, gaussians.device)
     if chosen == "gsplat":
         from sagonline.render.gsplat_backend import rasterize_gsplat
@@ -79,7 +80,10 @@ def render_labels(
             f"[{int(labels.min())}, {int(labels.max())}]"
         )
     if mode == "ids":
-        out = rasterize(gaussians, camera, return_ids=True, **kwargs)
+        if resolve_backend(backend, gaussians.device) == "native":
+            out = render(gaussians, camera, return_ids=True, backend="native", **kwargs)
+        else:  # gsplat keeps no per-pixel argmax: the tiled PyTorch path
+            out = rasterize(gaussians, camera, return_ids=True, **kwargs)
         ids = out.ids
         return torch.where(ids >= 0, labels[ids.clamp_min(0)], torch.zeros_like(ids))
     if mode != "onehot":

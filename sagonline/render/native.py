@@ -34,11 +34,17 @@ class NativeBuildError(RuntimeError):
 @functools.cache
 def load_extension():
     """Compile (once per machine, cached by torch) and import the C++ rasterizer."""
+    import hashlib
+
     from torch.utils import cpp_extension
 
+    # The source's digest in the name: each version of the kernel gets its own build folder, so
+    # a build cached from another checkout or version is never loaded by mistake (torch's
+    # loader trusts file times, and a newer build of other source looks up to date).
+    digest = hashlib.blake2b(SOURCE.read_bytes(), digest_size=6).hexdigest()
     try:
         return cpp_extension.load(
-            name="sagonline_raster_cpu",
+            name=f"sagonline_raster_cpu_{digest}",
             sources=[str(SOURCE)],
             extra_cflags=["-O3", "-fopenmp"],
             extra_ldflags=["-fopenmp"],
@@ -78,15 +84,16 @@ class _Composite(torch.autograd.Function):
         ctx, params, colors, surfel, boxes, order, offsets, counts, width, height, tile, t_stop
     ):
         ext = load_extension()
-        feat, depth, final_T, last = ext.forward(
+        feat, depth, final_T, last, best = ext.forward(
             surfel, params, colors, boxes, order, offsets, counts, width, height, tile, t_stop
         )
         ctx.save_for_backward(params, colors, boxes, order, offsets, counts, final_T, last)
         ctx.settings = (surfel, width, height, tile)
-        return feat, depth, final_T
+        ctx.mark_non_differentiable(best)
+        return feat, depth, final_T, best
 
     @staticmethod
-    def backward(ctx, g_feat, g_depth, g_T):
+    def backward(ctx, g_feat, g_depth, g_T, _g_best):
         params, colors, boxes, order, offsets, counts, final_T, last = ctx.saved_tensors
         surfel, width, height, tile = ctx.settings
         zeros = torch.zeros_like
@@ -119,14 +126,16 @@ def rasterize_native(
     t_stop: float = T_STOP,
     near: float = 0.01,
     tile_size: int = 8,
+    return_ids: bool = False,
     **unused,
 ) -> RenderOutput:
-    """Render one view on the CPU through the C++ kernel; outputs as `rasterize` (no ids)."""
+    """Render one view on the CPU through the C++ kernel; outputs as `rasterize`, ids (the most
+    visible Gaussian per pixel, -1 where none) with `return_ids`."""
     if gaussians.device.type != "cpu":
         raise ValueError("the native rasterizer runs on the CPU; use gsplat or torch on CUDA")
-    asked = [k for k in ("trace", "trace_only", "return_ids") if unused.get(k)]
+    asked = [k for k in ("trace", "trace_only") if unused.get(k)]
     if asked:
-        raise ValueError(f"the native rasterizer renders images only; {asked} need `rasterize`")
+        raise ValueError(f"the native rasterizer streams no trace; {asked} need `rasterize`")
     W, H = camera.width, camera.height
     proj = project(gaussians, camera, near=near)
     ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
@@ -135,7 +144,7 @@ def rasterize_native(
     if features is not None:
         colors = torch.cat([colors, features[proj.ids].to(colors.dtype)], dim=1)
     params = proj.params().float()
-    feat, depth, final_T = _Composite.apply(
+    feat, depth, final_T, best = _Composite.apply(
         params,
         colors.float(),
         proj.kind == "2dgs",
@@ -154,7 +163,15 @@ def rasterize_native(
         alpha=1.0 - final_T,
         depth=depth,
         features=feat[..., 3:] if features is not None else None,
+        ids=_gaussian_ids(best, proj.ids) if return_ids else None,
     )
+
+
+def _gaussian_ids(best: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
+    """(H, W) projected-splat indices (-1: none) -> Gaussian indices (-1: none)."""
+    if ids.numel() == 0:
+        return best
+    return torch.where(best >= 0, ids[best.clamp_min(0)], best)
 
 
 def vote_native(

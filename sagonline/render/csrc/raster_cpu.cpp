@@ -207,13 +207,15 @@ struct Raster {
 
 // Walk one tile front to back: per pixel feat (C), depth, final T and walked count.
 void forward_tile(const Raster& R, int64_t ti, float stop, float* F, float* D, float* TT,
-                  int32_t* L) {
+                  int32_t* L, int64_t* BI) {
   const int tile = static_cast<int>(R.tile);
   const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
   const int npix = tile * tile;
   std::vector<float> T(npix, 1.f), dep(npix, 0.f), feat(npix * R.C, 0.f);
   std::vector<int32_t> walked(npix, 0);
   std::vector<char> done(npix, 0);
+  std::vector<float> best_w(npix, 0.f);  // the most visible splat: largest alpha_i T_i
+  std::vector<int64_t> best(npix, -1);
   int active = 0;
   for (int q = 0; q < npix; ++q) {
     const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
@@ -243,6 +245,10 @@ void forward_tile(const Raster& R, int64_t ti, float stop, float* F, float* D, f
         const float w = r.alpha * T[q];
         for (int64_t c = 0; c < R.C; ++c) feat[q * R.C + c] += w * R.colors[s * R.C + c];
         dep[q] += w * r.depth;
+        if (w > best_w[q]) {
+          best_w[q] = w;
+          best[q] = s;
+        }
         T[q] = next;
         walked[q] = static_cast<int32_t>(j + 1);
       }
@@ -256,6 +262,7 @@ void forward_tile(const Raster& R, int64_t ti, float stop, float* F, float* D, f
     D[pix] = dep[q];
     TT[pix] = T[q];
     L[pix] = walked[q];
+    BI[pix] = best[q];
   }
 }
 
@@ -396,8 +403,9 @@ Raster make_raster(bool surfel, const torch::Tensor& params, const torch::Tensor
 
 }  // namespace
 
-// Returns feat (H, W, C), depth (H, W), final transmittance (H, W) and, per pixel, the number of
-// list entries walked up to and including its last composited splat (int32, for backward).
+// Returns feat (H, W, C), depth (H, W), final transmittance (H, W), per pixel the number of
+// list entries walked up to and including its last composited splat (int32, for backward), and
+// the most visible splat (largest blend weight; -1 where none is composited).
 std::vector<torch::Tensor> forward(bool surfel, torch::Tensor params, torch::Tensor colors,
                                    torch::Tensor boxes, torch::Tensor order,
                                    torch::Tensor offsets, torch::Tensor counts, int64_t width,
@@ -411,17 +419,17 @@ std::vector<torch::Tensor> forward(bool surfel, torch::Tensor params, torch::Ten
   auto depth = torch::zeros({height, width}, params.options());
   auto final_T = torch::ones({height, width}, params.options());
   auto last = torch::zeros({height, width}, order.options().dtype(torch::kInt32));
+  auto best = torch::full({height, width}, -1, order.options().dtype(torch::kInt64));
   float* F = feat.data_ptr<float>();
   float* D = depth.data_ptr<float>();
   float* TT = final_T.data_ptr<float>();
   int32_t* L = last.data_ptr<int32_t>();
+  int64_t* BI = best.data_ptr<int64_t>();
   const float stop = static_cast<float>(t_stop);
-  at::parallel_for(0, counts.size(0), 1, [&](int64_t begin, int64_t end) {
-    for (int64_t ti = begin; ti < end; ++ti) {
-      if (R.counts[ti] > 0) forward_tile(R, ti, stop, F, D, TT, L);
-    }
+  for_each_tile(counts.size(0), [&](int64_t ti) {
+    if (R.counts[ti] > 0) forward_tile(R, ti, stop, F, D, TT, L, BI);
   });
-  return {feat, depth, final_T, last};
+  return {feat, depth, final_T, last, best};
 }
 
 // Gradients w.r.t. params (M, K) and colors (M, C) from gradients on feat, depth, final_T.
