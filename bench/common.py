@@ -222,21 +222,23 @@ def vote_config_from(cfg: DictConfig) -> VoteConfig:
 
 
 def set_threads(cfg: DictConfig) -> int:
-    """Threads for this job's torch ops and compiled kernels: `threads`, else the machine's
-    cores divided among the jobs a parallel launcher runs at once (hydra.launcher.n_jobs), so
-    parallel jobs do not oversubscribe the cores (a thread pool that spins against another
-    process's collapses: a 0.6 s vote took 9-21 s)."""
+    """Threads for this job's torch ops and compiled kernels: `threads`, else the cores a
+    submitit job was given (hydra.launcher.cpus_per_task), else the machine's cores divided
+    among the jobs joblib runs at once (hydra.launcher.n_jobs), so parallel jobs do not
+    oversubscribe the cores."""
     threads = cfg.get("threads")
     if not threads:
         from hydra.core.hydra_config import HydraConfig
 
         try:
-            jobs = int(HydraConfig.get().launcher.get("n_jobs") or 1)
-        except (ValueError, AttributeError, TypeError):
-            jobs = 1
-        if jobs <= 1:
+            launcher = HydraConfig.get().launcher
+        except ValueError:  # composed directly (tests): no Hydra job
             return torch.get_num_threads()
-        threads = max(1, (os.cpu_count() or 1) // jobs)
+        jobs = int(launcher.get("n_jobs") or 1)  # joblib: jobs at once on this machine
+        threads = launcher.get("cpus_per_task")  # submitit: the job's own cores
+        if not threads and jobs <= 1:
+            return torch.get_num_threads()
+        threads = threads or max(1, (os.cpu_count() or 1) // jobs)
     torch.set_num_threads(int(threads))
     return int(threads)
 

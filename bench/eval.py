@@ -117,7 +117,11 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
 def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings):
     """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
     scored is reported as failed and the others go on."""
-    recorder = Recorder(out_dir / "recording.rrd" if cfg.record else None)
+    recorder = Recorder(
+        out_dir / "recording.rrd" if cfg.record else None,
+        scenes=list(scenes),
+        refined=bool(cfg.refine.enabled),
+    )
     cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
     segmenter_key = plugin_kwargs(cfg.segmenter) | {
         "name": cfg.segmenter.name,

@@ -207,7 +207,7 @@ def run_stage_one(
     num_labels = max(task.num_labels, 1 + max(int(m.max()) for m in seg.masks))
     recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
     for i, (frame, mask) in enumerate(zip(frames, seg.masks, strict=True)):
-        recorder.trajectory_frame(task.name, i, frame, mask)
+        recorder.trajectory_frame(task.name, i, frame, mask, camera=task.trajectory[i])
 
     automatic = not task.prompt.objects and not task.prompt.texts
     if task.trajectory_gt is not None:
@@ -248,9 +248,10 @@ def run_stage_one(
         report.labels3d = labels3d_metrics(vote.labels, vote.labelled, task.gt_labels3d, num_labels)
     recorder.gaussians(
         task.name,
-        task.gaussians.means.cpu().numpy(),
+        task.gaussians,
         vote.labels.cpu().numpy(),
         vote.labelled.cpu().numpy(),
+        vote.histogram.cpu().numpy(),
     )
     artefacts = {
         "frames": frames,
@@ -331,9 +332,10 @@ def score_views(
     record_scores(task, preds, settings, report, mode, voted)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     if recorder.enabled:
+        ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
         for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
             rgb = to_uint8(render(g, view.camera, backend=settings.backend).rgb)
-            recorder.eval_view(task.name, i, rgb, pred, view.gt)
+            recorder.eval_view(task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i])
     return preds
 
 
@@ -449,8 +451,9 @@ def run_stage_two(
         "encoder": refine_cfg.encoder,
     }
     if recorder.enabled:
+        ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
         for i, pred in enumerate(preds):
-            recorder.refined_view(task.name, i, pred)
+            recorder.refined_view(task.name, i, pred, iou=ious[i])
 
 
 def summarize(reports: list[SceneReport]) -> dict:

@@ -1,0 +1,110 @@
+"""The rerun recording read back with rerun's own reader: entities, counts, timelines, layout."""
+
+from __future__ import annotations
+
+from collections import defaultdict
+
+import numpy as np
+import pytest
+
+from bench.eval import evaluate
+from sagonline.recording import ELLIPSOID_LIMIT
+from tests.test_eval_runner import cfg_with
+
+TRAJECTORY, EVAL = 8, 3  # the tiny synthetic preset of the runner tests
+
+
+def read_back(path):
+    """entity path -> {"rows": n, "timelines": set, "columns": set, "instances": {column: n}}."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    found = defaultdict(lambda: {"rows": 0, "timelines": set(), "columns": set(), "instances": {}})
+    for chunk in reader.stream().to_chunks():
+        entry = found[chunk.entity_path]
+        entry["rows"] += chunk.num_rows
+        entry["timelines"] |= set(chunk.timeline_names) - {"log_time"}
+        batch = chunk.to_record_batch()
+        entry["columns"] |= set(batch.schema.names)
+        for name in batch.schema.names:
+            if name.endswith((":centers", ":positions")):
+                entry["instances"][name] = sum(len(v) for v in batch.column(name).to_pylist())
+    return found, reader.blueprints()
+
+
+@pytest.fixture(scope="module")
+def recorded(tmp_path_factory):
+    out = tmp_path_factory.mktemp("run")
+    metrics = evaluate(
+        cfg_with(
+            "dataset=synthetic_ff",
+            "refine=student",
+            "refine.max_steps=3",
+            "refine.batch_size=2",
+        ),
+        out,
+    )
+    return metrics, *read_back(out / "recording.rrd")
+
+
+def test_cameras_frames_and_masks_in_their_frusta(recorded):
+    _, found, _ = recorded
+    base = "/scenes/forward_single"
+    cam = found[f"{base}/trajectory/camera"]
+    assert cam["rows"] == TRAJECTORY and cam["timelines"] == {"frame"}
+    assert {"Pinhole:image_from_camera", "Pinhole:resolution", "Transform3D:mat3x3"} <= cam[
+        "columns"
+    ]
+    for image in ("rgb", "segmenter"):
+        entry = found[f"{base}/trajectory/camera/{image}"]
+        assert entry["rows"] == TRAJECTORY and entry["timelines"] == {"frame"}
+    for image in ("rgb", "prediction", "ground_truth", "refined"):
+        entry = found[f"{base}/eval/camera/{image}"]
+        assert entry["rows"] == EVAL and entry["timelines"] == {"eval_view"}, image
+    assert found[f"{base}/eval/camera"]["rows"] == EVAL
+
+
+def test_per_view_iou_series_match_per_view_rows(recorded):
+    metrics, found, _ = recorded
+    base = "/scenes/forward_single/metrics"
+    assert found[f"{base}/iou"]["rows"] == EVAL
+    assert found[f"{base}/refined_iou"]["rows"] == EVAL
+    assert metrics["scenes"][0]["refined_miou"] is not None
+
+
+def test_gaussians_split_by_label_with_confidence(recorded):
+    metrics, found, _ = recorded
+    base = "/scenes/forward_single/gaussians"
+    labelled = found[f"{base}/labelled"]["instances"]["Ellipsoids3D:centers"]
+    unlabelled = found[f"{base}/unlabelled"]["instances"]["Points3D:positions"]
+    n = labelled + unlabelled  # every Gaussian once (~4000: TINY's num_gaussians)
+    assert 3000 < n <= ELLIPSOID_LIMIT
+    coverage = metrics["scenes"][0]["labels3d"]["coverage"]
+    assert labelled / n == pytest.approx(coverage, abs=1e-6)
+    voted = found[f"{base}/confidence"]["instances"]["Points3D:positions"]
+    assert labelled <= voted <= n
+
+
+def test_default_blueprint_is_sent(recorded):
+    _, _, blueprints = recorded
+    assert len(blueprints) == 1 and blueprints[0].kind == "blueprint"
+
+
+def test_large_scenes_fall_back_to_points(tmp_path):
+    import torch
+
+    from sagonline.recording import Recorder
+    from tests.conftest import random_gaussians
+
+    g = random_gaussians(ELLIPSOID_LIMIT + 1, "2dgs", seed=0)
+    labels = np.ones(len(g), np.int64)
+    rec = Recorder(tmp_path / "r.rrd", scenes=["s"])
+    rec.annotate("s", ["background", "object"])
+    hist = torch.zeros(len(g), 2).numpy()
+    rec.gaussians("s", g, labels, labels > 0, hist)
+    rec.close()
+    found, _ = read_back(tmp_path / "r.rrd")
+    assert found["/scenes/s/gaussians/labelled"]["instances"]["Points3D:positions"] == len(g)
+    assert "/scenes/s/gaussians/confidence" not in found or not found[
+        "/scenes/s/gaussians/confidence"
+    ]["instances"].get("Points3D:positions")
