@@ -9,7 +9,8 @@ ARGS   ?=
 EXTRAS := $(VENV)/.extras
 
 # basic: one job after another (the first warms the shared stage cache; timings stay clean);
-# local: parallel jobs on this machine (joblib); slurm: a cluster (submitit).
+# local: parallel jobs on this machine (joblib); slurm: a cluster (submitit); slurm_local: the
+# cluster code path (submitit) run on this machine.
 LAUNCHER ?= basic
 STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
 SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \

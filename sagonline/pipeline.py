@@ -333,10 +333,24 @@ def score_views(
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     if recorder.enabled:
         ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
+        frames = nearest_frames(task)
         for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
             rgb = to_uint8(render(g, view.camera, backend=settings.backend).rgb)
-            recorder.eval_view(task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i])
+            recorder.eval_view(
+                task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i], frame=frames[i]
+            )
     return preds
+
+
+def nearest_frames(task: SceneTask) -> list[int]:
+    """For each eval view, the trajectory frame of the same name, else the nearest by camera
+    centre (where the recording shows it on the `frame` timeline)."""
+    index = {c.name: i for i, c in enumerate(task.trajectory)}
+    centres = torch.stack([c.center for c in task.trajectory])
+    return [
+        index.get(v.name, int((centres - v.camera.center).norm(dim=1).argmin()))
+        for v in task.eval_views
+    ]
 
 
 def record_scores(
@@ -452,8 +466,9 @@ def run_stage_two(
     }
     if recorder.enabled:
         ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
+        frames = nearest_frames(task)
         for i, pred in enumerate(preds):
-            recorder.refined_view(task.name, i, pred, iou=ious[i])
+            recorder.refined_view(task.name, i, pred, iou=ious[i], frame=frames[i])
 
 
 def summarize(reports: list[SceneReport]) -> dict:

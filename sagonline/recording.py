@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 ELLIPSOID_LIMIT = 50_000  # larger scenes are drawn as points: ellipsoids would drown the viewer
+BACKGROUND_3D = (190, 180, 160)  # Gaussians labelled background, in the 3D view
 
 PALETTE = np.array(
     [
@@ -79,10 +80,13 @@ class Recorder:
     def enabled(self) -> bool:
         return self.rec is not None
 
-    def _at(self, timeline: str, index: int) -> None:
-        """Only `timeline` set: a frame's data never lands on another timeline's last index."""
+    def _at(self, timeline: str, index: int, frame: int | None = None) -> None:
+        """Only `timeline` (and `frame` where given) set: data never lands on another
+        timeline's last index."""
         self.rec.reset_time()
         self.rec.set_time(timeline, sequence=index)
+        if frame is not None:
+            self.rec.set_time("frame", sequence=frame)
 
     def _camera(self, path: str, camera) -> None:
         """Transform3D (world -> camera, OpenCV axes) + Pinhole of a view at `path`."""
@@ -139,10 +143,13 @@ class Recorder:
         ground_truth: np.ndarray,
         camera=None,
         iou: float | None = None,
+        frame: int | None = None,
     ) -> None:
+        """Eval view `index`, also placed at trajectory `frame` (its own or the nearest view), so
+        scrubbing `frame` shows the fused labels and ground truth beside the segmenter."""
         if not self.enabled:
             return
-        self._at("eval_view", index)
+        self._at("eval_view", index, frame)
         base = f"scenes/{scene}/eval/camera"
         if camera is not None:
             self._camera(base, camera)
@@ -153,12 +160,17 @@ class Recorder:
             self.rec.log(f"scenes/{scene}/metrics/iou", self.rr.Scalars(iou))
 
     def refined_view(
-        self, scene: str, index: int, refined: np.ndarray, iou: float | None = None
+        self,
+        scene: str,
+        index: int,
+        refined: np.ndarray,
+        iou: float | None = None,
+        frame: int | None = None,
     ) -> None:
         """Stage II's answer for eval view `index`, beside the initial one."""
         if not self.enabled:
             return
-        self._at("eval_view", index)
+        self._at("eval_view", index, frame)
         self._mask(f"scenes/{scene}/eval/camera/refined", refined)
         if iou is not None:
             self.rec.log(f"scenes/{scene}/metrics/refined_iou", self.rr.Scalars(iou))
@@ -182,7 +194,9 @@ class Recorder:
         labels, labelled = np.asarray(labels), np.asarray(labelled, dtype=bool)
         self.rec.reset_time()
         on = np.flatnonzero(labelled)
-        colors = label_colors(int(labels.max(initial=0)) + 1)[labels[on]]
+        palette = label_colors(int(labels.max(initial=0)) + 1)
+        palette[0] = BACKGROUND_3D  # black in masks; in 3D a visible neutral
+        colors = palette[labels[on]]
         if len(means) <= ELLIPSOID_LIMIT:
             scales = gaussians.scales.detach().cpu().numpy()
             if scales.shape[1] == 2:  # surfels: a thin third axis

@@ -60,7 +60,7 @@ def test_cameras_frames_and_masks_in_their_frusta(recorded):
         assert entry["rows"] == TRAJECTORY and entry["timelines"] == {"frame"}
     for image in ("rgb", "prediction", "ground_truth", "refined"):
         entry = found[f"{base}/eval/camera/{image}"]
-        assert entry["rows"] == EVAL and entry["timelines"] == {"eval_view"}, image
+        assert entry["rows"] == EVAL and entry["timelines"] == {"eval_view", "frame"}, image
     assert found[f"{base}/eval/camera"]["rows"] == EVAL
 
 
