@@ -92,13 +92,13 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
         train_idx, _ = split_views(cams, cfg.holdout_every)  # held-out views stay unseen
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.npz"
-        key = ",".join(c.name for c in train)
+        key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
         if cache.is_file():
             with np.load(cache) as z:
                 if str(z["views"]) == key:
                     return (z["xyz"], z["rgb"]), f"triangulated ({len(z['xyz'])}, cached)"
         try:
-            xyz, rgb, summary = triangulate_known_poses(train, images)
+            xyz, rgb, summary = triangulate_known_poses(train, images, seed=cfg.seed)
         except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
             if cfg.init == "triangulate":
                 raise DatasetError(f"{scene_dir}: triangulation failed: {exc}") from exc
@@ -219,6 +219,14 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
             out / f"heldout_{train_cams[i].name}.png", (pair * 255 + 0.5).astype(np.uint8)
         )
     ckpt.unlink(missing_ok=True)
+    if metrics["stopped"] == "time_budget":
+        print(
+            f"WARNING: {scene}: the fit stopped at its time budget (fit.time_budget_s="
+            f"{fit_cfg.time_budget_s}) after {metrics['iterations']} of "
+            f"{metrics['iterations_planned']} iterations; the scene depends on how busy the "
+            "machine was. Every run on it will say so.",
+            file=sys.stderr,
+        )
     on_object = metrics["psnr_heldout_object"]
     print(
         f"{scene}: PSNR train {metrics['psnr_train']:.2f} dB, held-out "

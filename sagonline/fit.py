@@ -189,7 +189,6 @@ class SceneFitter:
         self.cfg, self.cams, self.images = cfg, cameras, [i.to(cfg.device) for i in images]
         self.train_idx, self.held_idx = split_views(cameras, cfg.holdout_every)
         rng = np.random.default_rng(cfg.seed)
-        torch.manual_seed(cfg.seed)
         centers = torch.stack([c.center for c in cameras]).double()
         self.extent = float((centers - centers.mean(0)).norm(dim=1).max()) * 1.1 or 1.0
         if near_far is None:
@@ -223,6 +222,7 @@ class SceneFitter:
         clear = self._clear_of_cameras(torch.tensor(points[0], dtype=torch.float32)).cpu().numpy()
         self._init_params(points[0][clear], points[1][clear], rng)
         self.step, self.history, self.elapsed = 0, [], 0.0
+        self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
     # --- parameters ---------------------------------------------------------------------------
     def _init_params(self, xyz: np.ndarray, rgb: np.ndarray, rng) -> None:
@@ -305,6 +305,7 @@ class SceneFitter:
         recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
         while self.step < cfg.iterations:
             if cfg.time_budget_s is not None and time.perf_counter() - start > cfg.time_budget_s:
+                self.stopped = "time_budget"
                 break
             i = self.train_idx[int(rng.integers(len(self.train_idx)))]
             for group in self.optim.param_groups:
@@ -402,8 +403,14 @@ class SceneFitter:
             from sagonline.gaussians import quat_to_rotmat
 
             rot = quat_to_rotmat(F.normalize(p["quats"][idx], dim=1))
+            # seeded by (seed, step): the same fit whatever else used torch's global generator,
+            # and the same after a resume
+            gen = torch.Generator(device=scales.device).manual_seed(
+                self.cfg.seed * 1_000_003 + self.step
+            )
             for _ in range(2):
-                offset = (rot @ (torch.randn_like(scales) * scales)[..., None])[..., 0]
+                noise = torch.randn(scales.shape, generator=gen, device=scales.device)
+                offset = (rot @ (noise * scales)[..., None])[..., 0]
                 new["means"].append(p["means"][idx] + offset)
                 new["log_scales"].append(p["log_scales"][idx] - math.log(1.6))
                 for k in ("quats", "opacity_logit", "sh_dc", "sh_rest"):
@@ -459,6 +466,8 @@ class SceneFitter:
             "psnr_heldout": mean_psnr(self.held_idx),
             "gaussians": len(self),
             "iterations": self.step,
+            "iterations_planned": self.cfg.iterations,
+            "stopped": self.stopped,
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "final_loss": float(np.mean(self.history[-20:])) if self.history else None,

@@ -180,6 +180,16 @@ def run_stage_one(
     cache = StageCache(cache_dir)
     report = SceneReport(scene=task.name)
     report.extra["empty_ground_truth_views"] = check_ground_truth(task)
+    fit = task.meta.get("fit")
+    if fit:
+        report.extra["fit"] = fit
+        if fit.get("stopped") == "time_budget":
+            warnings.warn(
+                f"{task.dataset}/{task.name}: its scene was fitted under a time budget and stopped "
+                f"after {fit.get('iterations')} of {fit.get('iterations_planned')} iterations "
+                f"({fit['path']}); its numbers depend on how busy that machine was",
+                stacklevel=2,
+            )
     report.inputs = input_digests(task)
     keys = stage_keys(report.inputs, settings, segmenter_key or {"name": segmenter.name}, vote_cfg)
 

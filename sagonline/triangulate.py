@@ -28,13 +28,17 @@ def triangulate_known_poses(
     *,
     max_features: int = 8192,
     two_view_tracks: bool = True,
-    num_threads: int = -1,
+    num_threads: int = 1,
+    seed: int = 0,
 ) -> tuple[np.ndarray, np.ndarray, dict]:
     """Triangulate SIFT matches between `cameras` (all sharing one image folder and one set of
     intrinsics up to scale) with their poses fixed.
 
     image_paths: view name -> image file. Returns (P, 3) xyz, (P, 3) rgb in [0, 1] and a summary
-    (points, mean track length, mean reprojection error in pixels)."""
+    (points, mean track length, mean reprojection error in pixels). Deterministic by default:
+    COLMAP's random seed is `seed`, and extraction, matching and triangulation run on
+    `num_threads` (1: the same points every time; more threads finish sooner but assign image
+    ids and verify pairs in a varying order)."""
     import pycolmap
 
     views = [c for c in cameras if c.name in image_paths]
@@ -57,6 +61,7 @@ def triangulate_known_poses(
         pinhole[c.name] = (w, h, [K[0, 0] * sx, K[1, 1] * sy, K[0, 2] * sx, K[1, 2] * sy])
     shared = len({(w, h, tuple(np.round(p, 6))) for w, h, p in pinhole.values()}) == 1
 
+    pycolmap.set_random_seed(seed)
     work = Path(tempfile.mkdtemp(prefix="sagonline_tri_"))
     level = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2  # errors only: COLMAP logs every step at INFO
@@ -77,7 +82,11 @@ def triangulate_known_poses(
             reader_options=reader,
             extraction_options=extraction,
         )
-        pycolmap.match_exhaustive(db)
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = num_threads
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = seed
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification)
 
         database = pycolmap.Database.open(db)
         try:
@@ -104,6 +113,8 @@ def triangulate_known_poses(
             )
         options = pycolmap.IncrementalPipelineOptions()
         options.triangulation.ignore_two_view_tracks = not two_view_tracks
+        options.num_threads = num_threads
+        options.random_seed = seed
         out = work / "model"
         out.mkdir()
         result = pycolmap.triangulate_points(rec, db, folder, out, options=options)

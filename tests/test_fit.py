@@ -63,6 +63,38 @@ def test_loss_falls_and_densify_changes_the_count(views, kind):
     assert g.kind == kind and torch.isfinite(g.means).all()
 
 
+def test_same_seed_same_scene_and_budget_stops_are_recorded(views):
+    cams, imgs = views
+    fits = [SceneFitter(tiny(iterations=40), cams, imgs) for _ in range(2)]
+    metrics = [f.fit(progress=False) for f in fits]
+    a, b = (f.export() for f in fits)
+    assert metrics[0]["stopped"] == "iterations" and metrics[0]["iterations_planned"] == 40
+    for name in ("means", "quats", "scales", "opacities", "sh"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name  # bit for bit
+    stopped = SceneFitter(tiny(iterations=40, time_budget_s=0.0), cams, imgs).fit(progress=False)
+    assert stopped["stopped"] == "time_budget" and stopped["iterations"] < 40
+
+
+def test_runs_on_a_budget_stopped_fit_say_so(tmp_path):
+    import dataclasses
+
+    from sagonline.consensus import VoteConfig
+    from sagonline.datasets.synthetic import load_synthetic
+    from sagonline.pipeline import PipelineSettings, run_stage_one
+    from sagonline.segmenters.oracle import OracleSegmenter
+
+    task = load_synthetic(
+        layout="forward", num_gaussians=1500, width=40, height=30, num_train_views=5
+    )[0]
+    fit = {"iterations": 394, "iterations_planned": 3000, "stopped": "time_budget", "path": "x"}
+    task = dataclasses.replace(task, meta={**task.meta, "fit": fit})
+    with pytest.warns(UserWarning, match="after 394 of 3000 iterations"):
+        report, _, _ = run_stage_one(
+            task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False)
+        )
+    assert report.extra["fit"]["stopped"] == "time_budget"
+
+
 def test_resume_continues_where_it_stopped(views, tmp_path):
     cams, imgs = views
     ckpt = tmp_path / "fit.pt"

@@ -58,6 +58,20 @@ def find_trained_scene(scene_dir: Path, dataset: str | None = None) -> Path:
     )
 
 
+def fit_record(scene_dir: Path, dataset: str | None = None) -> dict | None:
+    """What `make scenes` recorded about the trained scene (iterations, why it stopped, PSNR),
+    or None for a scene it did not fit."""
+    import json
+
+    path = find_trained_scene(scene_dir, dataset).parent / "fit_metrics.json"
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return None
+    keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout")
+    return {k: record[k] for k in keys if k in record} | {"path": str(path)}
+
+
 def load_trained_scene(scene_dir: Path, dataset: str | None = None) -> Gaussians:
     path = find_trained_scene(scene_dir, dataset)
     try:

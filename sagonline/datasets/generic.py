@@ -36,6 +36,7 @@ from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, Scen
 from sagonline.datasets.common import (
     check_mask_size,
     click_prompt,
+    fit_record,
     gaussians_dir,
     list_masks,
     load_mask,
@@ -305,7 +306,12 @@ class PosedMasksDataset(DatasetAdapter):
             prompt=prompt,
             trajectory_gt=traj_gt,
             label_names=names,
-            meta={"reference": reference, "scored_views": len(evals), "root": str(scene_dir)},
+            meta={
+                "reference": reference,
+                "scored_views": len(evals),
+                "root": str(scene_dir),
+                "fit": fit_record(scene_dir, self.name),
+            },
             ignore_label=self.ignore,
         )
 

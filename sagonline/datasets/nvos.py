@@ -34,6 +34,7 @@ from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, Scen
 from sagonline.datasets.common import (
     check_mask_size,
     click_prompt,
+    fit_record,
     load_mask,
     load_trained_scene,
     scene_cameras,
@@ -163,7 +164,12 @@ class NVOSDataset(DatasetAdapter):
             num_labels=2,
             prompt=prompt,
             label_names=["background", task],
-            meta={"target": target, "reference": reference, "prompt": self.prompt_kind},
+            meta={
+                "target": target,
+                "reference": reference,
+                "prompt": self.prompt_kind,
+                "fit": fit_record(scene_dir, "nvos"),
+            },
         )
 
     def capture(self, scene: str) -> tuple[Path, list, dict[str, Path]]:
