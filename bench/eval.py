@@ -178,12 +178,16 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
     changed = []
     recorded = {s["scene"]: s.get("inputs") or {} for s in previous.get("scenes", [])}
     for scene in scenes:
+        before = recorded.get(scene, {})
         try:
             now = input_digests(adapter.load_scene(scene))
         except DatasetError as exc:
-            changed.append(f"  {scene}: cannot load now ({exc})")
+            if before:  # a scene that failed then and fails now is unchanged
+                changed.append(f"  {scene}: cannot load now ({exc})")
             continue
-        before = recorded.get(scene, {})
+        if not before:
+            changed.append(f"  {scene}: failed in the finished run, loads now")
+            continue
         changed += [
             f"  {scene}: {k} changed ({str(before.get(k))[:12]} -> {str(v)[:12]})"
             for k, v in now.items()

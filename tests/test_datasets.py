@@ -269,3 +269,10 @@ def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
     assert good["status"] == "ok" and good["miou"] > 0.5
     broken = next(s for s in m["scenes"] if s["scene"] == "broken")
     assert "gaussians/point_cloud.ply" in broken["error"]
+    # the same partial run again: skipped; once the broken scene loads, refused until overwrite
+    assert evaluate(cfg, tmp_path / "run")["miou"] == m["miou"]
+    llff_scene(root / "broken", NAMES[:4])
+    from bench.common import RunExists
+
+    with pytest.raises(RunExists):
+        evaluate(cfg, tmp_path / "run")
