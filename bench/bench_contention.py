@@ -28,16 +28,10 @@ sys.path.insert(0, str(ROOT))
 
 
 def scene():
-    from sagonline.cameras import load_nerf_transforms
-    from sagonline.io import read_scene
-    from sagonline.synthetic import make_scene
+    """The first scene `make bench` times: the donut, else the generated 200k-surfel scene."""
+    from bench.bench_render import scenes
 
-    donut = ROOT.parent / "shared" / "data" / "donut_3dgs"
-    if donut.exists():
-        cam = load_nerf_transforms(donut / "transforms.json")[0].scaled(960, 540)
-        return "donut (3DGS, 45,624)", read_scene(donut / "point_cloud.ply"), cam
-    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
-    return f"synthetic 360 (2DGS, {len(s.gaussians):,})", s.gaussians, s.train_cameras[1]
+    return next(scenes())
 
 
 def vote_times(backend: str, threads: int, masks: int, start_at: float | None = None) -> list:
