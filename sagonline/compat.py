@@ -73,7 +73,3 @@ def import_torchvision():
 
     torchvision.extension._has_ops = lambda: True
     return torchvision
-
-
-def torchvision_shimmed() -> bool:
-    return _shimmed

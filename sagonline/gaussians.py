@@ -85,10 +85,6 @@ class Gaussians:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         return replace(self, **{k: (fn(v) if v is not None else None) for k, v in values.items()})
 
-    def base_colors(self) -> torch.Tensor:
-        """(N, 3) view-independent colour from the DC coefficient, clamped to [0, 1]."""
-        return (self.sh[:, 0] * SH_C0 + 0.5).clamp(0.0, 1.0)
-
     def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
         return self.means.min(dim=0).values, self.means.max(dim=0).values
 

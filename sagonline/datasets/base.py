@@ -9,7 +9,7 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
-from sagonline.segmenters.base import Prompt
+from sagonline.prompts import Prompt
 
 
 class DatasetError(RuntimeError):

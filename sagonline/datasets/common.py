@@ -13,7 +13,8 @@ from sagonline.cameras import IMAGE_SUFFIXES, Camera, list_images, load_cameras,
 from sagonline.datasets.base import DatasetError
 from sagonline.gaussians import Gaussians
 from sagonline.io import SceneFileError, read_scene
-from sagonline.segmenters.base import ObjectPrompt, Prompt
+from sagonline.prompts import ObjectPrompt, Prompt
+from sagonline.trajectory import pseudo_temporal_order
 
 TRAINED_SCENE_HELP = (
     "put the trained Gaussian scene at {dir}/gaussians/point_cloud.ply (2DGS or 3DGS layout; "
@@ -109,7 +110,7 @@ def scene_cameras(
         raise DatasetError(f"cameras of {scene_dir}: {exc}") from exc
     if size is not None:
         cams = [c if (c.width, c.height) == size else c.scaled(*size) for c in cams]
-    return sorted(cams, key=lambda c: c.name)
+    return pseudo_temporal_order(cams)
 
 
 def load_mask(path: Path, threshold: int = 127, mode: str = "binary") -> np.ndarray:

@@ -45,7 +45,7 @@ from sagonline.datasets.common import (
     scene_cameras,
 )
 from sagonline.metrics import resize_nearest
-from sagonline.segmenters.base import Prompt
+from sagonline.prompts import Prompt
 
 LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train

@@ -39,7 +39,7 @@ from sagonline.datasets.common import (
     load_trained_scene,
     scene_cameras,
 )
-from sagonline.segmenters.base import ObjectPrompt, Prompt
+from sagonline.prompts import ObjectPrompt, Prompt
 
 TASKS = {
     "fern": ("IMG_4027", "IMG_4038"),

@@ -1,4 +1,4 @@
-"""SPIn-NeRF multiview segmentation benchmark (10 scenes), scored as in PROTOCOLS.md.
+"""SPIn-NeRF multiview segmentation benchmark (10 scenes), scored as in datasets/spinnerf/README.md.
 
     <root>/<scene>/images_4|images_8/   the capture (LLFF scenes: poses_bounds.npy;
                                         lego: transforms.json or poses_bounds.npy)

@@ -21,7 +21,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from sagonline.segmenters.base import Prompt, VideoSegmenter
+from sagonline.prompts import Prompt
+from sagonline.segmenters.base import VideoSegmenter
 
 
 class FlowWatershedSegmenter(VideoSegmenter):

@@ -20,7 +20,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sagonline.segmenters.base import Prompt, VideoSegmenter
+from sagonline.prompts import Prompt
+from sagonline.segmenters.base import VideoSegmenter
 
 VIDEO_OVERRIDES = {
     "model._target_": "sam2.sam2_video_predictor.SAM2VideoPredictor",

@@ -19,7 +19,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sagonline.segmenters.base import Prompt, VideoSegmenter
+from sagonline.prompts import Prompt
+from sagonline.segmenters.base import VideoSegmenter
 
 
 def merge_text_masks(

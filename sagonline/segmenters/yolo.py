@@ -19,7 +19,8 @@ import time
 import cv2
 import numpy as np
 
-from sagonline.segmenters.base import Prompt, VideoSegmenter
+from sagonline.prompts import Prompt
+from sagonline.segmenters.base import VideoSegmenter
 
 VEHICLES = ("car", "bus", "truck", "motorcycle", "train")
 
