@@ -133,7 +133,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
         for scene in scenes:
             try:
                 task = adapter.load_scene(scene)
-                report, vote, artefacts = run_stage_one(
+                report, vote, stage_one = run_stage_one(
                     task,
                     segmenter,
                     vote_cfg,
@@ -149,13 +149,13 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
                 continue
             if cfg.refine.enabled:
                 refine_key = settings_key(
-                    "refine", STAGE_VERSIONS["refine"], artefacts["keys"], str(cfg.refine)
+                    "refine", STAGE_VERSIONS["refine"], stage_one.keys, str(cfg.refine)
                 )
                 checkpoint = cache_root / scene / f"refine-{refine_key}.pt"
                 run_stage_two(
                     task,
                     vote,
-                    artefacts,
+                    stage_one,
                     refine_config_from(cfg),
                     settings,
                     report,

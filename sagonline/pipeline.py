@@ -72,6 +72,19 @@ class SceneReport:
         (self.timings if fresh else self.cached_timings).update(times)
 
 
+@dataclass
+class StageOneOutput:
+    """What Stage I hands to Stage II: the trajectory's frames (T RGB uint8 images), the
+    segmenter's masks, the label count, the three stage keys, and the names of the views whose
+    masks voted."""
+
+    frames: list[np.ndarray]
+    segmentation: SegmentationResult
+    num_labels: int
+    keys: dict[str, str]
+    voted: set[str]
+
+
 def settings_key(*parts) -> str:
     """Stable digest of JSON-able settings."""
     return digest_json(*parts)
@@ -173,9 +186,9 @@ def run_stage_one(
     segmenter_key: dict | None = None,
     cache_dir: str | Path | None = None,
     recorder: Recorder | None = None,
-) -> tuple[SceneReport, VoteResult, dict]:
-    """Run and score Stage I on one scene. Returns the report, the vote, and the artefacts
-    (frames, masks, stage keys) that later stages (refinement) reuse."""
+) -> tuple[SceneReport, VoteResult, StageOneOutput]:
+    """Run and score Stage I on one scene. Returns the report, the vote, and what Stage II
+    (refinement) reuses."""
     recorder = recorder or Recorder(None)
     cache = StageCache(cache_dir)
     report = SceneReport(scene=task.name)
@@ -263,14 +276,7 @@ def run_stage_one(
         vote.labelled.cpu().numpy(),
         vote.histogram.cpu().numpy(),
     )
-    artefacts = {
-        "frames": frames,
-        "segmentation": seg,
-        "num_labels": num_labels,
-        "keys": keys,
-        "voted": voted,
-    }
-    return report, vote, artefacts
+    return report, vote, StageOneOutput(frames, seg, num_labels, keys, voted)
 
 
 def check_ground_truth(task: SceneTask) -> list[str]:
@@ -398,7 +404,7 @@ def record_scores(
 def run_stage_two(
     task: SceneTask,
     vote: VoteResult,
-    artefacts: dict,
+    stage_one: StageOneOutput,
     refine_cfg,
     settings: PipelineSettings,
     report: SceneReport,
@@ -410,7 +416,7 @@ def run_stage_two(
     from sagonline.refine import RefinementTrainer
     from sagonline.refine.service import OnlineSegmentation
 
-    num_labels = artefacts["num_labels"]
+    num_labels = stage_one.num_labels
     g = task.gaussians.to(settings.device)
     service = OnlineSegmentation(
         g,
@@ -424,9 +430,9 @@ def run_stage_two(
     trainer = RefinementTrainer(
         refine_cfg,
         num_labels,
-        artefacts["frames"],
+        stage_one.frames,
         coarse,
-        artefacts["segmentation"].masks,
+        stage_one.segmentation.masks,
         checkpoint,
     )
     service.trainer = trainer
@@ -456,7 +462,7 @@ def run_stage_two(
             preds, [v.gt for v in task.eval_views], settings.resize, task.ignore_label
         )
     report.refined_miou, report.refined_macc = record_scores(
-        task, preds, settings, report, "refined", artefacts.get("voted")
+        task, preds, settings, report, "refined", stage_one.voted
     )
     report.timings.update(
         {
@@ -509,6 +515,7 @@ __all__ = [
     "PipelineSettings",
     "SceneReport",
     "SegmentationResult",
+    "StageOneOutput",
     "StageCache",
     "run_stage_one",
     "summarize",
