@@ -49,9 +49,9 @@ class FitConfig:
     kind: str = "2dgs"
     init: str = "auto"  # auto: COLMAP points, else triangulated (poses fixed), else random
     background_points: int = 5000  # random points in the frusta added to a sparse-point start
-    iterations: int = 2000
-    sh_degree: int = 1
-    init_points: int = 20000
+    iterations: int = 3000
+    sh_degree: int = 3
+    init_points: int = 15000
     lambda_dssim: float = 0.2
     lambda_aniso: float = 0.0  # weight of the needle penalty (see `anisotropy_penalty`)
     max_aspect: float = 10.0  # longest / shortest axis allowed before the penalty starts
@@ -60,18 +60,20 @@ class FitConfig:
     lr_quats: float = 1e-3
     lr_opacity: float = 5e-2
     lr_sh: float = 2.5e-3  # degree 0; higher degrees learn 20x slower (as 3DGS)
-    camera_clearance: float = 0.0  # prune Gaussians this close to any camera centre (0: off)
+    # prune Gaussians this close to any camera centre; 0: off; None: the caller's automatic
+    # value (`make scenes`: half the nearest recorded depth), off when none is given
+    camera_clearance: float | None = None
     densify_from: int = 200
     densify_until: int = 1500
     densify_every: int = 100
     grad_threshold: float = 2e-4
     percent_dense: float = 0.01
-    max_gaussians: int = 200_000
-    opacity_reset_every: int = 3000
+    max_gaussians: int = 40_000
+    opacity_reset_every: int = 1000
     prune_opacity: float = 0.005
     holdout_every: int = 8
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    checkpoint_every: int = 200
+    checkpoint_every: int = 100
     time_budget_s: float | None = None
     seed: int = 0
     device: str = "cpu"
@@ -433,7 +435,7 @@ class SceneFitter:
 
     def _clear_of_cameras(self, means: torch.Tensor) -> torch.Tensor:
         """(N,) bool: centres at least `camera_clearance` from every camera centre."""
-        if self.cfg.camera_clearance <= 0:
+        if not self.cfg.camera_clearance or self.cfg.camera_clearance <= 0:
             return torch.ones(len(means), dtype=torch.bool, device=means.device)
         nearest = torch.cdist(means, self.camera_centers).min(dim=1).values
         return nearest >= self.cfg.camera_clearance
