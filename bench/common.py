@@ -23,6 +23,22 @@ from sagonline.pipeline import PipelineSettings, SceneReport
 from sagonline.utils import atomic_write_json, atomic_write_text, describe_device
 
 
+def register_schemas() -> None:
+    """The dataclasses are Hydra's schemas: conf/consensus/*.yaml and conf/scenes.yaml's `fit`
+    only select and override them, so each default lives once (in the dataclass) and a wrong
+    type or an unknown key fails at composition, naming the key."""
+    from hydra.core.config_store import ConfigStore
+
+    from sagonline.fit import FitConfig
+
+    store = ConfigStore.instance()
+    store.store(group="consensus", name="schema", node=VoteConfig)
+    store.store(group="fit", name="schema", node=FitConfig)
+
+
+register_schemas()
+
+
 class RunExists(SystemExit):
     """A finished run is in the way: refused, nothing of it was touched."""
 

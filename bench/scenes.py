@@ -24,6 +24,7 @@ from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
 from PIL import Image
 
+from bench.common import register_schemas
 from sagonline.cameras import load_llff_bounds, read_colmap_points
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
@@ -158,10 +159,8 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         raise DatasetError(
             f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
         )
-    fit_d = OmegaConf.to_container(cfg.fit, resolve=True)
-    max_side = fit_d.pop("max_side")
-    fit_cfg = FitConfig(**fit_d)
-    train_cams, train_imgs = load_images(cams, images, max_side)
+    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
+    train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
     bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
         b = load_llff_bounds(scene_dir)
@@ -236,6 +235,9 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         f"{metrics['fit_seconds']:.0f} s -> {out}"
     )
     return metrics
+
+
+register_schemas()
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")

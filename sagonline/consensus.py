@@ -42,12 +42,12 @@ class MaskError(ValueError):
 class VoteConfig:
     """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
 
-    method: str = "rgc"
-    eps: float = 0.01
-    delta: float = 2.0
-    min_votes: int = 1
-    margin: float = 0.2
-    num_masks: int | None = None
+    method: str = "rgc"  # rgc | flashsplat | weighted_mean
+    eps: float = 0.01  # a Gaussian votes only while T_i > eps; the walk stops when T falls to eps
+    delta: float = 2.0  # ... and only if its projected centre is within delta px of the pixel
+    min_votes: int = 1  # fewer votes leave it unlabelled
+    margin: float = 0.2  # top-1 minus top-2 vote share below this (or a tie): unlabelled
+    num_masks: int | None = None  # how many masks vote (None: all)
     stride: int = 1
     selection: str = "uniform"  # "uniform" (evenly spaced), "first", or "random" (seeded)
     seed: int = 0

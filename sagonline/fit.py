@@ -49,7 +49,8 @@ class FitConfig:
     kind: str = "2dgs"
     init: str = "auto"  # auto: COLMAP points, else triangulated (poses fixed), else random
     background_points: int = 5000  # random points in the frusta added to a sparse-point start
-    iterations: int = 3000
+    max_side: int = 228  # images downsampled so the longer side is at most this (`make scenes`)
+    iterations: int = 3000  # the paper trains 30k on a GPU; CPU fits are for small scenes
     sh_degree: int = 3
     init_points: int = 15000
     lambda_dssim: float = 0.2
@@ -74,7 +75,7 @@ class FitConfig:
     holdout_every: int = 8
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     checkpoint_every: int = 100
-    time_budget_s: float | None = None
+    time_budget_s: float | None = None  # seconds; None: bounded by iterations alone
     seed: int = 0
     device: str = "cpu"
     backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer

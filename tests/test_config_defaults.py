@@ -1,8 +1,5 @@
-"""One default per setting: the YAML in conf/ and the dataclasses must not drift apart.
-
-Until the dataclasses are Hydra's schema (the YAML then only selects and overrides), this test
-is what keeps the two copies equal: a default changed on one side fails here, naming the key.
-"""
+"""One default per setting: the dataclasses are Hydra's schemas and the YAML only selects and
+overrides, so what a run composes is the dataclass's default unless something overrides it."""
 
 from __future__ import annotations
 
@@ -10,36 +7,32 @@ from dataclasses import asdict
 from pathlib import Path
 
 import pytest
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
+import bench.common  # noqa: F401 (registers the schemas)
 from sagonline.consensus import VoteConfig
 from sagonline.fit import FitConfig
 
-CONF = Path(__file__).resolve().parents[1] / "conf"
-INTERPOLATED = ("seed", "device")  # set from the top-level config
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 
-def _drift(defaults: dict, yaml: dict, skip=()) -> list[str]:
-    out = []
-    for key, value in yaml.items():
-        if key in skip or key in INTERPOLATED or key == "defaults":
-            continue
-        if key not in defaults:
-            out.append(f"{key}: in the YAML only")
-            continue
-        mine = list(defaults[key]) if isinstance(defaults[key], tuple) else defaults[key]
-        if mine != value:
-            out.append(f"{key}: dataclass {defaults[key]!r}, YAML {value!r}")
-    return out
+def _compose(name: str, *overrides: str):
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        return compose(name, overrides=list(overrides))
 
 
-def test_fit_defaults_equal_the_scenes_yaml():
-    yaml = OmegaConf.to_container(OmegaConf.load(CONF / "scenes.yaml").fit)
-    assert _drift(asdict(FitConfig()), yaml, skip=("max_side",)) == []
-    assert set(asdict(FitConfig())) <= set(yaml)  # every setting can be set from the YAML
+def test_fit_composes_to_the_dataclass_defaults():
+    fit = OmegaConf.to_container(_compose("scenes").fit, resolve=True)
+    assert fit == {**asdict(FitConfig()), "seed": 0, "device": "cpu"} | {
+        "background": list(FitConfig().background)
+    }
+    with pytest.raises(ConfigCompositionException):
+        _compose("scenes", "fit.iterations=many")
 
 
 @pytest.mark.parametrize("method", ["rgc", "flashsplat", "weighted_mean"])
-def test_vote_defaults_equal_the_consensus_yaml(method):
-    yaml = OmegaConf.to_container(OmegaConf.load(CONF / "consensus" / f"{method}.yaml"))
-    assert _drift(asdict(VoteConfig()), yaml, skip=("method",)) == []
+def test_consensus_composes_to_the_dataclass_defaults(method):
+    vote = OmegaConf.to_container(_compose("eval", f"consensus={method}").consensus, resolve=True)
+    assert vote == asdict(VoteConfig(method=method))
