@@ -100,3 +100,11 @@ def test_empty_view_is_background():
     out = rasterize(behind, cam, background=torch.tensor([1.0, 0.5, 0.0]))
     assert torch.allclose(out.rgb, torch.tensor([1.0, 0.5, 0.0]).expand_as(out.rgb))
     assert out.alpha.abs().max() == 0
+
+
+def test_misspelt_render_option_is_refused():
+    from sagonline.render import render
+
+    g = random_gaussians(10, "3dgs", seed=0)
+    with pytest.raises(TypeError, match="trace_tmin"):
+        render(g, small_camera(), trace_tmin=0.5)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import inspect
+
 import numpy as np
 import torch
 
@@ -11,6 +13,8 @@ from sagonline.render.rasterize import RenderOutput, rasterize
 
 BACKENDS = ("torch", "native", "gsplat", "auto")
 TRACE_OPTIONS = ("trace", "trace_only")
+# Every option `render` takes: those of the readable twin, `rasterize`.
+RENDER_OPTIONS = frozenset(inspect.signature(rasterize).parameters) - {"gaussians", "camera"}
 
 
 def resolve_backend(backend: str, device: torch.device | str) -> str:
@@ -35,8 +39,16 @@ def render(
     """Render (and optionally trace) one view; keyword arguments as in `rasterize`. The native
     CPU kernel renders images, features and most-visible ids; traces go to the torch path (the
     vote has its own compiled pass, `consensus_vote`)."""
+    unknown = sorted(set(kwargs) - RENDER_OPTIONS)
+    if unknown:  # a misspelt option would otherwise do nothing
+        raise TypeError(
+            f"render(): unknown option(s) {unknown}; the options are {sorted(RENDER_OPTIONS)}"
+        )
     chosen = resolve_backend(backend, gaussians.device)
     if chosen == "gsplat":
+        cannot = [k for k in ("return_ids", "stats") if kwargs.get(k)]
+        if cannot:
+            raise ValueError(f"renderer gsplat cannot honour {cannot}; use backend='torch'")
         from sagonline.render.gsplat_backend import rasterize_gsplat
 
         return rasterize_gsplat(gaussians, camera, **kwargs)
