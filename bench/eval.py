@@ -43,10 +43,9 @@ from sagonline.pipeline import (
     input_digests,
     run_stage_one,
     run_stage_two,
-    settings_key,
     summarize,
 )
-from sagonline.provenance import STAGE_VERSIONS, digest_file, git_state
+from sagonline.provenance import STAGE_VERSIONS, digest_file, digest_json, git_state
 from sagonline.recording import Recorder
 from sagonline.render.api import resolve_backend
 
@@ -148,7 +147,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
                 reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
                 continue
             if cfg.refine.enabled:
-                refine_key = settings_key(
+                refine_key = digest_json(
                     "refine", STAGE_VERSIONS["refine"], stage_one.keys, str(cfg.refine)
                 )
                 checkpoint = cache_root / scene / f"refine-{refine_key}.pt"

@@ -159,13 +159,6 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         raise DatasetError(
             f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
         )
-    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
-    train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
-    bounds = near_far = None
-    if (scene_dir / "poses_bounds.npy").is_file():
-        b = load_llff_bounds(scene_dir)
-        bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
-        near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
     out = output_dir(scene_dir, adapter.name)
     foreign = foreign_scene(out)
     if not cfg.overwrite:
@@ -180,6 +173,13 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
                 file=sys.stderr,
             )
             return {"scene": scene, "skipped": True}
+    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
+    train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
+    bounds = near_far = None
+    if (scene_dir / "poses_bounds.npy").is_file():
+        b = load_llff_bounds(scene_dir)
+        bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
+        near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
     points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out)
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
         fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)

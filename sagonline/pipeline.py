@@ -85,11 +85,6 @@ class StageOneOutput:
     voted: set[str]
 
 
-def settings_key(*parts) -> str:
-    """Stable digest of JSON-able settings."""
-    return digest_json(*parts)
-
-
 def input_digests(task: SceneTask) -> dict:
     """Content digests of everything a scene's numbers depend on, besides the settings."""
     return {
