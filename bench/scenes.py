@@ -148,7 +148,8 @@ def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> floa
         inside = resize_nearest((labels > 0).astype(np.uint8), (cam.height, cam.width)) > 0
         if not inside.any():
             continue
-        err = ((rgb - fitter.images[i]) ** 2).mean(-1)[torch.from_numpy(inside)]
+        err = ((rgb.to(fitter.images[i].device) - fitter.images[i]) ** 2).mean(-1)
+        err = err[torch.from_numpy(inside).to(err.device)]
         values.append(psnr_from_mse(float(err.mean())))
     return float(np.mean(values)) if values else None
 
@@ -205,7 +206,9 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         }
     )
     g = fitter.export()
-    renders = {i: fitter.render(g, i).rgb.clamp(0, 1) for i in fitter.held_idx}
+    with torch.no_grad():
+        on_device = g.to(fit_cfg.device)
+        renders = {i: fitter.render(on_device, i).rgb.clamp(0, 1).cpu() for i in fitter.held_idx}
     metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter, renders)
     if foreign is not None:  # overwrite=true: keep the user's scene beside ours
         backup = foreign.with_name(f"{foreign.name}.bak-{time.strftime('%Y%m%d-%H%M%S')}")

@@ -45,12 +45,13 @@ class Camera:
             raise ValueError(f"{who}: size {self.width!r}x{self.height!r} is not two integers")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"{who}: size {self.width}x{self.height} is not positive")
-        if not (torch.isfinite(self.K).all() and torch.isfinite(self.world_to_cam).all()):
+        K, pose = self.K.detach().double().cpu(), self.world_to_cam.detach().double().cpu()
+        if not (torch.isfinite(K).all() and torch.isfinite(pose).all()):
             raise ValueError(f"{who}: intrinsics or pose hold NaN/Inf")
-        fx, fy = float(self.K[0, 0]), float(self.K[1, 1])
+        fx, fy = float(K[0, 0]), float(K[1, 1])
         if fx <= 0 or fy <= 0:
             raise ValueError(f"{who}: focal lengths fx={fx:g}, fy={fy:g} must be positive")
-        R = self.world_to_cam[:3, :3].double()
+        R = pose[:3, :3]
         off = (R @ R.T - torch.eye(3, dtype=R.dtype)).abs().max()
         if off > 1e-3 or torch.linalg.det(R) <= 0:
             raise ValueError(

@@ -189,7 +189,8 @@ class SceneFitter:
                     f"image of view {cam.name} is {tuple(img.shape)}, its camera "
                     f"{cam.height}x{cam.width}"
                 )
-        self.cfg, self.cams, self.images = cfg, cameras, [i.to(cfg.device) for i in images]
+        self.cfg, self.images = cfg, [i.to(cfg.device) for i in images]
+        self.cams = [c.to(cfg.device) for c in cameras]
         self.train_idx, self.held_idx = split_views(cameras, cfg.holdout_every)
         rng = np.random.default_rng(cfg.seed)
         centers = torch.stack([c.center for c in cameras]).double()
@@ -438,7 +439,7 @@ class SceneFitter:
         """(N,) bool: centres at least `camera_clearance` from every camera centre."""
         if not self.cfg.camera_clearance or self.cfg.camera_clearance <= 0:
             return torch.ones(len(means), dtype=torch.bool, device=means.device)
-        nearest = torch.cdist(means, self.camera_centers).min(dim=1).values
+        nearest = torch.cdist(means, self.camera_centers.to(means.device)).min(dim=1).values
         return nearest >= self.cfg.camera_clearance
 
     @torch.no_grad()

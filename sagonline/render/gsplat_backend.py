@@ -90,8 +90,9 @@ def rasterize_gsplat(
         )
         shape_key, indices_fn = "conics", gsplat.rasterize_to_indices_in_range
     else:
+        # rasterization_2dgs takes per-camera colours only: (C, N, D)
         img, alphas, *_, meta = gsplat.rasterization_2dgs(
-            g.means, g.quats, surfel_scales(g.scales), g.opacities, colors, **common
+            g.means, g.quats, surfel_scales(g.scales), g.opacities, colors[None], **common
         )
         shape_key, indices_fn = "ray_transforms", gsplat.rasterize_to_indices_in_range_2dgs
     if trace is not None:
