@@ -31,7 +31,7 @@ import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy b
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from sagonline.cameras import load_nerf_transforms  # noqa: E402
+from sagonline.io.cameras import load_nerf_transforms  # noqa: E402
 from sagonline.consensus import VoteConfig, consensus_vote  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402

@@ -29,7 +29,7 @@ def register_schemas() -> None:
     type or an unknown key fails at composition, naming the key."""
     from hydra.core.config_store import ConfigStore
 
-    from sagonline.fit import FitConfig
+    from sagonline.fitting import FitConfig
 
     store = ConfigStore.instance()
     store.store(group="consensus", name="schema", node=VoteConfig)

@@ -3,7 +3,7 @@
 For each scene: read its images and cameras, downsample to `fit.max_side`, initialise from
 COLMAP points where the capture has them, else from SIFT matches triangulated with the training
 cameras fixed (pycolmap), else random points in the training frusta,
-fit (sagonline.fit), and write point_cloud.ply + cameras.json + fit_config.json +
+fit (sagonline.fitting), and write point_cloud.ply + cameras.json + fit_config.json +
 fit_metrics.json where the dataset adapter looks (`<scene>/gaussians/`, or
 `scenes/<dataset>/<scene>/gaussians/` when the data folder is read-only), with side-by-side
 renders of the held-out views to look at. Interrupted fits resume from fit_checkpoint.pt.
@@ -22,16 +22,15 @@ import numpy as np
 import torch
 from hydra.utils import instantiate
 from omegaconf import DictConfig, OmegaConf
-from PIL import Image
 
 from bench.common import register_schemas
-from sagonline.cameras import load_llff_bounds, read_colmap_points
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.fit import FitConfig, SceneFitter, psnr_from_mse, split_views, write_fitted_scene
-from sagonline.metrics import resize_nearest
-from sagonline.triangulate import triangulate_known_poses
-from sagonline.utils import atomic_write_image, atomic_write_npz
+from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
+from sagonline.fitting.capture import initial_points, load_images, near_depth
+from sagonline.io.cameras import load_llff_bounds
+from sagonline.io.images import resize_nearest
+from sagonline.utils import atomic_write_image
 
 
 def output_dir(scene_dir: Path, dataset: str) -> Path:
@@ -57,78 +56,6 @@ def foreign_scene(out: Path) -> Path | None:
     scene = out / "point_cloud.ply"
     ours = (out / "fit_metrics.json").is_file() or (out / "fit_checkpoint.pt").is_file()
     return scene if scene.is_file() and not ours else None
-
-
-def load_images(cams, images: dict[str, Path], max_side: int):
-    """Cameras that have an image, rescaled so the longer side is at most `max_side`, and
-    their images as (H, W, 3) float tensors in [0, 1]."""
-    out_cams, out_imgs = [], []
-    for cam in cams:
-        if cam.name not in images:
-            continue
-        with Image.open(images[cam.name]) as im:
-            im = im.convert("RGB")
-            scale = min(1.0, max_side / max(im.size))
-            w, h = max(1, round(im.size[0] * scale)), max(1, round(im.size[1] * scale))
-            arr = np.asarray(im.resize((w, h), Image.Resampling.LANCZOS), np.float32) / 255.0
-        out_cams.append(cam.scaled(w, h))
-        out_imgs.append(torch.from_numpy(arr))
-    return out_cams, out_imgs
-
-
-def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path], out: Path):
-    """Start points for the fit and what they are: the capture's COLMAP points, else SIFT
-    matches triangulated with the training cameras fixed (cached in `out`), else None (random
-    points in the frusta). Returns ((xyz, rgb) or None, description)."""
-    if cfg.init not in ("auto", "colmap", "triangulate", "random"):
-        raise DatasetError(f"fit.init={cfg.init!r}: use auto, colmap, triangulate or random")
-    if cfg.init in ("auto", "colmap"):
-        for sparse in (scene_dir / "sparse" / "0", scene_dir / "sparse"):
-            if (sparse / "points3D.bin").is_file() or (sparse / "points3D.txt").is_file():
-                xyz, rgb = read_colmap_points(sparse)
-                return (xyz, rgb.astype(np.float32) / 255.0), f"colmap points ({len(xyz)})"
-        if cfg.init == "colmap":
-            raise DatasetError(f"{scene_dir}: fit.init=colmap but there is no sparse/ model")
-    if cfg.init in ("auto", "triangulate"):
-        train_idx, _ = split_views(cams, cfg.holdout_every)  # held-out views stay unseen
-        train = [cams[i] for i in train_idx]
-        cache = out / "init_points.npz"
-        key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
-        if cache.is_file():
-            with np.load(cache) as z:
-                if str(z["views"]) == key:
-                    return (z["xyz"], z["rgb"]), f"triangulated ({len(z['xyz'])}, cached)"
-        try:
-            xyz, rgb, summary = triangulate_known_poses(train, images, seed=cfg.seed)
-        except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
-            if cfg.init == "triangulate":
-                raise DatasetError(f"{scene_dir}: triangulation failed: {exc}") from exc
-            print(f"note: {scene_dir}: triangulation failed ({exc}); random start points")
-            return None, "random in frusta"
-        if len(xyz) >= 100:
-            out.mkdir(parents=True, exist_ok=True)
-            atomic_write_npz(cache, xyz=xyz, rgb=rgb, views=np.array(key))
-            return (xyz, rgb), (
-                f"triangulated ({summary['points']} points, track "
-                f"{summary['mean_track_length']:.2f}, error "
-                f"{summary['mean_reprojection_error_px']:.2f} px)"
-            )
-        if cfg.init == "triangulate":
-            raise DatasetError(f"{scene_dir}: only {len(xyz)} points triangulated")
-    return None, "random in frusta"
-
-
-def near_depth(cams, points, bounds) -> float:
-    """The nearest scene depth the capture records: LLFF's near bound, else the 2nd percentile
-    of the start points' depths over the training views, else 0 (unknown)."""
-    if bounds is not None:
-        return bounds[0]
-    if points is None:
-        return 0.0
-    xyz = torch.tensor(points[0], dtype=torch.float32)
-    depths = [cam.project(xyz)[1] for cam in cams]
-    z = torch.cat([d[d > 0] for d in depths])
-    return float(torch.quantile(z, 0.02)) if z.numel() else 0.0
 
 
 def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> float | None:

@@ -56,8 +56,8 @@ def _cmd_info(args: argparse.Namespace) -> int:
 def _cmd_render(args: argparse.Namespace) -> int:
     import torch
 
-    from sagonline.cameras import load_cameras
     from sagonline.io import read_scene
+    from sagonline.io.cameras import load_cameras
     from sagonline.render import render
     from sagonline.utils import atomic_write_image, atomic_write_npy
 
@@ -123,8 +123,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from sagonline.cameras import CameraFileError
     from sagonline.io import SceneFileError
+    from sagonline.io.cameras import CameraFileError
 
     args = build_parser().parse_args(argv)
     try:

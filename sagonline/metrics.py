@@ -12,22 +12,15 @@ prediction's (`resize="gt_to_pred"`).
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 import torch
+
+from sagonline.io.images import resize_nearest
 
 RESIZE_RULES = {
     "pred_to_gt": "prediction resized to the ground truth's resolution (nearest neighbour)",
     "gt_to_pred": "ground truth resized to the prediction's resolution (nearest neighbour)",
 }
-
-
-def resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    if mask.shape == shape:
-        return mask
-    return cv2.resize(
-        mask.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST
-    ).astype(mask.dtype)
 
 
 def align(pred, gt, resize: str = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:

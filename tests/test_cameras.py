@@ -8,7 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.cameras import (
+from sagonline.io import read_scene
+from sagonline.io.cameras import (
     CameraFileError,
     load_cameras,
     load_colmap,
@@ -18,7 +19,6 @@ from sagonline.cameras import (
     read_colmap_points,
     write_3dgs_cameras_json,
 )
-from sagonline.io import read_scene
 from sagonline.trajectory import pseudo_temporal_order, smooth_path
 from tests.conftest import shared_data, small_camera
 

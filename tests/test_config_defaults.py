@@ -13,7 +13,7 @@ from omegaconf import OmegaConf
 
 import bench.common  # noqa: F401 (registers the schemas)
 from sagonline.consensus import VoteConfig
-from sagonline.fit import FitConfig
+from sagonline.fitting import FitConfig
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 

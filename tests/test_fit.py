@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.fit import FitConfig, SceneFitter, split_views, ssim
+from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
 from sagonline.render import rasterize
 from sagonline.synthetic import make_scene
 

@@ -22,11 +22,11 @@ import torch
 
 from bench.common import RunExists
 from bench.eval import evaluate
-from sagonline.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.synthetic import load_synthetic
 from sagonline.io import write_ply
+from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.pipeline import PipelineSettings, SceneReport, StageCache, record_scores
 from sagonline.pipeline import run_stage_one as stage_one
 from sagonline.segmenters.oracle import OracleSegmenter

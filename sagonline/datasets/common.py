@@ -9,10 +9,12 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sagonline.cameras import IMAGE_SUFFIXES, Camera, list_images, load_cameras, load_llff
+from sagonline.cameras import Camera
 from sagonline.datasets.base import DatasetError
 from sagonline.gaussians import Gaussians
 from sagonline.io import SceneFileError, read_scene
+from sagonline.io.cameras import load_cameras, load_llff
+from sagonline.io.images import IMAGE_SUFFIXES, list_images
 from sagonline.prompts import ObjectPrompt, Prompt
 from sagonline.trajectory import pseudo_temporal_order
 

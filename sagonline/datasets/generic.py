@@ -31,7 +31,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sagonline.cameras import IMAGE_SUFFIXES, Camera
+from sagonline.cameras import Camera
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import (
     check_mask_size,
@@ -44,7 +44,7 @@ from sagonline.datasets.common import (
     match_by_name,
     scene_cameras,
 )
-from sagonline.metrics import resize_nearest
+from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
 
 LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")

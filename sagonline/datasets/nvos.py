@@ -174,7 +174,7 @@ class NVOSDataset(DatasetAdapter):
 
     def capture(self, scene: str) -> tuple[Path, list, dict[str, Path]]:
         """The LLFF scene behind a task (or a scene name): folder, cameras, images."""
-        from sagonline.cameras import list_images
+        from sagonline.io.images import list_images
 
         scene_dir = self.scene_dir(scene)
         cams = scene_cameras(scene_dir, self.image_dir)

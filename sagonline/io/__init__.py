@@ -1,5 +1,18 @@
-"""File formats: Gaussian scenes (PLY, .splat) and raw <-> activated parameter conversion."""
+"""File formats: Gaussian scenes (PLY, .splat), camera files, image folders."""
 
+from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
+from sagonline.io.images import IMAGE_SUFFIXES, list_images, resize_nearest
 from sagonline.io.ply import SceneFileError, read_scene, read_splat, write_ply
 
-__all__ = ["SceneFileError", "read_scene", "read_splat", "write_ply"]
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "CameraFileError",
+    "SceneFileError",
+    "list_images",
+    "load_cameras",
+    "read_scene",
+    "read_splat",
+    "resize_nearest",
+    "write_3dgs_cameras_json",
+    "write_ply",
+]

@@ -1,0 +1,43 @@
+"""The fitting recipe's settings, one default each (registered as the Hydra schema `fit/schema`;
+conf/scenes.yaml only overrides)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class FitConfig:
+    kind: str = "2dgs"
+    init: str = "auto"  # auto: COLMAP points, else triangulated (poses fixed), else random
+    background_points: int = 5000  # random points in the frusta added to a sparse-point start
+    max_side: int = 228  # images downsampled so the longer side is at most this (`make scenes`)
+    iterations: int = 3000  # the paper trains 30k on a GPU; CPU fits are for small scenes
+    sh_degree: int = 3
+    init_points: int = 15000
+    lambda_dssim: float = 0.2
+    lambda_aniso: float = 0.0  # weight of the needle penalty (see `anisotropy_penalty`)
+    max_aspect: float = 10.0  # longest / shortest axis allowed before the penalty starts
+    lr_means: float = 1.6e-4  # times the scene extent, decayed to 1% by the end
+    lr_scales: float = 5e-3
+    lr_quats: float = 1e-3
+    lr_opacity: float = 5e-2
+    lr_sh: float = 2.5e-3  # degree 0; higher degrees learn 20x slower (as 3DGS)
+    # prune Gaussians this close to any camera centre; 0: off; None: the caller's automatic
+    # value (`make scenes`: half the nearest recorded depth), off when none is given
+    camera_clearance: float | None = None
+    densify_from: int = 200
+    densify_until: int = 1500
+    densify_every: int = 100
+    grad_threshold: float = 2e-4
+    percent_dense: float = 0.01
+    max_gaussians: int = 40_000
+    opacity_reset_every: int = 1000
+    prune_opacity: float = 0.005
+    holdout_every: int = 8
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    checkpoint_every: int = 100
+    time_budget_s: float | None = None  # seconds; None: bounded by iterations alone
+    seed: int = 0
+    device: str = "cpu"
+    backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer

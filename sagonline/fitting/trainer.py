@@ -1,0 +1,292 @@
+"""The fitting loop: raw parameters, Adam, the schedule, evaluation and checkpoints. It knows
+nothing of datasets: cameras, images and optional start points come in, a scene goes out.
+
+Parameters in raw form (log scales, opacity logits, unnormalised quaternions, SH split into
+degree 0 and the rest), Adam with the 3DGS learning rates (positions scaled by the scene extent
+and decayed exponentially, higher SH degrees at 1/20 of degree 0), the loss of
+`losses.photometric_loss` (plus the optional needle penalty), densification by
+`strategy.DensifyStrategy`. Every 8th view (sorted by name) is held out and scored by PSNR.
+
+On CPU the rasterizer is this library's own: the compiled kernel with its hand-written backward
+(`render.native`; `backend: auto` picks it), or autograd through the tiled PyTorch path
+(`backend: torch`, same values, slower); on CUDA `backend: auto` renders through gsplat, whose
+2DGS and 3DGS rasterization is differentiable there. Simplifications against the 2DGS reference,
+stated here once: the positional gradient is taken in world space (scaled by depth to pixels)
+rather than on the projected means, the optimiser state of new Gaussians starts at zero, all SH
+degrees train from the start, and 2DGS's depth-distortion and normal-consistency regularisers
+are not used.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections import deque
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from sagonline.cameras import Camera
+from sagonline.fitting.config import FitConfig
+from sagonline.fitting.losses import anisotropy_penalty, photometric_loss, psnr
+from sagonline.fitting.start_points import split_views, start_points
+from sagonline.fitting.strategy import DensifyStrategy, Params
+from sagonline.gaussians import SH_C0, Gaussians
+from sagonline.io import write_ply
+from sagonline.io.cameras import write_3dgs_cameras_json
+from sagonline.render.api import render
+from sagonline.utils import atomic_write, atomic_write_json
+
+
+class SceneFitter:
+    """Holds the raw parameters and the optimiser; `fit` runs (or resumes) the schedule.
+    images: (H, W, 3) floats in [0, 1], one per camera; points: optional (xyz, rgb) start points;
+    other_cameras: cameras of the capture without an image (kept clear like the others)."""
+
+    def __init__(
+        self,
+        cfg: FitConfig,
+        cameras: list[Camera],
+        images: list[torch.Tensor],
+        points: tuple[np.ndarray, np.ndarray] | None = None,
+        near_far: tuple[float, float] | None = None,
+        other_cameras: list[Camera] = (),
+    ):
+        if cfg.kind not in ("2dgs", "3dgs"):
+            raise ValueError(f"fit kind {cfg.kind!r} is not '2dgs' or '3dgs'")
+        if len(cameras) != len(images) or len(cameras) < 2:
+            raise ValueError("fitting needs at least two posed images")
+        for cam, img in zip(cameras, images, strict=True):
+            if tuple(img.shape) != (cam.height, cam.width, 3):
+                raise ValueError(
+                    f"image of view {cam.name} is {tuple(img.shape)}, its camera "
+                    f"{cam.height}x{cam.width}"
+                )
+        self.cfg, self.images = cfg, [i.to(cfg.device) for i in images]
+        self.cams = [c.to(cfg.device) for c in cameras]
+        self.train_idx, self.held_idx = split_views(cameras, cfg.holdout_every)
+        rng = np.random.default_rng(cfg.seed)
+        centers = torch.stack([c.center for c in cameras]).double()
+        self.extent = float((centers - centers.mean(0)).norm(dim=1).max()) * 1.1 or 1.0
+        if near_far is None:
+            dist = float((centers - centers.mean(0)).norm(dim=1).mean())
+            near_far = (0.2 * dist, 2.0 * dist)
+        xyz, rgb = start_points(
+            [cameras[i] for i in self.train_idx],
+            [images[i] for i in self.train_idx],
+            points,
+            near_far,
+            cfg.init_points,
+            cfg.background_points,
+            rng,
+        )
+        # nothing of the scene sits closer than `camera_clearance` to any camera of the capture
+        # (training ones and those without an image): Gaussians there are floaters that no
+        # training view constrains yet every nearby novel view looks through
+        every_center = torch.stack([c.center for c in [*cameras, *other_cameras]])
+        self.strategy = DensifyStrategy(cfg, every_center, self.extent)
+        clear = self.strategy.clear_of_cameras(torch.tensor(xyz, dtype=torch.float32))
+        clear = clear.cpu().numpy()
+        self._init_params(xyz[clear], rgb[clear], rng)
+        self.step, self.history, self.elapsed = 0, [], 0.0
+        self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
+
+    # --- parameters ---------------------------------------------------------------------------
+    def _init_params(self, xyz: np.ndarray, rgb: np.ndarray, rng) -> None:
+        dev = self.cfg.device
+        n = len(xyz)
+        means = torch.tensor(xyz, dtype=torch.float32, device=dev)
+        # initial scale: distance to the 3 nearest neighbours (as 3DGS), in log space
+        from scipy.spatial import cKDTree
+
+        d, _ = cKDTree(xyz).query(xyz, k=min(4, n))
+        d = np.sqrt(np.mean(np.asarray(d).reshape(n, -1)[:, 1:] ** 2, axis=1)).clip(1e-7)
+        dims = 2 if self.cfg.kind == "2dgs" else 3
+        k = (self.cfg.sh_degree + 1) ** 2
+        sh = torch.zeros(n, k, 3, device=dev)
+        sh[:, 0] = (torch.tensor(rgb, dtype=torch.float32, device=dev) - 0.5) / SH_C0
+        quats = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32, device=dev)
+        log_scales = torch.log(torch.tensor(d, dtype=torch.float32, device=dev))
+        self._set_params(
+            {
+                "means": means,
+                "log_scales": log_scales[:, None].repeat(1, dims),
+                "quats": quats / quats.norm(dim=1, keepdim=True),
+                "opacity_logit": torch.full((n,), math.log(0.1 / 0.9), device=dev),
+                "sh_dc": sh[:, :1].contiguous(),
+                "sh_rest": sh[:, 1:].contiguous(),
+            }
+        )
+
+    def _set_params(self, params: Params) -> None:
+        """Adopt a new parameter set: a fresh optimiser and fresh gradient statistics."""
+        cfg = self.cfg
+        self.params = params
+        for p in params.values():
+            p.requires_grad_(True)
+        lrs = {
+            "means": cfg.lr_means * self.extent,
+            "log_scales": cfg.lr_scales,
+            "quats": cfg.lr_quats,
+            "opacity_logit": cfg.lr_opacity,
+            "sh_dc": cfg.lr_sh,
+            "sh_rest": cfg.lr_sh / 20,
+        }
+        self.optim = torch.optim.Adam(
+            [{"params": [params[k]], "lr": lr, "name": k} for k, lr in lrs.items()], eps=1e-15
+        )
+        self.strategy.reset(len(self))
+
+    def __len__(self) -> int:
+        return self.params["means"].shape[0]
+
+    @property
+    def camera_centers(self) -> torch.Tensor:
+        """(C, 3) centres of every camera of the capture."""
+        return self.strategy.camera_centers
+
+    def gaussians(self) -> Gaussians:
+        p = self.params
+        return Gaussians(
+            means=p["means"],
+            quats=F.normalize(p["quats"], dim=1),
+            scales=torch.exp(p["log_scales"]),
+            opacities=torch.sigmoid(p["opacity_logit"]),
+            sh=torch.cat([p["sh_dc"], p["sh_rest"]], dim=1),
+        )
+
+    def export(self) -> Gaussians:
+        """The fitted scene on the CPU, detached."""
+        g = self.gaussians()
+        return Gaussians(
+            **{
+                k: getattr(g, k).detach().cpu()
+                for k in ("means", "quats", "scales", "opacities", "sh")
+            }
+        )
+
+    def render(self, gaussians: Gaussians, view: int):
+        """Render training view `view` as the fit sees it (its background and backend)."""
+        bg = torch.tensor(self.cfg.background, device=self.cfg.device)
+        return render(gaussians, self.cams[view], background=bg, backend=self.cfg.backend)
+
+    def anisotropy_penalty(self) -> torch.Tensor:
+        return anisotropy_penalty(self.params["log_scales"], self.cfg.max_aspect)
+
+    def prune_near_cameras(self) -> int:
+        """Drop Gaussians inside the camera clearance; returns how many."""
+        params, dropped = self.strategy.prune_near_cameras(self.params)
+        if params is not None:
+            self._set_params(params)
+        return dropped
+
+    # --- the loop -----------------------------------------------------------------------------
+    def fit(self, progress: bool = True, checkpoint: Path | None = None) -> dict:
+        cfg = self.cfg
+        rng = np.random.default_rng(cfg.seed + self.step)
+        bar = tqdm(total=cfg.iterations, initial=self.step, desc="fit", disable=not progress)
+        start = time.perf_counter() - self.elapsed
+        recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
+        while self.step < cfg.iterations:
+            if cfg.time_budget_s is not None and time.perf_counter() - start > cfg.time_budget_s:
+                self.stopped = "time_budget"
+                break
+            i = self.train_idx[int(rng.integers(len(self.train_idx)))]
+            for group in self.optim.param_groups:
+                if group["name"] == "means":
+                    frac = self.step / max(cfg.iterations, 1)
+                    group["lr"] = cfg.lr_means * self.extent * (0.01**frac)
+            out = self.render(self.gaussians(), i)
+            gt = self.images[i]
+            loss = photometric_loss(out.rgb, gt, cfg.lambda_dssim)
+            if cfg.lambda_aniso:
+                loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()
+            self.optim.zero_grad(set_to_none=True)
+            loss.backward()
+            self.strategy.after_backward(self.params, self.cams[i])
+            self.optim.step()
+            self.step += 1
+            self.history.append(loss.item())
+            recent_psnr.append(psnr(out.rgb.detach().clamp(0, 1), gt))
+            changed = self.strategy.after_step(self.params, self.step)
+            if changed is not None:
+                self._set_params(changed)
+            bar.update(1)
+            if self.step % 10 == 0:
+                bar.set_postfix(
+                    loss=f"{np.mean(self.history[-10:]):.4f}",
+                    psnr=f"{np.mean(recent_psnr):.2f}",
+                    n=len(self),
+                )
+            if checkpoint is not None and self.step % cfg.checkpoint_every == 0:
+                self.elapsed = time.perf_counter() - start
+                self.save(checkpoint)
+        bar.close()
+        self.prune_near_cameras()
+        self.elapsed = time.perf_counter() - start
+        if checkpoint is not None:
+            self.save(checkpoint)
+        return self.evaluate()
+
+    @torch.no_grad()
+    def evaluate(self) -> dict:
+        g = self.gaussians()
+
+        def mean_psnr(ids):
+            vals = [psnr(self.render(g, i).rgb.clamp(0, 1), self.images[i]) for i in ids]
+            return float(np.mean(vals)) if vals else None
+
+        return {
+            "psnr_train": mean_psnr(self.train_idx),
+            "psnr_heldout": mean_psnr(self.held_idx),
+            "gaussians": len(self),
+            "iterations": self.step,
+            "iterations_planned": self.cfg.iterations,
+            "stopped": self.stopped,
+            "fit_seconds": round(self.elapsed, 1),
+            "heldout_views": [self.cams[i].name for i in self.held_idx],
+            "final_loss": float(np.mean(self.history[-20:])) if self.history else None,
+        }
+
+    # --- checkpoints --------------------------------------------------------------------------
+    def save(self, path: Path) -> None:
+        state = {
+            "params": {k: v.detach().cpu() for k, v in self.params.items()},
+            "optim": self.optim.state_dict(),
+            "step": self.step,
+            "history": self.history,
+            "elapsed": self.elapsed,
+            **self.strategy.state_dict(),
+            "config": asdict(self.cfg),
+        }
+        atomic_write(path, lambda tmp: torch.save(state, tmp))
+
+    def resume(self, path: Path) -> bool:
+        """Continue an interrupted fit with the same settings; False if there is none."""
+        if not path.is_file():
+            return False
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        if state["config"] != asdict(self.cfg):
+            return False
+        self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
+        self.optim.load_state_dict(state["optim"])
+        self.step, self.history, self.elapsed = state["step"], state["history"], state["elapsed"]
+        self.strategy.load_state_dict(state)
+        return True
+
+
+def write_fitted_scene(
+    out_dir: Path, fitter: SceneFitter, all_cameras: list[Camera], metrics: dict
+) -> Path:
+    """point_cloud.ply + cameras.json (every camera of the scene) + fit_config.json +
+    fit_metrics.json into `out_dir` (the dataset adapter's `gaussians/` folder)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_ply(out_dir / "point_cloud.ply", fitter.export())
+    write_3dgs_cameras_json(out_dir / "cameras.json", all_cameras)
+    atomic_write_json(out_dir / "fit_config.json", asdict(fitter.cfg))
+    atomic_write_json(out_dir / "fit_metrics.json", metrics)
+    return out_dir / "point_cloud.ply"
