@@ -35,7 +35,7 @@ from sagonline.io.cameras import load_nerf_transforms  # noqa: E402
 from sagonline.consensus import VoteConfig, consensus_vote  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402
-from sagonline.render import RasterStats, render  # noqa: E402
+from sagonline.render import RasterStats, TraceRequest, render  # noqa: E402
 from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
 from sagonline.render.native import native_available  # noqa: E402
 from sagonline.synthetic import make_scene  # noqa: E402
@@ -93,7 +93,7 @@ def main() -> None:
     ap.add_argument("--out", default=str(ROOT / "reports" / "bench_render.csv"))
     args = ap.parse_args()
     devices = [d for d in args.devices.split(",") if d == "cpu" or torch.cuda.is_available()]
-    rows = []
+    rows, rule = [], VoteConfig()
     for name, gaussians, cam in scenes():
         for device in devices:
             g, c = gaussians.to(device), cam.to(device)
@@ -113,12 +113,10 @@ def main() -> None:
                 step = timed(partial(training_step, g, c, backend), args.repeats, device)
                 traced = vote = None
                 if backend != "native":  # traces always run on the tiled PyTorch path there
-                    traced = timed(partial(run, trace=consume), args.repeats, device)
-                    vote = timed(
-                        partial(run, trace=consume, trace_only=True, trace_max_distance=2.0),
-                        args.repeats,
-                        device,
-                    )
+                    with_image = TraceRequest(consume, rule.eps, image=True)
+                    traced = timed(partial(run, trace=with_image), args.repeats, device)
+                    vote_pass = TraceRequest(consume, rule.eps, max_distance=rule.delta)
+                    vote = timed(partial(run, trace=vote_pass), args.repeats, device)
                 vote_ms = 1000 * timed(partial(one_vote, g, c, backend), args.repeats, device)
                 if backend == "torch":
                     render(g, c, stats=stats)

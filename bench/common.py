@@ -8,7 +8,7 @@ import os
 import random
 import sys
 from contextlib import contextmanager
-from dataclasses import asdict
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
@@ -20,13 +20,21 @@ from omegaconf.errors import OmegaConfBaseException
 
 from sagonline.consensus import VoteConfig
 from sagonline.pipeline import PipelineSettings, SceneReport
+from sagonline.refine import RefineConfig
 from sagonline.utils import atomic_write_json, atomic_write_text, describe_device
 
 
+@dataclass
+class RefineStage(RefineConfig):
+    """Stage II as the harness runs it: the student's settings and whether it runs."""
+
+    enabled: bool = True
+
+
 def register_schemas() -> None:
-    """The dataclasses are Hydra's schemas: conf/consensus/*.yaml and conf/scenes.yaml's `fit`
-    only select and override them, so each default lives once (in the dataclass) and a wrong
-    type or an unknown key fails at composition, naming the key."""
+    """The dataclasses are Hydra's schemas: conf/consensus/*.yaml, conf/refine/student.yaml
+    and conf/scenes.yaml's `fit` only select and override them, so each default lives once (in
+    the dataclass) and a wrong type or an unknown key fails at composition, naming the key."""
     from hydra.core.config_store import ConfigStore
 
     from sagonline.fitting import FitConfig
@@ -34,6 +42,7 @@ def register_schemas() -> None:
     store = ConfigStore.instance()
     store.store(group="consensus", name="schema", node=VoteConfig)
     store.store(group="fit", name="schema", node=FitConfig)
+    store.store(group="refine", name="schema", node=RefineStage)
 
 
 register_schemas()
@@ -212,9 +221,7 @@ def settings_from(cfg: DictConfig) -> PipelineSettings:
     )
 
 
-def refine_config_from(cfg: DictConfig):
-    from sagonline.refine import RefineConfig
-
+def refine_config_from(cfg: DictConfig) -> RefineConfig:
     d = OmegaConf.to_container(cfg.refine, resolve=True)
     d.pop("enabled", None)
     return RefineConfig(**d)

@@ -29,7 +29,7 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.render.api import render, resolve_backend
-from sagonline.render.rasterize import T_STOP, TraceChunk
+from sagonline.render.rasterize import T_STOP, TraceChunk, TraceRequest
 
 METHODS = ("rgc", "flashsplat", "weighted_mean")
 
@@ -111,20 +111,22 @@ class VoteAccumulator:
         """(H*W,) long labels of the frame whose trace comes next."""
         self.mask = mask
 
+    def trace_request(self) -> TraceRequest:
+        """The pairs this method counts, as the renderer streams them: rgc's rule (T_i > eps
+        and the projected centre within delta px) or, for the weighted methods, every pair
+        that is composited (T_i > T_STOP)."""
+        if self.cfg.method == "rgc":
+            return TraceRequest(self, t_min=self.cfg.eps, max_distance=self.cfg.delta)
+        return TraceRequest(self, t_min=T_STOP)
+
     def __call__(self, chunk: TraceChunk) -> None:
-        cfg = self.cfg
-        if cfg.method == "rgc":
-            ok = (chunk.transmittance > cfg.eps) & (chunk.distance < cfg.delta)
-            weight = None
+        """Add one chunk of streamed pairs (already filtered by `trace_request`)."""
+        index = chunk.gaussian * self.k + self.mask[chunk.pixel]
+        if self.cfg.method == "rgc":
+            weight = torch.ones_like(index, dtype=torch.float64)
         else:
-            ok = torch.ones_like(chunk.pixel, dtype=torch.bool)
-            weight = (chunk.alpha * chunk.transmittance)[ok].double()
-        labels = self.mask[chunk.pixel[ok]]
-        index = chunk.gaussian[ok] * self.k + labels
-        if weight is None:
-            self.hist.scatter_add_(0, index, torch.ones_like(index, dtype=torch.float64))
-        else:
-            self.hist.scatter_add_(0, index, weight)
+            weight = (chunk.alpha * chunk.transmittance).double()
+        self.hist.scatter_add_(0, index, weight)
         self.votes_cast += int(index.numel())
 
     def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -202,8 +204,7 @@ def consensus_vote(
         from tqdm import tqdm
 
         iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
-    t_min = cfg.eps if rgc else T_STOP
-    max_distance = cfg.delta if rgc else None
+    request = acc.trace_request()
     compiled = resolve_backend(backend, device) == "native"
     start = time.perf_counter()
     for f in iterator:
@@ -216,21 +217,13 @@ def consensus_vote(
                 cameras[f],
                 mask,
                 acc.hist,
-                t_min=t_min,
-                max_distance=max_distance,
+                t_min=request.t_min,
+                max_distance=request.max_distance,
                 weighted=not rgc,
             )
             continue
         acc.set_mask(mask)
-        render(
-            gaussians,
-            cameras[f],
-            backend=backend,
-            trace=acc,
-            trace_only=True,
-            trace_t_min=t_min,
-            trace_max_distance=max_distance,
-        )
+        render(gaussians, cameras[f], backend=backend, trace=request)
     labels, labelled, hist = acc.finalize()
     elapsed = time.perf_counter() - start
     total = hist.sum(1)

@@ -36,7 +36,7 @@ from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
 
 @dataclass
 class PipelineSettings:
-    backend: str = "torch"
+    backend: str = "auto"  # the compiled kernel on the CPU, gsplat on CUDA, else PyTorch
     device: str = "cpu"
     label_min_weight: float = 0.2
     resize: str = "pred_to_gt"

@@ -36,3 +36,23 @@ def test_fit_composes_to_the_dataclass_defaults():
 def test_consensus_composes_to_the_dataclass_defaults(method):
     vote = OmegaConf.to_container(_compose("eval", f"consensus={method}").consensus, resolve=True)
     assert vote == asdict(VoteConfig(method=method))
+
+
+def test_refine_composes_to_the_dataclass_defaults():
+    from sagonline.refine import RefineConfig
+
+    refine = OmegaConf.to_container(_compose("eval", "refine=student").refine, resolve=True)
+    assert refine == {**asdict(RefineConfig()), "enabled": True}
+    assert _compose("eval").refine == {"enabled": False}
+    with pytest.raises(ConfigCompositionException):
+        _compose("eval", "refine=student", "refine.max_steps=many")
+
+
+def test_pipeline_settings_defaults_are_the_eval_config_defaults():
+    from bench.common import settings_from
+    from sagonline.pipeline import PipelineSettings
+
+    composed = asdict(settings_from(_compose("eval")))
+    defaults = asdict(PipelineSettings())
+    composed.pop("progress"), defaults.pop("progress")  # CI=true turns progress off
+    assert composed == defaults

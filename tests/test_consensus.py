@@ -23,20 +23,27 @@ def chunk(pixel, gaussian, T, alpha, dist):
     return TraceChunk(t(pixel, torch.long), t(gaussian, torch.long), t(T), t(alpha), t(dist))
 
 
+def streamed(acc, c):
+    """Feed `c` as a renderer serves the accumulator's trace request: only the kept pairs."""
+    keep = acc.trace_request().keeps(c.transmittance, c.alpha, c.distance**2)
+    acc(TraceChunk(*(getattr(c, f)[keep] for f in TraceChunk.__dataclass_fields__)))
+
+
 def test_rgc_votes_only_visible_aligned_gaussians():
     acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
     acc.set_mask(torch.tensor([1, 2, 2, 0]))
     # gaussian 0: visible and aligned at pixel 0 -> votes 1
     # gaussian 1: T below eps -> no vote;  gaussian 2: centre 3 px away -> no vote
     # gaussian 3: votes twice for 2 (pixels 1, 2) and once for 0 (pixel 3)
-    acc(
+    streamed(
+        acc,
         chunk(
             [0, 0, 0, 1, 2, 3],
             [0, 1, 2, 3, 3, 3],
             [1.0, 0.005, 0.9, 0.5, 0.4, 0.3],
             [0.5, 0.9, 0.9, 0.5, 0.5, 0.5],
             [0.5, 0.5, 3.0, 1.0, 1.9, 0.1],
-        )
+        ),
     )
     labels, labelled, hist = acc.finalize()
     assert hist.tolist() == [[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 0, 2]]
@@ -66,7 +73,7 @@ def test_flashsplat_and_weighted_mean_use_blend_weights():
     mask = torch.tensor([1, 0])
     fs = VoteAccumulator(2, 2, VoteConfig(method="flashsplat"))
     fs.set_mask(mask)
-    fs(c)
+    streamed(fs, c)
     labels, labelled, hist = fs.finalize()
     assert hist[0].tolist() == pytest.approx([0.2, 0.8])  # distance is ignored
     assert labels.tolist() == [1, 0]
@@ -74,7 +81,7 @@ def test_flashsplat_and_weighted_mean_use_blend_weights():
     assert fs.finalize()[0].tolist() == [0, 0]
     wm = VoteAccumulator(2, 2, VoteConfig(method="weighted_mean", threshold=0.75))
     wm.set_mask(mask)
-    wm(c)
+    streamed(wm, c)
     assert wm.finalize()[0].tolist() == [1, 0]  # 0.8 >= 0.75
     wm.cfg = VoteConfig(method="weighted_mean", threshold=0.9)
     assert wm.finalize()[0].tolist() == [0, 0]

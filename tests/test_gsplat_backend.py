@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sagonline.render import project, rasterize, render
+from sagonline.render import TraceRequest, project, rasterize, render
 from sagonline.render.gsplat_backend import gsplat_available, trace_step
 from tests.conftest import random_gaussians, small_camera
 
@@ -44,11 +44,19 @@ def test_trace_step_matches_tiled_trace(kind, n_batches):
         sel = pairs[depth_batch == b]
         sel = sel[torch.randperm(len(sel), generator=torch.Generator().manual_seed(b))]
         chunk, T = trace_step(
-            sel[:, 0], sel[:, 1], T, local, rank, proj.params(), proj.kind, W, 0.01, None
+            sel[:, 0],
+            sel[:, 1],
+            T,
+            local,
+            rank,
+            proj.params(),
+            proj.kind,
+            W,
+            TraceRequest(print, 0.01),
         )
         chunks.append(chunk)
     expected = []
-    rasterize(g, cam, trace=expected.append, trace_only=True)
+    rasterize(g, cam, trace=TraceRequest(expected.append, t_min=0.01))
     got, want = _trace_set(chunks), _trace_set(expected)
     assert set(got) == set(want)
     assert max(abs(got[k] - want[k]) for k in want) < 1e-5
@@ -93,7 +101,7 @@ def test_gsplat_trace_agrees_with_torch(kind):
     g = random_gaussians(400, kind, seed=4, spread=1.2).to("cuda")
     cam = small_camera(96, 64).to("cuda")
     a, b = [], []
-    render(g, cam, backend="torch", trace=a.append, trace_only=True)
-    render(g, cam, backend="gsplat", trace=b.append, trace_only=True)
+    render(g, cam, backend="torch", trace=TraceRequest(a.append, t_min=0.01))
+    render(g, cam, backend="gsplat", trace=TraceRequest(b.append, t_min=0.01))
     sa, sb = set(_trace_set(a)), set(_trace_set(b))
     assert len(sa & sb) / len(sa | sb) > 0.97

@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.render import RasterStats, rasterize
+from sagonline.render import RasterStats, TraceRequest, rasterize
 from sagonline.render.reference import reference_render
 from tests.conftest import random_gaussians, small_camera
 
 
 def _fast_trace(g, cam, t_min):
     rows = []
-    rasterize(g, cam, trace=lambda c: rows.append(c), trace_t_min=t_min, trace_only=True)
+    rasterize(g, cam, trace=TraceRequest(rows.append, t_min=t_min))
     if not rows:
         return {}
     cat = {
@@ -76,7 +76,8 @@ def test_trace_is_streamed_in_chunks():
     g = random_gaussians(200, "3dgs", seed=5, spread=1.5)
     cam = small_camera(64, 48)
     sizes = []
-    rasterize(g, cam, trace=lambda c: sizes.append(len(c)), trace_only=True, max_elements=1 << 13)
+    request = TraceRequest(lambda c: sizes.append(len(c)), t_min=0.01)
+    rasterize(g, cam, trace=request, max_elements=1 << 13)
     assert len(sizes) > 3
     assert max(sizes) < sum(sizes)
 
@@ -87,7 +88,7 @@ def test_trace_distance_filter_and_stats():
     full = _fast_trace(g, cam, 0.01)
     near = []
     stats = RasterStats()
-    rasterize(g, cam, trace=near.append, trace_only=True, trace_max_distance=2.0, stats=stats)
+    rasterize(g, cam, trace=TraceRequest(near.append, 0.01, max_distance=2.0), stats=stats)
     kept = {(int(p), int(i)) for c in near for p, i in zip(c.pixel, c.gaussian, strict=True)}
     assert kept == {k for k, v in full.items() if v[2] < 2.0}
     assert stats.intersections > 0 and stats.evaluations >= stats.intersections

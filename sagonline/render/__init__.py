@@ -2,13 +2,20 @@
 
 from sagonline.render.api import render, render_labels
 from sagonline.render.projection import ProjectedSplats, project
-from sagonline.render.rasterize import RasterStats, RenderOutput, TraceChunk, rasterize
+from sagonline.render.rasterize import (
+    RasterStats,
+    RenderOutput,
+    TraceChunk,
+    TraceRequest,
+    rasterize,
+)
 
 __all__ = [
     "ProjectedSplats",
     "RasterStats",
     "RenderOutput",
     "TraceChunk",
+    "TraceRequest",
     "project",
     "rasterize",
     "render",

@@ -12,7 +12,6 @@ from sagonline.gaussians import Gaussians
 from sagonline.render.rasterize import RenderOutput, rasterize
 
 BACKENDS = ("torch", "native", "gsplat", "auto")
-TRACE_OPTIONS = ("trace", "trace_only")
 # Every option `render` takes: those of the readable twin, `rasterize`.
 RENDER_OPTIONS = frozenset(inspect.signature(rasterize).parameters) - {"gaussians", "camera"}
 
@@ -34,29 +33,38 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
 
 
 def render(
-    gaussians: Gaussians, camera: Camera, *, backend: str = "torch", **kwargs
+    gaussians: Gaussians, camera: Camera, *, backend: str = "torch", **options
 ) -> RenderOutput | None:
-    """Render (and optionally trace) one view; keyword arguments as in `rasterize`. The native
-    CPU kernel renders images, features and most-visible ids; traces go to the torch path (the
-    vote has its own compiled pass, `consensus_vote`)."""
-    unknown = sorted(set(kwargs) - RENDER_OPTIONS)
+    """Render (and optionally trace) one view; options as in `rasterize`. The native CPU kernel
+    renders images, features and most-visible ids; a trace (`TraceRequest`) runs on the tiled
+    PyTorch path there (the vote has its own compiled pass, `consensus_vote`). An option the
+    chosen backend cannot honour raises, as does a misspelt one."""
+    unknown = sorted(set(options) - RENDER_OPTIONS)
     if unknown:  # a misspelt option would otherwise do nothing
         raise TypeError(
             f"render(): unknown option(s) {unknown}; the options are {sorted(RENDER_OPTIONS)}"
         )
     chosen = resolve_backend(backend, gaussians.device)
-    if chosen == "gsplat":
-        cannot = [k for k in ("return_ids", "stats") if kwargs.get(k)]
-        if cannot:
-            raise ValueError(f"renderer gsplat cannot honour {cannot}; use backend='torch'")
+    if chosen == "native" and options.get("trace") is not None:
+        chosen = "torch"
+    fn = _backend_function(chosen)
+    accepted = inspect.signature(fn).parameters
+    cannot = sorted(k for k, v in options.items() if k not in accepted and v not in (None, False))
+    if cannot:
+        raise ValueError(f"renderer {chosen} cannot honour {cannot}; use backend='torch'")
+    return fn(gaussians, camera, **{k: v for k, v in options.items() if k in accepted})
+
+
+def _backend_function(name: str):
+    if name == "gsplat":
         from sagonline.render.gsplat_backend import rasterize_gsplat
 
-        return rasterize_gsplat(gaussians, camera, **kwargs)
-    if chosen == "native" and not any(kwargs.get(k) for k in TRACE_OPTIONS):
+        return rasterize_gsplat
+    if name == "native":
         from sagonline.render.native import rasterize_native
 
-        return rasterize_native(gaussians, camera, **kwargs)
-    return rasterize(gaussians, camera, **kwargs)
+        return rasterize_native
+    return rasterize
 
 
 def to_uint8(rgb: torch.Tensor) -> np.ndarray:

@@ -17,8 +17,8 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
-from sagonline.render.projection import project, splat_response
-from sagonline.render.rasterize import RenderOutput, TraceChunk, TraceConsumer
+from sagonline.render.projection import depth_rank, project, splat_response
+from sagonline.render.rasterize import RenderOutput, TraceChunk, TraceRequest
 
 
 def gsplat_available() -> bool:
@@ -54,17 +54,14 @@ def rasterize_gsplat(
     *,
     background=None,
     features=None,
-    trace: TraceConsumer | None = None,
-    trace_t_min: float = 0.01,
-    trace_max_distance: float | None = None,
-    trace_only: bool = False,
+    trace: TraceRequest | None = None,
     near: float = 0.01,
     tile_size: int = 16,
     batch: int = 32,
-    **_: object,
 ) -> RenderOutput | None:
     """Same contract as `sagonline.render.rasterize` (ids are not produced by this backend)."""
     gsplat = _require_gsplat()
+    trace_only = trace is not None and not trace.image
     g = gaussians
     cam = camera.to(g.device)
     viewmats, Ks = cam.world_to_cam[None], cam.K[None]
@@ -104,8 +101,6 @@ def rasterize_gsplat(
             len(g),
             cam,
             trace,
-            trace_t_min,
-            trace_max_distance,
             tile_size,
             batch,
         )
@@ -122,16 +117,13 @@ def rasterize_gsplat(
     )
 
 
-def _walk_trace(
-    indices_fn, meta, shape_key, proj, n, cam, consumer, t_min, max_dist, tile_size, batch
-):
+def _walk_trace(indices_fn, meta, shape_key, proj, n, cam, request, tile_size, batch):
     W, H = cam.width, cam.height
     device = proj.means2d.device
     local = torch.full((n,), -1, dtype=torch.long, device=device)
     local[proj.ids] = torch.arange(len(proj), device=device)
     params = proj.params()
-    rank = torch.empty(len(proj), dtype=torch.long, device=device)
-    rank[torch.sort(proj.depths, stable=True).indices] = torch.arange(len(proj), device=device)
+    rank = depth_rank(proj)
     T = torch.ones(1, H, W, device=device)
     offsets = meta["isect_offsets"]
     longest = int(
@@ -156,11 +148,11 @@ def _walk_trace(
         if gids.numel() == 0:
             break
         chunk, T_flat = trace_step(
-            gids, pids, T.view(-1), local, rank, params, proj.kind, W, t_min, max_dist
+            gids, pids, T.view(-1), local, rank, params, proj.kind, W, request
         )
         T = T_flat.view(1, H, W)
         if len(chunk):
-            consumer(chunk)
+            request.consumer(chunk)
 
 
 def trace_step(
@@ -172,8 +164,7 @@ def trace_step(
     params: torch.Tensor,
     kind: str,
     width: int,
-    t_min: float,
-    max_dist: float | None,
+    request: TraceRequest,
 ) -> tuple[TraceChunk, torch.Tensor]:
     """One depth batch of (Gaussian, pixel) pairs -> the traced chunk and the updated T.
 
@@ -201,9 +192,7 @@ def trace_step(
     ).values
     exclusive = csum - log_keep - (csum[seg_start] - log_keep[seg_start])
     T_before = (T[pids].double() * torch.exp(exclusive)).to(alpha.dtype)
-    hit = (T_before > t_min) & (alpha > 0)
-    if max_dist is not None:
-        hit &= dist2 < max_dist**2
+    hit = request.keeps(T_before, alpha, dist2)
     T_new = T.clone()
     T_new.index_reduce_(0, pids, (1.0 - alpha).to(T.dtype), "prod")
     chunk = TraceChunk(

@@ -127,15 +127,11 @@ def rasterize_native(
     near: float = 0.01,
     tile_size: int = 8,
     return_ids: bool = False,
-    **unused,
 ) -> RenderOutput:
     """Render one view on the CPU through the C++ kernel; outputs as `rasterize`, ids (the most
     visible Gaussian per pixel, -1 where none) with `return_ids`."""
     if gaussians.device.type != "cpu":
         raise ValueError("the native rasterizer runs on the CPU; use gsplat or torch on CUDA")
-    asked = [k for k in ("trace", "trace_only") if unused.get(k)]
-    if asked:
-        raise ValueError(f"the native rasterizer streams no trace; {asked} need `rasterize`")
     W, H = camera.width, camera.height
     proj = project(gaussians, camera, near=near)
     ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
@@ -190,7 +186,7 @@ def vote_native(
     returns the number of votes cast. labels: (H * W,) long mask of the view. A splat votes for
     its pixel's label while T_i > t_min and, with `max_distance`, only if its projected centre is
     closer than that to the pixel centre: +1 (weighted=False) or alpha_i T_i. The same pairs as
-    the PyTorch trace (`rasterize(trace=..., trace_only=True)`), without materialising them."""
+    the PyTorch trace (`rasterize(trace=TraceRequest(...))`), without materialising them."""
     if gaussians.device.type != "cpu":
         raise ValueError("the native vote runs on the CPU; use gsplat or torch on CUDA")
     W, H = camera.width, camera.height

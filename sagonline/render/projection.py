@@ -210,3 +210,11 @@ def splat_response(kind: str, params: torch.Tensor, px: torch.Tensor, py: torch.
     alpha = (opac * torch.exp(power)).clamp_max(ALPHA_MAX)
     alpha = torch.where(inside & (alpha >= ALPHA_MIN), alpha, torch.zeros_like(alpha))
     return alpha, depth_px, dist2
+
+
+def depth_rank(proj: ProjectedSplats) -> torch.Tensor:
+    """(M,) each projected splat's place in front-to-back order (ties keep projection order)."""
+    m = len(proj)
+    rank = torch.empty(m, dtype=torch.long, device=proj.depths.device)
+    rank[torch.sort(proj.depths, stable=True).indices] = torch.arange(m, device=rank.device)
+    return rank

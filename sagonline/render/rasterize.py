@@ -15,7 +15,8 @@ splat that would break that ends the pixel.
 
 The trace streams, per block, the (pixel, Gaussian) pairs met front to back with T_i (the
 transmittance before the splat), alpha_i and the distance of the splat's projected centre from
-the pixel centre, restricted to T_i > `trace_t_min`. A consumer reduces each `TraceChunk` as it
+the pixel centre, filtered as a `TraceRequest` asks (T_i > t_min, the centre within
+max_distance). A consumer reduces each `TraceChunk` as it
 arrives (the consensus vote scatter-adds into a per-Gaussian histogram), so a frame never holds
 all of its traces at once.
 """
@@ -30,7 +31,7 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
-from sagonline.render.projection import ProjectedSplats, project, splat_response
+from sagonline.render.projection import ProjectedSplats, depth_rank, project, splat_response
 
 T_STOP = 1e-4
 
@@ -55,6 +56,26 @@ class TraceChunk:
 
 
 TraceConsumer = Callable[[TraceChunk], None]
+
+
+@dataclass(frozen=True)
+class TraceRequest:
+    """Stream a render's trace to `consumer`: each (pixel, Gaussian) pair met front to back
+    with T_i > t_min and alpha_i > 0 (and, with `max_distance`, the splat's projected centre
+    within that many pixels of the pixel centre). With `image=False` (the vote's pass) nothing
+    is composited, each pixel stops once T <= t_min, and the render returns None."""
+
+    consumer: TraceConsumer
+    t_min: float
+    max_distance: float | None = None
+    image: bool = False
+
+    def keeps(self, T_before: torch.Tensor, alpha: torch.Tensor, dist2: torch.Tensor):
+        """Bool mask of the pairs this request streams; dist2: squared centre distance."""
+        hit = (T_before > self.t_min) & (alpha > 0)
+        if self.max_distance is not None:
+            hit &= dist2 < self.max_distance**2
+        return hit
 
 
 @dataclass
@@ -87,10 +108,7 @@ def rasterize(
     background: torch.Tensor | None = None,
     features: torch.Tensor | None = None,
     return_ids: bool = False,
-    trace: TraceConsumer | None = None,
-    trace_t_min: float = 0.01,
-    trace_max_distance: float | None = None,
-    trace_only: bool = False,
+    trace: TraceRequest | None = None,
     t_stop: float = T_STOP,
     near: float = 0.01,
     tile_size: int = 8,
@@ -102,10 +120,11 @@ def rasterize(
     """Render one view (and optionally stream its trace).
 
     gaussians: N splats; camera: the view; features: (N, F) attributes to composite alongside
-    RGB (e.g. one-hot labels); background: (3,) colour, black by default. With `trace_only`, no
-    image is accumulated and each pixel stops as soon as T <= trace_t_min (the vote's pass).
+    RGB (e.g. one-hot labels); background: (3,) colour, black by default; trace: what to stream
+    (see `TraceRequest`; without its image, None is returned).
     """
     device = gaussians.device
+    trace_only = trace is not None and not trace.image
     W, H = camera.width, camera.height
     proj = project(gaussians, camera, near=near, with_colors=not trace_only)
     ts = tile_size
@@ -120,7 +139,7 @@ def rasterize(
     acc_depth = torch.zeros(n_tiles, P, device=device)
     final_T = torch.ones(n_tiles, P, device=device)
     best_id = torch.full((n_tiles, P), -1, dtype=torch.long, device=device) if return_ids else None
-    stop_T = trace_t_min if trace_only else t_stop
+    stop_T = trace.t_min if trace_only else t_stop
 
     tile_ids, splat_order, tile_offsets, tile_counts = _bin_tiles(proj, ntx, nty, ts)
     if stats is not None:
@@ -178,12 +197,10 @@ def rasterize(
             if stats is not None:
                 stats.evaluations += alpha.numel()
             if trace is not None:
-                hit = (T_before > trace_t_min) & (alpha > 0)
-                if trace_max_distance is not None:
-                    hit &= dist2 < trace_max_distance**2
+                hit = trace.keeps(T_before, alpha, dist2)
                 t_i, b_i, p_i = torch.nonzero(hit, as_tuple=True)
                 if t_i.numel():
-                    trace(
+                    trace.consumer(
                         TraceChunk(
                             pixel=pixel_lin[rows[t_i], p_i],
                             gaussian=proj.ids[splats[t_i, b_i]],
@@ -250,8 +267,7 @@ def _bin_tiles(proj: ProjectedSplats, ntx: int, nty: int, ts: int):
     tx = x0[splat] + local % wx[splat]
     ty = y0[splat] + local // wx[splat]
     tile = ty * ntx + tx
-    rank = torch.empty(m, dtype=torch.long, device=device)
-    rank[torch.sort(proj.depths, stable=True).indices] = torch.arange(m, device=device)
+    rank = depth_rank(proj)
     key = tile * max(m, 1) + rank[splat]
     key, perm = torch.sort(key)
     order = splat[perm]
