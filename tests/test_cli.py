@@ -27,35 +27,18 @@ def test_info_prints_format_count_degree_bbox():
 def test_render_png_and_npy(tmp_path):
     scene = shared_data("donut_3dgs", "point_cloud.ply")
     cams = shared_data("donut_3dgs", "transforms.json")
-    res = _run(
-        "render",
-        str(scene),
-        "--cameras",
-        str(cams),
-        "--width",
-        "96",
-        "--height",
-        "54",
-        "--out",
-        str(tmp_path / "d.npy"),
-    )
+
+    def render_to(name):
+        args = ["--cameras", str(cams), "--width", "96", "--height", "54"]
+        return _run("render", str(scene), *args, "--out", str(tmp_path / name))
+
+    res = render_to("d.npy")
     assert res.returncode == 0, res.stderr
     arr = np.load(tmp_path / "d.npy")
     assert arr.shape == (54, 96, 3) and arr.dtype == np.float32
     assert arr[0, 0].tolist() == [0, 0, 0]  # black background in a corner
     assert arr[:27].max() > 0.3  # the donut sits in the upper half
-    res = _run(
-        "render",
-        str(scene),
-        "--cameras",
-        str(cams),
-        "--width",
-        "96",
-        "--height",
-        "54",
-        "--out",
-        str(tmp_path / "d.png"),
-    )
+    res = render_to("d.png")
     assert res.returncode == 0, res.stderr
     png = np.asarray(Image.open(tmp_path / "d.png"))
     assert png.shape == (54, 96, 3)
