@@ -332,11 +332,13 @@ int64_t vote_tile(const Raster& R, int64_t ti, const int64_t* ids, const int64_t
   // box covers only finished pixels costs one AND, and finished pixels cost nothing.
   const int tile = static_cast<int>(R.tile);
   const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
-  float T[64];
+  float T[64], pxq[64], pyq[64];  // pixel centres, so the walk divides nothing
   int64_t label[64];
   uint64_t active = 0;
   for (int q = 0; q < tile * tile; ++q) {
     const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    pxq[q] = x + 0.5f;
+    pyq[q] = y + 0.5f;
     T[q] = 1.f;
     label[q] = 0;
     if (x < R.width && y < R.height && 1.f > t_min) {
@@ -359,7 +361,7 @@ int64_t vote_tile(const Raster& R, int64_t ti, const int64_t* ids, const int64_t
     const float log_floor = p[2] > 0.f ? std::log(kAlphaMin / p[2]) : 0.f;
     for (; bits; bits &= bits - 1) {
       const int q = __builtin_ctzll(bits);
-      const float px = tx0 + q % tile + 0.5f, py = ty0 + q / tile + 0.5f;
+      const float px = pxq[q], py = pyq[q];
       const float alpha = alpha_at(R.surfel, p, log_floor, px, py);
       if (alpha <= 0.f) continue;
       const float t_before = T[q];
