@@ -332,6 +332,11 @@ def write_outputs(
     }
     rows = [v for r in reports for v in r.views]
     columns = ["scene", "view", "mode", "iou", "acc", "voted"]
+    columns += [
+        k
+        for k in ("photographed", "photo_angle_deg", "photo_distance")
+        if any(k in r for r in rows)
+    ]
     atomic_write_text(
         out_dir / "per_view.csv", pd.DataFrame(rows, columns=columns).to_csv(index=False)
     )

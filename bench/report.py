@@ -141,6 +141,68 @@ def stack_heldout_renders(folder: Path, out: Path) -> Path | None:
     )
 
 
+ANGLE_BINS = [-0.5, 0.5, 10, 20, 30, 180]  # degrees to the nearest photograph
+ANGLE_LABELS = ["photographed", "0-10", "10-20", "20-30", ">30"]
+
+
+def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
+    """Per run (of a capture with photographs for some views): mIoU over the photographed views
+    and over the mask-only ones, over the views whose masks did not vote, and by viewing angle
+    to the nearest photograph; plus each run's per-view rows keyed by its label."""
+    rows, per_view = [], {}
+    for run in runs:
+        views = pd.read_csv(run / "per_view.csv")
+        views = views[views["mode"] == "initial"]
+        if "photo_angle_deg" not in views:
+            continue
+        m = load(run)
+        label = " ".join([m.get("segmenter", "?"), *m.get("overrides", [])])
+        per_view[label] = views
+        photo = views["photographed"].astype(bool)
+        by_angle = pd.cut(views["photo_angle_deg"], ANGLE_BINS, labels=ANGLE_LABELS)
+        row = {
+            "run": label,
+            "views": len(views),
+            "mIoU": views["iou"].mean(),
+            "photographed_mIoU": views.loc[photo, "iou"].mean(),
+            "photographed_views": int(photo.sum()),
+            "mask_only_mIoU": views.loc[~photo, "iou"].mean(),
+            "mask_only_views": int((~photo).sum()),
+            "not_voted_mIoU": views.loc[~views["voted"].astype(bool), "iou"].mean(),
+        }
+        for name, group in views.groupby(by_angle, observed=False)["iou"]:
+            key = f"{name} deg" if name != "photographed" else "at photo"
+            row[f"{key} mIoU"], row[f"{key} views"] = group.mean(), len(group)
+        rows.append(row)
+    return pd.DataFrame(rows), per_view
+
+
+def plot_iou_against_angle(per_view: dict[str, pd.DataFrame], path: Path) -> Path:
+    """Scatter of per-view IoU against the angle to the nearest photograph, one colour per run."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
+    for label, views in per_view.items():
+        ax.scatter(views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7, label=label)
+    ax.set_xlabel("viewing angle to the nearest photograph (degrees; 0: a photographed view)")
+    ax.set_ylabel("IoU (%)")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower left")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_image(path, np.asarray(_figure_rgb(fig)))
+    plt.close(fig)
+    return path
+
+
+def _figure_rgb(fig) -> np.ndarray:
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3]
+
+
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
     pct = [
         c
@@ -163,7 +225,26 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("roots", nargs="*", type=Path)
     ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    ap.add_argument(
+        "--views",
+        metavar="NAME",
+        help="only the per-view table and plot of the given runs (captures with photographs "
+        "for some views): reports/NAME.{md,csv} and reports/NAME_iou_vs_angle.png",
+    )
     args = ap.parse_args(argv)
+    if args.views:
+        table, per_view = view_rows(find_runs(args.roots))
+        if table.empty:
+            raise SystemExit("no run with photographed / mask-only views among those given")
+        notes = [
+            "mIoU in percent over the views of each kind; the angle is between the optical axes "
+            "of a view and of its nearest photographed view.",
+            "run: segmenter and the overrides of the run (metrics.json has the full config).",
+        ]
+        write_table(table, args.out, args.views, f"{args.views}: views by kind", notes)
+        plot_iou_against_angle(per_view, args.out / f"{args.views}_iou_vs_angle.png")
+        print(table.to_string(index=False))
+        return
     roots = args.roots or [ROOT / "runs", ROOT / "multirun"]
     fits = fit_rows([SCENES_ROOT, ROOT / "datasets"])
     if len(fits):

@@ -32,6 +32,7 @@ from sagonline.provenance import (
 from sagonline.recording import Recorder
 from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
 from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
+from sagonline.trajectory import nearest_view
 
 
 @dataclass
@@ -388,6 +389,19 @@ def record_scores(
                 "voted": view.name in (voted or ()),
             }
         )
+    photos = set(task.meta.get("photographs") or ())
+    if photos and rows:  # captures with photographs for some views only (mold_cape)
+        photo_cams = [c for c in task.trajectory if c.name in photos]
+        angle, dist = nearest_view([v.camera for v in task.eval_views], photo_cams)
+        for row, a, d in zip(rows, angle, dist, strict=True):
+            row["photographed"] = row["view"] in photos
+            row["photo_angle_deg"] = 0.0 if row["photographed"] else float(a)
+            row["photo_distance"] = 0.0 if row["photographed"] else float(d)
+        split = report.extra.setdefault("by_view_kind", {})
+        for kind, want in (("photographed", True), ("mask_only", False)):
+            ious = [r["iou"] for r in rows if r["photographed"] is want]
+            split[f"{mode}_{kind}_miou"] = float(np.mean(ious)) if ious else None
+            split[f"{mode}_{kind}_views"] = len(ious)
     report.views.extend(rows)
     miou = float(np.mean([r["iou"] for r in rows])) if rows else None
     macc = float(np.mean([r["acc"] for r in rows])) if rows else None

@@ -14,6 +14,68 @@ def pseudo_temporal_order(cameras: list[Camera]) -> list[Camera]:
     return sorted(cameras, key=lambda c: c.name)
 
 
+def viewing_angles(a: list[Camera], b: list[Camera]) -> np.ndarray:
+    """(len(a), len(b)) angles in degrees between the cameras' optical axes."""
+    u, v = (torch.stack([c.world_to_cam[2, :3] for c in cams]).double().cpu() for cams in (a, b))
+    u, v = u / u.norm(dim=1, keepdim=True), v / v.norm(dim=1, keepdim=True)
+    cos = u @ v.T
+    sin = torch.linalg.cross(u[:, None].expand(-1, len(v), -1), v[None].expand(len(u), -1, -1))
+    return np.degrees(torch.atan2(sin.norm(dim=-1), cos).numpy())  # accurate near 0 as well
+
+
+def nearest_view(cameras: list[Camera], others: list[Camera]) -> tuple[np.ndarray, np.ndarray]:
+    """For each camera, the viewing angle (degrees) to the nearest of `others` and the distance
+    between their centres (scene units); nearest by angle. Both (len(cameras),)."""
+    angles = viewing_angles(cameras, others)
+    nearest = angles.argmin(1)
+    ca = torch.stack([c.center for c in cameras]).double().cpu()
+    cb = torch.stack([c.center for c in others]).double().cpu()
+    dist = (ca - cb[torch.from_numpy(nearest)]).norm(dim=1).numpy()
+    return angles[np.arange(len(cameras)), nearest], dist
+
+
+def shortest_path_order(cameras: list[Camera], start: int = 0) -> list[int]:
+    """An order of the views that moves the camera as little as possible between frames: the
+    nearest unvisited view next (by viewing angle plus centre distance over the capture's
+    radius, in degrees), from `start`, then 2-opt moves while one shortens the path. For
+    captures with no protocol order; indices into `cameras`."""
+    n = len(cameras)
+    if n < 3:
+        return list(range(n))
+    centres = torch.stack([c.center for c in cameras]).double().cpu()
+    radius = float((centres - centres.mean(0)).norm(dim=1).max()) or 1.0
+    cost = viewing_angles(cameras, cameras) + np.degrees(
+        (torch.cdist(centres, centres) / radius).numpy()
+    )
+    order, left = [start], set(range(n)) - {start}
+    while left:
+        here = order[-1]
+        nxt = min(left, key=lambda j: (cost[here, j], j))
+        order.append(nxt)
+        left.remove(nxt)
+    improved = True
+    while improved:  # 2-opt on an open path: reverse order[i:j+1] when it shortens the path
+        improved = False
+        for i in range(1, n - 1):
+            for j in range(i + 1, n):
+                a, b = order[i - 1], order[i]
+                c = order[j]
+                d = order[j + 1] if j + 1 < n else None
+                before = cost[a, b] + (cost[c, d] if d is not None else 0.0)
+                after = cost[a, c] + (cost[b, d] if d is not None else 0.0)
+                if after < before - 1e-9:
+                    order[i : j + 1] = order[i : j + 1][::-1]
+                    improved = True
+    return order
+
+
+def path_steps(cameras: list[Camera]) -> np.ndarray:
+    """(T-1,) viewing-angle change in degrees between consecutive cameras."""
+    if len(cameras) < 2:
+        return np.zeros(0)
+    return np.diag(viewing_angles(cameras[:-1], cameras[1:]))
+
+
 def smooth_path(keyframes: list[Camera], num_frames: int, *, loop: bool = False) -> list[Camera]:
     """`num_frames` cameras along the keyframes: slerped rotations, interpolated centres and
     intrinsics, evenly spaced in keyframe parameter. All keyframes must share one image size

@@ -150,3 +150,21 @@ def test_pseudo_temporal_order_and_smooth_path():
 def test_smooth_path_rejects_mixed_sizes():
     with pytest.raises(ValueError, match="different image sizes"):
         smooth_path([small_camera(20, 10), small_camera(30, 10)], 4)
+
+
+def test_shortest_path_order_follows_the_orbit_from_the_start():
+    from sagonline.trajectory import nearest_view, path_steps, shortest_path_order
+    from tests.replicas import orbit_cameras
+
+    ring = orbit_cameras(12)
+    shuffled = [ring[i] for i in np.random.default_rng(0).permutation(12)]
+    start = [c.name for c in shuffled].index("v5")
+    order = shortest_path_order(shuffled, start)
+    assert sorted(order) == list(range(12)) and order[0] == start
+    walked = [shuffled[i] for i in order]
+    assert path_steps(walked).max() < 1.5 * path_steps(ring).max()  # neighbours follow
+    assert path_steps(walked).sum() < 0.5 * path_steps(shuffled).sum()
+    angle, dist = nearest_view(ring[:3], ring[6:])
+    assert angle.shape == (3,) and angle[0] < angle[1] < angle[2]  # v0 sits next to v11
+    assert float(nearest_view(ring[:1], ring[:1])[0][0]) == pytest.approx(0.0, abs=1e-3)
+    assert dist.shape == (3,) and (dist > 0).all()

@@ -276,3 +276,32 @@ def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
 
     with pytest.raises(RunExists):
         evaluate(cfg, tmp_path / "run")
+
+
+def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
+    """Views with a photograph vs pose-and-mask-only views: both are scored and told apart,
+    with the angle to the nearest photograph; `order=path` starts the video at the prompt."""
+    from sagonline.consensus import VoteConfig
+    from sagonline.pipeline import PipelineSettings, run_stage_one
+    from sagonline.segmenters.oracle import OracleSegmenter
+
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)
+    for n in NAMES[3:]:  # only the first three views were photographed
+        (tmp_path / "cap" / "images_4" / f"{n}.JPG").unlink()
+    ds = PosedMasksDataset(tmp_path / "cap", mask_dir="masks", reference=NAMES[4], order="path")
+    task = ds.load_scene("cap")
+    assert task.meta["photographs"] == NAMES[:3]
+    assert task.trajectory[0].name == NAMES[4] and task.prompt.frame == 0
+    assert sorted(c.name for c in task.trajectory) == NAMES
+    report, _, _ = run_stage_one(
+        task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False)
+    )
+    rows = {r["view"]: r for r in report.views}
+    assert [rows[n]["photographed"] for n in NAMES] == [True] * 3 + [False] * 3
+    assert all(rows[n]["photo_angle_deg"] == 0.0 for n in NAMES[:3])
+    assert all(rows[n]["photo_angle_deg"] > 0.0 for n in NAMES[3:])
+    split = report.extra["by_view_kind"]
+    assert split["initial_photographed_views"] == 3 and split["initial_mask_only_views"] == 3
+    with pytest.raises(DatasetError, match="order"):
+        PosedMasksDataset(tmp_path / "cap", order="random")

@@ -39,3 +39,36 @@ def test_same_seed_same_accuracy(tmp_path):
     )
     assert a["miou"] == b["miou"] and a["segmenter_miou"] == b["segmenter_miou"]
     assert a["scenes"][0]["labels3d"] == b["scenes"][0]["labels3d"]
+
+
+def test_views_report_splits_photographed_and_mask_only(tmp_path):
+    import json
+
+    from PIL import Image
+
+    from bench.report import main
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.json").write_text(json.dumps({"segmenter": "oracle", "overrides": ["a=1"]}))
+    pd.DataFrame(
+        {
+            "scene": "s",
+            "view": ["p0", "p1", "m0", "m1", "m2"],
+            "mode": "initial",
+            "iou": [0.9, 0.8, 0.7, 0.6, 0.5],
+            "acc": 0.9,
+            "voted": [True, False, False, False, True],
+            "photographed": [True, True, False, False, False],
+            "photo_angle_deg": [0.0, 0.0, 5.0, 15.0, 40.0],
+            "photo_distance": [0.0, 0.0, 0.1, 0.2, 0.3],
+        }
+    ).to_csv(run / "per_view.csv", index=False)
+    main([str(run), "--views", "cap", "--out", str(tmp_path / "reports")])
+    table = pd.read_csv(tmp_path / "reports" / "cap.csv")
+    row = table.iloc[0]
+    assert row["run"] == "oracle a=1" and row["views"] == 5
+    assert abs(row["photographed_mIoU"] - 0.85) < 1e-9 and row["mask_only_views"] == 3
+    assert abs(row["not_voted_mIoU"] - 0.7) < 1e-9  # p1, m0, m1
+    assert row["0-10 deg views"] == 1 and abs(row[">30 deg mIoU"] - 0.5) < 1e-9
+    assert Image.open(tmp_path / "reports" / "cap_iou_vs_angle.png").size[0] > 400

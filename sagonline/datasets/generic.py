@@ -46,6 +46,7 @@ from sagonline.datasets.common import (
 )
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
+from sagonline.trajectory import shortest_path_order
 
 LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
@@ -73,12 +74,15 @@ class PosedMasksDataset(DatasetAdapter):
         readme: str | None = None,
         keep_classes: tuple[int, ...] = KITTI360_VEHICLES,
         render_max_side: int | None = None,
+        order: str = "name",
         seed: int = 0,
     ):
         if label_format not in LABEL_FORMATS:
             raise DatasetError(
                 f"{name}: label_format {label_format!r} is not one of {LABEL_FORMATS}"
             )
+        if order not in ("name", "path"):
+            raise DatasetError(f"{name}: order {order!r} is not name or path")
         if prompt not in ("clicks", "text", "none"):
             raise DatasetError(f"{name}: prompt {prompt!r} is not clicks, text or none")
         self.root, self.name = Path(root), name
@@ -97,6 +101,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.readme = readme or f"datasets/{name}/README.md"
         self.keep_classes = tuple(keep_classes)
         self.render_max_side = render_max_side
+        self.order = order
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:
@@ -152,7 +157,11 @@ class PosedMasksDataset(DatasetAdapter):
             "exclude_reference": self.exclude_reference,
             "excluded_mask_words": list(self.exclude),
             "mask_threshold": self.threshold,
-            "pseudo_temporal_order": "camera names sorted lexicographically",
+            "pseudo_temporal_order": (
+                "camera names sorted lexicographically"
+                if self.order == "name"
+                else "shortest path through the camera poses from the reference view"
+            ),
         }
 
     # --- views --------------------------------------------------------------------------------
@@ -202,6 +211,17 @@ class PosedMasksDataset(DatasetAdapter):
                 f"{expected} (cutout/pseudo files excluded)"
             )
         return cams, masks
+
+    def photographed(self, scene: str, scene_dir: Path, cams: list[Camera]) -> list[str]:
+        """Names of the views with a photograph in the scene's image folder (what a fit sees;
+        the other views have poses and masks only)."""
+        folder = scene_dir / (self.image_dir_for(scene) or "images")
+        if not folder.is_dir():
+            return []
+        names = {c.name for c in cams}
+        return sorted(
+            p.stem for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES and p.stem in names
+        )
 
     def capture(self, scene: str) -> tuple[Path, list[Camera], dict[str, Path]]:
         """What `make scenes` fits from: the scene folder, every camera, and the images found
@@ -289,6 +309,9 @@ class PosedMasksDataset(DatasetAdapter):
         reference = self.reference or sorted(gts)[0]
         if reference not in gts:
             raise DatasetError(f"{self.name}/{scene}: reference view {reference!r} has no mask")
+        if self.order == "path":  # the video starts at the prompt and moves as little as it can
+            start = [c.name for c in cams].index(reference)
+            cams = [cams[i] for i in shortest_path_order(cams, start)]
         frame = [c.name for c in cams].index(reference)
         prompt = self.make_prompt(gts[reference], by_name[reference], frame, num_labels, names)
         scored = [n for n in sorted(gts) if not (self.exclude_reference and n == reference)]
@@ -311,6 +334,8 @@ class PosedMasksDataset(DatasetAdapter):
                 "scored_views": len(evals),
                 "root": str(scene_dir),
                 "fit": fit_record(scene_dir, self.name),
+                "photographs": self.photographed(scene, scene_dir, cams),
+                "order": self.order,
             },
             ignore_label=self.ignore,
         )
