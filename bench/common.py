@@ -19,6 +19,7 @@ from omegaconf import DictConfig, OmegaConf
 from omegaconf.errors import OmegaConfBaseException
 
 from sagonline.consensus import VoteConfig
+from sagonline.feedback import FeedbackConfig
 from sagonline.pipeline import PipelineSettings, SceneReport
 from sagonline.refine import RefineConfig
 from sagonline.utils import atomic_write_json, atomic_write_text, describe_device
@@ -43,6 +44,7 @@ def register_schemas() -> None:
     store.store(group="consensus", name="schema", node=VoteConfig)
     store.store(group="fit", name="schema", node=FitConfig)
     store.store(group="refine", name="schema", node=RefineStage)
+    store.store(group="feedback", name="schema", node=FeedbackConfig)
 
 
 register_schemas()
@@ -218,6 +220,7 @@ def settings_from(cfg: DictConfig) -> PipelineSettings:
         label_min_weight=cfg.label_render.min_weight,
         resize=cfg.metrics.resize,
         progress=not quiet(cfg),
+        feedback=OmegaConf.to_object(cfg.feedback),
     )
 
 

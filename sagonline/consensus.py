@@ -111,6 +111,30 @@ class VoteAccumulator:
         """(H*W,) long labels of the frame whose trace comes next."""
         self.mask = mask
 
+    def add_view(
+        self, gaussians: Gaussians, camera: Camera, mask, backend: str, where: str = "mask"
+    ) -> None:
+        """Vote one view's (H, W) label map: the compiled trace-and-vote pass on the CPU
+        (`native`), else the renderer's trace reduced here. `where` names the mask in errors."""
+        device = gaussians.device
+        labels = check_mask(mask, camera, self.k, where).to(device)
+        request = self.trace_request()
+        if resolve_backend(backend, device) == "native":  # reduced in C++, no trace chunks
+            from sagonline.render.native import vote_native
+
+            self.votes_cast += vote_native(
+                gaussians,
+                camera,
+                labels,
+                self.hist,
+                t_min=request.t_min,
+                max_distance=request.max_distance,
+                weighted=self.cfg.method != "rgc",
+            )
+            return
+        self.set_mask(labels)
+        render(gaussians, camera, backend=backend, trace=request)
+
     def trace_request(self) -> TraceRequest:
         """The pairs this method counts, as the renderer streams them: rgc's rule (T_i > eps
         and the projected centre within delta px) or, for the weighted methods, every pair
@@ -196,34 +220,15 @@ def consensus_vote(
     if len(cameras) != len(masks):
         raise MaskError(f"{len(cameras)} cameras but {len(masks)} masks")
     frames = select_frames(len(cameras), cfg)
-    device = gaussians.device
-    acc = VoteAccumulator(len(gaussians), num_labels, cfg, device=device)
-    rgc = cfg.method == "rgc"
+    acc = VoteAccumulator(len(gaussians), num_labels, cfg, device=gaussians.device)
     iterator = frames
     if progress:
         from tqdm import tqdm
 
         iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
-    request = acc.trace_request()
-    compiled = resolve_backend(backend, device) == "native"
     start = time.perf_counter()
     for f in iterator:
-        mask = check_mask(masks[f], cameras[f], num_labels, f"mask of frame {f}").to(device)
-        if compiled:  # the same pairs, reduced in C++ without materialising the trace
-            from sagonline.render.native import vote_native
-
-            acc.votes_cast += vote_native(
-                gaussians,
-                cameras[f],
-                mask,
-                acc.hist,
-                t_min=request.t_min,
-                max_distance=request.max_distance,
-                weighted=not rgc,
-            )
-            continue
-        acc.set_mask(mask)
-        render(gaussians, cameras[f], backend=backend, trace=request)
+        acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}")
     labels, labelled, hist = acc.finalize()
     elapsed = time.perf_counter() - start
     total = hist.sum(1)

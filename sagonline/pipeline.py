@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
 from sagonline.datasets.base import DatasetError, SceneTask
+from sagonline.feedback import FeedbackConfig, segment_with_feedback
 from sagonline.metrics import labels3d_metrics, match_and_relabel, view_metrics
 from sagonline.provenance import (
     STAGE_VERSIONS,
@@ -43,6 +44,7 @@ class PipelineSettings:
     resize: str = "pred_to_gt"
     progress: bool = True
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
 
 
 @dataclass
@@ -110,7 +112,7 @@ def stage_keys(
     (and, through the upstream key, of what its inputs were made from):
     frames <- scene, trajectory cameras, renderer, background, device;
     masks  <- frames, prompt, trajectory ground truth (the oracle reads it), segmenter settings
-              and weight digests;
+              and weight digests (with consensus feedback also what the vote below reads);
     vote   <- masks, scene, trajectory cameras, label count, vote settings, renderer."""
     backend = resolve_backend(settings.backend, settings.device)
     device = torch.device(settings.device).type
@@ -118,9 +120,15 @@ def stage_keys(
         "frames", STAGE_VERSIONS["frames"], inputs["scene"], inputs["trajectory_cameras"],
         backend, list(settings.background), device,
     )  # fmt: skip
+    feedback = []  # with consensus feedback the masks also depend on the vote and its render
+    if settings.feedback.enabled:
+        feedback = [
+            asdict(settings.feedback), asdict(vote_cfg), inputs["scene"],
+            inputs["trajectory_cameras"], inputs["num_labels"], settings.label_min_weight,
+        ]  # fmt: skip
     masks = digest_json(
         "masks", STAGE_VERSIONS["masks"], frames, inputs["prompt"],
-        inputs["trajectory_ground_truth"], segmenter_key,
+        inputs["trajectory_ground_truth"], segmenter_key, *feedback,
     )  # fmt: skip
     vote = digest_json(
         "vote", STAGE_VERSIONS["vote"], masks, inputs["scene"], inputs["trajectory_cameras"],
@@ -212,8 +220,10 @@ def run_stage_one(
 
     frames, sec = cached_or_run("frames", lambda: render_frames(task, settings))
     seg = cached_or_run(
-        "masks", lambda: segmenter.segment(frames, task.prompt, ground_truth=task.trajectory_gt)
+        "masks", lambda: segment_frames(task, segmenter, frames, settings, vote_cfg)
     )
+    if "feedback" in seg.info:
+        report.extra["feedback"] = seg.info["feedback"]
     report.inputs["masks"] = digest_arrays(seg.masks)
     report.add_timings(("frames",), render_ms_per_frame=1000 * sec)
     report.add_timings(("masks",), segment_ms_per_frame=seg.ms_per_frame)
@@ -273,6 +283,33 @@ def run_stage_one(
         vote.histogram.cpu().numpy(),
     )
     return report, vote, StageOneOutput(frames, seg, num_labels, keys, voted)
+
+
+def segment_frames(
+    task: SceneTask,
+    segmenter: VideoSegmenter,
+    frames: list[np.ndarray],
+    settings: PipelineSettings,
+    vote_cfg: VoteConfig,
+) -> SegmentationResult:
+    """The segmenter's masks of the rendered trajectory, with consensus feedback when it is on
+    (`settings.feedback`)."""
+    if not settings.feedback.enabled:
+        return segmenter.segment(frames, task.prompt, ground_truth=task.trajectory_gt)
+    seg, _ = segment_with_feedback(
+        segmenter,
+        frames,
+        task.prompt,
+        task.gaussians.to(settings.device),
+        task.trajectory,
+        task.num_labels,
+        vote_cfg,
+        settings.feedback,
+        backend=settings.backend,
+        min_weight=settings.label_min_weight,
+        ground_truth=task.trajectory_gt,
+    )
+    return seg
 
 
 def check_ground_truth(task: SceneTask) -> list[str]:

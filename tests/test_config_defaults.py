@@ -56,3 +56,14 @@ def test_pipeline_settings_defaults_are_the_eval_config_defaults():
     defaults = asdict(PipelineSettings())
     composed.pop("progress"), defaults.pop("progress")  # CI=true turns progress off
     assert composed == defaults
+
+
+def test_feedback_composes_to_the_dataclass_defaults():
+    from sagonline.feedback import FeedbackConfig
+
+    on = OmegaConf.to_container(_compose("eval", "feedback=on").feedback, resolve=True)
+    assert on == asdict(FeedbackConfig(enabled=True))
+    off = OmegaConf.to_container(_compose("eval").feedback, resolve=True)
+    assert off == asdict(FeedbackConfig())
+    with pytest.raises(ConfigCompositionException):
+        _compose("eval", "feedback=on", "feedback.every=often")

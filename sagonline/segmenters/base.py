@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -18,11 +18,13 @@ from sagonline.prompts import Prompt
 
 @dataclass
 class SegmentationResult:
-    """masks: T label maps (H, W) int64; seconds: wall time per frame; name: who made them."""
+    """masks: T label maps (H, W) int64; seconds: wall time per frame; name: who made them;
+    info: what else the run reports (e.g. the consensus feedback's restarts)."""
 
     masks: list[np.ndarray]
     seconds: list[float]
     name: str
+    info: dict = field(default_factory=dict)
 
     @property
     def ms_per_frame(self) -> float:
