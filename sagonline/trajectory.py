@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import torch
 from scipy.spatial.transform import Rotation, Slerp
@@ -112,6 +114,21 @@ def smooth_path(keyframes: list[Camera], num_frames: int, *, loop: bool = False)
         m[:3, 3] = -rots[i].T @ center
         path.append(make_camera(K, m, width, height, f"path_{i:05d}"))
     return path
+
+
+def insert_between(cameras: list[Camera], count: int) -> list[Camera]:
+    """The cameras in their order with `count` cameras slerped in between each consecutive
+    pair (named '<previous>+<i>'), so a video segmenter sees small steps; the given cameras
+    stay as they are."""
+    if count <= 0 or len(cameras) < 2:
+        return list(cameras)
+    out = []
+    for a, b in zip(cameras, cameras[1:], strict=False):
+        out.append(a)
+        between = smooth_path([a, b], count + 2)[1:-1]
+        out += [replace(c, name=f"{a.name}+{i + 1}") for i, c in enumerate(between)]
+    out.append(cameras[-1])
+    return out
 
 
 def orbit(

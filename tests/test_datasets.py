@@ -305,3 +305,14 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     assert split["initial_photographed_views"] == 3 and split["initial_mask_only_views"] == 3
     with pytest.raises(DatasetError, match="order"):
         PosedMasksDataset(tmp_path / "cap", order="random")
+    dense = PosedMasksDataset(tmp_path / "cap", mask_dir="masks", reference=NAMES[4], inbetween=2)
+    task = dense.load_scene("cap")
+    names = [c.name for c in task.trajectory]
+    assert len(names) == 6 + 5 * 2 and names[:4] == [
+        NAMES[0],
+        f"{NAMES[0]}+1",
+        f"{NAMES[0]}+2",
+        NAMES[1],
+    ]
+    assert names[task.prompt.frame] == NAMES[4] and task.trajectory_gt is None
+    assert [v.name for v in task.eval_views] == NAMES  # only the real views are scored

@@ -46,7 +46,7 @@ from sagonline.datasets.common import (
 )
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
-from sagonline.trajectory import shortest_path_order
+from sagonline.trajectory import insert_between, shortest_path_order
 
 LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
@@ -75,6 +75,7 @@ class PosedMasksDataset(DatasetAdapter):
         keep_classes: tuple[int, ...] = KITTI360_VEHICLES,
         render_max_side: int | None = None,
         order: str = "name",
+        inbetween: int = 0,
         seed: int = 0,
     ):
         if label_format not in LABEL_FORMATS:
@@ -101,7 +102,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.readme = readme or f"datasets/{name}/README.md"
         self.keep_classes = tuple(keep_classes)
         self.render_max_side = render_max_side
-        self.order = order
+        self.order, self.inbetween = order, int(inbetween)
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:
@@ -312,6 +313,7 @@ class PosedMasksDataset(DatasetAdapter):
         if self.order == "path":  # the video starts at the prompt and moves as little as it can
             start = [c.name for c in cams].index(reference)
             cams = [cams[i] for i in shortest_path_order(cams, start)]
+        cams = insert_between(cams, self.inbetween)  # rendered only: no mask, no photograph
         frame = [c.name for c in cams].index(reference)
         prompt = self.make_prompt(gts[reference], by_name[reference], frame, num_labels, names)
         scored = [n for n in sorted(gts) if not (self.exclude_reference and n == reference)]
