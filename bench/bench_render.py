@@ -10,9 +10,10 @@ that reduces it (as the vote does); "vote pass" is the trace-only pass the vote 
 (no colour, stops at T <= eps, centre within 2 px); "vote ms/mask" is one whole RGC vote of a
 3-label mask as `consensus_vote` runs it (projection, tile lists, walk, histogram): the tiled
 PyTorch trace reduced by the vote's accumulator (torch), or the compiled trace-and-vote kernel
-(native), whose "vote speed-up" is the torch row's time over its own. The native kernel streams
-no trace, so its trace columns are empty; "step" is forward + backward through every Gaussian
-parameter, the fitting loop's inner cost.
+(native), whose "vote speed-up" is the torch row's time over its own; "label" columns are the
+label renders scoring uses (one-hot composite, most-visible ids) and the slower one's ratio to
+the image render. The native kernel streams no trace, so its trace columns are empty; "step"
+is forward + backward through every Gaussian parameter, the fitting loop's inner cost.
 """
 
 from __future__ import annotations
@@ -35,7 +36,7 @@ from sagonline.io.cameras import load_nerf_transforms  # noqa: E402
 from sagonline.consensus import VoteConfig, consensus_vote  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402
-from sagonline.render import RasterStats, TraceRequest, render  # noqa: E402
+from sagonline.render import RasterStats, TraceRequest, render, render_labels  # noqa: E402
 from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
 from sagonline.render.native import native_available  # noqa: E402
 from sagonline.synthetic import make_scene  # noqa: E402
@@ -68,6 +69,12 @@ def one_vote(g: Gaussians, cam, backend: str) -> None:
     gen = torch.Generator().manual_seed(0)
     mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
     consensus_vote(g, [cam], [mask], 3, VoteConfig(), backend=backend)
+
+
+def label_render(g: Gaussians, cam, backend: str, mode: str) -> None:
+    """One 3-label mask render (one-hot composite or most-visible ids), as scoring runs it."""
+    labels = torch.arange(len(g), device=g.device) % 3
+    render_labels(g, cam, labels, 3, mode=mode, backend=backend)
 
 
 def timed(fn, repeats: int, device: str) -> float:
@@ -118,6 +125,10 @@ def main() -> None:
                     vote_pass = TraceRequest(consume, rule.eps, max_distance=rule.delta)
                     vote = timed(partial(run, trace=vote_pass), args.repeats, device)
                 vote_ms = 1000 * timed(partial(one_vote, g, c, backend), args.repeats, device)
+                onehot_ms, ids_ms = (
+                    1000 * timed(partial(label_render, g, c, backend, mode), args.repeats, device)
+                    for mode in ("onehot", "ids")
+                )
                 if backend == "torch":
                     render(g, c, stats=stats)
                     torch_vote_ms = vote_ms
@@ -132,6 +143,9 @@ def main() -> None:
                         "vote_pass_ms": 1000 * vote if vote else None,
                         "vote_ms_per_mask": vote_ms,
                         "vote_speedup": torch_vote_ms / vote_ms if backend != "torch" else None,
+                        "label_onehot_ms": onehot_ms,
+                        "label_ids_ms": ids_ms,
+                        "label_ratio": max(onehot_ms, ids_ms) / (1000 * plain),
                         "step_ms": 1000 * step,
                         "evals_per_s": stats.evaluations / plain if stats.evaluations else None,
                         "intersections": stats.intersections or None,
