@@ -131,7 +131,7 @@ def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
     f = SceneFitter(tiny(max_aspect=4.0), cams, imgs)
     with torch.no_grad():
         f.params["log_scales"][:] = torch.log(torch.tensor([0.02, 0.05]))  # aspect 2.5
-    assert float(f.anisotropy_penalty()) == 0.0
+    assert f.anisotropy_penalty().item() == 0.0
     with torch.no_grad():
         f.params["log_scales"][0] = torch.log(torch.tensor([0.01, 0.2]))  # aspect 20
     penalty = f.anisotropy_penalty()
@@ -139,6 +139,32 @@ def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
     penalty.backward()
     g = f.params["log_scales"].grad
     assert g[0, 1] > 0 > g[0, 0] and bool((g[1:] == 0).all())  # descent shortens the needle
+
+
+def test_geometric_regularisers_join_the_loss_from_their_iterations(views):
+    cams, imgs = views
+    f = SceneFitter(
+        tiny(lambda_dist=100.0, dist_from=5, lambda_normal=0.5, normal_from=10, iterations=20),
+        cams,
+        imgs,
+    )
+    plain = SceneFitter(tiny(iterations=20), cams, imgs)
+    g = f.gaussians()
+    loss, _, terms = f.loss(g, f.train_idx[0])
+    assert terms == {}  # step 0: neither has started
+    assert loss.item() == plain.loss(plain.gaussians(), f.train_idx[0])[0].item()
+    f.step = 5
+    assert set(f.loss(g, f.train_idx[0])[2]) == {"dist"}
+    f.step = 10
+    loss, _, terms = f.loss(g, f.train_idx[0])
+    assert set(terms) == {"dist", "normal"} and terms["dist"] > 0 and terms["normal"] > 0
+    photometric = plain.loss(plain.gaussians(), f.train_idx[0])[0].item()
+    expected = photometric + 100.0 * terms["dist"] + 0.5 * terms["normal"]
+    assert loss.item() == pytest.approx(expected, rel=1e-5)
+    f.step = 0
+    metrics = f.fit(progress=False)  # through both starts, gradients and densification
+    assert np.isfinite(f.history).all() and f.step == 20
+    assert set(metrics["final_regularisers"]) == {"dist", "normal"}
 
 
 def test_bad_inputs(views):

@@ -18,6 +18,12 @@ class FitConfig:
     lambda_dssim: float = 0.2
     lambda_aniso: float = 0.0  # weight of the needle penalty (see `anisotropy_penalty`)
     max_aspect: float = 10.0  # longest / shortest axis allowed before the penalty starts
+    # 2DGS's geometric regularisers (`losses.depth_distortion`, `losses.normal_consistency`),
+    # each from its own iteration on (2DGS: 3000 and 7000 of 30000); 0: off
+    lambda_dist: float = 0.0
+    dist_from: int = 300
+    lambda_normal: float = 0.0
+    normal_from: int = 700
     lr_means: float = 1.6e-4  # times the scene extent, decayed to 1% by the end
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3

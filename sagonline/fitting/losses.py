@@ -1,4 +1,9 @@
-"""The fit's losses and image metrics: L1 + D-SSIM, PSNR, and the needle penalty on surfels."""
+"""The fit's losses and image metrics: L1 + D-SSIM, PSNR, the needle penalty on surfels, and
+2DGS's geometric regularisers (depth distortion, normal consistency).
+
+The regularisers are computed from composited per-splat attributes (`splat_geometry`: the
+splat's normal and normalised depth), so their gradients run through whichever rasterizer renders
+the view, the compiled kernel's hand-written backward included: no kernel of their own."""
 
 from __future__ import annotations
 
@@ -6,6 +11,9 @@ import math
 
 import torch
 import torch.nn.functional as F
+
+from sagonline.cameras import Camera
+from sagonline.gaussians import Gaussians, quat_to_rotmat
 
 
 def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
@@ -45,3 +53,65 @@ def anisotropy_penalty(log_scales: torch.Tensor, max_aspect: float) -> torch.Ten
     keeps surfels from turning into needles that look right only edge-on. log_scales: (N, 2|3)."""
     log_ratio = log_scales.max(dim=1).values - log_scales.min(dim=1).values
     return F.relu(torch.exp(log_ratio) - max_aspect).mean()
+
+
+GEOMETRY_CHANNELS = 5  # splat_geometry's columns: normal (3), depth m, m^2
+
+
+def splat_geometry(gaussians: Gaussians, camera: Camera, near: float, far: float) -> torch.Tensor:
+    """(N, 5) per-splat attributes to composite for the regularisers: the unit normal in camera
+    space, turned to face the camera (a surfel's third axis; a 3D Gaussian's shortest axis), and
+    the centre depth z mapped as 2DGS maps it, m = far / (far - near) * (1 - near / z) (0 at the
+    near plane, 1 at the far one), with m^2."""
+    rot = quat_to_rotmat(gaussians.quats)
+    if gaussians.kind == "2dgs":
+        normal = rot[:, :, 2]
+    else:
+        axis = gaussians.scales.argmin(dim=1)
+        normal = rot.gather(2, axis[:, None, None].expand(-1, 3, 1))[:, :, 0]
+    R, t = camera.rotation.to(normal), camera.translation.to(normal)
+    normal_cam = normal @ R.T
+    centre_cam = gaussians.means @ R.T + t
+    facing = torch.where((normal_cam * centre_cam).sum(1, keepdim=True) > 0, -1.0, 1.0)
+    z = centre_cam[:, 2].clamp_min(near * 1e-3)
+    m = far / (far - near) * (1 - near / z)
+    return torch.cat([normal_cam * facing, m[:, None], (m * m)[:, None]], dim=1)
+
+
+def depth_distortion(alpha: torch.Tensor, m1: torch.Tensor, m2: torch.Tensor) -> torch.Tensor:
+    """2DGS's depth distortion, sum over pairs i < j of w_i w_j (m_i - m_j)^2 per pixel, as
+    alpha * M2 - M1^2 with M1 = sum w_i m_i, M2 = sum w_i m_i^2 and alpha = sum w_i (the same
+    sum, expanded); mean over pixels. alpha, m1, m2: (H, W) composites of `splat_geometry`'s
+    depth columns. Small when each ray's weight sits at one depth: it gathers fog into surfaces."""
+    return (alpha * m2 - m1 * m1).clamp_min(0).mean()
+
+
+def depth_normals(depth: torch.Tensor, alpha: torch.Tensor, camera: Camera) -> torch.Tensor:
+    """(H, W, 3) unit normals, facing the camera, of the surface given by the expected depth
+    (depth / alpha) by central differences of the back-projected points; 0 on the border."""
+    H, W = depth.shape
+    z = depth / alpha.clamp_min(1e-6)
+    K = camera.K.to(depth)
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=depth.dtype, device=depth.device) + 0.5,
+        torch.arange(W, dtype=depth.dtype, device=depth.device) + 0.5,
+        indexing="ij",
+    )
+    rays = torch.stack(
+        [(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1
+    )
+    points = rays * z[..., None]
+    dx = points[1:-1, 2:] - points[1:-1, :-2]
+    dy = points[2:, 1:-1] - points[:-2, 1:-1]
+    inner = F.normalize(torch.linalg.cross(dy, dx), dim=-1)  # x right, y down: faces the camera
+    return F.pad(inner.permute(2, 0, 1), (1, 1, 1, 1)).permute(1, 2, 0)
+
+
+def normal_consistency(
+    rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, camera: Camera
+) -> torch.Tensor:
+    """2DGS's normal consistency: mean over pixels of 1 - <N, alpha N_d>, N the composited splat
+    normals (H, W, 3), N_d `depth_normals` of the rendered depth: the splats lie along the surface
+    their depths describe. Both sides take the gradient, as in 2DGS; alpha weights without it."""
+    surface = depth_normals(depth, alpha, camera) * alpha.detach()[..., None]
+    return (1 - (rendered_normal * surface).sum(-1)).mean()

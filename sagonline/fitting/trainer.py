@@ -4,7 +4,8 @@ nothing of datasets: cameras, images and optional start points come in, a scene 
 Parameters in raw form (log scales, opacity logits, unnormalised quaternions, SH split into
 degree 0 and the rest), Adam with the 3DGS learning rates (positions scaled by the scene extent
 and decayed exponentially, higher SH degrees at 1/20 of degree 0), the loss of
-`losses.photometric_loss` (plus the optional needle penalty), densification by
+`losses.photometric_loss` (plus the optional needle penalty and 2DGS's depth-distortion and
+normal-consistency regularisers, composited through the same rasterizer), densification by
 `strategy.DensifyStrategy`. Every 8th view (sorted by name) is held out and scored by PSNR.
 
 On CPU the rasterizer is this library's own: the compiled kernel with its hand-written backward
@@ -13,8 +14,8 @@ On CPU the rasterizer is this library's own: the compiled kernel with its hand-w
 2DGS and 3DGS rasterization is differentiable there. Simplifications against the 2DGS reference,
 stated here once: the positional gradient is taken in world space (scaled by depth to pixels)
 rather than on the projected means, the optimiser state of new Gaussians starts at zero, all SH
-degrees train from the start, and 2DGS's depth-distortion and normal-consistency regularisers
-are not used.
+degrees train from the start, and the depth distortion is taken over splat-centre depths (the
+2DGS kernel uses each ray's intersection depth).
 """
 
 from __future__ import annotations
@@ -32,7 +33,14 @@ from tqdm import tqdm
 
 from sagonline.cameras import Camera
 from sagonline.fitting.config import FitConfig
-from sagonline.fitting.losses import anisotropy_penalty, photometric_loss, psnr
+from sagonline.fitting.losses import (
+    anisotropy_penalty,
+    depth_distortion,
+    normal_consistency,
+    photometric_loss,
+    psnr,
+    splat_geometry,
+)
 from sagonline.fitting.start_points import split_views, start_points
 from sagonline.fitting.strategy import DensifyStrategy, Params
 from sagonline.gaussians import SH_C0, Gaussians
@@ -75,6 +83,7 @@ class SceneFitter:
         if near_far is None:
             dist = float((centers - centers.mean(0)).norm(dim=1).mean())
             near_far = (0.2 * dist, 2.0 * dist)
+        self.near_far = near_far
         xyz, rgb = start_points(
             [cameras[i] for i in self.train_idx],
             [images[i] for i in self.train_idx],
@@ -93,6 +102,7 @@ class SceneFitter:
         clear = clear.cpu().numpy()
         self._init_params(xyz[clear], rgb[clear], rng)
         self.step, self.history, self.elapsed = 0, [], 0.0
+        self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
     # --- parameters ---------------------------------------------------------------------------
@@ -169,10 +179,33 @@ class SceneFitter:
             }
         )
 
-    def render(self, gaussians: Gaussians, view: int):
+    def render(self, gaussians: Gaussians, view: int, features: torch.Tensor | None = None):
         """Render training view `view` as the fit sees it (its background and backend)."""
         bg = torch.tensor(self.cfg.background, device=self.cfg.device)
-        return render(gaussians, self.cams[view], background=bg, backend=self.cfg.backend)
+        return render(
+            gaussians, self.cams[view], background=bg, backend=self.cfg.backend, features=features
+        )
+
+    def loss(self, gaussians: Gaussians, view: int) -> tuple[torch.Tensor, torch.Tensor, dict]:
+        """The training loss of one view, its render (H, W, 3) and the regularisers' values."""
+        cfg, cam = self.cfg, self.cams[view]
+        use_dist = cfg.lambda_dist > 0 and self.step >= cfg.dist_from
+        use_normal = cfg.lambda_normal > 0 and self.step >= cfg.normal_from
+        geometry = None
+        if use_dist or use_normal:
+            geometry = splat_geometry(gaussians, cam, *self.near_far)
+        out = self.render(gaussians, view, features=geometry)
+        loss = photometric_loss(out.rgb, self.images[view], cfg.lambda_dssim)
+        terms = {}
+        if cfg.lambda_aniso:
+            loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()
+        if use_dist:
+            terms["dist"] = depth_distortion(out.alpha, out.features[..., 3], out.features[..., 4])
+            loss = loss + cfg.lambda_dist * terms["dist"]
+        if use_normal:
+            terms["normal"] = normal_consistency(out.features[..., :3], out.depth, out.alpha, cam)
+            loss = loss + cfg.lambda_normal * terms["normal"]
+        return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
 
     def anisotropy_penalty(self) -> torch.Tensor:
         return anisotropy_penalty(self.params["log_scales"], self.cfg.max_aspect)
@@ -200,18 +233,15 @@ class SceneFitter:
                 if group["name"] == "means":
                     frac = self.step / max(cfg.iterations, 1)
                     group["lr"] = cfg.lr_means * self.extent * (0.01**frac)
-            out = self.render(self.gaussians(), i)
-            gt = self.images[i]
-            loss = photometric_loss(out.rgb, gt, cfg.lambda_dssim)
-            if cfg.lambda_aniso:
-                loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()
+            loss, rgb, terms = self.loss(self.gaussians(), i)
+            self.last_terms = terms
             self.optim.zero_grad(set_to_none=True)
             loss.backward()
             self.strategy.after_backward(self.params, self.cams[i])
             self.optim.step()
             self.step += 1
             self.history.append(loss.item())
-            recent_psnr.append(psnr(out.rgb.detach().clamp(0, 1), gt))
+            recent_psnr.append(psnr(rgb.detach().clamp(0, 1), self.images[i]))
             changed = self.strategy.after_step(self.params, self.step)
             if changed is not None:
                 self._set_params(changed)
@@ -221,6 +251,7 @@ class SceneFitter:
                     loss=f"{np.mean(self.history[-10:]):.4f}",
                     psnr=f"{np.mean(recent_psnr):.2f}",
                     n=len(self),
+                    **{k: f"{v:.2e}" for k, v in terms.items()},
                 )
             if checkpoint is not None and self.step % cfg.checkpoint_every == 0:
                 self.elapsed = time.perf_counter() - start
@@ -250,6 +281,7 @@ class SceneFitter:
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "final_loss": float(np.mean(self.history[-20:])) if self.history else None,
+            "final_regularisers": self.last_terms,
         }
 
     # --- checkpoints --------------------------------------------------------------------------
