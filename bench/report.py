@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -19,6 +20,7 @@ import pandas as pd
 from PIL import Image
 
 from sagonline.datasets.common import SCENES_ROOT
+from sagonline.fitting import FitConfig
 from sagonline.utils import atomic_write_image, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -91,6 +93,7 @@ FIT_COLUMNS = [
     "dataset",
     "scene",
     "kind",
+    "recipe",
     "init",
     "resolution",
     "images",
@@ -105,8 +108,29 @@ FIT_COLUMNS = [
 ]
 
 
+def fit_recipe(cfg: dict) -> str:
+    """The fit settings that differ from today's defaults ("default" if none), the automatic
+    camera clearance and the device left out; settings newer than the fit are named after
+    "predates:" (the fit ran without them)."""
+    defaults = {
+        k: v for k, v in asdict(FitConfig()).items() if k not in ("camera_clearance", "device")
+    }
+    changed = [
+        f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
+        for k, v in cfg.items()
+        if k in defaults
+        and v != defaults[k]
+        and not (isinstance(v, list) and tuple(v) == defaults[k])
+    ]
+    missing = [k for k in defaults if k not in cfg]
+    if missing:
+        changed.append("predates: " + " ".join(missing))
+    return " ".join(changed) or "default"
+
+
 def fit_rows(roots: list[Path]) -> pd.DataFrame:
-    """One row per fitted scene: its fit_metrics.json and the kind from fit_config.json."""
+    """One row per fitted scene: its fit_metrics.json, and the kind and recipe from
+    fit_config.json."""
     rows = []
     for path in sorted({p for r in roots if r.exists() for p in r.rglob("fit_metrics.json")}):
         m = json.loads(path.read_text())
@@ -116,7 +140,9 @@ def fit_rows(roots: list[Path]) -> pd.DataFrame:
         rows.append(
             {
                 **{k: m.get(k) for k in FIT_COLUMNS},
+                "scene": folder.parent.name,  # the folder holding gaussians/ (copies rename it)
                 "kind": cfg.get("kind"),
+                "recipe": fit_recipe(cfg),
                 "resolution": "x".join(map(str, m.get("resolution", []))),
                 "heldout_views": " ".join(m.get("heldout_views", [])),
                 "folder": str(folder.relative_to(ROOT))
@@ -135,7 +161,7 @@ def stack_heldout_renders(folder: Path, out: Path) -> Path | None:
     rows = [np.asarray(Image.open(p).convert("RGB")) for p in pairs]
     width = min(r.shape[1] for r in rows)
     metrics = json.loads((folder / "fit_metrics.json").read_text())
-    name = f"fit_{metrics.get('dataset', 'scene')}_{metrics.get('scene', folder.parent.name)}"
+    name = f"fit_{metrics.get('dataset', 'scene')}_{folder.parent.name}"
     return atomic_write_image(
         out / f"{name}_heldout.jpg", np.concatenate([r[:, :width] for r in rows])
     )
@@ -252,7 +278,9 @@ def main(argv: list[str] | None = None) -> None:
         atomic_write_text(
             args.out / "fits.md",
             "# Fitted scenes (`make scenes`)\n\n- PSNR in dB on the training views, the held-out "
-            "views (every 8th by name) and, where the dataset has object masks, inside them.\n\n"
+            "views (every 8th by name) and, where the dataset has object masks, inside them.\n"
+            "- recipe: the fit's settings that differ from today's defaults "
+            "(`sagonline.fitting.FitConfig`); `predates:` names settings the fit ran without.\n\n"
             + fits.to_markdown(index=False, floatfmt=".4g")
             + "\n",
         )

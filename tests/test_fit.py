@@ -222,6 +222,13 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     assert task.gaussians.kind == "2dgs" and len(task.trajectory) == 9
     again = fit_scene(cfg, adapter, "cap")
     assert again == {"scene": "cap", "skipped": True}
+    from bench.report import fit_rows
+
+    (row,) = fit_rows([tmp_path]).to_dict("records")  # `make report`'s fits table
+    assert row["psnr_heldout"] == saved["psnr_heldout"] and row["iterations"] == 12
+    assert row["recipe"] == (
+        "iterations=12 sh_degree=0 init_points=500 densify_from=5 densify_until=10 densify_every=5"
+    )
 
 
 def test_scenes_cli_errors(tmp_path):
@@ -269,3 +276,16 @@ def test_read_only_data_is_never_written(tmp_path, monkeypatch):
         assert common.gaussians_dir(data, "generic") == out  # the adapter finds it there
     finally:
         data.chmod(0o755)
+
+
+def test_fit_recipe_names_changed_and_missing_settings():
+    from dataclasses import asdict
+
+    from bench.report import fit_recipe
+    from sagonline.fitting import FitConfig
+
+    cfg = asdict(FitConfig(seed=1, lambda_dist=1.0, device="cuda", camera_clearance=0.3))
+    assert fit_recipe(cfg) == "lambda_dist=1 seed=1"  # device and clearance are not the recipe
+    cfg = {k: v for k, v in asdict(FitConfig()).items() if k != "lambda_normal"}
+    assert fit_recipe(cfg) == "predates: lambda_normal"  # a fit older than the setting
+    assert fit_recipe(asdict(FitConfig())) == "default"
