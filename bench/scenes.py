@@ -27,7 +27,12 @@ from bench.common import register_schemas
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
-from sagonline.fitting.capture import initial_points, load_images, near_depth
+from sagonline.fitting.capture import (
+    initial_points,
+    load_images,
+    near_depth,
+    view_near_depths,
+)
 from sagonline.io.cameras import load_llff_bounds
 from sagonline.io.images import resize_nearest
 from sagonline.utils import atomic_write_image
@@ -118,6 +123,7 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         points,
         near_far,
         other_cameras=[c for c in cams if c.name not in images],
+        view_near=view_near_depths(scene_dir, cams, points) if fit_cfg.view_clearance else None,
     )
     ckpt = out / "fit_checkpoint.pt"
     if fitter.resume(ckpt):

@@ -126,6 +126,64 @@ def test_gaussians_near_cameras_are_pruned(views):
     assert off.prune_near_cameras() == 0  # clearance 0: off
 
 
+def test_footprints_in_front_of_a_views_near_depth(views):
+    from sagonline.fitting.strategy import in_front_of_view
+
+    cam = views[0][0]
+    ahead = cam.center + cam.rotation[2] * 1.0  # on the optical axis, 1.0 in front
+    right = cam.rotation[0]  # the camera's x axis in the world
+    behind = cam.center - cam.rotation[2] * 1.0
+    beside = ahead + right * 50.0  # far outside the image at that depth
+    means = torch.stack([ahead, ahead, behind, beside, beside])
+    radius = torch.tensor([0.0, 0.0, 0.0, 0.0, 60.0])  # the last one's disc reaches the image
+    hit = in_front_of_view(means, radius, cam, depth=1.5)
+    assert hit.tolist() == [True, True, False, False, True]
+    assert not in_front_of_view(means, radius, cam, depth=0.9).any()  # all beyond the depth
+
+
+def test_view_clearance_prunes_floaters_only_where_a_view_records_depth(views):
+    cams, imgs = views
+    names = [c.name for c in cams]
+    cfg = tiny(view_clearance=0.85, densify_from=10_000)
+    f = SceneFitter(cfg, cams, imgs, view_near={n: 2.0 for n in names})
+    trained = [cams[i] for i in f.train_idx]
+    with torch.no_grad():  # a floater 0.5 in front of a training view, at that view's centre
+        f.params["means"][:1] = trained[0].center + trained[0].rotation[2] * 0.5
+        f.params["log_scales"][:1] = -6.0
+    n = len(f)
+    assert f.prune_near_cameras() >= 1 and len(f) < n
+    kept = f.params["means"].detach()
+    assert not bool(((kept - trained[0].center).norm(dim=1) < 0.51).any())
+    # no recorded depth: nothing to go by, nothing pruned
+    g = SceneFitter(cfg, cams, imgs)
+    with torch.no_grad():
+        g.params["means"][:1] = trained[0].center + trained[0].rotation[2] * 0.5
+    assert g.prune_near_cameras() == 0
+    with pytest.raises(ValueError, match="view_clearance_views"):
+        SceneFitter(tiny(view_clearance_views="some"), cams, imgs)
+
+
+def test_near_depths_of_views_from_llff_bounds_or_points(tmp_path):
+    from sagonline.fitting.capture import view_near_depths
+    from sagonline.io.cameras import load_llff
+    from tests.replicas import llff_scene
+
+    names = [f"IMG_{i:04d}" for i in range(5)]
+    cams, _ = llff_scene(tmp_path / "cap", names, with_scene=False)
+    rows = np.load(tmp_path / "cap" / "poses_bounds.npy")
+    llff = load_llff(tmp_path / "cap", names=names)
+    near = view_near_depths(tmp_path / "cap", llff, None)
+    assert near == {n: pytest.approx(float(r[15])) for n, r in zip(names, rows, strict=True)}
+    # no bounds file: the 2nd percentile of the points' depths inside each image
+    (tmp_path / "cap" / "poses_bounds.npy").unlink()
+    cam = llff[0]
+    depths = torch.linspace(2.0, 4.0, 50)
+    xyz = (cam.center + depths[:, None] * cam.rotation[2]).numpy()
+    near = view_near_depths(tmp_path / "cap", [cam], (xyz, None))
+    assert near[cam.name] == pytest.approx(float(torch.quantile(depths, 0.02)), rel=1e-4)
+    assert view_near_depths(tmp_path / "cap", [cam], (xyz[:5], None)) == {}  # too few points
+
+
 def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
     cams, imgs = views
     f = SceneFitter(tiny(max_aspect=4.0), cams, imgs)

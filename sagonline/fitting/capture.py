@@ -88,3 +88,29 @@ def near_depth(cams, points, bounds) -> float:
     depths = [cam.project(xyz)[1] for cam in cams]
     z = torch.cat([d[d > 0] for d in depths])
     return float(torch.quantile(z, 0.02)) if z.numel() else 0.0
+
+
+def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
+    """Per view name, the nearest depth the capture records for that view: the LLFF near bound
+    of the `poses_bounds.npy` row whose camera centre is the view's, else the 2nd percentile of
+    the depths of the start points inside its image; views with neither are left out."""
+    near: dict[str, float] = {}
+    pb = Path(scene_dir) / "poses_bounds.npy"
+    if pb.is_file():
+        rows = np.load(pb)
+        centres = torch.from_numpy(rows[:, :15].reshape(-1, 3, 5)[:, :, 3]).float()
+        scale = float((centres - centres.mean(0)).norm(dim=1).max()) or 1.0
+        for cam in cams:
+            dist = (centres - cam.center.cpu().float()).norm(dim=1)
+            row = int(dist.argmin())
+            if float(dist[row]) <= 1e-4 * scale:
+                near[cam.name] = float(rows[row, 15])
+    if points is not None:
+        xyz = torch.tensor(points[0], dtype=torch.float32)
+        for cam in cams:
+            if cam.name in near:
+                continue
+            inside, z = cam.in_frame(xyz)
+            if int(inside.sum()) >= 20:
+                near[cam.name] = float(torch.quantile(z[inside], 0.02))
+    return near

@@ -6,7 +6,9 @@ Gaussians whose accumulated positional gradient exceeds `grad_threshold` are clo
 split in two (large), and nearly transparent ones (opacity < `prune_opacity`) are pruned (after
 the first opacity reset also those wider than a tenth of the scene); opacities are reset every
 `opacity_reset_every` iterations. Gaussians closer than `camera_clearance` to any camera of the
-capture are pruned at every densification step (and, by the trainer, at the start and end)."""
+capture are pruned at every densification step (and, by the trainer, at the start and end), and
+with `view_clearance` those reaching into a posed view nearer than that fraction of the view's
+recorded near depth."""
 
 from __future__ import annotations
 
@@ -24,9 +26,22 @@ Params = dict[str, torch.Tensor]  # raw parameters: means, log_scales, quats, op
 
 class DensifyStrategy:
     """Gradient statistics and the densify / prune / opacity-reset rules of one fit.
-    camera_centers: (C, 3) every camera of the capture; extent: the scene's radius."""
+    camera_centers: (C, 3) every camera of the capture; extent: the scene's radius; views and
+    view_near: the posed views and the nearest depth recorded for each (0: unknown), for
+    `view_clearance`."""
 
-    def __init__(self, cfg: FitConfig, camera_centers: torch.Tensor, extent: float):
+    def __init__(
+        self,
+        cfg: FitConfig,
+        camera_centers: torch.Tensor,
+        extent: float,
+        views: list[Camera] = (),
+        view_near: list[float] = (),
+    ):
+        if len(views) != len(view_near):
+            raise ValueError(f"{len(views)} views but {len(view_near)} near depths")
+        pairs = zip(views, view_near, strict=True)
+        self.views = [(c.to(cfg.device), float(d)) for c, d in pairs if d > 0]
         self.cfg, self.extent = cfg, extent
         self.camera_centers = camera_centers.to(cfg.device, torch.float32)
         self.reset(0)
@@ -43,12 +58,25 @@ class DensifyStrategy:
         self.grad_accum = state["grad_accum"].to(self.cfg.device)
         self.grad_count = state["grad_count"].to(self.cfg.device)
 
-    def clear_of_cameras(self, means: torch.Tensor) -> torch.Tensor:
-        """(N,) bool: centres at least `camera_clearance` from every camera centre."""
-        if not self.cfg.camera_clearance or self.cfg.camera_clearance <= 0:
-            return torch.ones(len(means), dtype=torch.bool, device=means.device)
-        nearest = torch.cdist(means, self.camera_centers.to(means.device)).min(dim=1).values
-        return nearest >= self.cfg.camera_clearance
+    def clear_of_cameras(
+        self, means: torch.Tensor, log_scales: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """(N,) bool: centres at least `camera_clearance` from every camera centre and, with
+        `view_clearance`, footprints (3 sigma of the largest scale; the centre alone without
+        log_scales) clear of every view's image nearer than view_clearance x its near depth."""
+        keep = torch.ones(len(means), dtype=torch.bool, device=means.device)
+        if self.cfg.camera_clearance and self.cfg.camera_clearance > 0:
+            nearest = torch.cdist(means, self.camera_centers.to(means.device)).min(dim=1).values
+            keep &= nearest >= self.cfg.camera_clearance
+        if self.cfg.view_clearance > 0:
+            radius = (
+                torch.zeros(len(means), device=means.device)
+                if log_scales is None
+                else 3.0 * torch.exp(log_scales).max(dim=1).values
+            )
+            for cam, near in self.views:
+                keep &= ~in_front_of_view(means, radius, cam, self.cfg.view_clearance * near)
+        return keep
 
     # --- hooks around the optimiser step ------------------------------------------------------
     @torch.no_grad()
@@ -126,7 +154,7 @@ class DensifyStrategy:
         grown = len(merged["means"]) - n
         keep = torch.cat([keep, torch.ones(grown, dtype=torch.bool, device=keep.device)])
         keep &= torch.sigmoid(merged["opacity_logit"]) >= cfg.prune_opacity
-        keep &= self.clear_of_cameras(merged["means"])
+        keep &= self.clear_of_cameras(merged["means"], merged["log_scales"])
         if cfg.opacity_reset_every and step > cfg.opacity_reset_every:
             # as 3DGS after its first opacity reset: Gaussians wider than a tenth of the scene
             keep &= torch.exp(merged["log_scales"]).max(1).values <= 0.1 * self.extent
@@ -135,8 +163,25 @@ class DensifyStrategy:
     @torch.no_grad()
     def prune_near_cameras(self, params: Params) -> tuple[Params | None, int]:
         """Drop Gaussians inside the camera clearance: (new parameters or None, how many)."""
-        keep = self.clear_of_cameras(params["means"].detach())
+        keep = self.clear_of_cameras(params["means"].detach(), params["log_scales"].detach())
         dropped = int((~keep).sum())
         if not dropped:
             return None, 0
         return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
+
+
+def in_front_of_view(
+    means: torch.Tensor, radius: torch.Tensor, cam: Camera, depth: float
+) -> torch.Tensor:
+    """(N,) bool: centres in front of `cam` nearer than `depth` whose disc of `radius` (N,)
+    (world units, drawn at the centre's depth) overlaps its image."""
+    p = means @ cam.rotation.T.to(means) + cam.translation.to(means)
+    z = p[:, 2]
+    close = (z > 0) & (z < depth)
+    zc = z.clamp_min(1e-9)
+    K = cam.K.to(means)
+    u = K[0, 0] * p[:, 0] / zc + K[0, 2]
+    v = K[1, 1] * p[:, 1] / zc + K[1, 2]
+    r = radius * torch.maximum(K[0, 0], K[1, 1]) / zc
+    overlaps = (u + r > 0) & (u - r < cam.width) & (v + r > 0) & (v - r < cam.height)
+    return close & overlaps

@@ -53,7 +53,8 @@ from sagonline.utils import atomic_write, atomic_write_json
 class SceneFitter:
     """Holds the raw parameters and the optimiser; `fit` runs (or resumes) the schedule.
     images: (H, W, 3) floats in [0, 1], one per camera; points: optional (xyz, rgb) start points;
-    other_cameras: cameras of the capture without an image (kept clear like the others)."""
+    other_cameras: cameras of the capture without an image (kept clear like the others);
+    view_near: the nearest depth the capture records per view name (for `view_clearance`)."""
 
     def __init__(
         self,
@@ -63,6 +64,7 @@ class SceneFitter:
         points: tuple[np.ndarray, np.ndarray] | None = None,
         near_far: tuple[float, float] | None = None,
         other_cameras: list[Camera] = (),
+        view_near: dict[str, float] | None = None,
     ):
         if cfg.kind not in ("2dgs", "3dgs"):
             raise ValueError(f"fit kind {cfg.kind!r} is not '2dgs' or '3dgs'")
@@ -96,8 +98,25 @@ class SceneFitter:
         # nothing of the scene sits closer than `camera_clearance` to any camera of the capture
         # (training ones and those without an image): Gaussians there are floaters that no
         # training view constrains yet every nearby novel view looks through
-        every_center = torch.stack([c.center for c in [*cameras, *other_cameras]])
-        self.strategy = DensifyStrategy(cfg, every_center, self.extent)
+        every_camera = [*cameras, *other_cameras]
+        every_center = torch.stack([c.center for c in every_camera])
+        if cfg.view_clearance_views not in ("train", "all"):
+            raise ValueError(
+                f"fit.view_clearance_views={cfg.view_clearance_views!r}: use train or all"
+            )
+        near = view_near or {}
+        views = (
+            [cameras[i] for i in self.train_idx]
+            if cfg.view_clearance_views == "train"
+            else every_camera
+        )
+        self.strategy = DensifyStrategy(
+            cfg,
+            every_center,
+            self.extent,
+            views=views,
+            view_near=[near.get(c.name, 0.0) for c in views],
+        )
         clear = self.strategy.clear_of_cameras(torch.tensor(xyz, dtype=torch.float32))
         clear = clear.cpu().numpy()
         self._init_params(xyz[clear], rgb[clear], rng)
