@@ -78,7 +78,7 @@ inline Response respond(bool surfel, const float* p, float px, float py) {
 
 // Alpha only, as respond(...).alpha, for the passes that need nothing else (the vote): no
 // intermediates kept, and no exp where the result would fall under 1/255 anyway (3DGS:
-// `log_floor` = log(kAlphaMin / opacity), precomputed per splat; the exp is then still taken on
+// `log_floor` = log(kAlphaMin / opacity), taken once per splat and tile; the exp is still taken on
 // the pairs near that bound, so the skip never changes a result).
 inline float alpha_at(bool surfel, const float* p, float log_floor, float px, float py) {
   const float dx = px - p[0], dy = py - p[1];
