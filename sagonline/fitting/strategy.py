@@ -38,9 +38,7 @@ class DensifyStrategy:
         views: list[Camera] = (),
         view_near: list[float] = (),
     ):
-        if len(views) != len(view_near):
-            raise ValueError(f"{len(views)} views but {len(view_near)} near depths")
-        pairs = zip(views, view_near, strict=True)
+        pairs = zip(views, view_near, strict=True)  # one near depth per view
         self.views = [(c.to(cfg.device), float(d)) for c, d in pairs if d > 0]
         self.cfg, self.extent = cfg, extent
         self.camera_centers = camera_centers.to(cfg.device, torch.float32)
@@ -175,13 +173,9 @@ def in_front_of_view(
 ) -> torch.Tensor:
     """(N,) bool: centres in front of `cam` nearer than `depth` whose disc of `radius` (N,)
     (world units, drawn at the centre's depth) overlaps its image."""
-    p = means @ cam.rotation.T.to(means) + cam.translation.to(means)
-    z = p[:, 2]
+    uv, z = cam.to(means.device).project(means)
     close = (z > 0) & (z < depth)
-    zc = z.clamp_min(1e-9)
-    K = cam.K.to(means)
-    u = K[0, 0] * p[:, 0] / zc + K[0, 2]
-    v = K[1, 1] * p[:, 1] / zc + K[1, 2]
-    r = radius * torch.maximum(K[0, 0], K[1, 1]) / zc
+    r = radius * cam.K[:2, :2].diagonal().max().to(means) / z.clamp_min(1e-9)
+    u, v = uv[:, 0], uv[:, 1]
     overlaps = (u + r > 0) & (u - r < cam.width) & (v + r > 0) & (v - r < cam.height)
     return close & overlaps
