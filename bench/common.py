@@ -83,6 +83,28 @@ def flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
+REQUIRED_METRICS = ("dataset", "scenes", "miou")
+
+
+def read_run_metrics(path: Path) -> dict | None:
+    """A run's metrics.json for reports and tables, or None (with a warning naming the file and
+    the problem) when it is unreadable, truncated, or lacks what a row needs: one bad run never
+    aborts a report, nor becomes a silent row of blanks."""
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        problem = f"unreadable ({type(exc).__name__}: {exc})"
+    else:
+        missing = (
+            [k for k in REQUIRED_METRICS if k not in metrics] if isinstance(metrics, dict) else []
+        )
+        if isinstance(metrics, dict) and not missing:
+            return metrics
+        problem = f"lacks {missing}" if missing else "is not a JSON object"
+    print(f"warning: skipped {path}: {problem}", file=sys.stderr)
+    return None
+
+
 def finished_run(out_dir: Path) -> dict | None:
     """The metrics of a finished run in `out_dir` (one that scored at least one scene), else
     None: no run, an interrupted one, or one whose every scene failed (rerun freely)."""
@@ -225,9 +247,36 @@ def settings_from(cfg: DictConfig) -> PipelineSettings:
 
 
 def refine_config_from(cfg: DictConfig) -> RefineConfig:
+    """The student's settings, checked (bounds, and a `refine.pretrained` file that opens with
+    weights_only) before any work: a problem stops with the key's name."""
     d = OmegaConf.to_container(cfg.refine, resolve=True)
     d.pop("enabled", None)
-    return RefineConfig(**d)
+    try:
+        refine = RefineConfig(**d)
+        if refine.pretrained:
+            from sagonline.refine.network import ResNetEncoder, load_imagenet_weights
+
+            load_imagenet_weights(ResNetEncoder(refine.encoder), refine.pretrained)
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    return refine
+
+
+def check_writable(out_dir: Path) -> None:
+    """Stop in one line when the run folder cannot be written."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".write_test_{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        print(
+            f"error: the run folder {out_dir} cannot be written ({exc.strerror or exc}); choose "
+            "another hydra.run.dir or fix its permissions",
+            file=sys.stderr,
+        )
+        raise SystemExit(2) from None
 
 
 def vote_config_from(cfg: DictConfig) -> VoteConfig:
@@ -243,7 +292,7 @@ def vote_config_from(cfg: DictConfig) -> VoteConfig:
         print(f"error: consensus.{key}: {msg}", file=sys.stderr)
         raise SystemExit(2) from None
     except ValueError as exc:
-        print(f"error: consensus: {exc}", file=sys.stderr)
+        print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
 

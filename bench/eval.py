@@ -21,6 +21,7 @@ from bench.common import (
     FILE_ONLY,
     build_plugin,
     check_device,
+    check_writable,
     comparable_config,
     config_difference,
     config_fingerprint,
@@ -69,6 +70,8 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     if previous is not None and not cfg.overwrite:
         return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
 
+    check_writable(out_dir)
+    refine_cfg = refine_config_from(cfg) if cfg.refine.enabled else None
     seed_everything(cfg.seed)
     set_threads(cfg)
     segmenter = build_plugin(cfg.segmenter, "segmenter")
@@ -82,7 +85,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     with run_log(out_dir):
         try:
             reports = run_scenes(
-                cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings
+                cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings, refine_cfg
             )
         except KeyboardInterrupt:
             log.warning("interrupted; finished stages are cached", extra=FILE_ONLY)
@@ -113,7 +116,7 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     return metrics
 
 
-def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings):
+def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings, refine_cfg):
     """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
     scored is reported as failed and the others go on."""
     recorder = Recorder(
@@ -146,16 +149,16 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
                 print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
                 reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
                 continue
-            if cfg.refine.enabled:
+            if refine_cfg is not None:
                 refine_key = digest_json(
                     "refine", STAGE_VERSIONS["refine"], stage_one.keys, str(cfg.refine)
                 )
-                checkpoint = cache_root / scene / f"refine-{refine_key}.pt"
+                checkpoint = cache_root / scene / f"refine-{refine_key}.store"
                 run_stage_two(
                     task,
                     vote,
                     stage_one,
-                    refine_config_from(cfg),
+                    refine_cfg,
                     settings,
                     report,
                     recorder,

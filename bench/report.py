@@ -19,6 +19,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
+from bench.common import read_run_metrics
 from sagonline.datasets.common import SCENES_ROOT
 from sagonline.fitting import FitConfig
 from sagonline.utils import atomic_write_image, atomic_write_text
@@ -27,7 +28,9 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def find_runs(roots: list[Path]) -> list[Path]:
-    return sorted({p.parent for r in roots if r.exists() for p in r.rglob("metrics.json")})
+    """Run folders whose metrics.json reads (a bad one is named on stderr and skipped)."""
+    found = sorted({p.parent for r in roots if r.exists() for p in r.rglob("metrics.json")})
+    return [run for run in found if read_run_metrics(run / "metrics.json") is not None]
 
 
 def load(run: Path) -> dict:

@@ -6,11 +6,12 @@ cameras fixed (pycolmap), else random points in the training frusta,
 fit (sagonline.fitting), and write point_cloud.ply + cameras.json + fit_config.json +
 fit_metrics.json where the dataset adapter looks (`<scene>/gaussians/`, or
 `scenes/<dataset>/<scene>/gaussians/` when the data folder is read-only), with side-by-side
-renders of the held-out views to look at. Interrupted fits resume from fit_checkpoint.pt.
+renders of the held-out views to look at. Interrupted fits resume from fit_checkpoint.store.
 """
 
 from __future__ import annotations
 
+import json
 import os
 import stat
 import sys
@@ -35,6 +36,7 @@ from sagonline.fitting.capture import (
 )
 from sagonline.io.cameras import load_llff_bounds
 from sagonline.io.images import resize_nearest
+from sagonline.provenance import digest_file
 from sagonline.utils import atomic_write_image
 
 
@@ -56,11 +58,26 @@ def output_dir(scene_dir: Path, dataset: str) -> Path:
 
 
 def foreign_scene(out: Path) -> Path | None:
-    """A point_cloud.ply in `out` that no fit of ours wrote (neither fit_metrics.json nor an
-    interrupted fit's checkpoint beside it): the user's own scene, never replaced silently."""
+    """A point_cloud.ply in `out` that is not the one a fit of ours wrote there: ours are the
+    files whose digest the fit_metrics.json beside them records. Anything else (the user's
+    own scene, also with an interrupted fit's checkpoint beside it) is never replaced silently."""
     scene = out / "point_cloud.ply"
-    ours = (out / "fit_metrics.json").is_file() or (out / "fit_checkpoint.pt").is_file()
-    return scene if scene.is_file() and not ours else None
+    if not scene.is_file():
+        return None
+    try:
+        recorded = json.loads((out / "fit_metrics.json").read_text()).get("scene_digest")
+    except (OSError, ValueError, AttributeError):
+        recorded = None
+    return None if recorded == digest_file(scene) else scene
+
+
+def fit_config(cfg: DictConfig) -> FitConfig:
+    """The fitting recipe, checked: a setting out of its range stops with the key's name."""
+    try:
+        return FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> float | None:
@@ -95,18 +112,18 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     out = output_dir(scene_dir, adapter.name)
     foreign = foreign_scene(out)
     if not cfg.overwrite:
-        if (out / "fit_metrics.json").is_file() and (out / "point_cloud.ply").is_file():
+        if foreign is None and (out / "point_cloud.ply").is_file():
             print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
             return {"scene": scene, "skipped": True}
         if foreign is not None:
             print(
-                f"{scene}: {foreign} is a trained scene that `make scenes` did not write (no "
-                "fit_metrics.json beside it); it is left as it is. Pass overwrite=true to fit "
-                "anyway (it is then kept as a .bak file).",
+                f"{scene}: {foreign} is a trained scene that `make scenes` did not write (its "
+                "digest is not the one fit_metrics.json records); it is left as it is. Pass "
+                "overwrite=true to fit anyway (it is then kept as a .bak file).",
                 file=sys.stderr,
             )
             return {"scene": scene, "skipped": True}
-    fit_cfg = FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
+    fit_cfg = fit_config(cfg)
     train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
     bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
@@ -125,7 +142,7 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         other_cameras=[c for c in cams if c.name not in images],
         view_near=view_near_depths(scene_dir, cams, points) if fit_cfg.view_clearance else None,
     )
-    ckpt = out / "fit_checkpoint.pt"
+    ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
     metrics = fitter.fit(progress=cfg.progress, checkpoint=ckpt)
@@ -143,7 +160,8 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
         on_device = g.to(fit_cfg.device)
         renders = {i: fitter.render(on_device, i).rgb.clamp(0, 1).cpu() for i in fitter.held_idx}
     metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter, renders)
-    if foreign is not None:  # overwrite=true: keep the user's scene beside ours
+    foreign = foreign_scene(out)  # asked again: whatever happened while this fit ran
+    if foreign is not None:  # overwrite=true: keep the scene that is not ours beside ours
         backup = foreign.with_name(f"{foreign.name}.bak-{time.strftime('%Y%m%d-%H%M%S')}")
         foreign.rename(backup)
         print(f"{scene}: the scene that was there is now {backup}")

@@ -13,11 +13,11 @@ command-line overrides of every row.
 from __future__ import annotations
 
 import argparse
-import json
 from pathlib import Path
 
 import pandas as pd
 
+from bench.common import read_run_metrics
 from bench.report import device_text
 from sagonline.utils import atomic_write_text
 
@@ -36,8 +36,8 @@ def newest(name: str) -> Path:
 def load_runs(sweep: Path) -> list[dict]:
     runs = []
     for path in sorted(sweep.rglob("metrics.json")):
-        m = json.loads(path.read_text())
-        if m.get("status") == "failed":
+        m = read_run_metrics(path)
+        if m is None or m.get("status") == "failed":
             continue
         # Labels come from what the run recorded beside its numbers, never from .hydra/,
         # which is a separate file.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -57,7 +58,7 @@ def _cmd_render(args: argparse.Namespace) -> int:
     import torch
 
     from sagonline.io import read_scene
-    from sagonline.io.cameras import load_cameras
+    from sagonline.io.cameras import camera_input_files, load_cameras
     from sagonline.render import render
     from sagonline.utils import atomic_write_image, atomic_write_npy
 
@@ -67,11 +68,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
         raise SystemExit(
             f"error: --out {out_path}: use a .png, .jpg or .npy path (got {out_path.suffix!r})"
         )
-    inputs = {Path(args.scene).resolve(), Path(args.cameras).resolve()}
-    if out_path.resolve() in inputs:
-        raise SystemExit(f"error: --out {out_path} is one of the inputs; choose another path")
+    refuse_inputs(out_path, [Path(args.scene), *camera_input_files(args.cameras)])
     if out_path.exists() and not args.overwrite:
         raise SystemExit(f"error: --out {out_path} exists; pass --overwrite to replace it")
+    if (args.width is None) != (args.height is None):
+        raise SystemExit("error: give both --width and --height, or neither")
+    background = parse_background(args.background)
     g = read_scene(args.scene, drop_nonfinite=args.drop_nonfinite).to(args.device)
     cams = load_cameras(args.cameras)
     if not 0 <= args.view < len(cams):
@@ -80,11 +82,12 @@ def _cmd_render(args: argparse.Namespace) -> int:
             f"{len(cams)} cameras (0..{len(cams) - 1})"
         )
     cam = cams[args.view]
-    if (args.width is None) != (args.height is None):
-        raise SystemExit("error: give both --width and --height, or neither")
     if args.width is not None:
-        cam = cam.scaled(args.width, args.height)
-    bg = torch.tensor([float(v) for v in args.background.split(",")])
+        try:
+            cam = cam.scaled(args.width, args.height)
+        except ValueError as exc:
+            raise SystemExit(f"error: --width {args.width} --height {args.height}: {exc}") from None
+    bg = torch.tensor(background)
     out = render(g, cam, background=bg, backend=args.backend)
     rgb = out.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
     if out_path.suffix.lower() == ".npy":
@@ -93,6 +96,30 @@ def _cmd_render(args: argparse.Namespace) -> int:
         atomic_write_image(out_path, (rgb.clip(0, 1) * 255 + 0.5).astype(np.uint8))
     print(f"wrote {out_path} ({cam.width}x{cam.height}, view {args.view} '{cam.name}')")
     return 0
+
+
+def refuse_inputs(out: Path, inputs: list[Path]) -> None:
+    """Stop when `out` is (or resolves to, or is a hard link of) any input file."""
+    target = out.resolve()
+    for path in inputs:
+        same = path.resolve() == target
+        if not same and out.exists() and path.exists():
+            same = os.path.samefile(out, path)
+        if same:
+            raise SystemExit(
+                f"error: --out {out} is one of the inputs ({path}); choose another path"
+            )
+
+
+def parse_background(text: str) -> list[float]:
+    """'r,g,b' with each value in [0, 1]."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise SystemExit(f"error: --background {text!r}: give three values r,g,b in [0, 1]")
+    return values
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -7,11 +7,16 @@ convention (LLFF, NeRF/Blender OpenGL axes, COLMAP) is converted at load time, i
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass, replace
 from numbers import Integral
 
 import numpy as np
 import torch
+
+# The most pixels one view may have: a render allocates several float32 buffers of this many
+# pixels, so a mistyped size (100000 x 100000) is refused by name instead of exhausting memory.
+MAX_PIXELS = int(os.environ.get("SAGONLINE_MAX_PIXELS", 8192 * 8192))
 
 
 @dataclass(frozen=True)
@@ -35,6 +40,12 @@ class Camera:
             raise ValueError(f"{who}: size {self.width!r}x{self.height!r} is not two integers")
         if self.width <= 0 or self.height <= 0:
             raise ValueError(f"{who}: size {self.width}x{self.height} is not positive")
+        if self.width * self.height > MAX_PIXELS:
+            raise ValueError(
+                f"{who}: {self.width}x{self.height} = {self.width * self.height:,} pixels exceeds "
+                f"the ceiling of {MAX_PIXELS:,} (sagonline.cameras.MAX_PIXELS; the environment "
+                "variable SAGONLINE_MAX_PIXELS raises it)"
+            )
         K, pose = self.K.detach().double().cpu(), self.world_to_cam.detach().double().cpu()
         if not (torch.isfinite(K).all() and torch.isfinite(pose).all()):
             raise ValueError(f"{who}: intrinsics or pose hold NaN/Inf")

@@ -28,8 +28,10 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
+from sagonline.io.store import stored
 from sagonline.render.api import render, resolve_backend
 from sagonline.render.rasterize import T_STOP, TraceChunk, TraceRequest
+from sagonline.utils import check_settings
 
 METHODS = ("rgc", "flashsplat", "weighted_mean")
 
@@ -55,14 +57,27 @@ class VoteConfig:
     threshold: float = 0.9  # weighted_mean
 
     def __post_init__(self) -> None:
-        if self.method not in METHODS:
-            raise ValueError(f"consensus method {self.method!r} is not one of {METHODS}")
-        if self.selection not in ("uniform", "first", "random"):
-            raise ValueError(f"mask selection {self.selection!r} is not uniform, first or random")
-        if self.eps < 0 or self.delta <= 0 or self.stride < 1 or self.min_votes < 0:
-            raise ValueError("eps >= 0, delta > 0, stride >= 1 and min_votes >= 0 are required")
+        n = self.num_masks
+        check_settings(
+            "consensus",
+            method=(self.method in METHODS, self.method, f"one of {METHODS}"),
+            selection=(
+                self.selection in ("uniform", "first", "random"),
+                self.selection,
+                "uniform, first or random",
+            ),
+            eps=(0 <= self.eps < 1, self.eps, "a transmittance in [0, 1)"),
+            delta=(self.delta > 0, self.delta, "a distance in pixels > 0"),
+            min_votes=(self.min_votes >= 0, self.min_votes, ">= 0"),
+            margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
+            num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
+            stride=(self.stride >= 1, self.stride, ">= 1"),
+            background_slack=(self.background_slack >= 0, self.background_slack, ">= 0"),
+            threshold=(0 <= self.threshold <= 1, self.threshold, "in [0, 1]"),
+        )
 
 
+@stored
 @dataclass
 class VoteResult:
     """labels: (N,) long; labelled: (N,) bool; histogram: (N, K) float votes or weights;

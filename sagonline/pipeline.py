@@ -22,6 +22,7 @@ from tqdm import tqdm
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
 from sagonline.datasets.base import DatasetError, SceneTask
 from sagonline.feedback import FeedbackConfig, segment_with_feedback
+from sagonline.io import store
 from sagonline.metrics import labels3d_metrics, match_and_relabel, view_metrics
 from sagonline.provenance import (
     STAGE_VERSIONS,
@@ -138,35 +139,30 @@ def stage_keys(
 
 
 class StageCache:
-    """`<dir>/<stage>-<key>.pt` files written atomically; a missing dir disables caching.
-    An unreadable entry is reported by path and treated as missing (so it is recomputed)."""
+    """`<dir>/<stage>-<key>.store` files (`sagonline.io.store`: arrays and JSON, never a
+    pickle, each checked against the digest of its own bytes) written atomically; a missing dir
+    disables caching. A damaged or foreign entry is named, removed and recomputed, never used."""
 
     def __init__(self, directory: str | Path | None):
         self.dir = Path(directory) if directory is not None else None
 
     def path(self, stage: str, key: str) -> Path | None:
-        return None if self.dir is None else self.dir / f"{stage}-{key}.pt"
+        return None if self.dir is None else self.dir / f"{stage}-{key}{store.SUFFIX}"
 
     def load(self, stage: str, key: str):
         path = self.path(stage, key)
         if path is None or not path.is_file():
             return None
         try:
-            return torch.load(path, weights_only=False)
-        except Exception as exc:  # truncated, corrupt or from an incompatible version
-            warnings.warn(
-                f"cache entry {path} is unreadable ({type(exc).__name__}: {exc}); recomputing",
-                stacklevel=2,
-            )
+            return store.load(path)
+        except store.StoreError as exc:
+            warnings.warn(f"cache entry unusable, removed and recomputed: {exc}", stacklevel=2)
             path.unlink(missing_ok=True)
             return None
 
     def save(self, stage: str, key: str, value) -> None:
-        if self.dir is None:
-            return
-        from sagonline.utils import atomic_write
-
-        atomic_write(self.path(stage, key), lambda p: torch.save(value, p))
+        if self.dir is not None:
+            store.save(self.path(stage, key), value)
 
 
 def render_frames(task: SceneTask, settings: PipelineSettings) -> tuple[list[np.ndarray], float]:

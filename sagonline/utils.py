@@ -11,6 +11,14 @@ from pathlib import Path
 import numpy as np
 
 
+def check_settings(group: str, **checks: tuple[bool, object, str]) -> None:
+    """Raise ValueError `group.key=value: must be <rule>` for the first check that fails.
+    checks: key -> (holds, value, rule), e.g. margin=(0 <= m < 1, m, "in [0, 1)")."""
+    for key, (holds, value, rule) in checks.items():
+        if not holds:
+            raise ValueError(f"{group}.{key}={value!r}: must be {rule}")
+
+
 def _umask() -> int:
     """The process umask, read without changing it where the OS says it (Linux)."""
     try:

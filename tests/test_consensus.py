@@ -110,7 +110,7 @@ def test_mask_errors_name_the_frame():
 
 
 def test_bad_config_rejected():
-    with pytest.raises(ValueError, match="consensus method"):
+    with pytest.raises(ValueError, match="consensus.method='median': must be one of"):
         VoteConfig(method="median")
     with pytest.raises(ValueError, match="selection"):
         VoteConfig(selection="every")

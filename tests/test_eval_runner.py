@@ -70,7 +70,7 @@ def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
     with pytest.raises(RunExists):  # another config into a finished run: refused
         evaluate(cfg_with("record=false", "dataset=synthetic_ff", "consensus.eps=0.1"), tmp_path)
     assert (tmp_path / "metrics.json").read_bytes() == saved
-    caches = sorted((tmp_path / "cache" / "forward_single").glob("*.pt"))
+    caches = sorted((tmp_path / "cache" / "forward_single").glob("*.store"))
     assert [p.name.split("-")[0] for p in caches] == ["frames", "masks", "vote"]
     stamps = {p: p.stat().st_mtime_ns for p in caches}
     # an interrupted run: metrics never written; the next run reuses every cached stage
@@ -83,7 +83,7 @@ def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
         cfg_with("record=false", "dataset=synthetic_ff", "consensus.eps=0.1", "overwrite=true"),
         tmp_path,
     )
-    votes = list((tmp_path / "cache" / "forward_single").glob("vote-*.pt"))
+    votes = list((tmp_path / "cache" / "forward_single").glob("vote-*.store"))
     assert len(votes) == 2
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())
 

@@ -9,6 +9,7 @@ import pytest
 import torch
 
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
+from sagonline.io import store
 from sagonline.render import rasterize
 from sagonline.synthetic import make_scene
 
@@ -97,13 +98,13 @@ def test_runs_on_a_budget_stopped_fit_say_so(tmp_path):
 
 def test_resume_continues_where_it_stopped(views, tmp_path):
     cams, imgs = views
-    ckpt = tmp_path / "fit.pt"
+    ckpt = tmp_path / "fit.store"
     f = SceneFitter(tiny(iterations=20), cams, imgs)
     f.cfg = tiny(iterations=10)
     f.fit(progress=False, checkpoint=ckpt)  # an interrupted run
-    state = torch.load(ckpt, weights_only=False)
+    state = store.load(ckpt)
     state["config"] = {**state["config"], "iterations": 20}
-    torch.save(state, ckpt)
+    store.save(ckpt, state)
     g = SceneFitter(tiny(iterations=20), cams, imgs)
     assert g.resume(ckpt) and g.step == 10
     g.fit(progress=False, checkpoint=ckpt)

@@ -153,4 +153,4 @@ def test_eval_with_refinement_reports_both_modes(tmp_path):
     )
     rows = pd.read_csv(tmp_path / "per_view.csv")
     assert set(rows["mode"]) == {"initial", "refined"}
-    assert list((tmp_path / "cache" / "forward_single").glob("refine-*.pt"))
+    assert list((tmp_path / "cache" / "forward_single").glob("refine-*.store"))

@@ -50,7 +50,14 @@ def test_views_report_splits_photographed_and_mask_only(tmp_path):
 
     run = tmp_path / "run"
     run.mkdir()
-    (run / "metrics.json").write_text(json.dumps({"segmenter": "oracle", "overrides": ["a=1"]}))
+    metrics = {
+        "dataset": "cap",
+        "scenes": [],
+        "miou": 0.7,
+        "segmenter": "oracle",
+        "overrides": ["a=1"],
+    }
+    (run / "metrics.json").write_text(json.dumps(metrics))
     pd.DataFrame(
         {
             "scene": "s",

@@ -112,9 +112,9 @@ def test_each_input_recomputes_exactly_the_stages_that_depend_on_it(tiny_task, t
 
 def test_corrupt_cache_entry_is_named_and_recomputed(tiny_task, tmp_path):
     _stages(tiny_task, tmp_path)
-    (vote_file,) = tmp_path.glob("vote-*.pt")
+    (vote_file,) = tmp_path.glob("vote-*.store")
     vote_file.write_bytes(b"not a torch file")
-    with pytest.warns(UserWarning, match=rf"{vote_file.name} is unreadable"):
+    with pytest.warns(UserWarning, match=rf"unusable, removed and recomputed: .*{vote_file.name}"):
         assert _stages(tiny_task, tmp_path) == {"vote"}
     assert StageCache(tmp_path).load("vote", vote_file.stem.split("-", 1)[1]) is not None
 
@@ -382,8 +382,9 @@ def _nerf(path: Path, **changes) -> Path:
     ("change", "message"),
     [
         ({"transform_matrix": np.full((4, 4), np.nan).tolist()}, "NaN/Inf"),
-        ({"camera_angle_x": 0.0}, "NaN/Inf"),
-        ({"transform_matrix": np.zeros((4, 4)).tolist()}, "Singular matrix"),
+        ({"camera_angle_x": 0.0}, "not a pinhole field of view"),
+        ({"camera_angle_x": float(np.pi)}, "not a pinhole field of view"),
+        ({"transform_matrix": np.zeros((4, 4)).tolist()}, "frame 'a' has a singular pose"),
         ({"transform_matrix": (2 * np.eye(4)).tolist()}, "not a rotation"),
         ({"transform_matrix": np.eye(3).tolist()}, "reshape"),
         ({"camera_angle_x": "wide"}, ""),

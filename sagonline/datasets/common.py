@@ -75,10 +75,14 @@ def fit_record(scene_dir: Path, dataset: str | None = None) -> dict | None:
     return {k: record[k] for k in keys if k in record} | {"path": str(path)}
 
 
-def load_trained_scene(scene_dir: Path, dataset: str | None = None) -> Gaussians:
+def load_trained_scene(
+    scene_dir: Path, dataset: str | None = None, drop_nonfinite: bool = False
+) -> Gaussians:
+    """The scene's trained Gaussians; NaN/Inf (or overflowing) rows fail the scene unless
+    `drop_nonfinite` (the adapters' `drop_nonfinite` setting) drops them."""
     path = find_trained_scene(scene_dir, dataset)
     try:
-        return read_scene(path)
+        return read_scene(path, drop_nonfinite=drop_nonfinite)
     except SceneFileError as exc:
         raise DatasetError(str(exc)) from exc
 

@@ -77,6 +77,7 @@ class PosedMasksDataset(DatasetAdapter):
         order: str = "name",
         inbetween: int = 0,
         seed: int = 0,
+        drop_nonfinite: bool = False,
     ):
         if label_format not in LABEL_FORMATS:
             raise DatasetError(
@@ -103,6 +104,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.keep_classes = tuple(keep_classes)
         self.render_max_side = render_max_side
         self.order, self.inbetween = order, int(inbetween)
+        self.drop_nonfinite = drop_nonfinite
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:
@@ -297,7 +299,7 @@ class PosedMasksDataset(DatasetAdapter):
             gts[name] = gt
         if self.label_format == "kitti360":
             gts, names = _renumber_instances(gts)
-        gaussians = load_trained_scene(scene_dir, self.name)
+        gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite)
         num_labels, names = (
             (len(names), names)
             if self.label_format == "kitti360"

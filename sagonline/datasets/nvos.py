@@ -68,6 +68,7 @@ class NVOSDataset(DatasetAdapter):
         seed=0,
         mask_threshold=127,
         scenes_root=None,
+        drop_nonfinite=False,
     ):
         if prompt not in ("scribbles", "clicks"):
             raise DatasetError(f"nvos: prompt {prompt!r} is not 'scribbles' or 'clicks'")
@@ -78,6 +79,7 @@ class NVOSDataset(DatasetAdapter):
             raise DatasetError(f"nvos: unknown task(s) {unknown}; tasks are {list(TASKS)}")
         self.clicks, self.points, self.negative = clicks, scribble_points, negative
         self.seed, self.threshold = seed, mask_threshold
+        self.drop_nonfinite = drop_nonfinite
         self.scenes_root = Path(scenes_root) if scenes_root else self.root / "scenes"
 
     @property
@@ -147,7 +149,7 @@ class NVOSDataset(DatasetAdapter):
             sx, sy = gt.shape[1] / target_cam.width, gt.shape[0] / target_cam.height
             cams = [c.scaled(round(c.width * sx), round(c.height * sy)) for c in cams]
             target_cam = cams[names.index(target)]
-        gaussians = load_trained_scene(scene_dir, "nvos")
+        gaussians = load_trained_scene(scene_dir, "nvos", self.drop_nonfinite)
         if self.prompt_kind == "clicks":
             frame = names.index(target)
             scale = (target_cam.width / gt.shape[1], target_cam.height / gt.shape[0])

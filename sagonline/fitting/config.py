@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from sagonline.utils import check_settings
+
 
 @dataclass
 class FitConfig:
@@ -55,3 +57,19 @@ class FitConfig:
     seed: int = 0
     device: str = "cpu"
     backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer
+
+    def __post_init__(self) -> None:
+        budget = self.time_budget_s
+        check_settings(
+            "fit",
+            kind=(self.kind in ("2dgs", "3dgs"), self.kind, "2dgs or 3dgs"),
+            iterations=(self.iterations >= 1, self.iterations, ">= 1"),
+            max_side=(self.max_side >= 8, self.max_side, ">= 8 pixels"),
+            sh_degree=(0 <= self.sh_degree <= 3, self.sh_degree, "0, 1, 2 or 3"),
+            max_gaussians=(self.max_gaussians >= 1, self.max_gaussians, ">= 1"),
+            time_budget_s=(budget is None or budget >= 0, budget, ">= 0 seconds, or null"),
+            view_clearance=(self.view_clearance >= 0, self.view_clearance, ">= 0"),
+            lambda_dist=(self.lambda_dist >= 0, self.lambda_dist, ">= 0"),
+            lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
+            lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
+        )

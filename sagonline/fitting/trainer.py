@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from collections import deque
 from dataclasses import asdict
 from pathlib import Path
@@ -44,10 +45,11 @@ from sagonline.fitting.losses import (
 from sagonline.fitting.start_points import split_views, start_points
 from sagonline.fitting.strategy import DensifyStrategy, Params
 from sagonline.gaussians import SH_C0, Gaussians
-from sagonline.io import write_ply
+from sagonline.io import store, write_ply
 from sagonline.io.cameras import write_3dgs_cameras_json
+from sagonline.provenance import digest_file
 from sagonline.render.api import render
-from sagonline.utils import atomic_write, atomic_write_json
+from sagonline.utils import atomic_write_json
 
 
 class SceneFitter:
@@ -314,13 +316,21 @@ class SceneFitter:
             **self.strategy.state_dict(),
             "config": asdict(self.cfg),
         }
-        atomic_write(path, lambda tmp: torch.save(state, tmp))
+        store.save(path, state)
 
     def resume(self, path: Path) -> bool:
-        """Continue an interrupted fit with the same settings; False if there is none."""
+        """Continue an interrupted fit with the same settings; False if there is none (or it is
+        damaged or not ours: then it is named, removed, and the fit starts over)."""
         if not path.is_file():
             return False
-        state = torch.load(path, map_location="cpu", weights_only=False)
+        try:
+            state = store.load(path)
+        except store.StoreError as exc:
+            warnings.warn(
+                f"fit checkpoint unusable, removed; fitting from the start: {exc}", stacklevel=2
+            )
+            path.unlink(missing_ok=True)
+            return False
         if state["config"] != asdict(self.cfg):
             return False
         self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
@@ -336,8 +346,10 @@ def write_fitted_scene(
     """point_cloud.ply + cameras.json (every camera of the scene) + fit_config.json +
     fit_metrics.json into `out_dir` (the dataset adapter's `gaussians/` folder)."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    write_ply(out_dir / "point_cloud.ply", fitter.export())
+    scene = write_ply(out_dir / "point_cloud.ply", fitter.export())
     write_3dgs_cameras_json(out_dir / "cameras.json", all_cameras)
     atomic_write_json(out_dir / "fit_config.json", asdict(fitter.cfg))
+    # the digest marks the scene as ours: `make scenes` replaces only a file that matches it
+    metrics = {**metrics, "scene_digest": digest_file(scene)}
     atomic_write_json(out_dir / "fit_metrics.json", metrics)
     return out_dir / "point_cloud.ply"

@@ -38,26 +38,42 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
         raise CameraFileError(f"{path}: {exc}") from exc
 
 
+CAMERA_FILES = (
+    "cameras.json",
+    "transforms.json",
+    "transforms_train.json",
+    "poses_bounds.npy",
+    "sparse/0",
+    "sparse",
+)
+
+
+def camera_source(path: str | Path) -> Path:
+    """The file (or COLMAP model folder) `load_cameras(path)` reads: `path` itself, or for a
+    dataset folder the first of CAMERA_FILES found in it."""
+    path = Path(path)
+    if not path.is_dir() or _is_colmap_dir(path):
+        return path
+    for candidate in CAMERA_FILES:
+        found = path / candidate
+        if found.exists() and (not found.is_dir() or _is_colmap_dir(found)):
+            return found
+    raise CameraFileError(
+        f"{path}: no cameras found (looked for cameras.json, transforms.json, "
+        "poses_bounds.npy, sparse/0 with cameras+images)"
+    )
+
+
+def camera_input_files(path: str | Path) -> list[Path]:
+    """Every file `load_cameras(path)` reads (a COLMAP model: the files of its folder)."""
+    source = camera_source(path)
+    return sorted(p for p in source.iterdir() if p.is_file()) if source.is_dir() else [source]
+
+
 def _load_cameras(path: Path, **kwargs) -> list[Camera]:
     if path.is_dir():
-        for candidate in (
-            "cameras.json",
-            "transforms.json",
-            "transforms_train.json",
-            "poses_bounds.npy",
-            "sparse/0",
-            "sparse",
-        ):
-            if (path / candidate).exists() and (
-                not (path / candidate).is_dir() or _is_colmap_dir(path / candidate)
-            ):
-                return _load_cameras(path / candidate, **kwargs)
-        if _is_colmap_dir(path):
-            return load_colmap(path)
-        raise CameraFileError(
-            f"{path}: no cameras found (looked for cameras.json, transforms.json, "
-            "poses_bounds.npy, sparse/0 with cameras+images)"
-        )
+        source = camera_source(path)
+        return load_colmap(source) if source.is_dir() else _load_cameras(source, **kwargs)
     if not path.exists():
         raise CameraFileError(f"{path}: camera file not found")
     name = path.name
@@ -100,9 +116,12 @@ def load_llff(
     pb_path = scene_dir / "poses_bounds.npy"
     if not pb_path.is_file():
         raise CameraFileError(f"{pb_path}: LLFF poses_bounds.npy not found")
-    arr = np.load(pb_path)
-    if arr.ndim != 2 or arr.shape[1] != 17:
+    arr = read_npy(pb_path, CameraFileError)
+    if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
         raise CameraFileError(f"{pb_path}: expected an (N, 17) array, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        row = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
+        raise CameraFileError(f"{pb_path}: row {row} holds NaN/Inf")
     poses = arr[:, :15].reshape(-1, 3, 5)
     full_h, full_w, focal = poses[0, :, 4]
     width, height = int(round(full_w)), int(round(full_h))
@@ -132,13 +151,65 @@ def load_llff(
         c2w[:3, 0], c2w[:3, 1], c2w[:3, 2] = pose[:, 1], pose[:, 0], -pose[:, 2]
         c2w[:3, 3] = pose[:, 3]
         K = intrinsics(f * sx, f * sy, w * sx / 2.0, h * sy / 2.0)
-        cams.append(make_camera(K, np.linalg.inv(c2w), width, height, Path(name).stem))
+        w2c = invert_pose(c2w, pb_path, Path(name).stem)
+        cams.append(_camera(K, w2c, width, height, Path(name).stem, pb_path))
     return cams
+
+
+def invert_pose(c2w: np.ndarray, path: Path, frame: str) -> np.ndarray:
+    """World-to-camera from a camera-to-world 4x4; a singular one is refused naming the frame."""
+    if not np.isfinite(c2w).all():
+        raise CameraFileError(f"{path}: frame {frame!r}: its pose holds NaN/Inf")
+    try:
+        w2c = np.linalg.inv(c2w)
+    except np.linalg.LinAlgError:
+        raise CameraFileError(f"{path}: frame {frame!r} has a singular pose matrix") from None
+    if not np.isfinite(w2c).all():
+        raise CameraFileError(f"{path}: frame {frame!r} has a singular pose matrix")
+    return w2c
+
+
+def _camera(K, w2c, width, height, name: str, path: Path) -> Camera:
+    """make_camera, with a failed validation naming the file (the message names the frame)."""
+    try:
+        return make_camera(K, w2c, width, height, name)
+    except (ValueError, TypeError) as exc:
+        raise CameraFileError(f"{path}: {exc}") from None
+
+
+def read_npy(path: Path, error: type[Exception]) -> np.ndarray:
+    """A numeric `.npy` array, its header checked against the file's size before anything is
+    allocated (a damaged header cannot ask for terabytes); never unpickles."""
+    try:
+        with open(path, "rb") as f:
+            version = np.lib.format.read_magic(f)
+            read_header = {
+                (1, 0): np.lib.format.read_array_header_1_0,
+                (2, 0): np.lib.format.read_array_header_2_0,
+            }.get(version)
+            if read_header is None:
+                raise ValueError(f".npy format version {version} is not supported")
+            shape, _, dtype = read_header(f)
+            data_bytes = path.stat().st_size - f.tell()
+    except (OSError, ValueError, SyntaxError, TypeError, EOFError) as exc:
+        raise error(f"{path}: not a readable .npy array ({exc})") from None
+    if dtype.kind not in "biuf" or dtype.hasobject:
+        raise error(f"{path}: holds {dtype} values, not numbers")
+    if int(np.prod(shape, dtype=np.float64)) * dtype.itemsize != data_bytes:
+        raise error(
+            f"{path}: its header says {shape} {dtype} but the file holds {data_bytes} bytes "
+            "of data (truncated or damaged)"
+        )
+    return np.load(path, allow_pickle=False).astype(np.float64, copy=False)
 
 
 def load_llff_bounds(scene_dir: str | Path) -> np.ndarray:
     """(N, 2) near/far depth bounds from `poses_bounds.npy`."""
-    return np.load(Path(scene_dir) / "poses_bounds.npy")[:, 15:17]
+    path = Path(scene_dir) / "poses_bounds.npy"
+    arr = read_npy(path, CameraFileError)
+    if arr.ndim != 2 or arr.shape[1] != 17:
+        raise CameraFileError(f"{path}: expected an (N, 17) array, got {arr.shape}")
+    return arr[:, 15:17]
 
 
 def load_nerf_transforms(
@@ -169,8 +240,10 @@ def load_nerf_transforms(
             fx = info["fl_x"]
             fy = info.get("fl_y", fx)
         elif "camera_angle_x" in info:
-            fx = 0.5 * w / np.tan(0.5 * info["camera_angle_x"])
-            fy = 0.5 * h / np.tan(0.5 * info["camera_angle_y"]) if "camera_angle_y" in info else fx
+            fx = 0.5 * w / np.tan(0.5 * field_of_view(info, "camera_angle_x", path, i))
+            fy = fx
+            if "camera_angle_y" in info:
+                fy = 0.5 * h / np.tan(0.5 * field_of_view(info, "camera_angle_y", path, i))
         else:
             raise CameraFileError(f"{path}: frame {i} has no focal length (fl_x or camera_angle_x)")
         cx, cy = info.get("cx", w / 2.0), info.get("cy", h / 2.0)
@@ -178,9 +251,25 @@ def load_nerf_transforms(
             raise CameraFileError(f"{path}: frame {i} has no transform_matrix")
         c2w = np.asarray(frame["transform_matrix"], dtype=np.float64).reshape(4, 4)
         c2w[:3, 1:3] *= -1.0  # OpenGL -> OpenCV axes
-        name = Path(frame.get("file_path", f"frame_{i:05d}")).stem
-        cams.append(make_camera(intrinsics(fx, fy, cx, cy), np.linalg.inv(c2w), w, h, name))
+        name = Path(str(frame.get("file_path", f"frame_{i:05d}"))).stem
+        w2c = invert_pose(c2w, path, name)
+        cams.append(_camera(intrinsics(fx, fy, cx, cy), w2c, w, h, name, path))
     return cams
+
+
+# A pinhole sees less than 180 degrees; near it the focal length vanishes (pi gives 6e-14 px).
+MAX_FIELD_OF_VIEW = np.deg2rad(179.0)
+
+
+def field_of_view(info: dict, key: str, path: Path, frame: int) -> float:
+    """A field of view in radians, checked to lie in (0, MAX_FIELD_OF_VIEW]."""
+    angle = float(info[key])
+    if not 0 < angle <= MAX_FIELD_OF_VIEW:
+        raise CameraFileError(
+            f"{path}: frame {frame}: {key}={angle:g} rad is not a pinhole field of view in "
+            f"(0, {MAX_FIELD_OF_VIEW:.4f}] (179 degrees; radians, not degrees?)"
+        )
+    return angle
 
 
 def load_3dgs_cameras_json(path: str | Path) -> list[Camera]:
@@ -203,7 +292,8 @@ def load_3dgs_cameras_json(path: str | Path) -> list[Camera]:
         c2w[:3, 3] = np.asarray(e["position"], dtype=np.float64)
         w, h = int(e["width"]), int(e["height"])
         K = intrinsics(e["fx"], e["fy"], w / 2.0, h / 2.0)
-        cams.append(make_camera(K, np.linalg.inv(c2w), w, h, str(e.get("img_name", i))))
+        name = str(e.get("img_name", i))
+        cams.append(_camera(K, invert_pose(c2w, path, name), w, h, name, path))
     return sorted(cams, key=lambda c: c.name)
 
 

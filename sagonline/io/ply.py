@@ -9,6 +9,7 @@ any scene that was read from a file.
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -49,39 +50,31 @@ def read_scene(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
 
 
 def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
-    """Read the 3DGS (scale_0..2) or 2DGS (scale_0..1) `point_cloud.ply` layout."""
+    """Read the 3DGS (scale_0..2) or 2DGS (scale_0..1) `point_cloud.ply` layout.
+
+    Binary files are streamed in blocks of rows straight into the activated arrays, so reading
+    needs little more memory than the scene itself (the file's size, for the full layout).
+    Values that are NaN/Inf, or that overflow float32 once activated (a log-scale above ~88.7
+    or below ~-103), are refused naming the property and row, or dropped with `drop_nonfinite`.
+    """
     path = Path(path)
     if not path.is_file():
         raise SceneFileError(f"{path}: scene file not found")
-    try:
-        ply = PlyData.read(str(path))
-    except Exception as exc:  # plyfile raises several types for truncated/garbled input
+    header = read_ply_header(path)
+    vertex = next((e for e in header.elements if e.name == "vertex"), None)
+    if vertex is None:
         raise SceneFileError(
-            f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})"
-        ) from exc
-    names = [e.name for e in ply.elements]
-    if "vertex" not in names:
-        raise SceneFileError(
-            f"{path}: no 'vertex' element (found elements {names}); "
+            f"{path}: no 'vertex' element (found elements {[e.name for e in header.elements]}); "
             "a Gaussian PLY stores one vertex per Gaussian"
         )
-    vertex = ply["vertex"]
-    props = [p.name for p in vertex.properties]
+    props = [name for name, _ in vertex.properties]
     missing = [p for p in _REQUIRED if p not in props]
     if missing:
         raise SceneFileError(
             f"{path}: missing required property {missing[0]!r} (all missing: {missing})"
         )
-    data = vertex.data
-    if len(data) == 0:
+    if vertex.count == 0:
         raise SceneFileError(f"{path}: the vertex element is empty")
-
-    def column(name: str) -> np.ndarray:
-        return np.asarray(data[name], dtype=np.float32)
-
-    def stack(names: list[str]) -> np.ndarray:
-        return np.stack([column(n) for n in names], axis=1)
-
     rest_names = sorted((p for p in props if p.startswith("f_rest_")), key=lambda p: int(p[7:]))
     if len(rest_names) % 3:
         raise SceneFileError(
@@ -94,40 +87,204 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
             f"{path}: {len(rest_names)} f_rest_* properties does not match "
             "any SH degree 0-3 (expected 0, 9, 24 or 45)"
         ) from None
-    scale_names = ["scale_0", "scale_1"] + (["scale_2"] if "scale_2" in props else [])
-    has_normals = all(n in props for n in ("nx", "ny", "nz"))
-
-    raw = {
-        "means": stack(["x", "y", "z"]),
-        "dc": stack(["f_dc_0", "f_dc_1", "f_dc_2"]),
-        "rest": stack(rest_names) if rest_names else np.zeros((len(data), 0), np.float32),
-        "opacity": column("opacity")[:, None],
-        "scales": stack(scale_names),
-        "quats": stack(["rot_0", "rot_1", "rot_2", "rot_3"]),
-    }
-    if has_normals:
-        raw["normals"] = stack(["nx", "ny", "nz"])
-    prop_names = {
+    layout = {
         "means": ["x", "y", "z"],
         "dc": ["f_dc_0", "f_dc_1", "f_dc_2"],
         "rest": rest_names,
         "opacity": ["opacity"],
-        "scales": scale_names,
+        "scales": ["scale_0", "scale_1"] + (["scale_2"] if "scale_2" in props else []),
         "quats": ["rot_0", "rot_1", "rot_2", "rot_3"],
-        "normals": ["nx", "ny", "nz"],
     }
-    raw = _check_finite(path, raw, prop_names, drop_nonfinite)
-    n = raw["means"].shape[0]
-    k = raw["rest"].shape[1] // 3
-    sh = np.concatenate([raw["dc"][:, None, :], raw["rest"].reshape(n, 3, k).transpose(0, 2, 1)], 1)
-    return Gaussians(
-        means=torch.from_numpy(raw["means"]),
-        quats=torch.from_numpy(_normalize_quats(path, raw["quats"], "rot_0..rot_3")),
-        scales=torch.from_numpy(_exp(raw["scales"])),
-        opacities=torch.from_numpy(_sigmoid(raw["opacity"][:, 0])),
-        sh=torch.from_numpy(np.ascontiguousarray(sh)),
-        normals=torch.from_numpy(raw["normals"]) if has_normals else None,
-    )
+    if all(n in props for n in ("nx", "ny", "nz")):
+        layout["normals"] = ["nx", "ny", "nz"]
+    scene = _SceneArrays(path, vertex.count, layout)
+    for start, block in _vertex_blocks(path, header, vertex):
+        scene.fill(start, block)
+    return scene.finish(drop_nonfinite)
+
+
+class _SceneArrays:
+    """The activated arrays of a scene, filled block by block from raw PLY rows."""
+
+    def __init__(self, path: Path, n: int, layout: dict[str, list[str]]):
+        self.path, self.n, self.layout = path, n, layout
+        k = len(layout["rest"]) // 3 + 1
+        self.means = np.empty((n, 3), np.float32)
+        self.sh = np.empty((n, k, 3), np.float32)
+        self.opacities = np.empty(n, np.float32)
+        self.scales = np.empty((n, len(layout["scales"])), np.float32)
+        self.quats = np.empty((n, 4), np.float32)
+        self.normals = np.empty((n, 3), np.float32) if "normals" in layout else None
+        self.bad_rows = np.zeros(n, dtype=bool)
+        self.bad: dict[str, list[int]] = {}  # property -> [rows, first row]
+
+    def _columns(self, block: np.ndarray, key: str) -> np.ndarray:
+        names = self.layout[key]
+        out = np.empty((len(block), len(names)), np.float32)
+        for i, name in enumerate(names):
+            out[:, i] = block[name]
+        return out
+
+    def _flag(self, key: str, bad: np.ndarray, start: int) -> None:
+        if not bad.any():
+            return
+        rows, cols = np.nonzero(bad)
+        self.bad_rows[start + np.unique(rows)] = True
+        for col in np.unique(cols):
+            name = self.layout[key][col]
+            hit = np.flatnonzero(bad[:, col])
+            entry = self.bad.setdefault(name, [0, start + int(hit[0])])
+            entry[0] += len(hit)
+
+    def fill(self, start: int, block: np.ndarray) -> None:
+        stop = start + len(block)
+        raw = {key: self._columns(block, key) for key in self.layout}
+        for key, values in raw.items():
+            self._flag(key, ~np.isfinite(values), start)
+        scales = _exp(raw["scales"])
+        overflow = np.isfinite(raw["scales"]) & ~(np.isfinite(scales) & (scales > 0))
+        self._flag("scales", overflow, start)
+        self.means[start:stop] = raw["means"]
+        self.sh[start:stop, 0] = raw["dc"]
+        c, k = len(block), self.sh.shape[1]
+        self.sh[start:stop, 1:] = raw["rest"].reshape(c, 3, k - 1).transpose(0, 2, 1)
+        self.opacities[start:stop] = _sigmoid(raw["opacity"][:, 0])
+        self.scales[start:stop] = scales
+        self.quats[start:stop] = _normalize_quats(self.path, raw["quats"], "rot_0..rot_3", start)
+        if self.normals is not None:
+            self.normals[start:stop] = raw["normals"]
+
+    def finish(self, drop: bool) -> Gaussians:
+        arrays = {
+            "means": self.means,
+            "quats": self.quats,
+            "scales": self.scales,
+            "opacities": self.opacities,
+            "sh": self.sh,
+            "normals": self.normals,
+        }
+        if self.bad:
+            keep = _nonfinite_rows(self.path, self.bad, self.bad_rows, drop)
+            arrays = {k: (v[keep] if v is not None else None) for k, v in arrays.items()}
+        return Gaussians(
+            **{k: torch.from_numpy(v) if v is not None else None for k, v in arrays.items()}
+        )
+
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_MAX_HEADER = 1 << 20
+_BLOCK_ROWS = 1 << 14
+
+
+@dataclass
+class PlyElementHeader:
+    """One element of a PLY header: name, row count, and (name, type) properties (a list
+    property's type is 'list')."""
+
+    name: str
+    count: int
+    properties: list[tuple[str, str]]
+
+
+@dataclass
+class PlyHeader:
+    format: str  # ascii | binary_little_endian | binary_big_endian
+    elements: list[PlyElementHeader]
+    size: int  # bytes, up to and including the end_header line
+
+
+def read_ply_header(path: Path) -> PlyHeader:
+    """Parse a PLY header (at most 1 MiB); a malformed one raises SceneFileError naming it."""
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER)
+    end = head.find(b"end_header")
+    line_end = head.find(b"\n", end) if end >= 0 else -1
+    if not head.startswith(b"ply") or end < 0 or line_end < 0:
+        raise SceneFileError(f"{path}: not a readable PLY file (no 'ply' ... 'end_header' header)")
+    try:
+        lines = head[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise SceneFileError(f"{path}: not a readable PLY file (non-ASCII header)") from None
+    fmt, elements = None, []
+    for number, line in enumerate(lines[1:], start=2):
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                fmt = words[1]
+                if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+                    raise ValueError(f"unknown format {fmt!r}")
+            elif words[0] == "element":
+                count = int(words[2])
+                if count < 0 or len(words) != 3:
+                    raise ValueError("an element needs a name and a count >= 0")
+                elements.append(PlyElementHeader(words[1], count, []))
+            elif words[0] == "property":
+                if not elements:
+                    raise ValueError("a property before any element")
+                if words[1] == "list":
+                    elements[-1].properties.append((words[4], "list"))
+                elif words[1] in _PLY_TYPES and len(words) == 3:
+                    elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
+                else:
+                    raise ValueError(f"unknown property type {words[1]!r}")
+            else:
+                raise ValueError(f"unknown keyword {words[0]!r}")
+        except (ValueError, IndexError) as exc:
+            raise SceneFileError(
+                f"{path}: not a readable PLY file (header line {number}: {line!r}: {exc})"
+            ) from None
+    if fmt is None:
+        raise SceneFileError(f"{path}: not a readable PLY file (no 'format' line)")
+    return PlyHeader(fmt, elements, line_end + 1)
+
+
+def _vertex_blocks(path: Path, header: PlyHeader, vertex: PlyElementHeader):
+    """(first row, structured block) pairs over the vertex element, `_BLOCK_ROWS` at a time.
+    Binary files are read straight from disk after checking the declared rows fit the file;
+    ASCII files (and binary ones with list properties before the vertices) go through plyfile."""
+    size = path.stat().st_size
+    before = header.elements[: header.elements.index(vertex)]
+    fixed = all(t != "list" for e in [*before, vertex] for _, t in e.properties)
+    if header.format != "ascii" and fixed:
+        order = "<" if header.format == "binary_little_endian" else ">"
+        dtype = np.dtype([(n, order + t) for n, t in vertex.properties])
+        offset = header.size + sum(
+            e.count * np.dtype([(n, order + t) for n, t in e.properties]).itemsize for e in before
+        )
+        need = vertex.count * dtype.itemsize
+        if offset + need > size:
+            raise SceneFileError(
+                f"{path}: truncated: the header declares {vertex.count} vertices "
+                f"({need:,} bytes from byte {offset:,}) but the file has {size:,} bytes"
+            )
+        with open(path, "rb") as f:
+            f.seek(offset)
+            for start in range(0, vertex.count, _BLOCK_ROWS):
+                rows = min(_BLOCK_ROWS, vertex.count - start)
+                yield start, np.fromfile(f, dtype=dtype, count=rows)
+        return
+    # An ASCII row takes at least two bytes per value: a count the file cannot hold is refused
+    # before plyfile allocates for it.
+    if sum(e.count * max(len(e.properties), 1) * 2 for e in [*before, vertex]) > size:
+        raise SceneFileError(
+            f"{path}: truncated: the header declares {vertex.count} vertices, more than the "
+            f"file's {size:,} bytes can hold"
+        )
+    try:
+        data = PlyData.read(str(path))["vertex"].data
+    except Exception as exc:  # plyfile raises several types for truncated/garbled input
+        raise SceneFileError(
+            f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})"
+        ) from exc
+    for start in range(0, len(data), _BLOCK_ROWS):
+        yield start, data[start : start + _BLOCK_ROWS]
 
 
 def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
@@ -223,13 +380,14 @@ def _encode(activated: np.ndarray, forward, inverse) -> np.ndarray:
     return best
 
 
-def _normalize_quats(path: Path, quats: np.ndarray, what: str) -> np.ndarray:
+def _normalize_quats(path: Path, quats: np.ndarray, what: str, first_row: int = 0) -> np.ndarray:
     norm = np.linalg.norm(quats.astype(np.float64), axis=1)
     zero = norm < 1e-12
     if zero.any():
         rows = np.flatnonzero(zero)
         raise SceneFileError(
-            f"{path}: {len(rows)} zero-norm quaternions in {what} (first at row {rows[0]})"
+            f"{path}: {len(rows)} zero-norm quaternions in {what} "
+            f"(first at row {first_row + rows[0]})"
         )
     # Rows already unit to float32 precision stay as they are, so a write/read cycle is exact.
     unit = np.abs(norm - 1.0) < 1e-6
@@ -238,36 +396,47 @@ def _normalize_quats(path: Path, quats: np.ndarray, what: str) -> np.ndarray:
     return out
 
 
+DROP_HINT = (
+    "Pass drop_nonfinite=True (command line: --drop-nonfinite; eval and make scenes: "
+    "dataset.adapter.drop_nonfinite=true) to drop them."
+)
+
+
+def _nonfinite_rows(
+    path: Path, bad: dict[str, list[int]], bad_rows: np.ndarray, drop: bool
+) -> np.ndarray:
+    """The rows to keep, or SceneFileError when dropping was not asked for. bad: property ->
+    [rows, first row] of its non-finite (or overflowing) values."""
+    prop, (count, row) = next(iter(bad.items()))
+    total, n = int(bad_rows.sum()), len(bad_rows)
+    if not drop:
+        raise SceneFileError(
+            f"{path}: property {prop!r} has NaN/Inf values or values that overflow float32 once "
+            f"activated ({count} rows, first at row {row}); {total} of {n} rows are affected in "
+            f"all. {DROP_HINT}"
+        )
+    if total == n:
+        raise SceneFileError(f"{path}: every Gaussian has NaN/Inf or overflowing values")
+    warnings.warn(f"{path}: dropped {total} of {n} Gaussians with NaN/Inf values", stacklevel=4)
+    return ~bad_rows
+
+
 def _check_finite(
     path: Path, raw: dict[str, np.ndarray], names: dict[str, list[str]], drop: bool
 ) -> dict[str, np.ndarray]:
+    """Rows of `raw` (key -> (N, C) arrays) with only finite values, or SceneFileError."""
     n = next(iter(raw.values())).shape[0]
     bad_rows = np.zeros(n, dtype=bool)
-    first_bad: tuple[str, int, int] | None = None
+    bad: dict[str, list[int]] = {}
     for key, values in raw.items():
-        bad = ~np.isfinite(values)
-        if bad.any():
-            rows, cols = np.nonzero(bad)
+        hit = ~np.isfinite(values)
+        for col in np.unique(np.nonzero(hit)[1]):
+            rows = np.flatnonzero(hit[:, col])
             bad_rows[rows] = True
-            if first_bad is None:
-                first_bad = (
-                    names[key][min(cols[0], len(names[key]) - 1)],
-                    int(rows[0]),
-                    int(bad.any(1).sum()),
-                )
-    if first_bad is None:
+            name = names[key][min(col, len(names[key]) - 1)]
+            entry = bad.setdefault(name, [0, int(rows[0])])
+            entry[0] += len(rows)
+    if not bad:
         return raw
-    prop, row, count = first_bad
-    if not drop:
-        raise SceneFileError(
-            f"{path}: property {prop!r} has NaN/Inf values ({count} rows, first at row {row}); "
-            f"{int(bad_rows.sum())} rows are non-finite in all. Pass drop_nonfinite=True "
-            "(CLI: --drop-nonfinite) to drop them."
-        )
-    warnings.warn(
-        f"{path}: dropped {int(bad_rows.sum())} of {n} Gaussians with NaN/Inf values", stacklevel=3
-    )
-    keep = ~bad_rows
-    if not keep.any():
-        raise SceneFileError(f"{path}: every Gaussian has NaN/Inf values")
+    keep = _nonfinite_rows(path, bad, bad_rows, drop)
     return {k: v[keep] for k, v in raw.items()}

@@ -20,6 +20,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from sagonline.io.checkpoints import load_user_checkpoint
+
 
 def _conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> list[nn.Module]:
     return [
@@ -131,10 +133,12 @@ class ResNetEncoder(nn.Module):
 def load_imagenet_weights(encoder: ResNetEncoder, path: str | Path) -> None:
     """Load a torchvision-format ResNet state dict (the classifier `fc.*` is ignored)."""
     path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"refine.pretrained={path}: no such file")
-    state = torch.load(path, map_location="cpu", weights_only=True)
-    state = state.get("state_dict", state)
+    state = load_user_checkpoint(path, "refine.pretrained")
+    state = state.get("state_dict", state) if isinstance(state, dict) else state
+    if not isinstance(state, dict):
+        raise ValueError(
+            f"refine.pretrained={path}: holds a {type(state).__name__}, not a state dict"
+        )
     state = {k.removeprefix("module."): v for k, v in state.items() if not k.startswith("fc.")}
     try:
         missing, unexpected = encoder.load_state_dict(state, strict=False)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -20,8 +21,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sagonline.refine.network import DualBranchRefiner
-from sagonline.utils import atomic_write
+from sagonline.io import store
+from sagonline.refine.network import ARCHS, DualBranchRefiner
+from sagonline.utils import check_settings
 
 
 @dataclass
@@ -29,7 +31,7 @@ class RefineConfig:
     encoder: str = "resnet18"  # resnet50 is the paper's; resnet18 for CPU
     pretrained: str | None = None  # local torchvision-format ImageNet state dict
     max_steps: int = 400
-    time_budget_s: float = 90.0
+    time_budget_s: float | None = 90.0
     batch_size: int = 8
     crop: int = 128  # train on random crops of this size (full frames when larger)
     decoder_width: int = 32
@@ -40,6 +42,27 @@ class RefineConfig:
     coarse_smoothing: float = 0.1
     seed: int = 0
     device: str = "cpu"
+
+    def __post_init__(self) -> None:
+        budget = self.time_budget_s
+        check_settings(
+            "refine",
+            encoder=(self.encoder in ARCHS, self.encoder, f"one of {sorted(ARCHS)}"),
+            max_steps=(self.max_steps >= 1, self.max_steps, ">= 1"),
+            time_budget_s=(budget is None or budget >= 0, budget, ">= 0 seconds, or null"),
+            batch_size=(self.batch_size >= 1, self.batch_size, ">= 1"),
+            crop=(self.crop >= 16, self.crop, ">= 16 pixels"),
+            decoder_width=(self.decoder_width >= 1, self.decoder_width, ">= 1"),
+            lr=(self.lr > 0, self.lr, "> 0"),
+            patience=(self.patience >= 1, self.patience, ">= 1"),
+            min_delta=(self.min_delta >= 0, self.min_delta, ">= 0"),
+            checkpoint_every=(self.checkpoint_every >= 1, self.checkpoint_every, ">= 1"),
+            coarse_smoothing=(
+                0 <= self.coarse_smoothing < 1,
+                self.coarse_smoothing,
+                "in [0, 1)",
+            ),
+        )
 
 
 def coarse_input(
@@ -100,7 +123,15 @@ class RefinementTrainer:
     def _resume(self) -> None:
         if self.checkpoint is None or not self.checkpoint.is_file():
             return
-        state = torch.load(self.checkpoint, map_location="cpu", weights_only=False)
+        try:
+            state = store.load(self.checkpoint)
+        except store.StoreError as exc:
+            warnings.warn(
+                f"student checkpoint unusable, removed; training from the start: {exc}",
+                stacklevel=2,
+            )
+            self.checkpoint.unlink(missing_ok=True)
+            return
         if state.get("config") != asdict(self.cfg) or state.get("classes") != self.num_classes:
             return  # another setting: start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
@@ -128,7 +159,7 @@ class RefinementTrainer:
                 "config": asdict(self.cfg),
                 "classes": self.num_classes,
             }
-            atomic_write(self.checkpoint, lambda tmp: torch.save(state, tmp))
+            store.save(self.checkpoint, state)
 
     # --- training -----------------------------------------------------------------------------
     def start(self) -> RefinementTrainer:

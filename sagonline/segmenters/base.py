@@ -13,9 +13,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sagonline.io.store import stored
 from sagonline.prompts import Prompt
 
 
+@stored
 @dataclass
 class SegmentationResult:
     """masks: T label maps (H, W) int64; seconds: wall time per frame; name: who made them;

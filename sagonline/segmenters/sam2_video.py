@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sagonline.io.checkpoints import load_user_checkpoint
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -110,13 +111,8 @@ class SAM2VideoSegmenter(VideoSegmenter):
         OmegaConf.resolve(cfg)
         model = instantiate(cfg.model, _recursive_=True)
         if self.checkpoint is not None:
-            try:
-                state = torch.load(self.checkpoint, map_location="cpu", weights_only=True)
-            except Exception as exc:  # pickle/zip errors surface as KeyError, EOFError, ...
-                raise ValueError(
-                    f"segmenter.checkpoint={self.checkpoint}: not a readable PyTorch checkpoint "
-                    f"({type(exc).__name__}: {exc})"
-                ) from exc
+            # sam2 itself loads with weights_only=True: a pickled object is refused either way
+            state = load_user_checkpoint(self.checkpoint, "segmenter.checkpoint")
             state = state.get("model", state) if isinstance(state, dict) else state
             if not isinstance(state, dict):
                 raise ValueError(

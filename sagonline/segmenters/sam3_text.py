@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sagonline.io.checkpoints import load_user_checkpoint
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -53,6 +54,7 @@ class SAM3TextSegmenter(VideoSegmenter):
         bpe_path: str | None = None,
         device: str = "cuda",
         confidence: float = 0.5,
+        trust_checkpoint: bool = False,
     ):
         if checkpoint is None:
             raise ValueError(
@@ -63,10 +65,18 @@ class SAM3TextSegmenter(VideoSegmenter):
             raise FileNotFoundError(f"segmenter.checkpoint={checkpoint}: no such file")
         self.checkpoint, self.bpe_path = checkpoint, bpe_path
         self.device, self.confidence = device, confidence
+        self.trust_checkpoint = trust_checkpoint
         self._processor = None
 
     def weight_files(self) -> list[str]:
         return [self.checkpoint]
+
+    def check(self) -> None:
+        """The checkpoint must load with weights_only=True (tensors only) unless trusted."""
+        if not self.trust_checkpoint:
+            load_user_checkpoint(
+                self.checkpoint, "segmenter.checkpoint", trust_option="segmenter.trust_checkpoint"
+            )
 
     def build(self):
         from sagonline.compat import import_torchvision
@@ -76,6 +86,7 @@ class SAM3TextSegmenter(VideoSegmenter):
                 "segmenter 'sam3' needs CUDA: sam3 builds its position encodings "
                 "on device='cuda' unconditionally"
             )
+        self.check()
         try:
             import_torchvision()
             from sam3.model.sam3_image_processor import Sam3Processor

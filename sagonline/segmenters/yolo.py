@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 
 import cv2
 import numpy as np
 
+from sagonline.io.checkpoints import refuse_untrusted, unsafe_reason
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -83,6 +85,7 @@ class YOLOSegmenter(VideoSegmenter):
         imgsz: int = 640,
         tracker: str = "bytetrack.yaml",
         device: str = "cpu",
+        trust_checkpoint: bool = False,
     ):
         if weights is None and model_yaml is None:
             raise ValueError(
@@ -94,22 +97,48 @@ class YOLOSegmenter(VideoSegmenter):
         self.weights, self.model_yaml, self.classes = weights, model_yaml, classes
         self.conf, self.iou, self.imgsz = conf, iou, imgsz
         self.tracker, self.device = tracker, device
+        self.trust_checkpoint = trust_checkpoint
 
     def weight_files(self) -> list[str]:
         return [self.weights] if self.weights else []
 
     def load_model(self):
         """The YOLO model from `weights` (or `model_yaml`); a file that does not load stops
-        with the option's name."""
+        with the option's name. Weights are loaded by ultralytics' restricted loader
+        (weights_only, its own model classes allow-listed): a file that needs arbitrary
+        unpickling is refused unless `trust_checkpoint`."""
         YOLO = _require_ultralytics()
+        from ultralytics.nn import tasks
+
+        restricted = self.weights is not None and not self.trust_checkpoint
+        safe_load = getattr(tasks, "_SafeLoad", None)
+        if restricted and not (safe_load is not None and safe_load.SUPPORTED):
+            refuse_untrusted(
+                "segmenter.weights",
+                Path(self.weights),
+                "this ultralytics version has no restricted loader",
+                "segmenter.trust_checkpoint",
+            )
+        previous = tasks.SAFE_LOAD
+        tasks.SAFE_LOAD = previous or restricted
         try:
             return YOLO(self.weights or self.model_yaml, task="segment")
         except Exception as exc:  # ultralytics raises many kinds on a bad file
+            if restricted and "outside the supported" in str(exc):
+                refuse_untrusted(
+                    "segmenter.weights",
+                    Path(self.weights),
+                    "it references types outside ultralytics' model classes: "
+                    + unsafe_reason(exc.__cause__ or exc),
+                    "segmenter.trust_checkpoint",
+                )
             option = "weights" if self.weights else "model_yaml"
             raise ValueError(
                 f"segmenter.{option}={self.weights or self.model_yaml}: YOLO could not load it "
                 f"({type(exc).__name__}: {exc})"
             ) from exc
+        finally:
+            tasks.SAFE_LOAD = previous
 
     def check(self) -> None:
         self.load_model()
