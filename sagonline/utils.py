@@ -66,14 +66,6 @@ def atomic_write_npy(path: str | Path, array: np.ndarray) -> Path:
     return atomic_write(Path(path), write)
 
 
-def atomic_write_npz(path: str | Path, **arrays: np.ndarray) -> Path:
-    def write(p: Path) -> None:
-        with open(p, "wb") as f:
-            np.savez(f, **arrays)
-
-    return atomic_write(Path(path), write)
-
-
 def atomic_write_image(path: str | Path, image: np.ndarray) -> Path:
     """uint8 (H, W) or (H, W, 3) RGB to PNG/JPEG."""
     from PIL import Image

@@ -44,6 +44,7 @@ from sagonline.datasets.common import (
     match_by_name,
     scene_cameras,
 )
+from sagonline.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
 from sagonline.trajectory import insert_between, shortest_path_order
@@ -189,7 +190,10 @@ class PosedMasksDataset(DatasetAdapter):
         pb = scene_dir / "poses_bounds.npy"
         gs_dir = gaussians_dir(scene_dir, self.name)
         if pb.is_file() and not (gs_dir / "cameras.json").is_file():
-            n_poses = len(np.load(pb))
+            try:
+                n_poses = len(read_poses_bounds(pb))
+            except CameraFileError as exc:
+                raise DatasetError(str(exc)) from None
             image_folder = scene_dir / (self.image_dir_for(scene) or "images")
             images = (
                 sorted(p.stem for p in image_folder.iterdir() if p.suffix in IMAGE_SUFFIXES)

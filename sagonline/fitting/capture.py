@@ -4,6 +4,7 @@ cached beside the scene), and the nearest depth it records (for the camera clear
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -13,9 +14,9 @@ from PIL import Image
 from sagonline.datasets.base import DatasetError
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.start_points import split_views
-from sagonline.io.cameras import read_colmap_points
+from sagonline.io import store
+from sagonline.io.cameras import read_colmap_points, read_poses_bounds
 from sagonline.triangulate import triangulate_known_poses
-from sagonline.utils import atomic_write_npz
 
 
 def load_images(cams, images: dict[str, Path], max_side: int):
@@ -51,12 +52,12 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
     if cfg.init in ("auto", "triangulate"):
         train_idx, _ = split_views(cams, cfg.holdout_every)  # held-out views stay unseen
         train = [cams[i] for i in train_idx]
-        cache = out / "init_points.npz"
+        cache = out / "init_points.store"
         key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
-        if cache.is_file():
-            with np.load(cache) as z:
-                if str(z["views"]) == key:
-                    return (z["xyz"], z["rgb"]), f"triangulated ({len(z['xyz'])}, cached)"
+        cached = _cached_points(cache)
+        if cached is not None and cached["views"] == key:
+            xyz = cached["xyz"]
+            return (xyz, cached["rgb"]), f"triangulated ({len(xyz)}, cached)"
         try:
             xyz, rgb, summary = triangulate_known_poses(train, images, seed=cfg.seed)
         except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
@@ -66,7 +67,7 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
             return None, "random in frusta"
         if len(xyz) >= 100:
             out.mkdir(parents=True, exist_ok=True)
-            atomic_write_npz(cache, xyz=xyz, rgb=rgb, views=np.array(key))
+            store.save(cache, {"xyz": xyz, "rgb": rgb, "views": key})
             return (xyz, rgb), (
                 f"triangulated ({summary['points']} points, track "
                 f"{summary['mean_track_length']:.2f}, error "
@@ -97,7 +98,7 @@ def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
     near: dict[str, float] = {}
     pb = Path(scene_dir) / "poses_bounds.npy"
     if pb.is_file():
-        rows = np.load(pb)
+        rows = read_poses_bounds(pb)
         centres = torch.from_numpy(rows[:, :15].reshape(-1, 3, 5)[:, :, 3]).float()
         scale = float((centres - centres.mean(0)).norm(dim=1).max()) or 1.0
         for cam in cams:
@@ -114,3 +115,16 @@ def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
             if int(inside.sum()) >= 20:
                 near[cam.name] = float(torch.quantile(z[inside], 0.02))
     return near
+
+
+def _cached_points(path: Path) -> dict | None:
+    """Start points triangulated before (None when absent; a damaged file is named, removed,
+    and the points triangulated again)."""
+    if not path.is_file():
+        return None
+    try:
+        return store.load(path)
+    except store.StoreError as exc:
+        warnings.warn(f"start points unusable, removed and triangulated again: {exc}", stacklevel=3)
+        path.unlink(missing_ok=True)
+        return None

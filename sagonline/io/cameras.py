@@ -116,12 +116,7 @@ def load_llff(
     pb_path = scene_dir / "poses_bounds.npy"
     if not pb_path.is_file():
         raise CameraFileError(f"{pb_path}: LLFF poses_bounds.npy not found")
-    arr = read_npy(pb_path, CameraFileError)
-    if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
-        raise CameraFileError(f"{pb_path}: expected an (N, 17) array, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        row = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
-        raise CameraFileError(f"{pb_path}: row {row} holds NaN/Inf")
+    arr = read_poses_bounds(pb_path)
     poses = arr[:, :15].reshape(-1, 3, 5)
     full_h, full_w, focal = poses[0, :, 4]
     width, height = int(round(full_w)), int(round(full_h))
@@ -191,8 +186,8 @@ def read_npy(path: Path, error: type[Exception]) -> np.ndarray:
                 raise ValueError(f".npy format version {version} is not supported")
             shape, _, dtype = read_header(f)
             data_bytes = path.stat().st_size - f.tell()
-    except (OSError, ValueError, SyntaxError, TypeError, EOFError) as exc:
-        raise error(f"{path}: not a readable .npy array ({exc})") from None
+    except Exception as exc:  # the header is parsed (ast.literal_eval), never executed
+        raise error(f"{path}: not a readable .npy array ({type(exc).__name__}: {exc})") from None
     if dtype.kind not in "biuf" or dtype.hasobject:
         raise error(f"{path}: holds {dtype} values, not numbers")
     if int(np.prod(shape, dtype=np.float64)) * dtype.itemsize != data_bytes:
@@ -203,13 +198,21 @@ def read_npy(path: Path, error: type[Exception]) -> np.ndarray:
     return np.load(path, allow_pickle=False).astype(np.float64, copy=False)
 
 
+def read_poses_bounds(path: str | Path) -> np.ndarray:
+    """The (N, 17) float64 rows of an LLFF `poses_bounds.npy`, checked (CameraFileError)."""
+    path = Path(path)
+    arr = read_npy(path, CameraFileError)
+    if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
+        raise CameraFileError(f"{path}: expected an (N, 17) array, got {arr.shape}")
+    if not np.isfinite(arr).all():
+        row = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
+        raise CameraFileError(f"{path}: row {row} holds NaN/Inf")
+    return arr
+
+
 def load_llff_bounds(scene_dir: str | Path) -> np.ndarray:
     """(N, 2) near/far depth bounds from `poses_bounds.npy`."""
-    path = Path(scene_dir) / "poses_bounds.npy"
-    arr = read_npy(path, CameraFileError)
-    if arr.ndim != 2 or arr.shape[1] != 17:
-        raise CameraFileError(f"{path}: expected an (N, 17) array, got {arr.shape}")
-    return arr[:, 15:17]
+    return read_poses_bounds(Path(scene_dir) / "poses_bounds.npy")[:, 15:17]
 
 
 def load_nerf_transforms(

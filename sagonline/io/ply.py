@@ -97,8 +97,9 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     }
     if all(n in props for n in ("nx", "ny", "nz")):
         layout["normals"] = ["nx", "ny", "nz"]
+    blocks = _vertex_blocks(path, header, vertex)  # checks the rows fit the file first
     scene = _SceneArrays(path, vertex.count, layout)
-    for start, block in _vertex_blocks(path, header, vertex):
+    for start, block in blocks:
         scene.fill(start, block)
     return scene.finish(drop_nonfinite)
 
@@ -242,13 +243,22 @@ def read_ply_header(path: Path) -> PlyHeader:
             ) from None
     if fmt is None:
         raise SceneFileError(f"{path}: not a readable PLY file (no 'format' line)")
+    for element in elements:
+        names = [n for n, _ in element.properties]
+        repeated = sorted({n for n in names if names.count(n) > 1})
+        if repeated:
+            raise SceneFileError(
+                f"{path}: not a readable PLY file (element {element.name!r} repeats "
+                f"properties {repeated})"
+            )
     return PlyHeader(fmt, elements, line_end + 1)
 
 
 def _vertex_blocks(path: Path, header: PlyHeader, vertex: PlyElementHeader):
-    """(first row, structured block) pairs over the vertex element, `_BLOCK_ROWS` at a time.
-    Binary files are read straight from disk after checking the declared rows fit the file;
-    ASCII files (and binary ones with list properties before the vertices) go through plyfile."""
+    """An iterator of (first row, structured block) pairs over the vertex element,
+    `_BLOCK_ROWS` at a time, after checking (before anything is allocated) that the declared
+    rows fit the file. Binary files are read straight from disk; ASCII files (and binary ones
+    with list properties before the vertices) go through plyfile."""
     size = path.stat().st_size
     before = header.elements[: header.elements.index(vertex)]
     fixed = all(t != "list" for e in [*before, vertex] for _, t in e.properties)
@@ -264,12 +274,7 @@ def _vertex_blocks(path: Path, header: PlyHeader, vertex: PlyElementHeader):
                 f"{path}: truncated: the header declares {vertex.count} vertices "
                 f"({need:,} bytes from byte {offset:,}) but the file has {size:,} bytes"
             )
-        with open(path, "rb") as f:
-            f.seek(offset)
-            for start in range(0, vertex.count, _BLOCK_ROWS):
-                rows = min(_BLOCK_ROWS, vertex.count - start)
-                yield start, np.fromfile(f, dtype=dtype, count=rows)
-        return
+        return _binary_blocks(path, dtype, offset, vertex.count)
     # An ASCII row takes at least two bytes per value: a count the file cannot hold is refused
     # before plyfile allocates for it.
     if sum(e.count * max(len(e.properties), 1) * 2 for e in [*before, vertex]) > size:
@@ -283,8 +288,20 @@ def _vertex_blocks(path: Path, header: PlyHeader, vertex: PlyElementHeader):
         raise SceneFileError(
             f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})"
         ) from exc
-    for start in range(0, len(data), _BLOCK_ROWS):
-        yield start, data[start : start + _BLOCK_ROWS]
+    if len(data) != vertex.count:
+        raise SceneFileError(
+            f"{path}: {len(data)} vertices read, the header declares {vertex.count}"
+        )
+    return (
+        (start, data[start : start + _BLOCK_ROWS]) for start in range(0, len(data), _BLOCK_ROWS)
+    )
+
+
+def _binary_blocks(path: Path, dtype: np.dtype, offset: int, count: int):
+    with open(path, "rb") as f:
+        f.seek(offset)
+        for start in range(0, count, _BLOCK_ROWS):
+            yield start, np.fromfile(f, dtype=dtype, count=min(_BLOCK_ROWS, count - start))
 
 
 def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
