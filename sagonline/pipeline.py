@@ -151,14 +151,7 @@ class StageCache:
 
     def load(self, stage: str, key: str):
         path = self.path(stage, key)
-        if path is None or not path.is_file():
-            return None
-        try:
-            return store.load(path)
-        except store.StoreError as exc:
-            warnings.warn(f"cache entry unusable, removed and recomputed: {exc}", stacklevel=2)
-            path.unlink(missing_ok=True)
-            return None
+        return None if path is None else store.load_or_discard(path, "cache entry")
 
     def save(self, stage: str, key: str, value) -> None:
         if self.dir is not None:

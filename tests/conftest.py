@@ -44,6 +44,23 @@ def small_camera(width: int = 26, height: int = 19, eye=(0.3, -4.0, 0.8), name: 
     return make_camera(K, look_at(eye, (0, 0, 0)), width, height, name)
 
 
+@pytest.fixture(scope="module")
+def tiny_task():
+    """The forward-facing synthetic preset at 40x30: 1,500 Gaussians, 5 trajectory views, 2
+    eval views (read-only: tests pass it to the pipeline, never change it)."""
+    from sagonline.datasets.synthetic import load_synthetic
+
+    return load_synthetic(
+        preset="forward_single",
+        layout="forward",
+        num_gaussians=1500,
+        width=40,
+        height=30,
+        num_train_views=5,
+        num_eval_views=2,
+    )[0]
+
+
 @pytest.fixture
 def tiny_scene():
     return random_gaussians(30, "3dgs", seed=1)

@@ -58,21 +58,6 @@ def plant(path: Path, marker: Path, how: str = "torch") -> Path:
     return path
 
 
-@pytest.fixture(scope="module")
-def tiny_task():
-    from sagonline.datasets.synthetic import load_synthetic
-
-    return load_synthetic(
-        preset="forward_single",
-        layout="forward",
-        num_gaussians=1500,
-        width=40,
-        height=30,
-        num_train_views=5,
-        num_eval_views=2,
-    )[0]
-
-
 def _stage_one(task, cache):
     report, vote, _ = stage_one(
         task,

@@ -24,7 +24,6 @@ from bench.common import RunExists
 from bench.eval import evaluate
 from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
-from sagonline.datasets.synthetic import load_synthetic
 from sagonline.io import write_ply
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.pipeline import PipelineSettings, SceneReport, StageCache, record_scores
@@ -49,19 +48,6 @@ def generic_cfg(root: Path, *overrides):
 
 
 # --- 1. stage caches keyed by the content they consume ---------------------------------------
-
-
-@pytest.fixture(scope="module")
-def tiny_task():
-    return load_synthetic(
-        preset="forward_single",
-        layout="forward",
-        num_gaussians=1500,
-        width=40,
-        height=30,
-        num_train_views=5,
-        num_eval_views=2,
-    )[0]
 
 
 def _stages(task, cache, segmenter=None, vote=None, seg_key=None):

@@ -4,7 +4,6 @@ cached beside the scene), and the nearest depth it records (for the camera clear
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -54,7 +53,7 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.store"
         key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
-        cached = _cached_points(cache)
+        cached = store.load_or_discard(cache, "triangulated start points")
         if cached is not None and cached["views"] == key:
             xyz = cached["xyz"]
             return (xyz, cached["rgb"]), f"triangulated ({len(xyz)}, cached)"
@@ -115,16 +114,3 @@ def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
             if int(inside.sum()) >= 20:
                 near[cam.name] = float(torch.quantile(z[inside], 0.02))
     return near
-
-
-def _cached_points(path: Path) -> dict | None:
-    """Start points triangulated before (None when absent; a damaged file is named, removed,
-    and the points triangulated again)."""
-    if not path.is_file():
-        return None
-    try:
-        return store.load(path)
-    except store.StoreError as exc:
-        warnings.warn(f"start points unusable, removed and triangulated again: {exc}", stacklevel=3)
-        path.unlink(missing_ok=True)
-        return None

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import math
 import time
-import warnings
 from collections import deque
 from dataclasses import asdict
 from pathlib import Path
@@ -321,15 +320,8 @@ class SceneFitter:
     def resume(self, path: Path) -> bool:
         """Continue an interrupted fit with the same settings; False if there is none (or it is
         damaged or not ours: then it is named, removed, and the fit starts over)."""
-        if not path.is_file():
-            return False
-        try:
-            state = store.load(path)
-        except store.StoreError as exc:
-            warnings.warn(
-                f"fit checkpoint unusable, removed; fitting from the start: {exc}", stacklevel=2
-            )
-            path.unlink(missing_ok=True)
+        state = store.load_or_discard(path, "fit checkpoint")
+        if state is None:
             return False
         if state["config"] != asdict(self.cfg):
             return False

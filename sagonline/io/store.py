@@ -19,6 +19,7 @@ import hashlib
 import json
 import math
 import struct
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -156,6 +157,21 @@ def load(path: str | Path) -> Any:
         raise StoreError(f"{path}: {exc}") from None
     except (ValueError, TypeError, KeyError, IndexError) as exc:
         raise StoreError(f"{path}: malformed contents ({type(exc).__name__}: {exc})") from exc
+
+
+def load_or_discard(path: str | Path, what: str) -> Any | None:
+    """`load(path)`, or None when the file is absent; a damaged or foreign file is named in a
+    warning (`what` says what it was for), removed, and None returned, so the caller computes
+    it again."""
+    path = Path(path)
+    if not path.is_file():
+        return None
+    try:
+        return load(path)
+    except StoreError as exc:
+        warnings.warn(f"{what} unusable, removed and recomputed: {exc}", stacklevel=2)
+        path.unlink(missing_ok=True)
+        return None
 
 
 def _array(payload: memoryview, meta: dict) -> np.ndarray:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import threading
 import time
-import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -121,16 +120,12 @@ class RefinementTrainer:
 
     # --- checkpoints --------------------------------------------------------------------------
     def _resume(self) -> None:
-        if self.checkpoint is None or not self.checkpoint.is_file():
-            return
-        try:
-            state = store.load(self.checkpoint)
-        except store.StoreError as exc:
-            warnings.warn(
-                f"student checkpoint unusable, removed; training from the start: {exc}",
-                stacklevel=2,
-            )
-            self.checkpoint.unlink(missing_ok=True)
+        state = (
+            store.load_or_discard(self.checkpoint, "student checkpoint")
+            if self.checkpoint
+            else None
+        )
+        if state is None:
             return
         if state.get("config") != asdict(self.cfg) or state.get("classes") != self.num_classes:
             return  # another setting: start over (the old file is replaced at the first save)
