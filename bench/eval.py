@@ -40,13 +40,16 @@ from bench.common import (
 )
 from sagonline.datasets.base import DatasetError
 from sagonline.pipeline import (
+    STAGE_VERSIONS,
     SceneReport,
+    SegmenterRun,
     input_digests,
-    run_stage_one,
+    run_scene,
     run_stage_two,
+    student_checkpoint,
     summarize,
 )
-from sagonline.provenance import STAGE_VERSIONS, digest_file, digest_json, git_state
+from sagonline.provenance import digest_file, git_state
 from sagonline.recording import Recorder
 from sagonline.render.api import resolve_backend
 
@@ -81,12 +84,13 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     except (ValueError, RuntimeError, OSError) as exc:
         print(f"error: segmenter {cfg.segmenter.get('name', '')}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+    settings_key = plugin_kwargs(cfg.segmenter)
+    settings_key.pop("device", None)  # the frames' key already holds the device
+    run = SegmenterRun(segmenter, settings_key, weights)
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
         try:
-            reports = run_scenes(
-                cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings, refine_cfg
-            )
+            reports = run_scenes(cfg, out_dir, adapter, scenes, run, vote_cfg, settings, refine_cfg)
         except KeyboardInterrupt:
             log.warning("interrupted; finished stages are cached", extra=FILE_ONLY)
             raise
@@ -116,33 +120,23 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     return metrics
 
 
-def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, settings, refine_cfg):
+def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg):
     """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
     scored is reported as failed and the others go on."""
     recorder = Recorder(
         out_dir / "recording.rrd" if cfg.record else None,
         scenes=list(scenes),
-        refined=bool(cfg.refine.enabled),
+        refined=refine_cfg is not None,
     )
     cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
-    segmenter_key = plugin_kwargs(cfg.segmenter) | {
-        "name": cfg.segmenter.name,
-        "weights": sorted(weights.values()),
-    }
-    segmenter_key.pop("device", None)  # the frames' key already holds the device
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
+            cache = cache_root / scene if cfg.cache else None
             try:
                 task = adapter.load_scene(scene)
-                report, vote, stage_one = run_stage_one(
-                    task,
-                    segmenter,
-                    vote_cfg,
-                    settings,
-                    segmenter_key=segmenter_key,
-                    cache_dir=cache_root / scene if cfg.cache else None,
-                    recorder=recorder,
+                report, stage_one = run_scene(
+                    task, segmenter, vote_cfg, settings, cache_dir=cache, recorder=recorder
                 )
             except DatasetError as exc:
                 log.warning("scene %s skipped: %s", scene, exc)
@@ -150,20 +144,8 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, weights, vote_cfg, sett
                 reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
                 continue
             if refine_cfg is not None:
-                refine_key = digest_json(
-                    "refine", STAGE_VERSIONS["refine"], stage_one.keys, str(cfg.refine)
-                )
-                checkpoint = cache_root / scene / f"refine-{refine_key}.store"
-                run_stage_two(
-                    task,
-                    vote,
-                    stage_one,
-                    refine_cfg,
-                    settings,
-                    report,
-                    recorder,
-                    checkpoint=checkpoint if cfg.cache else None,
-                )
+                checkpoint = student_checkpoint(cache, stage_one, refine_cfg, settings)
+                run_stage_two(task, stage_one, refine_cfg, settings, report, recorder, checkpoint)
             log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
             reports.append(report)
     finally:

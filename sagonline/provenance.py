@@ -21,10 +21,6 @@ from pathlib import Path
 import numpy as np
 import torch
 
-# Bump a stage's version whenever a change to its code changes what it produces: every cached
-# entry of that stage (and of the stages downstream, whose keys include it) is then recomputed.
-STAGE_VERSIONS = {"frames": 3, "masks": 3, "vote": 2, "refine": 2}
-
 _FILE_MEMO: dict[tuple[str, int, int], str] = {}
 
 

@@ -27,8 +27,7 @@ from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import load_mask
 from sagonline.io import SceneFileError, read_scene, write_ply
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
-from sagonline.pipeline import PipelineSettings
-from sagonline.pipeline import run_stage_one as stage_one
+from sagonline.pipeline import PipelineSettings, run_scene
 from sagonline.segmenters.oracle import OracleSegmenter
 from tests.conftest import random_gaussians
 from tests.replicas import llff_scene, object_mask, write_image
@@ -59,15 +58,10 @@ def plant(path: Path, marker: Path, how: str = "torch") -> Path:
 
 
 def _stage_one(task, cache):
-    report, vote, _ = stage_one(
-        task,
-        OracleSegmenter(),
-        VoteConfig(),
-        PipelineSettings(progress=False),
-        segmenter_key={"name": "oracle"},
-        cache_dir=cache,
+    report, stage_one = run_scene(
+        task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False), cache_dir=cache
     )
-    return report, vote
+    return report, stage_one.vote.value
 
 
 # --- 1. code runs on load ---------------------------------------------------------------------

@@ -282,7 +282,7 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     """Views with a photograph vs pose-and-mask-only views: both are scored and told apart,
     with the angle to the nearest photograph; `order=path` starts the video at the prompt."""
     from sagonline.consensus import VoteConfig
-    from sagonline.pipeline import PipelineSettings, run_stage_one
+    from sagonline.pipeline import PipelineSettings, run_scene
     from sagonline.segmenters.oracle import OracleSegmenter
 
     cams, scene = llff_scene(tmp_path / "cap", NAMES)
@@ -294,14 +294,12 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     assert task.meta["photographs"] == NAMES[:3]
     assert task.trajectory[0].name == NAMES[4] and task.prompt.frame == 0
     assert sorted(c.name for c in task.trajectory) == NAMES
-    report, _, _ = run_stage_one(
-        task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False)
-    )
+    report, _ = run_scene(task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False))
     rows = {r["view"]: r for r in report.views}
     assert [rows[n]["photographed"] for n in NAMES] == [True] * 3 + [False] * 3
     assert all(rows[n]["photo_angle_deg"] == 0.0 for n in NAMES[:3])
     assert all(rows[n]["photo_angle_deg"] > 0.0 for n in NAMES[3:])
-    split = report.extra["by_view_kind"]
+    split = report.extra["by_view_group"]
     assert split["initial_photographed_views"] == 3 and split["initial_mask_only_views"] == 3
     with pytest.raises(DatasetError, match="order"):
         PosedMasksDataset(tmp_path / "cap", order="random")

@@ -7,7 +7,7 @@ import numpy as np
 from sagonline.consensus import VoteConfig
 from sagonline.datasets.synthetic import load_synthetic
 from sagonline.feedback import FeedbackConfig, foreground_iou, mask_prompt
-from sagonline.pipeline import PipelineSettings, run_stage_one
+from sagonline.pipeline import PipelineSettings, run_scene
 from sagonline.segmenters.base import VideoSegmenter
 
 
@@ -43,16 +43,17 @@ def test_feedback_brings_a_lost_object_back():
         layout="forward", num_gaussians=1500, width=40, height=30, num_train_views=12
     )[0]
     off_seg, on_seg = ForgetfulSegmenter(), ForgetfulSegmenter()
-    off, _, _ = run_stage_one(task, off_seg, VoteConfig(), PipelineSettings(progress=False))
+    off, _ = run_scene(task, off_seg, VoteConfig(), PipelineSettings(progress=False))
     feedback = FeedbackConfig(enabled=True, every=2, min_frames=2, min_iou=0.5)
-    on, _, out = run_stage_one(
+    on, out = run_scene(
         task, on_seg, VoteConfig(), PipelineSettings(progress=False, feedback=feedback)
     )
     assert len(off_seg.prompts) == 1 and off.extra.get("feedback") is None
     stats = on.extra["feedback"]
     assert stats["restarts"] >= 2 and len(on_seg.prompts) == 1 + stats["restarts"]
     assert all(p.objects and p.objects[0].mask is not None for p in on_seg.prompts[1:])
-    lost = [t for t in range(len(out.segmentation.masks)) if t > task.prompt.frame + 2]
-    assert all(out.segmentation.masks[t].any() for t in lost)  # every frame sees the object again
+    masks = out.masks.value.masks
+    lost = [t for t in range(len(masks)) if t > task.prompt.frame + 2]
+    assert all(masks[t].any() for t in lost)  # every frame sees the object again
     assert on.segmenter_miou > off.segmenter_miou + 0.2
     assert on.miou > off.miou

@@ -81,7 +81,7 @@ def test_runs_on_a_budget_stopped_fit_say_so(tmp_path):
 
     from sagonline.consensus import VoteConfig
     from sagonline.datasets.synthetic import load_synthetic
-    from sagonline.pipeline import PipelineSettings, run_stage_one
+    from sagonline.pipeline import PipelineSettings, run_scene
     from sagonline.segmenters.oracle import OracleSegmenter
 
     task = load_synthetic(
@@ -90,7 +90,7 @@ def test_runs_on_a_budget_stopped_fit_say_so(tmp_path):
     fit = {"iterations": 394, "iterations_planned": 3000, "stopped": "time_budget", "path": "x"}
     task = dataclasses.replace(task, meta={**task.meta, "fit": fit})
     with pytest.warns(UserWarning, match="after 394 of 3000 iterations"):
-        report, _, _ = run_stage_one(
+        report, _ = run_scene(
             task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False)
         )
     assert report.extra["fit"]["stopped"] == "time_budget"

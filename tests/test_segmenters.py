@@ -30,7 +30,7 @@ def segmenter_from(name: str, *overrides):
 @pytest.fixture(scope="module")
 def video():
     from sagonline.datasets.synthetic import load_synthetic
-    from sagonline.pipeline import PipelineSettings, render_frames
+    from sagonline.pipeline.stages import FramesInputs, render_frames
 
     task = load_synthetic(
         layout="360",
@@ -42,7 +42,9 @@ def video():
         num_eval_views=2,
         seed=2,
     )[0]
-    frames, _ = render_frames(task, PipelineSettings(progress=False))
+    frames = render_frames(
+        FramesInputs(task.gaussians, task.trajectory, "auto", (0.0, 0.0, 0.0), "cpu")
+    ).images
     return task, frames
 
 
@@ -61,7 +63,7 @@ def test_classical_tracks_objects_through_the_orbit(video):
 
 def test_classical_grabcut_from_clicks_on_a_single_object():
     from sagonline.datasets.synthetic import load_synthetic
-    from sagonline.pipeline import PipelineSettings, render_frames
+    from sagonline.pipeline.stages import FramesInputs, render_frames
 
     task = load_synthetic(
         layout="forward",
@@ -71,7 +73,9 @@ def test_classical_grabcut_from_clicks_on_a_single_object():
         num_train_views=6,
         num_eval_views=1,
     )[0]
-    frames, _ = render_frames(task, PipelineSettings(progress=False))
+    frames = render_frames(
+        FramesInputs(task.gaussians, task.trajectory, "auto", (0.0, 0.0, 0.0), "cpu")
+    ).images
     res = FlowWatershedSegmenter(use_masks=False).segment(frames, task.prompt)
     ious = [view_metrics(m, g)["iou"] for m, g in zip(res.masks, task.trajectory_gt, strict=True)]
     assert min(ious) > 0.8, ious

@@ -26,8 +26,14 @@ from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
 from sagonline.io import write_ply
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
-from sagonline.pipeline import PipelineSettings, SceneReport, StageCache, record_scores
-from sagonline.pipeline import run_stage_one as stage_one
+from sagonline.pipeline import (
+    PipelineSettings,
+    SceneReport,
+    SegmenterRun,
+    StageCache,
+    record_scores,
+    run_scene,
+)
 from sagonline.segmenters.oracle import OracleSegmenter
 from tests.replicas import llff_scene, object_mask, write_image
 from tests.test_eval_runner import CONF, TINY, cfg_with
@@ -51,12 +57,11 @@ def generic_cfg(root: Path, *overrides):
 
 
 def _stages(task, cache, segmenter=None, vote=None, seg_key=None):
-    report, _, _ = stage_one(
+    report, _ = run_scene(
         task,
-        segmenter or OracleSegmenter(),
+        SegmenterRun(segmenter or OracleSegmenter(), seg_key or {}),
         vote or VoteConfig(),
         PipelineSettings(progress=False),
-        segmenter_key=seg_key or {"name": "oracle"},
         cache_dir=cache,
     )
     return {s for s, how in report.stages.items() if how == "computed"}
@@ -106,7 +111,7 @@ def test_corrupt_cache_entry_is_named_and_recomputed(tiny_task, tmp_path):
 
 
 def test_cached_stages_report_no_timing_of_their_own(tiny_task, tmp_path):
-    run = lambda: stage_one(  # noqa: E731
+    run = lambda: run_scene(  # noqa: E731
         tiny_task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False),
         cache_dir=tmp_path,
     )[0]  # fmt: skip
@@ -249,7 +254,7 @@ def test_interrupt_keeps_a_recording_of_what_was_done(tmp_path, monkeypatch):
     def stop(*args, **kwargs):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("sagonline.pipeline.consensus_vote", stop)
+    monkeypatch.setattr("sagonline.pipeline.stages.consensus_vote", stop)
     with pytest.raises(KeyboardInterrupt):
         bench.eval.evaluate(cfg_with("dataset=synthetic_ff"), tmp_path)
     assert not (tmp_path / "metrics.json").exists()
@@ -268,7 +273,7 @@ def test_ignore_label_reaches_scoring(tiny_task):
         tiny_task, eval_views=[dataclasses.replace(view, gt=gt)], ignore_label=255
     )
     report = SceneReport(scene="s")
-    miou, _ = record_scores(task, [view.gt], PipelineSettings(), report, "initial")
+    miou, _ = record_scores(task, [view.gt], "pred_to_gt", report, "initial")
     assert miou == pytest.approx(1.0)  # was 0.5: the void pixel counted as a missed label
 
 

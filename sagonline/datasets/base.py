@@ -18,11 +18,15 @@ class DatasetError(RuntimeError):
 
 @dataclass
 class EvalView:
-    """A scored view: its camera and (H_gt, W_gt) ground-truth label map (0 = background)."""
+    """A scored view: its camera and (H_gt, W_gt) ground-truth label map (0 = background);
+    `group`: which of the task's `view_groups` it belongs to (None: no grouping); `meta`:
+    per-view facts copied into its per_view.csv row (e.g. the angle to the nearest photograph)."""
 
     camera: Camera
     gt: np.ndarray
     name: str
+    group: str | None = None
+    meta: dict = field(default_factory=dict)
 
 
 @dataclass
@@ -33,7 +37,8 @@ class SceneTask:
     ground-truth label maps where the dataset has them (the oracle and `segmenter_miou` use
     them); eval_views: where the fused labels are scored; num_labels: label count including
     background; gt_labels3d: (N,) per-Gaussian truth where known (synthetic scenes);
-    ignore_label: a ground-truth value that is never scored (e.g. 255 for void pixels).
+    ignore_label: a ground-truth value that is never scored (e.g. 255 for void pixels);
+    view_groups: the groups the eval views are sorted into (each group's mIoU is reported).
     """
 
     dataset: str
@@ -48,6 +53,7 @@ class SceneTask:
     label_names: list[str] = field(default_factory=list)
     meta: dict = field(default_factory=dict)
     ignore_label: int | None = None
+    view_groups: list[str] = field(default_factory=list)
 
 
 class DatasetAdapter:

@@ -47,7 +47,7 @@ from sagonline.datasets.common import (
 from sagonline.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
-from sagonline.trajectory import insert_between, shortest_path_order
+from sagonline.trajectory import insert_between, nearest_view, shortest_path_order
 
 LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
@@ -324,6 +324,8 @@ class PosedMasksDataset(DatasetAdapter):
         prompt = self.make_prompt(gts[reference], by_name[reference], frame, num_labels, names)
         scored = [n for n in sorted(gts) if not (self.exclude_reference and n == reference)]
         evals = [EvalView(by_name[n], gts[n], n) for n in scored]
+        photographs = self.photographed(scene, scene_dir, cams)
+        view_groups = group_by_photographs(evals, cams, photographs)
         traj_gt = None
         if all(c.name in gts for c in cams):
             traj_gt = [resize_nearest(gts[c.name], (c.height, c.width)) for c in cams]
@@ -342,10 +344,11 @@ class PosedMasksDataset(DatasetAdapter):
                 "scored_views": len(evals),
                 "root": str(scene_dir),
                 "fit": fit_record(scene_dir, self.name),
-                "photographs": self.photographed(scene, scene_dir, cams),
+                "photographs": photographs,
                 "order": self.order,
             },
             ignore_label=self.ignore,
+            view_groups=view_groups,
         )
 
     def labels_of(self, scene_dir: Path, gts: dict[str, np.ndarray]) -> tuple[int, list[str]]:
@@ -372,6 +375,28 @@ class PosedMasksDataset(DatasetAdapter):
         scale = (cam.width / gt.shape[1], cam.height / gt.shape[0])
         clean = np.where(gt == self.ignore, 0, gt) if self.ignore is not None else gt
         return click_prompt(clean, frame, num_labels, self.clicks, self.seed, scale)
+
+
+def group_by_photographs(
+    evals: list[EvalView], cams: list[Camera], photographs: list[str]
+) -> list[str]:
+    """For a capture with photographs (of some views, or all): each eval view's group
+    ("photographed" or "mask_only") and, in its metadata, the angle (degrees) and distance to
+    the nearest photographed camera. Returns the groups, or [] when nothing was photographed."""
+    if not photographs or not evals:
+        return []
+    photos = set(photographs)
+    photo_cams = [c for c in cams if c.name in photos]
+    angle, dist = nearest_view([v.camera for v in evals], photo_cams)
+    for view, a, d in zip(evals, angle, dist, strict=True):
+        shot = view.name in photos
+        view.group = "photographed" if shot else "mask_only"
+        view.meta.update(
+            photographed=shot,
+            photo_angle_deg=0.0 if shot else float(a),
+            photo_distance=0.0 if shot else float(d),
+        )
+    return ["photographed", "mask_only"]
 
 
 def _fit_within(width: int, height: int, max_side: int) -> tuple[int, int]:

@@ -376,7 +376,8 @@ def _logit(p: np.ndarray) -> np.ndarray:
 
 
 def _exp(x: np.ndarray) -> np.ndarray:
-    return np.exp(x.astype(np.float64)).astype(np.float32)
+    with np.errstate(over="ignore"):  # an overflow to inf is found and named by the caller
+        return np.exp(x.astype(np.float64)).astype(np.float32)
 
 
 def _encode(activated: np.ndarray, forward, inverse) -> np.ndarray:

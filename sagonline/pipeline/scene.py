@@ -1,0 +1,263 @@
+"""Stage I for one scene: frames -> masks -> vote (cached stages), then score and record.
+
+`run_scene` composes the stages of `stages.py`; each is cached under a key derived from its
+inputs (`graph.py`), so an interrupted run resumes from the last finished stage and a changed
+input recomputes exactly the stages that depend on it. Timings are wall seconds of work done by
+this run; a stage taken from the cache reports `cached` in `report.stages` and its original
+timing under `report.cached_timings`, never as this run's time.
+"""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from sagonline.consensus import VoteConfig, VoteResult
+from sagonline.datasets.base import SceneTask
+from sagonline.feedback import FeedbackConfig
+from sagonline.metrics import labels3d_metrics
+from sagonline.pipeline.graph import Output, StageCache, run_stage
+from sagonline.pipeline.scoring import (
+    SceneReport,
+    check_ground_truth,
+    is_automatic,
+    record_scores,
+    segmenter_miou,
+)
+from sagonline.pipeline.stages import (
+    FRAMES,
+    MASKS,
+    VOTE,
+    FeedbackInputs,
+    Frames,
+    FramesInputs,
+    MasksInputs,
+    SegmenterRun,
+    VoteInputs,
+    label_count,
+)
+from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians
+from sagonline.recording import Recorder
+from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
+from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
+
+
+@dataclass
+class PipelineSettings:
+    """How a scene is run: renderer (auto: the compiled kernel on the CPU, gsplat on CUDA,
+    else PyTorch), device, the label render's threshold, the metrics' resize rule, progress
+    bars, the render background, consensus feedback."""
+
+    backend: str = "auto"
+    device: str = "cpu"
+    label_min_weight: float = 0.2
+    resize: str = "pred_to_gt"
+    progress: bool = True
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
+
+
+@dataclass
+class StageOneOutput:
+    """What Stage I hands to Stage II: the stages' outputs (with their keys), the label count
+    and the names of the views whose masks voted."""
+
+    frames: Output[Frames]
+    masks: Output[SegmentationResult]
+    vote: Output[VoteResult]
+    num_labels: int
+    voted: set[str]
+
+
+def input_digests(task: SceneTask) -> dict:
+    """Content digests of everything a scene's numbers depend on, besides the settings (what a
+    finished run records, to refuse a rerun on changed data)."""
+    return {
+        "scene": digest_gaussians(task.gaussians),
+        "trajectory_cameras": digest_cameras(task.trajectory),
+        "eval_cameras": digest_cameras(v.camera for v in task.eval_views),
+        "eval_ground_truth": digest_arrays(v.gt for v in task.eval_views),
+        "trajectory_ground_truth": digest_arrays(task.trajectory_gt or []),
+        "prompt": task.prompt.digest(),
+        "ignore_label": task.ignore_label,
+        "num_labels": task.num_labels,
+    }
+
+
+def run_scene(
+    task: SceneTask,
+    segmenter: SegmenterRun | VideoSegmenter,
+    vote_cfg: VoteConfig,
+    settings: PipelineSettings,
+    *,
+    cache_dir: str | Path | None = None,
+    recorder: Recorder | None = None,
+) -> tuple[SceneReport, StageOneOutput]:
+    """Run and score Stage I on one scene: its report, and what Stage II reuses."""
+    recorder = recorder or Recorder(None)
+    if isinstance(segmenter, VideoSegmenter):
+        segmenter = SegmenterRun(segmenter)
+    cache, progress = StageCache(cache_dir), settings.progress
+    report = SceneReport(scene=task.name, inputs=input_digests(task))
+    report.extra["empty_ground_truth_views"] = check_ground_truth(task)
+    note_fit(task, report)
+    backend = resolve_backend(settings.backend, settings.device)
+    device = torch.device(settings.device).type
+    g = task.gaussians.to(settings.device)
+
+    frames_in = FramesInputs(g, task.trajectory, backend, tuple(settings.background), device)
+    frames, report.stages["frames"] = run_stage(FRAMES, frames_in, cache, progress)
+    feedback = None  # with consensus feedback on, the masks also depend on what it votes with
+    if settings.feedback.enabled:
+        feedback = FeedbackInputs(
+            settings.feedback,
+            vote_cfg,
+            g,
+            task.trajectory,
+            task.num_labels,
+            settings.label_min_weight,
+            backend,
+        )
+    masks_in = MasksInputs(frames, task.prompt, task.trajectory_gt, segmenter, feedback)
+    masks, report.stages["masks"] = run_stage(MASKS, masks_in, cache, progress)
+    num_labels = label_count(task.num_labels, masks.value.masks)
+    record_trajectory(task, recorder, frames.value.images, masks.value.masks, num_labels)
+    vote_in = VoteInputs(masks, g, task.trajectory, task.num_labels, vote_cfg, backend, device)
+    vote, report.stages["vote"] = run_stage(VOTE, vote_in, cache, progress)
+    report.stages = {k: v.status for k, v in report.stages.items()}
+
+    result = vote.value
+    voted = {task.trajectory[i].name for i in result.frames}
+    stage_one = StageOneOutput(frames, masks, vote, num_labels, voted)
+    note_stage_one(task, report, stage_one, settings.resize)
+    preds = score_views(task, result, num_labels, settings, report, stage_one.voted)
+    if task.gt_labels3d is not None and not is_automatic(task):
+        report.labels3d = labels3d_metrics(
+            result.labels, result.labelled, task.gt_labels3d, num_labels
+        )
+    record_eval_views(task, recorder, preds, report, g, backend)
+    recorder.gaussians(
+        task.name,
+        task.gaussians,
+        result.labels.cpu().numpy(),
+        result.labelled.cpu().numpy(),
+        result.histogram.cpu().numpy(),
+    )
+    return report, stage_one
+
+
+def note_fit(task: SceneTask, report: SceneReport) -> None:
+    """Record how the scene was fitted; warn when its fit stopped on a time budget."""
+    fit = task.meta.get("fit")
+    if not fit:
+        return
+    report.extra["fit"] = fit
+    if fit.get("stopped") == "time_budget":
+        warnings.warn(
+            f"{task.dataset}/{task.name}: its scene was fitted under a time budget and stopped "
+            f"after {fit.get('iterations')} of {fit.get('iterations_planned')} iterations "
+            f"({fit['path']}); its numbers depend on how busy that machine was",
+            stacklevel=3,
+        )
+
+
+def note_stage_one(
+    task: SceneTask, report: SceneReport, stage_one: StageOneOutput, resize: str
+) -> None:
+    """The stages' timings (this run's, or the cached run's apart), the vote's statistics,
+    the segmenter's own mIoU and the digest of its masks."""
+    seg, result = stage_one.masks.value, stage_one.vote.value
+    sec = stage_one.frames.value.seconds_per_frame
+    if "feedback" in seg.info:
+        report.extra["feedback"] = seg.info["feedback"]
+    report.inputs["masks"] = digest_arrays(seg.masks)
+    report.add_timings(("frames",), render_ms_per_frame=1000 * sec)
+    report.add_timings(("masks",), segment_ms_per_frame=seg.ms_per_frame)
+    # Time to first mask: render the prompt frame, then the segmenter answers on it.
+    report.add_timings(
+        ("frames", "masks"), time_to_first_mask_s=sec + seg.seconds[task.prompt.frame]
+    )
+    report.segmenter_miou = segmenter_miou(task, seg.masks, resize)
+    report.vote = {k: v for k, v in result.stats.items() if k != "aggregation_s"}
+    report.add_timings(
+        ("vote",),
+        vote_s=result.stats["aggregation_s"],
+        vote_ms_per_mask=result.stats["ms_per_mask"],
+    )
+
+
+def score_views(
+    task: SceneTask,
+    vote: VoteResult,
+    num_labels: int,
+    settings: PipelineSettings,
+    report: SceneReport,
+    voted: set[str],
+) -> list[np.ndarray]:
+    """Render the fused labels at every eval view, score them (the initial mode) and time the
+    label render; returns the (H, W) predictions."""
+    g = task.gaussians.to(settings.device)
+    preds, seconds = [], []
+    for view in tqdm(
+        task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
+    ):
+        start = time.perf_counter()
+        pred = render_labels(
+            g,
+            view.camera,
+            vote.labels,
+            num_labels,
+            labelled=vote.labelled,
+            min_weight=settings.label_min_weight,
+            backend=settings.backend,
+        )
+        preds.append(pred.cpu().numpy())
+        seconds.append(time.perf_counter() - start)
+    record_scores(task, preds, settings.resize, report, "initial", voted)
+    report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
+    return preds
+
+
+def record_trajectory(
+    task: SceneTask,
+    recorder: Recorder,
+    frames: list[np.ndarray],
+    masks: list[np.ndarray],
+    num_labels: int,
+) -> None:
+    """The trajectory's frames and the segmenter's masks (recorded before the vote runs, so an
+    interrupted run keeps them)."""
+    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
+    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
+    for i, (frame, mask) in enumerate(zip(frames, masks, strict=True)):
+        recorder.trajectory_frame(task.name, i, frame, mask, camera=task.trajectory[i])
+
+
+def record_eval_views(task, recorder, preds, report, gaussians, backend) -> None:
+    """Each eval view's render, prediction and ground truth, at its nearest trajectory frame."""
+    if not recorder.enabled:
+        return
+    ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
+    frames = nearest_frames(task)
+    for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
+        rgb = to_uint8(render(gaussians, view.camera, backend=backend).rgb)
+        recorder.eval_view(
+            task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i], frame=frames[i]
+        )
+
+
+def nearest_frames(task: SceneTask) -> list[int]:
+    """For each eval view, the trajectory frame of the same name, else the nearest by camera
+    centre (where the recording shows it on the `frame` timeline)."""
+    index = {c.name: i for i, c in enumerate(task.trajectory)}
+    centres = torch.stack([c.center for c in task.trajectory])
+    return [
+        index.get(v.name, int((centres - v.camera.center).norm(dim=1).argmin()))
+        for v in task.eval_views
+    ]

@@ -1,0 +1,159 @@
+"""Scoring: what a scene's numbers are, and the dataset-level summary.
+
+A `SceneReport` holds everything measured on one scene. Views are scored one row each (IoU and
+accuracy against the ground truth, whether the view's mask voted, and the view's own metadata
+from the dataset); where a dataset sorts its eval views into groups (`EvalView.group`, e.g. a
+capture photographed for some views only: "photographed" / "mask_only"), each group's mIoU is
+reported beside the scene's.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sagonline.datasets.base import DatasetError, SceneTask
+from sagonline.metrics import match_and_relabel, view_metrics
+
+
+@dataclass
+class SceneReport:
+    """Everything measured on one scene; `views` are per-view metric rows."""
+
+    scene: str
+    status: str = "ok"
+    miou: float | None = None
+    macc: float | None = None
+    segmenter_miou: float | None = None
+    labels3d: dict | None = None
+    vote: dict = field(default_factory=dict)
+    timings: dict = field(default_factory=dict)
+    views: list[dict] = field(default_factory=list)
+    error: str | None = None
+    refined_miou: float | None = None
+    refined_macc: float | None = None
+    extra: dict = field(default_factory=dict)
+    stages: dict = field(default_factory=dict)  # stage -> "computed" | "cached"
+    cached_timings: dict = field(default_factory=dict)  # timings of the run that built a cache
+    inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
+
+    def add_timings(self, stages: tuple[str, ...], **times: float) -> None:
+        """This run's timings when it computed every one of `stages`, else the cached run's
+        (kept apart, under `cached_timings`)."""
+        fresh = all(self.stages.get(s) == "computed" for s in stages)
+        (self.timings if fresh else self.cached_timings).update(times)
+
+
+def check_ground_truth(task: SceneTask) -> list[str]:
+    """Names of the scored views whose ground truth has no foreground (warned about). A scene
+    whose every view is empty cannot be scored (every prediction but an empty one would score
+    0, an empty one 100): it fails with a hint at the label format."""
+
+    def has_foreground(gt: np.ndarray) -> bool:
+        valid = gt if task.ignore_label is None else gt[gt != task.ignore_label]
+        return bool((valid != 0).any())
+
+    empty = [v.name for v in task.eval_views if not has_foreground(v.gt)]
+    if task.eval_views and len(empty) == len(task.eval_views):
+        raise DatasetError(
+            f"{task.dataset}/{task.name}: none of the {len(empty)} ground-truth masks has any "
+            "foreground; check the label format (0/1 masks read as `binary` need "
+            "dataset.adapter.mask_threshold=0, or use label_format=ids)"
+        )
+    if empty:
+        shown = ", ".join(empty[:5]) + (" ..." if len(empty) > 5 else "")
+        warnings.warn(
+            f"{task.dataset}/{task.name}: {len(empty)} of {len(task.eval_views)} ground-truth "
+            f"masks have no foreground ({shown}); they score 100 only if the prediction is empty",
+            stacklevel=2,
+        )
+    return empty
+
+
+def is_automatic(task: SceneTask) -> bool:
+    """No objects and no texts prompted: the segmenter's ids are arbitrary and get matched to
+    the ground truth once per scene before scoring."""
+    return not task.prompt.objects and not task.prompt.texts
+
+
+def segmenter_miou(task: SceneTask, masks: list[np.ndarray], resize: str) -> float | None:
+    """The 2D segmenter's own mIoU on the trajectory, where its ground truth is known."""
+    if task.trajectory_gt is None:
+        return None
+    if is_automatic(task):
+        masks = match_and_relabel(masks, task.trajectory_gt, resize, task.ignore_label)
+    ious = [
+        view_metrics(m, g, resize, task.ignore_label)["iou"]
+        for m, g in zip(masks, task.trajectory_gt, strict=True)
+    ]
+    return float(np.mean(ious))
+
+
+def record_scores(
+    task: SceneTask,
+    preds: list[np.ndarray],
+    resize: str,
+    report: SceneReport,
+    mode: str,
+    voted: set[str] | None = None,
+) -> tuple[float | None, float | None]:
+    """Per-view rows for `mode` ("initial" or "refined") and their means; the initial mode's
+    means are the report's `miou`/`macc`. `voted`: names of the views whose masks voted.
+    preds: one (H, W) label map per eval view (automatic ids are matched here)."""
+    if is_automatic(task) and preds:
+        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], resize, task.ignore_label)
+        report.extra["label_matching"] = "hungarian, scene-wide"
+    rows = []
+    for view, pred in zip(task.eval_views, preds, strict=True):
+        m = view_metrics(pred, view.gt, resize, task.ignore_label)
+        rows.append(
+            {
+                "scene": task.name,
+                "view": view.name,
+                "mode": mode,
+                "iou": m["iou"],
+                "acc": m["acc"],
+                "voted": view.name in (voted or ()),
+                **view.meta,
+            }
+        )
+    if task.view_groups:
+        split = report.extra.setdefault("by_view_group", {})
+        for group in task.view_groups:
+            ious = [
+                r["iou"] for r, v in zip(rows, task.eval_views, strict=True) if v.group == group
+            ]
+            split[f"{mode}_{group}_miou"] = float(np.mean(ious)) if ious else None
+            split[f"{mode}_{group}_views"] = len(ious)
+    report.views.extend(rows)
+    miou = float(np.mean([r["iou"] for r in rows])) if rows else None
+    macc = float(np.mean([r["acc"] for r in rows])) if rows else None
+    if mode == "initial":
+        report.miou, report.macc = miou, macc
+    return miou, macc
+
+
+def summarize(reports: list[SceneReport]) -> dict:
+    """Dataset-level numbers: means over the scenes that finished."""
+    ok = [r for r in reports if r.status == "ok" and r.miou is not None]
+
+    def mean(key):
+        vals = [getattr(r, key) for r in ok if getattr(r, key) is not None]
+        return float(np.mean(vals)) if vals else None
+
+    timing_keys = sorted({k for r in ok for k in r.timings})
+    return {
+        "miou": mean("miou"),
+        "macc": mean("macc"),
+        "segmenter_miou": mean("segmenter_miou"),
+        "refined_miou": mean("refined_miou"),
+        "refined_macc": mean("refined_macc"),
+        "scenes_scored": len(ok),
+        "scenes_failed": [r.scene for r in reports if r.status != "ok"],
+        "partial": len(ok) < len(reports),
+        "timings": {
+            k: float(np.mean([r.timings[k] for r in ok if k in r.timings])) for k in timing_keys
+        },
+    }
