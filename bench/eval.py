@@ -17,27 +17,27 @@ from hydra.core.hydra_config import HydraConfig
 from hydra.utils import instantiate
 from omegaconf import DictConfig
 
-from bench.common import (
-    FILE_ONLY,
+from bench.config import EvalConfig, register_schemas, to_config
+from bench.job import (
     build_plugin,
     check_device,
+    plugin_kwargs,
+    refine_config_from,
+    seed_everything,
+    set_threads,
+    settings_from,
+)
+from bench.outputs import print_summary, write_outputs
+from bench.rundir import (
     check_writable,
     comparable_config,
     config_difference,
     config_fingerprint,
     finished_run,
-    plugin_kwargs,
-    print_summary,
-    refine_config_from,
     refuse,
-    run_log,
-    seed_everything,
-    set_threads,
-    settings_from,
-    vote_config_from,
     write_hydra_files,
-    write_outputs,
 )
+from bench.runlog import FILE_ONLY, run_log
 from sagonline.datasets.base import DatasetError
 from sagonline.pipeline import (
     STAGE_VERSIONS,
@@ -56,14 +56,13 @@ from sagonline.render.api import resolve_backend
 log = logging.getLogger("sagonline.eval")
 
 
-def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
+def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
     """Run (or resume, or skip as already finished) one evaluation into `out_dir`."""
-    vote_cfg = vote_config_from(cfg)
     check_device(cfg.device)
     settings = settings_from(cfg)
     fingerprint, flat_cfg = config_fingerprint(cfg)
     try:
-        adapter = instantiate(cfg.dataset.adapter)
+        adapter = instantiate(cfg.dataset["adapter"])
         scenes = adapter.scene_names()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -74,19 +73,11 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
         return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
 
     check_writable(out_dir)
-    refine_cfg = refine_config_from(cfg) if cfg.refine.enabled else None
+    refine_cfg = refine_config_from(cfg)
     seed_everything(cfg.seed)
     set_threads(cfg)
-    segmenter = build_plugin(cfg.segmenter, "segmenter")
-    try:  # checkpoints and weights are opened now, before anything is rendered
-        segmenter.check()
-        weights = {f: digest_file(f) for f in segmenter.weight_files()}
-    except (ValueError, RuntimeError, OSError) as exc:
-        print(f"error: segmenter {cfg.segmenter.get('name', '')}: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-    settings_key = plugin_kwargs(cfg.segmenter)
-    settings_key.pop("device", None)  # the frames' key already holds the device
-    run = SegmenterRun(segmenter, settings_key, weights)
+    run = prepare_segmenter(cfg.segmenter)
+    vote_cfg, weights = cfg.consensus, run.weights
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
         try:
@@ -120,6 +111,20 @@ def evaluate(cfg: DictConfig, out_dir: Path) -> dict:
     return metrics
 
 
+def prepare_segmenter(node: dict) -> SegmenterRun:
+    """The segmenter built, its checkpoints opened and digested, before anything is rendered."""
+    segmenter = build_plugin(node, "segmenter")
+    try:
+        segmenter.check()
+        weights = {f: digest_file(f) for f in segmenter.weight_files()}
+    except (ValueError, RuntimeError, OSError) as exc:
+        print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+    settings = plugin_kwargs(node)
+    settings.pop("device", None)  # the frames' key already holds the device
+    return SegmenterRun(segmenter, settings, weights)
+
+
 def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg):
     """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
     scored is reported as failed and the others go on."""
@@ -128,7 +133,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
         scenes=list(scenes),
         refined=refine_cfg is not None,
     )
-    cache_root = Path(cfg.cache_dir) if cfg.get("cache_dir") else out_dir / "cache"
+    cache_root = Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache"
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
@@ -187,7 +192,7 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
 def main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
-        evaluate(cfg, out_dir)
+        evaluate(to_config(cfg, EvalConfig), out_dir)
     except KeyboardInterrupt:
         print(
             f"\ninterrupted: {out_dir} keeps the finished stages (cache) and the recording so "
@@ -198,4 +203,5 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    register_schemas()
     main()

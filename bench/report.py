@@ -19,7 +19,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
-from bench.common import read_run_metrics
+from bench.rundir import read_run_metrics
 from sagonline.datasets.common import SCENES_ROOT
 from sagonline.fitting import FitConfig
 from sagonline.utils import atomic_write_image, atomic_write_text

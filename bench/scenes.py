@@ -11,6 +11,7 @@ renders of the held-out views to look at. Interrupted fits resume from fit_check
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import os
 import stat
@@ -22,12 +23,12 @@ import hydra
 import numpy as np
 import torch
 from hydra.utils import instantiate
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig
 
-from bench.common import register_schemas
+from bench.config import ScenesConfig, register_schemas, to_config
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
+from sagonline.fitting import SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     initial_points,
     load_images,
@@ -71,15 +72,6 @@ def foreign_scene(out: Path) -> Path | None:
     return None if recorded == digest_file(scene) else scene
 
 
-def fit_config(cfg: DictConfig) -> FitConfig:
-    """The fitting recipe, checked: a setting out of its range stops with the key's name."""
-    try:
-        return FitConfig(**OmegaConf.to_container(cfg.fit, resolve=True))
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-
-
 def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> float | None:
     """Mean held-out PSNR over the pixels inside the dataset's own object masks (None when the
     held-out views have none): how well the fit shows what gets segmented, apart from the
@@ -103,7 +95,7 @@ def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> floa
     return float(np.mean(values)) if values else None
 
 
-def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
+def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
     scene_dir, cams, images = adapter.capture(scene)
     if len(images) < 2:
         raise DatasetError(
@@ -123,7 +115,7 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
                 file=sys.stderr,
             )
             return {"scene": scene, "skipped": True}
-    fit_cfg = fit_config(cfg)
+    fit_cfg = dataclasses.replace(cfg.fit)  # this scene's copy (its clearance is set below)
     train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
     bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
@@ -191,20 +183,18 @@ def fit_scene(cfg: DictConfig, adapter, scene: str) -> dict:
     return metrics
 
 
-register_schemas()
-
-
 @hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")
-def main(cfg: DictConfig) -> None:
+def main(dict_cfg: DictConfig) -> None:
+    cfg: ScenesConfig = to_config(dict_cfg, ScenesConfig)
     try:
-        adapter = instantiate(cfg.dataset.adapter)
+        adapter = instantiate(cfg.dataset["adapter"])
         names = [cfg.scene] if cfg.scene else adapter.scene_names()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
     if not hasattr(adapter, "capture"):
         print(
-            f"error: dataset {cfg.dataset.name} has no captured images to fit "
+            f"error: dataset {cfg.dataset['name']} has no captured images to fit "
             "(the synthetic scenes are generated, not fitted)",
             file=sys.stderr,
         )
@@ -222,4 +212,5 @@ def main(cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    register_schemas()
     main()

@@ -17,8 +17,8 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.common import read_run_metrics
 from bench.report import device_text
+from bench.rundir import read_run_metrics
 from sagonline.utils import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,47 +1,10 @@
-"""Shared fixtures: tiny random scenes and cameras, and the path to the shared real data."""
+"""Fixtures shared by every test (helpers themselves: tests/fixtures.py)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
-import numpy as np
 import pytest
-import torch
 
-from sagonline.cameras import intrinsics, look_at, make_camera
-from sagonline.gaussians import Gaussians
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
-
-
-def shared_data(*parts: str) -> Path:
-    path = DATA.joinpath(*parts)
-    if not path.exists():
-        pytest.skip(f"real data not found at {path} (the shared data folder sits beside the repo)")
-    return path
-
-
-def random_gaussians(
-    n: int, kind: str = "3dgs", seed: int = 0, sh_degree: int = 1, spread: float = 1.0
-) -> Gaussians:
-    """n random Gaussians around the origin, sized to cover a few pixels of `small_camera`."""
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    k = (sh_degree + 1) ** 2
-    dims = 3 if kind == "3dgs" else 2
-    return Gaussians(
-        means=torch.tensor(rng.uniform(-spread, spread, (n, 3)), dtype=torch.float32),
-        quats=torch.tensor(q, dtype=torch.float32),
-        scales=torch.tensor(rng.uniform(0.05, 0.35, (n, dims)), dtype=torch.float32),
-        opacities=torch.tensor(rng.uniform(0.2, 0.98, n), dtype=torch.float32),
-        sh=torch.tensor(rng.normal(scale=0.6, size=(n, k, 3)), dtype=torch.float32),
-    )
-
-
-def small_camera(width: int = 26, height: int = 19, eye=(0.3, -4.0, 0.8), name: str = "cam"):
-    K = intrinsics(width * 1.1, width * 1.1, width / 2 + 0.3, height / 2 - 0.2)
-    return make_camera(K, look_at(eye, (0, 0, 0)), width, height, name)
+from tests.fixtures import random_gaussians
 
 
 @pytest.fixture(scope="module")

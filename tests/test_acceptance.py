@@ -4,17 +4,16 @@ from __future__ import annotations
 
 import pytest
 
+from tests.fixtures import compose_config
+
 pytestmark = pytest.mark.slow
 
 
 def _run(tmp_path, *overrides):
-    from hydra import compose, initialize_config_dir
 
     from bench.eval import evaluate
-    from tests.test_eval_runner import CONF
 
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("eval", overrides=["progress=false", "record=false", *overrides])
+    cfg = compose_config("eval", *["progress=false", "record=false", *overrides])
     return evaluate(cfg, tmp_path)
 
 

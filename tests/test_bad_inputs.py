@@ -29,9 +29,14 @@ from sagonline.io import SceneFileError, read_scene, write_ply
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.pipeline import PipelineSettings, run_scene
 from sagonline.segmenters.oracle import OracleSegmenter
-from tests.conftest import random_gaussians
-from tests.replicas import llff_scene, object_mask, write_image
-from tests.test_eval_runner import CONF, cfg_with
+from tests.fixtures import (
+    cfg_with,
+    compose_config,
+    llff_scene,
+    object_mask,
+    random_gaussians,
+    write_image,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = [f"IMG_{i:04d}" for i in range(5)]
@@ -175,21 +180,19 @@ def test_store_refuses_damage_before_decoding(tmp_path):
 
 
 def _scenes_cfg(*overrides):
-    from hydra import compose, initialize_config_dir
 
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(
-            "scenes",
-            overrides=[
-                "dataset=generic",
-                "progress=false",
-                "fit.iterations=2",
-                "fit.init_points=300",
-                "fit.init=random",
-                "fit.view_clearance=0",
-                *overrides,
-            ],
-        )
+    return compose_config(
+        "scenes",
+        *[
+            "dataset=generic",
+            "progress=false",
+            "fit.iterations=2",
+            "fit.init_points=300",
+            "fit.init=random",
+            "fit.view_clearance=0",
+            *overrides,
+        ],
+    )
 
 
 def test_interrupted_overwrite_keeps_the_users_scene(tmp_path, capsys):
@@ -275,14 +278,11 @@ def _generic_capture(root: Path) -> Path:
 
 
 def _eval_generic(root: Path, run: Path, *overrides):
-    from hydra import compose, initialize_config_dir
-
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose(
-            "eval",
-            overrides=["dataset=generic", f"dataset.root={root}", "progress=false",
-                       "record=false", "dataset.adapter.image_dir=null", *overrides],
-        )  # fmt: skip
+    cfg = compose_config(
+        "eval",
+        *["dataset=generic", f"dataset.root={root}", "progress=false",
+                   "record=false", "dataset.adapter.image_dir=null", *overrides],
+    )  # fmt: skip
     return evaluate(cfg, run)
 
 

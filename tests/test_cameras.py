@@ -20,7 +20,7 @@ from sagonline.io.cameras import (
     write_3dgs_cameras_json,
 )
 from sagonline.trajectory import pseudo_temporal_order, smooth_path
-from tests.conftest import shared_data, small_camera
+from tests.fixtures import shared_data, small_camera
 
 
 def _inside(cam, pts):
@@ -154,7 +154,7 @@ def test_smooth_path_rejects_mixed_sizes():
 
 def test_shortest_path_order_follows_the_orbit_from_the_start():
     from sagonline.trajectory import nearest_view, path_steps, shortest_path_order
-    from tests.replicas import orbit_cameras
+    from tests.fixtures import orbit_cameras
 
     ring = orbit_cameras(12)
     shuffled = [ring[i] for i in np.random.default_rng(0).permutation(12)]

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 from PIL import Image
 
-from tests.conftest import shared_data
+from tests.fixtures import shared_data
 
 
 def _run(*args):

@@ -1,69 +1,90 @@
-"""One default per setting: the dataclasses are Hydra's schemas and the YAML only selects and
-overrides, so what a run composes is the dataclass's default unless something overrides it."""
+"""One typed root config, one default per setting: the dataclasses are Hydra's schemas and the
+YAML only selects and overrides, so what a run composes is the dataclass's default unless
+something overrides it; a wrong type or an unknown key fails at composition."""
 
 from __future__ import annotations
 
+import ast
+import dataclasses
+import inspect
 from dataclasses import asdict
-from pathlib import Path
 
 import pytest
-from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
-from omegaconf import OmegaConf
 
-import bench.common  # noqa: F401 (registers the schemas)
+from bench.config import EvalConfig, ScenesConfig
 from sagonline.consensus import VoteConfig
+from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
-
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
-
-
-def _compose(name: str, *overrides: str):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(name, overrides=list(overrides))
+from sagonline.refine import RefineConfig
+from tests.fixtures import compose_config
 
 
 def test_fit_composes_to_the_dataclass_defaults():
-    fit = OmegaConf.to_container(_compose("scenes").fit, resolve=True)
-    assert fit == {**asdict(FitConfig()), "seed": 0, "device": "cpu"} | {
-        "background": list(FitConfig().background)
-    }
+    cfg = compose_config("scenes")
+    assert isinstance(cfg, ScenesConfig) and cfg.fit == FitConfig()
     with pytest.raises(ConfigCompositionException):
-        _compose("scenes", "fit.iterations=many")
+        compose_config("scenes", "fit.iterations=many")
 
 
 @pytest.mark.parametrize("method", ["rgc", "flashsplat", "weighted_mean"])
 def test_consensus_composes_to_the_dataclass_defaults(method):
-    vote = OmegaConf.to_container(_compose("eval", f"consensus={method}").consensus, resolve=True)
-    assert vote == asdict(VoteConfig(method=method))
+    assert compose_config("eval", f"consensus={method}").consensus == VoteConfig(method=method)
 
 
 def test_refine_composes_to_the_dataclass_defaults():
-    from sagonline.refine import RefineConfig
-
-    refine = OmegaConf.to_container(_compose("eval", "refine=student").refine, resolve=True)
-    assert refine == {**asdict(RefineConfig()), "enabled": True}
-    assert _compose("eval").refine == {"enabled": False}
+    refine = compose_config("eval", "refine=student").refine
+    assert {k: v for k, v in asdict(refine).items() if k != "enabled"} == asdict(RefineConfig())
+    assert refine.enabled and not compose_config("eval").refine.enabled
     with pytest.raises(ConfigCompositionException):
-        _compose("eval", "refine=student", "refine.max_steps=many")
+        compose_config("eval", "refine=student", "refine.max_steps=many")
 
 
 def test_pipeline_settings_defaults_are_the_eval_config_defaults():
-    from bench.common import settings_from
+    from bench.job import settings_from
     from sagonline.pipeline import PipelineSettings
 
-    composed = asdict(settings_from(_compose("eval")))
+    composed = asdict(settings_from(compose_config("eval")))
     defaults = asdict(PipelineSettings())
     composed.pop("progress"), defaults.pop("progress")  # CI=true turns progress off
     assert composed == defaults
 
 
 def test_feedback_composes_to_the_dataclass_defaults():
-    from sagonline.feedback import FeedbackConfig
-
-    on = OmegaConf.to_container(_compose("eval", "feedback=on").feedback, resolve=True)
-    assert on == asdict(FeedbackConfig(enabled=True))
-    off = OmegaConf.to_container(_compose("eval").feedback, resolve=True)
-    assert off == asdict(FeedbackConfig())
+    assert compose_config("eval", "feedback=on").feedback == FeedbackConfig(enabled=True)
+    assert compose_config("eval").feedback == FeedbackConfig()
     with pytest.raises(ConfigCompositionException):
-        _compose("eval", "feedback=on", "feedback.every=often")
+        compose_config("eval", "feedback=on", "feedback.every=often")
+
+
+def test_the_root_config_is_typed_all_the_way_down():
+    cfg = compose_config("eval")
+    assert isinstance(cfg, EvalConfig)
+    for f in dataclasses.fields(cfg):
+        value = getattr(cfg, f.name)
+        assert type(value).__module__ != "omegaconf.dictconfig", f.name
+    assert isinstance(cfg.dataset, dict) and isinstance(cfg.segmenter, dict)  # plug-in nodes
+    with pytest.raises(ConfigCompositionException):
+        compose_config("eval", "recrod=false")  # an unknown key, named at composition
+    with pytest.raises(SystemExit):
+        compose_config("eval", "consensus.margin=2")  # out of range: stops before any work
+
+
+@pytest.mark.parametrize("schema", [EvalConfig, ScenesConfig])
+def test_every_root_setting_is_documented_on_its_field(schema):
+    """A docstring under each plain field (nested settings dataclasses document their own)."""
+    tree = ast.parse(inspect.getsource(schema))
+    body = tree.body[0].body
+    documented = {
+        node.target.id
+        for node, nxt in zip(body, body[1:], strict=False)
+        if isinstance(node, ast.AnnAssign)
+        and isinstance(nxt, ast.Expr)
+        and isinstance(nxt.value, ast.Constant)
+    }
+    nested = {f.name for f in dataclasses.fields(schema) if dataclasses.is_dataclass(f.type)}
+    nested |= {
+        f.name for f in dataclasses.fields(schema) if f.default_factory is not dataclasses.MISSING
+    }
+    plain = {f.name for f in dataclasses.fields(schema)} - nested
+    assert plain <= documented, sorted(plain - documented)

@@ -15,7 +15,7 @@ from sagonline.consensus import (
     select_frames,
 )
 from sagonline.render import TraceChunk
-from tests.conftest import small_camera
+from tests.fixtures import small_camera
 
 
 def chunk(pixel, gaussian, T, alpha, dist):

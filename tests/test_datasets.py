@@ -13,7 +13,7 @@ from sagonline.datasets.base import DatasetError
 from sagonline.datasets.generic import PosedMasksDataset
 from sagonline.datasets.nvos import NVOSDataset
 from sagonline.datasets.spinnerf import SPInNeRFDataset
-from tests.replicas import llff_scene, object_mask, write_image
+from tests.fixtures import compose_config, llff_scene, object_mask, write_image
 
 NAMES = [f"IMG_{i:04d}" for i in range(6)]
 
@@ -142,7 +142,7 @@ def test_nvos_scribbles_at_quarter_size_land_on_the_same_pixels(tmp_path):
 
 
 def test_nvos_released_layout_with_colmap_undistort_scenes(tmp_path):
-    from tests.replicas import write_colmap_text
+    from tests.fixtures import write_colmap_text
 
     flat, names, target, ref = _nvos(tmp_path)
     flat_task = NVOSDataset(flat, tasks=["horns_left"]).load_scene("horns_left")
@@ -249,20 +249,17 @@ def test_palette_and_per_object_formats(tmp_path):
 
 
 def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
-    from hydra import compose, initialize_config_dir
 
     from bench.eval import evaluate
-    from tests.test_eval_runner import CONF
 
     root = tmp_path / "data"
     for scene, with_scene in (("good", True), ("broken", False)):
         cams, sc = llff_scene(root / scene, NAMES[:4], with_scene=with_scene)
         _masks(root / scene / "masks", cams, sc, NAMES[:4])
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose(
-            "eval",
-            overrides=["dataset=generic", f"dataset.root={root}", "progress=false", "record=false"],
-        )
+    cfg = compose_config(
+        "eval",
+        *["dataset=generic", f"dataset.root={root}", "progress=false", "record=false"],
+    )
     m = evaluate(cfg, tmp_path / "run")
     assert m["partial"] is True and m["scenes_failed"] == ["broken"]
     good = next(s for s in m["scenes"] if s["scene"] == "good")
@@ -272,7 +269,7 @@ def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
     # the same partial run again: skipped; once the broken scene loads, refused until overwrite
     assert evaluate(cfg, tmp_path / "run")["miou"] == m["miou"]
     llff_scene(root / "broken", NAMES[:4])
-    from bench.common import RunExists
+    from bench.rundir import RunExists
 
     with pytest.raises(RunExists):
         evaluate(cfg, tmp_path / "run")

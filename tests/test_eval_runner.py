@@ -3,32 +3,13 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pandas as pd
 import pytest
-from hydra import compose, initialize_config_dir
 
-from bench.common import RunExists
 from bench.eval import evaluate
-
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
-TINY = [
-    f"dataset.{s}.{k}={v}"
-    for s in ("forward_single", "cluttered_360")
-    for k, v in (
-        ("width", 64),
-        ("height", 48),
-        ("num_gaussians", 4000),
-        ("num_train_views", 8),
-        ("num_eval_views", 3),
-    )
-]
-
-
-def cfg_with(*overrides):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose("eval", overrides=[*TINY, "progress=false", *overrides])
+from bench.rundir import RunExists
+from tests.fixtures import cfg_with
 
 
 def test_eval_writes_metrics_csv_and_recording(tmp_path):

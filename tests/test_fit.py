@@ -12,6 +12,7 @@ from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
 from sagonline.io import store
 from sagonline.render import rasterize
 from sagonline.synthetic import make_scene
+from tests.fixtures import compose_config
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +46,7 @@ def test_ssim_and_split():
     a = torch.rand(16, 16, 3)
     assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-5)
     assert float(ssim(a, torch.rand(16, 16, 3))) < 0.5
-    from tests.replicas import orbit_cameras
+    from tests.fixtures import orbit_cameras
 
     train, held = split_views(orbit_cameras(17), 8)
     assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
@@ -167,7 +168,7 @@ def test_view_clearance_prunes_floaters_only_where_a_view_records_depth(views):
 def test_near_depths_of_views_from_llff_bounds_or_points(tmp_path):
     from sagonline.fitting.capture import view_near_depths
     from sagonline.io.cameras import load_llff
-    from tests.replicas import llff_scene
+    from tests.fixtures import llff_scene
 
     names = [f"IMG_{i:04d}" for i in range(5)]
     cams, _ = llff_scene(tmp_path / "cap", names, with_scene=False)
@@ -235,12 +236,10 @@ def test_bad_inputs(views):
 
 
 def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
-    from hydra import compose, initialize_config_dir
 
     from bench.scenes import fit_scene
     from sagonline.datasets.generic import PosedMasksDataset
-    from tests.replicas import llff_scene, object_mask, write_image
-    from tests.test_eval_runner import CONF
+    from tests.fixtures import llff_scene, object_mask, write_image
 
     names = [f"IMG_{i:04d}" for i in range(9)]
     cams, scene = llff_scene(tmp_path / "cap", names, with_scene=False)
@@ -251,21 +250,20 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
             tmp_path / "cap" / "masks" / f"{n}.png",
             (object_mask(scene, cam) > 0).astype(np.uint8) * 255,
         )
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose(
-            "scenes",
-            overrides=[
-                "dataset=generic",
-                f"dataset.root={tmp_path / 'cap'}",
-                "progress=false",
-                "fit.iterations=12",
-                "fit.init_points=500",
-                "fit.densify_from=5",
-                "fit.densify_every=5",
-                "fit.densify_until=10",
-                "fit.sh_degree=0",
-            ],
-        )
+    cfg = compose_config(
+        "scenes",
+        *[
+            "dataset=generic",
+            f"dataset.root={tmp_path / 'cap'}",
+            "progress=false",
+            "fit.iterations=12",
+            "fit.init_points=500",
+            "fit.densify_from=5",
+            "fit.densify_every=5",
+            "fit.densify_until=10",
+            "fit.sh_degree=0",
+        ],
+    )
     adapter = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
     metrics = fit_scene(cfg, adapter, "cap")
     out = tmp_path / "cap" / "gaussians"

@@ -21,7 +21,7 @@ from sagonline.fitting.losses import (
 from sagonline.gaussians import Gaussians
 from sagonline.render import rasterize
 from sagonline.render.reference import reference_render
-from tests.conftest import random_gaussians, small_camera
+from tests.fixtures import random_gaussians, small_camera
 
 NEAR, FAR = 1.0, 8.0
 LEAVES = ("means", "quats", "scales", "opacities", "sh")

@@ -7,7 +7,7 @@ import torch
 
 from sagonline.render import TraceRequest, project, rasterize, render
 from sagonline.render.gsplat_backend import gsplat_available, trace_step
-from tests.conftest import random_gaussians, small_camera
+from tests.fixtures import random_gaussians, small_camera
 
 
 def _trace_set(chunks):

@@ -8,7 +8,7 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from sagonline.io import SceneFileError, read_scene, write_ply
-from tests.conftest import random_gaussians, shared_data
+from tests.fixtures import random_gaussians, shared_data
 
 FIELDS = ("means", "quats", "scales", "opacities", "sh")
 

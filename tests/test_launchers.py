@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from tests.test_eval_runner import TINY
+from tests.fixtures import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -17,7 +17,7 @@ import torch
 
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.generic import PosedMasksDataset
-from tests.conftest import shared_data
+from tests.fixtures import shared_data
 
 
 @pytest.fixture(scope="module")

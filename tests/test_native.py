@@ -10,7 +10,7 @@ import torch
 
 from sagonline.gaussians import Gaussians
 from sagonline.render import TraceRequest, rasterize, render
-from tests.conftest import random_gaussians, small_camera
+from tests.fixtures import random_gaussians, small_camera
 
 if shutil.which("c++") is None and shutil.which("g++") is None:
     pytest.skip("no C++ compiler: the native rasterizer cannot be built", allow_module_level=True)

@@ -9,7 +9,7 @@ import pytest
 
 from bench.eval import evaluate
 from sagonline.recording import ELLIPSOID_LIMIT
-from tests.test_eval_runner import cfg_with
+from tests.fixtures import cfg_with
 
 TRAJECTORY, EVAL = 8, 3  # the tiny synthetic preset of the runner tests
 
@@ -94,7 +94,7 @@ def test_large_scenes_fall_back_to_points(tmp_path):
     import torch
 
     from sagonline.recording import Recorder
-    from tests.conftest import random_gaussians
+    from tests.fixtures import random_gaussians
 
     g = random_gaussians(ELLIPSOID_LIMIT + 1, "2dgs", seed=0)
     labels = np.ones(len(g), np.int64)

@@ -132,7 +132,7 @@ def test_eval_with_refinement_reports_both_modes(tmp_path):
     import pandas as pd
 
     from bench.eval import evaluate
-    from tests.test_eval_runner import cfg_with
+    from tests.fixtures import cfg_with
 
     m = evaluate(
         cfg_with(

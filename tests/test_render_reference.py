@@ -8,7 +8,7 @@ import torch
 
 from sagonline.render import RasterStats, TraceRequest, rasterize
 from sagonline.render.reference import reference_render
-from tests.conftest import random_gaussians, small_camera
+from tests.fixtures import random_gaussians, small_camera
 
 
 def _fast_trace(g, cam, t_min):

@@ -7,23 +7,22 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 
-from bench.common import plugin_kwargs
+from bench.job import plugin_kwargs
 from sagonline.compat import nms_reference
 from sagonline.metrics import match_labels, relabel, view_metrics
 from sagonline.segmenters import ObjectPrompt, Prompt
 from sagonline.segmenters.classical import FlowWatershedSegmenter
 from sagonline.segmenters.sam3_text import SAM3TextSegmenter, merge_text_masks
 from sagonline.segmenters.yolo import TrackLabeler
+from tests.fixtures import compose_config
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 
 
 def segmenter_from(name: str, *overrides):
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("eval", overrides=[f"segmenter={name}", *overrides])
+    cfg = compose_config("eval", *[f"segmenter={name}", *overrides])
     return instantiate(plugin_kwargs(cfg.segmenter))
 
 
@@ -120,15 +119,13 @@ def test_match_labels_for_automatic_ids():
     ],
 )
 def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
-    from bench.common import build_plugin
+    from bench.job import build_plugin
 
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("eval", overrides=[f"segmenter={name}"])
+    cfg = compose_config("eval", *[f"segmenter={name}"])
     with pytest.raises(SystemExit):
         build_plugin(cfg.segmenter, "segmenter")
     assert option in capsys.readouterr().err
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("eval", overrides=[f"segmenter={name}", f"{option}=/nope.pt"])
+    cfg = compose_config("eval", *[f"segmenter={name}", f"{option}=/nope.pt"])
     with pytest.raises(SystemExit):
         build_plugin(cfg.segmenter, "segmenter")
     assert f"{option}=/nope.pt: no such file" in capsys.readouterr().err

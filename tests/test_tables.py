@@ -6,7 +6,7 @@ import pandas as pd
 
 from bench.eval import evaluate
 from bench.tables import build
-from tests.test_eval_runner import cfg_with
+from tests.fixtures import cfg_with
 
 
 def test_mask_count_table_and_plots(tmp_path):

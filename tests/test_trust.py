@@ -20,8 +20,8 @@ import pandas as pd
 import pytest
 import torch
 
-from bench.common import RunExists
 from bench.eval import evaluate
+from bench.rundir import RunExists
 from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
 from sagonline.io import write_ply
@@ -35,8 +35,14 @@ from sagonline.pipeline import (
     run_scene,
 )
 from sagonline.segmenters.oracle import OracleSegmenter
-from tests.replicas import llff_scene, object_mask, write_image
-from tests.test_eval_runner import CONF, TINY, cfg_with
+from tests.fixtures import (
+    TINY,
+    cfg_with,
+    compose_config,
+    llff_scene,
+    object_mask,
+    write_image,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 NAMES = [f"IMG_{i:04d}" for i in range(5)]
@@ -44,13 +50,11 @@ ALL = ("frames", "masks", "vote")
 
 
 def generic_cfg(root: Path, *overrides):
-    from hydra import compose, initialize_config_dir
 
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        return compose(
-            "eval",
-            overrides=["dataset=generic", f"dataset.root={root}", "progress=false", *overrides],
-        )
+    return compose_config(
+        "eval",
+        *["dataset=generic", f"dataset.root={root}", "progress=false", *overrides],
+    )
 
 
 # --- 1. stage caches keyed by the content they consume ---------------------------------------
@@ -320,10 +324,8 @@ def test_make_scenes_leaves_a_users_scene_alone(tmp_path, capsys):
     for cam, name in zip(cams, NAMES, strict=True):
         mask = (object_mask(sc, cam) > 0).astype(np.uint8) * 255
         write_image(tmp_path / "cap" / "masks" / f"{name}.png", mask)
-    from hydra import compose, initialize_config_dir
 
-    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
-        cfg = compose("scenes", overrides=["dataset=generic", "progress=false"])
+    cfg = compose_config("scenes", *["dataset=generic", "progress=false"])
     adapter = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
     assert fit_scene(cfg, adapter, "cap") == {"scene": "cap", "skipped": True}
     assert "did not write" in capsys.readouterr().err

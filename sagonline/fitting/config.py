@@ -59,6 +59,7 @@ class FitConfig:
     backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer
 
     def __post_init__(self) -> None:
+        self.background = tuple(self.background)  # Hydra hands lists in
         budget = self.time_budget_s
         check_settings(
             "fit",

@@ -1,4 +1,5 @@
-"""Tiny on-disk replicas of dataset layouts, built in a temporary folder by the tests."""
+"""Shared test helpers: tiny random scenes and cameras, on-disk replicas of dataset layouts,
+composed configs, and the path to the shared real data. conftest.py turns some into fixtures."""
 
 from __future__ import annotations
 
@@ -6,11 +7,79 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 import torch
 
 from sagonline.cameras import Camera, intrinsics, look_at, make_camera
+from sagonline.gaussians import Gaussians
 from sagonline.io import write_ply
 from sagonline.synthetic import make_scene
+
+CONF = str(Path(__file__).resolve().parents[1] / "conf")
+TINY = [
+    f"dataset.{s}.{k}={v}"
+    for s in ("forward_single", "cluttered_360")
+    for k, v in (
+        ("width", 64),
+        ("height", 48),
+        ("num_gaussians", 4000),
+        ("num_train_views", 8),
+        ("num_eval_views", 3),
+    )
+]
+
+
+def compose_config(name: str, *overrides: str, typed: bool = True):
+    """conf/<name>.yaml composed with `overrides`: the typed EvalConfig / ScenesConfig the entry
+    point would run with, or (typed=False) the DictConfig Hydra composed."""
+    from hydra import compose, initialize_config_dir
+
+    from bench.config import EvalConfig, ScenesConfig, register_schemas, to_config
+
+    register_schemas()
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        cfg = compose(name, overrides=list(overrides))
+    if not typed:
+        return cfg
+    return to_config(cfg, EvalConfig if name == "eval" else ScenesConfig)
+
+
+def cfg_with(*overrides: str):
+    """The eval config on the tiny synthetic presets, progress bars off."""
+    return compose_config("eval", *TINY, "progress=false", *overrides)
+
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+
+
+def shared_data(*parts: str) -> Path:
+    path = DATA.joinpath(*parts)
+    if not path.exists():
+        pytest.skip(f"real data not found at {path} (the shared data folder sits beside the repo)")
+    return path
+
+
+def random_gaussians(
+    n: int, kind: str = "3dgs", seed: int = 0, sh_degree: int = 1, spread: float = 1.0
+) -> Gaussians:
+    """n random Gaussians around the origin, sized to cover a few pixels of `small_camera`."""
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    k = (sh_degree + 1) ** 2
+    dims = 3 if kind == "3dgs" else 2
+    return Gaussians(
+        means=torch.tensor(rng.uniform(-spread, spread, (n, 3)), dtype=torch.float32),
+        quats=torch.tensor(q, dtype=torch.float32),
+        scales=torch.tensor(rng.uniform(0.05, 0.35, (n, dims)), dtype=torch.float32),
+        opacities=torch.tensor(rng.uniform(0.2, 0.98, n), dtype=torch.float32),
+        sh=torch.tensor(rng.normal(scale=0.6, size=(n, k, 3)), dtype=torch.float32),
+    )
+
+
+def small_camera(width: int = 26, height: int = 19, eye=(0.3, -4.0, 0.8), name: str = "cam"):
+    K = intrinsics(width * 1.1, width * 1.1, width / 2 + 0.3, height / 2 - 0.2)
+    return make_camera(K, look_at(eye, (0, 0, 0)), width, height, name)
 
 
 def orbit_cameras(n: int, width: int = 32, height: int = 24) -> list[Camera]:

@@ -1,0 +1,95 @@
+"""What a run writes and prints: metrics.json, per_view.csv and the console summary."""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import asdict
+from pathlib import Path
+
+import pandas as pd
+
+from bench.runlog import FILE_ONLY
+from sagonline.pipeline import SceneReport
+from sagonline.utils import atomic_write_json, atomic_write_text, describe_device
+
+
+def write_outputs(
+    out_dir: Path,
+    cfg,
+    reports: list[SceneReport],
+    summary: dict,
+    extra: dict | None = None,
+) -> dict:
+    """metrics.json (+ per_view.csv) atomically into the run directory."""
+    from sagonline.metrics import RESIZE_RULES
+
+    metrics = {
+        "dataset": cfg.dataset["name"],
+        "segmenter": cfg.segmenter.get("name", "segmenter"),
+        "consensus": asdict(cfg.consensus),
+        "renderer": cfg.renderer.backend,
+        **summary,
+        "resize_rule": RESIZE_RULES[cfg.metrics.resize],
+        "device": describe_device(cfg.device),
+        "scenes": [{k: v for k, v in asdict(r).items() if k != "views"} for r in reports],
+        "config": asdict(cfg),
+        **(extra or {}),
+    }
+    rows = [v for r in reports for v in r.views]
+    columns = ["scene", "view", "mode", "iou", "acc", "voted"]
+    columns += [
+        k
+        for k in ("photographed", "photo_angle_deg", "photo_distance")
+        if any(k in r for r in rows)
+    ]
+    atomic_write_text(
+        out_dir / "per_view.csv", pd.DataFrame(rows, columns=columns).to_csv(index=False)
+    )
+    atomic_write_json(out_dir / "metrics.json", metrics)
+    return metrics
+
+
+def fmt(x, pct: bool = True) -> str:
+    if x is None:
+        return "-"
+    return f"{100 * x:.2f}" if pct else f"{x:.1f}"
+
+
+def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> None:
+    """One screen: per-scene rows, overall numbers, where the outputs are."""
+    lines = [
+        f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
+        f"consensus {metrics['consensus']['method']}  renderer {metrics['renderer']}",
+        "",
+    ]
+    lines.append(
+        f"{'scene':<22}{'status':<9}{'mIoU':>8}{'mAcc':>8}{'seg mIoU':>10}"
+        f"{'3D acc':>8}{'3D cov':>8}{'vote ms/mask':>14}{'refined':>9}"
+    )
+    for r in reports:
+        l3 = r.labels3d or {}
+        lines.append(
+            f"{r.scene:<22}{r.status:<9}{fmt(r.miou):>8}{fmt(r.macc):>8}"
+            f"{fmt(r.segmenter_miou):>10}{fmt(l3.get('accuracy')):>8}"
+            f"{fmt(l3.get('coverage')):>8}"
+            f"{fmt(r.timings.get('vote_ms_per_mask'), False):>14}{fmt(r.refined_miou):>9}"
+        )
+        if r.error:
+            lines.append(f"    {r.error}")
+    lines += [
+        "",
+        f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "
+        f"segmenter mIoU {fmt(metrics['segmenter_miou'])}"
+        + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
+        + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
+        f"resize rule: {metrics['resize_rule']}",
+        f"outputs: {out_dir}/metrics.json, per_view.csv"
+        + (
+            ", recording.rrd (open with: rerun recording.rrd)"
+            if (out_dir / "recording.rrd").exists()
+            else ""
+        ),
+    ]
+    text = "\n".join(lines)
+    print(text)
+    logging.getLogger("sagonline.eval").info("summary\n%s", text, extra=FILE_ONLY)

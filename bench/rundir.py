@@ -1,0 +1,171 @@
+"""Run directories: finished runs are never rewritten, sweeps resume, reports read them.
+
+A run directory holds one finished run once its metrics.json says so. Rerunning into it with
+the same config (presentation keys aside) and the same inputs skips it; another config or
+changed inputs are refused naming the difference, and nothing in the folder changes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+from hydra.experimental.callback import Callback
+from omegaconf import DictConfig, OmegaConf
+
+from sagonline.provenance import digest_json
+from sagonline.utils import atomic_write_text
+
+
+class RunExists(SystemExit):
+    """A finished run is in the way: refused, nothing of it was touched."""
+
+
+# Settings that change how a run is shown or stored, never its numbers: a finished run with
+# other values of these is still the same run.
+PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "threads")
+
+
+def comparable_config(config: dict) -> dict:
+    """A resolved config as flat `a.b.c: value` pairs, without PRESENTATION_KEYS."""
+    return flatten({k: v for k, v in config.items() if k not in PRESENTATION_KEYS and k != "hydra"})
+
+
+def config_fingerprint(cfg) -> tuple[str, dict]:
+    """Digest of the resolved config (an EvalConfig) without PRESENTATION_KEYS, and the flat
+    dict it hashes."""
+    flat = comparable_config(asdict(cfg))
+    return digest_json(flat), flat
+
+
+def flatten(d: dict, prefix: str = "") -> dict:
+    out = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, dict) and v:
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+REQUIRED_METRICS = ("dataset", "scenes", "miou")
+
+
+def read_run_metrics(path: Path) -> dict | None:
+    """A run's metrics.json for reports and tables, or None (with a warning naming the file and
+    the problem) when it is unreadable, truncated, or lacks what a row needs: one bad run never
+    aborts a report, nor becomes a silent row of blanks."""
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        problem = f"unreadable ({type(exc).__name__}: {exc})"
+    else:
+        missing = (
+            [k for k in REQUIRED_METRICS if k not in metrics] if isinstance(metrics, dict) else []
+        )
+        if isinstance(metrics, dict) and not missing:
+            return metrics
+        problem = f"lacks {missing}" if missing else "is not a JSON object"
+    print(f"warning: skipped {path}: {problem}", file=sys.stderr)
+    return None
+
+
+def finished_run(out_dir: Path) -> dict | None:
+    """The metrics of a finished run in `out_dir` (one that scored at least one scene), else
+    None: no run, an interrupted one, or one whose every scene failed (rerun freely)."""
+    path = out_dir / "metrics.json"
+    if not path.is_file():
+        return None
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise RunExists(
+            f"error: {path} is unreadable; move it away or pass overwrite=true"
+        ) from None
+    return None if metrics.get("status") == "failed" else metrics
+
+
+def config_difference(old: dict, new: dict, limit: int = 8) -> list[str]:
+    """Lines `key: finished-run value -> this run's value` for every key that differs."""
+    keys = sorted(set(old) | set(new))
+    missing = "<absent>"
+    lines = [
+        f"  {k}: {old.get(k, missing)!r} -> {new.get(k, missing)!r}"
+        for k in keys
+        if old.get(k, missing) != new.get(k, missing)
+    ]
+    return lines[:limit] + ([f"  ... and {len(lines) - limit} more"] if len(lines) > limit else [])
+
+
+def refuse(out_dir: Path, why: list[str]) -> None:
+    print(
+        "\n".join(
+            [f"error: {out_dir} already holds a finished run (metrics.json) {why[0]}", *why[1:]]
+            + [
+                "  Nothing was changed. Choose another hydra.run.dir / hydra.sweep.dir, or pass "
+                "overwrite=true to replace it."
+            ]
+        ),
+        file=sys.stderr,
+    )
+    raise RunExists(2)
+
+
+def write_hydra_files(out_dir: Path, cfg) -> list[str]:
+    """`.hydra/{config,hydra,overrides}.yaml` of this run, written by us once the run is
+    allowed to proceed (Hydra's own copy is off: `hydra.output_subdir: null`), so a refused
+    rerun never rewrites a finished run's record. Returns the command-line overrides."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        hydra_cfg = HydraConfig.get()
+    except ValueError:  # composed directly (tests): no Hydra job
+        return []
+    overrides = list(hydra_cfg.overrides.task)
+    atomic_write_text(
+        out_dir / ".hydra" / "config.yaml", OmegaConf.to_yaml(OmegaConf.structured(cfg))
+    )
+    atomic_write_text(out_dir / ".hydra" / "hydra.yaml", OmegaConf.to_yaml({"hydra": hydra_cfg}))
+    atomic_write_text(out_dir / ".hydra" / "overrides.yaml", OmegaConf.to_yaml(overrides))
+    return overrides
+
+
+class SweepGuard(Callback):
+    """Refuses a sweep into a folder whose `multirun.yaml` records other overrides (before
+    Hydra rewrites it), unless overwrite=true. The same sweep again resumes: its finished
+    jobs are skipped by `evaluate`."""
+
+    def on_multirun_start(self, config: DictConfig, **kwargs) -> None:
+        recorded = Path(str(config.hydra.sweep.dir)) / "multirun.yaml"
+        if not recorded.is_file() or config.get("overwrite"):
+            return
+        old = list(OmegaConf.load(recorded).hydra.overrides.task)
+        new = list(config.hydra.overrides.task)
+        if old != new:
+            print(
+                f"error: {recorded.parent} holds a sweep with other overrides:\n"
+                f"  finished: {' '.join(old)}\n  this one: {' '.join(new)}\n"
+                "  Nothing was changed. Choose another hydra.sweep.dir, or pass overwrite=true.",
+                file=sys.stderr,
+            )
+            raise RunExists(2)
+
+
+def check_writable(out_dir: Path) -> None:
+    """Stop in one line when the run folder cannot be written."""
+    try:
+        out_dir.mkdir(parents=True, exist_ok=True)
+        probe = out_dir / f".write_test_{os.getpid()}"
+        probe.write_text("")
+        probe.unlink()
+    except OSError as exc:
+        print(
+            f"error: the run folder {out_dir} cannot be written ({exc.strerror or exc}); choose "
+            "another hydra.run.dir or fix its permissions",
+            file=sys.stderr,
+        )
+        raise SystemExit(2) from None

@@ -1,0 +1,48 @@
+"""The run's log: `<run dir>/eval.log` receives every record and warning of the run."""
+
+from __future__ import annotations
+
+import logging
+import sys
+from contextlib import contextmanager
+from pathlib import Path
+
+FILE_ONLY = {"file_only": True}  # `extra=` of records that are for eval.log, not the console
+
+
+def _not_file_only(record: logging.LogRecord) -> bool:
+    return not getattr(record, "file_only", False)
+
+
+@contextmanager
+def run_log(out_dir: Path):
+    """`<run dir>/eval.log` receives every log record and warning of the run; warnings also
+    reach the console (records logged with `extra=FILE_ONLY` stay out of it)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    root = logging.getLogger()
+    consoles = list(root.handlers)
+    for h in consoles:
+        h.addFilter(_not_file_only)
+    file_handler = logging.FileHandler(out_dir / "eval.log")
+    file_handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handlers = [file_handler]
+    if not root.handlers:
+        console = logging.StreamHandler(sys.stderr)
+        console.setLevel(logging.WARNING)
+        console.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        handlers.append(console)
+    old_level = root.level
+    root.setLevel(logging.INFO)
+    for h in handlers:
+        root.addHandler(h)
+    logging.captureWarnings(True)
+    try:
+        yield
+    finally:
+        logging.captureWarnings(False)
+        for h in handlers:
+            root.removeHandler(h)
+            h.close()
+        for h in consoles:
+            h.removeFilter(_not_file_only)
+        root.setLevel(old_level)
