@@ -39,7 +39,7 @@ from sagonline.io import read_scene  # noqa: E402
 from sagonline.render import RasterStats, TraceRequest, render, render_labels  # noqa: E402
 from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
 from sagonline.render.native import native_available  # noqa: E402
-from sagonline.synthetic import make_scene  # noqa: E402
+from sagonline.scene_generator import make_scene  # noqa: E402
 from sagonline.utils import describe_device  # noqa: E402
 
 

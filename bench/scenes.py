@@ -28,7 +28,7 @@ from omegaconf import DictConfig
 from bench.config import ScenesConfig, register_schemas, to_config
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.fitting import SceneFitter, psnr_from_mse, write_fitted_scene
+from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     initial_points,
     load_images,
@@ -95,26 +95,28 @@ def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> floa
     return float(np.mean(values)) if values else None
 
 
-def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
-    scene_dir, cams, images = adapter.capture(scene)
-    if len(images) < 2:
-        raise DatasetError(
-            f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
-        )
-    out = output_dir(scene_dir, adapter.name)
+def may_fit(cfg: ScenesConfig, out: Path, scene: str) -> bool:
+    """False (and says why) when `out` holds a finished fit or a scene that is not ours and
+    overwrite is off."""
+    if cfg.overwrite:
+        return True
     foreign = foreign_scene(out)
-    if not cfg.overwrite:
-        if foreign is None and (out / "point_cloud.ply").is_file():
-            print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
-            return {"scene": scene, "skipped": True}
-        if foreign is not None:
-            print(
-                f"{scene}: {foreign} is a trained scene that `make scenes` did not write (its "
-                "digest is not the one fit_metrics.json records); it is left as it is. Pass "
-                "overwrite=true to fit anyway (it is then kept as a .bak file).",
-                file=sys.stderr,
-            )
-            return {"scene": scene, "skipped": True}
+    if foreign is None and (out / "point_cloud.ply").is_file():
+        print(f"{scene}: already fitted ({out}); pass overwrite=true to fit again")
+        return False
+    if foreign is not None:
+        print(
+            f"{scene}: {foreign} is a trained scene that `make scenes` did not write (its "
+            "digest is not the one fit_metrics.json records); it is left as it is. Pass "
+            "overwrite=true to fit anyway (it is then kept as a .bak file).",
+            file=sys.stderr,
+        )
+        return False
+    return True
+
+
+def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
+    """The fitter of one capture: images at the fitting size, start points, clearances."""
     fit_cfg = dataclasses.replace(cfg.fit)  # this scene's copy (its clearance is set below)
     train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
     bounds = near_far = None
@@ -134,36 +136,55 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         other_cameras=[c for c in cams if c.name not in images],
         view_near=view_near_depths(scene_dir, cams, points) if fit_cfg.view_clearance else None,
     )
+    return fitter, init
+
+
+def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
+    """Fit one scene of `adapter` where it looks for it; returns fit_metrics.json's content."""
+    scene_dir, cams, images = adapter.capture(scene)
+    if len(images) < 2:
+        raise DatasetError(
+            f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
+        )
+    out = output_dir(scene_dir, adapter.name)
+    if not may_fit(cfg, out, scene):
+        return {"scene": scene, "skipped": True}
+    fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
     metrics = fitter.fit(progress=cfg.progress, checkpoint=ckpt)
+    first = fitter.cams[0]
     metrics.update(
         {
             "scene": scene,
             "dataset": adapter.name,
-            "images": len(train_imgs),
-            "resolution": [train_cams[0].width, train_cams[0].height],
+            "images": len(fitter.images),
+            "resolution": [first.width, first.height],
             "init": init,
         }
     )
-    g = fitter.export()
     with torch.no_grad():
-        on_device = g.to(fit_cfg.device)
+        on_device = fitter.export().to(fitter.cfg.device)
         renders = {i: fitter.render(on_device, i).rgb.clamp(0, 1).cpu() for i in fitter.held_idx}
     metrics["psnr_heldout_object"] = object_psnr(adapter, scene, fitter, renders)
-    foreign = foreign_scene(out)  # asked again: whatever happened while this fit ran
+    foreign = foreign_scene(out)  # asked now: whatever happened while this fit ran
     if foreign is not None:  # overwrite=true: keep the scene that is not ours beside ours
         backup = foreign.with_name(f"{foreign.name}.bak-{time.strftime('%Y%m%d-%H%M%S')}")
         foreign.rename(backup)
         print(f"{scene}: the scene that was there is now {backup}")
     write_fitted_scene(out, fitter, cams, metrics)
     for i, render in renders.items():
-        pair = np.concatenate([render.numpy(), train_imgs[i].numpy()], axis=1)
+        pair = np.concatenate([render.numpy(), fitter.images[i].cpu().numpy()], axis=1)
         atomic_write_image(
-            out / f"heldout_{train_cams[i].name}.png", (pair * 255 + 0.5).astype(np.uint8)
+            out / f"heldout_{fitter.cams[i].name}.png", (pair * 255 + 0.5).astype(np.uint8)
         )
     ckpt.unlink(missing_ok=True)
+    print_fit(scene, fitter.cfg, metrics, out)
+    return metrics
+
+
+def print_fit(scene: str, fit_cfg: FitConfig, metrics: dict, out: Path) -> None:
     if metrics["stopped"] == "time_budget":
         print(
             f"WARNING: {scene}: the fit stopped at its time budget (fit.time_budget_s="
@@ -180,7 +201,6 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         + f", {metrics['gaussians']} Gaussians, "
         f"{metrics['fit_seconds']:.0f} s -> {out}"
     )
-    return metrics
 
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")

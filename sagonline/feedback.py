@@ -72,7 +72,10 @@ def segment_with_feedback(
     ground_truth: list[np.ndarray] | None = None,
 ) -> tuple[SegmentationResult, dict]:
     """Segment `frames` (T RGB images, the rendered trajectory of `cameras`) with consensus
-    feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and times."""
+    feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and times.
+
+    Why one function: its three closures (vote, fused render, re-segment) share the running
+    vote, the masks and the timers; apart, they would pass all of them back and forth."""
     start = time.perf_counter()
     first = segmenter.segment(frames, prompt, ground_truth=ground_truth)
     masks, seconds = list(first.masks), list(first.seconds)

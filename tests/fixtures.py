@@ -13,7 +13,7 @@ import torch
 from sagonline.cameras import Camera, intrinsics, look_at, make_camera
 from sagonline.gaussians import Gaussians
 from sagonline.io import write_ply
-from sagonline.synthetic import make_scene
+from sagonline.scene_generator import make_scene
 
 CONF = str(Path(__file__).resolve().parents[1] / "conf")
 TINY = [

@@ -383,10 +383,10 @@ def test_singular_llff_pose_names_the_frame(tmp_path):
 
 
 def test_reading_a_ply_peaks_below_one_and_a_half_times_its_size(tmp_path, monkeypatch):
-    from sagonline.io import ply as ply_module
+    from sagonline.io import ply_rows
 
     path = write_ply(tmp_path / "big.ply", random_gaussians(40_000, sh_degree=3))
-    monkeypatch.setattr(ply_module, "_BLOCK_ROWS", 2048)
+    monkeypatch.setattr(ply_rows, "BLOCK_ROWS", 2048)
     tracemalloc.start()
     g = read_scene(path)
     _, peak = tracemalloc.get_traced_memory()

@@ -11,7 +11,7 @@ import torch
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
 from sagonline.io import store
 from sagonline.render import rasterize
-from sagonline.synthetic import make_scene
+from sagonline.scene_generator import make_scene
 from tests.fixtures import compose_config
 
 

@@ -131,7 +131,7 @@ def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
 def test_triangulated_points_fall_inside_the_object_masks(cape):
     """SIFT matches between every other photograph, triangulated with the LLFF poses held fixed
     (what `make scenes` starts from), must project into the independently drawn object masks."""
-    from sagonline.triangulate import triangulate_known_poses
+    from sagonline.fitting.triangulate import triangulate_known_poses
 
     root, ds, cams, masks = cape
     _, _, images = ds.capture("mold_cape")

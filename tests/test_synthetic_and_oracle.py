@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from sagonline.datasets.synthetic import load_synthetic
+from sagonline.scene_generator import make_scene
 from sagonline.segmenters import OracleSegmenter, Prompt
-from sagonline.synthetic import make_scene
 
 
 def test_same_seed_same_scene_other_seed_other_scene():

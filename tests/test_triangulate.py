@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
+from sagonline.fitting.triangulate import triangulate_known_poses
 from sagonline.render import rasterize
 from sagonline.render.api import to_uint8
-from sagonline.synthetic import make_scene
-from sagonline.triangulate import triangulate_known_poses
+from sagonline.scene_generator import make_scene
 from sagonline.utils import atomic_write_image
 
 

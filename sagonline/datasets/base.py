@@ -8,12 +8,11 @@ import numpy as np
 import torch
 
 from sagonline.cameras import Camera
+from sagonline.errors import DatasetError
 from sagonline.gaussians import Gaussians
 from sagonline.prompts import Prompt
 
-
-class DatasetError(RuntimeError):
-    """A dataset folder is missing pieces or has the wrong layout; says what and where."""
+__all__ = ["DatasetAdapter", "DatasetError", "EvalView", "SceneTask"]
 
 
 @dataclass

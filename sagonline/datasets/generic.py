@@ -8,15 +8,8 @@ One scene per folder (or the root itself when it holds cameras):
       <mask_dir>/            one label map per view, matched to views by file name
       gaussians/point_cloud.ply [+ cameras.json]       the trained scene
 
-Label maps are read by `label_format`:
-- "binary": foreground where a channel exceeds `mask_threshold` (also JPEG masks);
-- "ids": single-channel integer ids (instance or semantic), 0 = background, `ignore` skipped;
-- "palette": RGB colours mapped to ids by `palette` (e.g. UDD);
-- "per_object": `<mask_dir>/<view>/<object>.png`, one binary mask per object (e.g. LERF-Mask);
-  object names become label names in sorted order;
-- "kitti360": KITTI-360 instance maps (uint16 semanticId * 1000 + instanceId); instances of
-  `keep_classes` (Cityscapes ids; vehicles by default) are renumbered 1..K per scene, in order
-  of their global id, so one vehicle keeps one label across the sequence.
+Label maps are read by `label_format` (`datasets.labels`: binary, ids, palette, per_object,
+kitti360).
 
 The trajectory is every camera in pseudo-temporal (name) order; the scored views are those
 with a label map (optionally without the reference view). The prompt is seeded random clicks
@@ -28,7 +21,6 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from sagonline.cameras import Camera
@@ -39,18 +31,15 @@ from sagonline.datasets.common import (
     fit_record,
     gaussians_dir,
     list_masks,
-    load_mask,
     load_trained_scene,
     match_by_name,
     scene_cameras,
 )
+from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS, label_reader
 from sagonline.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
 from sagonline.trajectory import insert_between, nearest_view, shortest_path_order
-
-LABEL_FORMATS = ("binary", "ids", "palette", "per_object", "kitti360")
-KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
 
 
 class PosedMasksDataset(DatasetAdapter):
@@ -84,6 +73,14 @@ class PosedMasksDataset(DatasetAdapter):
             raise DatasetError(
                 f"{name}: label_format {label_format!r} is not one of {LABEL_FORMATS}"
             )
+        self.labels = label_reader(
+            label_format,
+            threshold=mask_threshold,
+            names=label_names,
+            ignore=ignore,
+            palette=palette,
+            keep_classes=keep_classes,
+        )
         if order not in ("name", "path"):
             raise DatasetError(f"{name}: order {order!r} is not name or path")
         if prompt not in ("clicks", "text", "none"):
@@ -93,16 +90,11 @@ class PosedMasksDataset(DatasetAdapter):
         self.image_dir, self.mask_dir = image_dir, mask_dir
         self.label_format, self.threshold = label_format, mask_threshold
         self.exclude = tuple(w.lower() for w in exclude)
-        self.palette = {
-            tuple(int(c) for c in k.split(",")) if isinstance(k, str) else tuple(k): v
-            for k, v in (palette or {}).items()
-        }
         self.label_names, self.ignore = label_names, ignore
         self.prompt_kind, self.clicks, self.reference = prompt, clicks, reference
         self.exclude_reference, self.seed = exclude_reference, seed
         self.expected_counts = expected_counts or {}
         self.readme = readme or f"datasets/{name}/README.md"
-        self.keep_classes = tuple(keep_classes)
         self.render_max_side = render_max_side
         self.order, self.inbetween = order, int(inbetween)
         self.drop_nonfinite = drop_nonfinite
@@ -247,47 +239,8 @@ class PosedMasksDataset(DatasetAdapter):
         return scene_dir, cams, images
 
     def read_label_map(self, path: Path) -> np.ndarray:
-        if self.label_format == "per_object":
-            parts = sorted(p for p in path.iterdir() if p.suffix in IMAGE_SUFFIXES)
-            if not parts:
-                raise DatasetError(f"{path}: no per-object masks")
-            names = self.object_names(path.parent)
-            out = None
-            for p in parts:
-                m = load_mask(p, self.threshold)
-                out = np.zeros_like(m) if out is None else out
-                out[m > 0] = names.index(p.stem) + 1
-            return out
-        if self.label_format == "palette":
-            img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-            if img is None:
-                raise DatasetError(f"{path}: not a readable image")
-            rgb = img[..., ::-1].astype(np.int64)
-            key = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
-            out = np.full(key.shape, -1, np.int64)
-            for color, label in self.palette.items():
-                out[key == ((color[0] << 16) | (color[1] << 8) | color[2])] = label
-            if (out < 0).any():
-                bad = rgb[out < 0][0]
-                raise DatasetError(
-                    f"{path}: colour {tuple(int(v) for v in bad)} is not in the dataset palette"
-                )
-            return out
-        if self.label_format == "kitti360":
-            raw = load_mask(path, mode="ids")
-            return np.where(np.isin(raw // 1000, self.keep_classes), raw, 0)
-        return load_mask(path, self.threshold, "ids" if self.label_format == "ids" else "binary")
-
-    def object_names(self, mask_root: Path) -> list[str]:
-        return sorted(
-            {
-                p.stem
-                for d in mask_root.iterdir()
-                if d.is_dir()
-                for p in d.iterdir()
-                if p.suffix in IMAGE_SUFFIXES
-            }
-        )
+        """One view's (H, W) int64 label map (a folder of per-object masks for per_object)."""
+        return self.labels.read(path)
 
     # --- task ---------------------------------------------------------------------------------
     def load_scene(self, scene: str) -> SceneTask:
@@ -301,14 +254,9 @@ class PosedMasksDataset(DatasetAdapter):
             gt = self.read_label_map(path)
             check_mask_size(gt, by_name[name], path)
             gts[name] = gt
-        if self.label_format == "kitti360":
-            gts, names = _renumber_instances(gts)
+        gts, names = self.labels.finish(gts, scene_dir / self.mask_dir)
+        num_labels = len(names)
         gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite)
-        num_labels, names = (
-            (len(names), names)
-            if self.label_format == "kitti360"
-            else self.labels_of(scene_dir, gts)
-        )
         for name, gt in gts.items():
             valid = gt if self.ignore is None else gt[gt != self.ignore]
             if valid.size and (valid.min() < 0 or valid.max() >= num_labels):
@@ -351,20 +299,6 @@ class PosedMasksDataset(DatasetAdapter):
             view_groups=view_groups,
         )
 
-    def labels_of(self, scene_dir: Path, gts: dict[str, np.ndarray]) -> tuple[int, list[str]]:
-        if self.label_format == "binary":
-            return 2, ["background", "object"]
-        if self.label_format == "per_object":
-            objs = self.object_names(scene_dir / self.mask_dir)
-            return len(objs) + 1, ["background", *objs]
-        if self.label_names:
-            return len(self.label_names), list(self.label_names)
-        top = max(
-            int(g[g != self.ignore].max(initial=0)) if self.ignore is not None else int(g.max())
-            for g in gts.values()
-        )
-        return top + 1, ["background"] + [str(i) for i in range(1, top + 1)]
-
     def make_prompt(
         self, gt: np.ndarray, cam: Camera, frame: int, num_labels: int, names: list[str]
     ) -> Prompt:
@@ -402,16 +336,3 @@ def group_by_photographs(
 def _fit_within(width: int, height: int, max_side: int) -> tuple[int, int]:
     scale = min(1.0, max_side / max(width, height))
     return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def _renumber_instances(gts: dict[str, np.ndarray]) -> tuple[dict[str, np.ndarray], list[str]]:
-    """Global instance codes -> 1..K, one mapping for the whole scene."""
-    codes = sorted({int(v) for g in gts.values() for v in np.unique(g) if v != 0})
-    lut = {c: i + 1 for i, c in enumerate(codes)}
-    out = {}
-    for name, g in gts.items():
-        r = np.zeros_like(g)
-        for c, i in lut.items():
-            r[g == c] = i
-        out[name] = r
-    return out, ["background"] + [f"instance_{c}" for c in codes]

@@ -10,7 +10,7 @@ import torch
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import click_prompt
 from sagonline.render.api import render_labels
-from sagonline.synthetic import SEMANTIC_NAMES, SyntheticScene, make_scene
+from sagonline.scene_generator import SEMANTIC_NAMES, SyntheticScene, make_scene
 
 
 def gt_mask(scene: SyntheticScene, camera, labels: torch.Tensor, num_labels: int) -> np.ndarray:

@@ -2,7 +2,8 @@
 
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.io.images import IMAGE_SUFFIXES, list_images, resize_nearest
-from sagonline.io.ply import SceneFileError, read_scene, read_splat, write_ply
+from sagonline.io.ply import SceneFileError, read_scene, write_ply
+from sagonline.io.splat import read_splat
 
 __all__ = [
     "IMAGE_SUFFIXES",

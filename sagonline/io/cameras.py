@@ -5,18 +5,30 @@ poses_bounds.npy, COLMAP sparse models (and their points), .npz; all converted t
 from __future__ import annotations
 
 import json
-import struct
-import warnings
 from pathlib import Path
 
 import numpy as np
 
 from sagonline.cameras import Camera, intrinsics, make_camera
-from sagonline.io.images import list_images
+from sagonline.errors import CameraFileError
+from sagonline.io.colmap import is_colmap_dir, load_colmap, read_colmap_points
+from sagonline.io.llff import load_llff, load_llff_bounds, read_npy, read_poses_bounds
+from sagonline.io.pose import checked_camera, invert_pose
 
-
-class CameraFileError(ValueError):
-    """Camera file missing or malformed; the message names the file."""
+__all__ = [
+    "CameraFileError",
+    "camera_input_files",
+    "camera_source",
+    "load_cameras",
+    "load_colmap",
+    "load_llff",
+    "load_llff_bounds",
+    "load_nerf_transforms",
+    "read_colmap_points",
+    "read_npy",
+    "read_poses_bounds",
+    "write_3dgs_cameras_json",
+]
 
 
 def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
@@ -52,11 +64,11 @@ def camera_source(path: str | Path) -> Path:
     """The file (or COLMAP model folder) `load_cameras(path)` reads: `path` itself, or for a
     dataset folder the first of CAMERA_FILES found in it."""
     path = Path(path)
-    if not path.is_dir() or _is_colmap_dir(path):
+    if not path.is_dir() or is_colmap_dir(path):
         return path
     for candidate in CAMERA_FILES:
         found = path / candidate
-        if found.exists() and (not found.is_dir() or _is_colmap_dir(found)):
+        if found.exists() and (not found.is_dir() or is_colmap_dir(found)):
             return found
     raise CameraFileError(
         f"{path}: no cameras found (looked for cameras.json, transforms.json, "
@@ -95,124 +107,6 @@ def _load_cameras(path: Path, **kwargs) -> list[Camera]:
     if name.endswith(".npz"):
         return load_npz_cameras(path)
     raise CameraFileError(f"{path}: unknown camera file type")
-
-
-def _is_colmap_dir(path: Path) -> bool:
-    return any((path / f"images.{ext}").exists() for ext in ("bin", "txt")) and any(
-        (path / f"cameras.{ext}").exists() for ext in ("bin", "txt")
-    )
-
-
-def load_llff(
-    scene_dir: str | Path, image_dir: str | None = None, names: list[str] | None = None
-) -> list[Camera]:
-    """LLFF `poses_bounds.npy`: rows of a 3x5 [R | t | (H, W, f)] camera-to-world (axes down,
-    right, backwards) and two depth bounds, at the full resolution.
-
-    Row i belongs to the i-th image name in sorted order (`names` overrides the listing). With
-    `image_dir` (e.g. "images_4"), intrinsics are rescaled to the size of the images found there.
-    """
-    scene_dir = Path(scene_dir)
-    pb_path = scene_dir / "poses_bounds.npy"
-    if not pb_path.is_file():
-        raise CameraFileError(f"{pb_path}: LLFF poses_bounds.npy not found")
-    arr = read_poses_bounds(pb_path)
-    poses = arr[:, :15].reshape(-1, 3, 5)
-    full_h, full_w, focal = poses[0, :, 4]
-    width, height = int(round(full_w)), int(round(full_h))
-    if image_dir is not None:
-        images = list_images(scene_dir / image_dir)
-        if not images:
-            raise CameraFileError(f"{scene_dir / image_dir}: no images to size the cameras by")
-        from PIL import Image
-
-        with Image.open(images[0]) as im:
-            width, height = im.size
-        if names is None:
-            names = [p.stem for p in images]
-    if names is None:
-        names = [f"{i:05d}" for i in range(len(arr))]
-    if len(names) != len(arr):
-        raise CameraFileError(
-            f"{pb_path}: {len(arr)} poses but {len(names)} image names; "
-            "pass the full sorted name list (names=...)"
-        )
-    sx, sy = width / full_w, height / full_h
-    cams = []
-    for pose, name in zip(poses, names, strict=True):
-        h, w, f = pose[:, 4]
-        c2w = np.eye(4)
-        # LLFF columns are (down, right, back); OpenCV wants (right, down, forward).
-        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2] = pose[:, 1], pose[:, 0], -pose[:, 2]
-        c2w[:3, 3] = pose[:, 3]
-        K = intrinsics(f * sx, f * sy, w * sx / 2.0, h * sy / 2.0)
-        w2c = invert_pose(c2w, pb_path, Path(name).stem)
-        cams.append(_camera(K, w2c, width, height, Path(name).stem, pb_path))
-    return cams
-
-
-def invert_pose(c2w: np.ndarray, path: Path, frame: str) -> np.ndarray:
-    """World-to-camera from a camera-to-world 4x4; a singular one is refused naming the frame."""
-    if not np.isfinite(c2w).all():
-        raise CameraFileError(f"{path}: frame {frame!r}: its pose holds NaN/Inf")
-    try:
-        w2c = np.linalg.inv(c2w)
-    except np.linalg.LinAlgError:
-        raise CameraFileError(f"{path}: frame {frame!r} has a singular pose matrix") from None
-    if not np.isfinite(w2c).all():
-        raise CameraFileError(f"{path}: frame {frame!r} has a singular pose matrix")
-    return w2c
-
-
-def _camera(K, w2c, width, height, name: str, path: Path) -> Camera:
-    """make_camera, with a failed validation naming the file (the message names the frame)."""
-    try:
-        return make_camera(K, w2c, width, height, name)
-    except (ValueError, TypeError) as exc:
-        raise CameraFileError(f"{path}: {exc}") from None
-
-
-def read_npy(path: Path, error: type[Exception]) -> np.ndarray:
-    """A numeric `.npy` array, its header checked against the file's size before anything is
-    allocated (a damaged header cannot ask for terabytes); never unpickles."""
-    try:
-        with open(path, "rb") as f:
-            version = np.lib.format.read_magic(f)
-            read_header = {
-                (1, 0): np.lib.format.read_array_header_1_0,
-                (2, 0): np.lib.format.read_array_header_2_0,
-            }.get(version)
-            if read_header is None:
-                raise ValueError(f".npy format version {version} is not supported")
-            shape, _, dtype = read_header(f)
-            data_bytes = path.stat().st_size - f.tell()
-    except Exception as exc:  # the header is parsed (ast.literal_eval), never executed
-        raise error(f"{path}: not a readable .npy array ({type(exc).__name__}: {exc})") from None
-    if dtype.kind not in "biuf" or dtype.hasobject:
-        raise error(f"{path}: holds {dtype} values, not numbers")
-    if int(np.prod(shape, dtype=np.float64)) * dtype.itemsize != data_bytes:
-        raise error(
-            f"{path}: its header says {shape} {dtype} but the file holds {data_bytes} bytes "
-            "of data (truncated or damaged)"
-        )
-    return np.load(path, allow_pickle=False).astype(np.float64, copy=False)
-
-
-def read_poses_bounds(path: str | Path) -> np.ndarray:
-    """The (N, 17) float64 rows of an LLFF `poses_bounds.npy`, checked (CameraFileError)."""
-    path = Path(path)
-    arr = read_npy(path, CameraFileError)
-    if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
-        raise CameraFileError(f"{path}: expected an (N, 17) array, got {arr.shape}")
-    if not np.isfinite(arr).all():
-        row = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
-        raise CameraFileError(f"{path}: row {row} holds NaN/Inf")
-    return arr
-
-
-def load_llff_bounds(scene_dir: str | Path) -> np.ndarray:
-    """(N, 2) near/far depth bounds from `poses_bounds.npy`."""
-    return read_poses_bounds(Path(scene_dir) / "poses_bounds.npy")[:, 15:17]
 
 
 def load_nerf_transforms(
@@ -256,7 +150,7 @@ def load_nerf_transforms(
         c2w[:3, 1:3] *= -1.0  # OpenGL -> OpenCV axes
         name = Path(str(frame.get("file_path", f"frame_{i:05d}"))).stem
         w2c = invert_pose(c2w, path, name)
-        cams.append(_camera(intrinsics(fx, fy, cx, cy), w2c, w, h, name, path))
+        cams.append(checked_camera(intrinsics(fx, fy, cx, cy), w2c, w, h, name, path))
     return cams
 
 
@@ -296,7 +190,7 @@ def load_3dgs_cameras_json(path: str | Path) -> list[Camera]:
         w, h = int(e["width"]), int(e["height"])
         K = intrinsics(e["fx"], e["fy"], w / 2.0, h / 2.0)
         name = str(e.get("img_name", i))
-        cams.append(_camera(K, invert_pose(c2w, path, name), w, h, name, path))
+        cams.append(checked_camera(K, invert_pose(c2w, path, name), w, h, name, path))
     return sorted(cams, key=lambda c: c.name)
 
 
@@ -333,78 +227,3 @@ def load_npz_cameras(path: str | Path) -> list[Camera]:
         make_camera(K, vm, int(z["width"]), int(z["height"]), f"{i:05d}")
         for i, (K, vm) in enumerate(zip(z["Ks"], z["viewmats"], strict=True))
     ]
-
-
-def load_colmap(sparse_dir: str | Path) -> list[Camera]:
-    """COLMAP sparse model (binary or text) through pycolmap; sorted by image name.
-
-    Distortion parameters are ignored with a warning: Gaussian scenes are trained on undistorted
-    images, so use the model COLMAP's undistorter wrote.
-    """
-    import pycolmap
-
-    sparse_dir = Path(sparse_dir)
-    if not _is_colmap_dir(sparse_dir):
-        raise CameraFileError(
-            f"{sparse_dir}: not a COLMAP model (needs cameras and images, .bin or .txt)"
-        )
-    try:
-        rec = pycolmap.Reconstruction(str(sparse_dir))
-    except Exception as exc:
-        raise CameraFileError(f"{sparse_dir}: pycolmap could not read the model ({exc})") from exc
-    cams = []
-    distorted = set()
-    for image in rec.images.values():
-        cam = rec.cameras[image.camera_id]
-        if cam.model.name not in ("PINHOLE", "SIMPLE_PINHOLE"):
-            distorted.add(cam.model.name)
-        w2c = np.eye(4)
-        w2c[:3, :] = image.cam_from_world().matrix()
-        cams.append(
-            make_camera(cam.calibration_matrix(), w2c, cam.width, cam.height, Path(image.name).stem)
-        )
-    if distorted:
-        warnings.warn(
-            f"{sparse_dir}: camera models {sorted(distorted)} have distortion that the "
-            "rasterizer ignores; use an undistorted model",
-            stacklevel=2,
-        )
-    return sorted(cams, key=lambda c: c.name)
-
-
-def read_colmap_points(sparse_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """(P, 3) xyz and (P, 3) uint8 colours from `points3D.bin` or `.txt`.
-
-    Parsed directly rather than through pycolmap, which refuses a model whose `images` file is
-    absent (LLFF releases ship `cameras.bin` and `points3D.bin` only).
-    """
-    sparse_dir = Path(sparse_dir)
-    bin_path, txt_path = sparse_dir / "points3D.bin", sparse_dir / "points3D.txt"
-    if bin_path.is_file():
-        return _read_points3d_bin(bin_path)
-    if txt_path.is_file():
-        rows = [
-            ln.split()
-            for ln in txt_path.read_text().splitlines()
-            if ln.strip() and not ln.startswith("#")
-        ]
-        xyz = np.array([[float(v) for v in r[1:4]] for r in rows]).reshape(-1, 3)
-        rgb = np.array([[int(v) for v in r[4:7]] for r in rows], dtype=np.uint8).reshape(-1, 3)
-        return xyz, rgb
-    raise CameraFileError(f"{sparse_dir}: no points3D.bin or points3D.txt")
-
-
-def _read_points3d_bin(path: Path) -> tuple[np.ndarray, np.ndarray]:
-    buf = path.read_bytes()
-    try:
-        (count,) = struct.unpack_from("<Q", buf, 0)
-        xyz = np.empty((count, 3))
-        rgb = np.empty((count, 3), dtype=np.uint8)
-        offset = 8
-        for i in range(count):
-            _, x, y, z, r, g, b, _, track_len = struct.unpack_from("<Q3d3BdQ", buf, offset)
-            xyz[i], rgb[i] = (x, y, z), (r, g, b)
-            offset += 51 + 8 * track_len
-    except struct.error as exc:
-        raise CameraFileError(f"{path}: truncated COLMAP points file ({exc})") from exc
-    return xyz, rgb

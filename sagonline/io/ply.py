@@ -1,4 +1,4 @@
-"""Read and write trained Gaussian scenes: 3DGS / 2DGS `point_cloud.ply` and 32-byte `.splat`.
+"""Read and write trained Gaussian scenes: 3DGS / 2DGS `point_cloud.ply` (`.splat`: splat.py).
 
 Raw file values (opacity logit, log scales, unnormalised wxyz quaternions) exist only here; the
 rest of the library sees activated `Gaussians`. Writing chooses, for every activated value, the
@@ -9,20 +9,16 @@ any scene that was read from a file.
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 from plyfile import PlyData, PlyElement
 
-from sagonline.gaussians import SH_C0, Gaussians, sh_degree_from_coeffs
+from sagonline.errors import SceneFileError
+from sagonline.gaussians import Gaussians, sh_degree_from_coeffs
+from sagonline.io.ply_rows import read_ply_header, vertex_blocks
 from sagonline.utils import atomic_write
-
-
-class SceneFileError(ValueError):
-    """A scene file is missing, truncated or malformed; the message names the file and field."""
-
 
 _REQUIRED = [
     "x",
@@ -45,6 +41,8 @@ def read_scene(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     """Read a `.ply` (3DGS or 2DGS layout) or `.splat` file into activated Gaussians."""
     path = Path(path)
     if path.suffix.lower() == ".splat":
+        from sagonline.io.splat import read_splat
+
         return read_splat(path, drop_nonfinite=drop_nonfinite)
     return read_ply(path, drop_nonfinite=drop_nonfinite)
 
@@ -97,7 +95,7 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     }
     if all(n in props for n in ("nx", "ny", "nz")):
         layout["normals"] = ["nx", "ny", "nz"]
-    blocks = _vertex_blocks(path, header, vertex)  # checks the rows fit the file first
+    blocks = vertex_blocks(path, header, vertex)  # checks the rows fit the file first
     scene = _SceneArrays(path, vertex.count, layout)
     for start, block in blocks:
         scene.fill(start, block)
@@ -172,138 +170,6 @@ class _SceneArrays:
         )
 
 
-_PLY_TYPES = {
-    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
-    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
-    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
-    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
-}  # fmt: skip
-_MAX_HEADER = 1 << 20
-_BLOCK_ROWS = 1 << 14
-
-
-@dataclass
-class PlyElementHeader:
-    """One element of a PLY header: name, row count, and (name, type) properties (a list
-    property's type is 'list')."""
-
-    name: str
-    count: int
-    properties: list[tuple[str, str]]
-
-
-@dataclass
-class PlyHeader:
-    format: str  # ascii | binary_little_endian | binary_big_endian
-    elements: list[PlyElementHeader]
-    size: int  # bytes, up to and including the end_header line
-
-
-def read_ply_header(path: Path) -> PlyHeader:
-    """Parse a PLY header (at most 1 MiB); a malformed one raises SceneFileError naming it."""
-    with open(path, "rb") as f:
-        head = f.read(_MAX_HEADER)
-    end = head.find(b"end_header")
-    line_end = head.find(b"\n", end) if end >= 0 else -1
-    if not head.startswith(b"ply") or end < 0 or line_end < 0:
-        raise SceneFileError(f"{path}: not a readable PLY file (no 'ply' ... 'end_header' header)")
-    try:
-        lines = head[:end].decode("ascii").splitlines()
-    except UnicodeDecodeError:
-        raise SceneFileError(f"{path}: not a readable PLY file (non-ASCII header)") from None
-    fmt, elements = None, []
-    for number, line in enumerate(lines[1:], start=2):
-        words = line.split()
-        if not words or words[0] in ("comment", "obj_info"):
-            continue
-        try:
-            if words[0] == "format":
-                fmt = words[1]
-                if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
-                    raise ValueError(f"unknown format {fmt!r}")
-            elif words[0] == "element":
-                count = int(words[2])
-                if count < 0 or len(words) != 3:
-                    raise ValueError("an element needs a name and a count >= 0")
-                elements.append(PlyElementHeader(words[1], count, []))
-            elif words[0] == "property":
-                if not elements:
-                    raise ValueError("a property before any element")
-                if words[1] == "list":
-                    elements[-1].properties.append((words[4], "list"))
-                elif words[1] in _PLY_TYPES and len(words) == 3:
-                    elements[-1].properties.append((words[2], _PLY_TYPES[words[1]]))
-                else:
-                    raise ValueError(f"unknown property type {words[1]!r}")
-            else:
-                raise ValueError(f"unknown keyword {words[0]!r}")
-        except (ValueError, IndexError) as exc:
-            raise SceneFileError(
-                f"{path}: not a readable PLY file (header line {number}: {line!r}: {exc})"
-            ) from None
-    if fmt is None:
-        raise SceneFileError(f"{path}: not a readable PLY file (no 'format' line)")
-    for element in elements:
-        names = [n for n, _ in element.properties]
-        repeated = sorted({n for n in names if names.count(n) > 1})
-        if repeated:
-            raise SceneFileError(
-                f"{path}: not a readable PLY file (element {element.name!r} repeats "
-                f"properties {repeated})"
-            )
-    return PlyHeader(fmt, elements, line_end + 1)
-
-
-def _vertex_blocks(path: Path, header: PlyHeader, vertex: PlyElementHeader):
-    """An iterator of (first row, structured block) pairs over the vertex element,
-    `_BLOCK_ROWS` at a time, after checking (before anything is allocated) that the declared
-    rows fit the file. Binary files are read straight from disk; ASCII files (and binary ones
-    with list properties before the vertices) go through plyfile."""
-    size = path.stat().st_size
-    before = header.elements[: header.elements.index(vertex)]
-    fixed = all(t != "list" for e in [*before, vertex] for _, t in e.properties)
-    if header.format != "ascii" and fixed:
-        order = "<" if header.format == "binary_little_endian" else ">"
-        dtype = np.dtype([(n, order + t) for n, t in vertex.properties])
-        offset = header.size + sum(
-            e.count * np.dtype([(n, order + t) for n, t in e.properties]).itemsize for e in before
-        )
-        need = vertex.count * dtype.itemsize
-        if offset + need > size:
-            raise SceneFileError(
-                f"{path}: truncated: the header declares {vertex.count} vertices "
-                f"({need:,} bytes from byte {offset:,}) but the file has {size:,} bytes"
-            )
-        return _binary_blocks(path, dtype, offset, vertex.count)
-    # An ASCII row takes at least two bytes per value: a count the file cannot hold is refused
-    # before plyfile allocates for it.
-    if sum(e.count * max(len(e.properties), 1) * 2 for e in [*before, vertex]) > size:
-        raise SceneFileError(
-            f"{path}: truncated: the header declares {vertex.count} vertices, more than the "
-            f"file's {size:,} bytes can hold"
-        )
-    try:
-        data = PlyData.read(str(path))["vertex"].data
-    except Exception as exc:  # plyfile raises several types for truncated/garbled input
-        raise SceneFileError(
-            f"{path}: not a readable PLY file ({type(exc).__name__}: {exc})"
-        ) from exc
-    if len(data) != vertex.count:
-        raise SceneFileError(
-            f"{path}: {len(data)} vertices read, the header declares {vertex.count}"
-        )
-    return (
-        (start, data[start : start + _BLOCK_ROWS]) for start in range(0, len(data), _BLOCK_ROWS)
-    )
-
-
-def _binary_blocks(path: Path, dtype: np.dtype, offset: int, count: int):
-    with open(path, "rb") as f:
-        f.seek(offset)
-        for start in range(0, count, _BLOCK_ROWS):
-            yield start, np.fromfile(f, dtype=dtype, count=min(_BLOCK_ROWS, count - start))
-
-
 def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
     """Write the standard layout (2DGS when scales are (N, 2)); atomic: temp file then rename."""
     path = Path(path)
@@ -329,38 +195,6 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
         record[name] = values
     data = PlyData([PlyElement.describe(record, "vertex")], byte_order="<")
     return atomic_write(path, lambda tmp: data.write(str(tmp)))
-
-
-def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
-    """Read the 32-byte-per-splat format: xyz f32, scales f32 (linear), RGBA u8, wxyz u8."""
-    path = Path(path)
-    if not path.is_file():
-        raise SceneFileError(f"{path}: scene file not found")
-    buf = path.read_bytes()
-    if len(buf) == 0 or len(buf) % 32:
-        raise SceneFileError(
-            f"{path}: {len(buf)} bytes is not a whole number of 32-byte splats "
-            "(truncated or not a .splat file)"
-        )
-    dtype = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
-    data = np.frombuffer(buf, dtype=dtype)
-    raw = {"means": data["pos"].copy(), "scales": data["scale"].copy()}
-    raw = _check_finite(path, raw, {"means": ["x", "y", "z"], "scales": ["scale"]}, drop_nonfinite)
-    if drop_nonfinite:
-        data = data[np.isfinite(data["pos"]).all(1) & np.isfinite(data["scale"]).all(1)]
-    if (raw["scales"] <= 0).any():
-        bad = int((raw["scales"] <= 0).any(1).sum())
-        raise SceneFileError(f"{path}: {bad} splats have non-positive scale")
-    rgba = data["rgba"].astype(np.float32) / 255.0
-    quats = (data["rot"].astype(np.float32) - 128.0) / 128.0
-    dc = (rgba[:, :3] - 0.5) / SH_C0
-    return Gaussians(
-        means=torch.from_numpy(raw["means"]),
-        quats=torch.from_numpy(_normalize_quats(path, quats, "rot bytes")),
-        scales=torch.from_numpy(raw["scales"]),
-        opacities=torch.from_numpy(rgba[:, 3].copy()),
-        sh=torch.from_numpy(dc[:, None, :].copy()),
-    )
 
 
 # --- raw <-> activated ------------------------------------------------------------------------

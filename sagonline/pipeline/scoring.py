@@ -14,7 +14,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from sagonline.datasets.base import DatasetError, SceneTask
+from sagonline.datasets.base import SceneTask
+from sagonline.errors import DatasetError
 from sagonline.metrics import match_and_relabel, view_metrics
 
 

@@ -122,6 +122,10 @@ def rasterize(
     gaussians: N splats; camera: the view; features: (N, F) attributes to composite alongside
     RGB (e.g. one-hot labels); background: (3,) colour, black by default; trace: what to stream
     (see `TraceRequest`; without its image, None is returned).
+
+    Why one function: it is the readable twin of the compiled kernel, one pass over the tiles
+    written straight through (project, bin, sort, composite, trace) so it can be read and
+    checked against the kernel and the brute-force reference step for step.
     """
     device = gaussians.device
     trace_only = trace is not None and not trace.image

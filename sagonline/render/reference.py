@@ -51,6 +51,10 @@ def reference_render(
     trace_t_min: float = 0.01,
     near: float = 0.01,
 ) -> ReferenceRender:
+    """Brute force in float64: every pixel against every Gaussian, front to back.
+
+    Why one function: the oracle the tests trust is written straight through, pixel by pixel,
+    so it reads against the method's definition without a detour."""
     g = gaussians.to("cpu")
     means = g.means.double().numpy()
     quats = g.quats.double().numpy()

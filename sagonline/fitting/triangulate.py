@@ -38,7 +38,10 @@ def triangulate_known_poses(
     (points, mean track length, mean reprojection error in pixels). Deterministic by default:
     COLMAP's random seed is `seed`, and extraction, matching and triangulation run on
     `num_threads` (1: the same points every time; more threads finish sooner but assign image
-    ids and verify pairs in a varying order)."""
+    ids and verify pairs in a varying order).
+
+    Why one function: it is one pycolmap session (database, features, matches, the fixed-pose
+    reconstruction) whose steps share its temporary folder and image ids."""
     import pycolmap
 
     views = [c for c in cameras if c.name in image_paths]

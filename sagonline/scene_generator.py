@@ -245,6 +245,9 @@ def make_scene(
     60-degree arc in front (NVOS-like); layout "360": `num_objects` objects clustered so they
     occlude one another, cameras on a full orbit (DesktopObjects-like). Eval cameras sit between
     the training views (held out: never rendered for the segmenter).
+
+    Why one function: every step draws from one random stream in a fixed order; split into
+    pieces, a reordering would silently change every generated scene and its numbers.
     """
     if layout not in ("forward", "360"):
         raise ValueError(f"layout {layout!r} is not 'forward' or '360'")
