@@ -19,6 +19,7 @@ from typing import Any
 from omegaconf import MISSING, DictConfig, OmegaConf
 
 from sagonline.consensus import VoteConfig
+from sagonline.datasets.configs import DATASET_CONFIGS
 from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
@@ -115,6 +116,8 @@ def register_schemas() -> None:
     store.store(group="fit", name="schema", node=FitConfig)
     store.store(group="refine", name="schema", node=RefineStage)
     store.store(group="feedback", name="schema", node=FeedbackConfig)
+    for name, node in DATASET_CONFIGS.items():
+        store.store(group="dataset/adapter", name=name, node=node)
 
 
 def to_config(cfg: DictConfig, schema: type):

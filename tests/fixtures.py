@@ -15,7 +15,8 @@ from sagonline.gaussians import Gaussians
 from sagonline.io import write_ply
 from sagonline.scene_generator import make_scene
 
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+ROOT = Path(__file__).resolve().parents[1]  # the repository
+CONF = str(ROOT / "conf")
 TINY = [
     f"dataset.{s}.{k}={v}"
     for s in ("forward_single", "cluttered_360")
@@ -49,7 +50,7 @@ def cfg_with(*overrides: str):
     return compose_config("eval", *TINY, "progress=false", *overrides)
 
 
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+DATA = ROOT.parent / "shared" / "data"
 
 
 def shared_data(*parts: str) -> Path:

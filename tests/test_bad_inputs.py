@@ -30,6 +30,7 @@ from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_camer
 from sagonline.pipeline import PipelineSettings, run_scene
 from sagonline.segmenters.oracle import OracleSegmenter
 from tests.fixtures import (
+    ROOT,
     cfg_with,
     compose_config,
     llff_scene,
@@ -38,7 +39,6 @@ from tests.fixtures import (
     write_image,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 NAMES = [f"IMG_{i:04d}" for i in range(5)]
 
 

@@ -7,9 +7,9 @@ from __future__ import annotations
 import ast
 import subprocess
 import sys
-from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.fixtures import ROOT
+
 PACKAGE = ROOT / "sagonline"
 
 

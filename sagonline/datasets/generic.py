@@ -35,7 +35,8 @@ from sagonline.datasets.common import (
     match_by_name,
     scene_cameras,
 )
-from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS, label_reader
+from sagonline.datasets.configs import PosedMasksConfig
+from sagonline.datasets.labels import label_reader
 from sagonline.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.prompts import Prompt
@@ -43,61 +44,36 @@ from sagonline.trajectory import insert_between, nearest_view, shortest_path_ord
 
 
 class PosedMasksDataset(DatasetAdapter):
-    def __init__(
-        self,
-        root: str | Path,
-        name: str = "generic",
-        scenes: list[str] | None = None,
-        image_dir: str | None = "images_4",
-        mask_dir: str = "masks",
-        label_format: str = "binary",
-        mask_threshold: int = 127,
-        exclude: tuple[str, ...] = ("cutout", "pseudo"),
-        palette: dict | None = None,
-        label_names: list[str] | None = None,
-        ignore: int | None = None,
-        prompt: str = "clicks",
-        clicks: int = 3,
-        reference: str | None = None,
-        exclude_reference: bool = False,
-        expected_counts: dict | None = None,
-        readme: str | None = None,
-        keep_classes: tuple[int, ...] = KITTI360_VEHICLES,
-        render_max_side: int | None = None,
-        order: str = "name",
-        inbetween: int = 0,
-        seed: int = 0,
-        drop_nonfinite: bool = False,
-    ):
-        if label_format not in LABEL_FORMATS:
-            raise DatasetError(
-                f"{name}: label_format {label_format!r} is not one of {LABEL_FORMATS}"
-            )
+    """settings: those of `configs.PosedMasksConfig` (each dataset's config states its own
+    defaults)."""
+
+    def __init__(self, root: str | Path, **settings):
+        try:
+            cfg = PosedMasksConfig(root=str(root), **settings)
+        except (TypeError, ValueError) as exc:
+            raise DatasetError(f"{settings.get('name', 'generic')}: {exc}") from None
+        self.cfg, name = cfg, cfg.name
         self.labels = label_reader(
-            label_format,
-            threshold=mask_threshold,
-            names=label_names,
-            ignore=ignore,
-            palette=palette,
-            keep_classes=keep_classes,
+            cfg.label_format,
+            threshold=cfg.mask_threshold,
+            names=cfg.label_names,
+            ignore=cfg.ignore,
+            palette=cfg.palette,
+            keep_classes=tuple(cfg.keep_classes),
         )
-        if order not in ("name", "path"):
-            raise DatasetError(f"{name}: order {order!r} is not name or path")
-        if prompt not in ("clicks", "text", "none"):
-            raise DatasetError(f"{name}: prompt {prompt!r} is not clicks, text or none")
-        self.root, self.name = Path(root), name
-        self.selected = list(scenes) if scenes else None
-        self.image_dir, self.mask_dir = image_dir, mask_dir
-        self.label_format, self.threshold = label_format, mask_threshold
-        self.exclude = tuple(w.lower() for w in exclude)
-        self.label_names, self.ignore = label_names, ignore
-        self.prompt_kind, self.clicks, self.reference = prompt, clicks, reference
-        self.exclude_reference, self.seed = exclude_reference, seed
-        self.expected_counts = expected_counts or {}
-        self.readme = readme or f"datasets/{name}/README.md"
-        self.render_max_side = render_max_side
-        self.order, self.inbetween = order, int(inbetween)
-        self.drop_nonfinite = drop_nonfinite
+        self.root, self.name = Path(cfg.root), name
+        self.selected = list(cfg.scenes) if cfg.scenes else None
+        self.image_dir, self.mask_dir = cfg.image_dir, cfg.mask_dir
+        self.label_format, self.threshold = cfg.label_format, cfg.mask_threshold
+        self.exclude = tuple(w.lower() for w in cfg.exclude)
+        self.ignore = cfg.ignore
+        self.prompt_kind, self.clicks, self.reference = cfg.prompt, cfg.clicks, cfg.reference
+        self.exclude_reference, self.seed = cfg.exclude_reference, cfg.seed
+        self.expected_counts = cfg.expected_counts or {}
+        self.readme = cfg.readme or f"datasets/{name}/README.md"
+        self.render_max_side = cfg.render_max_side
+        self.order, self.inbetween = cfg.order, int(cfg.inbetween)
+        self.drop_nonfinite = cfg.drop_nonfinite
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:

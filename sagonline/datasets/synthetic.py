@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import inspect
 
 import numpy as np
 import torch
@@ -31,30 +32,18 @@ def gt_mask(scene: SyntheticScene, camera, labels: torch.Tensor, num_labels: int
 def load_synthetic(
     *,
     preset: str = "cluttered_360",
-    layout: str = "360",
     task: str = "instance",
-    num_objects: int = 5,
-    num_gaussians: int = 20000,
-    width: int = 320,
-    height: int = 240,
-    num_train_views: int = 36,
-    num_eval_views: int = 8,
     clicks: int = 3,
     seed: int = 0,
-    **_,
+    **settings: object,
 ) -> list[SceneTask]:
     """One generated scene as a task. task "instance" labels objects 1..K; "semantic" labels
-    shapes by class (SEMANTIC_NAMES)."""
-    scene = make_scene(
-        layout=layout,
-        num_objects=num_objects,
-        num_gaussians=num_gaussians,
-        width=width,
-        height=height,
-        num_train_views=num_train_views,
-        num_eval_views=num_eval_views,
-        seed=seed,
-    )
+    shapes by class (SEMANTIC_NAMES). scene: `make_scene`'s settings (layout, num_objects,
+    num_gaussians, width, height, num_train_views, num_eval_views; its defaults otherwise)."""
+    params = inspect.signature(make_scene).parameters
+    settings = {k: v for k, v in settings.items() if k in params}
+    layout = settings.get("layout", params["layout"].default)
+    scene = make_scene(seed=seed, **settings)
     if task == "instance":
         labels, num_labels = scene.instance, scene.num_instances
         names = ["background"] + [f"{o.shape}_{i + 1}" for i, o in enumerate(scene.objects)]

@@ -56,7 +56,7 @@ class FitConfig:
     time_budget_s: float | None = None  # seconds; None: bounded by iterations alone
     seed: int = 0
     device: str = "cpu"
-    backend: str = "auto"  # auto: gsplat on CUDA when installed, else the PyTorch rasterizer
+    backend: str = "auto"  # auto: gsplat on CUDA, the compiled kernel on the CPU, else PyTorch
 
     def __post_init__(self) -> None:
         self.background = tuple(self.background)  # Hydra hands lists in

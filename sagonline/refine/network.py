@@ -193,7 +193,7 @@ class DualBranchRefiner(nn.Module):
     def __init__(
         self,
         num_classes: int,
-        encoder: str = "resnet50",
+        encoder: str = "resnet18",
         pretrained: str | Path | None = None,
         decoder_width: int = 32,
         prior_scale: float = 1.0,

@@ -5,8 +5,10 @@ in C++), same compositing rules
 as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per tile
 (csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
 tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
-use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached; traces and
-most-visible ids are not produced here, so those calls go to the PyTorch path.
+use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
+most-visible Gaussian per pixel (`return_ids`) and runs the vote's trace-and-vote pass
+(`vote_native`) without materialising a trace; a streamed trace (`rasterize(trace=...)`) is the
+PyTorch path's.
 """
 
 from __future__ import annotations

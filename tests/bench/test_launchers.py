@@ -11,9 +11,10 @@ from pathlib import Path
 
 import pytest
 
-from tests.fixtures import TINY
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.fixtures import (
+    ROOT,
+    TINY,
+)
 
 
 def sweep(launcher: str, folder: Path) -> dict[str, dict]:

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -16,9 +14,9 @@ from sagonline.segmenters import ObjectPrompt, Prompt
 from sagonline.segmenters.classical import FlowWatershedSegmenter
 from sagonline.segmenters.sam3_text import SAM3TextSegmenter, merge_text_masks
 from sagonline.segmenters.yolo import TrackLabeler
-from tests.fixtures import compose_config
-
-CONF = str(Path(__file__).resolve().parents[1] / "conf")
+from tests.fixtures import (
+    compose_config,
+)
 
 
 def segmenter_from(name: str, *overrides):

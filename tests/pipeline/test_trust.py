@@ -36,6 +36,7 @@ from sagonline.pipeline import (
 )
 from sagonline.segmenters.oracle import OracleSegmenter
 from tests.fixtures import (
+    ROOT,
     TINY,
     cfg_with,
     compose_config,
@@ -44,7 +45,6 @@ from tests.fixtures import (
     write_image,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
 NAMES = [f"IMG_{i:04d}" for i in range(5)]
 ALL = ("frames", "masks", "vote")
 

@@ -1,0 +1,232 @@
+"""One small typed config per dataset: its adapter (`_target_`) and that adapter's settings,
+each stated once, on its field (the entry points register these as Hydra schemas, so a
+dataset's YAML only says where its data is; a wrong key or type fails at composition).
+
+The captures with poses and per-view label maps share one adapter (`generic.PosedMasksDataset`)
+whose settings differ per dataset only in their defaults: each dataset's config below states
+those. NVOS and SPIn-NeRF have adapters of their own.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
+from sagonline.utils import check_settings
+
+PROMPTS = ("clicks", "text", "none")
+ORDERS = ("name", "path")
+
+
+@dataclass
+class PosedMasksConfig:
+    """Any capture with poses and per-view label maps (`dataset=generic`)."""
+
+    _target_: str = "sagonline.datasets.generic.PosedMasksDataset"
+    root: str = "datasets/generic"
+    """One scene per folder below it, or the scene folder itself."""
+    name: str = "generic"
+    """The dataset's name in reports, and in `scenes/<name>/` for fits of read-only data."""
+    scenes: list[str] | None = None
+    """The scenes to run (folder names); None: every folder with cameras."""
+    image_dir: str | None = "images_4"
+    """Image folder of a scene: only the images' size is read (the segmenter sees renders)."""
+    mask_dir: str = "masks"
+    """Label-map folder of a scene: one map per view, matched to the views by file name."""
+    label_format: str = "binary"
+    """How label maps read: binary | ids | palette | per_object | kitti360 (datasets.labels)."""
+    mask_threshold: int = 127
+    """binary / per_object: foreground where a channel exceeds this (0 for 0/1 masks)."""
+    exclude: list[str] = field(default_factory=lambda: ["cutout", "pseudo"])
+    """Mask files whose names hold one of these words are not ground truth."""
+    palette: dict[str, int] | None = None
+    """palette: "r,g,b" -> label id."""
+    label_names: list[str] | None = None
+    """ids / palette: the label names, background first; None: "1", "2", ..."""
+    ignore: int | None = None
+    """A ground-truth value never scored (void pixels)."""
+    prompt: str = "clicks"
+    """clicks (seeded, on the reference view's ground truth) | text (the label names) | none."""
+    clicks: int = 3
+    """Positive clicks per object."""
+    reference: str | None = None
+    """The prompt view; None: the first view with a label map."""
+    exclude_reference: bool = False
+    """Leave the prompt view out of the scored views."""
+    expected_counts: dict[str, int] | None = None
+    """Label maps a scene must have (the protocol's counts); None: not checked."""
+    readme: str | None = None
+    """Where the layout is explained; None: datasets/<name>/README.md."""
+    keep_classes: list[int] = field(default_factory=lambda: list(KITTI360_VEHICLES))
+    """kitti360: the Cityscapes classes whose instances are kept (vehicles)."""
+    render_max_side: int | None = None
+    """Render at most this many pixels on the longer side (scores stay at the masks' size)."""
+    order: str = "name"
+    """Video order: name (the NVOS/SPIn-NeRF protocol) | path (shortest path through the poses
+    from the reference view)."""
+    inbetween: int = 0
+    """Cameras slerped between consecutive views (rendered for the segmenter only)."""
+    seed: int = 0
+    """Seeds the clicks."""
+    drop_nonfinite: bool = False
+    """Drop Gaussians with NaN/Inf (or overflowing) values, with a warning, instead of failing."""
+
+    def __post_init__(self) -> None:
+        check_settings(
+            "dataset.adapter",
+            label_format=(
+                self.label_format in LABEL_FORMATS,
+                self.label_format,
+                f"one of {LABEL_FORMATS}",
+            ),
+            prompt=(self.prompt in PROMPTS, self.prompt, f"one of {PROMPTS}"),
+            order=(self.order in ORDERS, self.order, f"one of {ORDERS}"),
+            clicks=(self.clicks >= 1, self.clicks, ">= 1"),
+            inbetween=(self.inbetween >= 0, self.inbetween, ">= 0"),
+            mask_threshold=(0 <= self.mask_threshold < 256, self.mask_threshold, "in [0, 256)"),
+        )
+
+
+@dataclass
+class KITTI360Config(PosedMasksConfig):
+    """KITTI-360 vehicle instances, segmented automatically (YOLO + tracker)."""
+
+    name: str = "kitti360"
+    image_dir: str | None = "image_00"
+    mask_dir: str = "instance"
+    label_format: str = "kitti360"
+    prompt: str = "none"
+
+
+@dataclass
+class UDDConfig(PosedMasksConfig):
+    """UDD6 drone semantics, open-vocabulary text prompts (SAM 3)."""
+
+    name: str = "udd"
+    image_dir: str | None = "src"
+    mask_dir: str = "gt"
+    label_format: str = "palette"
+    palette: dict[str, int] | None = field(
+        default_factory=lambda: {
+            "0,0,0": 0,
+            "102,102,156": 1,
+            "128,64,128": 2,
+            "107,142,35": 3,
+            "0,0,142": 4,
+            "70,70,70": 5,
+        }  # fmt: skip
+    )
+    label_names: list[str] | None = field(
+        default_factory=lambda: ["other", "facade", "road", "vegetation", "vehicle", "roof"]
+    )
+    prompt: str = "text"
+
+
+@dataclass
+class Mip360Config(PosedMasksConfig):
+    """Mip-NeRF 360 with per-view instance-id masks, click prompts."""
+
+    name: str = "mip360"
+    mask_dir: str = "instance_masks"
+    label_format: str = "ids"
+
+
+@dataclass
+class LERFMaskConfig(PosedMasksConfig):
+    """LERF-Mask (Gaussian Grouping's release): per-object test masks, text queries."""
+
+    name: str = "lerf_mask"
+    image_dir: str | None = "images"
+    mask_dir: str = "test_mask"
+    label_format: str = "per_object"
+    prompt: str = "text"
+
+
+@dataclass
+class Desktop360Config(PosedMasksConfig):
+    """DesktopObjects-360: tabletop 360-degree captures with instance masks."""
+
+    name: str = "desktop360"
+    image_dir: str | None = "images"
+    mask_dir: str = "instance_masks"
+    label_format: str = "ids"
+
+
+@dataclass
+class NeRDS360Config(PosedMasksConfig):
+    """NeRDS-360: outdoor multi-object scenes with instance masks (255: void)."""
+
+    name: str = "nerds360"
+    image_dir: str | None = "rgb"
+    mask_dir: str = "instance"
+    label_format: str = "ids"
+    ignore: int | None = 255
+
+
+@dataclass
+class MoldCapeConfig(PosedMasksConfig):
+    """The real capture in ../shared/data/mold_cape: 119 object masks with LLFF poses, 24 of
+    the photographs."""
+
+    name: str = "mold_cape"
+    mask_dir: str = "masks_4"
+    reference: str | None = "IMG_5881"
+    render_max_side: int | None = 228
+    """Render at the fitted scene's resolution; the masks are scored at 912."""
+
+
+@dataclass
+class SPInNeRFConfig:
+    """SPIn-NeRF: 10 scenes, every masked view scored."""
+
+    _target_: str = "sagonline.datasets.spinnerf.SPInNeRFDataset"
+    root: str = "datasets/spinnerf"
+    """The folder holding the scenes."""
+    scenes: list[str] | None = None
+    """None: all 10."""
+    exclude_reference: bool = False
+    """Leave the reference (prompt) view out of the scored views (disputed; off by default)."""
+    clicks: int = 3
+    """Positive clicks on the reference view's object."""
+    seed: int = 0
+    drop_nonfinite: bool = False
+    """Drop Gaussians with NaN/Inf (or overflowing) values, with a warning, instead of failing."""
+
+
+@dataclass
+class NVOSConfig:
+    """NVOS: 8 tasks, the target view of each scored."""
+
+    _target_: str = "sagonline.datasets.nvos.NVOSDataset"
+    root: str = "datasets/nvos"
+    """The release's folder (labels/llff/... and the scenes)."""
+    tasks: list[str] | None = None
+    """None: all 8."""
+    image_dir: str = "images_4"
+    prompt: str = "scribbles"
+    """scribbles (the reference view's, sampled) | clicks (seeded, on the ground-truth object)."""
+    clicks: int = 3
+    scribble_points: int = 16
+    """Points sampled from the positive scribbles."""
+    negative: bool = False
+    """Also sample the negative scribbles."""
+    seed: int = 0
+    mask_threshold: int = 127
+    scenes_root: str | None = None
+    """Captures kept elsewhere: <scenes_root>/<scene> or <scene>_undistort."""
+    drop_nonfinite: bool = False
+    """Drop Gaussians with NaN/Inf (or overflowing) values, with a warning, instead of failing."""
+
+
+DATASET_CONFIGS = {
+    "generic": PosedMasksConfig,
+    "kitti360": KITTI360Config,
+    "udd": UDDConfig,
+    "mip360": Mip360Config,
+    "lerf_mask": LERFMaskConfig,
+    "desktop360": Desktop360Config,
+    "nerds360": NeRDS360Config,
+    "mold_cape": MoldCapeConfig,
+    "spinnerf": SPInNeRFConfig,
+    "nvos": NVOSConfig,
+}
