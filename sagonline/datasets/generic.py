@@ -28,6 +28,7 @@ from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, Scen
 from sagonline.datasets.common import (
     check_mask_size,
     click_prompt,
+    find_trained_scene,
     fit_record,
     gaussians_dir,
     list_masks,
@@ -233,6 +234,7 @@ class PosedMasksDataset(DatasetAdapter):
         gts, names = self.labels.finish(gts, scene_dir / self.mask_dir)
         num_labels = len(names)
         gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite)
+        scene_file = find_trained_scene(scene_dir, self.name)
         for name, gt in gts.items():
             valid = gt if self.ignore is None else gt[gt != self.ignore]
             if valid.size and (valid.min() < 0 or valid.max() >= num_labels):
@@ -268,6 +270,7 @@ class PosedMasksDataset(DatasetAdapter):
                 "scored_views": len(evals),
                 "root": str(scene_dir),
                 "fit": fit_record(scene_dir, self.name),
+                "scene_file": str(scene_file),
                 "photographs": photographs,
                 "order": self.order,
             },

@@ -34,6 +34,7 @@ from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, Scen
 from sagonline.datasets.common import (
     check_mask_size,
     click_prompt,
+    find_trained_scene,
     fit_record,
     load_mask,
     load_trained_scene,
@@ -171,6 +172,7 @@ class NVOSDataset(DatasetAdapter):
                 "reference": reference,
                 "prompt": self.prompt_kind,
                 "fit": fit_record(scene_dir, "nvos"),
+                "scene_file": str(find_trained_scene(scene_dir, "nvos")),
             },
         )
 

@@ -131,6 +131,7 @@ def run_scene(
     vote_in = VoteInputs(masks, g, task.trajectory, task.num_labels, vote_cfg, backend, device)
     vote, report.stages["vote"] = run_stage(VOTE, vote_in, cache, progress)
     report.stages = {k: v.status for k, v in report.stages.items()}
+    report.stage_keys = {"frames": frames.key, "masks": masks.key, "vote": vote.key}
 
     result = vote.value
     voted = {task.trajectory[i].name for i in result.frames}

@@ -39,6 +39,7 @@ class SceneReport:
     stages: dict = field(default_factory=dict)  # stage -> "computed" | "cached"
     cached_timings: dict = field(default_factory=dict)  # timings of the run that built a cache
     inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
+    stage_keys: dict = field(default_factory=dict)  # stage -> its cache key (`sagonline export`)
 
     def add_timings(self, stages: tuple[str, ...], **times: float) -> None:
         """This run's timings when it computed every one of `stages`, else the cached run's
