@@ -1,4 +1,5 @@
-"""Command line: `python -m sagonline info PLY` and `python -m sagonline render PLY ...`."""
+"""Command line: `python -m sagonline info PLY`, `render PLY ...`, `segment PLY ...` and
+`export RUN_DIR` (the last two: sagonline/segment_cli.py)."""
 
 from __future__ import annotations
 
@@ -146,6 +147,9 @@ def build_parser() -> argparse.ArgumentParser:
     rend.add_argument("--device", default="cpu")
     rend.add_argument("--drop-nonfinite", action="store_true")
     rend.set_defaults(func=_cmd_render)
+    from sagonline.segment_cli import add_parsers
+
+    add_parsers(sub)
     return parser
 
 

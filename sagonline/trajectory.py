@@ -158,6 +158,30 @@ def orbit(
     return cams
 
 
+def ring_around(camera: Camera, center, count: int, prefix: str = "orbit") -> list[Camera]:
+    """`count` copies of `camera` turned about the vertical axis through `center`, evenly over
+    360 degrees (the first is `camera` itself): a ring of views at the camera's own elevation
+    for a scene that comes with one camera. Vertical: the world axis (+-x, +-y, +-z) nearest to
+    the camera's up direction (captures are stored z-up or y-up)."""
+    from scipy.spatial.transform import Rotation
+
+    w2c = camera.world_to_cam.detach().double().cpu().numpy()
+    camera_up = -w2c[1, :3]  # the camera's -y axis in world coordinates
+    axis = int(np.argmax(np.abs(camera_up)))
+    up = np.eye(3)[axis] * np.sign(camera_up[axis])
+    c = np.asarray(center, dtype=np.float64)
+    cams = []
+    for i in range(count):
+        turn = np.eye(4)
+        turn[:3, :3] = Rotation.from_rotvec(
+            up / np.linalg.norm(up) * 2 * np.pi * i / count
+        ).as_matrix()
+        turn[:3, 3] = c - turn[:3, :3] @ c  # x -> R (x - c) + c
+        new = w2c @ np.linalg.inv(turn)
+        cams.append(make_camera(camera.K, new, camera.width, camera.height, f"{prefix}_{i:03d}"))
+    return cams
+
+
 def cameras_to_tensors(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
     """(C, 4, 4) world-to-camera and (C, 3, 3) intrinsics stacked."""
     return (torch.stack([c.world_to_cam for c in cameras]), torch.stack([c.K for c in cameras]))

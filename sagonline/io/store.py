@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
+import importlib
 import json
 import math
 import struct
@@ -35,6 +36,10 @@ _PREFIX = len(MAGIC) + _DIGEST + 8
 _KINDS = "biuf"  # bool, signed, unsigned, float: the only array kinds a file may hold
 
 _DATACLASSES: dict[str, type] = {}
+# The modules whose @stored dataclasses a file may hold: imported (when not yet) before a name
+# is looked up, so loading never depends on what the caller happened to import. No other
+# module is ever imported on behalf of a file.
+STORED_MODULES = ("sagonline.consensus", "sagonline.segmenters.base", "sagonline.pipeline.stages")
 
 
 class StoreError(ValueError):
@@ -210,6 +215,9 @@ class _Decoder:
             items = [self.tree(v) for v in node["items"]]
             return {"list": list, "tuple": tuple, "set": set, "frozenset": frozenset}[kind](items)
         if kind == "dataclass":
+            if node["name"] not in _DATACLASSES:
+                for module in STORED_MODULES:
+                    importlib.import_module(module)
             cls = _DATACLASSES.get(node["name"])
             if cls is None:
                 raise StoreError(f"unknown type {node['name']!r} (not a stored dataclass)")

@@ -1,0 +1,176 @@
+"""`sagonline segment` and `sagonline export`: a scene of one's own segmented from clicks or a
+mask, and files any 3DGS tool reads (labels, the labelled scene, one PLY per object)."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+from plyfile import PlyData
+
+from sagonline.__main__ import main
+from sagonline.datasets.synthetic import gt_mask
+from sagonline.export import read_labels
+from sagonline.io import read_scene, write_3dgs_cameras_json, write_ply
+from sagonline.render import render, render_labels
+from sagonline.scene_generator import make_scene
+from tests.fixtures import ROOT, cfg_with
+
+
+def _scene(tmp_path, layout: str, objects: int = 1):
+    sc = make_scene(
+        layout=layout,
+        num_objects=objects,
+        num_gaussians=6000,
+        width=96,
+        height=72,
+        num_train_views=12,
+        num_eval_views=2,
+        seed=0,
+    )
+    write_ply(tmp_path / "scene.ply", sc.gaussians)
+    write_3dgs_cameras_json(tmp_path / "cameras.json", sc.train_cameras)
+    cams = sorted(sc.train_cameras, key=lambda c: c.name)
+    return sc, cams, gt_mask(sc, cams[0], sc.instance, sc.num_instances)
+
+
+def _click_inside(mask: np.ndarray) -> str:
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8))
+    ys, xs = np.nonzero(inner)
+    i = len(xs) // 2
+    return f"{xs[i] + 0.5},{ys[i] + 0.5}"
+
+
+def _segment(tmp_path, *args):
+    scene, cams = str(tmp_path / "scene.ply"), str(tmp_path / "cameras.json")
+    return main(["segment", scene, "--cameras", cams, "--out", str(tmp_path / "out"), *args])
+
+
+@pytest.fixture(scope="module")
+def clicked(tmp_path_factory):
+    """The forward scene segmented from two clicks on its object (one run for the tests)."""
+    tmp = tmp_path_factory.mktemp("segment")
+    sc, cams, m = _scene(tmp, "forward")
+    xy = _click_inside(m == 1)
+    assert _segment(tmp, "--object", "vase", "--click", f"0:{xy}", "--click", "0:2,2:neg") == 0
+    return tmp, sc
+
+
+def test_clicks_label_the_scene(clicked):
+    tmp, sc = clicked
+    labels, info = read_labels(tmp / "out")
+    truth, on = sc.instance.numpy(), labels >= 0
+    assert (labels[on] == truth[on]).mean() >= 0.99
+    assert on.mean() > 0.7 and info["names"] == ["background", "vase"]
+    assert info["counts"]["vase"] == int((labels == 1).sum()) > 0
+    assert info["inputs"]["scene"] and info["vote"]["eps"] == 0.01
+    assert (tmp / "out" / "recording.rrd").stat().st_size > 10_000
+    assert len(list((tmp / "out" / "views").glob("*_labels.png"))) == 12
+
+
+def test_object_ply_keeps_every_property_and_only_its_gaussians(clicked):
+    tmp, _ = clicked
+    labels, _ = read_labels(tmp / "out")
+    source = PlyData.read(str(tmp / "scene.ply"))["vertex"].data
+    obj = PlyData.read(str(tmp / "out" / "objects" / "vase.ply"))["vertex"].data
+    assert obj.dtype == source.dtype  # same property names, order and dtypes
+    assert np.array_equal(obj, source[labels == 1])
+    rest = PlyData.read(str(tmp / "out" / "scene_without_vase.ply"))["vertex"].data
+    assert np.array_equal(rest, source[labels != 1])
+    both = PlyData.read(str(tmp / "out" / "scene_labelled.ply"))["vertex"].data
+    assert np.array_equal(both["label"], labels)
+    assert len(read_scene(tmp / "out" / "objects" / "vase.ply")) == int((labels == 1).sum())
+
+
+def test_object_ply_renders_as_the_label_render(clicked):
+    tmp, sc = clicked
+    labels, _ = read_labels(tmp / "out")
+    obj = read_scene(tmp / "out" / "objects" / "vase.ply")
+    full = read_scene(tmp / "scene.ply")
+    lab = torch.from_numpy(labels)
+    for cam in sc.eval_cameras:
+        alpha = render(obj, cam, backend="native").alpha  # (H, W): 1 - T
+        alone = alpha.numpy() >= 0.2  # the label render's min_weight
+        ours = render_labels(full, cam, lab.clamp_min(0), 2, labelled=lab == 1).numpy() == 1
+        iou = (alone & ours).sum() / max((alone | ours).sum(), 1)
+        assert iou >= 0.99, iou
+
+
+def test_a_mask_prompt_labels_several_objects(tmp_path):
+    sc, cams, m = _scene(tmp_path, "360", objects=3)
+    Image.fromarray(m.astype(np.uint8)).save(tmp_path / "mask.png")
+    assert (
+        _segment(tmp_path, "--mask", f"{cams[0].name}:{tmp_path / 'mask.png'}", "--no-record") == 0
+    )
+    labels, info = read_labels(tmp_path / "out")
+    on = labels >= 0
+    assert (labels[on] == sc.instance.numpy()[on]).mean() > 0.95
+    assert sorted(p.name for p in (tmp_path / "out" / "objects").iterdir()) == [
+        "object_1.ply", "object_2.ply", "object_3.ply",
+    ]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--click", "0:500,10"], "outside its 96x72 render"),
+        (["--click", "99:5,5"], "view 99 is out of range"),
+        (["--click", "nosuch:5,5"], "no camera named 'nosuch'"),
+        (["--click", "0:5,5:neg=lamp"], "no object 'lamp'"),
+        (["--click", "0:5,5", "--click", "1:6,6"], "several views"),
+        (["--mask", "0:MASK"], "mask is 10x10 but view 0"),
+        ([], "no prompt"),
+        (["--click", "0:5,5", "--eps", "2"], "consensus.eps=2.0"),
+    ],
+)
+def test_bad_prompts_stop_before_any_work(tmp_path, args, message, capsys):
+    _scene(tmp_path, "forward")
+    Image.fromarray(np.zeros((10, 10), np.uint8)).save(tmp_path / "small.png")
+    args = [a.replace("MASK", str(tmp_path / "small.png")) for a in args]
+    with pytest.raises(SystemExit) as exc:
+        _segment(tmp_path, *args)
+    assert message in str(exc.value), exc.value
+    assert not (tmp_path / "out").exists()
+
+
+def test_cameras_of_another_scene_are_refused(tmp_path):
+    sc, cams, _ = _scene(tmp_path, "forward")
+    far = sc.gaussians.to("cpu")
+    far.means[:] += 1000.0  # the same cameras no longer see anything of the scene
+    write_ply(tmp_path / "scene.ply", far)
+    with pytest.raises(SystemExit, match="no Gaussian of the scene"):
+        _segment(tmp_path, "--click", "0:5,5")
+
+
+def test_existing_output_is_kept_without_overwrite(clicked):
+    tmp, _ = clicked
+    before = (tmp / "out" / "labels.npy").read_bytes()
+    with pytest.raises(SystemExit, match="exists; pass --overwrite"):
+        _segment(tmp, "--click", "0:40,30")
+    assert (tmp / "out" / "labels.npy").read_bytes() == before
+
+
+def test_export_gives_the_runs_vote(tmp_path):
+    from bench.eval import evaluate
+    from sagonline.io import store
+
+    run = tmp_path / "run"
+    metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
+    done = subprocess.run(
+        [sys.executable, "-m", "sagonline", "export", str(run)],
+        cwd=ROOT, capture_output=True, text=True,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    for scene in metrics["scenes"]:
+        key = scene["stage_keys"]["vote"]
+        vote = store.load(run / "cache" / scene["scene"] / f"vote-{key}.store")
+        want = torch.where(vote.labelled, vote.labels, torch.full_like(vote.labels, -1)).numpy()
+        labels, info = read_labels(run / "export" / scene["scene"])
+        assert np.array_equal(labels, want) and info["vote_key"] == key
+    assert json.loads((run / "export" / "forward_single" / "labels.json").read_text())["names"]
