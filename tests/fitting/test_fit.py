@@ -346,3 +346,45 @@ def test_fit_recipe_names_changed_and_missing_settings():
     cfg = {k: v for k, v in asdict(FitConfig()).items() if k != "lambda_normal"}
     assert fit_recipe(cfg) == "predates: lambda_normal"  # a fit older than the setting
     assert fit_recipe(asdict(FitConfig())) == "default"
+
+
+FIT_DIGEST = """
+import hashlib, sys, torch
+torch.set_num_threads(int(sys.argv[1]))
+from sagonline.fitting import FitConfig, SceneFitter
+from sagonline.render import rasterize
+from sagonline.scene_generator import make_scene
+s = make_scene(layout="forward", num_gaussians=2000, width=48, height=36, num_train_views=9)
+imgs = [rasterize(s.gaussians, c).rgb.clamp(0, 1) for c in s.train_cameras]
+cfg = FitConfig(iterations=30, init_points=1000, densify_from=10, densify_every=10,
+                densify_until=25, sh_degree=1, kind=sys.argv[2], backend="native")
+f = SceneFitter(cfg, s.train_cameras, imgs)
+f.fit(progress=False)
+g = f.export()
+h = hashlib.sha256()
+for t in (g.means, g.quats, g.scales, g.opacities, g.sh):
+    h.update(t.detach().contiguous().numpy().tobytes())
+print(len(g), h.hexdigest())
+"""
+
+
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind):
+    """The compiled backward sums its gradients in an order that does not depend on the thread
+    count, so a fit is bit-identical on any number of threads."""
+    import subprocess
+    import sys
+
+    from tests.fixtures import ROOT
+
+    digests = {
+        threads: subprocess.run(
+            [sys.executable, "-c", FIT_DIGEST, str(threads), kind],
+            cwd=ROOT,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.split()  # fmt: skip
+        for threads in (1, 2)
+    }
+    assert digests[1] == digests[2]

@@ -434,6 +434,9 @@ std::vector<torch::Tensor> forward(bool surfel, torch::Tensor params, torch::Ten
   return {feat, depth, final_T, last, best};
 }
 
+constexpr int64_t kParts = 16;  // runs of tiles with a gradient buffer each (see backward)
+torch::Tensor sum_parts(const torch::Tensor& all);
+
 // Gradients w.r.t. params (M, K) and colors (M, C) from gradients on feat, depth, final_T.
 std::vector<torch::Tensor> backward(bool surfel, torch::Tensor params, torch::Tensor colors,
                                     torch::Tensor boxes, torch::Tensor order,
@@ -449,11 +452,13 @@ std::vector<torch::Tensor> backward(bool surfel, torch::Tensor params, torch::Te
   g_T = g_T.contiguous();
   const Raster R =
       make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
-  const int64_t M = params.size(0);
-  const int threads = at::get_num_threads();
-  // one gradient buffer per thread, summed at the end: tiles share splats
-  auto gp_all = torch::zeros({threads, M, R.K}, params.options());
-  auto gc_all = torch::zeros({threads, M, R.C}, params.options());
+  const int64_t M = params.size(0), n_tiles = counts.size(0);
+  // The tiles are cut into kParts fixed runs, whatever the thread count; each run adds its
+  // tiles' gradients, in tile order, into a buffer of its own, and the buffers are summed in
+  // run order: the same sums in the same order on 1 or 64 threads (bit-identical fits).
+  const int64_t parts = std::max<int64_t>(1, std::min<int64_t>(kParts, n_tiles));
+  auto gp_all = torch::zeros({parts, M, R.K}, params.options());
+  auto gc_all = torch::zeros({parts, M, R.C}, params.options());
   const float* TT = final_T.data_ptr<float>();
   const int32_t* L = last.data_ptr<int32_t>();
   const float* GF = g_feat.data_ptr<float>();
@@ -461,14 +466,30 @@ std::vector<torch::Tensor> backward(bool surfel, torch::Tensor params, torch::Te
   const float* GT = g_T.data_ptr<float>();
   float* GP0 = gp_all.data_ptr<float>();
   float* GC0 = gc_all.data_ptr<float>();
-  at::parallel_for(0, counts.size(0), 1, [&](int64_t begin, int64_t end) {
-    const int64_t tid = at::get_thread_num();
+  for_each_tile(parts, [&](int64_t part) {
+    const int64_t begin = part * n_tiles / parts, end = (part + 1) * n_tiles / parts;
     for (int64_t ti = begin; ti < end; ++ti) {
       if (R.counts[ti] == 0) continue;
-      backward_tile(R, ti, TT, L, GF, GD, GT, GP0 + tid * M * R.K, GC0 + tid * M * R.C);
+      backward_tile(R, ti, TT, L, GF, GD, GT, GP0 + part * M * R.K, GC0 + part * M * R.C);
     }
   });
-  return {gp_all.sum(0), gc_all.sum(0)};
+  return {sum_parts(gp_all), sum_parts(gc_all)};
+}
+
+// (P, M, K) -> (M, K): each element summed over P in order (deterministic on any threads).
+torch::Tensor sum_parts(const torch::Tensor& all) {
+  const int64_t P = all.size(0), n = all[0].numel();
+  auto out = torch::zeros_like(all[0]);
+  const float* a = all.data_ptr<float>();
+  float* o = out.data_ptr<float>();
+  at::parallel_for(0, n, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      float acc = 0.f;
+      for (int64_t p = 0; p < P; ++p) acc += a[p * n + i];
+      o[i] = acc;
+    }
+  });
+  return out;
 }
 
 // Tile lists, as rasterize._bin_tiles builds them (same order): every splat's bounding box
