@@ -9,7 +9,10 @@ mode and both modes are scored.
 
 from __future__ import annotations
 
+import logging
+import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -50,6 +53,25 @@ def answer_while_training(service: OnlineSegmentation, trainer: RefinementTraine
     return initial
 
 
+def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig) -> None:
+    """On screen (and in the run's log): why the student stopped, and a warning when a time
+    budget stopped it."""
+    why = {
+        "converged": f"converged (no gain of {cfg.min_delta} in {cfg.patience} steps)",
+        "steps": f"its step budget (refine.max_steps={cfg.max_steps})",
+        "time_budget": f"its time budget (refine.time_budget_s={cfg.time_budget_s})",
+    }.get(trainer.status, trainer.status)
+    line = f"{scene}: the student stopped at step {trainer.step} ({trainer.train_s:.1f} s): {why}"
+    if trainer.status == "time_budget":
+        warnings.warn(
+            f"{line}; its answers depend on how busy the machine was (drop "
+            "refine.time_budget_s to bound it by steps)",
+            stacklevel=2,
+        )
+    print(line, file=sys.stderr)
+    logging.getLogger("sagonline.refine").info(line)
+
+
 def run_stage_two(
     task: SceneTask,
     stage_one: StageOneOutput,
@@ -86,6 +108,7 @@ def run_stage_two(
     initial = answer_while_training(service, trainer, task.eval_views)
     trainer.wait()
     switched = time.perf_counter() - start
+    say_why_it_stopped(task.name, trainer, cfg)
     answers = [service.answer(v.camera, "refined") for v in task.eval_views]
     preds = [a.mask for a in answers]
     report.refined_miou, report.refined_macc = record_scores(

@@ -3,8 +3,10 @@
 Inputs per trajectory view: the rendered RGB frame and the coarse label render of the fused
 Stage I labels (one-hot, lightly smoothed); target: the 2D segmenter's mask of that frame
 (the teacher). Loss: pixel-wise cross-entropy. Training stops when the smoothed loss has not
-improved by `min_delta` for `patience` steps ("converged") or when `max_steps` or
-`time_budget_s` is spent ("budget"). A checkpoint (model, optimiser, step, loss, status) is
+improved by `min_delta` for `patience` steps ("converged"), at `max_steps` ("steps"), or, only
+when one is set, at `time_budget_s` seconds of training ("time_budget": then the result depends
+on how busy the machine was). The same seed and settings give the same weights on a quiet and on
+a loaded machine. A checkpoint (model, optimiser, step, loss, status) is
 written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
 path resumes from it, and one that finds a finished checkpoint does not train again.
 """
@@ -24,13 +26,15 @@ from sagonline.io import store
 from sagonline.refine.network import ARCHS, DualBranchRefiner
 from sagonline.utils import check_settings
 
+STOPS = ("converged", "steps", "time_budget")  # why a training stopped
+
 
 @dataclass
 class RefineConfig:
     encoder: str = "resnet18"  # resnet50 is the paper's; resnet18 for CPU
     pretrained: str | None = None  # local torchvision-format ImageNet state dict
     max_steps: int = 400
-    time_budget_s: float | None = 90.0
+    time_budget_s: float | None = None  # seconds of training; None: bounded by steps alone
     batch_size: int = 8
     crop: int = 128  # train on random crops of this size (full frames when larger)
     decoder_width: int = 32
@@ -134,7 +138,7 @@ class RefinementTrainer:
         self.step, self.best, self.ema = state["step"], state["best"], state["ema"]
         self.since_best, self.train_s = state["since_best"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
-        if self.status in ("converged", "budget"):
+        if self.status in STOPS:
             self.done.set()
 
     def save(self) -> None:
@@ -174,8 +178,11 @@ class RefinementTrainer:
         gen = torch.Generator().manual_seed(cfg.seed + self.step)
         start, session_start = time.perf_counter(), self.train_s
         while True:
-            if self.step >= cfg.max_steps or self.train_s >= cfg.time_budget_s:
-                self.status = "budget"
+            if self.step >= cfg.max_steps:
+                self.status = "steps"
+                break
+            if cfg.time_budget_s is not None and self.train_s >= cfg.time_budget_s:
+                self.status = "time_budget"
                 break
             if self.since_best >= cfg.patience:
                 self.status = "converged"
