@@ -16,7 +16,7 @@ STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
 SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
             progress=false cache_dir=.cache/stages
 
-.PHONY: install install-extras eval test test-fast report bench lint format clean-runs \
+.PHONY: install install-extras eval test test-fast report bench lint format clean-runs clean-cache \
         tables table-timing table-masks table-ablation table-robustness scenes
 
 install: $(STAMP)
@@ -66,6 +66,10 @@ format: install
 
 clean-runs:
 	rm -rf runs multirun outputs
+
+# The shared stage cache of sweeps (.cache/stages): keyed by content, safe to empty at any time.
+clean-cache:
+	rm -rf .cache/stages
 
 # Fit the Gaussian scenes a dataset needs (2DGS; ARGS=fit.kind=3dgs for 3DGS).
 SCENE ?=

@@ -99,7 +99,8 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
             "protocol": adapter.describe(),
         }
         metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
-        print_summary(out_dir, metrics, reports)
+        cache = (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache") if cfg.cache else None
+        print_summary(out_dir, metrics, reports, cache)
         if status == "failed":
             log.error("no scene was scored; %s/metrics.json records why", out_dir)
             print(

@@ -49,13 +49,39 @@ def write_outputs(
     return metrics
 
 
+def folder_bytes(path: Path) -> int:
+    """Bytes of the files below `path` (0 when it does not exist)."""
+    return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.exists() else 0
+
+
+def disk_line(out_dir: Path, cache: Path | None) -> str:
+    """What the run takes on disk: its folder, and the stage cache it wrote into."""
+    run = folder_bytes(out_dir)
+    line = f"disk: run folder {run / 1e6:.2f} MB"
+    if cache is not None and cache.exists():
+        inside = cache.resolve().is_relative_to(out_dir.resolve())
+        line += (
+            f" (its cache {folder_bytes(cache) / 1e6:.1f} MB)"
+            if inside
+            else (f", shared stage cache {cache} {folder_bytes(cache) / 1e6:.1f} MB")
+        )
+        line += (
+            " (keyed by content: safe to delete; make clean-cache empties .cache/stages)"
+            if not inside
+            else ""
+        )
+    return line
+
+
 def fmt(x, pct: bool = True) -> str:
     if x is None:
         return "-"
     return f"{100 * x:.2f}" if pct else f"{x:.1f}"
 
 
-def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> None:
+def print_summary(
+    out_dir: Path, metrics: dict, reports: list[SceneReport], cache: Path | None = None
+) -> None:
     """One screen: per-scene rows, overall numbers, where the outputs are."""
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
@@ -76,6 +102,11 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
         )
         if r.error:
             lines.append(f"    {r.error}")
+        groups = r.extra.get("by_view_group") or {}
+        for key, value in groups.items():  # e.g. photographed / mask-only views of a capture
+            if key.endswith("_miou") and value is not None:
+                views = groups.get(key.removesuffix("_miou") + "_views")
+                lines.append(f"    {key.removesuffix('_miou')}: mIoU {fmt(value)} ({views} views)")
     lines += [
         "",
         f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "
@@ -89,6 +120,7 @@ def print_summary(out_dir: Path, metrics: dict, reports: list[SceneReport]) -> N
             if (out_dir / "recording.rrd").exists()
             else ""
         ),
+        disk_line(out_dir, cache),
     ]
     text = "\n".join(lines)
     print(text)
