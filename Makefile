@@ -67,7 +67,7 @@ format: install
 clean-runs:
 	rm -rf runs multirun outputs
 
-# The shared stage cache of sweeps (.cache/stages): keyed by content, safe to empty at any time.
+# The stage cache every run shares by default (.cache/stages): keyed by content, safe to empty.
 clean-cache:
 	rm -rf .cache/stages
 

@@ -81,8 +81,10 @@ class EvalConfig:
     """Cache the stages' outputs, so an interrupted run resumes."""
     threads: int | None = None
     """Threads of this job's torch ops and kernels; None: the cores shared among parallel jobs."""
-    cache_dir: str | None = None
-    """None: <run dir>/cache; sweeps share one (the stages are keyed by their inputs)."""
+    cache_dir: str | None = ".cache/stages"
+    """Where the stages' outputs are cached: one folder shared by every run and sweep (the
+    stages are keyed by their inputs' content, so sharing is safe; `make clean-cache` empties
+    it); None: a cache inside each run folder."""
 
 
 @dataclass

@@ -97,10 +97,10 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
             "renderer_resolved": resolve_backend(settings.backend, settings.device),
             "segmenter_weights": weights,
             "protocol": adapter.describe(),
+            "cache_root": str(cache_root(cfg, out_dir)) if cfg.cache else None,
         }
         metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
-        cache = (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache") if cfg.cache else None
-        print_summary(out_dir, metrics, reports, cache)
+        print_summary(out_dir, metrics, reports, cache_root(cfg, out_dir))
         if status == "failed":
             log.error("no scene was scored; %s/metrics.json records why", out_dir)
             print(
@@ -110,6 +110,14 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
             )
             raise SystemExit(1)
     return metrics
+
+
+def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
+    """The stage cache's folder (absolute): the shared `cache_dir`, or the run's own `cache/`;
+    None with cache=false."""
+    if not cfg.cache:
+        return None
+    return (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache").resolve()
 
 
 def prepare_segmenter(node: dict) -> SegmenterRun:
@@ -134,11 +142,11 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
         scenes=list(scenes),
         refined=refine_cfg is not None,
     )
-    cache_root = Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache"
+    root = cache_root(cfg, out_dir)
     reports: list[SceneReport] = []
     try:
         for scene in scenes:
-            cache = cache_root / scene if cfg.cache else None
+            cache = root / scene if root is not None else None
             try:
                 task = adapter.load_scene(scene)
                 report, stage_one = run_scene(

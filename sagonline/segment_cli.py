@@ -306,7 +306,8 @@ def cmd_export(args) -> int:
         config = metrics["config"]
     except (OSError, ValueError, KeyError) as exc:
         raise SystemExit(f"error: {run}: not a finished eval run ({exc})") from None
-    cache_root = Path(config["cache_dir"]) if config.get("cache_dir") else run / "cache"
+    recorded = metrics.get("cache_root") or config.get("cache_dir")
+    cache_root = Path(recorded) if recorded else run / "cache"
     out_root = Path(args.out) if args.out else run / "export"
     adapter = instantiate(config["dataset"]["adapter"])
     done = 0

@@ -38,6 +38,8 @@ def compose_config(name: str, *overrides: str, typed: bool = True):
     from bench.config import EvalConfig, ScenesConfig, register_schemas, to_config
 
     register_schemas()
+    if name == "eval":  # each test run caches in its own folder unless it says otherwise
+        overrides = ("cache_dir=null", *overrides)
     with initialize_config_dir(config_dir=CONF, version_base="1.3"):
         cfg = compose(name, overrides=list(overrides))
     if not typed:
