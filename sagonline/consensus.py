@@ -44,17 +44,28 @@ class MaskError(ValueError):
 class VoteConfig:
     """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
 
-    method: str = "rgc"  # rgc | flashsplat | weighted_mean
-    eps: float = 0.01  # a Gaussian votes only while T_i > eps; the walk stops when T falls to eps
-    delta: float = 2.0  # ... and only if its projected centre is within delta px of the pixel
-    min_votes: int = 1  # fewer votes leave it unlabelled
-    margin: float = 0.2  # top-1 minus top-2 vote share below this (or a tie): unlabelled
-    num_masks: int | None = None  # how many masks vote (None: all)
+    method: str = "rgc"
+    """rgc (the paper's), flashsplat or weighted_mean."""
+    eps: float = 0.01
+    """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps."""
+    delta: float = 2.0
+    """rgc: ... and only if its projected centre lies within delta px of the pixel centre."""
+    min_votes: int = 1
+    """Fewer votes leave a Gaussian unlabelled."""
+    margin: float = 0.2
+    """A top-1 minus top-2 vote share below this (or a tie) leaves it unlabelled."""
+    num_masks: int | None = None
+    """How many masks vote (None: all of those `stride` picks)."""
     stride: int = 1
-    selection: str = "uniform"  # "uniform" (evenly spaced), "first", or "random" (seeded)
+    """Every stride-th mask is a candidate to vote."""
+    selection: str = "uniform"
+    """Which num_masks of the candidates: uniform (evenly spaced), first, or random (seeded)."""
     seed: int = 0
-    background_slack: float = 0.0  # flashsplat
-    threshold: float = 0.9  # weighted_mean
+    """Seeds `selection=random`."""
+    background_slack: float = 0.0
+    """flashsplat: added to the background's normalised weight."""
+    threshold: float = 0.9
+    """weighted_mean: the weighted mean a foreground label must reach."""
 
     def __post_init__(self) -> None:
         n = self.num_masks

@@ -29,12 +29,20 @@ from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
 
 @dataclass
 class FeedbackConfig:
+    """Consensus feedback (`feedback=on`): the fused labels re-prompt a drifting segmenter."""
+
     enabled: bool = False
-    every: int = 8  # frames segmented between two votes of what was accepted so far
-    min_iou: float = 0.5  # re-prompt where the mask and the fused render agree less than this
-    min_frames: int = 4  # masks voted before the fused render is trusted
-    min_area: float = 0.002  # the render must show this fraction of the frame as foreground
+    """Off by default: the paper's protocol has no feedback."""
+    every: int = 8
+    """Frames segmented between two votes of what was accepted so far."""
+    min_iou: float = 0.5
+    """Re-prompt where the mask and the fused render agree less than this."""
+    min_frames: int = 4
+    """Masks voted before the fused render is trusted."""
+    min_area: float = 0.002
+    """The render must show this fraction of the frame as foreground."""
     max_restarts: int = 30
+    """Re-prompts at most, per video."""
 
 
 def foreground_iou(a: np.ndarray, b: np.ndarray) -> float:

@@ -31,20 +31,34 @@ STOPS = ("converged", "steps", "time_budget")  # why a training stopped
 
 @dataclass
 class RefineConfig:
-    encoder: str = "resnet18"  # resnet50 is the paper's; resnet18 for CPU
-    pretrained: str | None = None  # local torchvision-format ImageNet state dict
+    encoder: str = "resnet18"
+    """The image branch: resnet18 (CPU-friendly), resnet34, or resnet50 (the paper's)."""
+    pretrained: str | None = None
+    """A local torchvision-format ImageNet state dict (loaded weights_only); None: random."""
     max_steps: int = 400
-    time_budget_s: float | None = None  # seconds of training; None: bounded by steps alone
+    """Training stops here ("steps") unless it converged before."""
+    time_budget_s: float | None = None
+    """Seconds of training ("time_budget"); None: bounded by steps alone (reproducible)."""
     batch_size: int = 8
-    crop: int = 128  # train on random crops of this size (full frames when larger)
+    """Views per step."""
+    crop: int = 128
+    """Random crops of this size (full frames when larger)."""
     decoder_width: int = 32
+    """Channels of the U-Net decoder."""
     lr: float = 1e-3
+    """Adam's learning rate."""
     patience: int = 60
+    """Steps without a gain of min_delta in the smoothed loss: "converged"."""
     min_delta: float = 1e-3
+    """The smoothed loss's least gain that counts."""
     checkpoint_every: int = 25
+    """Steps between checkpoints (a resumed training starts from the last)."""
     coarse_smoothing: float = 0.1
+    """Label smoothing of the coarse render fed to the mask branch."""
     seed: int = 0
+    """Seeds the batches and crops."""
     device: str = "cpu"
+    """Where the student trains."""
 
     def __post_init__(self) -> None:
         budget = self.time_budget_s
