@@ -162,6 +162,7 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
             "images": len(fitter.images),
             "resolution": [first.width, first.height],
             "init": init,
+            "threads": torch.get_num_threads(),  # the fit is the same on any count (recorded)
         }
     )
     with torch.no_grad():
