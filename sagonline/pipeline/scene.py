@@ -21,6 +21,7 @@ from tqdm import tqdm
 from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.datasets.base import SceneTask
 from sagonline.feedback import FeedbackConfig
+from sagonline.gaussians import Gaussians
 from sagonline.metrics import labels3d_metrics
 from sagonline.pipeline.graph import Output, StageCache, run_stage
 from sagonline.pipeline.scoring import (
@@ -137,7 +138,7 @@ def run_scene(
     voted = {task.trajectory[i].name for i in result.frames}
     stage_one = StageOneOutput(frames, masks, vote, num_labels, voted)
     note_stage_one(task, report, stage_one, settings.resize)
-    preds = score_views(task, result, num_labels, settings, report, stage_one.voted)
+    preds = score_views(task, g, result, num_labels, settings, report, stage_one.voted)
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(
             result.labels, result.labelled, task.gt_labels3d, num_labels
@@ -195,6 +196,7 @@ def note_stage_one(
 
 def score_views(
     task: SceneTask,
+    g: Gaussians,
     vote: VoteResult,
     num_labels: int,
     settings: PipelineSettings,
@@ -202,8 +204,7 @@ def score_views(
     voted: set[str],
 ) -> list[np.ndarray]:
     """Render the fused labels at every eval view, score them (the initial mode) and time the
-    label render; returns the (H, W) predictions."""
-    g = task.gaussians.to(settings.device)
+    label render; returns the (H, W) predictions. g: the scene on `settings.device`."""
     preds, seconds = [], []
     for view in tqdm(
         task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
