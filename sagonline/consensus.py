@@ -29,8 +29,8 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.io.store import stored
-from sagonline.render.api import render, resolve_backend
-from sagonline.render.rasterize import T_STOP, TraceChunk, TraceRequest
+from sagonline.render.rasterize import T_STOP
+from sagonline.render.vote import vote_histogram
 from sagonline.utils import check_settings
 
 METHODS = ("rgc", "flashsplat", "weighted_mean")
@@ -119,7 +119,8 @@ def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:
 
 
 class VoteAccumulator:
-    """Streaming reduction of trace chunks into an (N, K) histogram for one method."""
+    """The running (N, K) vote histogram of one method: views are added by the vote op
+    (`render.vote_histogram`), labels are read off by `finalize`."""
 
     def __init__(
         self,
@@ -129,81 +130,60 @@ class VoteAccumulator:
         device: torch.device | str = "cpu",
     ):
         self.cfg, self.k = cfg, num_labels
-        self.hist = torch.zeros(num_gaussians * num_labels, dtype=torch.float64, device=device)
-        self.mask: torch.Tensor | None = None
-        self.votes_cast = 0
+        self.hist = torch.zeros(num_gaussians, num_labels, dtype=torch.float64, device=device)
 
-    def set_mask(self, mask: torch.Tensor) -> None:
-        """(H*W,) long labels of the frame whose trace comes next."""
-        self.mask = mask
+    def rule(self) -> dict:
+        """The pairs this method counts: rgc's (T_i > eps, the projected centre within delta px,
+        +1) or, for the weighted methods, every pair that is composited (T_i > T_STOP) with its
+        blend weight alpha_i T_i."""
+        if self.cfg.method == "rgc":
+            return dict(t_min=self.cfg.eps, max_distance=self.cfg.delta, weighting="count")
+        return dict(t_min=T_STOP, max_distance=None, weighting="blend")
 
     def add_view(
         self, gaussians: Gaussians, camera: Camera, mask, backend: str, where: str = "mask"
     ) -> None:
-        """Vote one view's (H, W) label map: the compiled trace-and-vote pass on the CPU
-        (`native`), else the renderer's trace reduced here. `where` names the mask in errors."""
-        device = gaussians.device
-        labels = check_mask(mask, camera, self.k, where).to(device)
-        request = self.trace_request()
-        if resolve_backend(backend, device) == "native":  # reduced in C++, no trace chunks
-            from sagonline.render.native import vote_native
-
-            self.votes_cast += vote_native(
-                gaussians,
-                camera,
-                labels,
-                self.hist,
-                t_min=request.t_min,
-                max_distance=request.max_distance,
-                weighted=self.cfg.method != "rgc",
-            )
-            return
-        self.set_mask(labels)
-        render(gaussians, camera, backend=backend, trace=request)
-
-    def trace_request(self) -> TraceRequest:
-        """The pairs this method counts, as the renderer streams them: rgc's rule (T_i > eps
-        and the projected centre within delta px) or, for the weighted methods, every pair
-        that is composited (T_i > T_STOP)."""
-        if self.cfg.method == "rgc":
-            return TraceRequest(self, t_min=self.cfg.eps, max_distance=self.cfg.delta)
-        return TraceRequest(self, t_min=T_STOP)
-
-    def __call__(self, chunk: TraceChunk) -> None:
-        """Add one chunk of streamed pairs (already filtered by `trace_request`)."""
-        index = chunk.gaussian * self.k + self.mask[chunk.pixel]
-        if self.cfg.method == "rgc":
-            weight = torch.ones_like(index, dtype=torch.float64)
-        else:
-            weight = (chunk.alpha * chunk.transmittance).double()
-        self.hist.scatter_add_(0, index, weight)
-        self.votes_cast += int(index.numel())
+        """Vote one view's (H, W) label map; `where` names the mask in errors."""
+        labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
+        vote_histogram(
+            gaussians,
+            camera,
+            labels.to(gaussians.device),
+            self.k,
+            backend=backend,
+            out=self.hist,
+            **self.rule(),
+        )
 
     def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """labels (N,), labelled (N,), histogram (N, K)."""
-        cfg = self.cfg
-        hist = self.hist.view(-1, self.k)
-        total = hist.sum(1)
-        if cfg.method == "rgc":
-            top2 = hist.topk(min(2, self.k), dim=1)
-            labels = top2.indices[:, 0]
-            second = top2.values[:, 1] if self.k > 1 else torch.zeros_like(total)
-            share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
-            labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
-            labelled &= share_gap >= cfg.margin
-        elif cfg.method == "flashsplat":
-            norm = hist / total.clamp_min(1e-12)[:, None]
-            norm[:, 0] += cfg.background_slack
-            labels = norm.argmax(1)
-            labelled = total > 0
-        else:
-            mean = hist / total.clamp_min(1e-12)[:, None]
-            fg = mean[:, 1:]
-            best_val, best = fg.max(1)
-            labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
-            labelled = total > 0
-        labels = torch.where(labelled, labels, torch.zeros_like(labels))
-        return labels, labelled, hist.float()
+        return decide(self.hist, self.cfg)
+
+
+def decide(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """(N, K) histogram -> labels (N,), labelled (N,) and the histogram as float32, by the
+    method's rule (see the module docstring)."""
+    k = hist.shape[1]
+    total = hist.sum(1)
+    if cfg.method == "rgc":
+        top2 = hist.topk(min(2, k), dim=1)
+        labels = top2.indices[:, 0]
+        second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
+        share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
+        labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
+        labelled &= share_gap >= cfg.margin
+    elif cfg.method == "flashsplat":
+        norm = hist / total.clamp_min(1e-12)[:, None]
+        norm[:, 0] += cfg.background_slack
+        labels = norm.argmax(1)
+        labelled = total > 0
+    else:
+        mean = hist / total.clamp_min(1e-12)[:, None]
+        best_val, best = mean[:, 1:].max(1)
+        labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
+        labelled = total > 0
+    labels = torch.where(labelled, labels, torch.zeros_like(labels))
+    return labels, labelled, hist.float()
 
 
 def check_mask(
@@ -266,7 +246,7 @@ def consensus_vote(
         "fraction_ambiguous": float((voted & ~labelled).float().mean()),
         "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
         "votes_per_gaussian_median": float(total[voted].median()) if voted.any() else 0.0,
-        "votes_cast": acc.votes_cast,
+        "votes_cast": int(acc.hist.sum()) if cfg.method == "rgc" else None,
         "aggregation_s": elapsed,
         "ms_per_mask": 1000.0 * elapsed / max(len(frames), 1),
     }

@@ -2,7 +2,15 @@
 
 from __future__ import annotations
 
+import os
+
 import pytest
+import torch
+
+# The Triton kernels run on the CPU in Triton's interpreter, which Triton fixes when it is first
+# imported: choose it before any test (or library) imports triton.
+if not torch.cuda.is_available():
+    os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from tests.fixtures import random_gaussians
 

@@ -14,7 +14,8 @@ from sagonline.consensus import (
     consensus_vote,
     select_frames,
 )
-from sagonline.render import TraceChunk
+from sagonline.render import TraceChunk, TraceRequest
+from sagonline.render.vote import add_pairs
 from tests.fixtures import small_camera
 
 
@@ -23,20 +24,24 @@ def chunk(pixel, gaussian, T, alpha, dist):
     return TraceChunk(t(pixel, torch.long), t(gaussian, torch.long), t(T), t(alpha), t(dist))
 
 
-def streamed(acc, c):
-    """Feed `c` as a renderer serves the accumulator's trace request: only the kept pairs."""
-    keep = acc.trace_request().keeps(c.transmittance, c.alpha, c.distance**2)
-    acc(TraceChunk(*(getattr(c, f)[keep] for f in TraceChunk.__dataclass_fields__)))
+def streamed(acc, mask, c):
+    """Feed `c` as the reference vote does: the renderer keeps the pairs the method's rule
+    asks for (`TraceRequest.keeps`), `add_pairs` adds them to the histogram."""
+    rule = acc.rule()
+    request = TraceRequest(print, t_min=rule["t_min"], max_distance=rule["max_distance"])
+    keep = request.keeps(c.transmittance, c.alpha, c.distance**2)
+    kept = TraceChunk(*(getattr(c, f)[keep] for f in TraceChunk.__dataclass_fields__))
+    add_pairs(acc.hist, mask, kept, weighting=rule["weighting"])
 
 
 def test_rgc_votes_only_visible_aligned_gaussians():
     acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
-    acc.set_mask(torch.tensor([1, 2, 2, 0]))
     # gaussian 0: visible and aligned at pixel 0 -> votes 1
     # gaussian 1: T below eps -> no vote;  gaussian 2: centre 3 px away -> no vote
     # gaussian 3: votes twice for 2 (pixels 1, 2) and once for 0 (pixel 3)
     streamed(
         acc,
+        torch.tensor([1, 2, 2, 0]),
         chunk(
             [0, 0, 0, 1, 2, 3],
             [0, 1, 2, 3, 3, 3],
@@ -56,7 +61,7 @@ def test_min_votes_margin_and_ties():
 
     def run(cfg):
         acc = VoteAccumulator(4, 3, cfg)
-        acc.hist = torch.tensor(hist_rows, dtype=torch.float64).flatten()
+        acc.hist = torch.tensor(hist_rows, dtype=torch.float64)
         return acc.finalize()
 
     labels, labelled, _ = run(VoteConfig(margin=0.0))
@@ -72,16 +77,14 @@ def test_flashsplat_and_weighted_mean_use_blend_weights():
     c = chunk([0, 1, 1], [0, 0, 1], [1.0, 0.5, 0.2], [0.8, 0.4, 0.5], [9.0, 9.0, 9.0])
     mask = torch.tensor([1, 0])
     fs = VoteAccumulator(2, 2, VoteConfig(method="flashsplat"))
-    fs.set_mask(mask)
-    streamed(fs, c)
+    streamed(fs, mask, c)
     labels, labelled, hist = fs.finalize()
     assert hist[0].tolist() == pytest.approx([0.2, 0.8])  # distance is ignored
     assert labels.tolist() == [1, 0]
     fs.cfg = VoteConfig(method="flashsplat", background_slack=0.7)
     assert fs.finalize()[0].tolist() == [0, 0]
     wm = VoteAccumulator(2, 2, VoteConfig(method="weighted_mean", threshold=0.75))
-    wm.set_mask(mask)
-    streamed(wm, c)
+    streamed(wm, mask, c)
     assert wm.finalize()[0].tolist() == [1, 0]  # 0.8 >= 0.75
     wm.cfg = VoteConfig(method="weighted_mean", threshold=0.9)
     assert wm.finalize()[0].tolist() == [0, 0]

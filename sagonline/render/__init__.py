@@ -1,4 +1,5 @@
-"""Rasterizers: the tiled PyTorch fast path, its brute-force reference, and gsplat on CUDA."""
+"""Rasterizers (the tiled PyTorch path, its brute-force reference, the compiled CPU kernel,
+gsplat on CUDA) and the vote op, `vote_histogram`."""
 
 from sagonline.render.api import render, render_labels
 from sagonline.render.projection import ProjectedSplats, project
@@ -9,6 +10,7 @@ from sagonline.render.rasterize import (
     TraceRequest,
     rasterize,
 )
+from sagonline.render.vote import vote_histogram
 
 __all__ = [
     "ProjectedSplats",
@@ -20,4 +22,5 @@ __all__ = [
     "rasterize",
     "render",
     "render_labels",
+    "vote_histogram",
 ]

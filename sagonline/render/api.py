@@ -82,14 +82,15 @@ def render_labels(
     min_weight: float = 0.2,
     mode: str = "onehot",
     backend: str = "torch",
-    **kwargs,
 ) -> torch.Tensor:
     """(H, W) long label mask from per-Gaussian labels (N,) in [0, num_labels).
 
     mode "onehot": labels are composited as one-hot attributes over the `labelled` Gaussians
     (default: labels > 0); a pixel takes the class of largest weight, or 0 where the labelled
     weight is below `min_weight`. Unlabelled Gaussians still occlude. mode "ids": each pixel
-    takes the label of its single most visible Gaussian (largest blend weight).
+    takes the label of its single most visible Gaussian (largest blend weight). The compiled
+    CPU kernel and, on CUDA, the Triton walk render both without shading; the torch backend
+    (and gsplat without Triton) composite one-hot features with the PyTorch rasterizer.
     """
     labels = labels.to(gaussians.device).long()
     if labels.shape != (len(gaussians),):
@@ -99,19 +100,35 @@ def render_labels(
             f"label ids must lie in [0, {num_labels}); got "
             f"[{int(labels.min())}, {int(labels.max())}]"
         )
-    if mode == "ids":
-        if resolve_backend(backend, gaussians.device) == "native":
-            out = render(gaussians, camera, return_ids=True, backend="native", **kwargs)
-        else:  # gsplat keeps no per-pixel argmax: the tiled PyTorch path
-            out = rasterize(gaussians, camera, return_ids=True, **kwargs)
-        ids = out.ids
-        return torch.where(ids >= 0, labels[ids.clamp_min(0)], torch.zeros_like(ids))
-    if mode != "onehot":
+    if mode not in ("onehot", "ids"):
         raise ValueError(f"label render mode {mode!r} is not 'onehot' or 'ids'")
     if labelled is None:
         labelled = labels > 0
-    onehot = torch.nn.functional.one_hot(labels, num_labels).float() * labelled[:, None].float()
-    out = render(gaussians, camera, features=onehot, backend=backend, **kwargs)
-    weights = out.features
+    splat_labels = torch.where(labelled.to(labels.device), labels, -1)
+    weights, ids = _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend)
+    if mode == "ids":
+        return torch.where(ids >= 0, labels[ids.clamp_min(0)], torch.zeros_like(ids))
     best = weights.argmax(dim=-1)
     return torch.where(weights.sum(-1) >= min_weight, best, torch.zeros_like(best))
+
+
+def _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend):
+    """(H, W, K) one-hot weights (None for mode 'ids') and (H, W) most visible Gaussians."""
+    from sagonline.render.vote import resolve_vote_backend
+
+    chosen = resolve_vote_backend(backend, gaussians.device)
+    if chosen == "native":
+        from sagonline.render.native import label_weights_native
+
+        return label_weights_native(
+            gaussians, camera, splat_labels, num_labels, with_weights=mode == "onehot"
+        )
+    if chosen == "triton":
+        from sagonline.render.triton_vote import label_weights_triton
+
+        return label_weights_triton(gaussians, camera, splat_labels, num_labels)
+    if mode == "ids":  # gsplat keeps no per-pixel argmax: the tiled PyTorch path
+        return None, rasterize(gaussians, camera, return_ids=True).ids
+    onehot = torch.nn.functional.one_hot(splat_labels.clamp_min(0), num_labels).float()
+    onehot *= (splat_labels >= 0)[:, None].float()
+    return render(gaussians, camera, features=onehot, backend=backend).features, None

@@ -16,6 +16,7 @@ from __future__ import annotations
 import functools
 import logging
 import math
+from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -26,7 +27,9 @@ from sagonline.render.projection import project
 from sagonline.render.rasterize import T_STOP, RenderOutput
 
 log = logging.getLogger(__name__)
-SOURCE = Path(__file__).parent / "csrc" / "raster_cpu.cpp"
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "vote_cpu.cpp")
+HEADERS = (CSRC / "splat_common.h",)
 
 
 class NativeBuildError(RuntimeError):
@@ -43,17 +46,22 @@ def load_extension():
     # The source's digest in the name: each version of the kernel gets its own build folder, so
     # a build cached from another checkout or version is never loaded by mistake (torch's
     # loader trusts file times, and a newer build of other source looks up to date).
-    digest = hashlib.blake2b(SOURCE.read_bytes(), digest_size=6).hexdigest()
+    digest = hashlib.blake2b(digest_size=6)
+    for path in SOURCES + HEADERS:
+        digest.update(path.read_bytes())
     try:
         return cpp_extension.load(
-            name=f"sagonline_raster_cpu_{digest}",
-            sources=[str(SOURCE)],
-            extra_cflags=["-O3", "-fopenmp"],
+            name=f"sagonline_raster_cpu_{digest.hexdigest()}",
+            sources=[str(path) for path in SOURCES],
+            extra_include_paths=[str(CSRC)],
+            # no FMA contraction: the AVX2 and baseline builds of the vote (and x86 and ARM)
+            # then run the same float operations
+            extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", "-Wno-psabi"],
             extra_ldflags=["-fopenmp"],
             verbose=False,
         )
     except Exception as exc:  # compiler missing, ninja missing, build error
-        raise NativeBuildError(f"could not build {SOURCE.name}: {exc}") from exc
+        raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
 
 
 @functools.cache
@@ -172,6 +180,51 @@ def _gaussian_ids(best: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:
     return torch.where(best >= 0, ids[best.clamp_min(0)], best)
 
 
+@dataclass
+class PreparedView:
+    """One view's splats as the compiled passes take them (no autograd): ids (M,) Gaussian of
+    each splat, params (M, 7 | 13) packed as `ProjectedSplats.params`, boxes (M, 4) bounding
+    where alpha >= 1/255, spans (M, 4) int32 the pixels x0 <= x < x1, y0 <= y < y1 they cover,
+    and the tile lists order / offsets / counts of `bin_tiles`."""
+
+    surfel: bool
+    ids: torch.Tensor
+    params: torch.Tensor
+    boxes: torch.Tensor
+    spans: torch.Tensor
+    order: torch.Tensor
+    offsets: torch.Tensor
+    counts: torch.Tensor
+
+
+def prepare_view(
+    gaussians: Gaussians, camera: Camera, *, near: float = 0.01, tile_size: int = 8
+) -> PreparedView:
+    """`project` (no grad, no colours), the depth sort and the tile lists in one C++ call."""
+    if gaussians.device.type != "cpu":
+        raise ValueError("the native kernels run on the CPU; use triton or gsplat on CUDA")
+    g = gaussians
+
+    def f32(t: torch.Tensor) -> torch.Tensor:
+        return t.detach().float().contiguous()
+
+    out = load_extension().prepare_view(
+        g.kind == "2dgs",
+        f32(g.means),
+        f32(g.quats),
+        f32(g.scales),
+        f32(g.opacities),
+        f32(camera.rotation),
+        f32(camera.translation),
+        f32(camera.K),
+        camera.width,
+        camera.height,
+        float(near),
+        tile_size,
+    )
+    return PreparedView(g.kind == "2dgs", *out)
+
+
 def vote_native(
     gaussians: Gaussians,
     camera: Camera,
@@ -181,48 +234,82 @@ def vote_native(
     t_min: float,
     max_distance: float | None,
     weighted: bool,
-    near: float = 0.01,
-    tile_size: int = 8,
 ) -> int:
     """One view's trace-and-vote pass in C++: adds into `hist` ((N * K,) float64, K labels) and
-    returns the number of votes cast. labels: (H * W,) long mask of the view. A splat votes for
-    its pixel's label while T_i > t_min and, with `max_distance`, only if its projected centre is
-    closer than that to the pixel centre: +1 (weighted=False) or alpha_i T_i. The same pairs as
-    the PyTorch trace (`rasterize(trace=TraceRequest(...))`), without materialising them."""
-    if gaussians.device.type != "cpu":
-        raise ValueError("the native vote runs on the CPU; use gsplat or torch on CUDA")
-    W, H = camera.width, camera.height
+    returns the number of votes cast. labels: (H * W,) long mask of the view. The pairs are
+    those of `sagonline.render.vote`'s PyTorch reference; see csrc/vote_cpu.cpp."""
+    view = prepare_view(gaussians, camera)
     num_labels = hist.numel() // max(len(gaussians), 1)
-    with torch.no_grad():
-        proj = project(gaussians, camera, near=near, with_colors=False)
-        ntx, nty = math.ceil(W / tile_size), math.ceil(H / tile_size)
-        order, offsets, counts = bin_tiles(proj, ntx, nty, tile_size)
-        return int(
-            load_extension().vote(
-                proj.kind == "2dgs",
-                proj.params().float().contiguous(),
-                proj.bbox.float().contiguous(),
-                order,
-                offsets,
-                counts,
-                W,
-                H,
-                tile_size,
-                proj.ids.long(),
-                labels.long(),
-                num_labels,
-                float(t_min),
-                -1.0 if max_distance is None else float(max_distance),
-                bool(weighted),
-                hist,
-            )
+    return int(
+        load_extension().vote(
+            view.surfel,
+            view.ids,
+            view.params,
+            view.spans,
+            view.order,
+            view.offsets,
+            view.counts,
+            camera.width,
+            camera.height,
+            8,
+            labels.long(),
+            num_labels,
+            float(t_min),
+            -1.0 if max_distance is None else float(max_distance),
+            bool(weighted),
+            hist,
         )
+    )
+
+
+def label_weights_native(
+    gaussians: Gaussians,
+    camera: Camera,
+    splat_labels: torch.Tensor,
+    num_labels: int,
+    *,
+    with_weights: bool = True,
+    t_stop: float = T_STOP,
+) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """The label renders' walk in C++ on a `prepare_view` view (no SH, no autograd): (H, W, K)
+    composited one-hot weights of the Gaussians whose label (splat_labels (N,), -1: none) is
+    >= 0 (None without `with_weights`), and (H, W) the most visible Gaussian (-1: none)."""
+    view = prepare_view(gaussians, camera)
+    k = num_labels if with_weights else 0
+    lab = splat_labels[view.ids].long()
+    onehot = torch.zeros(len(view.ids), k)
+    if k and len(view.ids):
+        known = lab >= 0
+        onehot[known.nonzero().squeeze(1), lab[known]] = 1.0
+    feat, _, _, _, best = load_extension().forward(
+        view.surfel,
+        view.params,
+        onehot,
+        view.boxes,
+        view.order,
+        view.offsets,
+        view.counts,
+        camera.width,
+        camera.height,
+        8,
+        float(t_stop),
+    )
+    return (feat if with_weights else None), _gaussian_ids(best, view.ids)
+
+
+def vote_simd() -> str:
+    """The instruction set the compiled vote walks with: 'avx2' or 'generic'."""
+    return load_extension().vote_simd()
 
 
 __all__ = [
     "NativeBuildError",
     "load_extension",
     "native_available",
+    "label_weights_native",
     "rasterize_native",
+    "PreparedView",
+    "prepare_view",
     "vote_native",
+    "vote_simd",
 ]

@@ -8,21 +8,15 @@
 // `offsets`/`counts` (n_tiles,). Splat parameters are packed as in ProjectedSplats.params():
 // [mx, my, opacity, depth, then conic a, b, c (3DGS) or the 3x3 transform M row-major (2DGS)].
 
-#include <torch/extension.h>
-#include <ATen/Parallel.h>
+#include "splat_common.h"
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
-#include <thread>
 #include <vector>
 
-namespace {
+using namespace splat;
 
-constexpr float kCutoff2 = 9.0f;  // 3-sigma support, squared
-constexpr float kSurfelFilter = 2.0f;
-constexpr float kAlphaMin = 1.0f / 255.0f;
-constexpr float kAlphaMax = 0.99f;
+namespace {
 
 struct Response {
   float alpha = 0.f;   // after clipping; 0 when the splat does not reach the pixel
@@ -74,51 +68,6 @@ inline Response respond(bool surfel, const float* p, float px, float py) {
   const float alpha = std::min(r.raw, kAlphaMax);
   r.alpha = alpha >= kAlphaMin ? alpha : 0.f;
   return r;
-}
-
-// Alpha only, as respond(...).alpha, for the passes that need nothing else (the vote): no
-// intermediates kept, and no exp where the result would fall under 1/255 anyway (3DGS:
-// `log_floor` = log(kAlphaMin / opacity), taken once per splat and tile; the exp is still taken on
-// the pairs near that bound, so the skip never changes a result).
-inline float alpha_at(bool surfel, const float* p, float log_floor, float px, float py) {
-  const float dx = px - p[0], dy = py - p[1];
-  float power;
-  if (!surfel) {
-    power = -0.5f * (p[4] * dx * dx + p[6] * dy * dy) - p[5] * dx * dy;
-    if (power < -0.5f * kCutoff2 || power < log_floor - 1e-3f) return 0.f;
-  } else {
-    const float* m = p + 4;
-    const float k0 = px * m[6] - m[0], k1 = px * m[7] - m[1], k2 = px * m[8] - m[2];
-    const float l0 = py * m[6] - m[3], l1 = py * m[7] - m[4], l2 = py * m[8] - m[5];
-    float pz = k0 * l1 - k1 * l0;
-    if (std::fabs(pz) < 1e-12f) pz = 1e-12f;
-    const float u = (k1 * l2 - k2 * l1) / pz, v = (k2 * l0 - k0 * l2) / pz;
-    const float rho3d = u * u + v * v;
-    const float rho2d = kSurfelFilter * (dx * dx + dy * dy);
-    const bool use3d = rho3d <= rho2d;
-    const float rho = use3d ? rho3d : rho2d;
-    const float depth = use3d ? u * m[6] + v * m[7] + m[8] : p[3];
-    if (!((rho <= kCutoff2) && (depth > 1e-2f))) return 0.f;
-    power = -0.5f * rho;
-  }
-  const float alpha = std::min(p[2] * std::exp(power), kAlphaMax);
-  return alpha >= kAlphaMin ? alpha : 0.f;
-}
-
-// Runs fn(tile) for every tile on at::get_num_threads() threads that take tiles one at a time
-// (busy tiles cluster on the object, so a static split would leave one thread idle) and block,
-// not spin, when done: a vote beside another process on shared cores does not fight it.
-template <typename Fn>
-void for_each_tile(int64_t n_tiles, const Fn& fn) {
-  std::atomic<int64_t> next{0};
-  auto worker = [&]() {
-    for (int64_t ti = next++; ti < n_tiles; ti = next++) fn(ti);
-  };
-  const int threads = std::max(1, std::min<int>(at::get_num_threads(), 64));
-  std::vector<std::thread> pool;
-  for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
-  worker();
-  for (auto& t : pool) t.join();
 }
 
 // Gradient of (alpha, depth) w.r.t. the packed parameters, added into g (K floats).
@@ -179,23 +128,6 @@ inline void respond_backward(bool surfel, const float* p, float px, float py, co
     gm[6 + i] += px * gk[i] + py * gl[i];
     gm[3 + i] -= gl[i];
   }
-}
-
-// The pixels of a tile a splat's bounding box covers: [x0, x1) x [y0, y1) in tile-local units.
-struct Span {
-  int x0, x1, y0, y1;
-};
-
-inline Span clip(const float* box, int64_t tx0, int64_t ty0, int tile) {
-  // pixel centre x + 0.5 must lie in [xmin, xmax]; a 0.01 px margin keeps rounding at the
-  // support's edge on the safe side (the response itself still decides)
-  constexpr float m = 0.01f;
-  Span s;
-  s.x0 = std::max(0, static_cast<int>(std::ceil(box[0] - 0.5f - m - tx0)));
-  s.x1 = std::min(tile, static_cast<int>(std::floor(box[1] - 0.5f + m - tx0)) + 1);
-  s.y0 = std::max(0, static_cast<int>(std::ceil(box[2] - 0.5f - m - ty0)));
-  s.y1 = std::min(tile, static_cast<int>(std::floor(box[3] - 0.5f + m - ty0)) + 1);
-  return s;
 }
 
 struct Raster {
@@ -320,64 +252,6 @@ void backward_tile(const Raster& R, int64_t ti, const float* TT, const int32_t* 
   }
 }
 
-// The vote's walk over one tile: each pixel front to back while its transmittance stays above
-// t_min; every splat that reaches the pixel (alpha > 0) with T_i > t_min and, when max_d2 >= 0,
-// its projected centre closer than sqrt(max_d2) to the pixel centre, adds to the histogram bin
-// (gaussian, label of the pixel): 1 (counts) or alpha_i T_i (weighted). Entries are collected per
-// tile and added in tile order afterwards, so the histogram never depends on the thread count.
-int64_t vote_tile(const Raster& R, int64_t ti, const int64_t* ids, const int64_t* labels,
-                  int64_t num_labels, float t_min, float max_d2, bool weighted,
-                  std::vector<std::pair<int64_t, double>>& out) {
-  // tile <= 8: the pixels still walking are the set bits of one 64-bit word, so a splat whose
-  // box covers only finished pixels costs one AND, and finished pixels cost nothing.
-  const int tile = static_cast<int>(R.tile);
-  const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
-  float T[64], pxq[64], pyq[64];  // pixel centres, so the walk divides nothing
-  int64_t label[64];
-  uint64_t active = 0;
-  for (int q = 0; q < tile * tile; ++q) {
-    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
-    pxq[q] = x + 0.5f;
-    pyq[q] = y + 0.5f;
-    T[q] = 1.f;
-    label[q] = 0;
-    if (x < R.width && y < R.height && 1.f > t_min) {
-      label[q] = labels[y * R.width + x];
-      active |= uint64_t{1} << q;
-    }
-  }
-  int64_t cast = 0;
-  const int64_t n = R.counts[ti], base = R.offsets[ti];
-  for (int64_t j = 0; j < n && active; ++j) {
-    const int64_t s = R.order[base + j];
-    const Span sp = clip(R.boxes + s * 4, tx0, ty0, tile);
-    if (sp.x0 >= sp.x1 || sp.y0 >= sp.y1) continue;
-    const uint64_t row = ((uint64_t{1} << (sp.x1 - sp.x0)) - 1) << sp.x0;
-    uint64_t cover = 0;
-    for (int ly = sp.y0; ly < sp.y1; ++ly) cover |= row << (ly * tile);
-    uint64_t bits = cover & active;
-    if (!bits) continue;
-    const float* p = R.params + s * R.K;
-    const float log_floor = p[2] > 0.f ? std::log(kAlphaMin / p[2]) : 0.f;
-    for (; bits; bits &= bits - 1) {
-      const int q = __builtin_ctzll(bits);
-      const float px = pxq[q], py = pyq[q];
-      const float alpha = alpha_at(R.surfel, p, log_floor, px, py);
-      if (alpha <= 0.f) continue;
-      const float t_before = T[q];
-      const float dx = px - p[0], dy = py - p[1];
-      if (max_d2 < 0.f || dx * dx + dy * dy < max_d2) {
-        const double w = weighted ? static_cast<double>(alpha * t_before) : 1.0;
-        out.emplace_back(ids[s] * num_labels + label[q], w);
-        ++cast;
-      }
-      T[q] = t_before * (1.f - alpha);
-      if (!(T[q] > t_min)) active &= ~(uint64_t{1} << q);  // T only falls: this pixel is done
-    }
-  }
-  return cast;
-}
-
 Raster make_raster(bool surfel, const torch::Tensor& params, const torch::Tensor& colors,
                    const torch::Tensor& boxes, const torch::Tensor& order,
                    const torch::Tensor& offsets, const torch::Tensor& counts, int64_t width,
@@ -494,7 +368,9 @@ torch::Tensor sum_parts(const torch::Tensor& all) {
 
 // Tile lists, as rasterize._bin_tiles builds them (same order): every splat's bounding box
 // [x0, x1) x [y0, y1) in tiles, splats listed per tile in the order of `by_depth` (splat
-// indices sorted by depth, stable). A counting sort: O(splats + intersections).
+// indices sorted by depth, stable). A counting sort, O(splats + intersections), run by bands of
+// tile rows in parallel: each band counts and fills only its own tiles, so the lists are the
+// same on any number of threads.
 std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth, int64_t ntx,
                                      int64_t nty, int64_t tile) {
   bbox = bbox.contiguous();
@@ -504,22 +380,36 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth,
   const float* B = bbox.data_ptr<float>();
   const int64_t* D = by_depth.data_ptr<int64_t>();
   const float ts = static_cast<float>(tile);
-  std::vector<int64_t> rect(4 * m);
+  std::vector<int32_t> rect(4 * m);
   auto cell = [](float v, int64_t hi) {
-    return std::min<int64_t>(std::max<int64_t>(static_cast<int64_t>(v), 0), hi);
+    return static_cast<int32_t>(std::min<int64_t>(std::max<int64_t>(static_cast<int64_t>(v), 0), hi));
   };
+  at::parallel_for(0, m, 4096, [&](int64_t begin, int64_t end) {
+    for (int64_t i = begin; i < end; ++i) {
+      const float* b = B + 4 * i;
+      int32_t* r = rect.data() + 4 * i;
+      r[0] = cell(std::floor(b[0] / ts), ntx);
+      r[1] = cell(std::floor(b[1] / ts) + 1.f, ntx);
+      r[2] = cell(std::floor(b[2] / ts), nty);
+      r[3] = cell(std::floor(b[3] / ts) + 1.f, nty);
+    }
+  });
   auto counts = torch::zeros({n_tiles}, by_depth.options());
   int64_t* C = counts.data_ptr<int64_t>();
-  for (int64_t i = 0; i < m; ++i) {
-    const float* b = B + 4 * i;
-    int64_t* r = rect.data() + 4 * i;
-    r[0] = cell(std::floor(b[0] / ts), ntx);
-    r[1] = cell(std::floor(b[1] / ts) + 1.f, ntx);
-    r[2] = cell(std::floor(b[2] / ts), nty);
-    r[3] = cell(std::floor(b[3] / ts) + 1.f, nty);
-    for (int64_t ty = r[2]; ty < r[3]; ++ty)
-      for (int64_t tx = r[0]; tx < r[1]; ++tx) ++C[ty * ntx + tx];
-  }
+  const int64_t bands = std::max<int64_t>(1, std::min<int64_t>(nty, 4 * at::get_num_threads()));
+  auto band_rows = [&](int64_t band, int32_t& lo, int32_t& hi) {
+    lo = static_cast<int32_t>(band * nty / bands);
+    hi = static_cast<int32_t>((band + 1) * nty / bands);
+  };
+  for_each_tile(bands, [&](int64_t band) {
+    int32_t lo, hi;
+    band_rows(band, lo, hi);
+    for (int64_t i = 0; i < m; ++i) {
+      const int32_t* r = rect.data() + 4 * i;
+      for (int32_t ty = std::max(r[2], lo); ty < std::min(r[3], hi); ++ty)
+        for (int32_t tx = r[0]; tx < r[1]; ++tx) ++C[ty * ntx + tx];
+    }
+  });
   auto offsets = torch::zeros({n_tiles}, by_depth.options());
   int64_t* O = offsets.data_ptr<int64_t>();
   int64_t total = 0;
@@ -530,56 +420,24 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth,
   auto order = torch::empty({total}, by_depth.options());
   int64_t* Ord = order.data_ptr<int64_t>();
   std::vector<int64_t> fill(O, O + n_tiles);
-  for (int64_t k = 0; k < m; ++k) {
-    const int64_t i = D[k];
-    const int64_t* r = rect.data() + 4 * i;
-    for (int64_t ty = r[2]; ty < r[3]; ++ty)
-      for (int64_t tx = r[0]; tx < r[1]; ++tx) Ord[fill[ty * ntx + tx]++] = i;
-  }
-  return {order, offsets, counts};
-}
-
-// Adds one view's votes into hist (N * num_labels, float64) and returns how many were cast.
-// ids (M,): the Gaussian of each projected splat; labels (H * W,): the view's mask.
-int64_t vote(bool surfel, torch::Tensor params, torch::Tensor boxes, torch::Tensor order,
-             torch::Tensor offsets, torch::Tensor counts, int64_t width, int64_t height,
-             int64_t tile, torch::Tensor ids, torch::Tensor labels, int64_t num_labels,
-             double t_min, double max_distance, bool weighted, torch::Tensor hist) {
-  params = params.contiguous();
-  boxes = boxes.contiguous();
-  ids = ids.contiguous();
-  labels = labels.contiguous();
-  TORCH_CHECK(hist.is_contiguous() && hist.dtype() == torch::kFloat64, "hist: float64");
-  TORCH_CHECK(ids.dtype() == torch::kInt64 && labels.dtype() == torch::kInt64, "ids, labels: int64");
-  TORCH_CHECK(labels.numel() == width * height, "labels must hold one id per pixel");
-  TORCH_CHECK(tile >= 1 && tile <= 8, "the vote walks tiles of at most 8x8 pixels");
-  auto colors = torch::zeros({params.size(0), 0}, params.options());
-  const Raster R =
-      make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
-  const int64_t n_tiles = counts.size(0);
-  std::vector<std::vector<std::pair<int64_t, double>>> per_tile(n_tiles);
-  std::vector<int64_t> cast(n_tiles, 0);
-  const int64_t* I = ids.data_ptr<int64_t>();
-  const int64_t* Lab = labels.data_ptr<int64_t>();
-  const float tmin = static_cast<float>(t_min);
-  // as the PyTorch path compares float32 distances with the double delta^2 cast to float32
-  const float max_d2 = max_distance < 0 ? -1.f : static_cast<float>(max_distance * max_distance);
-  for_each_tile(n_tiles, [&](int64_t ti) {
-    if (R.counts[ti] > 0)
-      cast[ti] = vote_tile(R, ti, I, Lab, num_labels, tmin, max_d2, weighted, per_tile[ti]);
+  for_each_tile(bands, [&](int64_t band) {
+    int32_t lo, hi;
+    band_rows(band, lo, hi);
+    for (int64_t k = 0; k < m; ++k) {
+      const int64_t i = D[k];
+      const int32_t* r = rect.data() + 4 * i;
+      for (int32_t ty = std::max(r[2], lo); ty < std::min(r[3], hi); ++ty)
+        for (int32_t tx = r[0]; tx < r[1]; ++tx) Ord[fill[ty * ntx + tx]++] = i;
+    }
   });
-  double* H = hist.data_ptr<double>();
-  int64_t total = 0;
-  for (int64_t ti = 0; ti < n_tiles; ++ti) {
-    for (const auto& e : per_tile[ti]) H[e.first] += e.second;
-    total += cast[ti];
-  }
-  return total;
+  return {order, offsets, counts};
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "per-tile splat lists sorted by depth (CPU)");
+  m.def("prepare_view", &prepare_view, "project, depth-sort and bin one view's splats (CPU)");
   m.def("vote", &vote, "trace-and-vote pass into a per-Gaussian label histogram (CPU)");
+  m.def("vote_simd", &vote_simd, "the instruction set the vote's walk runs with");
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
 }

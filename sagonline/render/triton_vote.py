@@ -1,0 +1,290 @@
+"""The fused GPU walk in Triton: trace-and-vote, and the label renders, one launch per view.
+
+One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sorted splats once
+(the tile lists of `rasterize._bin_tiles`), keeping T for its 256 pixels, and does one of:
+- the vote: a splat votes at the pixels where T_i > t_min, alpha_i > 0 and (with a distance
+  rule) its projected centre lies within max_distance px; the tile's votes are summed per label
+  first, so a splat costs one masked atomic add of K values per tile, not one atomic per pixel.
+  The walk ends once every pixel's T <= t_min.
+- the label renders: the one-hot label composite and the most visible Gaussian per pixel, by
+  the compositing rules of `rasterize` (a pixel ends at the splat that would take T under
+  t_stop).
+
+Alpha is `projection.splat_response`'s (3DGS conics, 2DGS ray-splat intersection). The kernel
+is compiled by `triton.jit` for CUDA tensors at run time (no CUDA toolkit needed) or, in a
+process without CUDA, run by Triton's interpreter on CPU tensors, which is how CI tests it.
+Counts are exact; blend weights are summed per tile in float32 and added to the float64
+histogram by atomics, whose order on a GPU is not fixed (a weight's last bits may vary).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import sys
+
+import torch
+
+# Without CUDA the kernel can only run in Triton's interpreter, and Triton reads that choice when
+# it is first imported (its own library functions are built for one mode): set it before then.
+if not torch.cuda.is_available() and "triton" not in sys.modules:
+    os.environ.setdefault("TRITON_INTERPRET", "1")
+
+import triton  # noqa: E402
+import triton.language as tl  # noqa: E402
+
+from sagonline.cameras import Camera  # noqa: E402
+from sagonline.gaussians import Gaussians  # noqa: E402
+from sagonline.render.projection import project  # noqa: E402
+from sagonline.render.rasterize import T_STOP, _bin_tiles  # noqa: E402
+
+TILE = 16
+# Compiled for CUDA, or interpreted on the CPU (no CUDA, or TRITON_INTERPRET=1): one mode per
+# process, as Triton's own decorator decides.
+INTERPRET = bool(triton.knobs.runtime.interpret)
+
+
+def _kernel(fn):
+    if INTERPRET:
+        from triton.runtime.interpreter import InterpretedFunction
+
+        return InterpretedFunction(fn)
+    return triton.jit(fn)
+
+
+@_kernel
+def _walk_kernel(
+    params_ptr,
+    order_ptr,
+    offsets_ptr,
+    counts_ptr,
+    ids_ptr,
+    pixel_labels_ptr,
+    splat_labels_ptr,
+    out_ptr,
+    best_ptr,
+    width,
+    height,
+    tiles_x,
+    num_labels,
+    t_min,
+    max_d2,
+    LABELS: tl.constexpr,
+    SURFEL: tl.constexpr,
+    WEIGHTED: tl.constexpr,
+    USE_DISTANCE: tl.constexpr,
+    TILE: tl.constexpr,
+    KP: tl.constexpr,
+    NP: tl.constexpr,
+):
+    """One tile's walk. LABELS=False, the vote: pixel_labels (H*W,) -> out (N, K) float64
+    histogram. LABELS=True, the label renders: splat_labels (M,) (-1: none) -> out (H*W, KP)
+    one-hot weights, best (H*W,) the most visible Gaussian; t_min is then t_stop. Reductions
+    go through tl.reduce with Triton's own combine functions (its interpreter runs them as numpy
+    reductions)."""
+    tile = tl.program_id(0)
+    q = tl.arange(0, TILE * TILE)
+    x = (tile % tiles_x) * TILE + q % TILE
+    y = (tile // tiles_x) * TILE + q // TILE
+    inside = (x < width) & (y < height)
+    px = x.to(tl.float32) + 0.5
+    py = y.to(tl.float32) + 0.5
+    kk = tl.arange(0, KP)
+    if LABELS:
+        feat = tl.zeros((TILE * TILE, KP), tl.float32)
+        best_w = tl.zeros((TILE * TILE,), tl.float32)
+        best = tl.full((TILE * TILE,), -1, tl.int64)
+        live = inside
+    else:
+        lab = tl.load(pixel_labels_ptr + y * width + x, mask=inside, other=0)
+        onehot = (lab[:, None] == kk[None, :]).to(tl.float32)
+        live = inside & (t_min < 1.0)
+    T = tl.full((TILE * TILE,), 1.0, tl.float32)
+    start = tl.load(offsets_ptr + tile)
+    n = tl.load(counts_ptr + tile)
+    j = 0
+    alive = tl.reduce(live.to(tl.int32), 0, tl.standard._elementwise_max) > 0
+    while (j < n) & alive:
+        s = tl.load(order_ptr + start + j)
+        base = params_ptr + s * NP
+        opac = tl.load(base + 2)
+        dx = px - tl.load(base)
+        dy = py - tl.load(base + 1)
+        if SURFEL:  # projection.splat_response, 2DGS: ray-splat intersection
+            m0 = tl.load(base + 4)
+            m1 = tl.load(base + 5)
+            m2 = tl.load(base + 6)
+            m3 = tl.load(base + 7)
+            m4 = tl.load(base + 8)
+            m5 = tl.load(base + 9)
+            m6 = tl.load(base + 10)
+            m7 = tl.load(base + 11)
+            m8 = tl.load(base + 12)
+            k0 = px * m6 - m0
+            k1 = px * m7 - m1
+            k2 = px * m8 - m2
+            l0 = py * m6 - m3
+            l1 = py * m7 - m4
+            l2 = py * m8 - m5
+            pz = k0 * l1 - k1 * l0
+            pz = tl.where(tl.abs(pz) < 1e-12, 1e-12, pz)
+            u = (k1 * l2 - k2 * l1) / pz
+            v = (k2 * l0 - k0 * l2) / pz
+            rho3d = u * u + v * v
+            rho2d = 2.0 * (dx * dx + dy * dy)
+            use3d = rho3d <= rho2d
+            rho = tl.where(use3d, rho3d, rho2d)
+            depth = tl.where(use3d, u * m6 + v * m7 + m8, tl.load(base + 3))
+            power = -0.5 * rho
+            reach = (rho <= 9.0) & (depth > 1e-2)
+        else:  # 3DGS: EWA conic
+            a = tl.load(base + 4)
+            b = tl.load(base + 5)
+            c = tl.load(base + 6)
+            power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+            reach = power >= -4.5
+        alpha = tl.minimum(opac * tl.exp(power), 0.99)  # projection.ALPHA_MAX
+        alpha = tl.where(reach & (alpha >= 0.00392156862745098), alpha, 0.0)  # ALPHA_MIN, 1/255
+        hit = live & (alpha > 0)
+        after = T * (1.0 - alpha)
+        if LABELS:  # rasterize's rule: a pixel ends at the splat that would take T under t_stop
+            kept = hit & (after >= t_min)
+            w = tl.where(kept, alpha * T, 0.0)
+            splat_label = tl.load(splat_labels_ptr + s)
+            feat += w[:, None] * (kk[None, :] == splat_label).to(tl.float32)
+            better = w > best_w
+            best_w = tl.where(better, w, best_w)
+            best = tl.where(better, tl.load(ids_ptr + s), best)
+            T = tl.where(kept, after, T)
+            live = live & (after >= t_min)
+        else:  # the vote: T_i > t_min, alpha_i > 0 and, with the distance rule, |d| < delta
+            vote = hit
+            if USE_DISTANCE:
+                vote = vote & (dx * dx + dy * dy < max_d2)
+            if WEIGHTED:  # noqa: SIM108 (a constexpr branch, compiled out)
+                w = tl.where(vote, alpha * T, 0.0)
+            else:
+                w = vote.to(tl.float32)
+            per_label = tl.reduce(w[:, None] * onehot, 0, tl.standard._sum_combine)
+            tl.atomic_add(
+                out_ptr + tl.load(ids_ptr + s) * num_labels + kk,
+                per_label.to(tl.float64),
+                mask=(kk < num_labels) & (per_label > 0),
+            )
+            T = tl.where(hit, after, T)
+            live = live & (t_min < T)
+        alive = tl.reduce(live.to(tl.int32), 0, tl.standard._elementwise_max) > 0
+        j += 1
+    if LABELS:
+        pixel = y * width + x
+        tl.store(out_ptr + pixel[:, None] * KP + kk[None, :], feat, mask=inside[:, None])
+        tl.store(best_ptr + pixel, best, mask=inside)
+
+
+def _launch(
+    gaussians: Gaussians,
+    camera: Camera,
+    *,
+    labels_mode: bool,
+    num_labels: int,
+    pixel_labels=None,
+    splat_labels=None,
+    out=None,
+    best=None,
+    t_min: float,
+    max_distance: float | None = None,
+    weighted: bool = False,
+) -> None:
+    """Project, bin 16x16 tiles (torch, on the Gaussians' device) and run the walk."""
+    device = gaussians.device
+    if (device.type == "cuda") == INTERPRET:
+        mode = "Triton's interpreter (CPU tensors)" if INTERPRET else "CUDA (CUDA tensors)"
+        raise ValueError(
+            f"the triton kernel was set up for {mode} when triton was first imported; got "
+            f"{device} tensors (without CUDA, import sagonline.render.triton_vote before "
+            f"anything else imports triton, or set TRITON_INTERPRET=1)"
+        )
+    with torch.no_grad():
+        proj = project(gaussians, camera, with_colors=False)
+        if len(proj) == 0:
+            return
+        tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
+        _, order, offsets, counts = _bin_tiles(proj, tiles_x, tiles_y, TILE)
+        params = proj.params().float().contiguous()
+        unused = proj.ids
+        _walk_kernel[(tiles_x * tiles_y,)](
+            params,
+            order,
+            offsets,
+            counts,
+            proj.ids,
+            unused if pixel_labels is None else pixel_labels.to(torch.int32).contiguous(),
+            unused if splat_labels is None else splat_labels[proj.ids].to(torch.int32),
+            out,
+            unused if best is None else best,
+            camera.width,
+            camera.height,
+            tiles_x,
+            num_labels,
+            float(t_min),
+            -1.0 if max_distance is None else float(max_distance) ** 2,
+            LABELS=labels_mode,
+            SURFEL=proj.kind == "2dgs",
+            WEIGHTED=weighted,
+            USE_DISTANCE=max_distance is not None,
+            TILE=TILE,
+            KP=max(2, triton.next_power_of_2(num_labels)),
+            NP=params.shape[1],
+        )
+
+
+def vote_triton(
+    gaussians: Gaussians,
+    camera: Camera,
+    labels: torch.Tensor,
+    hist: torch.Tensor,
+    *,
+    t_min: float,
+    max_distance: float | None,
+    weighting: str,
+) -> None:
+    """Add one view's votes to hist (N, K) float64; labels: (H, W) long. As `vote_histogram`."""
+    _launch(
+        gaussians,
+        camera,
+        labels_mode=False,
+        num_labels=hist.shape[1],
+        pixel_labels=labels,
+        out=hist,
+        t_min=t_min,
+        max_distance=max_distance,
+        weighted=weighting == "blend",
+    )
+
+
+def label_weights_triton(
+    gaussians: Gaussians,
+    camera: Camera,
+    splat_labels: torch.Tensor,
+    num_labels: int,
+    *,
+    t_stop: float = T_STOP,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The label renders' walk: (H, W, K) composited one-hot weights of the Gaussians whose
+    label (splat_labels (N,), -1: none) is >= 0, and (H, W) the most visible Gaussian (-1:
+    none)."""
+    H, W = camera.height, camera.width
+    kp = max(2, triton.next_power_of_2(num_labels))
+    weights = torch.zeros(H * W, kp, device=gaussians.device)
+    best = torch.full((H * W,), -1, dtype=torch.int64, device=gaussians.device)
+    _launch(
+        gaussians,
+        camera,
+        labels_mode=True,
+        num_labels=num_labels,
+        splat_labels=splat_labels,
+        out=weights,
+        best=best,
+        t_min=t_stop,
+    )
+    return weights[:, :num_labels].view(H, W, num_labels), best.view(H, W)

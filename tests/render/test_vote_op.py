@@ -1,0 +1,210 @@
+"""The vote op, `vote_histogram`: every implementation against the PyTorch reference on tiny
+3DGS and 2DGS scenes (occlusion, the eps stop, the delta rule, several labels), and the
+label renders' walks against the rasterizer."""
+
+from __future__ import annotations
+
+import importlib.util
+import shutil
+from dataclasses import replace
+
+import pytest
+import torch
+
+from sagonline.gaussians import Gaussians
+from sagonline.render import rasterize, vote_histogram
+from tests.fixtures import random_gaussians, small_camera
+
+HAS_COMPILER = shutil.which("c++") is not None or shutil.which("g++") is not None
+HAS_TRITON = importlib.util.find_spec("triton") is not None
+needs_compiler = pytest.mark.skipif(not HAS_COMPILER, reason="no C++ compiler for the kernel")
+needs_triton = pytest.mark.skipif(
+    not HAS_TRITON, reason="triton is not installed (pip install -e '.[triton]')"
+)
+RULES = {
+    "rgc": dict(t_min=0.01, max_distance=2.0, weighting="count"),
+    "rgc-eps.2-delta.7": dict(t_min=0.2, max_distance=0.7, weighting="count"),
+    "rgc-eps0-delta6": dict(t_min=0.0, max_distance=6.0, weighting="count"),
+    "blend": dict(t_min=1e-4, max_distance=None, weighting="blend"),
+}
+
+
+def _masks(cam, k: int, seed: int) -> torch.Tensor:
+    return torch.randint(
+        0, k, (cam.height, cam.width), generator=torch.Generator().manual_seed(seed)
+    )
+
+
+def _same(got: torch.Tensor, ref: torch.Tensor, weighting: str) -> None:
+    assert ref.sum() > 0  # there was something to match
+    if weighting == "count":
+        assert torch.equal(got, ref)
+    else:  # float32 exp and products in another order: weights agree to float32 rounding
+        torch.testing.assert_close(got, ref, rtol=1e-5, atol=1e-7)
+
+
+def _scene_views(kind: str, seed: int, n: int, width: int, height: int):
+    g = random_gaussians(n, kind, seed=seed, spread=0.8)
+    eyes = [(0.3, -4.0, 0.8), (3.5, -1.0, 1.5), (-2.0, 3.0, -1.0)]
+    return g, [small_camera(width, height, eye=e, name=f"c{i}") for i, e in enumerate(eyes)]
+
+
+@needs_compiler
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("rule", list(RULES))
+def test_native_matches_the_reference(kind, seed, rule):
+    g, cams = _scene_views(kind, seed, 300, 37, 29)
+    for i, cam in enumerate(cams):
+        k = 3 + i  # 3, 4 and 5 labels
+        labels = _masks(cam, k, seed + i)
+        ref = vote_histogram(g, cam, labels, k, backend="torch", **RULES[rule])
+        got = vote_histogram(g, cam, labels, k, backend="native", **RULES[rule])
+        _same(got, ref, RULES[rule]["weighting"])
+
+
+@needs_triton
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+@pytest.mark.parametrize("rule", ["rgc", "rgc-eps.2-delta.7", "blend"])
+def test_triton_kernel_matches_the_reference(kind, rule):
+    """The fused GPU kernel, run by Triton's interpreter on the CPU (on CUDA with -m gpu)."""
+    g, cams = _scene_views(kind, 3, 40, 20, 15)
+    labels = _masks(cams[0], 3, 0)
+    ref = vote_histogram(g, cams[0], labels, 3, backend="torch", **RULES[rule])
+    got = vote_histogram(g, cams[0], labels, 3, backend="triton", **RULES[rule])
+    _same(got, ref, RULES[rule]["weighting"])
+
+
+def _walls(*walls: tuple[float, float]) -> Gaussians:
+    """Flat opaque 3DGS discs (depth, size) facing the camera, which looks along +y."""
+    n = len(walls)
+    return Gaussians(
+        means=torch.tensor([[0.0, depth, 0.0] for depth, _ in walls]),
+        quats=torch.tensor([[1.0, 0.0, 0.0, 0.0]] * n),
+        scales=torch.tensor([[size, 0.01, size] for _, size in walls]),
+        opacities=torch.ones(n),
+        sh=torch.zeros(n, 4, 3),
+    )
+
+
+BACKENDS = ["torch"] + (["native"] if HAS_COMPILER else []) + (["triton"] if HAS_TRITON else [])
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_front_surface_hides_the_back_one_until_eps(backend):
+    """A wide opaque front wall (alpha clipped to 0.99 at every pixel) leaves T = 0.01 behind
+    it: with eps = 0.01 the back wall gets no vote, with eps = 0.001 it does; the front wall's
+    votes do not depend on eps."""
+    g = _walls((-1.0, 50.0), (1.0, 2.0))
+    cam = small_camera(16, 12, eye=(0.0, -4.0, 0.0))
+    labels = torch.ones(12, 16, dtype=torch.long)
+    strict = vote_histogram(g, cam, labels, 2, t_min=0.01, max_distance=None, backend=backend)
+    loose = vote_histogram(g, cam, labels, 2, t_min=0.001, max_distance=None, backend=backend)
+    assert strict[0, 1] > 0 and strict[1].sum() == 0
+    assert loose[1, 1] > 0 and loose[0, 1] == strict[0, 1]
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_delta_keeps_only_gaussians_centred_near_the_pixel(backend):
+    g = random_gaussians(40, "3dgs", seed=5, spread=0.6)
+    cam = small_camera(20, 15)
+    labels = _masks(cam, 2, 1)
+    total = [
+        float(vote_histogram(g, cam, labels, 2, max_distance=d, backend=backend).sum())
+        for d in (1e-6, 0.5, 2.0, 6.0)
+    ]
+    assert total[0] == 0 and 0 < total[1] < total[2] < total[3]
+
+
+@needs_compiler
+def test_avx2_and_baseline_walks_agree_bit_for_bit(monkeypatch):
+    from sagonline.render.native import vote_simd
+
+    g, cams = _scene_views("2dgs", 4, 300, 37, 29)
+    labels = _masks(cams[0], 3, 0)
+    fast = vote_histogram(g, cams[0], labels, 3, backend="native", **RULES["blend"])
+    simd = vote_simd()
+    monkeypatch.setenv("SAGONLINE_VOTE_SIMD", "generic")
+    assert vote_simd() == "generic"
+    plain = vote_histogram(g, cams[0], labels, 3, backend="native", **RULES["blend"])
+    assert torch.equal(fast, plain), simd
+
+
+@needs_compiler
+def test_native_vote_does_not_depend_on_the_thread_count():
+    g, cams = _scene_views("3dgs", 6, 400, 40, 30)
+    labels = _masks(cams[0], 2, 0)
+    threads = torch.get_num_threads()
+    try:
+        torch.set_num_threads(1)
+        one = vote_histogram(g, cams[0], labels, 2, backend="native", **RULES["blend"])
+        torch.set_num_threads(2)
+        two = vote_histogram(g, cams[0], labels, 2, backend="native", **RULES["blend"])
+    finally:
+        torch.set_num_threads(threads)
+    assert torch.equal(one, two)  # merged in tile order
+
+
+@needs_compiler
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_compiled_projection_matches_project(kind):
+    from sagonline.render.native import prepare_view
+    from sagonline.render.projection import project
+
+    g = random_gaussians(300, kind, seed=8, spread=5.0)  # some behind the camera or off screen
+    cam = small_camera(37, 29)
+    proj, view = project(g, cam, with_colors=False), prepare_view(g, cam)
+    # its boxes bound alpha >= 1/255, inside the 3-sigma boxes: a splat whose faint rim alone
+    # reaches the screen may be culled as well
+    common = torch.isin(proj.ids, view.ids)
+    assert torch.equal(proj.ids[common], view.ids) and 0.9 * len(proj) <= len(view.ids) < 300
+    torch.testing.assert_close(view.params, proj.params()[common], rtol=1e-4, atol=1e-4)
+    assert (view.boxes[:, 0] >= proj.bbox[common, 0] - 1e-3).all()
+    assert (view.boxes[:, 1] <= proj.bbox[common, 1] + 1e-3).all()
+
+
+def test_the_op_rejects_bad_inputs():
+    g = random_gaussians(10, "3dgs")
+    cam = small_camera(8, 6)
+    with pytest.raises(ValueError, match="6x8"):
+        vote_histogram(g, cam, torch.zeros(5, 8, dtype=torch.long), 2)
+    with pytest.raises(ValueError, match=r"\[0, 2\)"):
+        vote_histogram(g, cam, torch.full((6, 8), 2), 2)
+    with pytest.raises(ValueError, match="float64"):
+        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, out=torch.zeros(10, 2))
+    with pytest.raises(ValueError, match="weighting"):
+        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, weighting="mean")
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+@pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "torch"])
+def test_label_walks_match_the_rasterizer(kind, backend):
+    """One-hot label weights (unlabelled Gaussians occlude but add nothing) and the most
+    visible Gaussian, from the compiled and the Triton walk, against `rasterize`."""
+    from sagonline.render.api import _label_walk
+
+    g = random_gaussians(40, kind, seed=2, spread=0.6)
+    cam = small_camera(20, 15)
+    splat_labels = torch.randint(-1, 3, (40,), generator=torch.Generator().manual_seed(1))
+    onehot = torch.nn.functional.one_hot(splat_labels.clamp_min(0), 3).float()
+    onehot *= (splat_labels >= 0)[:, None].float()
+    ref = rasterize(g, cam, features=onehot, return_ids=True)
+    weights, ids = _label_walk(g, cam, splat_labels, 3, "onehot", backend)
+    torch.testing.assert_close(weights, ref.features, rtol=1e-5, atol=1e-6)
+    assert float(ref.features.max()) > 0.5
+    assert torch.equal(ids, ref.ids)
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available() or not HAS_TRITON, reason="needs CUDA, triton")
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_triton_on_cuda_matches_the_reference(kind):
+    g, cams = _scene_views(kind, 0, 3000, 320, 240)
+    g = g.to("cuda")
+    for cam in cams:
+        cam = replace(cam).to("cuda")
+        labels = _masks(cam, 4, 0).cuda()
+        for rule in ("rgc", "blend"):
+            ref = vote_histogram(g, cam, labels, 4, backend="torch", **RULES[rule])
+            got = vote_histogram(g, cam, labels, 4, backend="triton", **RULES[rule])
+            _same(got, ref, RULES[rule]["weighting"])
