@@ -21,8 +21,9 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
 
 install: $(STAMP)
 
-# The model-backed segmenters' packages, for their tests on CPU (random weights), and gsplat,
-# whose PyTorch reference functions check the CUDA backend's conventions on CPU.
+# The model-backed segmenters' packages, for their tests on CPU (random weights), gsplat,
+# whose PyTorch reference functions check the CUDA backend's conventions on CPU, and Triton,
+# whose interpreter runs the fused GPU vote kernel on the CPU in the tests.
 # torchvision is pinned to torch 2.13.0's pair first so nothing upgrades torch; sam2 builds
 # only without build isolation. SAM 3 is left out: its model needs CUDA (see README).
 install-extras: $(EXTRAS)
@@ -31,6 +32,7 @@ $(EXTRAS): $(STAMP)
 	$(BIN)/python -m pip install --quiet torchvision==0.28.0
 	$(BIN)/python -m pip install --quiet -e '.[yolo]'
 	$(BIN)/python -m pip install --quiet -e '.[gsplat]'
+	$(BIN)/python -m pip install --quiet -e '.[triton]'
 	$(BIN)/python -m pip install --quiet --no-build-isolation -e '.[sam2]'
 	touch $(EXTRAS)
 
@@ -54,6 +56,8 @@ test-fast: install
 report: install
 	$(BIN)/python -m bench.report $(ARGS)
 
+# CPU rows here; on a GPU machine `make bench ARGS="--devices cuda --out
+# reports/bench_render_cuda.csv"` (with .[gsplat,triton] installed) gives the CUDA table.
 bench: install
 	$(BIN)/python bench/bench_render.py $(ARGS)
 	$(BIN)/python bench/bench_contention.py

@@ -204,10 +204,16 @@ class NVOSConfig:
     """None: all 8."""
     image_dir: str = "images_4"
     prompt: str = "scribbles"
-    """scribbles (the reference view's, sampled) | clicks (seeded, on the ground-truth object)."""
+    """scribbles (the reference view's, sampled) | click (one positive scribble pixel) | points
+    (a frozen points file) | clicks (seeded, on the target view's ground truth, as the SAGOnline
+    paper does)."""
+    sampling: str = "uniform"
+    """prompt=scribbles: uniform (scribble_points per scribble) | skeleton (SAGA's)."""
+    points_file: str | None = None
+    """prompt=points: JSON {task: [[x, y], ...], "_scale": 4} at the original resolution."""
     clicks: int = 3
     scribble_points: int = 16
-    """Points sampled from the positive scribbles."""
+    """Points sampled from each scribble with sampling=uniform."""
     negative: bool = False
     """Also sample the negative scribbles."""
     seed: int = 0

@@ -19,13 +19,16 @@ numbering, at any resolution (the release's are 4x downsampled): each is scaled 
 size to the view's. Without `image_dir` images to size the cameras by, they are scaled to the
 ground-truth mask's resolution.
 
-Each task prompts on its reference view (positive scribbles, optionally negative ones, sampled
-as seeded points; or, as the SAGOnline paper does, seeded random clicks on the ground-truth
-object, which NVOS only provides on the target view) and scores the single target view.
+Each task prompts on its reference view by one of the protocols of `nvos_prompts` (scribbles
+sampled uniformly or SAGA's skeleton way, one click, a frozen points file), or, as the SAGOnline
+paper does, by seeded random clicks on the ground-truth object, which NVOS only provides on the
+target view; it scores the single target view. `protocol` names the choice (e.g.
+`nvos/scribbles-skeleton@1`) and every result carries it.
 """
 
 from __future__ import annotations
 
+import hashlib
 from pathlib import Path
 
 import numpy as np
@@ -40,8 +43,15 @@ from sagonline.datasets.common import (
     load_trained_scene,
     scene_cameras,
 )
+from sagonline.datasets.nvos_prompts import (
+    check_inside,
+    read_points_file,
+    skeleton_points,
+    uniform_points,
+)
 from sagonline.prompts import ObjectPrompt, Prompt
 
+PROMPTS = ("scribbles", "click", "points", "clicks")
 TASKS = {
     "fern": ("IMG_4027", "IMG_4038"),
     "flower": ("IMG_2962", "IMG_2983"),
@@ -63,6 +73,8 @@ class NVOSDataset(DatasetAdapter):
         tasks=None,
         image_dir="images_4",
         prompt="scribbles",
+        sampling="uniform",
+        points_file=None,
         clicks=3,
         scribble_points=16,
         negative=False,
@@ -71,13 +83,23 @@ class NVOSDataset(DatasetAdapter):
         scenes_root=None,
         drop_nonfinite=False,
     ):
-        if prompt not in ("scribbles", "clicks"):
-            raise DatasetError(f"nvos: prompt {prompt!r} is not 'scribbles' or 'clicks'")
+        if prompt not in PROMPTS:
+            raise DatasetError(f"nvos: prompt {prompt!r} is not one of {PROMPTS}")
+        if sampling not in ("uniform", "skeleton"):
+            raise DatasetError(f"nvos: sampling {sampling!r} is not 'uniform' or 'skeleton'")
+        if (prompt == "points") != (points_file is not None):
+            raise DatasetError(
+                "nvos: prompt=points reads dataset.adapter.points_file, which is only for it"
+            )
         self.root, self.image_dir, self.prompt_kind = Path(root), image_dir, prompt
+        self.sampling = sampling
         self.tasks = list(tasks) if tasks else list(TASKS)
         unknown = [t for t in self.tasks if t not in TASKS]
         if unknown:
             raise DatasetError(f"nvos: unknown task(s) {unknown}; tasks are {list(TASKS)}")
+        self.points_file, self.frozen, self.points_scale = points_file, {}, 1.0
+        if points_file is not None:
+            self.frozen, self.points_scale = read_points_file(points_file, self.tasks, list(TASKS))
         self.clicks, self.points, self.negative = clicks, scribble_points, negative
         self.seed, self.threshold = seed, mask_threshold
         self.drop_nonfinite = drop_nonfinite
@@ -117,9 +139,25 @@ class NVOSDataset(DatasetAdapter):
             )
         return self.tasks
 
+    @property
+    def protocol(self) -> str:
+        """The versioned id of this prompt protocol (every result carries it)."""
+        neg = "-neg" if self.negative else ""
+        if self.prompt_kind == "points":
+            digest = hashlib.sha256(Path(self.points_file).read_bytes()).hexdigest()[:8]
+            return f"nvos/points-{Path(self.points_file).stem}-{digest}@1"
+        if self.prompt_kind == "click":
+            return "nvos/click@1"
+        if self.prompt_kind == "clicks":
+            return f"nvos/gt-clicks{self.clicks}@1"
+        if self.sampling == "skeleton":
+            return f"nvos/scribbles-skeleton{neg}@1"
+        return f"nvos/scribbles-uniform{self.points}{neg}@1"
+
     def describe(self) -> dict:
         return {
             "tasks": {t: {"target": a, "reference": b} for t, (a, b) in TASKS.items()},
+            "protocol": self.protocol,
             "prompt": self.prompt_kind,
             "scored": "the target view of each task",
             "pseudo_temporal_order": "image names sorted lexicographically",
@@ -157,7 +195,11 @@ class NVOSDataset(DatasetAdapter):
             prompt = click_prompt(gt, frame, 2, self.clicks, self.seed, scale)
         else:
             frame = names.index(reference)
-            prompt = Prompt(frame=frame, objects=[self.scribble_prompt(task, cams[frame])])
+            if self.prompt_kind == "points":
+                obj = self.frozen_prompt(task, cams[frame], gt.shape)
+            else:
+                obj = self.scribble_prompt(task, cams[frame])
+            prompt = Prompt(frame=frame, objects=[obj])
         return SceneTask(
             dataset="nvos",
             name=task,
@@ -171,6 +213,7 @@ class NVOSDataset(DatasetAdapter):
                 "target": target,
                 "reference": reference,
                 "prompt": self.prompt_kind,
+                "protocol": self.protocol,
                 "fit": fit_record(scene_dir, "nvos"),
                 "scene_file": str(find_trained_scene(scene_dir, "nvos")),
             },
@@ -189,24 +232,32 @@ class NVOSDataset(DatasetAdapter):
         return scene_dir, cams, images
 
     def scribble_prompt(self, task: str, cam) -> ObjectPrompt:
+        """Points from the reference view's scribbles: uniform or skeleton sampling (seeded), or
+        one positive pixel (prompt=click)."""
         folder = self.labels / "scribbles" / task
         rng = np.random.default_rng(self.seed)
         pts, labels = [], []
         for kind, value in (("pos", 1), ("neg", 0)):
-            if kind == "neg" and not self.negative:
+            if kind == "neg" and (not self.negative or self.prompt_kind == "click"):
                 continue
             files = sorted(folder.glob(f"{kind}_*.png"))
             if kind == "pos" and not files:
                 raise DatasetError(f"nvos/{task}: no positive scribbles {folder}/pos_*.png")
             for f in files:
                 m = load_mask(f, self.threshold)
-                ys, xs = np.nonzero(m)
-                if len(xs) == 0:
+                if not m.any():
                     continue
-                pick = rng.choice(len(xs), size=min(self.points, len(xs)), replace=False)
+                if self.prompt_kind == "click":
+                    xy = uniform_points(m, rng, 1)
+                elif self.sampling == "skeleton":
+                    xy = skeleton_points(m, rng, positive=value == 1)
+                else:
+                    xy = uniform_points(m, rng, self.points)
                 sx, sy = cam.width / m.shape[1], cam.height / m.shape[0]
-                pts.append(np.stack([(xs[pick] + 0.5) * sx, (ys[pick] + 0.5) * sy], 1))
-                labels.append(np.full(len(pick), value))
+                pts.append(np.stack([(xy[:, 0] + 0.5) * sx, (xy[:, 1] + 0.5) * sy], 1))
+                labels.append(np.full(len(xy), value))
+                if self.prompt_kind == "click":
+                    break
         if not pts:
             raise DatasetError(f"nvos/{task}: the scribbles in {folder} are empty")
         return ObjectPrompt(
@@ -214,3 +265,12 @@ class NVOSDataset(DatasetAdapter):
             points=np.concatenate(pts),
             point_labels=np.concatenate(labels).astype(np.int64),
         )
+
+    def frozen_prompt(self, task: str, cam, mask_shape: tuple[int, int]) -> ObjectPrompt:
+        """The points file's clicks for `task`, from the original resolution (the released
+        masks' size times `_scale`) to the reference view's pixels."""
+        pts = self.frozen[task]
+        width, height = mask_shape[1] * self.points_scale, mask_shape[0] * self.points_scale
+        check_inside(pts, round(width), round(height), f"nvos: {self.points_file}, task {task!r}")
+        xy = pts * np.array([cam.width / width, cam.height / height])
+        return ObjectPrompt(label=1, points=xy, point_labels=np.ones(len(xy), dtype=np.int64))
