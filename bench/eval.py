@@ -49,6 +49,7 @@ from sagonline.pipeline import (
     student_checkpoint,
     summarize,
 )
+from sagonline.predictions import write_scoring_rules
 from sagonline.provenance import digest_file, git_state
 from sagonline.recording import Recorder
 from sagonline.render.api import resolve_backend
@@ -99,6 +100,14 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
             "protocol": adapter.describe(),
             "cache_root": str(cache_root(cfg, out_dir)) if cfg.cache else None,
         }
+        scored = [r for r in reports if "sha256" in r.extra]
+        if scored:  # how bench.score re-scores the ground truth folder
+            write_scoring_rules(
+                out_dir / "ground_truth",
+                adapter.protocol,
+                cfg.metrics.resize,
+                scored[0].extra.get("ignore_label"),
+            )
         metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
         print_summary(out_dir, metrics, reports, cache_root(cfg, out_dir))
         if status == "failed":
@@ -150,16 +159,27 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
             try:
                 task = adapter.load_scene(scene)
                 report, stage_one = run_scene(
-                    task, segmenter, vote_cfg, settings, cache_dir=cache, recorder=recorder
+                    task,
+                    segmenter,
+                    vote_cfg,
+                    settings,
+                    cache_dir=cache,
+                    recorder=recorder,
+                    predictions_to=out_dir,
                 )
             except DatasetError as exc:
                 log.warning("scene %s skipped: %s", scene, exc)
                 print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
-                reports.append(SceneReport(scene=scene, status="failed", error=str(exc)))
+                failed = SceneReport(scene, status="failed", error=str(exc))
+                failed.protocol = adapter.protocol
+                reports.append(failed)
                 continue
+            report.protocol = adapter.protocol
             if refine_cfg is not None:
                 checkpoint = student_checkpoint(cache, stage_one, refine_cfg, settings)
-                run_stage_two(task, stage_one, refine_cfg, settings, report, recorder, checkpoint)
+                run_stage_two(
+                    task, stage_one, refine_cfg, settings, report, recorder, checkpoint, out_dir
+                )
             log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
             reports.append(report)
     finally:

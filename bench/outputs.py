@@ -22,7 +22,10 @@ def write_outputs(
 ) -> dict:
     """metrics.json (+ per_view.csv) atomically into the run directory."""
     from sagonline.metrics import RESIZE_RULES
+    from sagonline.predictions import folder_sha256
 
+    folders = ("predictions", "predictions_refined", "ground_truth")
+    digests = {f: folder_sha256(out_dir / f) for f in folders if (out_dir / f).is_dir()}
     metrics = {
         "dataset": cfg.dataset["name"],
         "segmenter": cfg.segmenter.get("name", "segmenter"),
@@ -31,12 +34,13 @@ def write_outputs(
         **summary,
         "resize_rule": RESIZE_RULES[cfg.metrics.resize],
         "device": describe_device(cfg.device),
+        "sha256": digests,  # of the label-map PNGs: re-score with python -m bench.score
         "scenes": [{k: v for k, v in asdict(r).items() if k != "views"} for r in reports],
         "config": asdict(cfg),
         **(extra or {}),
     }
-    rows = [v for r in reports for v in r.views]
-    columns = ["scene", "view", "mode", "iou", "acc", "voted"]
+    rows = [{**v, "protocol": r.protocol} for r in reports for v in r.views]
+    columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
     columns += [
         k
         for k in ("photographed", "photo_angle_deg", "photo_distance")
@@ -86,6 +90,7 @@ def print_summary(
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
         f"consensus {metrics['consensus']['method']}  renderer {metrics['renderer']}",
+        f"protocol {metrics.get('protocol_id') or '-'}",
         "",
     ]
     lines.append(
@@ -115,6 +120,7 @@ def print_summary(
         + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
         f"resize rule: {metrics['resize_rule']}",
         f"outputs: {out_dir}/metrics.json, per_view.csv"
+        + (", predictions/ (python -m bench.score)" if (out_dir / "predictions").is_dir() else "")
         + (
             ", recording.rrd (open with: rerun recording.rrd)"
             if (out_dir / "recording.rrd").exists()

@@ -50,6 +50,7 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
         base = {
             "run": str(run.relative_to(ROOT)) if run.is_relative_to(ROOT) else str(run),
             "dataset": m.get("dataset"),
+            "protocol": m.get("protocol_id") or f"{m.get('dataset')}/unversioned",
             "segmenter": m.get("segmenter"),
             "method": c.get("method"),
             "eps": c.get("eps"),

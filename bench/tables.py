@@ -202,8 +202,19 @@ TITLES = {
 }
 
 
+def protocol_of(run: dict) -> str:
+    """A run's protocol id (runs recorded before ids existed: `<dataset>/unversioned`)."""
+    return run.get("protocol_id") or f"{run['dataset']}/unversioned"
+
+
 def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
     runs = load_runs(sweep)
+    protocols = sorted({protocol_of(m) for m in runs})
+    if len(protocols) > 1:  # rows of one table are compared and averaged: one protocol only
+        raise SystemExit(
+            f"{sweep}: its jobs ran different evaluation protocols ({', '.join(protocols)}); "
+            "a table holds one protocol: build one table per sweep of a single protocol"
+        )
     df = BUILDERS[name](runs)
     devices = sorted({device_text(m["device"]) for m in runs})
     first = runs[0]
@@ -213,8 +224,8 @@ def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
         f"- sweep: `{sweep.relative_to(ROOT) if sweep.is_relative_to(ROOT) else sweep}`"
         f" ({len(runs)} jobs)",
         f"- device: {'; '.join(devices)}",
-        f"- dataset: {first['dataset']}, renderer: {first['renderer']}, "
-        f"resize rule: {first['resize_rule']}",
+        f"- dataset: {first['dataset']}, protocol: `{protocols[0]}`, renderer: "
+        f"{first['renderer']}, resize rule: {first['resize_rule']}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
         "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
         "",

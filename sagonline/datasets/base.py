@@ -67,6 +67,13 @@ class DatasetAdapter:
     def load_scene(self, scene: str) -> SceneTask:
         raise NotImplementedError
 
+    @property
+    def protocol(self) -> str:
+        """A short versioned id of the evaluation protocol (`<dataset>/<variant>@<version>`):
+        every result carries it, and no table averages results of different ids. Adapters
+        whose settings change what is scored or how it is prompted name the variant."""
+        return f"{self.name}/default@1"
+
     def describe(self) -> dict:
         """Protocol settings recorded in every report."""
         return {}

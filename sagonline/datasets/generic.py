@@ -122,8 +122,19 @@ class PosedMasksDataset(DatasetAdapter):
     def scene_names(self) -> list[str]:
         return list(self.scene_dirs())
 
+    @property
+    def protocol(self) -> str:
+        """e.g. `mold_cape/exclude-reference@1`, `spinnerf/all-views@1`; a prompt other than
+        3 ground-truth clicks on the reference view is named after the views."""
+        views = "exclude-reference" if self.exclude_reference else "all-views"
+        prompt = "" if (self.prompt_kind, self.clicks) == ("clicks", 3) else f"-{self.prompt_kind}"
+        if self.prompt_kind == "clicks" and self.clicks != 3:
+            prompt += str(self.clicks)
+        return f"{self.name}/{views}{prompt}@1"
+
     def describe(self) -> dict:
         return {
+            "protocol_id": self.protocol,
             "label_format": self.label_format,
             "prompt": self.prompt_kind,
             "clicks": self.clicks,

@@ -157,7 +157,7 @@ class NVOSDataset(DatasetAdapter):
     def describe(self) -> dict:
         return {
             "tasks": {t: {"target": a, "reference": b} for t, (a, b) in TASKS.items()},
-            "protocol": self.protocol,
+            "protocol_id": self.protocol,
             "prompt": self.prompt_kind,
             "scored": "the target view of each task",
             "pseudo_temporal_order": "image names sorted lexicographically",

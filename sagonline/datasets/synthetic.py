@@ -96,8 +96,13 @@ class SyntheticDataset(DatasetAdapter):
         settings = tuple(sorted(self.presets[scene].items()))
         return _load_cached(scene, settings)
 
+    @property
+    def protocol(self) -> str:
+        return "synthetic/held-out-views@1"
+
     def describe(self) -> dict:
         return {
+            "protocol_id": self.protocol,
             "protocol": "held-out views between the training views; trajectory = training "
             "views in orbit order",
             "presets": self.presets,

@@ -99,8 +99,11 @@ def run_scene(
     *,
     cache_dir: str | Path | None = None,
     recorder: Recorder | None = None,
+    predictions_to: str | Path | None = None,
 ) -> tuple[SceneReport, StageOneOutput]:
-    """Run and score Stage I on one scene: its report, and what Stage II reuses."""
+    """Run and score Stage I on one scene: its report, and what Stage II reuses.
+    `predictions_to`: a run folder to write the scored label maps into (PNG, see
+    `sagonline.predictions`)."""
     recorder = recorder or Recorder(None)
     if isinstance(segmenter, VideoSegmenter):
         segmenter = SegmenterRun(segmenter)
@@ -138,7 +141,9 @@ def run_scene(
     voted = {task.trajectory[i].name for i in result.frames}
     stage_one = StageOneOutput(frames, masks, vote, num_labels, voted)
     note_stage_one(task, report, stage_one, settings.resize)
-    preds = score_views(task, g, result, num_labels, settings, report, stage_one.voted)
+    preds = score_views(
+        task, g, result, num_labels, settings, report, stage_one.voted, predictions_to
+    )
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(
             result.labels, result.labelled, task.gt_labels3d, num_labels
@@ -202,6 +207,7 @@ def score_views(
     settings: PipelineSettings,
     report: SceneReport,
     voted: set[str],
+    save_to: str | Path | None = None,
 ) -> list[np.ndarray]:
     """Render the fused labels at every eval view, score them (the initial mode) and time the
     label render; returns the (H, W) predictions. g: the scene on `settings.device`."""
@@ -221,7 +227,7 @@ def score_views(
         )
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)
-    record_scores(task, preds, settings.resize, report, "initial", voted)
+    record_scores(task, preds, settings.resize, report, "initial", voted, save_to)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     return preds
 

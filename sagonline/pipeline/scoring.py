@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
 from sagonline.datasets.base import SceneTask
 from sagonline.errors import DatasetError
 from sagonline.metrics import match_and_relabel, view_metrics
+from sagonline.predictions import folder_sha256, view_file, write_label_map
 
 
 @dataclass
@@ -40,12 +42,31 @@ class SceneReport:
     cached_timings: dict = field(default_factory=dict)  # timings of the run that built a cache
     inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
     stage_keys: dict = field(default_factory=dict)  # stage -> its cache key (`sagonline export`)
+    protocol: str | None = None  # the evaluation protocol's id, e.g. nvos/scribbles-skeleton@1
 
     def add_timings(self, stages: tuple[str, ...], **times: float) -> None:
         """This run's timings when it computed every one of `stages`, else the cached run's
         (kept apart, under `cached_timings`)."""
         fresh = all(self.stages.get(s) == "computed" for s in stages)
         (self.timings if fresh else self.cached_timings).update(times)
+
+
+def save_predictions(
+    task: SceneTask, preds: list[np.ndarray], report: SceneReport, mode: str, run: Path
+) -> None:
+    """The scored label maps of `mode` (and, with the initial mode, the ground truth) as PNGs
+    under the run folder; their folders' SHA-256 into report.extra."""
+    folder = run / ("predictions" if mode == "initial" else f"predictions_{mode}")
+    for view, pred in zip(task.eval_views, preds, strict=True):
+        write_label_map(view_file(folder, task.name, view.name), pred)
+    digests = report.extra.setdefault("sha256", {})
+    digests[f"predictions_{mode}"] = folder_sha256(folder / task.name)
+    if mode == "initial":
+        truth = run / "ground_truth"
+        for view in task.eval_views:
+            write_label_map(view_file(truth, task.name, view.name), view.gt)
+        digests["ground_truth"] = folder_sha256(truth / task.name)
+        report.extra["ignore_label"] = task.ignore_label
 
 
 def check_ground_truth(task: SceneTask) -> list[str]:
@@ -100,13 +121,18 @@ def record_scores(
     report: SceneReport,
     mode: str,
     voted: set[str] | None = None,
+    save_to: Path | None = None,
 ) -> tuple[float | None, float | None]:
     """Per-view rows for `mode` ("initial" or "refined") and their means; the initial mode's
     means are the report's `miou`/`macc`. `voted`: names of the views whose masks voted.
-    preds: one (H, W) label map per eval view (automatic ids are matched here)."""
+    preds: one (H, W) label map per eval view (automatic ids are matched here). `save_to`: a
+    run folder to write the scored label maps (and the ground truth) into, as PNGs with their
+    SHA-256 in the report (`sagonline.predictions`)."""
     if is_automatic(task) and preds:
         preds = match_and_relabel(preds, [v.gt for v in task.eval_views], resize, task.ignore_label)
         report.extra["label_matching"] = "hungarian, scene-wide"
+    if save_to is not None:
+        save_predictions(task, preds, report, mode, Path(save_to))
     rows = []
     for view, pred in zip(task.eval_views, preds, strict=True):
         m = view_metrics(pred, view.gt, resize, task.ignore_label)
@@ -138,8 +164,12 @@ def record_scores(
 
 
 def summarize(reports: list[SceneReport]) -> dict:
-    """Dataset-level numbers: means over the scenes that finished."""
+    """Dataset-level numbers: means over the scenes that finished, all of one protocol (results
+    of different protocols are never averaged)."""
     ok = [r for r in reports if r.status == "ok" and r.miou is not None]
+    protocols = sorted({r.protocol for r in ok if r.protocol})
+    if len(protocols) > 1:
+        raise ValueError(f"scenes of different protocols {protocols} cannot be averaged")
 
     def mean(key):
         vals = [getattr(r, key) for r in ok if getattr(r, key) is not None]
@@ -147,6 +177,7 @@ def summarize(reports: list[SceneReport]) -> dict:
 
     timing_keys = sorted({k for r in ok for k in r.timings})
     return {
+        "protocol_id": protocols[0] if protocols else None,
         "miou": mean("miou"),
         "macc": mean("macc"),
         "segmenter_miou": mean("segmenter_miou"),

@@ -80,6 +80,7 @@ def run_stage_two(
     report: SceneReport,
     recorder: Recorder,
     checkpoint: str | Path | None = None,
+    predictions_to: str | Path | None = None,
 ) -> None:
     """Train the student in the background while the initial mode keeps answering the eval
     views, then answer them again in refined mode; both are scored into `report`."""
@@ -112,7 +113,7 @@ def run_stage_two(
     answers = [service.answer(v.camera, "refined") for v in task.eval_views]
     preds = [a.mask for a in answers]
     report.refined_miou, report.refined_macc = record_scores(
-        task, preds, settings.resize, report, "refined", stage_one.voted
+        task, preds, settings.resize, report, "refined", stage_one.voted, predictions_to
     )
     report.timings.update(
         {
