@@ -81,7 +81,11 @@ def _walk_kernel(
     histogram. LABELS=True, the label renders: splat_labels (M,) (-1: none) -> out (H*W, KP)
     one-hot weights, best (H*W,) the most visible Gaussian; t_min is then t_stop. Reductions
     go through tl.reduce with Triton's own combine functions (its interpreter runs them as numpy
-    reductions)."""
+    reductions).
+
+    Why one function: a Triton kernel's helpers are separate device functions, and both the
+    fused walk's speed on a GPU and its interpreter's speed in CI depend on the per-splat body
+    (alpha, compositing or vote) being one straight block the compiler sees whole."""
     tile = tl.program_id(0)
     q = tl.arange(0, TILE * TILE)
     x = (tile % tiles_x) * TILE + q % TILE
