@@ -233,32 +233,28 @@ def vote_native(
     *,
     t_min: float,
     max_distance: float | None,
-    weighted: bool,
-) -> int:
-    """One view's trace-and-vote pass in C++: adds into `hist` ((N * K,) float64, K labels) and
-    returns the number of votes cast. labels: (H * W,) long mask of the view. The pairs are
-    those of `sagonline.render.vote`'s PyTorch reference; see csrc/vote_cpu.cpp."""
+    weighting: str,
+) -> None:
+    """Add one view's votes to hist (N, K) float64; labels: (H, W) long. As `vote_histogram`:
+    the pairs of its PyTorch reference, walked in C++ (csrc/vote_cpu.cpp)."""
     view = prepare_view(gaussians, camera)
-    num_labels = hist.numel() // max(len(gaussians), 1)
-    return int(
-        load_extension().vote(
-            view.surfel,
-            view.ids,
-            view.params,
-            view.spans,
-            view.order,
-            view.offsets,
-            view.counts,
-            camera.width,
-            camera.height,
-            8,
-            labels.long(),
-            num_labels,
-            float(t_min),
-            -1.0 if max_distance is None else float(max_distance),
-            bool(weighted),
-            hist,
-        )
+    load_extension().vote(
+        view.surfel,
+        view.ids,
+        view.params,
+        view.spans,
+        view.order,
+        view.offsets,
+        view.counts,
+        camera.width,
+        camera.height,
+        8,
+        labels.flatten().long(),
+        hist.shape[1],
+        float(t_min),
+        -1.0 if max_distance is None else float(max_distance),
+        weighting == "blend",
+        hist.view(-1),
     )
 
 

@@ -21,6 +21,8 @@ One op, several implementations (as gsplat pairs `_wrapper.py` with `_torch_impl
 
 from __future__ import annotations
 
+import functools
+
 import torch
 
 from sagonline.cameras import Camera
@@ -83,26 +85,33 @@ def vote_histogram(
     chosen = resolve_vote_backend(backend, gaussians.device)
     if n == 0:
         return out
-    rule = dict(t_min=float(t_min), max_distance=max_distance, weighting=weighting)
-    if chosen == "native":
+    implementation = _implementation(chosen)
+    implementation(
+        gaussians,
+        camera,
+        labels,
+        out,
+        t_min=float(t_min),
+        max_distance=max_distance,
+        weighting=weighting,
+    )
+    return out
+
+
+def _implementation(backend: str):
+    """The function behind a backend; each takes (gaussians, camera, labels (H, W), hist (N, K),
+    *, t_min, max_distance, weighting) and adds into hist."""
+    if backend == "native":
         from sagonline.render.native import vote_native
 
-        vote_native(
-            gaussians,
-            camera,
-            labels.flatten(),
-            out.view(-1),
-            t_min=rule["t_min"],
-            max_distance=max_distance,
-            weighted=weighting == "blend",
-        )
-    elif chosen == "triton":
+        return vote_native
+    if backend == "triton":
         from sagonline.render.triton_vote import vote_triton
 
-        vote_triton(gaussians, camera, labels, out, **rule)
-    else:
-        vote_by_trace(gaussians, camera, labels, out, backend=chosen, **rule)
-    return out
+        return vote_triton
+    if backend == "gsplat":
+        return functools.partial(vote_by_trace, backend="gsplat")
+    return vote_by_trace
 
 
 def vote_by_trace(
