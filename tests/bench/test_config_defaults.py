@@ -27,6 +27,22 @@ def test_fit_composes_to_the_dataclass_defaults():
         compose_config("scenes", "fit.iterations=many")
 
 
+def test_the_paper_fit_recipe_changes_only_what_it_names():
+    paper = compose_config("scenes", "fit=paper").fit
+    assert isinstance(paper, FitConfig)
+    assert (paper.iterations, paper.densify_until, paper.opacity_reset_every) == (
+        30000,
+        15000,
+        3000,
+    )
+    changed = {k for k, v in asdict(paper).items() if v != getattr(FitConfig(), k)}
+    assert changed == {
+        "iterations", "max_side", "densify_from", "densify_until", "opacity_reset_every",
+        "prune_opacity", "max_gaussians", "dist_from", "normal_from", "checkpoint_every",
+    }  # fmt: skip
+    assert paper.view_clearance == FitConfig().view_clearance  # our regularisers kept
+
+
 @pytest.mark.parametrize("method", ["rgc", "flashsplat", "weighted_mean"])
 def test_consensus_composes_to_the_dataclass_defaults(method):
     assert compose_config("eval", f"consensus={method}").consensus == VoteConfig(method=method)
