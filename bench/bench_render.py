@@ -55,7 +55,7 @@ def scenes():
         yield "donut (3DGS, 45,624)", read_scene(donut_dir / "point_cloud.ply"), cam, views
     else:
         print(f"note: {donut_dir} not found; skipping the donut", file=sys.stderr)
-    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=8)
+    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
     name = f"synthetic 360 (2DGS, {len(s.gaussians):,})"
     yield name, s.gaussians, s.train_cameras[1], s.train_cameras
 
