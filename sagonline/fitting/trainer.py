@@ -20,6 +20,7 @@ degrees train from the start, and the depth distortion is taken over splat-centr
 
 from __future__ import annotations
 
+import functools
 import math
 import time
 from collections import deque
@@ -51,12 +52,32 @@ from sagonline.render.api import render
 from sagonline.utils import atomic_write_json
 
 
+def on_one_torch_thread(method):
+    """On the CPU, run a fitter's method with torch's own ops on one thread and the compiled
+    kernel on all of torch's threads (`native.torch_on_one_thread`): torch splits large
+    elementwise ops and reductions over threads in chunks that round differently, so this is
+    what makes the same seed give the same scene on any thread count."""
+
+    @functools.wraps(method)
+    def wrapped(self, *args, **kwargs):
+        cfg = getattr(self, "cfg", None) or (args[0] if args else kwargs["cfg"])  # __init__'s
+        if torch.device(cfg.device).type != "cpu" or torch.get_num_threads() == 1:
+            return method(self, *args, **kwargs)
+        from sagonline.render.native import torch_on_one_thread
+
+        with torch_on_one_thread():
+            return method(self, *args, **kwargs)
+
+    return wrapped
+
+
 class SceneFitter:
     """Holds the raw parameters and the optimiser; `fit` runs (or resumes) the schedule.
     images: (H, W, 3) floats in [0, 1], one per camera; points: optional (xyz, rgb) start points;
     other_cameras: cameras of the capture without an image (kept clear like the others);
     view_near: the nearest depth the capture records per view name (for `view_clearance`)."""
 
+    @on_one_torch_thread
     def __init__(
         self,
         cfg: FitConfig,
@@ -189,6 +210,7 @@ class SceneFitter:
             sh=torch.cat([p["sh_dc"], p["sh_rest"]], dim=1),
         )
 
+    @on_one_torch_thread
     def export(self) -> Gaussians:
         """The fitted scene on the CPU, detached."""
         g = self.gaussians()
@@ -238,7 +260,9 @@ class SceneFitter:
         return dropped
 
     # --- the loop -----------------------------------------------------------------------------
+    @on_one_torch_thread
     def fit(self, progress: bool = True, checkpoint: Path | None = None) -> dict:
+        """Train to `cfg.iterations` (or the time budget); returns `evaluate()`'s metrics."""
         cfg = self.cfg
         rng = np.random.default_rng(cfg.seed + self.step)
         bar = tqdm(total=cfg.iterations, initial=self.step, desc="fit", disable=not progress)
@@ -284,6 +308,7 @@ class SceneFitter:
         return self.evaluate()
 
     @torch.no_grad()
+    @on_one_torch_thread
     def evaluate(self) -> dict:
         g = self.gaussians()
 

@@ -13,6 +13,7 @@ PyTorch path's.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import logging
 import math
@@ -291,6 +292,26 @@ def label_weights_native(
         float(t_stop),
     )
     return (feat if with_weights else None), _gaussian_ids(best, view.ids)
+
+
+@contextlib.contextmanager
+def torch_on_one_thread():
+    """Run torch's own CPU ops on one thread and the compiled kernels on all of torch's threads.
+    torch splits an elementwise op over threads in chunks whose vectorised and scalar tails round
+    exp or sigmoid differently, and a reduction's order with them: one thread makes those
+    results the same on any machine's thread count, while the kernels, which do most of a fit's
+    work, keep every thread (their sums do not depend on the count)."""
+    threads = torch.get_num_threads()
+    ext = load_extension() if native_available() else None
+    if ext is not None:
+        ext.set_kernel_threads(threads)
+    torch.set_num_threads(1)
+    try:
+        yield threads
+    finally:
+        torch.set_num_threads(threads)
+        if ext is not None:
+            ext.set_kernel_threads(0)
 
 
 def vote_simd() -> str:

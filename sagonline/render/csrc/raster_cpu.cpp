@@ -396,7 +396,7 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth,
   });
   auto counts = torch::zeros({n_tiles}, by_depth.options());
   int64_t* C = counts.data_ptr<int64_t>();
-  const int64_t bands = std::max<int64_t>(1, std::min<int64_t>(nty, 4 * at::get_num_threads()));
+  const int64_t bands = std::max<int64_t>(1, std::min<int64_t>(nty, 4 * kernel_threads()));
   auto band_rows = [&](int64_t band, int32_t& lo, int32_t& hi) {
     lo = static_cast<int32_t>(band * nty / bands);
     hi = static_cast<int32_t>((band + 1) * nty / bands);
@@ -434,6 +434,8 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor bbox, torch::Tensor by_depth,
 }
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("set_kernel_threads", [](int n) { splat::g_kernel_threads = n; },
+        "threads of the kernels' tile loops (0: torch's thread count)");
   m.def("bin_tiles", &bin_tiles, "per-tile splat lists sorted by depth (CPU)");
   m.def("prepare_view", &prepare_view, "project, depth-sort and bin one view's splats (CPU)");
   m.def("vote", &vote, "trace-and-vote pass into a per-Gaussian label histogram (CPU)");

@@ -36,7 +36,16 @@ inline Span clip(const float* box, int64_t tx0, int64_t ty0, int tile) {
   return s;
 }
 
-// Runs fn(tile) for every tile on at::get_num_threads() threads that take tiles one at a time
+// The kernels' own thread count: set_kernel_threads(n) (0: torch's, at::get_num_threads()). A
+// fit runs torch's own ops on one thread (their vector loops then always split the same way)
+// and gives the kernels the machine's threads through this.
+inline std::atomic<int> g_kernel_threads{0};
+inline int kernel_threads() {
+  const int n = g_kernel_threads.load();
+  return n > 0 ? n : at::get_num_threads();
+}
+
+// Runs fn(tile) for every tile on kernel_threads() threads that take tiles one at a time
 // (busy tiles cluster on the object, so a static split would leave one thread idle) and block,
 // not spin, when done: a vote beside another process on shared cores does not fight it.
 template <typename Fn>
@@ -46,7 +55,7 @@ void for_each_tile(int64_t n_tiles, const Fn& fn) {
     for (int64_t ti = next++; ti < n_tiles; ti = next++) fn(ti);
   };
   const int threads =
-      static_cast<int>(std::max<int64_t>(1, std::min<int64_t>({at::get_num_threads(), 64, n_tiles})));
+      static_cast<int>(std::max<int64_t>(1, std::min<int64_t>({kernel_threads(), 64, n_tiles})));
   std::vector<std::thread> pool;
   for (int t = 1; t < threads; ++t) pool.emplace_back(worker);
   worker();
