@@ -42,7 +42,7 @@ def vote_times(backend: str, threads: int, masks: int, start_at: float | None = 
     from sagonline.consensus import VoteConfig, consensus_vote
 
     torch.set_num_threads(threads)
-    _, g, cam = scene()
+    _, g, cam, _ = scene()
     gen = torch.Generator().manual_seed(0)
     mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
     run = lambda n: consensus_vote(g, [cam] * n, [mask] * n, 3, VoteConfig(), backend=backend)  # noqa: E731
