@@ -37,7 +37,7 @@ def render(
 ) -> RenderOutput | None:
     """Render (and optionally trace) one view; options as in `rasterize`. The native CPU kernel
     renders images, features and most-visible ids; a trace (`TraceRequest`) runs on the tiled
-    PyTorch path there (the vote has its own compiled pass, `consensus_vote`). An option the
+    PyTorch path there (the vote has its own compiled pass: `vote_histogram`). An option the
     chosen backend cannot honour raises, as does a misspelt one."""
     unknown = sorted(set(options) - RENDER_OPTIONS)
     if unknown:  # a misspelt option would otherwise do nothing

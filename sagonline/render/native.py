@@ -6,9 +6,11 @@ as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per
 (csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
 tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
 use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
-most-visible Gaussian per pixel (`return_ids`) and runs the vote's trace-and-vote pass
-(`vote_native`) without materialising a trace; a streamed trace (`rasterize(trace=...)`) is the
-PyTorch path's.
+most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_native`, behind
+`render.vote_histogram`) and the label renders (`label_weights_native`) walk a view prepared in
+C++ (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/vote_cpu.cpp); a
+streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
+kernels their own thread count while torch's ops run on one (fits use it).
 """
 
 from __future__ import annotations
