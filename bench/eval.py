@@ -9,6 +9,7 @@ config or changed inputs are refused with a message naming both.
 from __future__ import annotations
 
 import logging
+import shutil
 import sys
 from pathlib import Path
 
@@ -74,6 +75,10 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
         return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
 
     check_writable(out_dir)
+    for folder in ("predictions", "predictions_refined", "ground_truth"):
+        # a run over an unfinished (or overwritten) one scores every scene again: label maps of
+        # scenes it no longer has must not stay in the folders metrics.json digests
+        shutil.rmtree(out_dir / folder, ignore_errors=True)
     refine_cfg = refine_config_from(cfg)
     seed_everything(cfg.seed)
     set_threads(cfg)
