@@ -81,30 +81,66 @@ scenes: install
 	$(BIN)/python -m bench.scenes dataset=$(DATASET) $(if $(SCENE),scene=$(SCENE)) $(ARGS)
 
 # The paper's tables, one target each (LAUNCHER=slurm runs the same sweep on a cluster).
+# DATASET=synthetic (the default): the synthetic 360 scenes, reports/<table>.md.
+# DATASET=mold_cape: the real capture (fit it first: `make scenes DATASET=mold_cape`), its
+# reference view left out of the scores, reports/<table>_mold_cape.md, two mask sources side
+# by side: `real` (its real masks; every 4th votes, so the other views are held out; every
+# mask votes in the mask-count table) and `classical` (the weight-free segmenter; every mask
+# votes). Each source sweeps into its own sub-folder of one sweep folder.
+COMMA := ,
+ifeq ($(DATASET),mold_cape)
+TABLE_TAG         := mold_cape
+TABLE_DATA        := dataset=mold_cape dataset.adapter.exclude_reference=true
+TABLE_DATA_MASKS  := $(TABLE_DATA)
+TABLE_TIMING_DATA := $(TABLE_DATA)
+SOURCES           := real classical
+MASK_SOURCES      := real_all classical
+SOURCE_real       := segmenter=oracle consensus.stride=4
+SOURCE_real_all   := segmenter=oracle
+SOURCE_classical  := segmenter=classical
+else
+TABLE_TAG         :=
+TABLE_DATA        := dataset=synthetic_360
+TABLE_DATA_MASKS  := dataset=synthetic_360_hd
+TABLE_TIMING_DATA := dataset=synthetic_360
+SOURCES           := noisy
+MASK_SOURCES      := clean
+ROBUST_SOURCES    := clean
+SOURCE_noisy      := segmenter=oracle_noisy
+SOURCE_clean      := segmenter=oracle
+endif
+ROBUST_SOURCES ?= $(SOURCES)
+TABLE_SUFFIX := $(if $(TABLE_TAG),_$(TABLE_TAG))
+TABLE_OPTS   := $(if $(TABLE_TAG),--tag $(TABLE_TAG))
+# $(call SWEEP_INTO,table,source,sweep arguments,sub-folder)
+SWEEP_INTO = $(SWEEP) $(TABLE_DATA) $(SOURCE_$(2)) $(3) \
+             hydra.sweep.dir=multirun/$(1)$(TABLE_SUFFIX)/$(STAMPNOW)/$(2)$(if $(4),/$(4)) $(ARGS)
+
 table-timing: install
-	$(BIN)/python -m bench.eval dataset=synthetic_360 segmenter=classical refine=student \
-	  record=false progress=false hydra.run.dir=multirun/timing/$(STAMPNOW)/0 $(ARGS)
-	$(BIN)/python -m bench.tables timing
+	$(BIN)/python -m bench.eval $(TABLE_TIMING_DATA) segmenter=classical refine=student \
+	  record=false progress=false \
+	  hydra.run.dir=multirun/timing$(TABLE_SUFFIX)/$(STAMPNOW)/0 $(ARGS)
+	$(BIN)/python -m bench.tables timing $(TABLE_OPTS)
 
 table-masks: install
-	$(SWEEP) dataset=synthetic_360_hd consensus.num_masks=1,3,6,12,25,50,100,null \
-	  hydra.sweep.dir=multirun/masks/$(STAMPNOW) $(ARGS)
-	$(BIN)/python -m bench.tables masks
+	$(foreach s,$(MASK_SOURCES),$(SWEEP) $(TABLE_DATA_MASKS) $(SOURCE_$(s)) \
+	  consensus.num_masks=1,3,6,12,25,50,100,null \
+	  hydra.sweep.dir=multirun/masks$(TABLE_SUFFIX)/$(STAMPNOW)/$(s) $(ARGS) &&) true
+	$(BIN)/python -m bench.tables masks $(TABLE_OPTS)
 
 table-ablation: install
-	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus=rgc,flashsplat,weighted_mean \
-	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/methods $(ARGS)
-	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.eps=0.001,0.1,0.5 \
-	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/eps $(ARGS)
-	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.delta=0.5,1,4,8 \
-	  hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/delta $(ARGS)
-	$(SWEEP) dataset=synthetic_360 segmenter=oracle_noisy consensus.min_votes=3,10 \
-	  consensus.margin=0,0.5 hydra.sweep.dir=multirun/ablation/$(STAMPNOW)/votes $(ARGS)
-	$(BIN)/python -m bench.tables ablation
+	$(foreach s,$(SOURCES),\
+	  $(call SWEEP_INTO,ablation,$(s),consensus=rgc$(COMMA)flashsplat$(COMMA)weighted_mean,methods) && \
+	  $(call SWEEP_INTO,ablation,$(s),consensus.eps=0.001$(COMMA)0.1$(COMMA)0.5,eps) && \
+	  $(call SWEEP_INTO,ablation,$(s),consensus.delta=0.5$(COMMA)1$(COMMA)4$(COMMA)8,delta) && \
+	  $(call SWEEP_INTO,ablation,$(s),consensus.min_votes=3$(COMMA)10 \
+	    consensus.margin=0$(COMMA)0.5,votes) &&) true
+	$(BIN)/python -m bench.tables ablation $(TABLE_OPTS)
 
+# corrupt.* degrades any source's masks by the same seeded rules (sagonline/segmenters/corruption.py)
 table-robustness: install
-	$(SWEEP) dataset=synthetic_360 segmenter=oracle segmenter.boundary_px=0,2,4 \
-	  segmenter.flicker=0,0.1,0.3 hydra.sweep.dir=multirun/robustness/$(STAMPNOW) $(ARGS)
-	$(BIN)/python -m bench.tables robustness
+	$(foreach s,$(ROBUST_SOURCES),$(call SWEEP_INTO,robustness,$(s),\
+	  corrupt.boundary_px=0$(COMMA)2$(COMMA)4 corrupt.flicker=0$(COMMA)0.1$(COMMA)0.3) &&) true
+	$(BIN)/python -m bench.tables robustness $(TABLE_OPTS)
 
 tables: table-timing table-masks table-ablation table-robustness

@@ -23,6 +23,7 @@ from sagonline.datasets.configs import DATASET_CONFIGS
 from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
+from sagonline.segmenters.corruption import MaskCorruption
 
 
 @dataclass
@@ -60,6 +61,8 @@ class EvalConfig:
     """The dataset group (conf/dataset/): `name`, `root` and the `adapter` plug-in."""
     segmenter: Any = MISSING
     """The segmenter group (conf/segmenter/): `name` and the plug-in's `_target_` and settings."""
+    corrupt: MaskCorruption = field(default_factory=MaskCorruption)
+    """Corrupt any segmenter's masks before they vote (robustness studies; off by default)."""
     consensus: VoteConfig = field(default_factory=VoteConfig)
     renderer: RendererConfig = field(default_factory=RendererConfig)
     refine: RefineStage = field(default_factory=lambda: RefineStage(enabled=False))

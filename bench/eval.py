@@ -54,6 +54,7 @@ from sagonline.predictions import write_scoring_rules
 from sagonline.provenance import digest_file, git_state
 from sagonline.recording import Recorder
 from sagonline.render.api import resolve_backend
+from sagonline.segmenters.corruption import CorruptedSegmenter, MaskCorruption
 
 log = logging.getLogger("sagonline.eval")
 
@@ -82,7 +83,7 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
     refine_cfg = refine_config_from(cfg)
     seed_everything(cfg.seed)
     set_threads(cfg)
-    run = prepare_segmenter(cfg.segmenter)
+    run = prepare_segmenter(cfg.segmenter, cfg.corrupt)
     vote_cfg, weights = cfg.consensus, run.weights
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
@@ -134,10 +135,14 @@ def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
     return (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache").resolve()
 
 
-def prepare_segmenter(node: dict) -> SegmenterRun:
-    """The segmenter built, its checkpoints opened and digested, before anything is rendered."""
+def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> SegmenterRun:
+    """The segmenter built (its answers corrupted where `corrupt` is active), its checkpoints
+    opened and digested, before anything is rendered."""
     segmenter = build_plugin(node, "segmenter")
     try:
+        corruption = MaskCorruption(**corrupt) if isinstance(corrupt, dict) else corrupt
+        if corruption is not None and corruption.active:
+            segmenter = CorruptedSegmenter(segmenter, corruption)
         segmenter.check()
         weights = {f: digest_file(f) for f in segmenter.weight_files()}
     except (ValueError, RuntimeError, OSError) as exc:
@@ -145,6 +150,8 @@ def prepare_segmenter(node: dict) -> SegmenterRun:
         raise SystemExit(2) from None
     settings = plugin_kwargs(node)
     settings.pop("device", None)  # the frames' key already holds the device
+    if isinstance(segmenter, CorruptedSegmenter):
+        settings.update(segmenter.settings())
     return SegmenterRun(segmenter, settings, weights)
 
 

@@ -5,9 +5,12 @@ NAME is one of:
 - masks: 3D aggregation time and mIoU against the number of voting masks (+ two PNG plots);
 - ablation: the vote settings (eps, delta, min votes, margin) and RGC against the baselines;
 - robustness: fused mIoU against segmenter corruption (boundary noise x flicker).
-Without SWEEP_DIR the newest folder under multirun/<NAME>/ (or runs/<NAME>/) is used. Each
-table lands in reports/<NAME>.md and .csv, headed by the device, torch version and the exact
-command-line overrides of every row.
+Without SWEEP_DIR the newest folder under multirun/<NAME>/ (or runs/<NAME>/) is used; with
+`--tag T` (e.g. mold_cape) the newest under multirun/<NAME>_T/, and the table is
+reports/<NAME>_T.md. Each table lands in reports/ as .md and .csv, headed by the device, the load
+average at the end of its jobs (what else ran), the protocol id and the exact command-line
+overrides of every row. A sweep may hold several segmenters (one sub-folder each): their rows
+sit side by side, never averaged.
 """
 
 from __future__ import annotations
@@ -26,6 +29,7 @@ PAPER_MASK_MS = {1: 111, 3: 114, 6: 140, 12: 162, 25: 224, 50: 384, 100: 571, 20
 
 
 def newest(name: str) -> Path:
+    """The newest sweep folder of `name` (a table's name, with its tag)."""
     for base in (ROOT / "multirun" / name, ROOT / "runs" / name):
         dirs = sorted(p for p in base.glob("*") if p.is_dir()) if base.exists() else []
         if dirs:
@@ -44,10 +48,30 @@ def load_runs(sweep: Path) -> list[dict]:
         if "overrides" not in m:
             m["overrides"] = ["(overrides not recorded: run made before provenance)"]
         m["_dir"] = str(path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else path.parent)
+        m["_heldout"] = heldout_miou(path.parent / "per_view.csv")
         runs.append(m)
     if not runs:
         raise SystemExit(f"{sweep}: no finished jobs (metrics.json) yet")
     return runs
+
+
+def heldout_miou(per_view: Path) -> dict[str, float | None]:
+    """Scene -> mean IoU of the scored views whose masks did not vote (initial answers); None
+    where every scored view voted. per_view.csv: one row per scene, view and mode."""
+    if not per_view.exists():
+        return {}
+    df = pd.read_csv(per_view)
+    if "voted" not in df or "mode" not in df:
+        return {}
+    held = df[(df["mode"] == "initial") & (~df["voted"].astype(bool))]
+    out = {scene: None for scene in df["scene"].astype(str).unique()}
+    out.update(held.groupby(held["scene"].astype(str))["iou"].mean().to_dict())
+    return out
+
+
+def _heldout_mean(m: dict) -> float | None:
+    vals = [v for v in m.get("_heldout", {}).values() if v is not None]
+    return sum(vals) / len(vals) if vals else None
 
 
 def pct(v):
@@ -88,17 +112,19 @@ def masks_rows(runs):
             rows.append(
                 {
                     "scene": s["scene"],
+                    "segmenter": m["segmenter"],
                     "num_masks": n,
                     "aggregation_ms": 1000 * s["timings"]["vote_s"],
                     "ms_per_mask": s["timings"]["vote_ms_per_mask"],
                     "mIoU": pct(s.get("miou")),
+                    "heldout_mIoU": pct(m["_heldout"].get(str(s["scene"]))),
                     "labels3d_acc": pct((s.get("labels3d") or {}).get("accuracy")),
                     "coverage": pct((s.get("labels3d") or {}).get("coverage")),
                     "paper_ms (RTX 4090)": PAPER_MASK_MS.get(n),
                     "overrides": " ".join(m.get("overrides", [])),
                 }
             )
-    return pd.DataFrame(rows).sort_values(["scene", "num_masks"])
+    return pd.DataFrame(rows).sort_values(["scene", "segmenter", "num_masks"])
 
 
 def ablation_rows(runs):
@@ -115,33 +141,45 @@ def ablation_rows(runs):
                 "segmenter": m["segmenter"],
                 "segmenter_mIoU": pct(m.get("segmenter_miou")),
                 "mIoU": pct(m.get("miou")),
+                "heldout_mIoU": pct(_heldout_mean(m)),
                 "mAcc": pct(m.get("macc")),
                 "labels3d_acc": pct(_mean3d(m, "accuracy")),
                 "coverage": pct(_mean3d(m, "coverage")),
                 "overrides": " ".join(m.get("overrides", [])),
             }
         )
-    return pd.DataFrame(rows).sort_values(["method", "eps", "delta", "min_votes", "margin"])
+    keys = ["segmenter", "method", "eps", "delta", "min_votes", "margin"]
+    return pd.DataFrame(rows).sort_values(keys)
 
 
 def robustness_rows(runs):
     rows = []
     for m in runs:
-        seg = m["config"]["segmenter"]
+        seg = corruption_of(m["config"])
         rows.append(
             {
+                "segmenter": m["segmenter"],
                 "boundary_px": seg.get("boundary_px"),
                 "flicker": seg.get("flicker"),
                 "swap": seg.get("swap"),
                 "blob_rate": seg.get("blob_rate"),
                 "segmenter_mIoU": pct(m.get("segmenter_miou")),
                 "fused_mIoU": pct(m["miou"]),
+                "heldout_mIoU": pct(_heldout_mean(m)),
                 "gain": round(100 * (m["miou"] - m["segmenter_miou"]), 2),
                 "labels3d_acc": pct(_mean3d(m, "accuracy")),
                 "overrides": " ".join(m.get("overrides", [])),
             }
         )
-    return pd.DataFrame(rows).sort_values(["boundary_px", "flicker"])
+    return pd.DataFrame(rows).sort_values(["segmenter", "boundary_px", "flicker"])
+
+
+def corruption_of(config: dict) -> dict:
+    """The corruption a run applied, key by key: `corrupt.*` (any segmenter) where set, else
+    the oracle's own setting (`segmenter.boundary_px=...`), else 0."""
+    corrupt, segmenter = config.get("corrupt") or {}, config["segmenter"]
+    keys = ("boundary_px", "flicker", "swap", "blob_rate", "drop")
+    return {k: corrupt.get(k) or segmenter.get(k) or 0 for k in keys}
 
 
 def _mean3d(m, key):
@@ -149,7 +187,9 @@ def _mean3d(m, key):
     return sum(vals) / len(vals) if vals else None
 
 
-def plot_masks(df: pd.DataFrame, out: Path) -> list[Path]:
+def plot_masks(df: pd.DataFrame, out: Path, pattern: str = "masks_{}") -> list[Path]:
+    """Two PNGs (mIoU and aggregation time against the mask count): `pattern` with "miou" and
+    "time" in the place of {}."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -157,12 +197,12 @@ def plot_masks(df: pd.DataFrame, out: Path) -> list[Path]:
 
     paths = []
     for col, label, stem in (
-        ("mIoU", "mIoU (%) at held-out views", "masks_miou"),
-        ("aggregation_ms", "3D aggregation time (ms)", "masks_time"),
+        ("mIoU", "mIoU (%) at the scored views", pattern.format("miou")),
+        ("aggregation_ms", "3D aggregation time (ms)", pattern.format("time")),
     ):
         fig, ax = plt.subplots(figsize=(5, 3.5), dpi=120)
-        for scene, part in df.groupby("scene"):
-            ax.plot(part["num_masks"], part[col], "o-", label=scene)
+        for (scene, segmenter), part in df.groupby(["scene", "segmenter"]):
+            ax.plot(part["num_masks"], part[col], "o-", label=f"{scene} ({segmenter})")
         if col == "aggregation_ms":
             ax.plot(
                 list(PAPER_MASK_MS),
@@ -207,7 +247,20 @@ def protocol_of(run: dict) -> str:
     return run.get("protocol_id") or f"{run['dataset']}/unversioned"
 
 
-def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
+def load_text(runs: list[dict]) -> str:
+    """The 1-minute load averages recorded at the end of the jobs, against their threads."""
+    loads = [m["device"].get("load_average_1m") for m in runs]
+    loads = [v for v in loads if v is not None]
+    if not loads:
+        return "not recorded"
+    threads = sorted({m["device"].get("torch_threads") for m in runs} - {None})
+    return (
+        f"{min(loads):.2f}-{max(loads):.2f} (1 min, at the end of each job; the jobs' own "
+        f"threads: {', '.join(map(str, threads)) or '?'}; above that, something else ran)"
+    )
+
+
+def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataFrame:
     runs = load_runs(sweep)
     protocols = sorted({protocol_of(m) for m in runs})
     if len(protocols) > 1:  # rows of one table are compared and averaged: one protocol only
@@ -224,6 +277,7 @@ def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
         f"- sweep: `{sweep.relative_to(ROOT) if sweep.is_relative_to(ROOT) else sweep}`"
         f" ({len(runs)} jobs)",
         f"- device: {'; '.join(devices)}",
+        f"- load average: {load_text(runs)}",
         f"- dataset: {first['dataset']}, protocol: `{protocols[0]}`, renderer: "
         f"{first['renderer']}, resize rule: {first['resize_rule']}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
@@ -232,10 +286,12 @@ def build(name: str, sweep: Path, out: Path) -> pd.DataFrame:
     ]
     body = df.to_markdown(index=False, floatfmt=".4g")
     out.mkdir(parents=True, exist_ok=True)
-    plots = plot_masks(df, out) if name == "masks" else []
+    stem = f"{name}_{tag}" if tag else name
+    pattern = "masks_{}" + (f"_{tag}" if tag else "")
+    plots = plot_masks(df, out, pattern) if name == "masks" else []
     images = "".join(f"\n![{p.stem}]({p.name})\n" for p in plots)
-    atomic_write_text(out / f"{name}.csv", df.to_csv(index=False))
-    atomic_write_text(out / f"{name}.md", "\n".join(header) + body + "\n" + images)
+    atomic_write_text(out / f"{stem}.csv", df.to_csv(index=False))
+    atomic_write_text(out / f"{stem}.md", "\n".join(header) + body + "\n" + images)
     return df
 
 
@@ -244,11 +300,13 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("name", choices=sorted(BUILDERS))
     ap.add_argument("sweep", nargs="?", type=Path)
     ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    ap.add_argument("--tag", help="the sweep's and the table's suffix, e.g. mold_cape")
     args = ap.parse_args(argv)
-    sweep = args.sweep or newest(args.name)
-    df = build(args.name, sweep.resolve(), args.out)
+    stem = f"{args.name}_{args.tag}" if args.tag else args.name
+    sweep = args.sweep or newest(stem)
+    df = build(args.name, sweep.resolve(), args.out, args.tag)
     print(df.drop(columns=["overrides"]).to_string(index=False))
-    print(f"\nwrote {args.out}/{args.name}.md and .csv")
+    print(f"\nwrote {args.out}/{stem}.md and .csv")
 
 
 if __name__ == "__main__":

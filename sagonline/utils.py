@@ -85,7 +85,8 @@ def _json_default(obj):
 
 
 def describe_device(device: str = "cpu") -> dict:
-    """CPU model and cores, or GPU name; torch version."""
+    """CPU model and cores, or GPU name; torch version; the 1-minute load average now (what
+    else ran beside a timing: about the job's own threads when nothing else did)."""
     import torch
 
     info = {
@@ -95,6 +96,8 @@ def describe_device(device: str = "cpu") -> dict:
         "cpu_cores": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
     }
+    if hasattr(os, "getloadavg"):
+        info["load_average_1m"] = round(os.getloadavg()[0], 2)
     if str(device).startswith("cuda") and torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name(torch.device(device))
     return info

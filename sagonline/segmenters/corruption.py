@@ -1,0 +1,121 @@
+"""Masks corrupted like a real model's, for robustness studies of the vote.
+
+`MaskCorruption` is what the oracle applies to the ground truth (`segmenter=oracle
+segmenter.flicker=...`) and what `corrupt.*` applies to any segmenter's answers
+(`CorruptedSegmenter`), so a real segmenter's masks can be degraded by the same rules.
+
+Corruptions (all seeded, applied in this order per frame):
+- boundary: each object's mask eroded or dilated by up to `boundary_px` px (sign per frame);
+- flicker: with probability `flicker`, a frame's object is replaced by its neighbour label
+  (a wrong id for the whole frame, as trackers do when they lose an object; with one object
+  the neighbour is the background, so the object vanishes from the frame);
+- swap: with probability `swap`, two object ids trade places in the frame;
+- blobs: with probability `blob_rate`, a false-positive ellipse of a random object id;
+- drop: with probability `drop`, the frame comes back empty (all background).
+"""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass
+
+import cv2
+import numpy as np
+
+from sagonline.prompts import Prompt
+from sagonline.segmenters.base import VideoSegmenter
+
+
+@dataclass
+class MaskCorruption:
+    """How masks are corrupted (all off by default); `seed` seeds one generator per video."""
+
+    boundary_px: int = 0
+    flicker: float = 0.0
+    swap: float = 0.0
+    blob_rate: float = 0.0
+    blob_radius: float = 0.08
+    """A blob's radius as a fraction of the frame's shorter side."""
+    drop: float = 0.0
+    seed: int = 0
+
+    def __post_init__(self):
+        for name in ("flicker", "swap", "blob_rate", "drop"):
+            p = getattr(self, name)
+            if not 0.0 <= p <= 1.0:
+                raise ValueError(f"corruption {name} must be a probability, got {p}")
+        if self.boundary_px < 0:
+            raise ValueError(f"corruption boundary_px must be >= 0, got {self.boundary_px}")
+        self.boundary_px = int(self.boundary_px)
+
+    @property
+    def active(self) -> bool:
+        return bool(self.boundary_px or self.flicker or self.swap or self.blob_rate or self.drop)
+
+    def apply(self, masks: list[np.ndarray], num_labels: int) -> list[np.ndarray]:
+        """masks: T label maps (H, W) in video order -> T corrupted int64 maps (one seeded
+        generator runs through the video, so a result depends on the frames' order)."""
+        rng = np.random.default_rng(self.seed)
+        return [self.frame(np.asarray(m), num_labels, rng) for m in masks]
+
+    def frame(self, gt: np.ndarray, num_labels: int, rng: np.random.Generator) -> np.ndarray:
+        """One (H, W) label map corrupted with `rng` (labels 0..num_labels-1)."""
+        mask = gt.astype(np.int64).copy()
+        objects = [int(v) for v in np.unique(mask) if v != 0]
+        if self.boundary_px:
+            mask = _move_boundaries(mask, objects, self.boundary_px, rng)
+        if objects and rng.random() < self.flicker:
+            victim = int(rng.choice(objects))
+            other = victim % (num_labels - 1) + 1 if num_labels > 2 else 0
+            mask[mask == victim] = other
+        if len(objects) >= 2 and rng.random() < self.swap:
+            a, b = rng.choice(objects, size=2, replace=False)
+            ma, mb = mask == a, mask == b
+            mask[ma], mask[mb] = b, a
+        if num_labels > 1 and rng.random() < self.blob_rate:
+            h, w = mask.shape
+            r = max(2, int(self.blob_radius * min(h, w)))
+            center = (int(rng.integers(0, w)), int(rng.integers(0, h)))
+            blob = np.zeros((h, w), np.uint8)
+            cv2.ellipse(blob, center, (r, int(r * 0.7)), float(rng.uniform(0, 180)), 0, 360, 1, -1)
+            mask[blob > 0] = int(rng.integers(1, num_labels))
+        if rng.random() < self.drop:
+            mask[:] = 0
+        return mask
+
+
+def _move_boundaries(mask, objects, max_px, rng):
+    """Every object eroded or (into the background) dilated by the same 1..max_px px."""
+    k = int(rng.integers(1, max_px + 1))
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
+    grow = rng.random() < 0.5
+    out = np.zeros_like(mask) if not grow else mask.copy()
+    for obj in objects:
+        m = (mask == obj).astype(np.uint8)
+        if grow:
+            out[(cv2.dilate(m, kernel) > 0) & (out == 0)] = obj
+        else:
+            out[cv2.erode(m, kernel) > 0] = obj
+    return out
+
+
+class CorruptedSegmenter(VideoSegmenter):
+    """Any segmenter whose answers pass through a `MaskCorruption` (`corrupt.*` in bench.eval)."""
+
+    def __init__(self, inner: VideoSegmenter, corruption: MaskCorruption):
+        self.inner, self.corruption = inner, corruption
+        self.name = inner.name
+
+    def weight_files(self) -> list[str]:
+        return self.inner.weight_files()
+
+    def check(self) -> None:
+        self.inner.check()
+
+    def settings(self) -> dict:
+        """What the corruption adds to the segmenter's settings (and so to the masks' key)."""
+        return {"corrupt": asdict(self.corruption)}
+
+    def _segment(self, frames, prompt: Prompt, ground_truth):
+        answer = self.inner.segment(frames, prompt, ground_truth=ground_truth)
+        num_labels = max(prompt.num_labels, 1 + max(int(m.max()) for m in answer.masks))
+        return self.corruption.apply(answer.masks, num_labels), answer.seconds
