@@ -190,7 +190,15 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
             if refine_cfg is not None:
                 checkpoint = student_checkpoint(cache, stage_one, refine_cfg, settings)
                 run_stage_two(
-                    task, stage_one, refine_cfg, settings, report, recorder, checkpoint, out_dir
+                    task,
+                    stage_one,
+                    refine_cfg,
+                    settings,
+                    report,
+                    recorder,
+                    checkpoint,
+                    out_dir,
+                    segmenter.segmenter,
                 )
             log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
             reports.append(report)

@@ -1,9 +1,11 @@
-"""Answer label masks for any view, in whichever mode is ready.
+"""Answer label masks for any view, in the modes of the paper's Table II.
 
-Initial mode: the fused Stage I labels rendered at the view (available as soon as the vote is
-done). Refined mode: the student's answer from the view's RGB render and its coarse label
-render, once its background training has converged or spent its budget. Every answer says
-which mode produced it and how long it took.
+- coarse: the fused Stage I labels rendered at the view (ready as soon as the vote is done);
+- initial: the view's RGB render answered by the 2D video segmenter (the paper's "instant
+  response via the foundation model"; `sagonline.segmenters.novel_view`);
+- refined: the student's answer from the view's RGB render and its coarse label render, once
+  its background training has converged or spent its budget.
+Every answer says which mode produced it and how long it took, render included.
 """
 
 from __future__ import annotations
@@ -18,16 +20,22 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.refine.trainer import RefinementTrainer
 from sagonline.render.api import render, render_labels, to_uint8
+from sagonline.segmenters.novel_view import NovelViewSegmenter
+
+MODES = ("coarse", "initial", "refined")
 
 
 @dataclass
 class Answer:
     mask: np.ndarray  # (H, W) int64 labels
-    mode: str  # "initial" or "refined"
+    mode: str  # one of MODES
     ms: float
 
 
 class OnlineSegmentation:
+    """gaussians with their fused (N,) labels and (N,) labelled flags; `trainer`: the student
+    (refined mode); `segmenter`: the 2D segmenter for novel views (initial mode)."""
+
     def __init__(
         self,
         gaussians: Gaussians,
@@ -35,17 +43,22 @@ class OnlineSegmentation:
         labelled: torch.Tensor,
         num_labels: int,
         trainer: RefinementTrainer | None = None,
+        segmenter: NovelViewSegmenter | None = None,
         *,
         backend: str = "torch",
         min_weight: float = 0.2,
     ):
         self.g, self.labels, self.labelled = gaussians, labels, labelled
-        self.num_labels, self.trainer = num_labels, trainer
+        self.num_labels, self.trainer, self.segmenter = num_labels, trainer, segmenter
         self.backend, self.min_weight = backend, min_weight
 
     @property
     def mode(self) -> str:
-        return "refined" if self.trainer is not None and self.trainer.done.is_set() else "initial"
+        """The best mode ready now: refined once the student is done, else initial where a
+        segmenter answers, else coarse."""
+        if self.trainer is not None and self.trainer.done.is_set():
+            return "refined"
+        return "initial" if self.segmenter is not None else "coarse"
 
     def coarse(self, camera: Camera) -> np.ndarray:
         return (
@@ -62,16 +75,26 @@ class OnlineSegmentation:
             .numpy()
         )
 
-    def answer(self, camera: Camera, mode: str | None = None) -> Answer:
+    def rgb(self, camera: Camera) -> np.ndarray:
+        return to_uint8(render(self.g, camera, backend=self.backend).rgb)
+
+    def answer(
+        self, camera: Camera, mode: str | None = None, ground_truth: np.ndarray | None = None
+    ) -> Answer:
+        """The view's (H, W) labels in `mode` (None: `self.mode`); ground_truth is read by the
+        oracle segmenter in initial mode only."""
         mode = mode or self.mode
         start = time.perf_counter()
-        if mode == "initial":
+        if mode == "coarse":
             mask = self.coarse(camera)
+        elif mode == "initial":
+            if self.segmenter is None:
+                raise RuntimeError("no 2D segmenter to answer in initial mode")
+            mask = self.segmenter.answer(self.rgb(camera), camera, ground_truth)
         elif mode == "refined":
             if self.trainer is None:
                 raise RuntimeError("no refinement student to answer in refined mode")
-            rgb = to_uint8(render(self.g, camera, backend=self.backend).rgb)
-            mask = self.trainer.predict(rgb, self.coarse(camera))
+            mask = self.trainer.predict(self.rgb(camera), self.coarse(camera))
         else:
-            raise ValueError(f"answer mode {mode!r} is not 'initial' or 'refined'")
+            raise ValueError(f"answer mode {mode!r} is not one of {', '.join(MODES)}")
         return Answer(mask=mask, mode=mode, ms=1000 * (time.perf_counter() - start))

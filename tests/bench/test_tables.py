@@ -21,13 +21,47 @@ def test_mask_count_table_and_plots(tmp_path):
             ),
             sweep / str(i),
         )
-    df = build("masks", sweep, tmp_path / "reports")
+    df = build("masks", sweep, tmp_path / "reports", tag="syn")
     assert df["num_masks"].tolist() == [1, 8]
     assert (df["aggregation_ms"] > 0).all() and df["mIoU"].iloc[1] >= df["mIoU"].iloc[0]
-    md = (tmp_path / "reports" / "masks.md").read_text()
-    assert "device:" in md and "torch" in md and "masks_time.png" in md
-    assert (tmp_path / "reports" / "masks_miou.png").stat().st_size > 1000
-    assert len(pd.read_csv(tmp_path / "reports" / "masks.csv")) == 2
+    # synthetic eval views are never trajectory frames: every scored view is held out
+    assert df["heldout_mIoU"].tolist() == df["mIoU"].tolist()
+    md = (tmp_path / "reports" / "masks_syn.md").read_text()
+    assert "device:" in md and "torch" in md and "masks_time_syn.png" in md
+    assert "load average: " in md and "not recorded" not in md
+    assert (tmp_path / "reports" / "masks_miou_syn.png").stat().st_size > 1000
+    assert len(pd.read_csv(tmp_path / "reports" / "masks_syn.csv")) == 2
+
+
+def test_corrupt_degrades_any_segmenter_as_the_oracle_does(tmp_path):
+    """`corrupt.*` on the clean oracle gives the masks the oracle's own corruption gives, and
+    the robustness table reads the corruption from either place."""
+    sweep, common = tmp_path / "sweep", ["record=false", "dataset=synthetic_ff"]
+    own = evaluate(
+        cfg_with(*common, "segmenter.flicker=0.3", "segmenter.boundary_px=2"), sweep / "0"
+    )
+    wrapped = evaluate(
+        cfg_with(*common, "corrupt.flicker=0.3", "corrupt.boundary_px=2"), sweep / "1"
+    )
+    clean = evaluate(cfg_with(*common), tmp_path / "clean")
+    assert own["segmenter_miou"] == wrapped["segmenter_miou"] < clean["segmenter_miou"]
+    assert own["miou"] == wrapped["miou"]
+    df = build("robustness", sweep, tmp_path / "reports")
+    assert df["flicker"].tolist() == [0.3, 0.3] and df["boundary_px"].tolist() == [2, 2]
+
+
+def test_timing_rows_name_the_modes_of_old_and_new_runs():
+    from bench.tables import mode_times
+
+    new = {
+        f"{m}_ms_per_frame{s}": 1.0
+        for m in ("coarse", "initial", "refined")
+        for s in ("", "_training")
+    }
+    assert all(v == 1.0 for v in mode_times(new).values())
+    old = mode_times({"initial_ms_per_frame": 45.0, "refined_ms_per_frame": 250.0})
+    assert old["coarse_ms while training"] == 45.0 and old["refined_ms alone"] == 250.0
+    assert old["initial_ms alone"] is None and old["coarse_ms alone"] is None
 
 
 def test_same_seed_same_accuracy(tmp_path):
