@@ -282,6 +282,13 @@ def load_text(runs: list[dict]) -> str:
     )
 
 
+def renderer_text(runs: list[dict]) -> str:
+    """The renderer asked for, and the ones it resolved to (auto: native on CPU, gsplat on CUDA)."""
+    asked = sorted({str(m.get("renderer")) for m in runs})
+    used = sorted({str(m.get("renderer_resolved", m.get("renderer"))) for m in runs})
+    return ", ".join(asked) + ("" if used == asked else f" ({', '.join(used)})")
+
+
 def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataFrame:
     runs = load_runs(sweep)
     protocols = sorted({protocol_of(m) for m in runs})
@@ -300,8 +307,8 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
         f" ({len(runs)} jobs)",
         f"- device: {'; '.join(devices)}",
         f"- load average: {load_text(runs)}",
-        f"- dataset: {first['dataset']}, protocol: `{protocols[0]}`, renderer: "
-        f"{first['renderer']}, resize rule: {first['resize_rule']}",
+        f"- dataset: {first['dataset']}, protocol: `{protocols[0]}`, "
+        f"renderer: {renderer_text(runs)}, resize rule: {first['resize_rule']}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
         "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
         "",
