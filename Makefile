@@ -116,9 +116,11 @@ TABLE_OPTS   := $(if $(TABLE_TAG),--tag $(TABLE_TAG))
 SWEEP_INTO = $(SWEEP) $(TABLE_DATA) $(SOURCE_$(2)) $(3) \
              hydra.sweep.dir=multirun/$(1)$(TABLE_SUFFIX)/$(STAMPNOW)/$(2)$(if $(4),/$(4)) $(ARGS)
 
+# Its own stage cache (cache_dir=null): every stage computed and the student trained afresh,
+# never resumed finished from the shared cache, so each time in the table was measured.
 table-timing: install
 	$(BIN)/python -m bench.eval $(TABLE_TIMING_DATA) segmenter=classical refine=student \
-	  record=false progress=false \
+	  record=false progress=false cache_dir=null \
 	  hydra.run.dir=multirun/timing$(TABLE_SUFFIX)/$(STAMPNOW)/0 $(ARGS)
 	$(BIN)/python -m bench.tables timing $(TABLE_OPTS)
 
