@@ -13,8 +13,9 @@ EXTRAS := $(VENV)/.extras
 # cluster code path (submitit) run on this machine.
 LAUNCHER ?= basic
 STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
+SWEEP_CACHE = .cache/stages
 SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
-            progress=false cache_dir=.cache/stages
+            progress=false cache_dir=$(SWEEP_CACHE)
 
 .PHONY: install install-extras eval test test-fast report bench lint format clean-runs clean-cache \
         tables table-timing table-masks table-ablation table-robustness scenes
@@ -124,6 +125,9 @@ table-timing: install
 	  hydra.run.dir=multirun/timing$(TABLE_SUFFIX)/$(STAMPNOW)/0 $(ARGS)
 	$(BIN)/python -m bench.tables timing $(TABLE_OPTS)
 
+# The sweep's own stage cache: frames and masks computed once per source, and every job's vote
+# computed (and so timed) by that job, never taken from an earlier run's cache.
+table-masks: SWEEP_CACHE = multirun/masks$(TABLE_SUFFIX)/$(STAMPNOW)/cache
 table-masks: install
 	$(foreach s,$(MASK_SOURCES),$(SWEEP) $(TABLE_DATA_MASKS) $(SOURCE_$(s)) \
 	  consensus.num_masks=1,3,6,12,25,50,100,null \

@@ -4,7 +4,7 @@
 segmenter.flicker=...`) and what `corrupt.*` applies to any segmenter's answers
 (`CorruptedSegmenter`), so a real segmenter's masks can be degraded by the same rules.
 
-Corruptions (all seeded, applied in this order per frame):
+Corruptions (all seeded, each kind from its own stream, applied in this order per frame):
 - boundary: each object's mask eroded or dilated by up to `boundary_px` px (sign per frame);
 - flicker: with probability `flicker`, a frame's object is replaced by its neighbour label
   (a wrong id for the whole frame, as trackers do when they lose an object; with one object
@@ -52,42 +52,59 @@ class MaskCorruption:
         return bool(self.boundary_px or self.flicker or self.swap or self.blob_rate or self.drop)
 
     def apply(self, masks: list[np.ndarray], num_labels: int) -> list[np.ndarray]:
-        """masks: T label maps (H, W) in video order -> T corrupted int64 maps (one seeded
-        generator runs through the video, so a result depends on the frames' order)."""
-        rng = np.random.default_rng(self.seed)
-        return [self.frame(np.asarray(m), num_labels, rng) for m in masks]
+        """masks: T label maps (H, W) in video order -> T corrupted int64 maps.
 
-    def frame(self, gt: np.ndarray, num_labels: int, rng: np.random.Generator) -> np.ndarray:
-        """One (H, W) label map corrupted with `rng` (labels 0..num_labels-1)."""
+        Each kind of corruption draws from its own seeded stream, the same draws per frame
+        whatever the settings: the frames that flicker at 0.1 also flicker at 0.3, and turning
+        the boundary noise on does not change which frames flicker."""
+        streams = [np.random.default_rng([self.seed, kind]) for kind in range(len(KINDS))]
+        return [self.frame(np.asarray(m), num_labels, streams) for m in masks]
+
+    def frame(self, gt: np.ndarray, num_labels: int, streams) -> np.ndarray:
+        """One (H, W) label map corrupted (labels 0..num_labels-1); `streams`: one generator
+        per kind of corruption, in the order of KINDS."""
+        rng = dict(zip(KINDS, streams, strict=True))
         mask = gt.astype(np.int64).copy()
         objects = [int(v) for v in np.unique(mask) if v != 0]
+        size, grow = int(rng["boundary"].integers(1, 1 << 16)), rng["boundary"].random() < 0.5
         if self.boundary_px:
-            mask = _move_boundaries(mask, objects, self.boundary_px, rng)
-        if objects and rng.random() < self.flicker:
-            victim = int(rng.choice(objects))
+            mask = _move_boundaries(mask, objects, 1 + size % self.boundary_px, grow)
+        flicker, pick = rng["flicker"].random(), rng["flicker"].random()
+        if objects and flicker < self.flicker:
+            victim = objects[int(pick * len(objects))]
             other = victim % (num_labels - 1) + 1 if num_labels > 2 else 0
             mask[mask == victim] = other
-        if len(objects) >= 2 and rng.random() < self.swap:
-            a, b = rng.choice(objects, size=2, replace=False)
+        swap, pair = rng["swap"].random(), rng["swap"].permutation(max(len(objects), 2))[:2]
+        if len(objects) >= 2 and swap < self.swap:
+            a, b = objects[pair[0] % len(objects)], objects[pair[1] % len(objects)]
             ma, mb = mask == a, mask == b
             mask[ma], mask[mb] = b, a
-        if num_labels > 1 and rng.random() < self.blob_rate:
-            h, w = mask.shape
-            r = max(2, int(self.blob_radius * min(h, w)))
-            center = (int(rng.integers(0, w)), int(rng.integers(0, h)))
-            blob = np.zeros((h, w), np.uint8)
-            cv2.ellipse(blob, center, (r, int(r * 0.7)), float(rng.uniform(0, 180)), 0, 360, 1, -1)
-            mask[blob > 0] = int(rng.integers(1, num_labels))
-        if rng.random() < self.drop:
+        blob = rng["blob"].random(size=5)
+        if num_labels > 1 and blob[0] < self.blob_rate:
+            mask = _add_blob(mask, blob[1:], self.blob_radius, num_labels)
+        if rng["drop"].random() < self.drop:
             mask[:] = 0
         return mask
 
 
-def _move_boundaries(mask, objects, max_px, rng):
-    """Every object eroded or (into the background) dilated by the same 1..max_px px."""
-    k = int(rng.integers(1, max_px + 1))
+KINDS = ("boundary", "flicker", "swap", "blob", "drop")
+
+
+def _add_blob(mask, u, radius, num_labels):
+    """A false-positive ellipse; u: 4 uniforms (centre x, y, angle, label)."""
+    h, w = mask.shape
+    r = max(2, int(radius * min(h, w)))
+    centre = (int(u[0] * w), int(u[1] * h))
+    blob = np.zeros((h, w), np.uint8)
+    cv2.ellipse(blob, centre, (r, int(r * 0.7)), float(u[2] * 180), 0, 360, 1, -1)
+    out = mask.copy()
+    out[blob > 0] = 1 + int(u[3] * (num_labels - 1))
+    return out
+
+
+def _move_boundaries(mask, objects, k, grow):
+    """Every object eroded or (into the background) dilated by k px."""
     kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * k + 1, 2 * k + 1))
-    grow = rng.random() < 0.5
     out = np.zeros_like(mask) if not grow else mask.copy()
     for obj in objects:
         m = (mask == obj).astype(np.uint8)

@@ -106,3 +106,20 @@ def test_oracle_needs_ground_truth():
         OracleSegmenter().segment([np.zeros((4, 4, 3), np.uint8)], Prompt())
     with pytest.raises(ValueError, match="probability"):
         OracleSegmenter(flicker=2.0)
+
+
+def test_corruptions_are_controlled_across_settings():
+    """Each kind draws from its own stream: more flicker flickers a superset of the frames, and
+    boundary noise does not change which frames flicker (a robustness table's rows differ
+    only in what they name)."""
+    from sagonline.segmenters.corruption import MaskCorruption
+
+    gts = [_square() for _ in range(60)]
+
+    def emptied(**kw):
+        return {i for i, m in enumerate(MaskCorruption(seed=4, **kw).apply(gts, 2)) if not m.any()}
+
+    low, high = emptied(flicker=0.1), emptied(flicker=0.3)
+    assert low < high and high == emptied(flicker=0.3, boundary_px=3)
+    with pytest.raises(ValueError, match="boundary_px"):
+        MaskCorruption(boundary_px=-1)
