@@ -158,7 +158,7 @@ class RefineInputs:
 
 
 FRAMES = Stage("frames", 4, FramesInputs, render_frames)
-MASKS = Stage("masks", 4, MasksInputs, segment_frames)
+MASKS = Stage("masks", 5, MasksInputs, segment_frames)  # 5: corruption streams per kind
 VOTE = Stage("vote", 3, VoteInputs, vote)
 REFINE = Stage("refine", 3, RefineInputs, None)  # trained in the background: stage_two
 STAGES = (FRAMES, MASKS, VOTE, REFINE)  # in graph order: each reads only those before it
