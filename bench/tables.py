@@ -267,6 +267,20 @@ TITLES = {
 }
 
 
+NOTES = {
+    "timing": [
+        "- modes (the paper's Table II): coarse = the fused 3D labels rendered at the view; "
+        "initial = the view rendered and answered by the 2D segmenter (the nearest other "
+        "trajectory frame and its mask prompting a two-frame video); refined = the view "
+        "rendered and answered by the student. `alone`: each mode answering the eval views "
+        "after the student finished; `while training`: the three answering in turn while it "
+        "trained in the same process (refined then waits for the training step in flight).",
+        "- coarse_mIoU is the run's mIoU (per_view.csv's `initial` rows); initial_mIoU scores "
+        "the 2D segmenter's answers on the same views.",
+    ],
+}
+
+
 def protocol_of(run: dict) -> str:
     """A run's protocol id (runs recorded before ids existed: `<dataset>/unversioned`)."""
     return run.get("protocol_id") or f"{run['dataset']}/unversioned"
@@ -314,6 +328,7 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
         f"renderer: {renderer_text(runs)}, resize rule: {first['resize_rule']}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
         "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
+        *NOTES.get(name, []),
         "",
     ]
     body = df.to_markdown(index=False, floatfmt=".4g")
