@@ -140,9 +140,8 @@ def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> Segm
     opened and digested, before anything is rendered."""
     segmenter = build_plugin(node, "segmenter")
     try:
-        corruption = MaskCorruption(**corrupt) if isinstance(corrupt, dict) else corrupt
-        if corruption is not None and corruption.active:
-            segmenter = CorruptedSegmenter(segmenter, corruption)
+        if corrupt is not None and corrupt.active:
+            segmenter = CorruptedSegmenter(segmenter, corrupt)
         segmenter.check()
         weights = {f: digest_file(f) for f in segmenter.weight_files()}
     except (ValueError, RuntimeError, OSError) as exc:

@@ -105,11 +105,19 @@ def segmenter_miou(task: SceneTask, masks: list[np.ndarray], resize: str) -> flo
     """The 2D segmenter's own mIoU on the trajectory, where its ground truth is known."""
     if task.trajectory_gt is None:
         return None
+    return mean_iou(task, masks, task.trajectory_gt, resize)
+
+
+def mean_iou(task: SceneTask, preds: list[np.ndarray], truths: list[np.ndarray], resize: str):
+    """Mean per-view IoU of (H, W) label maps against their ground truth (an automatic
+    segmenter's ids matched to the truth's scene-wide first); None without views."""
+    if not preds:
+        return None
     if is_automatic(task):
-        masks = match_and_relabel(masks, task.trajectory_gt, resize, task.ignore_label)
+        preds = match_and_relabel(preds, truths, resize, task.ignore_label)
     ious = [
-        view_metrics(m, g, resize, task.ignore_label)["iou"]
-        for m, g in zip(masks, task.trajectory_gt, strict=True)
+        view_metrics(p, g, resize, task.ignore_label)["iou"]
+        for p, g in zip(preds, truths, strict=True)
     ]
     return float(np.mean(ious))
 

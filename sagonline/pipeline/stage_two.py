@@ -20,9 +20,8 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.datasets.base import SceneTask
-from sagonline.metrics import match_and_relabel, view_metrics
 from sagonline.pipeline.scene import PipelineSettings, StageOneOutput, nearest_frames
-from sagonline.pipeline.scoring import SceneReport, is_automatic, record_scores
+from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
 from sagonline.pipeline.stages import REFINE, RefineInputs
 from sagonline.recording import Recorder
 from sagonline.refine import RefineConfig, RefinementTrainer
@@ -63,22 +62,6 @@ def answer_while_training(
 def answer_alone(service: OnlineSegmentation, views, mode: str) -> list:
     """Each view's answer in `mode`, nothing else running in the process."""
     return [service.answer(view.camera, mode, view.gt) for view in views]
-
-
-def novel_view_miou(task: SceneTask, preds: list[np.ndarray], resize: str) -> float | None:
-    """mIoU of the initial mode's answers (the 2D segmenter on the eval views)."""
-    if not preds:
-        return None
-    if is_automatic(task):
-        preds = match_and_relabel(preds, [v.gt for v in task.eval_views], resize, task.ignore_label)
-    return float(
-        np.mean(
-            [
-                view_metrics(p, v.gt, resize, task.ignore_label)["iou"]
-                for p, v in zip(preds, task.eval_views, strict=True)
-            ]
-        )
-    )
 
 
 def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig) -> None:
@@ -175,7 +158,8 @@ def run_stage_two(
     }
     if novel is not None:
         initial = [a.mask for a in alone["initial"]]
-        report.extra["initial_mode_miou"] = novel_view_miou(task, initial, settings.resize)
+        truths = [v.gt for v in task.eval_views]
+        report.extra["initial_mode_miou"] = mean_iou(task, initial, truths, settings.resize)
     if recorder.enabled:
         ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
         frames = nearest_frames(task)
