@@ -13,6 +13,7 @@ import numpy as np
 import torch
 
 from sagonline.cameras import Camera
+from sagonline.io.images import resize_nearest
 from sagonline.prompts import ObjectPrompt, Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -82,23 +83,18 @@ class NovelViewSegmenter:
         prompt = self.view_prompt(k)
         if self.prompt.objects and not prompt.objects:  # every object lost at frame k
             return np.zeros(rgb.shape[:2], np.int64)
-        shape = rgb.shape[:2]
+        shape = tuple(rgb.shape[:2])
         frame = self.frames[k]
         if frame.shape[:2] != shape:  # the view renders at another size than the trajectory
             frame = cv2.resize(frame, shape[::-1], interpolation=cv2.INTER_AREA)
             for obj in prompt.objects:
-                obj.mask = fit_to(obj.mask.astype(np.uint8), shape).astype(bool)
+                obj.mask = resize_nearest(obj.mask.astype(np.uint8), shape).astype(bool)
                 obj.points = obj.points * np.array([shape[1], shape[0]]) / self.masks[k].shape[::-1]
         truth = None
         if self.ground_truth is not None and ground_truth is not None:
-            truth = [fit_to(self.ground_truth[k], shape), fit_to(ground_truth, shape)]
+            truth = [
+                resize_nearest(self.ground_truth[k], shape),
+                resize_nearest(ground_truth, shape),
+            ]
         result = self.segmenter.segment([frame, rgb], prompt, ground_truth=truth)
         return result.masks[1]
-
-
-def fit_to(label_map: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """A label map resized (nearest neighbour) to (H, W) `shape`."""
-    if label_map.shape == tuple(shape):
-        return label_map
-    h, w = shape
-    return cv2.resize(label_map.astype(np.int32), (w, h), interpolation=cv2.INTER_NEAREST)
