@@ -338,7 +338,7 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
     plots = plot_masks(df, out, pattern) if name == "masks" else []
     images = "".join(f"\n![{p.stem}]({p.name})\n" for p in plots)
     atomic_write_text(out / f"{stem}.csv", df.to_csv(index=False))
-    atomic_write_text(out / f"{stem}.md", "\n".join(header) + body + "\n" + images)
+    atomic_write_text(out / f"{stem}.md", "\n".join(header) + "\n" + body + "\n" + images)
     return df
 
 
