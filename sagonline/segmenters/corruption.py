@@ -27,7 +27,8 @@ from sagonline.segmenters.base import VideoSegmenter
 
 @dataclass
 class MaskCorruption:
-    """How masks are corrupted (all off by default); `seed` seeds one generator per video."""
+    """How masks are corrupted (all off by default); `seed` seeds one stream per kind of
+    corruption, run through the video."""
 
     boundary_px: int = 0
     flicker: float = 0.0
@@ -74,9 +75,11 @@ class MaskCorruption:
             victim = objects[int(pick * len(objects))]
             other = victim % (num_labels - 1) + 1 if num_labels > 2 else 0
             mask[mask == victim] = other
-        swap, pair = rng["swap"].random(), rng["swap"].permutation(max(len(objects), 2))[:2]
+        swap, first, step = rng["swap"].random(3)
         if len(objects) >= 2 and swap < self.swap:
-            a, b = objects[pair[0] % len(objects)], objects[pair[1] % len(objects)]
+            n = len(objects)
+            i = int(first * n)
+            a, b = objects[i], objects[(i + 1 + int(step * (n - 1))) % n]  # two different ids
             ma, mb = mask == a, mask == b
             mask[ma], mask[mb] = b, a
         blob = rng["blob"].random(size=5)
