@@ -61,8 +61,8 @@ def main() -> None:
     ap.add_argument("--masks", type=int, default=5)
     ap.add_argument("--out", default=str(ROOT / "reports" / "bench_contention.csv"))
     args = ap.parse_args()
+    from sagonline.machine import describe_device
     from sagonline.render.native import native_available
-    from sagonline.utils import describe_device
 
     backends = ["torch"] + (["native"] if native_available() else [])
     cores = os.cpu_count() or 1

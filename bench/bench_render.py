@@ -40,7 +40,7 @@ from sagonline.render import RasterStats, render, render_labels, vote_histogram 
 from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
 from sagonline.render.native import native_available, vote_simd  # noqa: E402
 from sagonline.scene_generator import make_scene  # noqa: E402
-from sagonline.utils import describe_device  # noqa: E402
+from sagonline.machine import describe_device  # noqa: E402
 
 
 PAPER_MS_PER_MASK = 7.1  # the paper's Table III: RTX 4090, 960x540

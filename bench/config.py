@@ -1,25 +1,29 @@
 """The typed root configs: `EvalConfig` (`python -m bench.eval`) and `ScenesConfig`
-(`python -m bench.scenes`), registered as Hydra schemas.
+(`python -m bench.scenes`), registered as Hydra schemas, and the config groups of the plug-ins.
 
 conf/eval.yaml and conf/scenes.yaml, and the groups they pick from, only select and override:
 each default is stated once, on its field below or in the library's own settings dataclasses
-(VoteConfig, RefineConfig, FeedbackConfig, FitConfig). A wrong type or an unknown key fails at
-composition, naming the key; a value out of its range fails at `to_eval_config` /
-`to_scenes_config`, the one conversion each entry point makes, before any work. Below the entry
-points nothing reads a DictConfig. Datasets and segmenters are plug-ins: their nodes stay plain
-dicts (`_target_` and the constructor's arguments) handed to `hydra.utils.instantiate`.
+(VoteConfig, RefineConfig, FeedbackConfig, FitConfig, and each plug-in's config). Segmenters
+and datasets are plug-ins (`sagonline.plugins`): every registered one is a Hydra option
+(`segmenter=<key>`, `dataset=<key>`) whose node is its typed config plus `kind` (the registry
+key) and `name` (how runs and reports name it); conf/ holds only presets and data locations.
+A wrong type or an unknown key fails at composition, naming the key, `+key=...` included; a
+value out of its range fails at `to_config`, the one conversion each entry point makes, before
+any work. Below the entry points nothing reads a DictConfig, and no object is built from a
+class name in a config: plug-ins are built from the registry by key.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import sys
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from omegaconf import MISSING, DictConfig, OmegaConf
+from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from sagonline.consensus import VoteConfig
-from sagonline.datasets.configs import DATASET_CONFIGS
 from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
@@ -58,9 +62,11 @@ class EvalConfig:
     """One evaluation: a dataset, a segmenter, the vote, optional Stage II, where outputs go."""
 
     dataset: Any = MISSING
-    """The dataset group (conf/dataset/): `name`, `root` and the `adapter` plug-in."""
+    """The dataset group: `kind` (its registry key), `name`, `root` and the `adapter`'s
+    settings (`sagonline.datasets.configs`)."""
     segmenter: Any = MISSING
-    """The segmenter group (conf/segmenter/): `name` and the plug-in's `_target_` and settings."""
+    """The segmenter group: `kind` (its registry key), `name` and its settings (each
+    segmenter's config dataclass)."""
     corrupt: MaskCorruption = field(default_factory=MaskCorruption)
     """Corrupt any segmenter's masks before they vote (robustness studies; off by default)."""
     consensus: VoteConfig = field(default_factory=VoteConfig)
@@ -95,7 +101,7 @@ class ScenesConfig:
     """`make scenes`: fit each scene of a dataset."""
 
     dataset: Any = MISSING
-    """The dataset group (conf/dataset/), whose adapter says where the captures are."""
+    """The dataset group, whose adapter says where the captures are."""
     fit: FitConfig = field(default_factory=FitConfig)
     scene: str | None = None
     """One scene of the dataset; None: all of them."""
@@ -109,10 +115,17 @@ class ScenesConfig:
     """Seeds the start points, densification noise and held-out split order."""
 
 
+# Plug-in settings of these names follow the run's own (`seed=1` reseeds every plug-in).
+ROOT_SETTINGS = {"seed": "${seed}", "device": "${device}"}
+
+
 def register_schemas() -> None:
-    """The root schemas and the groups' schemas, in Hydra's ConfigStore (the entry points
-    call this before composing; nothing registers on import)."""
+    """The root schemas, the settings groups' schemas and one option per registered plug-in,
+    in Hydra's ConfigStore (the entry points call this before composing; nothing registers on
+    import)."""
     from hydra.core.config_store import ConfigStore
+
+    from sagonline.plugins import DATASETS, SEGMENTERS
 
     store = ConfigStore.instance()
     store.store(name="eval_schema", node=EvalConfig)
@@ -121,16 +134,118 @@ def register_schemas() -> None:
     store.store(group="fit", name="schema", node=FitConfig)
     store.store(group="refine", name="schema", node=RefineStage)
     store.store(group="feedback", name="schema", node=FeedbackConfig)
-    for name, node in DATASET_CONFIGS.items():
-        store.store(group="dataset/adapter", name=name, node=node)
+    for plugin in SEGMENTERS:
+        store.store(group="segmenter", name=plugin.key, node=segmenter_node(plugin))
+    for plugin in DATASETS:
+        store.store(group="dataset", name=plugin.key, node=dataset_node(plugin))
+
+
+def follow_root(node: DictConfig) -> DictConfig:
+    """Settings named in ROOT_SETTINGS, at any depth of a plug-in's node, interpolated from the
+    run's own."""
+    for key in list(node.keys()):
+        value = node._get_node(key)
+        if isinstance(value, DictConfig):
+            follow_root(value)
+        elif key in ROOT_SETTINGS:
+            node[key] = ROOT_SETTINGS[key]
+    return node
+
+
+def segmenter_node(plugin) -> DictConfig:
+    """A segmenter's option: its typed config, `kind` and `name`."""
+    node_class = dataclasses.make_dataclass(
+        f"{plugin.config.__name__}Node",
+        [("kind", str, field(default=plugin.key)), ("name", str, field(default=plugin.key))],
+        bases=(plugin.config,),
+    )
+    return follow_root(OmegaConf.structured(node_class))
+
+
+def dataset_node(plugin) -> DictConfig:
+    """A dataset's option: `kind`, `name`, `root` (datasets/<key>) and the adapter's typed
+    settings, whose own `name` and `root` follow the dataset's."""
+    adapter = follow_root(OmegaConf.structured(plugin.config))
+    for key, value in (("root", "${dataset.root}"), ("name", "${dataset.name}")):
+        if key in adapter:
+            adapter[key] = value
+    root = "" if plugin.key == "synthetic" else f"datasets/{plugin.key}"
+    return OmegaConf.create(
+        {"kind": plugin.key, "name": plugin.key, "root": root, "adapter": adapter}
+    )
+
+
+def node_values(node: Any) -> Any:
+    """A plug-in node (config dataclasses, mappings, lists, nested) as plain dicts and lists."""
+    if dataclasses.is_dataclass(node) and not isinstance(node, type):
+        return dataclasses.asdict(node)
+    if isinstance(node, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(node, resolve=True)
+    if isinstance(node, Mapping):
+        return {k: node_values(v) for k, v in node.items()}
+    if isinstance(node, (list, tuple)):
+        return [node_values(v) for v in node]
+    return node
 
 
 def to_config(cfg: DictConfig, schema: type):
     """The composed config as `schema` (EvalConfig or ScenesConfig): the one conversion an
-    entry point makes. A value out of its range stops here, naming its key."""
+    entry point makes. A key the schema does not have (also one added with `+key=...`), a
+    value of the wrong type or out of its range stops here, naming its key. The plug-ins'
+    nodes come out as plain dicts, checked against their registered configs."""
     try:
+        refuse_unknown_keys(cfg)
         typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
-        return OmegaConf.to_object(typed)
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
+        out = OmegaConf.to_object(typed)
+        for group in ("dataset", "segmenter"):
+            if hasattr(out, group):
+                setattr(out, group, node_values(getattr(out, group)))
+        check_plugin_nodes(out)
+        return out
+    except (ValueError, TypeError, KeyError) as exc:
+        from sagonline.plugins import one_line
+
+        print(f"error: {one_line(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def refuse_unknown_keys(cfg: DictConfig, prefix: str = "") -> None:
+    """Stop on a key that a typed node of the composed config does not have. Hydra lets
+    `+key=...` add one to a typed node, and OmegaConf's conversion would then drop it: the
+    run would go on without the setting the user meant."""
+    kind = OmegaConf.get_type(cfg)
+    fields = {f.name for f in dataclasses.fields(kind)} if dataclasses.is_dataclass(kind) else None
+    for key in cfg:
+        if key == "hydra" and not prefix:
+            continue
+        name = f"{prefix}{key}"
+        if fields is not None and key not in fields:
+            raise KeyError(f"{name}: no such setting (misspelt? a '+' does not add one)")
+        value = cfg._get_node(key)
+        if isinstance(value, DictConfig) and not value._is_missing() and not value._is_none():
+            refuse_unknown_keys(value, name + ".")
+
+
+DATASET_NODE_KEYS = ("kind", "name", "root", "adapter")
+
+
+def check_plugin_nodes(cfg) -> None:
+    """The dataset's and segmenter's settings checked against their registered configs."""
+    from sagonline.plugins import DATASETS, SEGMENTERS
+
+    for group, registry in (("segmenter", SEGMENTERS), ("dataset", DATASETS)):
+        node = getattr(cfg, group, None)
+        if node is None:
+            continue
+        kind = node.get("kind")
+        if kind not in registry:
+            raise ValueError(f"{group}.kind={kind!r}: no such {registry.what} ({registry.keys()})")
+        if group == "dataset":
+            unknown = sorted(set(node) - set(DATASET_NODE_KEYS))
+            if unknown:
+                raise KeyError(f"dataset.{unknown[0]}: no such setting (dataset.adapter.* holds "
+                               "the dataset's settings)")  # fmt: skip
+        values = node["adapter"] if group == "dataset" else node
+        registry[kind].settings(
+            values, where=f"{group}" + (".adapter" if group == "dataset" else "")
+        )

@@ -15,14 +15,12 @@ from pathlib import Path
 
 import hydra
 from hydra.core.hydra_config import HydraConfig
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from bench.config import EvalConfig, register_schemas, to_config
 from bench.job import (
-    build_plugin,
+    build_dataset,
     check_device,
-    plugin_kwargs,
     refine_config_from,
     seed_everything,
     set_threads,
@@ -36,10 +34,13 @@ from bench.rundir import (
     config_fingerprint,
     finished_run,
     refuse,
+    remove_if_empty,
+    replacing,
     write_hydra_files,
 )
 from bench.runlog import FILE_ONLY, run_log
 from sagonline.datasets.base import DatasetError
+from sagonline.outputs import OutputError, RunLock
 from sagonline.pipeline import (
     STAGE_VERSIONS,
     SceneReport,
@@ -51,21 +52,32 @@ from sagonline.pipeline import (
     summarize,
 )
 from sagonline.predictions import write_scoring_rules
-from sagonline.provenance import digest_file, git_state
+from sagonline.provenance import git_state
 from sagonline.recording import Recorder
 from sagonline.render.api import resolve_backend
-from sagonline.segmenters.corruption import CorruptedSegmenter, MaskCorruption
+from sagonline.segmenters.corruption import MaskCorruption
 
 log = logging.getLogger("sagonline.eval")
 
 
 def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
-    """Run (or resume, or skip as already finished) one evaluation into `out_dir`."""
+    """Run (or resume, or skip as already finished) one evaluation into `out_dir`, holding the
+    folder's lock throughout (a second run into it is refused)."""
+    check_writable(out_dir)
+    try:
+        with RunLock(out_dir):
+            return _evaluate(cfg, out_dir)
+    except OutputError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def _evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
     check_device(cfg.device)
     settings = settings_from(cfg)
     fingerprint, flat_cfg = config_fingerprint(cfg)
+    adapter = build_dataset(cfg.dataset)
     try:
-        adapter = instantiate(cfg.dataset["adapter"])
         scenes = adapter.scene_names()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -77,9 +89,16 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
 
     check_writable(out_dir)
     for folder in ("predictions", "predictions_refined", "ground_truth"):
-        # a run over an unfinished (or overwritten) one scores every scene again: label maps of
-        # scenes it no longer has must not stay in the folders metrics.json digests
+        # a run over an unfinished one scores every scene again: label maps of scenes it no
+        # longer has must not stay in the folders metrics.json digests
         shutil.rmtree(out_dir / folder, ignore_errors=True)
+    if previous is None:
+        return _run(cfg, out_dir, adapter, scenes, settings, fingerprint)
+    with replacing(out_dir):  # overwrite=true: the old run is kept aside until this one ends
+        return _run(cfg, out_dir, adapter, scenes, settings, fingerprint)
+
+
+def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
     refine_cfg = refine_config_from(cfg)
     seed_everything(cfg.seed)
     set_threads(cfg)
@@ -136,22 +155,16 @@ def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
 
 
 def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> SegmenterRun:
-    """The segmenter built (its answers corrupted where `corrupt` is active), its checkpoints
-    opened and digested, before anything is rendered."""
-    segmenter = build_plugin(node, "segmenter")
+    """The segmenter built from the registry (its answers corrupted where `corrupt` is
+    active), its checkpoints opened and digested, before anything is rendered."""
+    from sagonline.pipeline.stages import segmenter_run
+    from sagonline.plugins import PluginError
+
     try:
-        if corrupt is not None and corrupt.active:
-            segmenter = CorruptedSegmenter(segmenter, corrupt)
-        segmenter.check()
-        weights = {f: digest_file(f) for f in segmenter.weight_files()}
-    except (ValueError, RuntimeError, OSError) as exc:
+        return segmenter_run(node, corrupt)
+    except (PluginError, ValueError, RuntimeError, OSError) as exc:
         print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    settings = plugin_kwargs(node)
-    settings.pop("device", None)  # the frames' key already holds the device
-    if isinstance(segmenter, CorruptedSegmenter):
-        settings.update(segmenter.settings())
-    return SegmenterRun(segmenter, settings, weights)
 
 
 def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg):
@@ -248,6 +261,9 @@ def main(cfg: DictConfig) -> None:
             file=sys.stderr,
         )
         raise SystemExit(130) from None
+    except SystemExit:
+        remove_if_empty(out_dir)  # a refused run leaves no folder behind
+        raise
 
 
 if __name__ == "__main__":

@@ -23,10 +23,11 @@ sys.path.insert(0, str(ROOT))
 
 
 def main() -> None:
+    from sagonline.cli.views import load_views
     from sagonline.io import read_scene
     from sagonline.recording import label_colors
     from sagonline.render.api import render, to_uint8
-    from sagonline.segment_cli import trajectory
+    from sagonline.trajectory import insert_between
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("folder")
@@ -41,7 +42,8 @@ def main() -> None:
     folder = Path(args.folder)
     info = json.loads((folder / "labels.json").read_text())
     scene = read_scene(info["scene"])
-    cams, _ = trajectory(args, scene)
+    views = load_views(args.cameras, scene, orbit=args.orbit, width=args.width, height=args.height)
+    cams = insert_between(views.cameras, args.inbetween)
     files = sorted((folder / "objects").glob("*.ply"))
     objects = [read_scene(p) for p in files]
     rest = sorted(folder.glob("scene_without_*.ply"))

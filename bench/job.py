@@ -78,40 +78,42 @@ def set_threads(cfg) -> int:
 
 def check_device(device: str) -> None:
     """Stop before any work when the requested device does not exist here."""
-    try:
-        dev = torch.device(device)
-    except RuntimeError as exc:
-        print(f"error: device={device}: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        print(
-            f"error: device={device}: CUDA is not available here (torch {torch.__version__}); "
-            "use device=cpu",
-            file=sys.stderr,
-        )
-        raise SystemExit(2)
-    if dev.type == "cuda" and dev.index is not None and dev.index >= torch.cuda.device_count():
-        print(
-            f"error: device={device}: only {torch.cuda.device_count()} CUDA device(s) here",
-            file=sys.stderr,
-        )
-        raise SystemExit(2)
-
-
-def build_plugin(node: dict, what: str):
-    """Instantiate a plug-in from its config node (`_target_` and arguments); a configuration
-    problem stops with its own message, not a trace."""
-    from hydra.errors import InstantiationException
-    from hydra.utils import instantiate
+    from sagonline.machine import check_device as check
 
     try:
-        return instantiate(plugin_kwargs(node))
-    except InstantiationException as exc:
-        cause = exc.__cause__ or exc
-        print(f"error: {what} {node.get('name', '')}: {cause}", file=sys.stderr)
+        check(device)
+    except ValueError as exc:
+        print(f"error: device={device}: {str(exc).split(': ', 1)[-1]}", file=sys.stderr)
         raise SystemExit(2) from None
 
 
-def plugin_kwargs(node: dict) -> dict:
-    """A plug-in's config without the keys that are ours, not its constructor's."""
-    return {k: v for k, v in node.items() if k != "name"}
+def build_dataset(node: dict):
+    """The dataset's adapter, built from the registry by `node['kind']` with the node's
+    `adapter` settings; a problem stops with one line naming the key."""
+    from sagonline.errors import DatasetError
+    from sagonline.plugins import DATASETS, PluginError
+
+    try:
+        return DATASETS.build(node.get("kind"), node.get("adapter") or {}, where="dataset.adapter")
+    except (PluginError, DatasetError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
+def segmenter_settings(node: dict) -> dict:
+    """A segmenter node's own settings (without `kind` and `name`)."""
+    from sagonline.plugins import NODE_KEYS
+
+    return {k: v for k, v in node.items() if k not in NODE_KEYS}
+
+
+def build_segmenter(node: dict):
+    """The segmenter, built from the registry by `node['kind']`; a problem with its settings
+    (a missing checkpoint, a value out of range) stops with one line naming the setting."""
+    from sagonline.plugins import SEGMENTERS, PluginError
+
+    try:
+        return SEGMENTERS.build(node.get("kind"), segmenter_settings(node), where="segmenter")
+    except (PluginError, ValueError, RuntimeError, OSError) as exc:
+        print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None

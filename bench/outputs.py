@@ -9,8 +9,9 @@ from pathlib import Path
 import pandas as pd
 
 from bench.runlog import FILE_ONLY
+from sagonline.files import atomic_write_json, atomic_write_text
+from sagonline.machine import describe_device
 from sagonline.pipeline import SceneReport
-from sagonline.utils import atomic_write_json, atomic_write_text, describe_device
 
 
 def write_outputs(

@@ -21,8 +21,8 @@ from PIL import Image
 
 from bench.rundir import read_run_metrics
 from sagonline.datasets.common import SCENES_ROOT
+from sagonline.files import atomic_write_image, atomic_write_text
 from sagonline.fitting import FitConfig
-from sagonline.utils import atomic_write_image, atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -9,15 +9,17 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import sys
+from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
+from sagonline.files import atomic_write_text
 from sagonline.provenance import digest_json
-from sagonline.utils import atomic_write_text
 
 
 class RunExists(SystemExit):
@@ -153,6 +155,49 @@ class SweepGuard(Callback):
                 file=sys.stderr,
             )
             raise RunExists(2)
+
+
+# What a run writes into its folder; an overwritten run keeps none of it (its own stage cache,
+# keyed by content, and the lock stay).
+KEPT_ON_OVERWRITE = (".lock", "cache")
+
+
+@contextmanager
+def replacing(out_dir: Path):
+    """overwrite=true over a finished run: the old run's files are moved aside (a hidden
+    sibling folder) before the new run writes, so the folder ends up holding nothing of the
+    old config; they are deleted once the new run has finished, and put back if it fails."""
+    aside = out_dir.parent / f".{out_dir.name}.replaced-{os.getpid()}"
+    shutil.rmtree(aside, ignore_errors=True)
+    aside.mkdir()
+    moved = [p for p in out_dir.iterdir() if p.name not in KEPT_ON_OVERWRITE]
+    for p in moved:
+        p.rename(aside / p.name)
+    try:
+        yield
+    except BaseException:
+        for p in out_dir.iterdir():
+            if p.name not in KEPT_ON_OVERWRITE:
+                shutil.rmtree(p) if p.is_dir() else p.unlink()
+        for p in aside.iterdir():
+            p.rename(out_dir / p.name)
+        aside.rmdir()
+        print(
+            f"the run failed: {out_dir} holds the finished run it was to replace", file=sys.stderr
+        )
+        raise
+    shutil.rmtree(aside, ignore_errors=True)
+
+
+def remove_if_empty(out_dir: Path) -> None:
+    """Remove a run folder that holds nothing (a refused run; its lock file aside)."""
+    try:
+        entries = [p for p in out_dir.iterdir() if p.name != ".lock"]
+        if not entries:
+            (out_dir / ".lock").unlink(missing_ok=True)
+            out_dir.rmdir()
+    except OSError:
+        pass
 
 
 def check_writable(out_dir: Path) -> None:

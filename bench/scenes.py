@@ -22,12 +22,13 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
-from hydra.utils import instantiate
 from omegaconf import DictConfig
 
 from bench.config import ScenesConfig, register_schemas, to_config
+from bench.job import build_dataset
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
+from sagonline.files import atomic_write_image
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     initial_points,
@@ -38,7 +39,6 @@ from sagonline.fitting.capture import (
 from sagonline.io.cameras import load_llff_bounds
 from sagonline.io.images import resize_nearest
 from sagonline.provenance import digest_file
-from sagonline.utils import atomic_write_image
 
 
 def output_dir(scene_dir: Path, dataset: str) -> Path:
@@ -207,8 +207,8 @@ def print_fit(scene: str, fit_cfg: FitConfig, metrics: dict, out: Path) -> None:
 @hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")
 def main(dict_cfg: DictConfig) -> None:
     cfg: ScenesConfig = to_config(dict_cfg, ScenesConfig)
+    adapter = build_dataset(cfg.dataset)
     try:
-        adapter = instantiate(cfg.dataset["adapter"])
         names = [cfg.scene] if cfg.scene else adapter.scene_names()
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)

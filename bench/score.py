@@ -1,20 +1,28 @@
-"""Score a folder of predicted label maps against a folder of ground truth, by this harness's rules.
+"""Score predicted label maps against ground truth, by this harness's rules, strictly.
 
+    python -m bench.score RUN_DIR [--predictions predictions_refined]
     python -m bench.score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--ignore LABEL]
 
 Both folders hold `<scene>/<view>.png` single-channel label maps (0 = background), as a run
 writes them (`predictions/`, `ground_truth/`; see sagonline/predictions.py): so a peer's
 predictions can be scored by our protocol, and ours by theirs. Every ground-truth view needs a
-prediction. The rules default to GT_DIR/scoring.json (a run's protocol id, resize rule and
-ignored label); flags override them. Prints per-scene and overall mIoU / mAcc (the overall
-numbers are the mean over scenes, as a run's are) and the SHA-256 of both folders, which a run's
-metrics.json records.
+prediction. The rules come from GT_DIR/scoring.json (checked against its schema: the protocol
+id, the resize rule, the ignored label), flags override them. The rules are strict:
+- sizes must match unless a resize rule is given, and aspect ratios must match always;
+- `gt_to_pred` never shrinks the ground truth to a smaller prediction;
+- a view whose ground truth is all ignored pixels is skipped and reported, never scored;
+- given a run folder (or folders inside one), the SHA-256 of both folders is compared with the
+  digests its metrics.json recorded, and the result says whether they match.
+Prints per-scene and overall mIoU / mAcc (the overall numbers are the mean over scenes, as a
+run's are).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -25,12 +33,56 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from sagonline.errors import DatasetError  # noqa: E402
-from sagonline.metrics import RESIZE_RULES, view_metrics  # noqa: E402
-from sagonline.predictions import folder_sha256, read_label_map, read_scoring_rules  # noqa: E402
+from sagonline.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
+from sagonline.predictions import SCORING_FILE, folder_sha256, read_label_map  # noqa: E402
 
 
-def score_folders(pred_dir: Path, gt_dir: Path, resize: str, ignore: int | None) -> pd.DataFrame:
-    """One row per ground-truth view: scene, view, iou, acc."""
+@dataclass(frozen=True)
+class ScoringRules:
+    """scoring.json: how a ground-truth folder is scored."""
+
+    protocol_id: str | None = None
+    resize: str | None = None
+    ignore_label: int | None = None
+
+
+def read_rules(gt_dir: Path) -> ScoringRules:
+    """GT_DIR/scoring.json checked against its schema (types and allowed values); absent: no
+    rules. A problem names the file and the key."""
+    path = gt_dir / SCORING_FILE
+    if not path.is_file():
+        return ScoringRules()
+    try:
+        raw = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise DatasetError(f"{path}: not readable JSON ({exc})") from None
+    if not isinstance(raw, dict):
+        raise DatasetError(f"{path}: holds a {type(raw).__name__}, not an object")
+    unknown = sorted(set(raw) - {"protocol_id", "resize", "ignore_label"})
+    if unknown:
+        raise DatasetError(
+            f"{path}: unknown key {unknown[0]!r} (protocol_id, resize, ignore_label)"
+        )
+    protocol, resize, ignore = (raw.get(k) for k in ("protocol_id", "resize", "ignore_label"))
+    if protocol is not None and not isinstance(protocol, str):
+        raise DatasetError(f"{path}: protocol_id must be a string, got {protocol!r}")
+    if resize is not None and resize not in RESIZE_RULES:
+        raise DatasetError(f"{path}: resize {resize!r} is not one of {sorted(RESIZE_RULES)}")
+    if ignore is not None and (isinstance(ignore, bool) or not isinstance(ignore, int)):
+        raise DatasetError(
+            f"{path}: ignore_label must be an integer (or null), got {ignore!r} "
+            f"({type(ignore).__name__})"
+        )
+    if ignore is not None and not 0 <= ignore <= 65535:
+        raise DatasetError(f"{path}: ignore_label {ignore} is not a label id in [0, 65535]")
+    return ScoringRules(protocol, resize, ignore)
+
+
+def score_folders(
+    pred_dir: Path, gt_dir: Path, resize: str | None, ignore: int | None
+) -> pd.DataFrame:
+    """One row per ground-truth view: scene, view, iou, acc (None for a skipped view), and why
+    it was skipped."""
     truths = sorted(gt_dir.glob("*/*.png"))
     if not truths:
         raise DatasetError(f"{gt_dir}: no <scene>/<view>.png label maps")
@@ -43,47 +95,105 @@ def score_folders(pred_dir: Path, gt_dir: Path, resize: str, ignore: int | None)
     rows = []
     for truth in truths:
         rel = truth.relative_to(gt_dir)
-        m = view_metrics(read_label_map(pred_dir / rel), read_label_map(truth), resize, ignore)
-        rows.append({"scene": rel.parent.name, "view": rel.stem, "iou": m["iou"], "acc": m["acc"]})
+        try:
+            m = view_metrics(read_label_map(pred_dir / rel), read_label_map(truth), resize, ignore)
+        except ScoringError as exc:
+            raise DatasetError(f"{pred_dir / rel}: {exc}") from None
+        rows.append(
+            {"scene": rel.parent.name, "view": rel.stem, "iou": m["iou"], "acc": m["acc"],
+             "skipped": m.get("skipped")}
+        )  # fmt: skip
     return pd.DataFrame(rows)
 
 
-def main(argv: list[str] | None = None) -> dict:
+def recorded_digests(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
+    """The run folder both folders sit in, and the digests its metrics.json recorded."""
+    run = gt_dir.resolve().parent
+    if pred_dir.resolve().parent != run or not (run / "metrics.json").is_file():
+        return None
+    try:
+        metrics = json.loads((run / "metrics.json").read_text())
+    except (OSError, ValueError):
+        return None
+    digests = metrics.get("sha256") if isinstance(metrics, dict) else None
+    return (run, digests) if isinstance(digests, dict) else None
+
+
+def parse(argv: list[str] | None) -> argparse.Namespace:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("pred_dir", type=Path)
-    ap.add_argument("gt_dir", type=Path)
-    ap.add_argument("--protocol", help="the protocol id to report (default: GT_DIR/scoring.json)")
+    ap.add_argument("folders", type=Path, nargs="+", help="RUN_DIR, or PRED_DIR GT_DIR")
+    ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
+    ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")
     ap.add_argument("--resize", choices=sorted(RESIZE_RULES), help="default: scoring.json's")
     ap.add_argument("--ignore", type=int, help="a ground-truth label to skip")
     args = ap.parse_args(argv)
+    if len(args.folders) == 1:
+        args.pred_dir = args.folders[0] / args.predictions
+        args.gt_dir = args.folders[0] / "ground_truth"
+    elif len(args.folders) == 2:
+        args.pred_dir, args.gt_dir = args.folders
+    else:
+        ap.error("give RUN_DIR, or PRED_DIR GT_DIR")
+    return args
+
+
+def main(argv: list[str] | None = None) -> dict:
+    args = parse(argv)
     try:
-        rules = read_scoring_rules(args.gt_dir)
-        resize = args.resize or rules.get("resize") or "pred_to_gt"
-        ignore = args.ignore if args.ignore is not None else rules.get("ignore_label")
-        protocol = args.protocol or rules.get("protocol_id") or "(unnamed)"
+        for folder in (args.pred_dir, args.gt_dir):
+            if not folder.is_dir():
+                raise DatasetError(f"{folder}: no such folder")
+        rules = read_rules(args.gt_dir)
+        resize = args.resize or rules.resize
+        ignore = args.ignore if args.ignore is not None else rules.ignore_label
+        protocol = args.protocol or rules.protocol_id or "(unnamed)"
         views = score_folders(args.pred_dir, args.gt_dir, resize, ignore)
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    scenes = views.groupby("scene")[["iou", "acc"]].mean().reset_index()
+    scored = views[views["iou"].notna()]
+    skipped = views[views["iou"].isna()]
+    if scored.empty:
+        print(f"error: {args.gt_dir}: every view's ground truth is ignored", file=sys.stderr)
+        raise SystemExit(2)
+    scenes = scored.groupby("scene")[["iou", "acc"]].mean().reset_index()
+    digests = {
+        "predictions": folder_sha256(args.pred_dir),
+        "ground_truth": folder_sha256(args.gt_dir),
+    }
     result = {
         "protocol_id": protocol,
         "miou": float(np.mean(scenes["iou"])),
         "macc": float(np.mean(scenes["acc"])),
-        "views": len(views),
-        "sha256": {
-            "predictions": folder_sha256(args.pred_dir),
-            "ground_truth": folder_sha256(args.gt_dir),
-        },
+        "views": len(scored),
+        "skipped_views": [f"{r.scene}/{r.view}" for r in skipped.itertuples()],
+        "sha256": digests,
+        "matches_run": None,
     }
-    print(f"protocol {protocol}  resize rule {resize}  ignored label {ignore}")
+    print(f"protocol {protocol}  resize rule {resize or 'none (sizes must match)'}  "
+          f"ignored label {ignore}")  # fmt: skip
     print(scenes.assign(iou=100 * scenes["iou"], acc=100 * scenes["acc"]).to_string(index=False))
     print(
         f"\noverall mIoU {100 * result['miou']:.2f}  mAcc {100 * result['macc']:.2f}  "
-        f"({len(views)} views, {len(scenes)} scenes)"
+        f"({len(scored)} views, {len(scenes)} scenes)"
     )
-    print(f"sha256 predictions {result['sha256']['predictions']}")
-    print(f"sha256 ground truth {result['sha256']['ground_truth']}")
+    if len(skipped):
+        print(f"skipped {len(skipped)} view(s) whose ground truth is all ignored pixels: "
+              + ", ".join(result["skipped_views"][:5]))  # fmt: skip
+    print(f"sha256 predictions {digests['predictions']}")
+    print(f"sha256 ground truth {digests['ground_truth']}")
+    run = recorded_digests(args.pred_dir, args.gt_dir)
+    if run is not None:
+        folder, recorded = run
+        pred_key = args.pred_dir.resolve().name
+        same = {
+            "predictions": recorded.get(pred_key) == digests["predictions"],
+            "ground_truth": recorded.get("ground_truth") == digests["ground_truth"],
+        }
+        result["matches_run"] = all(same.values())
+        for what, ok in same.items():
+            print(f"{what}: {'match' if ok else 'DO NOT MATCH'} the digest {folder}/metrics.json "
+                  "recorded")  # fmt: skip
     return result
 
 

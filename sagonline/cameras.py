@@ -104,13 +104,23 @@ class Camera:
 
 
 def make_camera(K, world_to_cam, width: int, height: int, name: str = "") -> Camera:
+    """A Camera from array-likes; the size must be two whole numbers (not flags or strings)."""
     return Camera(
-        torch.as_tensor(np.asarray(K), dtype=torch.float32),
-        torch.as_tensor(np.asarray(world_to_cam), dtype=torch.float32),
-        int(width),
-        int(height),
+        torch.as_tensor(np.asarray(K, dtype=np.float64), dtype=torch.float32),
+        torch.as_tensor(np.asarray(world_to_cam, dtype=np.float64), dtype=torch.float32),
+        whole_pixels(width, f"camera {name!r}: width"),
+        whole_pixels(height, f"camera {name!r}: height"),
         name,
     )
+
+
+def whole_pixels(value, what: str) -> int:
+    """An image size read from a file as an int; a flag, a string or a fraction is refused."""
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (Integral, float, np.floating)):
+        raise ValueError(f"{what} {value!r} is not a whole number of pixels")
+    if isinstance(value, (float, np.floating)) and not float(value).is_integer():
+        raise ValueError(f"{what} {value!r} is not a whole number of pixels")
+    return int(value)
 
 
 def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:

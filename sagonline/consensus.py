@@ -31,7 +31,7 @@ from sagonline.gaussians import Gaussians
 from sagonline.io.store import stored
 from sagonline.render.rasterize import T_STOP
 from sagonline.render.vote import vote_histogram
-from sagonline.utils import check_settings
+from sagonline.settings import check_settings
 
 METHODS = ("rgc", "flashsplat", "weighted_mean")
 

@@ -23,13 +23,39 @@ RESIZE_RULES = {
 }
 
 
-def align(pred, gt, resize: str = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:
+class ScoringError(ValueError):
+    """A prediction that cannot be scored against its ground truth by the rules given."""
+
+
+def align(pred, gt, resize: str | None = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:
+    """The prediction and the ground truth at one resolution. resize None: the sizes must
+    match. The aspect ratios must match always (a stretched prediction is not scored), and
+    `gt_to_pred` never shrinks the ground truth to a smaller prediction (a 1x1 prediction would
+    otherwise score a whole view)."""
     pred, gt = np.asarray(pred), np.asarray(gt)
+    if pred.shape == gt.shape:
+        return pred, gt
+    (ph, pw), (gh, gw) = pred.shape[:2], gt.shape[:2]
+    if resize is None:
+        raise ScoringError(
+            f"the prediction is {pw}x{ph} and the ground truth {gw}x{gh}; give a resize rule "
+            f"({', '.join(sorted(RESIZE_RULES))}) to score them at one size"
+        )
+    if resize not in RESIZE_RULES:
+        raise ScoringError(f"resize rule {resize!r} is not one of {sorted(RESIZE_RULES)}")
+    if abs(pw / ph - gw / gh) > 0.01 * (gw / gh):
+        raise ScoringError(
+            f"the prediction is {pw}x{ph} and the ground truth {gw}x{gh}: other aspect ratios "
+            f"({pw / ph:.3f} and {gw / gh:.3f}); a stretched prediction is never scored"
+        )
     if resize == "pred_to_gt":
         return resize_nearest(pred, gt.shape), gt
-    if resize == "gt_to_pred":
-        return pred, resize_nearest(gt, pred.shape)
-    raise ValueError(f"resize rule {resize!r} is not one of {sorted(RESIZE_RULES)}")
+    if ph < gh or pw < gw:
+        raise ScoringError(
+            f"gt_to_pred with a prediction ({pw}x{ph}) smaller than the ground truth ({gw}x{gh})"
+            " would score a shrunken truth; use pred_to_gt"
+        )
+    return pred, resize_nearest(gt, pred.shape)
 
 
 def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None) -> dict:
@@ -37,9 +63,13 @@ def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None
 
     pred, gt: (H, W) integer label maps, 0 = background. `ignore`: a gt value to skip (e.g. 255).
     Returns {"iou", "acc", "per_label": {label: iou}}; iou is 1.0 when neither has foreground.
+    A view whose every ground-truth pixel is ignored has nothing to score: iou and acc are None
+    and "skipped" says why (it never counts as a perfect view).
     """
     p, g = align(pred, gt, resize)
     valid = np.ones_like(g, dtype=bool) if ignore is None else g != ignore
+    if not valid.any():
+        return {"iou": None, "acc": None, "per_label": {}, "skipped": "every pixel is ignored"}
     p, g = p[valid], g[valid]
     labels = sorted(set(np.unique(g).tolist()) | set(np.unique(p).tolist()) - {0})
     labels = [lb for lb in labels if lb != 0]

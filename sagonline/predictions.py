@@ -15,14 +15,12 @@ such pair of folders by this harness's rules; `folder_sha256` is the digest metr
 from __future__ import annotations
 
 import hashlib
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 
-from sagonline.errors import DatasetError
-from sagonline.utils import atomic_write, atomic_write_json
+from sagonline.files import atomic_write, atomic_write_json
 
 SCORING_FILE = "scoring.json"
 
@@ -45,13 +43,11 @@ def write_label_map(path: Path, labels: np.ndarray) -> None:
 
 
 def read_label_map(path: Path) -> np.ndarray:
-    """A label-map PNG -> (H, W) int64 ids; a colour or unreadable file is a clear error."""
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise DatasetError(f"{path}: not a readable PNG")
-    if image.ndim != 2:
-        raise DatasetError(f"{path}: a label map has one channel (ids), this one has {image.shape}")
-    return image.astype(np.int64)
+    """A label-map PNG -> (H, W) int64 ids, through the one mask reader (`io.masks`, "ids":
+    ids are kept as they are, 8- or 16-bit); a colour or unreadable file is a clear error."""
+    from sagonline.io.masks import read_mask
+
+    return read_mask(path, "ids", max_labels=1 << 16).labels
 
 
 def folder_sha256(folder: Path) -> str:
@@ -67,13 +63,3 @@ def write_scoring_rules(folder: Path, protocol: str | None, resize: str, ignore:
     """The rules a ground-truth folder is scored by, for `bench.score`."""
     rules = {"protocol_id": protocol, "resize": resize, "ignore_label": ignore}
     atomic_write_json(folder / SCORING_FILE, rules)
-
-
-def read_scoring_rules(folder: Path) -> dict:
-    path = folder / SCORING_FILE
-    if not path.is_file():
-        return {}
-    try:
-        return json.loads(path.read_text())
-    except (OSError, json.JSONDecodeError) as exc:
-        raise DatasetError(f"{path}: not readable JSON ({exc})") from exc

@@ -103,7 +103,7 @@ def digest_file(path: str | Path) -> str:
     value = _FILE_MEMO[key] = h.hexdigest()
     memo[disk_key] = value
     try:  # best effort: a read-only home only costs a re-read next time
-        from sagonline.utils import atomic_write_text
+        from sagonline.files import atomic_write_text
 
         atomic_write_text(_memo_path(), json.dumps(memo))
     except OSError:

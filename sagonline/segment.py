@@ -21,25 +21,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from sagonline.cameras import Camera
 from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.gaussians import Gaussians
-from sagonline.pipeline.graph import StageCache, run_stage
-from sagonline.pipeline.stages import (
-    FRAMES,
-    MASKS,
-    VOTE,
-    FramesInputs,
-    MasksInputs,
-    SegmenterRun,
-    VoteInputs,
-    label_count,
-)
+from sagonline.pipeline.graph import StageCache
+from sagonline.pipeline.scene import PipelineSettings, compose_stage_one
+from sagonline.pipeline.stages import SegmenterRun
 from sagonline.prompts import ObjectPrompt, Prompt
 from sagonline.provenance import digest_file
-from sagonline.render.api import resolve_backend
 from sagonline.segmenters.base import VideoSegmenter
 
 
@@ -178,7 +168,8 @@ def segment_scene(
     progress: bool = False,
 ) -> Segmentation:
     """Render `cameras` (in the order given), segment the video from `prompt` with `segmenter`
-    (the weight-free classical one by default), vote the masks into one label per Gaussian."""
+    (the weight-free classical one by default), vote the masks into one label per Gaussian:
+    the same Stage I as an evaluation (`pipeline.compose_stage_one`)."""
     if isinstance(prompt, tuple):
         prompt, names = prompt
     if segmenter is None:
@@ -188,31 +179,24 @@ def segment_scene(
     vote = vote or VoteConfig()
     check_view(cameras, prompt.frame)
     check_cameras_see_scene(gaussians, cameras)
-    cache = StageCache(cache_dir)
-    chosen = resolve_backend(backend, device)
-    dev = torch.device(device).type
-    g = gaussians.to(device)
-    start = time.perf_counter()
-    frames, _ = run_stage(
-        FRAMES, FramesInputs(g, list(cameras), chosen, (0.0, 0.0, 0.0), dev), cache, progress
-    )
     weights = {f: digest_file(f) for f in segmenter.weight_files()}
     run = SegmenterRun(segmenter, plain_settings(segmenter), weights)
-    masks, _ = run_stage(MASKS, MasksInputs(frames, prompt, None, run, None), cache, progress)
-    num_labels = max(prompt.num_labels, len(names or []))
-    inputs = VoteInputs(masks, g, list(cameras), num_labels, vote, chosen, dev)
-    result, _ = run_stage(VOTE, inputs, cache, progress)
-    seg, v = masks.value, result.value
-    labels = torch.where(v.labelled, v.labels, torch.full_like(v.labels, -1)).cpu().numpy()
-    k = label_count(num_labels, seg.masks)
+    settings = PipelineSettings(backend=backend, device=device, progress=progress)
+    start = time.perf_counter()
+    stage_one = compose_stage_one(
+        gaussians.to(device), list(cameras), prompt, run, vote, settings,
+        num_labels=max(prompt.num_labels, len(names or [])), cache=StageCache(cache_dir),
+    )  # fmt: skip
+    frames, seg, v = stage_one.frames.value, stage_one.masks.value, stage_one.vote.value
+    k = stage_one.num_labels
     names = list(names or ["background"]) + [f"object_{i}" for i in range(len(names or [1]), k)]
     timings = {
-        "time_to_first_mask_s": frames.value.seconds_per_frame + seg.seconds[prompt.frame],
-        "render_ms_per_frame": 1000 * frames.value.seconds_per_frame,
+        "time_to_first_mask_s": frames.seconds_per_frame + seg.seconds[prompt.frame],
+        "render_ms_per_frame": 1000 * frames.seconds_per_frame,
         "segment_ms_per_frame": seg.ms_per_frame,
         "vote_s": v.stats["aggregation_s"],
         "vote_ms_per_mask": v.stats["ms_per_mask"],
         "total_s": time.perf_counter() - start,
     }
-    return Segmentation(labels.astype(np.int64), names, v, list(cameras), frames.value.images,
-                        seg.masks, timings)  # fmt: skip
+    return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
+                        frames.images, seg.masks, timings)  # fmt: skip

@@ -182,6 +182,47 @@ def ring_around(camera: Camera, center, count: int, prefix: str = "orbit") -> li
     return cams
 
 
+def orbit_around(
+    means: torch.Tensor, count: int, width: int = 640, height: int = 480, fov_deg: float = 60.0
+) -> tuple[list[Camera], str]:
+    """`count` views on a ring around a scene that comes without cameras: centred on the
+    median of the Gaussians' centres (N, 3), far enough that 90% of them fit in a
+    `fov_deg` view, 25 degrees above the ring's plane; up is the world axis along which the
+    scene is thinnest (most scenes are wider than they are tall). Returns the cameras and a
+    line that says what was chosen."""
+    pts = means.detach().double().cpu()
+    centre = pts.median(dim=0).values
+    spread = (pts.quantile(0.95, dim=0) - pts.quantile(0.05, dim=0)).numpy()
+    axis = int(np.argmin(spread))
+    up = np.eye(3)[axis]
+    reach = float((pts - centre).norm(dim=1).quantile(0.9))
+    reach = reach if reach > 0 else 1.0
+    distance = 1.15 * reach / np.sin(np.deg2rad(fov_deg) / 2)
+    focal = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2)
+    K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
+    elevation = np.deg2rad(25.0)
+    radius, lift = distance * np.cos(elevation), distance * np.sin(elevation)
+    a, b = (i for i in range(3) if i != axis)
+    c = centre.numpy()
+    from sagonline.cameras import look_at
+
+    cams = []
+    for i in range(count):
+        t = 2 * np.pi * i / count
+        eye = c.copy()
+        eye[a] += radius * np.cos(t)
+        eye[b] += radius * np.sin(t)
+        eye[axis] += lift
+        cams.append(make_camera(K, look_at(eye, c, up), width, height, f"orbit_{i:03d}"))
+    names = "xyz"
+    line = (
+        f"an orbit of {count} views around the scene ({width}x{height}, {fov_deg:g} degree "
+        f"field of view, centre {', '.join(f'{v:.3g}' for v in c)}, distance {distance:.3g}, "
+        f"up +{names[axis]})"
+    )
+    return cams, line
+
+
 def cameras_to_tensors(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
     """(C, 4, 4) world-to-camera and (C, 3, 3) intrinsics stacked."""
     return (torch.stack([c.world_to_cam for c in cameras]), torch.stack([c.K for c in cameras]))

@@ -18,7 +18,7 @@ from sagonline.scene_generator import make_scene
 ROOT = Path(__file__).resolve().parents[1]  # the repository
 CONF = str(ROOT / "conf")
 TINY = [
-    f"dataset.{s}.{k}={v}"
+    f"dataset.adapter.{s}.{k}={v}"
     for s in ("forward_single", "cluttered_360")
     for k, v in (
         ("width", 64),
@@ -168,3 +168,57 @@ def write_colmap_text(folder: Path, cams: list[Camera], scale: float = 1.0) -> N
     (folder / "cameras.txt").write_text("\n".join(cam_lines) + "\n")
     (folder / "images.txt").write_text("\n".join(image_lines) + "\n")
     (folder / "points3D.txt").write_text("")
+
+
+def write_nerf_transforms(path: Path, cams: list[Camera], names: list[str] | None = None) -> Path:
+    """A NeRF `transforms.json` of `cams` (OpenGL camera-to-world), frames named by `names`."""
+    import json
+
+    frames = []
+    for cam, name in zip(cams, names or [c.name for c in cams], strict=True):
+        c2w = torch.linalg.inv(cam.world_to_cam.double()).numpy()
+        c2w[:3, 1:3] *= -1.0  # OpenCV -> OpenGL axes
+        frames.append({"file_path": f"./images/{name}", "transform_matrix": c2w.tolist()})
+    meta = {
+        "fl_x": float(cams[0].K[0, 0]),
+        "fl_y": float(cams[0].K[1, 1]),
+        "cx": float(cams[0].K[0, 2]),
+        "cy": float(cams[0].K[1, 2]),
+        "w": cams[0].width,
+        "h": cams[0].height,
+        "frames": frames,
+    }
+    path.write_text(json.dumps(meta))
+    return path
+
+
+def own_scene(folder: Path, views: int = 8, width: int = 48, height: int = 36, seed: int = 0):
+    """A user's scene folder: point_cloud.ply, transforms.json (frames r_0 .. r_<views-1>, listed
+    in file order) and a notes.txt; returns (folder, scene, cameras in name order, the first
+    camera's ground-truth mask)."""
+    from sagonline.datasets.synthetic import gt_mask
+
+    scene = make_scene(
+        layout="forward", num_gaussians=2000, width=width, height=height,
+        num_train_views=views, num_eval_views=1, seed=seed,
+    )  # fmt: skip
+    folder.mkdir(parents=True, exist_ok=True)
+    write_ply(folder / "point_cloud.ply", scene.gaussians)
+    names = [f"r_{i}" for i in range(views)]
+    write_nerf_transforms(folder / "transforms.json", scene.train_cameras, names)
+    (folder / "notes.txt").write_text("my notes\n")
+    from sagonline.io.cameras import load_cameras
+
+    cams = load_cameras(folder / "transforms.json")
+    return folder, scene, cams, gt_mask(scene, cams[0], scene.instance, scene.num_instances)
+
+
+def tree_digest(folder: Path) -> dict[str, str]:
+    """Relative path -> sha256 of every file below `folder` (what a command may not change)."""
+    import hashlib
+
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file()
+    }

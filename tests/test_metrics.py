@@ -36,9 +36,14 @@ def test_resize_rules():
     gt[:2, :2] = 1
     pred_small = np.array([[1, 0], [0, 0]])
     assert view_metrics(pred_small, gt, "pred_to_gt")["iou"] == 1.0
-    assert view_metrics(pred_small, gt, "gt_to_pred")["iou"] == 1.0
+    pred_large = np.kron(gt, np.ones((2, 2), int))
+    assert view_metrics(pred_large, gt, "gt_to_pred")["iou"] == 1.0
+    with pytest.raises(ValueError, match="smaller than the ground truth"):
+        view_metrics(pred_small, gt, "gt_to_pred")  # never a shrunken truth
     with pytest.raises(ValueError, match="resize rule"):
         view_metrics(pred_small, gt, "bilinear")
+    with pytest.raises(ValueError, match="give a resize rule"):
+        view_metrics(pred_small, gt, None)
 
 
 def test_labels3d_metrics():

@@ -14,7 +14,7 @@ import torch
 from PIL import Image
 from plyfile import PlyData
 
-from sagonline.__main__ import main
+from sagonline.cli import main
 from sagonline.datasets.synthetic import gt_mask
 from sagonline.export import read_labels
 from sagonline.io import read_scene, write_3dgs_cameras_json, write_ply
@@ -119,9 +119,9 @@ def test_a_mask_prompt_labels_several_objects(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--click", "0:500,10"], "outside its 96x72 render"),
+        (["--click", "0:500,10"], "renders at 96x72"),
         (["--click", "99:5,5"], "view 99 is out of range"),
-        (["--click", "nosuch:5,5"], "no camera named 'nosuch'"),
+        (["--click", "nosuch:5,5"], "no view named 'nosuch'"),
         (["--click", "0:5,5:neg=lamp"], "no object 'lamp'"),
         (["--click", "0:5,5", "--click", "1:6,6"], "several views"),
         (["--mask", "0:MASK"], "mask is 10x10 but view 0"),
@@ -133,26 +133,26 @@ def test_bad_prompts_stop_before_any_work(tmp_path, args, message, capsys):
     _scene(tmp_path, "forward")
     Image.fromarray(np.zeros((10, 10), np.uint8)).save(tmp_path / "small.png")
     args = [a.replace("MASK", str(tmp_path / "small.png")) for a in args]
-    with pytest.raises(SystemExit) as exc:
-        _segment(tmp_path, *args)
-    assert message in str(exc.value), exc.value
+    assert _segment(tmp_path, *args) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
 
 
-def test_cameras_of_another_scene_are_refused(tmp_path):
+def test_cameras_of_another_scene_are_refused(tmp_path, capsys):
     sc, cams, _ = _scene(tmp_path, "forward")
     far = sc.gaussians.to("cpu")
     far.means[:] += 1000.0  # the same cameras no longer see anything of the scene
     write_ply(tmp_path / "scene.ply", far)
-    with pytest.raises(SystemExit, match="no Gaussian of the scene"):
-        _segment(tmp_path, "--click", "0:5,5")
+    assert _segment(tmp_path, "--click", "0:5,5") == 2
+    assert "no Gaussian of the scene" in capsys.readouterr().err
 
 
-def test_existing_output_is_kept_without_overwrite(clicked):
+def test_existing_output_is_kept_without_overwrite(clicked, capsys):
     tmp, _ = clicked
     before = (tmp / "out" / "labels.npy").read_bytes()
-    with pytest.raises(SystemExit, match="exists; pass --overwrite"):
-        _segment(tmp, "--click", "0:40,30")
+    assert _segment(tmp, "--click", "0:40,30") == 2
+    assert "holds an earlier output; pass --overwrite" in capsys.readouterr().err
     assert (tmp / "out" / "labels.npy").read_bytes() == before
 
 
@@ -169,8 +169,10 @@ def test_export_gives_the_runs_vote(tmp_path):
     assert done.returncode == 0, done.stderr
     for scene in metrics["scenes"]:
         key = scene["stage_keys"]["vote"]
-        vote = store.load(run / "cache" / scene["scene"] / f"vote-{key}.store")
+        entry = store.load(run / "cache" / scene["scene"] / f"vote-{key}.store")
+        assert (entry["stage"], entry["key"]) == ("vote", key)  # the entry says what it is
+        vote = entry["value"]
         want = torch.where(vote.labelled, vote.labels, torch.full_like(vote.labels, -1)).numpy()
         labels, info = read_labels(run / "export" / scene["scene"])
-        assert np.array_equal(labels, want) and info["vote_key"] == key
+        assert np.array_equal(labels, want) and info["stage_keys"]["vote"] == key
     assert json.loads((run / "export" / "forward_single" / "labels.json").read_text())["names"]

@@ -15,6 +15,7 @@ from sagonline.gaussians import Gaussians
 from sagonline.io import SceneFileError, read_scene
 from sagonline.io.cameras import load_cameras, load_llff
 from sagonline.io.images import IMAGE_SUFFIXES, list_images
+from sagonline.io.masks import MAX_LABELS, MaskFileError, read_mask
 from sagonline.prompts import ObjectPrompt, Prompt
 from sagonline.trajectory import pseudo_temporal_order
 
@@ -119,30 +120,25 @@ def scene_cameras(
     return pseudo_temporal_order(cams)
 
 
-def load_mask(path: Path, threshold: int = 127, mode: str = "binary") -> np.ndarray:
-    """A ground-truth mask as (H, W) int64.
+def load_mask(
+    path: Path, threshold: int = 127, mode: str = "binary", max_labels: int = MAX_LABELS
+) -> np.ndarray:
+    """A ground-truth mask as (H, W) int64, through the one mask reader (`io.masks`).
 
-    mode "binary": foreground where any channel exceeds `threshold` (JPEG masks need this);
-    mode "ids": the PNG's integer values are label ids (single channel or palette).
+    mode "binary": foreground where the mask's channel exceeds `threshold` (a colour mask:
+    where any channel does; JPEG masks need this); mode "ids": the file's integer values are
+    label ids (single channel or palette), below `max_labels`.
     """
-    flag = cv2.IMREAD_UNCHANGED
-    img = cv2.imread(str(path), flag)
-    if img is None:
-        raise DatasetError(f"{path}: not a readable image")
     if mode == "ids":
-        if img.ndim == 3:
-            raise DatasetError(f"{path}: label-id masks must be single-channel")
-        return img.astype(np.int64)
-    if img.ndim == 3:
-        img = img.max(axis=2)
-    top = int(img.max(initial=0))
-    if 0 < top <= threshold and np.unique(img).size <= 2:
+        return read_mask(path, "ids", max_labels=max_labels).labels
+    try:
+        return read_mask(path, "binary", threshold=threshold, colour="max").labels
+    except MaskFileError as exc:
+        if "would read as empty" not in str(exc):
+            raise
         raise DatasetError(
-            f"{path}: a binary mask whose values are only {{0, {top}}}, all at or below "
-            f"mask_threshold={threshold}, would read as empty: for 0/1 masks set "
-            "dataset.adapter.mask_threshold=0 (or label_format=ids)"
-        )
-    return (img > threshold).astype(np.int64)
+            f"{exc}: for 0/1 masks set dataset.adapter.mask_threshold=0 (or label_format=ids)"
+        ) from None
 
 
 def match_by_name(masks: list[Path], names: list[str], where: Path) -> dict[str, Path]:

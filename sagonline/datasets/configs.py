@@ -1,10 +1,12 @@
-"""One small typed config per dataset: its adapter (`_target_`) and that adapter's settings,
-each stated once, on its field (the entry points register these as Hydra schemas, so a
-dataset's YAML only says where its data is; a wrong key or type fails at composition).
+"""One small typed config per dataset, registered under its key in `plugins.DATASETS` with
+the adapter it builds; each setting is stated once, on its field. The entry points turn every
+registered dataset into a Hydra config (`dataset=<key>`, root `datasets/<key>` unless the
+config says otherwise), so a dataset needs no YAML; a YAML in conf/dataset/ only says where
+another copy of a dataset's data is (`defaults: [<key>]` and `root:`).
 
 The captures with poses and per-view label maps share one adapter (`generic.PosedMasksDataset`)
 whose settings differ per dataset only in their defaults: each dataset's config below states
-those. NVOS and SPIn-NeRF have adapters of their own.
+those. NVOS, SPIn-NeRF and the synthetic scenes have adapters of their own.
 """
 
 from __future__ import annotations
@@ -12,7 +14,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
-from sagonline.utils import check_settings
+from sagonline.plugins import DATASETS, settings_dict
+from sagonline.settings import check_settings
 
 PROMPTS = ("clicks", "text", "none")
 ORDERS = ("name", "path")
@@ -22,7 +25,6 @@ ORDERS = ("name", "path")
 class PosedMasksConfig:
     """Any capture with poses and per-view label maps (`dataset=generic`)."""
 
-    _target_: str = "sagonline.datasets.generic.PosedMasksDataset"
     root: str = "datasets/generic"
     """One scene per folder below it, or the scene folder itself."""
     name: str = "generic"
@@ -164,22 +166,23 @@ class NeRDS360Config(PosedMasksConfig):
 
 
 @dataclass
-class MoldCapeConfig(PosedMasksConfig):
-    """The real capture in ../shared/data/mold_cape: 119 object masks with LLFF poses, 24 of
-    the photographs."""
+class CaptureConfig(PosedMasksConfig):
+    """A real 360-degree capture in one layout (`dataset=capture dataset.root=PATH`): images_4/
+    (the photographs a fit sees), masks_4/ (a binary object mask per view, the ground truth),
+    poses_bounds.npy (LLFF, one row per mask). mold_cape, mother_child and duck_queen are
+    this layout; a capture of one's own is a dataset by configuration alone."""
 
-    name: str = "mold_cape"
+    name: str = "capture"
+    root: str = "datasets/capture"
     mask_dir: str = "masks_4"
-    reference: str | None = "IMG_5881"
     render_max_side: int | None = 228
-    """Render at the fitted scene's resolution; the masks are scored at 912."""
+    """Render at the fitted scene's resolution (`fit.max_side`); the masks are scored at theirs."""
 
 
 @dataclass
 class SPInNeRFConfig:
     """SPIn-NeRF: 10 scenes, every masked view scored."""
 
-    _target_: str = "sagonline.datasets.spinnerf.SPInNeRFDataset"
     root: str = "datasets/spinnerf"
     """The folder holding the scenes."""
     scenes: list[str] | None = None
@@ -197,7 +200,6 @@ class SPInNeRFConfig:
 class NVOSConfig:
     """NVOS: 8 tasks, the target view of each scored."""
 
-    _target_: str = "sagonline.datasets.nvos.NVOSDataset"
     root: str = "datasets/nvos"
     """The release's folder (labels/llff/... and the scenes)."""
     tasks: list[str] | None = None
@@ -224,15 +226,123 @@ class NVOSConfig:
     """Drop Gaussians with NaN/Inf (or overflowing) values, with a warning, instead of failing."""
 
 
-DATASET_CONFIGS = {
-    "generic": PosedMasksConfig,
-    "kitti360": KITTI360Config,
-    "udd": UDDConfig,
-    "mip360": Mip360Config,
-    "lerf_mask": LERFMaskConfig,
-    "desktop360": Desktop360Config,
-    "nerds360": NeRDS360Config,
-    "mold_cape": MoldCapeConfig,
-    "spinnerf": SPInNeRFConfig,
-    "nvos": NVOSConfig,
-}
+SYNTHETIC_LAYOUTS = ("forward", "360")
+SYNTHETIC_TASKS = ("instance", "semantic")
+MAX_SYNTHETIC_VIEWS = 2000
+MAX_SYNTHETIC_GAUSSIANS = 5_000_000
+
+
+@dataclass
+class SyntheticPreset:
+    """One generated scene (`sagonline.scene_generator.make_scene`)."""
+
+    layout: str = "360"
+    """forward: one object, cameras on a 60-degree arc (NVOS-like); 360: objects clustered
+    on a table, cameras on a full orbit (DesktopObjects-like)."""
+    task: str = "instance"
+    """instance: objects labelled 1..K; semantic: shapes labelled by class."""
+    num_objects: int = 5
+    """Objects in a 360 scene (a forward scene has one)."""
+    num_gaussians: int = 20000
+    width: int = 320
+    height: int = 240
+    num_train_views: int = 36
+    """Trajectory views (the segmenter's video)."""
+    num_eval_views: int = 8
+    """Held-out views between the trajectory views, where the labels are scored."""
+    clicks: int = 3
+    """Positive clicks per object on the first view's ground truth."""
+    seed: int = 0
+
+    def check(self, where: str) -> None:
+        """Each setting in its range (a mistyped size or count stops, naming its key)."""
+        views, n = MAX_SYNTHETIC_VIEWS, MAX_SYNTHETIC_GAUSSIANS
+        check_settings(
+            where,
+            layout=(self.layout in SYNTHETIC_LAYOUTS, self.layout, f"one of {SYNTHETIC_LAYOUTS}"),
+            task=(self.task in SYNTHETIC_TASKS, self.task, f"one of {SYNTHETIC_TASKS}"),
+            num_objects=(1 <= self.num_objects <= 9, self.num_objects, "in [1, 9]"),
+            num_gaussians=(100 <= self.num_gaussians <= n, self.num_gaussians, f"in [100, {n}]"),
+            width=(16 <= self.width <= 4096, self.width, "in [16, 4096] pixels"),
+            height=(16 <= self.height <= 4096, self.height, "in [16, 4096] pixels"),
+            num_train_views=(2 <= self.num_train_views <= views, self.num_train_views,
+                             f"in [2, {views}]"),
+            num_eval_views=(1 <= self.num_eval_views <= views, self.num_eval_views,
+                            f"in [1, {views}]"),
+            clicks=(1 <= self.clicks <= 100, self.clicks, "in [1, 100]"),
+        )  # fmt: skip
+
+
+@dataclass
+class SyntheticConfig:
+    """The embedded default: generated 2DGS scenes with per-Gaussian ground truth."""
+
+    name: str = "synthetic"
+    root: str = ""
+    """Unused: the scenes are generated."""
+    forward_single: SyntheticPreset = field(
+        default_factory=lambda: SyntheticPreset(layout="forward", num_objects=1)
+    )
+    """A forward-facing single object (NVOS-like)."""
+    cluttered_360: SyntheticPreset = field(default_factory=SyntheticPreset)
+    """A cluttered 360-degree multi-object scene (DesktopObjects-like)."""
+    scenes: list[str] | None = None
+    """The presets to run (forward_single, cluttered_360); None: both."""
+
+    def __post_init__(self) -> None:
+        for name, preset in self.presets().items():
+            preset.check(f"dataset.adapter.{name}")
+        unknown = sorted(set(self.scenes or []) - set(self.presets()))
+        check_settings(
+            "dataset.adapter",
+            scenes=(not unknown, self.scenes, f"a list of {sorted(self.presets())}"),
+        )
+
+    def presets(self) -> dict[str, SyntheticPreset]:
+        return {"forward_single": self.forward_single, "cluttered_360": self.cluttered_360}
+
+
+def _posed_masks(cfg: PosedMasksConfig):
+    """A capture with poses and per-view label maps."""
+    from sagonline.datasets.generic import PosedMasksDataset
+
+    return PosedMasksDataset(**settings_dict(cfg))
+
+
+def _nvos(cfg: NVOSConfig):
+    """NVOS: 8 tasks, the target view of each scored."""
+    from sagonline.datasets.nvos import NVOSDataset
+
+    return NVOSDataset(**settings_dict(cfg))
+
+
+def _spinnerf(cfg: SPInNeRFConfig):
+    """SPIn-NeRF: 10 scenes, every masked view scored."""
+    from sagonline.datasets.spinnerf import SPInNeRFDataset
+
+    return SPInNeRFDataset(**settings_dict(cfg))
+
+
+def _synthetic(cfg: SyntheticConfig):
+    """Generated 2DGS scenes with per-Gaussian ground truth (the embedded default)."""
+    from dataclasses import asdict
+
+    from sagonline.datasets.synthetic import SyntheticDataset
+
+    return SyntheticDataset({k: asdict(p) for k, p in cfg.presets().items()}, cfg.scenes)
+
+
+for _key, _config, _build in (
+    ("generic", PosedMasksConfig, _posed_masks),
+    ("capture", CaptureConfig, _posed_masks),
+    ("kitti360", KITTI360Config, _posed_masks),
+    ("udd", UDDConfig, _posed_masks),
+    ("mip360", Mip360Config, _posed_masks),
+    ("lerf_mask", LERFMaskConfig, _posed_masks),
+    ("desktop360", Desktop360Config, _posed_masks),
+    ("nerds360", NeRDS360Config, _posed_masks),
+    ("spinnerf", SPInNeRFConfig, _spinnerf),
+    ("nvos", NVOSConfig, _nvos),
+    ("synthetic", SyntheticConfig, _synthetic),
+):
+    DATASETS.register(_key, _config, _build, summary=(_config.__doc__ or "").split("\n")[0])

@@ -111,7 +111,7 @@ class Kitti360Labels:
     keep_classes: tuple[int, ...] = KITTI360_VEHICLES
 
     def read(self, path: Path) -> np.ndarray:
-        raw = load_mask(path, mode="ids")
+        raw = load_mask(path, mode="ids", max_labels=1 << 16)  # semanticId * 1000 + instanceId
         return np.where(np.isin(raw // 1000, self.keep_classes), raw, 0)
 
     def finish(self, maps: Maps, mask_root: Path) -> tuple[Maps, list[str]]:

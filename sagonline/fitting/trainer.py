@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from sagonline.cameras import Camera
+from sagonline.files import atomic_write_json
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.losses import (
     anisotropy_penalty,
@@ -49,7 +50,6 @@ from sagonline.io import store, write_ply
 from sagonline.io.cameras import write_3dgs_cameras_json
 from sagonline.provenance import digest_file
 from sagonline.render.api import render
-from sagonline.utils import atomic_write_json
 
 
 def on_one_torch_thread(method):

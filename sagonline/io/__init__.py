@@ -2,7 +2,7 @@
 
 from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.io.images import IMAGE_SUFFIXES, list_images, resize_nearest
-from sagonline.io.ply import SceneFileError, read_scene, write_ply
+from sagonline.io.ply import SceneFileError, read_scene, scene_file, write_ply
 from sagonline.io.splat import read_splat
 
 __all__ = [
@@ -13,6 +13,7 @@ __all__ = [
     "load_cameras",
     "read_scene",
     "read_splat",
+    "scene_file",
     "resize_nearest",
     "write_3dgs_cameras_json",
     "write_ply",

@@ -13,7 +13,7 @@ from sagonline.cameras import Camera, intrinsics, make_camera
 from sagonline.errors import CameraFileError
 from sagonline.io.colmap import is_colmap_dir, load_colmap, read_colmap_points
 from sagonline.io.llff import load_llff, load_llff_bounds, read_npy, read_poses_bounds
-from sagonline.io.pose import checked_camera, invert_pose
+from sagonline.io.pose import check_count, check_unique_names, checked_camera, invert_pose
 
 __all__ = [
     "CameraFileError",
@@ -39,15 +39,20 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     `Ks`, `width`, `height`. A JSON file is read as NeRF or 3DGS by its content, whatever its
     name. A dataset folder is searched for those in that order. Every camera is validated
     (finite values, positive focal lengths and size, a rotation in the pose): any problem
-    raises CameraFileError naming the file.
+    raises CameraFileError naming the file. Names must be unique.
+
+    The cameras come back **sorted by name**: the one order every command numbers views in
+    (`sagonline cameras` prints it), whatever order the file lists them in.
     """
     path = Path(path)
     try:
-        return _load_cameras(path, **kwargs)
+        cams = _load_cameras(path, **kwargs)
     except CameraFileError:
         raise
     except (ValueError, TypeError, KeyError, IndexError, np.linalg.LinAlgError) as exc:
         raise CameraFileError(f"{path}: {exc}") from exc
+    check_unique_names(cams, path)
+    return sorted(cams, key=lambda c: c.name)
 
 
 CAMERA_FILES = (
@@ -70,6 +75,12 @@ def camera_source(path: str | Path) -> Path:
         found = path / candidate
         if found.exists() and (not found.is_dir() or is_colmap_dir(found)):
             return found
+    for folder in (path, path / "sparse" / "0", path / "sparse"):
+        if any((folder / f"cameras.{ext}").exists() for ext in ("bin", "txt")):
+            raise CameraFileError(
+                f"{folder}: a COLMAP model without images.bin or images.txt: its cameras.* holds "
+                "the intrinsics only; the poses are in images.*"
+            )
     raise CameraFileError(
         f"{path}: no cameras found (looked for cameras.json, transforms.json, "
         "poses_bounds.npy, sparse/0 with cameras+images)"
@@ -112,7 +123,8 @@ def _load_cameras(path: Path, **kwargs) -> list[Camera]:
 def load_nerf_transforms(
     path: str | Path, width: int | None = None, height: int | None = None
 ) -> list[Camera]:
-    """NeRF/Blender `transforms.json`: camera-to-world in OpenGL axes (x right, y up, z back).
+    """NeRF/Blender `transforms.json`: camera-to-world in OpenGL axes (x right, y up, z back),
+    as a 4x4 or a 3x4 matrix.
 
     Focal length from `fl_x`/`fl_y` or `camera_angle_x`; size from `w`/`h` (top level or per
     frame) unless given.
@@ -122,10 +134,15 @@ def load_nerf_transforms(
         meta = json.loads(path.read_text())
     except (OSError, json.JSONDecodeError) as exc:
         raise CameraFileError(f"{path}: not a readable JSON file ({exc})") from exc
-    if "frames" not in meta or not meta["frames"]:
-        raise CameraFileError(f"{path}: no 'frames' list")
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not isinstance(frames, list) or not frames:
+        kind = type(frames).__name__ if frames is not None else "nothing"
+        raise CameraFileError(f"{path}: 'frames' must be a non-empty list of frames, got {kind}")
+    check_count(len(frames), path)
     cams = []
-    for i, frame in enumerate(meta["frames"]):
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise CameraFileError(f"{path}: frame {i} is a {type(frame).__name__}, not an object")
         info = {**meta, **frame}
         w = width or info.get("w")
         h = height or info.get("h")
@@ -133,9 +150,10 @@ def load_nerf_transforms(
             raise CameraFileError(
                 f"{path}: frame {i} has no image size ('w'/'h'); pass width/height"
             )
+        w, h = (_size(info, key, v, path, i) for key, v in (("w", w), ("h", h)))
         if "fl_x" in info:
-            fx = info["fl_x"]
-            fy = info.get("fl_y", fx)
+            fx = _number(info, "fl_x", path, i)
+            fy = _number(info, "fl_y", path, i) if "fl_y" in info else fx
         elif "camera_angle_x" in info:
             fx = 0.5 * w / np.tan(0.5 * field_of_view(info, "camera_angle_x", path, i))
             fy = fx
@@ -143,15 +161,50 @@ def load_nerf_transforms(
                 fy = 0.5 * h / np.tan(0.5 * field_of_view(info, "camera_angle_y", path, i))
         else:
             raise CameraFileError(f"{path}: frame {i} has no focal length (fl_x or camera_angle_x)")
-        cx, cy = info.get("cx", w / 2.0), info.get("cy", h / 2.0)
+        cx = _number(info, "cx", path, i) if "cx" in info else w / 2.0
+        cy = _number(info, "cy", path, i) if "cy" in info else h / 2.0
         if "transform_matrix" not in frame:
             raise CameraFileError(f"{path}: frame {i} has no transform_matrix")
-        c2w = np.asarray(frame["transform_matrix"], dtype=np.float64).reshape(4, 4)
+        c2w = pose_matrix(frame["transform_matrix"], path, i)
         c2w[:3, 1:3] *= -1.0  # OpenGL -> OpenCV axes
         name = Path(str(frame.get("file_path", f"frame_{i:05d}"))).stem
         w2c = invert_pose(c2w, path, name)
         cams.append(checked_camera(intrinsics(fx, fy, cx, cy), w2c, w, h, name, path))
     return cams
+
+
+def _number(info: dict, key: str, path: Path, frame: int) -> float:
+    value = info[key]
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise CameraFileError(f"{path}: frame {frame}: {key}={value!r} is not a number")
+    return float(value)
+
+
+def _size(info: dict, key: str, value, path: Path, frame: int) -> int:
+    from sagonline.cameras import whole_pixels
+
+    try:
+        return whole_pixels(value, f"frame {frame}: {key}")
+    except ValueError as exc:
+        raise CameraFileError(f"{path}: {exc}") from None
+
+
+def pose_matrix(value, path: Path, frame: int) -> np.ndarray:
+    """A camera-to-world pose as 4x4 (a 3x4 one gets its [0, 0, 0, 1] row)."""
+    try:
+        m = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise CameraFileError(
+            f"{path}: frame {frame}: transform_matrix is not a matrix of numbers"
+        ) from None
+    if m.shape == (3, 4):
+        m = np.vstack([m, [0.0, 0.0, 0.0, 1.0]])
+    if m.shape != (4, 4):
+        shape = "x".join(map(str, m.shape)) or "a scalar"
+        raise CameraFileError(
+            f"{path}: frame {frame}: transform_matrix is {shape}; expected 4x4 or 3x4"
+        )
+    return m
 
 
 # A pinhole sees less than 180 degrees; near it the focal length vanishes (pi gives 6e-14 px).
@@ -179,16 +232,19 @@ def load_3dgs_cameras_json(path: str | Path) -> list[Camera]:
         raise CameraFileError(f"{path}: not a readable JSON file ({exc})") from exc
     if not isinstance(entries, list) or not entries:
         raise CameraFileError(f"{path}: expected a non-empty list of cameras")
+    check_count(len(entries), path)
     cams = []
     for i, e in enumerate(entries):
+        if not isinstance(e, dict):
+            raise CameraFileError(f"{path}: camera {i} is a {type(e).__name__}, not an object")
         missing = [k for k in ("rotation", "position", "fx", "fy", "width", "height") if k not in e]
         if missing:
             raise CameraFileError(f"{path}: camera {i} lacks {missing}")
         c2w = np.eye(4)
         c2w[:3, :3] = np.asarray(e["rotation"], dtype=np.float64)
         c2w[:3, 3] = np.asarray(e["position"], dtype=np.float64)
-        w, h = int(e["width"]), int(e["height"])
-        K = intrinsics(e["fx"], e["fy"], w / 2.0, h / 2.0)
+        w, h = (_size(e, k, e[k], path, i) for k in ("width", "height"))
+        K = intrinsics(_number(e, "fx", path, i), _number(e, "fy", path, i), w / 2.0, h / 2.0)
         name = str(e.get("img_name", i))
         cams.append(checked_camera(K, invert_pose(c2w, path, name), w, h, name, path))
     return sorted(cams, key=lambda c: c.name)
@@ -211,7 +267,7 @@ def write_3dgs_cameras_json(path: str | Path, cameras: list[Camera]) -> Path:
                 "fy": float(cam.K[1, 1]),
             }
         )
-    from sagonline.utils import atomic_write_text
+    from sagonline.files import atomic_write_text
 
     return atomic_write_text(path, json.dumps(entries, indent=1))
 
@@ -223,6 +279,7 @@ def load_npz_cameras(path: str | Path) -> list[Camera]:
     for key in ("viewmats", "Ks", "width", "height"):
         if key not in z:
             raise CameraFileError(f"{path}: missing array {key!r}")
+    check_count(len(z["Ks"]), path)
     return [
         make_camera(K, vm, int(z["width"]), int(z["height"]), f"{i:05d}")
         for i, (K, vm) in enumerate(zip(z["Ks"], z["viewmats"], strict=True))

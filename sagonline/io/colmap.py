@@ -10,6 +10,7 @@ import numpy as np
 
 from sagonline.cameras import Camera, make_camera
 from sagonline.errors import CameraFileError
+from sagonline.io.pose import check_count
 
 
 def is_colmap_dir(path: Path) -> bool:
@@ -31,10 +32,12 @@ def load_colmap(sparse_dir: str | Path) -> list[Camera]:
         raise CameraFileError(
             f"{sparse_dir}: not a COLMAP model (needs cameras and images, .bin or .txt)"
         )
+    check_quaternions(sparse_dir)
     try:
         rec = pycolmap.Reconstruction(str(sparse_dir))
     except Exception as exc:
         raise CameraFileError(f"{sparse_dir}: pycolmap could not read the model ({exc})") from exc
+    check_count(len(rec.images), sparse_dir)
     cams = []
     distorted = set()
     for image in rec.images.values():
@@ -53,6 +56,50 @@ def load_colmap(sparse_dir: str | Path) -> list[Camera]:
             stacklevel=2,
         )
     return sorted(cams, key=lambda c: c.name)
+
+
+def check_quaternions(sparse_dir: Path) -> None:
+    """Refuse an image whose rotation quaternion is zero or not finite: COLMAP's reader would
+    normalise it into some rotation (identity) without a word."""
+    for name, q in raw_quaternions(sparse_dir):
+        norm = float(np.linalg.norm(q))
+        if not np.isfinite(q).all() or norm < 1e-8:
+            raise CameraFileError(
+                f"{sparse_dir}: image {name!r} has the rotation quaternion {list(q)}, which is "
+                "no rotation (zero or not finite)"
+            )
+
+
+def raw_quaternions(sparse_dir: Path):
+    """(image name, (4,) qw qx qy qz) as written in images.txt or images.bin."""
+    txt, binary = sparse_dir / "images.txt", sparse_dir / "images.bin"
+    if txt.is_file() and not binary.is_file():
+        lines = [ln for ln in txt.read_text().splitlines() if not ln.startswith("#")]
+        while lines and not lines[-1].strip():
+            lines.pop()
+        for line in lines[::2]:  # each image: a pose line, then its 2D points (maybe empty)
+            parts = line.split()
+            if len(parts) >= 10:
+                try:
+                    yield parts[9], np.array([float(v) for v in parts[1:5]])
+                except ValueError:
+                    raise CameraFileError(f"{txt}: {line[:60]!r} is not an image line") from None
+        return
+    if not binary.is_file():
+        return
+    buf = binary.read_bytes()
+    try:
+        (count,) = struct.unpack_from("<Q", buf, 0)
+        offset = 8
+        for _ in range(count):
+            q = np.array(struct.unpack_from("<4d", buf, offset + 4))
+            end = buf.index(b"\0", offset + 64)
+            name = buf[offset + 64 : end].decode(errors="replace")
+            (points,) = struct.unpack_from("<Q", buf, end + 1)
+            offset = end + 1 + 8 + 24 * points
+            yield name, q
+    except (struct.error, ValueError) as exc:
+        raise CameraFileError(f"{binary}: truncated COLMAP images file ({exc})") from None
 
 
 def read_colmap_points(sparse_dir: str | Path) -> tuple[np.ndarray, np.ndarray]:

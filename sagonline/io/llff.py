@@ -10,7 +10,7 @@ import numpy as np
 from sagonline.cameras import Camera, intrinsics
 from sagonline.errors import CameraFileError
 from sagonline.io.images import list_images
-from sagonline.io.pose import checked_camera, invert_pose
+from sagonline.io.pose import check_count, checked_camera, invert_pose
 
 
 def load_llff(
@@ -93,6 +93,7 @@ def read_poses_bounds(path: str | Path) -> np.ndarray:
     arr = read_npy(path, CameraFileError)
     if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
         raise CameraFileError(f"{path}: expected an (N, 17) array, got {arr.shape}")
+    check_count(len(arr), path)
     if not np.isfinite(arr).all():
         row = int(np.flatnonzero(~np.isfinite(arr).all(1))[0])
         raise CameraFileError(f"{path}: row {row} holds NaN/Inf")

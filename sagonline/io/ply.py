@@ -8,7 +8,6 @@ any scene that was read from a file.
 
 from __future__ import annotations
 
-import warnings
 from pathlib import Path
 
 import numpy as np
@@ -16,9 +15,10 @@ import torch
 from plyfile import PlyData, PlyElement
 
 from sagonline.errors import SceneFileError
+from sagonline.files import atomic_write
 from sagonline.gaussians import Gaussians, sh_degree_from_coeffs
 from sagonline.io.ply_rows import read_ply_header, vertex_blocks
-from sagonline.utils import atomic_write
+from sagonline.io.scene_checks import nonfinite_rows, normalize_quats
 
 _REQUIRED = [
     "x",
@@ -47,6 +47,27 @@ def read_scene(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     return read_ply(path, drop_nonfinite=drop_nonfinite)
 
 
+def scene_file(path: str | Path) -> Path:
+    """The scene file itself, or the point_cloud.ply inside a folder: the folder's own, its
+    gaussians/ one, or the latest point_cloud/iteration_*/ one (a 3DGS output folder)."""
+    path = Path(path)
+    if not path.is_dir():
+        return path
+    for candidate in (path / "point_cloud.ply", path / "gaussians" / "point_cloud.ply"):
+        if candidate.is_file():
+            return candidate
+    iterations = sorted(
+        path.glob("point_cloud/iteration_*/point_cloud.ply"),
+        key=lambda p: int("".join(filter(str.isdigit, p.parent.name)) or 0),
+    )
+    if iterations:
+        return iterations[-1]
+    raise SceneFileError(
+        f"{path}: is a folder with no point_cloud.ply (looked in it, in gaussians/ and in "
+        "point_cloud/iteration_*/); give the .ply or .splat file"
+    )
+
+
 def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     """Read the 3DGS (scale_0..2) or 2DGS (scale_0..1) `point_cloud.ply` layout.
 
@@ -55,7 +76,16 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     Values that are NaN/Inf, or that overflow float32 once activated (a log-scale above ~88.7
     or below ~-103), are refused naming the property and row, or dropped with `drop_nonfinite`.
     """
-    path = Path(path)
+    return _read_arrays(Path(path)).finish(drop_nonfinite)
+
+
+def kept_rows(path: str | Path) -> np.ndarray:
+    """(rows,) bool: the PLY rows `read_ply(path, drop_nonfinite=True)` keeps (the others hold
+    NaN/Inf or overflowing values); what carries a file's own properties over to them."""
+    return ~_read_arrays(Path(path)).bad_rows
+
+
+def _read_arrays(path: Path) -> _SceneArrays:
     if not path.is_file():
         raise SceneFileError(f"{path}: scene file not found")
     header = read_ply_header(path)
@@ -99,7 +129,7 @@ def read_ply(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     scene = _SceneArrays(path, vertex.count, layout)
     for start, block in blocks:
         scene.fill(start, block)
-    return scene.finish(drop_nonfinite)
+    return scene
 
 
 class _SceneArrays:
@@ -149,7 +179,7 @@ class _SceneArrays:
         self.sh[start:stop, 1:] = raw["rest"].reshape(c, 3, k - 1).transpose(0, 2, 1)
         self.opacities[start:stop] = _sigmoid(raw["opacity"][:, 0])
         self.scales[start:stop] = scales
-        self.quats[start:stop] = _normalize_quats(self.path, raw["quats"], "rot_0..rot_3", start)
+        self.quats[start:stop] = normalize_quats(self.path, raw["quats"], "rot_0..rot_3", start)
         if self.normals is not None:
             self.normals[start:stop] = raw["normals"]
 
@@ -163,7 +193,7 @@ class _SceneArrays:
             "normals": self.normals,
         }
         if self.bad:
-            keep = _nonfinite_rows(self.path, self.bad, self.bad_rows, drop)
+            keep = nonfinite_rows(self.path, self.bad, self.bad_rows, drop)
             arrays = {k: (v[keep] if v is not None else None) for k, v in arrays.items()}
         return Gaussians(
             **{k: torch.from_numpy(v) if v is not None else None for k, v in arrays.items()}
@@ -230,65 +260,3 @@ def _encode(activated: np.ndarray, forward, inverse) -> np.ndarray:
         best[hit] = cand[hit]
         found |= hit
     return best
-
-
-def _normalize_quats(path: Path, quats: np.ndarray, what: str, first_row: int = 0) -> np.ndarray:
-    norm = np.linalg.norm(quats.astype(np.float64), axis=1)
-    zero = norm < 1e-12
-    if zero.any():
-        rows = np.flatnonzero(zero)
-        raise SceneFileError(
-            f"{path}: {len(rows)} zero-norm quaternions in {what} "
-            f"(first at row {first_row + rows[0]})"
-        )
-    # Rows already unit to float32 precision stay as they are, so a write/read cycle is exact.
-    unit = np.abs(norm - 1.0) < 1e-6
-    out = (quats.astype(np.float64) / norm[:, None]).astype(np.float32)
-    out[unit] = quats[unit]
-    return out
-
-
-DROP_HINT = (
-    "Pass drop_nonfinite=True (command line: --drop-nonfinite; eval and make scenes: "
-    "dataset.adapter.drop_nonfinite=true) to drop them."
-)
-
-
-def _nonfinite_rows(
-    path: Path, bad: dict[str, list[int]], bad_rows: np.ndarray, drop: bool
-) -> np.ndarray:
-    """The rows to keep, or SceneFileError when dropping was not asked for. bad: property ->
-    [rows, first row] of its non-finite (or overflowing) values."""
-    prop, (count, row) = next(iter(bad.items()))
-    total, n = int(bad_rows.sum()), len(bad_rows)
-    if not drop:
-        raise SceneFileError(
-            f"{path}: property {prop!r} has NaN/Inf values or values that overflow float32 once "
-            f"activated ({count} rows, first at row {row}); {total} of {n} rows are affected in "
-            f"all. {DROP_HINT}"
-        )
-    if total == n:
-        raise SceneFileError(f"{path}: every Gaussian has NaN/Inf or overflowing values")
-    warnings.warn(f"{path}: dropped {total} of {n} Gaussians with NaN/Inf values", stacklevel=4)
-    return ~bad_rows
-
-
-def _check_finite(
-    path: Path, raw: dict[str, np.ndarray], names: dict[str, list[str]], drop: bool
-) -> dict[str, np.ndarray]:
-    """Rows of `raw` (key -> (N, C) arrays) with only finite values, or SceneFileError."""
-    n = next(iter(raw.values())).shape[0]
-    bad_rows = np.zeros(n, dtype=bool)
-    bad: dict[str, list[int]] = {}
-    for key, values in raw.items():
-        hit = ~np.isfinite(values)
-        for col in np.unique(np.nonzero(hit)[1]):
-            rows = np.flatnonzero(hit[:, col])
-            bad_rows[rows] = True
-            name = names[key][min(col, len(names[key]) - 1)]
-            entry = bad.setdefault(name, [0, int(rows[0])])
-            entry[0] += len(rows)
-    if not bad:
-        return raw
-    keep = _nonfinite_rows(path, bad, bad_rows, drop)
-    return {k: v[keep] for k, v in raw.items()}

@@ -9,7 +9,7 @@ import torch
 
 from sagonline.errors import SceneFileError
 from sagonline.gaussians import SH_C0, Gaussians
-from sagonline.io.ply import _check_finite, _normalize_quats
+from sagonline.io.scene_checks import check_finite, normalize_quats
 
 
 def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
@@ -26,7 +26,7 @@ def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     dtype = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
     data = np.frombuffer(buf, dtype=dtype)
     raw = {"means": data["pos"].copy(), "scales": data["scale"].copy()}
-    raw = _check_finite(path, raw, {"means": ["x", "y", "z"], "scales": ["scale"]}, drop_nonfinite)
+    raw = check_finite(path, raw, {"means": ["x", "y", "z"], "scales": ["scale"]}, drop_nonfinite)
     if drop_nonfinite:
         data = data[np.isfinite(data["pos"]).all(1) & np.isfinite(data["scale"]).all(1)]
     if (raw["scales"] <= 0).any():
@@ -37,7 +37,7 @@ def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     dc = (rgba[:, :3] - 0.5) / SH_C0
     return Gaussians(
         means=torch.from_numpy(raw["means"]),
-        quats=torch.from_numpy(_normalize_quats(path, quats, "rot bytes")),
+        quats=torch.from_numpy(normalize_quats(path, quats, "rot bytes")),
         scales=torch.from_numpy(raw["scales"]),
         opacities=torch.from_numpy(rgba[:, 3].copy()),
         sh=torch.from_numpy(dc[:, None, :].copy()),

@@ -27,7 +27,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sagonline.utils import atomic_write
+from sagonline.files import atomic_write
 
 MAGIC = b"SAGOST01"
 SUFFIX = ".store"

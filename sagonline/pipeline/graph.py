@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import time
+import warnings
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -89,21 +90,85 @@ def digest_value(value: Any) -> Any:
 class StageCache:
     """`<dir>/<stage>-<key>.store` files (`sagonline.io.store`: arrays and JSON, never a
     pickle, each checked against the digest of its own bytes) written atomically; no dir: no
-    caching. A damaged or foreign entry is named, removed and recomputed, never used."""
+    caching.
 
-    def __init__(self, directory: str | Path | None):
+    An entry describes itself: its digested payload holds the stage's name, version and key
+    beside the value, and a load returns the value only when all three match the request. A
+    damaged entry, a foreign file, or a valid entry of another stage or key (copied or renamed
+    into place) is named in a warning, removed and recomputed, never used. A folder that cannot
+    hold the cache (a file, a link loop, read-only) is named in one warning and the run goes on
+    without caching."""
+
+    def __init__(self, directory: str | Path | None, *, writable: bool = True):
         self.dir = Path(directory) if directory is not None else None
+        self.writable = writable  # False: read entries only (a folder a file named: export)
+        self._warned = False
 
     def path(self, stage: str, key: str) -> Path | None:
         return None if self.dir is None else self.dir / f"{stage}-{key}{store.SUFFIX}"
 
-    def load(self, stage: str, key: str):
-        path = self.path(stage, key)
-        return None if path is None else store.load_or_discard(path, "cache entry")
+    def load(self, stage: Stage, key: str):
+        """The cached value of `stage` under `key`, or None (absent, or discarded)."""
+        path = self.path(stage.name, key)
+        if path is None:
+            return None
+        try:
+            if self.writable:
+                entry = store.load_or_discard(path, "cache entry")
+            else:
+                entry = store.load(path) if path.is_file() else None
+        except store.StoreError as exc:  # read-only: named, skipped, never removed
+            warnings.warn(f"cache entry unusable, computed again: {exc}", stacklevel=2)
+            return None
+        except OSError as exc:  # e.g. the folder became unreadable
+            self._give_up(exc)
+            return None
+        if entry is None:
+            return None
+        expected = {"stage": stage.name, "version": stage.version, "key": key}
+        found = (
+            {k: entry.get(k) for k in expected}
+            if isinstance(entry, dict) and "value" in entry
+            else None
+        )
+        if found == expected:
+            return entry["value"]
+        warnings.warn(
+            f"cache entry unusable, removed and recomputed: {path}: holds "
+            f"{found or 'no stage record'}, not {expected}",
+            stacklevel=2,
+        )
+        self._remove(path)
+        return None
 
-    def save(self, stage: str, key: str, value) -> None:
-        if self.dir is not None:
-            store.save(self.path(stage, key), value)
+    def save(self, stage: Stage, key: str, value) -> None:
+        path = self.path(stage.name, key)
+        if path is None or not self.writable:
+            return
+        entry = {"stage": stage.name, "version": stage.version, "key": key, "value": value}
+        try:
+            store.save(path, entry)
+        except OSError as exc:
+            self._give_up(exc)
+
+    def _remove(self, path: Path) -> None:
+        if not self.writable:
+            return
+        try:
+            path.unlink(missing_ok=True)
+        except OSError as exc:
+            self._give_up(exc)
+
+    def _give_up(self, exc: OSError) -> None:
+        """The folder cannot hold the cache: say so once, then run without it."""
+        if not self._warned:
+            warnings.warn(
+                f"stage cache {self.dir} is unusable ({exc.strerror or exc}); this run goes on "
+                "without caching (its stages are computed, and nothing is saved)",
+                stacklevel=3,
+            )
+        self._warned = True
+        self.dir = None
 
 
 @dataclass
@@ -122,9 +187,9 @@ def run_stage(
         raise TypeError(f"stage {stage.name} is run by its own driver, not by run_stage")
     key = stage.key(inputs)
     start = time.perf_counter()
-    value = cache.load(stage.name, key)
+    value = cache.load(stage, key)
     if value is not None:
         return Output(key, value), StageRun("cached", time.perf_counter() - start)
     value = stage.compute(inputs, progress)
-    cache.save(stage.name, key, value)
+    cache.save(stage, key, value)
     return Output(key, value), StageRun("computed", time.perf_counter() - start)

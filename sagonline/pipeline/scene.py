@@ -18,12 +18,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from sagonline.cameras import Camera
 from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.datasets.base import SceneTask
 from sagonline.feedback import FeedbackConfig
 from sagonline.gaussians import Gaussians
 from sagonline.metrics import labels3d_metrics
-from sagonline.pipeline.graph import Output, StageCache, run_stage
+from sagonline.pipeline.graph import Output, StageCache, StageRun, run_stage
 from sagonline.pipeline.scoring import (
     SceneReport,
     check_ground_truth,
@@ -43,6 +44,7 @@ from sagonline.pipeline.stages import (
     VoteInputs,
     label_count,
 )
+from sagonline.prompts import Prompt
 from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.recording import Recorder
 from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
@@ -66,14 +68,73 @@ class PipelineSettings:
 
 @dataclass
 class StageOneOutput:
-    """What Stage I hands to Stage II: the stages' outputs (with their keys), the label count
-    and the names of the views whose masks voted."""
+    """What Stage I hands on (to scoring, Stage II, `segment` and `export`): the stages'
+    outputs (with their keys), what each stage did (`computed` or `cached`, and seconds), the
+    label count and the names of the views whose masks voted."""
 
     frames: Output[Frames]
     masks: Output[SegmentationResult]
     vote: Output[VoteResult]
     num_labels: int
     voted: set[str]
+    runs: dict[str, StageRun] = field(default_factory=dict)
+
+    @property
+    def labels(self) -> np.ndarray:
+        """(N,) int64 labels per Gaussian: -1 unlabelled, 0 background, 1.. the objects."""
+        v = self.vote.value
+        return torch.where(v.labelled, v.labels, torch.full_like(v.labels, -1)).cpu().numpy()
+
+    @property
+    def keys(self) -> dict[str, str]:
+        return {"frames": self.frames.key, "masks": self.masks.key, "vote": self.vote.key}
+
+
+def compose_stage_one(
+    gaussians: Gaussians,
+    trajectory: list[Camera],
+    prompt: Prompt,
+    segmenter: SegmenterRun,
+    vote_cfg: VoteConfig,
+    settings: PipelineSettings,
+    *,
+    num_labels: int,
+    trajectory_gt: list[np.ndarray] | None = None,
+    cache: StageCache | None = None,
+    on_masks=None,
+) -> StageOneOutput:
+    """Stage I, the one composition every command runs (eval, `segment`, `export`): render the
+    trajectory, segment it, vote the masks; each stage cached under the key of its inputs.
+
+    gaussians: the scene on `settings.device`; trajectory: T cameras in video order; prompt:
+    on one of its frames; num_labels: the labels the caller knows of (the masks may add more);
+    trajectory_gt: T (H, W) label maps (read by the oracle only); on_masks(frames, masks,
+    num_labels): called between the masks and the vote (a recorder keeps them even if the
+    vote is interrupted)."""
+    cache = cache or StageCache(None)
+    progress = settings.progress
+    backend = resolve_backend(settings.backend, settings.device)
+    device = torch.device(settings.device).type
+    runs: dict[str, StageRun] = {}
+    frames_in = FramesInputs(
+        gaussians, list(trajectory), backend, tuple(settings.background), device
+    )
+    frames, runs["frames"] = run_stage(FRAMES, frames_in, cache, progress)
+    feedback = None  # with consensus feedback on, the masks also depend on what it votes with
+    if settings.feedback.enabled:
+        feedback = FeedbackInputs(
+            settings.feedback, vote_cfg, gaussians, list(trajectory), num_labels,
+            settings.label_min_weight, backend,
+        )  # fmt: skip
+    masks_in = MasksInputs(frames, prompt, trajectory_gt, segmenter, feedback)
+    masks, runs["masks"] = run_stage(MASKS, masks_in, cache, progress)
+    labels = label_count(num_labels, masks.value.masks)
+    if on_masks is not None:
+        on_masks(frames.value.images, masks.value.masks, labels)
+    vote_in = VoteInputs(masks, gaussians, list(trajectory), num_labels, vote_cfg, backend, device)
+    vote, runs["vote"] = run_stage(VOTE, vote_in, cache, progress)
+    voted = {trajectory[i].name for i in vote.value.frames}
+    return StageOneOutput(frames, masks, vote, labels, voted, runs)
 
 
 def input_digests(task: SceneTask) -> dict:
@@ -107,39 +168,23 @@ def run_scene(
     recorder = recorder or Recorder(None)
     if isinstance(segmenter, VideoSegmenter):
         segmenter = SegmenterRun(segmenter)
-    cache, progress = StageCache(cache_dir), settings.progress
     report = SceneReport(scene=task.name, inputs=input_digests(task))
     report.extra["empty_ground_truth_views"] = check_ground_truth(task)
     note_fit(task, report)
     backend = resolve_backend(settings.backend, settings.device)
-    device = torch.device(settings.device).type
     g = task.gaussians.to(settings.device)
 
-    frames_in = FramesInputs(g, task.trajectory, backend, tuple(settings.background), device)
-    frames, report.stages["frames"] = run_stage(FRAMES, frames_in, cache, progress)
-    feedback = None  # with consensus feedback on, the masks also depend on what it votes with
-    if settings.feedback.enabled:
-        feedback = FeedbackInputs(
-            settings.feedback,
-            vote_cfg,
-            g,
-            task.trajectory,
-            task.num_labels,
-            settings.label_min_weight,
-            backend,
-        )
-    masks_in = MasksInputs(frames, task.prompt, task.trajectory_gt, segmenter, feedback)
-    masks, report.stages["masks"] = run_stage(MASKS, masks_in, cache, progress)
-    num_labels = label_count(task.num_labels, masks.value.masks)
-    record_trajectory(task, recorder, frames.value.images, masks.value.masks, num_labels)
-    vote_in = VoteInputs(masks, g, task.trajectory, task.num_labels, vote_cfg, backend, device)
-    vote, report.stages["vote"] = run_stage(VOTE, vote_in, cache, progress)
-    report.stages = {k: v.status for k, v in report.stages.items()}
-    report.stage_keys = {"frames": frames.key, "masks": masks.key, "vote": vote.key}
+    def on_masks(frames, masks, num_labels):
+        record_trajectory(task, recorder, frames, masks, num_labels)
 
-    result = vote.value
-    voted = {task.trajectory[i].name for i in result.frames}
-    stage_one = StageOneOutput(frames, masks, vote, num_labels, voted)
+    stage_one = compose_stage_one(
+        g, task.trajectory, task.prompt, segmenter, vote_cfg, settings,
+        num_labels=task.num_labels, trajectory_gt=task.trajectory_gt,
+        cache=StageCache(cache_dir), on_masks=on_masks,
+    )  # fmt: skip
+    report.stages = {k: v.status for k, v in stage_one.runs.items()}
+    report.stage_keys = stage_one.keys
+    num_labels, result = stage_one.num_labels, stage_one.vote.value
     note_stage_one(task, report, stage_one, settings.resize)
     preds = score_views(
         task, g, result, num_labels, settings, report, stage_one.voted, predictions_to

@@ -119,7 +119,14 @@ def mean_iou(task: SceneTask, preds: list[np.ndarray], truths: list[np.ndarray],
         view_metrics(p, g, resize, task.ignore_label)["iou"]
         for p, g in zip(preds, truths, strict=True)
     ]
-    return float(np.mean(ious))
+    return scored_mean(ious)
+
+
+def scored_mean(values: list[float | None]) -> float | None:
+    """The mean over the views that were scored (a view whose every pixel is ignored has
+    None), or None when none was."""
+    kept = [v for v in values if v is not None]
+    return float(np.mean(kept)) if kept else None
 
 
 def record_scores(
@@ -155,17 +162,19 @@ def record_scores(
                 **view.meta,
             }
         )
+        if m.get("skipped"):
+            report.extra.setdefault("skipped_views", {})[view.name] = m["skipped"]
     if task.view_groups:
         split = report.extra.setdefault("by_view_group", {})
         for group in task.view_groups:
             ious = [
                 r["iou"] for r, v in zip(rows, task.eval_views, strict=True) if v.group == group
             ]
-            split[f"{mode}_{group}_miou"] = float(np.mean(ious)) if ious else None
-            split[f"{mode}_{group}_views"] = len(ious)
+            split[f"{mode}_{group}_miou"] = scored_mean(ious)
+            split[f"{mode}_{group}_views"] = sum(i is not None for i in ious)
     report.views.extend(rows)
-    miou = float(np.mean([r["iou"] for r in rows])) if rows else None
-    macc = float(np.mean([r["acc"] for r in rows])) if rows else None
+    miou = scored_mean([r["iou"] for r in rows])
+    macc = scored_mean([r["acc"] for r in rows])
     if mode == "initial":
         report.miou, report.macc = miou, macc
     return miou, macc

@@ -75,6 +75,36 @@ class SegmenterRun:
         return digest_json(self.segmenter.name, self.settings, sorted(self.weights.values()))
 
 
+def segmenter_run(
+    node: dict, corrupt=None, *, check: bool = True, untrusted: bool = False
+) -> SegmenterRun:
+    """The segmenter a config node names ({kind, name, its settings}), built from the registry
+    (never from a class name in the node), its answers corrupted where `corrupt` (a
+    MaskCorruption) is active, its weight files digested, and with `check` its weights opened
+    now. `untrusted`: the node was read from a file someone else may have written (a run
+    folder): `trust_checkpoint` is turned off whatever it says. The masks' key holds the node's
+    settings as given, so every command that rebuilds a run's segmenter finds its masks."""
+    from sagonline.plugins import NODE_KEYS, SEGMENTERS
+    from sagonline.provenance import digest_file
+    from sagonline.segmenters.corruption import CorruptedSegmenter
+
+    kind = node.get("kind")
+    settings = {k: v for k, v in node.items() if k not in NODE_KEYS}
+    build = dict(settings)
+    if untrusted and build.get("trust_checkpoint"):
+        build["trust_checkpoint"] = False
+    segmenter = SEGMENTERS.build(kind, build, where="segmenter")
+    key_settings = {"kind": kind, **settings}
+    key_settings.pop("device", None)  # the frames' key already holds the device
+    if corrupt is not None and corrupt.active:
+        segmenter = CorruptedSegmenter(segmenter, corrupt)
+        key_settings.update(segmenter.settings())
+    if check:
+        segmenter.check()
+    weights = {f: digest_file(f) for f in segmenter.weight_files()}
+    return SegmenterRun(segmenter, key_settings, weights)
+
+
 @dataclass(frozen=True)
 class FeedbackInputs:
     """What consensus feedback votes and renders with (`sagonline.feedback`)."""

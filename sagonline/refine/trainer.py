@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import threading
 import time
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -24,7 +25,7 @@ import torch.nn.functional as F
 
 from sagonline.io import store
 from sagonline.refine.network import ARCHS, DualBranchRefiner
-from sagonline.utils import check_settings
+from sagonline.settings import check_settings
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
 
@@ -145,6 +146,16 @@ class RefinementTrainer:
         )
         if state is None:
             return
+        if not isinstance(state, dict) or state.get("file") != self.checkpoint.name:
+            # a checkpoint copied or renamed from another key: never resumed from
+            warnings.warn(
+                f"student checkpoint {self.checkpoint} was written as "
+                f"{state.get('file') if isinstance(state, dict) else None!r}; removed and "
+                "trained again",
+                stacklevel=2,
+            )
+            self.checkpoint.unlink(missing_ok=True)
+            return
         if state.get("config") != asdict(self.cfg) or state.get("classes") != self.num_classes:
             return  # another setting: start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
@@ -171,8 +182,17 @@ class RefinementTrainer:
                 "status": self.status,
                 "config": asdict(self.cfg),
                 "classes": self.num_classes,
+                "file": self.checkpoint.name,  # its stage and key: never resumed under another
             }
-            store.save(self.checkpoint, state)
+            try:
+                store.save(self.checkpoint, state)
+            except OSError as exc:  # the cache folder cannot be written: train on without it
+                warnings.warn(
+                    f"student checkpoint {self.checkpoint} cannot be written "
+                    f"({exc.strerror or exc}); training goes on without checkpoints",
+                    stacklevel=2,
+                )
+                self.checkpoint = None
 
     # --- training -----------------------------------------------------------------------------
     def start(self) -> RefinementTrainer:

@@ -21,6 +21,11 @@ def resolve_backend(backend: str, device: torch.device | str) -> str:
     builds, else the torch rasterizer."""
     if backend not in BACKENDS:
         raise ValueError(f"renderer backend {backend!r} is not one of {BACKENDS}")
+    if backend == "gsplat" and torch.device(device).type != "cuda":
+        raise ValueError(
+            f"renderer backend 'gsplat' runs on CUDA only (device {device}); on the CPU use "
+            "native, torch or auto"
+        )
     if backend == "auto":
         if torch.device(device).type == "cuda":
             from sagonline.render.gsplat_backend import gsplat_available

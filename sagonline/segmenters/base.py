@@ -37,6 +37,9 @@ class VideoSegmenter(ABC):
     """Subclasses implement `_segment`; `segment` checks the output and times it."""
 
     name = "segmenter"
+    reads: tuple[str, ...] = ("clicks", "boxes", "masks")
+    """The prompts it reads: clicks / boxes / masks, text, ground_truth (the oracle), or none
+    (it segments automatically); a command refuses a prompt its segmenter cannot read."""
 
     def weight_files(self) -> list[str]:
         """Local files the segmenter's answers depend on (checkpoints); their digests join the

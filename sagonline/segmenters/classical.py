@@ -18,14 +18,65 @@ Then, frame by frame, forwards and backwards from the prompt frame:
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import cv2
 import numpy as np
 
+from sagonline.plugins import SEGMENTERS
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
 
+@dataclass
+class ClassicalConfig:
+    """The weight-free segmenter's settings (`segmenter=classical`)."""
+
+    use_masks: bool = True
+    """Start from the prompt's masks where it has them; false: from the clicks alone (GrabCut)."""
+    band_px: int = 3
+    """Each label's region is eroded by this many pixels before it seeds the watershed."""
+    flow_levels: int = 4
+    """Pyramid levels of the Farneback optical flow."""
+    flow_window: int = 15
+    """Window size of the Farneback optical flow, in pixels."""
+    grabcut_iters: int = 5
+    """GrabCut iterations on the prompt frame (clicks and boxes)."""
+    click_radius: int = 4
+    """Radius in pixels of the definite disc a click marks."""
+    prior_radius: float = 0.25
+    """Radius of the probable-foreground region around the clicks, as a fraction of the image."""
+    motion_px: float = 6.0
+    """How fast a label's spatial prior decays with the distance to its warped region (px)."""
+    prior_floor: float = 1e-3
+    """The prior's floor: a strongly coloured object may come back after an occlusion."""
+    adapt: float = 0.02
+    """Rate at which the colour histograms adapt to each new frame."""
+    bins: int = 16
+    """Colour histogram bins per channel."""
+
+    def __post_init__(self) -> None:
+        from sagonline.settings import check_settings
+
+        check_settings(
+            "segmenter",
+            band_px=(self.band_px >= 0, self.band_px, ">= 0"),
+            flow_levels=(1 <= self.flow_levels <= 10, self.flow_levels, "in [1, 10]"),
+            flow_window=(3 <= self.flow_window <= 255, self.flow_window, "in [3, 255]"),
+            grabcut_iters=(1 <= self.grabcut_iters <= 100, self.grabcut_iters, "in [1, 100]"),
+            click_radius=(self.click_radius >= 1, self.click_radius, ">= 1"),
+            prior_radius=(0 < self.prior_radius <= 1, self.prior_radius, "in (0, 1]"),
+            motion_px=(self.motion_px > 0, self.motion_px, "> 0"),
+            prior_floor=(0 <= self.prior_floor < 1, self.prior_floor, "in [0, 1)"),
+            adapt=(0 <= self.adapt <= 1, self.adapt, "in [0, 1]"),
+            bins=(2 <= self.bins <= 64, self.bins, "in [2, 64]"),
+        )
+
+
+@SEGMENTERS.register("classical", ClassicalConfig)
 class FlowWatershedSegmenter(VideoSegmenter):
+    """Weight-free: colour models, optical-flow priors and watershed (OpenCV)."""
+
     name = "classical"
 
     def __init__(

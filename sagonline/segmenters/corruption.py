@@ -31,21 +31,32 @@ class MaskCorruption:
     corruption, run through the video."""
 
     boundary_px: int = 0
+    """Each object's mask eroded or dilated by up to this many pixels (sign drawn per frame)."""
     flicker: float = 0.0
+    """Probability that a frame's object takes its neighbour's label (or vanishes)."""
     swap: float = 0.0
+    """Probability that two object ids trade places in a frame."""
     blob_rate: float = 0.0
+    """Probability of a false-positive ellipse of a random object id in a frame."""
     blob_radius: float = 0.08
     """A blob's radius as a fraction of the frame's shorter side."""
     drop: float = 0.0
+    """Probability that a frame comes back empty (all background)."""
     seed: int = 0
+    """Seeds one stream per kind of corruption."""
 
     def __post_init__(self):
-        for name in ("flicker", "swap", "blob_rate", "drop"):
-            p = getattr(self, name)
-            if not 0.0 <= p <= 1.0:
-                raise ValueError(f"corruption {name} must be a probability, got {p}")
-        if self.boundary_px < 0:
-            raise ValueError(f"corruption boundary_px must be >= 0, got {self.boundary_px}")
+        from sagonline.settings import check_settings
+
+        check_settings(
+            "corruption",
+            **{
+                name: (0.0 <= getattr(self, name) <= 1.0, getattr(self, name), "a probability")
+                for name in ("flicker", "swap", "blob_rate", "drop")
+            },
+            boundary_px=(0 <= self.boundary_px <= 256, self.boundary_px, "in [0, 256] pixels"),
+            blob_radius=(0 < self.blob_radius <= 1, self.blob_radius, "in (0, 1]"),
+        )
         self.boundary_px = int(self.boundary_px)
 
     @property

@@ -3,13 +3,18 @@
 
 from __future__ import annotations
 
+from sagonline.plugins import SEGMENTERS
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 from sagonline.segmenters.corruption import MaskCorruption
 
 
+@SEGMENTERS.register("oracle", MaskCorruption)
 class OracleSegmenter(VideoSegmenter):
+    """Ground-truth masks of the rendered frames, optionally corrupted (ablations)."""
+
     name = "oracle"
+    reads = ("ground_truth",)
 
     def __init__(
         self,

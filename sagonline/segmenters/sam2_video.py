@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from sagonline.io.checkpoints import load_user_checkpoint
+from sagonline.plugins import SEGMENTERS
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -53,7 +55,44 @@ def _require_sam2():
     return Path(sam2.__file__).parent
 
 
+@dataclass
+class SAM2Config:
+    """SAM 2's settings (`segmenter=sam2`)."""
+
+    checkpoint: str | None = None
+    """REQUIRED: a local checkpoint, e.g. /path/to/sam2.1_hiera_tiny.pt (nothing is downloaded)."""
+    config: str = "configs/sam2.1/sam2.1_hiera_t.yaml"
+    """The model config inside the sam2 package; it must match the checkpoint."""
+    device: str = "cpu"
+    """Where the model runs (follows the run's `device`)."""
+    image_size: int | None = None
+    """The model's input size; None: the config's (1024)."""
+    use_masks: bool = False
+    """Prompt with the reference mask instead of the clicks."""
+    allow_random_weights: bool = False
+    """Build the network with random weights when no checkpoint is given (tests only)."""
+
+
+def package_config(pkg: Path, name: str) -> Path:
+    """The model config `name` inside the sam2 package's configs/ folder. A path that leads
+    anywhere else (absolute, `..`, a link out) is refused: the config's `_target_`s are
+    instantiated, so it must be the package's own file, never one a run folder names."""
+    root = (pkg / "configs").resolve()
+    path = (pkg / name).resolve()
+    if not path.is_relative_to(root) or path.suffix != ".yaml":
+        raise ValueError(
+            f"segmenter.config={name}: must name a .yaml under the sam2 package's configs/ "
+            f"folder ({root}), e.g. configs/sam2.1/sam2.1_hiera_t.yaml"
+        )
+    if not path.is_file():
+        raise FileNotFoundError(f"segmenter.config={name}: not in the sam2 package ({root})")
+    return path
+
+
+@SEGMENTERS.register("sam2", SAM2Config)
 class SAM2VideoSegmenter(VideoSegmenter):
+    """SAM 2 video predictor from a local checkpoint (extra: .[sam2])."""
+
     name = "sam2"
 
     def __init__(
@@ -93,11 +132,7 @@ class SAM2VideoSegmenter(VideoSegmenter):
         from omegaconf import OmegaConf
 
         pkg = _require_sam2()
-        cfg_path = pkg / self.config
-        if not cfg_path.is_file():
-            raise FileNotFoundError(
-                f"segmenter.config={self.config}: not in the sam2 package ({pkg / 'configs'})"
-            )
+        cfg_path = package_config(pkg, self.config)
         cfg = OmegaConf.load(cfg_path)
         overrides = dict(VIDEO_OVERRIDES)
         try:  # hole filling needs sam2's compiled extension; without it sam2 warns and skips

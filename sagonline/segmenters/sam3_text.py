@@ -14,12 +14,14 @@ cannot be constructed on a CPU-only torch.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from sagonline.io.checkpoints import load_user_checkpoint
+from sagonline.plugins import SEGMENTERS
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -45,8 +47,34 @@ def merge_text_masks(
     return out
 
 
+@dataclass
+class SAM3Config:
+    """SAM 3's settings (`segmenter=sam3`; CUDA only)."""
+
+    checkpoint: str | None = None
+    """REQUIRED: a local checkpoint, e.g. /path/to/sam3.pt (nothing is downloaded)."""
+    bpe_path: str | None = None
+    """The tokenizer vocabulary; None: the one shipped in the sam3 package."""
+    device: str = "cuda"
+    """Where the model runs (sam3 builds on CUDA only)."""
+    confidence: float = 0.5
+    """Instances below this score are dropped."""
+    trust_checkpoint: bool = False
+    """Skip the weights_only check (only for files you trust; never taken from a run folder)."""
+
+    def __post_init__(self) -> None:
+        from sagonline.settings import check_settings
+
+        c = self.confidence
+        check_settings("segmenter", confidence=(0 <= c <= 1, c, "in [0, 1]"))
+
+
+@SEGMENTERS.register("sam3", SAM3Config)
 class SAM3TextSegmenter(VideoSegmenter):
+    """SAM 3 text prompts: open-vocabulary masks from a local checkpoint (extra: .[sam3])."""
+
     name = "sam3"
+    reads = ("text",)
 
     def __init__(
         self,

@@ -15,12 +15,14 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
 import numpy as np
 
 from sagonline.io.checkpoints import refuse_untrusted, unsafe_reason
+from sagonline.plugins import SEGMENTERS
 from sagonline.prompts import Prompt
 from sagonline.segmenters.base import VideoSegmenter
 
@@ -72,8 +74,52 @@ class TrackLabeler:
         return out.astype(np.int64)
 
 
+@dataclass
+class YOLOConfig:
+    """YOLO instance segmentation and tracking (`segmenter=yolo`)."""
+
+    weights: str | None = None
+    """REQUIRED: a local weights file, e.g. /path/to/yolo11n-seg.pt (nothing is downloaded)."""
+    model_yaml: str | None = None
+    """A model YAML built with random weights instead (tests only), e.g. yolo11n-seg.yaml."""
+    classes: list[str] | None = field(default_factory=lambda: list(VEHICLES))
+    """The class names kept; None: every class."""
+    conf: float = 0.25
+    """Detections below this confidence are dropped."""
+    iou: float = 0.5
+    """Non-maximum suppression's IoU threshold."""
+    imgsz: int = 640
+    """The model's input size in pixels."""
+    tracker: str = "bytetrack.yaml"
+    """ultralytics' tracker config: bytetrack.yaml or botsort.yaml."""
+    device: str = "cpu"
+    """Where the model runs (follows the run's `device`)."""
+    trust_checkpoint: bool = False
+    """Load weights that need arbitrary unpickling (only files you trust; never taken from a
+    run folder)."""
+
+    def __post_init__(self) -> None:
+        from sagonline.settings import check_settings
+
+        check_settings(
+            "segmenter",
+            conf=(0 <= self.conf <= 1, self.conf, "in [0, 1]"),
+            iou=(0 <= self.iou <= 1, self.iou, "in [0, 1]"),
+            imgsz=(32 <= self.imgsz <= 4096, self.imgsz, "in [32, 4096]"),
+            tracker=(
+                self.tracker in ("bytetrack.yaml", "botsort.yaml"),
+                self.tracker,
+                "bytetrack.yaml or botsort.yaml",
+            ),
+        )
+
+
+@SEGMENTERS.register("yolo", YOLOConfig)
 class YOLOSegmenter(VideoSegmenter):
+    """YOLO instance segmentation + tracker from a local weights file (extra: .[yolo])."""
+
     name = "yolo"
+    reads = ()
 
     def __init__(
         self,

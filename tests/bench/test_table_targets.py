@@ -44,7 +44,7 @@ def test_the_real_capture_tables_run_both_mask_sources_on_one_protocol():
     sources = set()
     for overrides, folder in jobs:
         cfg = compose_config("eval", *overrides)
-        assert cfg.dataset["name"] == "mold_cape" and cfg.dataset["adapter"].exclude_reference
+        assert cfg.dataset["name"] == "mold_cape" and cfg.dataset["adapter"]["exclude_reference"]
         assert "_mold_cape/" in folder
         source = (cfg.segmenter["name"], cfg.consensus.stride)
         sources.add(source)

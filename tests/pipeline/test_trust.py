@@ -34,6 +34,7 @@ from sagonline.pipeline import (
     record_scores,
     run_scene,
 )
+from sagonline.pipeline.stages import VOTE
 from sagonline.segmenters.oracle import OracleSegmenter
 from tests.fixtures import (
     ROOT,
@@ -111,7 +112,7 @@ def test_corrupt_cache_entry_is_named_and_recomputed(tiny_task, tmp_path):
     vote_file.write_bytes(b"not a torch file")
     with pytest.warns(UserWarning, match=rf"unusable, removed and recomputed: .*{vote_file.name}"):
         assert _stages(tiny_task, tmp_path) == {"vote"}
-    assert StageCache(tmp_path).load("vote", vote_file.stem.split("-", 1)[1]) is not None
+    assert StageCache(tmp_path).load(VOTE, vote_file.stem.split("-", 1)[1]) is not None
 
 
 def test_cached_stages_report_no_timing_of_their_own(tiny_task, tmp_path):
@@ -162,7 +163,7 @@ def test_changed_view_count_with_a_shared_cache(tmp_path):
             "record=false",
             "dataset=synthetic_ff",
             cache,
-            "dataset.forward_single.num_train_views=6",
+            "dataset.adapter.forward_single.num_train_views=6",
         ),
         tmp_path / "b",
     )
@@ -239,7 +240,7 @@ def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
         before
     )
     assert b"summary" in before["eval.log"]
-    from sagonline.utils import _umask
+    from sagonline.files import _umask
 
     assert (run / "metrics.json").stat().st_mode & 0o777 == 0o666 & ~_umask()
     metrics = json.loads(before["metrics.json"])
@@ -347,10 +348,12 @@ def test_render_out_never_destroys_an_input(tmp_path, tiny_task):
     before = ply.read_bytes()
     disguised = tmp_path / "scene.npy"  # a PLY under a name --out accepts
     disguised.write_bytes(before)
-    for out, why in ((disguised, "one of the inputs"), (ply, "use a .png")):
+    for out, why in ((disguised, "one of the inputs"), (ply, "one of the inputs")):
         r = _cli("render", str(out), "--cameras", str(cams), "--out", str(out))
         assert r.returncode != 0 and why in r.stderr, r.stderr
     assert ply.read_bytes() == before == disguised.read_bytes()
+    r = _cli("render", str(ply), "--cameras", str(cams), "--out", str(tmp_path / "view.ply"))
+    assert r.returncode == 2 and "use a .png" in r.stderr
     png = tmp_path / "view.png"
     assert _cli("render", str(ply), "--cameras", str(cams), "--out", str(png)).returncode == 0
     r = _cli("render", str(ply), "--cameras", str(cams), "--out", str(png))
@@ -379,7 +382,7 @@ def _nerf(path: Path, **changes) -> Path:
         ({"camera_angle_x": float(np.pi)}, "not a pinhole field of view"),
         ({"transform_matrix": np.zeros((4, 4)).tolist()}, "frame 'a' has a singular pose"),
         ({"transform_matrix": (2 * np.eye(4)).tolist()}, "not a rotation"),
-        ({"transform_matrix": np.eye(3).tolist()}, "reshape"),
+        ({"transform_matrix": np.eye(3).tolist()}, "is 3x3; expected 4x4 or 3x4"),
         ({"camera_angle_x": "wide"}, ""),
         ({"w": 0}, "not positive"),
         ({"w": -32}, "not positive"),

@@ -5,9 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
-from hydra.utils import instantiate
 
-from bench.job import plugin_kwargs
+from bench.job import build_segmenter
 from sagonline.compat import nms_reference
 from sagonline.metrics import match_labels, relabel, view_metrics
 from sagonline.segmenters import ObjectPrompt, Prompt
@@ -21,7 +20,7 @@ from tests.fixtures import (
 
 def segmenter_from(name: str, *overrides):
     cfg = compose_config("eval", *[f"segmenter={name}", *overrides])
-    return instantiate(plugin_kwargs(cfg.segmenter))
+    return build_segmenter(cfg.segmenter)
 
 
 @pytest.fixture(scope="module")
@@ -117,15 +116,13 @@ def test_match_labels_for_automatic_ids():
     ],
 )
 def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
-    from bench.job import build_plugin
-
     cfg = compose_config("eval", *[f"segmenter={name}"])
     with pytest.raises(SystemExit):
-        build_plugin(cfg.segmenter, "segmenter")
+        build_segmenter(cfg.segmenter)
     assert option in capsys.readouterr().err
     cfg = compose_config("eval", *[f"segmenter={name}", f"{option}=/nope.pt"])
     with pytest.raises(SystemExit):
-        build_plugin(cfg.segmenter, "segmenter")
+        build_segmenter(cfg.segmenter)
     assert f"{option}=/nope.pt: no such file" in capsys.readouterr().err
 
 

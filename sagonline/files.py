@@ -1,22 +1,20 @@
-"""Small shared helpers: atomic writes and the device description."""
+"""Files written whole or not at all, and JSON that other tools can read.
+
+Every file the harness writes goes through `atomic_write`: a temporary file beside the target,
+renamed into place, so a reader never sees half a file and an interrupted write leaves the old
+one. JSON is strict (no NaN or Infinity, which are not JSON): a value that is not finite is
+written as null, or refused where the caller says so.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 import os
-import platform
 import tempfile
 from pathlib import Path
 
 import numpy as np
-
-
-def check_settings(group: str, **checks: tuple[bool, object, str]) -> None:
-    """Raise ValueError `group.key=value: must be <rule>` for the first check that fails.
-    checks: key -> (holds, value, rule), e.g. margin=(0 <= m < 1, m, "in [0, 1)")."""
-    for key, (holds, value, rule) in checks.items():
-        if not holds:
-            raise ValueError(f"{group}.{key}={value!r}: must be {rule}")
 
 
 def _umask() -> int:
@@ -55,7 +53,27 @@ def atomic_write_text(path: str | Path, text: str) -> Path:
 
 
 def atomic_write_json(path: str | Path, obj) -> Path:
-    return atomic_write_text(path, json.dumps(obj, indent=2, default=_json_default) + "\n")
+    """`obj` as strict JSON (`to_json`)."""
+    return atomic_write_text(path, to_json(obj) + "\n")
+
+
+def to_json(obj, indent: int | None = 2) -> str:
+    """Strict JSON text: NumPy values and paths converted, NaN and +-Infinity written as null
+    (they are not JSON: other tools refuse or misread them)."""
+    return json.dumps(finite_tree(obj), indent=indent, default=_json_default, allow_nan=False)
+
+
+def finite_tree(obj):
+    """A copy of a JSON-like tree with every non-finite float replaced by None."""
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, dict):
+        return {k: finite_tree(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [finite_tree(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return finite_tree(obj.tolist())
+    return obj
 
 
 def atomic_write_npy(path: str | Path, array: np.ndarray) -> Path:
@@ -82,32 +100,3 @@ def _json_default(obj):
     if isinstance(obj, Path):
         return str(obj)
     raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def describe_device(device: str = "cpu") -> dict:
-    """CPU model and cores, or GPU name; torch version; the 1-minute load average now (what
-    else ran beside a timing: about the job's own threads when nothing else did)."""
-    import torch
-
-    info = {
-        "torch": torch.__version__,
-        "python": platform.python_version(),
-        "cpu": _cpu_model(),
-        "cpu_cores": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
-    }
-    if hasattr(os, "getloadavg"):
-        info["load_average_1m"] = round(os.getloadavg()[0], 2)
-    if str(device).startswith("cuda") and torch.cuda.is_available():
-        info["gpu"] = torch.cuda.get_device_name(torch.device(device))
-    return info
-
-
-def _cpu_model() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"

@@ -1,0 +1,444 @@
+"""`sagonline segment SCENE`: a scene of one's own segmented from clicks, masks or text, written
+as labels, object PLYs, renders and a recording (`sagonline.export.write_segmentation`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.cli.render import add_view_arguments
+from sagonline.cli.views import CLICK_HELP
+from sagonline.segment import PromptError
+
+
+class PromptItems(argparse.Action):
+    """Keeps --click, --object, --mask and --text in the order given (an --object starts a new
+    object for the clicks and masks after it)."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        items = list(getattr(namespace, "prompt_items", None) or [])
+        items.append((option_string.lstrip("-"), value))
+        namespace.prompt_items = items
+
+
+def add_parsers(sub) -> None:
+    from sagonline.plugins import SEGMENTERS, VOTE_RULES
+
+    seg = sub.add_parser(
+        "segment",
+        help="segment a scene from clicks, masks or text; write labels, object PLYs, renders",
+    )
+    seg.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
+    add_view_arguments(seg)
+    prompts = seg.add_argument_group(f"prompts (all on one view; {CLICK_HELP})")
+    prompts.add_argument(
+        "--click", action=PromptItems, metavar="VIEW:X,Y[:neg[=NAME]]",
+        help="a positive click on the current object, or a negative one (:neg)",
+    )  # fmt: skip
+    prompts.add_argument(
+        "--object", action=PromptItems, metavar="NAME", help="start an object named NAME"
+    )
+    prompts.add_argument(
+        "--mask", action=PromptItems, metavar="VIEW:PATH",
+        help="a mask at the view's render size: binary (the current object) or a label map "
+        "(one object per id)",
+    )  # fmt: skip
+    prompts.add_argument("--text", action=PromptItems, metavar="TEXT", help="a text prompt (SAM 3)")
+    seg.add_argument(
+        "--preview", metavar="VIEW",
+        help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit",
+    )  # fmt: skip
+    seg.add_argument("--segmenter", default="classical", choices=SEGMENTERS.keys())
+    seg.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
+    seg.add_argument(
+        "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
+        help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
+    )  # fmt: skip
+    vote = seg.add_argument_group("vote (defaults: sagonline.consensus.VoteConfig)")
+    vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
+    vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
+    vote.add_argument("--delta", type=float, help="... and its centre is within delta px")
+    vote.add_argument("--min-votes", type=int)
+    vote.add_argument("--margin", type=float)
+    seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
+    seg.add_argument("--backend", default="auto", choices=["torch", "native", "gsplat", "auto"])
+    seg.add_argument("--out", help="output folder (default: segment-<scene>-<time>)")
+    seg.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier output of this command"
+    )
+    seg.add_argument("--no-record", action="store_true", help="skip the rerun recording")
+    seg.set_defaults(func=cmd_segment, prompt_items=[])
+
+
+# --- prompts ----------------------------------------------------------------------------------
+
+
+@dataclass
+class ObjectClicks:
+    """What the command line said of one object."""
+
+    name: str
+    points: list[tuple[float, float]] = field(default_factory=list)
+    negatives: list[tuple[float, float]] = field(default_factory=list)
+    mask: np.ndarray | None = None
+    mask_file: str | None = None
+
+
+@dataclass
+class ParsedPrompt:
+    """The prompt on one view: its index among the given views, the objects in order, the
+    texts; `record` is what labels.json keeps of it."""
+
+    view: int
+    objects: list[ObjectClicks]
+    texts: list[str]
+
+    def record(self, cams) -> dict:
+        return {
+            "view": self.view,
+            "view_name": cams[self.view].name,
+            "render_size": [cams[self.view].width, cams[self.view].height],
+            "objects": [
+                {"name": o.name, "clicks": o.points, "negatives": o.negatives, "mask": o.mask_file}
+                for o in self.objects
+            ],  # fmt: skip
+            "texts": self.texts,
+        }
+
+
+def parse_prompt(items: list[tuple[str, str]], cams) -> ParsedPrompt:
+    """--click / --object / --mask / --text, in order -> the prompt (nothing dropped: every
+    item belongs to an object, or is a text; all sit on one view)."""
+    from sagonline.cli.views import view_index
+    from sagonline.io.masks import read_mask
+
+    objects: dict[str, ObjectClicks] = {}
+    texts: list[str] = []
+    views: dict[int, str] = {}
+    current: str | None = None
+
+    def on_view(text: str, item: str) -> int:
+        try:
+            i = view_index(text, cams)
+        except ValueError as exc:
+            raise PromptError(f"{item}: {exc}") from None
+        views.setdefault(i, item)
+        return i
+
+    def obj(name: str) -> ObjectClicks:
+        return objects.setdefault(name, ObjectClicks(name))
+
+    for kind, value in items:
+        item = f"--{kind} {value}"
+        if kind == "object":
+            if not value.strip():
+                raise PromptError("--object needs a name")
+            current = value
+            obj(current)
+        elif kind == "text":
+            if not value.strip():
+                raise PromptError("--text needs words")
+            texts.append(value)
+        elif kind == "mask":
+            view, sep, path = value.partition(":")
+            if not sep or not path:
+                raise PromptError(f"{item}: expected VIEW:PATH")
+            i = on_view(view, item)
+            read = read_mask(path)
+            cam = cams[i]
+            if read.labels.shape != (cam.height, cam.width):
+                raise PromptError(
+                    f"{item}: the mask is {read.labels.shape[1]}x{read.labels.shape[0]} but "
+                    f"view {i} ('{cam.name}') renders at {cam.width}x{cam.height}"
+                )
+            ids = [int(k) for k in np.unique(read.labels) if k != 0]
+            if not ids:
+                raise PromptError(f"{item}: the mask marks no object ({read.seen})")
+            base = current or "object"
+            for k in ids:
+                name = base if len(ids) == 1 else f"{base}_{k}"
+                target = obj(name)
+                if target.mask is not None:
+                    raise PromptError(f"{item}: object {name!r} already has a mask")
+                target.mask, target.mask_file = read.labels == k, str(path)
+        elif kind == "click":
+            parts = value.split(":")
+            if len(parts) not in (2, 3):
+                raise PromptError(f"{item}: expected VIEW:X,Y or VIEW:X,Y:neg[=NAME]")
+            i = on_view(parts[0], item)
+            try:
+                x, y = (float(v) for v in parts[1].split(","))
+            except ValueError:
+                raise PromptError(f"{item}: X,Y must be two numbers") from None
+            cam = cams[i]
+            if not (np.isfinite([x, y]).all() and 0 <= x < cam.width and 0 <= y < cam.height):
+                raise PromptError(
+                    f"{item}: ({x:g}, {y:g}) is outside view {i} ('{cam.name}'), which "
+                    f"renders at {cam.width}x{cam.height}"
+                )
+            if len(parts) == 3:
+                flag, _, name = parts[2].partition("=")
+                if flag != "neg":
+                    raise PromptError(f"{item}: the third part must be neg or neg=NAME")
+                target = name or current
+                if target is None or target not in objects:
+                    raise PromptError(f"{item}: no object {target!r} to add a negative click to")
+                objects[target].negatives.append((x, y))
+            else:
+                current = current or "object"
+                obj(current).points.append((x, y))
+        else:  # pragma: no cover (argparse only knows the four)
+            raise PromptError(f"unknown prompt item {kind!r}")
+    if len(views) > 1:
+        shown = ", ".join(f"{cams[i].name!r} ({item})" for i, item in views.items())
+        raise PromptError(f"prompts on several views ({shown}): the segmenter takes one view")
+    if texts and objects:
+        raise PromptError(
+            "--text names its objects itself: give either --text, or clicks and masks"
+        )
+    empty = [o.name for o in objects.values() if not o.points and o.mask is None]
+    if empty:
+        raise PromptError(
+            f"object {empty[0]!r} has no positive click and no mask (a negative click alone "
+            "says what it is not)"
+        )
+    if not texts and not objects:
+        raise PromptError("no prompt: give --click, --mask or --text (or --preview VIEW)")
+    return ParsedPrompt(next(iter(views), 0), list(objects.values()), texts)
+
+
+def to_prompt(parsed: ParsedPrompt, frame: int):
+    """The segmenters' Prompt (objects labelled 1.. in order) and the label names."""
+    from sagonline.prompts import ObjectPrompt, Prompt
+
+    if parsed.texts:
+        return Prompt(frame=frame, texts=list(parsed.texts)), ["background", *parsed.texts]
+    objects = []
+    for label, o in enumerate(parsed.objects, start=1):
+        pts = [*o.points, *o.negatives]
+        objects.append(
+            ObjectPrompt(
+                label=label,
+                points=np.asarray(pts, np.float64).reshape(-1, 2) if pts else None,
+                point_labels=(
+                    np.array([1] * len(o.points) + [0] * len(o.negatives), np.int64)
+                    if pts
+                    else None
+                ),
+                mask=o.mask,
+            )
+        )
+    return Prompt(frame=frame, objects=objects), ["background", *(o.name for o in parsed.objects)]
+
+
+# --- segmenter and vote -----------------------------------------------------------------------
+
+
+def build_segmenter(args, prompt):
+    """The chosen segmenter from the registry, its checkpoint and options applied; refused when
+    it cannot read the prompt given (text to a click segmenter, clicks to a text one)."""
+    from sagonline.plugins import SEGMENTERS
+
+    plugin = SEGMENTERS[args.segmenter]
+    names = {f.name for f in fields(plugin.config)}
+    values: dict = {}
+    for option in args.segmenter_option:
+        key, sep, value = option.partition("=")
+        if not sep:
+            raise ValueError(f"--segmenter-option {option!r}: expected KEY=VALUE")
+        values[key.strip()] = value
+    if args.checkpoint:
+        key = next((k for k in ("checkpoint", "weights") if k in names), None)
+        if key is None:
+            raise ValueError(f"--checkpoint: segmenter {args.segmenter} takes no checkpoint")
+        values[key] = args.checkpoint
+    if "device" in names:
+        values.setdefault("device", args.device)
+    segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
+    wants = set(getattr(segmenter, "reads", ()))
+    given = {"text"} if prompt.texts else {"clicks"}
+    if "ground_truth" in wants:
+        raise ValueError(
+            f"--segmenter {args.segmenter} reads the views' ground truth, which a scene of "
+            "one's own does not have"
+        )
+    if not wants & given:
+        what = "text (--text)" if prompt.texts else "clicks and masks"
+        reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
+        raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
+    segmenter.check()
+    return segmenter
+
+
+def vote_config(args):
+    """The vote's settings: VoteConfig's defaults, with what the command line gave."""
+    from sagonline.consensus import VoteConfig
+
+    given = {
+        "method": args.method,
+        "eps": args.eps,
+        "delta": args.delta,
+        "min_votes": args.min_votes,
+        "margin": args.margin,
+    }
+    return VoteConfig(**{k: v for k, v in given.items() if v is not None})
+
+
+# --- the command ------------------------------------------------------------------------------
+
+
+def cmd_segment(args) -> int:
+    from sagonline.cli.views import check_trajectory, load_views, view_index
+    from sagonline.io import read_scene, scene_file
+    from sagonline.io.cameras import camera_input_files
+    from sagonline.machine import check_device
+    from sagonline.outputs import check_not_input, check_replaceable
+    from sagonline.render.api import resolve_backend
+    from sagonline.segment import segment_scene
+    from sagonline.trajectory import insert_between
+
+    started = time.perf_counter()
+    scene = scene_file(args.scene)
+    stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
+    check_device(args.device)
+    resolve_backend(args.backend, args.device)
+    if args.inbetween < 0 or args.inbetween > 32:
+        raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
+    masks = [Path(v.partition(":")[2]) for k, v in args.prompt_items if k == "mask"]
+    inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
+    if args.preview is not None:
+        out = Path(args.out or f"preview-{stem}-{args.preview}.png")
+    else:
+        out = Path(args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    check_not_input(out, inputs)
+    if args.preview is None:
+        check_replaceable(out, args.overwrite)
+    vote = vote_config(args)
+    g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
+    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    if args.cameras is None or args.orbit:
+        print(f"views: {views.source}", file=sys.stderr)
+    given = views.cameras
+    if args.preview is not None:
+        return write_preview(g, given, view_index(args.preview, given), out, args)
+    traj = insert_between(given, args.inbetween)
+    check_trajectory(traj)
+    parsed = parse_prompt(args.prompt_items, given)
+    frame = [c.name for c in traj].index(given[parsed.view].name)
+    prompt, names = to_prompt(parsed, frame)
+    from sagonline.export import object_file_names
+
+    object_file_names(names)  # names that cannot each have a file: refused before any work
+    segmenter = build_segmenter(args, prompt)
+    seg = segment_scene(
+        g, traj, (prompt, names), segmenter=segmenter, vote=vote, backend=args.backend,
+        device=args.device, progress=sys.stderr.isatty(),
+    )  # fmt: skip
+    info = {
+        "scene": str(scene),
+        "cameras": str(args.cameras) if args.cameras else None,
+        "views": views.source,
+        "orbit": args.orbit,
+        "inbetween": args.inbetween,
+        "prompt": parsed.record(given),
+        "inputs": input_digests(scene, args.cameras, masks),
+        "segmenter": {"kind": args.segmenter, "options": args.segmenter_option},
+        "vote": asdict(vote),
+        "timings": seg.timings,
+    }
+    write_outputs(out, g, seg, scene, info, args, inputs)
+    print_segmentation(seg, out, time.perf_counter() - started)
+    return 0
+
+
+def write_preview(g, cams, index: int, out: Path, args) -> int:
+    """The view at its render size with a light pixel grid (every 50 px, labelled every 100)."""
+    import cv2
+
+    from sagonline.files import atomic_write_image
+    from sagonline.render.api import render, to_uint8
+
+    if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"--out {out}: a preview is a .png or .jpg file")
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
+    cam = cams[index]
+    rgb = to_uint8(render(g.to(args.device), cam.to(args.device), backend=args.backend).rgb)
+    image = np.ascontiguousarray(rgb)
+    grid = image.copy()
+    for x in range(0, cam.width, 50):
+        cv2.line(grid, (x, 0), (x, cam.height - 1), (255, 255, 255), 1)
+    for y in range(0, cam.height, 50):
+        cv2.line(grid, (0, y), (cam.width - 1, y), (255, 255, 255), 1)
+    image = cv2.addWeighted(image, 0.7, grid, 0.3, 0)
+    for x in range(0, cam.width, 100):
+        for y in range(0, cam.height, 100):
+            cv2.putText(image, f"{x},{y}", (x + 2, y + 11), cv2.FONT_HERSHEY_PLAIN, 0.8,
+                        (255, 255, 0), 1, cv2.LINE_AA)  # fmt: skip
+    atomic_write_image(out, image)
+    print(
+        f"wrote {out}: view {index} '{cam.name}' at {cam.width}x{cam.height} (its render size: "
+        f"click with --click {index}:X,Y in these pixels)"
+    )
+    return 0
+
+
+def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
+    from sagonline.io.cameras import camera_input_files
+    from sagonline.provenance import digest_file
+
+    out = {"scene": digest_file(scene)}
+    if cameras:
+        out |= {f"cameras:{p.name}": digest_file(p) for p in camera_input_files(cameras)}
+    return out | {f"mask:{p.name}": digest_file(p) for p in masks}
+
+
+def write_outputs(out: Path, g, seg, scene: Path, info: dict, args, inputs) -> None:
+    """Label renders of every trajectory view, the recording, the files."""
+    import torch
+
+    from sagonline.export import write_segmentation
+    from sagonline.recording import Recorder
+    from sagonline.render.api import render_labels
+
+    labels = torch.from_numpy(seg.labels)
+    known = labels >= 0
+    views = []
+    for cam, frame in zip(seg.cameras, seg.frames, strict=True):
+        lab = render_labels(
+            g.to(args.device), cam, labels.clamp_min(0), len(seg.names),
+            labelled=known & (labels > 0), backend=args.backend,
+        )  # fmt: skip
+        views.append((cam.name, frame, lab.cpu().numpy()))
+
+    def record(path: Path) -> None:
+        rec = Recorder(path, scenes=["segment"])
+        rec.annotate("segment", seg.names)
+        for i, (cam, frame, mask) in enumerate(
+            zip(seg.cameras, seg.frames, seg.masks, strict=True)
+        ):
+            rec.trajectory_frame("segment", i, frame, mask, camera=cam)
+        rec.gaussians("segment", g, seg.labels.clip(0), seg.labels >= 0, seg.vote.histogram.numpy())
+        rec.close()
+
+    write_segmentation(
+        out, g, seg.labels, seg.names, source=scene, info=info, views=views,
+        record=None if args.no_record else record, overwrite=args.overwrite, inputs=inputs,
+        command="segment",
+    )  # fmt: skip
+
+
+def print_segmentation(seg, out: Path, wall_s: float) -> None:
+    t = seg.timings
+    counts = ", ".join(f"{name} {int((seg.labels == k).sum())}" for k, name in enumerate(seg.names))
+    print(
+        f"time to first mask {t['time_to_first_mask_s']:.2f} s, aggregation "
+        f"{t['vote_ms_per_mask']:.1f} ms per mask ({len(seg.vote.frames)} masks), coverage "
+        f"{100 * seg.coverage:.1f}% of {len(seg.labels)} Gaussians ({counts}, unlabelled "
+        f"{int((seg.labels < 0).sum())}), {wall_s:.1f} s in all -> {out}"
+    )

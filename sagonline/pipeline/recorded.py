@@ -1,0 +1,152 @@
+"""A finished evaluation run read back from its metrics.json, to redo its Stage I (`export`).
+
+A run folder may come from anyone, so its metrics.json is data, never code: it names the
+dataset and the segmenter by registry key (`kind`) with settings, and each is rebuilt from the
+registries (`sagonline.plugins`) after its settings are checked against the plug-in's typed
+config; every other group (vote, corruption, feedback, renderer) is checked against its own
+dataclass. Nothing is built from a class name in the file, no checkpoint is unpickled on its
+say-so (`trust_checkpoint` is turned off), and the cache keys it records are never trusted:
+the stages are keyed again from today's inputs, taken from the run's cache where an entry
+matches, and computed again where none does. The cache is only read, never written or
+cleaned: its folder is one the file named.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sagonline.consensus import VoteConfig
+from sagonline.datasets.base import DatasetAdapter
+from sagonline.errors import DatasetError
+from sagonline.feedback import FeedbackConfig
+from sagonline.pipeline.scene import PipelineSettings
+from sagonline.pipeline.stages import SegmenterRun, segmenter_run
+from sagonline.plugins import DATASETS, PluginError, typed_settings
+from sagonline.segmenters.corruption import MaskCorruption
+
+# Runs written before the registries named their dataset by class path: these (compared as
+# strings, never imported) are read as the registry keys beside them.
+LEGACY_DATASETS = {
+    "sagonline.datasets.generic.PosedMasksDataset": "generic",
+    "sagonline.datasets.nvos.NVOSDataset": "nvos",
+    "sagonline.datasets.spinnerf.SPInNeRFDataset": "spinnerf",
+}
+LEGACY_SEGMENTERS = {
+    "sagonline.segmenters.classical.FlowWatershedSegmenter": "classical",
+    "sagonline.segmenters.oracle.OracleSegmenter": "oracle",
+    "sagonline.segmenters.sam2_video.SAM2VideoSegmenter": "sam2",
+    "sagonline.segmenters.sam3_text.SAM3TextSegmenter": "sam3",
+    "sagonline.segmenters.yolo.YOLOSegmenter": "yolo",
+}
+
+
+class RunFileError(DatasetError):
+    """A run folder whose metrics.json cannot be read back; names the file and the key."""
+
+
+@dataclass
+class RecordedRun:
+    """What redoing a run's Stage I takes, rebuilt from its metrics.json."""
+
+    folder: Path
+    adapter: DatasetAdapter
+    segmenter: SegmenterRun
+    vote: VoteConfig
+    settings: PipelineSettings
+    scenes: list[dict]
+    cache_root: Path | None
+    notes: list[str] = field(default_factory=list)
+
+
+def read_metrics(run: Path) -> dict:
+    """The run's metrics.json as a JSON object; RunFileError naming the file otherwise."""
+    path = Path(run) / "metrics.json"
+    try:
+        metrics = json.loads(path.read_text())
+    except (OSError, ValueError) as exc:
+        raise RunFileError(f"{path}: not a finished eval run's metrics ({exc})") from None
+    if not isinstance(metrics, dict):
+        raise RunFileError(f"{path}: holds a {type(metrics).__name__}, not a JSON object")
+    return metrics
+
+
+def _group(config: dict, key: str, path: Path) -> dict:
+    value = config.get(key)
+    if not isinstance(value, dict):
+        raise RunFileError(f"{path}: config.{key} is {type(value).__name__}, not an object")
+    return value
+
+
+def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun:
+    """Rebuild a finished run's dataset, segmenter and settings from its metrics.json (see the
+    module docstring). `device` replaces the recorded one (a CUDA run exported on a CPU)."""
+    run = Path(run)
+    path = run / "metrics.json"
+    metrics = read_metrics(run)
+    config = metrics.get("config")
+    if not isinstance(config, dict):
+        raise RunFileError(f"{path}: no 'config' object (not a run of bench.eval)")
+    notes: list[str] = []
+    try:
+        adapter = _dataset(_group(config, "dataset", path))
+        corrupt = typed_settings(MaskCorruption, config.get("corrupt") or {}, "config.corrupt")
+        segmenter_node = _segmenter_node(_group(config, "segmenter", path))
+        if segmenter_node.get("trust_checkpoint"):
+            notes.append(
+                "the run trusted its segmenter's checkpoint (trust_checkpoint=true); export "
+                "never does: masks that must be computed again load weights_only"
+            )
+        segmenter = segmenter_run(segmenter_node, corrupt, check=False, untrusted=True)
+        vote = typed_settings(VoteConfig, _group(config, "consensus", path), "config.consensus")
+        feedback = typed_settings(FeedbackConfig, config.get("feedback") or {}, "config.feedback")
+    except (PluginError, ValueError, TypeError) as exc:
+        raise RunFileError(f"{path}: {exc}") from None
+    renderer = config.get("renderer") or {}
+    settings = PipelineSettings(
+        backend=str(renderer.get("backend", "auto")),
+        device=device or str(config.get("device", "cpu")),
+        label_min_weight=float((config.get("label_render") or {}).get("min_weight", 0.2)),
+        resize=str((config.get("metrics") or {}).get("resize", "pred_to_gt")),
+        progress=False,
+        feedback=feedback,
+    )
+    scenes = metrics.get("scenes")
+    if not isinstance(scenes, list) or not all(isinstance(s, dict) for s in scenes):
+        raise RunFileError(f"{path}: 'scenes' is not a list of scene rows")
+    recorded = metrics.get("cache_root")
+    cache_root = Path(recorded) if isinstance(recorded, str) and recorded else None
+    return RecordedRun(run, adapter, segmenter, vote, settings, scenes, cache_root, notes)
+
+
+def _dataset(node: dict) -> DatasetAdapter:
+    kind = node.get("kind")
+    settings = node.get("adapter")
+    if not isinstance(settings, dict):
+        raise PluginError("config.dataset.adapter is not an object")
+    if kind is None and "_target_" in settings:  # a run from before the registries
+        kind = LEGACY_DATASETS.get(str(settings["_target_"]))
+        if kind is None:
+            raise PluginError(
+                f"config.dataset.adapter names the class {settings['_target_']!r}; a run folder "
+                "names a registered dataset (`kind`), and no class is built from a file"
+            )
+        settings = {k: v for k, v in settings.items() if k != "_target_"}
+    return DATASETS.build(kind, settings, where="config.dataset.adapter")
+
+
+def _segmenter_node(node: dict) -> dict[str, Any]:
+    if node.get("kind") is None and "_target_" in node:
+        kind = LEGACY_SEGMENTERS.get(str(node["_target_"]))
+        if kind is None:
+            raise PluginError(
+                f"config.segmenter names the class {node['_target_']!r}; a run folder names a "
+                "registered segmenter (`kind`), and no class is built from a file"
+            )
+        node = {"kind": kind, **{k: v for k, v in node.items() if k != "_target_"}}
+    return node
+
+
+__all__ = ["RecordedRun", "RunFileError", "read_metrics", "read_recorded_run"]
