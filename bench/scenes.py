@@ -11,9 +11,15 @@ renders of the held-out views to look at. Interrupted fits resume from fit_check
 
 from __future__ import annotations
 
+import os
+
+# A fit pins torch's CPU kernels to AVX2 (read once, when torch loads): AVX-512 kernels round
+# differently, and the same fit then gives another scene. Pinned, the documented scenes come
+# out bit for bit on any x86 machine; fit_metrics.json records the capability a fit ran with.
+os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
+
 import dataclasses
 import json
-import os
 import stat
 import sys
 import time
@@ -38,6 +44,7 @@ from sagonline.fitting.capture import (
 )
 from sagonline.io.cameras import load_llff_bounds
 from sagonline.io.images import resize_nearest
+from sagonline.machine import cpu_capability
 from sagonline.provenance import digest_file
 
 
@@ -163,6 +170,7 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
             "resolution": [first.width, first.height],
             "init": init,
             "threads": torch.get_num_threads(),  # the fit is the same on any count (recorded)
+            "cpu_capability": cpu_capability(),  # pinned to AVX2 above, unless set otherwise
         }
     )
     with torch.no_grad():

@@ -3,27 +3,16 @@ as labels, object PLYs, renders and a recording (`sagonline.export.write_segment
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, fields
 from pathlib import Path
 
 import numpy as np
 
+from sagonline.cli.prompts import PromptItems, parse_prompt, to_prompt
 from sagonline.cli.render import add_view_arguments
 from sagonline.cli.views import CLICK_HELP
-from sagonline.segment import PromptError
-
-
-class PromptItems(argparse.Action):
-    """Keeps --click, --object, --mask and --text in the order given (an --object starts a new
-    object for the clicks and masks after it)."""
-
-    def __call__(self, parser, namespace, value, option_string=None):
-        items = list(getattr(namespace, "prompt_items", None) or [])
-        items.append((option_string.lstrip("-"), value))
-        namespace.prompt_items = items
 
 
 def add_parsers(sub) -> None:
@@ -73,167 +62,6 @@ def add_parsers(sub) -> None:
     )
     seg.add_argument("--no-record", action="store_true", help="skip the rerun recording")
     seg.set_defaults(func=cmd_segment, prompt_items=[])
-
-
-# --- prompts ----------------------------------------------------------------------------------
-
-
-@dataclass
-class ObjectClicks:
-    """What the command line said of one object."""
-
-    name: str
-    points: list[tuple[float, float]] = field(default_factory=list)
-    negatives: list[tuple[float, float]] = field(default_factory=list)
-    mask: np.ndarray | None = None
-    mask_file: str | None = None
-
-
-@dataclass
-class ParsedPrompt:
-    """The prompt on one view: its index among the given views, the objects in order, the
-    texts; `record` is what labels.json keeps of it."""
-
-    view: int
-    objects: list[ObjectClicks]
-    texts: list[str]
-
-    def record(self, cams) -> dict:
-        return {
-            "view": self.view,
-            "view_name": cams[self.view].name,
-            "render_size": [cams[self.view].width, cams[self.view].height],
-            "objects": [
-                {"name": o.name, "clicks": o.points, "negatives": o.negatives, "mask": o.mask_file}
-                for o in self.objects
-            ],  # fmt: skip
-            "texts": self.texts,
-        }
-
-
-def parse_prompt(items: list[tuple[str, str]], cams) -> ParsedPrompt:
-    """--click / --object / --mask / --text, in order -> the prompt (nothing dropped: every
-    item belongs to an object, or is a text; all sit on one view)."""
-    from sagonline.cli.views import view_index
-    from sagonline.io.masks import read_mask
-
-    objects: dict[str, ObjectClicks] = {}
-    texts: list[str] = []
-    views: dict[int, str] = {}
-    current: str | None = None
-
-    def on_view(text: str, item: str) -> int:
-        try:
-            i = view_index(text, cams)
-        except ValueError as exc:
-            raise PromptError(f"{item}: {exc}") from None
-        views.setdefault(i, item)
-        return i
-
-    def obj(name: str) -> ObjectClicks:
-        return objects.setdefault(name, ObjectClicks(name))
-
-    for kind, value in items:
-        item = f"--{kind} {value}"
-        if kind == "object":
-            if not value.strip():
-                raise PromptError("--object needs a name")
-            current = value
-            obj(current)
-        elif kind == "text":
-            if not value.strip():
-                raise PromptError("--text needs words")
-            texts.append(value)
-        elif kind == "mask":
-            view, sep, path = value.partition(":")
-            if not sep or not path:
-                raise PromptError(f"{item}: expected VIEW:PATH")
-            i = on_view(view, item)
-            read = read_mask(path)
-            cam = cams[i]
-            if read.labels.shape != (cam.height, cam.width):
-                raise PromptError(
-                    f"{item}: the mask is {read.labels.shape[1]}x{read.labels.shape[0]} but "
-                    f"view {i} ('{cam.name}') renders at {cam.width}x{cam.height}"
-                )
-            ids = [int(k) for k in np.unique(read.labels) if k != 0]
-            if not ids:
-                raise PromptError(f"{item}: the mask marks no object ({read.seen})")
-            base = current or "object"
-            for k in ids:
-                name = base if len(ids) == 1 else f"{base}_{k}"
-                target = obj(name)
-                if target.mask is not None:
-                    raise PromptError(f"{item}: object {name!r} already has a mask")
-                target.mask, target.mask_file = read.labels == k, str(path)
-        elif kind == "click":
-            parts = value.split(":")
-            if len(parts) not in (2, 3):
-                raise PromptError(f"{item}: expected VIEW:X,Y or VIEW:X,Y:neg[=NAME]")
-            i = on_view(parts[0], item)
-            try:
-                x, y = (float(v) for v in parts[1].split(","))
-            except ValueError:
-                raise PromptError(f"{item}: X,Y must be two numbers") from None
-            cam = cams[i]
-            if not (np.isfinite([x, y]).all() and 0 <= x < cam.width and 0 <= y < cam.height):
-                raise PromptError(
-                    f"{item}: ({x:g}, {y:g}) is outside view {i} ('{cam.name}'), which "
-                    f"renders at {cam.width}x{cam.height}"
-                )
-            if len(parts) == 3:
-                flag, _, name = parts[2].partition("=")
-                if flag != "neg":
-                    raise PromptError(f"{item}: the third part must be neg or neg=NAME")
-                target = name or current
-                if target is None or target not in objects:
-                    raise PromptError(f"{item}: no object {target!r} to add a negative click to")
-                objects[target].negatives.append((x, y))
-            else:
-                current = current or "object"
-                obj(current).points.append((x, y))
-        else:  # pragma: no cover (argparse only knows the four)
-            raise PromptError(f"unknown prompt item {kind!r}")
-    if len(views) > 1:
-        shown = ", ".join(f"{cams[i].name!r} ({item})" for i, item in views.items())
-        raise PromptError(f"prompts on several views ({shown}): the segmenter takes one view")
-    if texts and objects:
-        raise PromptError(
-            "--text names its objects itself: give either --text, or clicks and masks"
-        )
-    empty = [o.name for o in objects.values() if not o.points and o.mask is None]
-    if empty:
-        raise PromptError(
-            f"object {empty[0]!r} has no positive click and no mask (a negative click alone "
-            "says what it is not)"
-        )
-    if not texts and not objects:
-        raise PromptError("no prompt: give --click, --mask or --text (or --preview VIEW)")
-    return ParsedPrompt(next(iter(views), 0), list(objects.values()), texts)
-
-
-def to_prompt(parsed: ParsedPrompt, frame: int):
-    """The segmenters' Prompt (objects labelled 1.. in order) and the label names."""
-    from sagonline.prompts import ObjectPrompt, Prompt
-
-    if parsed.texts:
-        return Prompt(frame=frame, texts=list(parsed.texts)), ["background", *parsed.texts]
-    objects = []
-    for label, o in enumerate(parsed.objects, start=1):
-        pts = [*o.points, *o.negatives]
-        objects.append(
-            ObjectPrompt(
-                label=label,
-                points=np.asarray(pts, np.float64).reshape(-1, 2) if pts else None,
-                point_labels=(
-                    np.array([1] * len(o.points) + [0] * len(o.negatives), np.int64)
-                    if pts
-                    else None
-                ),
-                mask=o.mask,
-            )
-        )
-    return Prompt(frame=frame, objects=objects), ["background", *(o.name for o in parsed.objects)]
 
 
 # --- segmenter and vote -----------------------------------------------------------------------

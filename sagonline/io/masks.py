@@ -5,8 +5,8 @@ A mask file is read as what it is, or refused with what was seen (channels, bit 
 number of distinct values):
 - a **binary** mask: any two levels, anti-aliased or saved as JPEG, thresholded at mid-level
   (the pixels between the levels lie on the edge between them): object 1 on background 0;
-- a **label map**: one channel of integer ids (8- or 16-bit, or a palette PNG's indices),
-  0 = background, ids below `max_labels` (256 by default);
+- a **label map**: one channel of integer ids (8- or 16-bit, or a palette PNG's indices,
+  which are always ids), 0 = background, ids below `max_labels` (256 by default);
 - **RGBA**: the alpha channel, when the colour channels are constant (a cut-out); with varying
   colour and opaque alpha, the colour channels as below;
 - **RGB**: read as grey only when its three channels are equal; a colour image is refused.
@@ -59,6 +59,8 @@ def read_mask(
     if mode not in MODES:
         raise ValueError(f"mask mode {mode!r} is not one of {MODES}")
     image, seen = _load(path)
+    if mode == "auto" and seen.startswith("a palette") and len(np.unique(image)) > 2:
+        mode = "ids"  # a palette's indices are label ids
     try:
         plane = _one_plane(image, path, seen)
     except MaskFileError:
@@ -103,14 +105,21 @@ def decide(
 
 def _load(path: Path) -> tuple[np.ndarray, str]:
     """The file's pixels as stored (palette PNGs as their indices) and a description."""
-    from PIL import Image, UnidentifiedImageError
-
     try:
-        with Image.open(path) as im:
-            if im.mode == "P":
+        with open(path, "rb") as f:
+            head = f.read(26)
+    except OSError as exc:
+        raise MaskFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    # A palette PNG (IHDR colour type 3): its indices are the labels. Read with PIL's PNG
+    # reader directly (`Image.open` may be patched by other packages to fetch plug-ins).
+    if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) > 25 and head[25] == 3:
+        from PIL import PngImagePlugin
+
+        try:
+            with PngImagePlugin.PngImageFile(str(path)) as im:
                 return np.asarray(im), f"a palette image of {im.size[0]}x{im.size[1]}"
-    except (UnidentifiedImageError, OSError) as exc:
-        raise MaskFileError(f"{path}: not a readable image ({exc})") from None
+        except (OSError, SyntaxError, ValueError) as exc:
+            raise MaskFileError(f"{path}: not a readable image ({exc})") from None
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise MaskFileError(f"{path}: not a readable image")
