@@ -90,6 +90,9 @@ class EvalConfig:
     """Cache the stages' outputs, so an interrupted run resumes."""
     threads: int | None = None
     """Threads of this job's torch ops and kernels; None: the cores shared among parallel jobs."""
+    diagnose: bool = True
+    """Sort every scored view's wrong pixels by cause (the fit, the vote, the 2D segmenter:
+    `sagonline.diagnosis`) into per_view.csv, metrics.json and the recording."""
     cache_dir: str | None = ".cache/stages"
     """Where the stages' outputs are cached: one folder shared by every run and sweep (the
     stages are keyed by their inputs' content, so sharing is safe; `make clean-cache` empties

@@ -151,7 +151,7 @@ def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
     None with cache=false."""
     if not cfg.cache:
         return None
-    return (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache").resolve()
+    return (Path(cfg.cache_dir) if cfg.cache_dir else out_dir / "cache").absolute()
 
 
 def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> SegmenterRun:

@@ -33,6 +33,7 @@ def settings_from(cfg) -> PipelineSettings:
         resize=cfg.metrics.resize,
         progress=not quiet(cfg),
         feedback=cfg.feedback,
+        diagnose=cfg.diagnose,
     )
 
 

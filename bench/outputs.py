@@ -42,9 +42,12 @@ def write_outputs(
     }
     rows = [{**v, "protocol": r.protocol} for r in reports for v in r.views]
     columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
+    from sagonline.diagnosis import EXTRA, MISSED
+
+    diagnosis = ("object_px", "missed_px", *MISSED, "extra_px", *EXTRA)
     columns += [
         k
-        for k in ("photographed", "photo_angle_deg", "photo_distance")
+        for k in ("photographed", "photo_angle_deg", "photo_distance", *diagnosis)
         if any(k in r for r in rows)
     ]
     atomic_write_text(
@@ -108,6 +111,13 @@ def print_summary(
         )
         if r.error:
             lines.append(f"    {r.error}")
+        d = r.extra.get("diagnosis") or {}
+        if d.get("missed_px"):
+            lines.append(
+                f"    missed pixels {d['missed_px']}: fit {fmt(d['share_fit'])}%, vote "
+                f"{fmt(d['share_vote'])}%, segmenter {fmt(d['share_segmenter'])}% "
+                "(per view: per_view.csv; the causes: sagonline/diagnosis.py)"
+            )
         groups = r.extra.get("by_view_group") or {}
         for key, value in groups.items():  # e.g. photographed / mask-only views of a capture
             if key.endswith("_miou") and value is not None:

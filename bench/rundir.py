@@ -28,7 +28,7 @@ class RunExists(SystemExit):
 
 # Settings that change how a run is shown or stored, never its numbers: a finished run with
 # other values of these is still the same run.
-PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "threads")
+PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "threads", "diagnose")
 
 
 def comparable_config(config: dict) -> dict:

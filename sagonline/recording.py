@@ -150,9 +150,11 @@ class Recorder:
         camera=None,
         iou: float | None = None,
         frame: int | None = None,
+        diagnosis: np.ndarray | None = None,
     ) -> None:
         """Eval view `index`, also placed at trajectory `frame` (its own or the nearest view), so
-        scrubbing `frame` shows the fused labels and ground truth beside the segmenter."""
+        scrubbing `frame` shows the fused labels and ground truth beside the segmenter;
+        `diagnosis`: (H, W, 3) the causes of its wrong pixels (`sagonline.diagnosis`)."""
         if not self.enabled:
             return
         self._at("eval_view", index, frame)
@@ -162,6 +164,8 @@ class Recorder:
         self._rgb(f"{base}/rgb", rgb)
         self._mask(f"{base}/prediction", prediction)
         self._mask(f"{base}/ground_truth", ground_truth)
+        if diagnosis is not None:
+            self._rgb(f"{base}/diagnosis", diagnosis)
         if iou is not None:
             self.rec.log(f"scenes/{scene}/metrics/iou", self.rr.Scalars(iou))
 

@@ -26,7 +26,7 @@ from sagonline.cameras import Camera
 from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.gaussians import Gaussians
 from sagonline.pipeline.graph import StageCache
-from sagonline.pipeline.scene import PipelineSettings, compose_stage_one
+from sagonline.pipeline.stage_one import PipelineSettings, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.prompts import ObjectPrompt, Prompt
 from sagonline.provenance import digest_file

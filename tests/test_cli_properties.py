@@ -128,6 +128,8 @@ class Draw:
 
     def __call__(self, name: str, values: list):
         return self.rng.choice(values) if name in self.wild else values[0]
+
+
 SIZES = [None, ("32", "24"), ("0", "24"), ("-5", "5"), ("100000", "100000")]
 DEVICES = ["cpu", "cuda", "bogus"]
 

@@ -618,3 +618,18 @@ def test_a_camera_file_beyond_the_ceiling_is_refused_quickly(tmp_path):
     (tmp_path / "transforms.json").write_text(json.dumps(meta))
     with pytest.raises(CameraFileError, match="exceed the ceiling of 20,000"):
         load_cameras(tmp_path / "transforms.json")
+
+
+@pytest.mark.parametrize("kind", ["file", "loop"])
+def test_an_eval_with_an_unusable_cache_dir_finishes(tmp_path, kind):
+    from bench.eval import evaluate
+
+    cache = tmp_path / "cache"
+    if kind == "file":
+        cache.write_text("not a folder")
+    else:
+        os.symlink(cache, cache)
+    metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false",
+                                f"cache_dir={cache}"), tmp_path / "run")  # fmt: skip
+    assert metrics["status"] == "complete" and metrics["miou"] > 0.9
+    assert "is unusable" in (tmp_path / "run" / "eval.log").read_text()  # warned, in the log

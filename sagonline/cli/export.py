@@ -27,7 +27,7 @@ def cmd_export(args) -> int:
     from sagonline.outputs import check_not_input, check_replaceable
     from sagonline.pipeline.graph import StageCache
     from sagonline.pipeline.recorded import read_recorded_run
-    from sagonline.pipeline.scene import compose_stage_one
+    from sagonline.pipeline.stage_one import compose_stage_one
 
     run = Path(args.run_dir)
     recorded = read_recorded_run(run, device=args.device)

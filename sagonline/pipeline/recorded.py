@@ -22,7 +22,7 @@ from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetAdapter
 from sagonline.errors import DatasetError
 from sagonline.feedback import FeedbackConfig
-from sagonline.pipeline.scene import PipelineSettings
+from sagonline.pipeline.stage_one import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.plugins import DATASETS, PluginError, typed_settings
 from sagonline.segmenters.corruption import MaskCorruption

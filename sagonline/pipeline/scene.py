@@ -11,20 +11,18 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 from tqdm import tqdm
 
-from sagonline.cameras import Camera
 from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.datasets.base import SceneTask
-from sagonline.feedback import FeedbackConfig
 from sagonline.gaussians import Gaussians
 from sagonline.metrics import labels3d_metrics
-from sagonline.pipeline.graph import Output, StageCache, StageRun, run_stage
+from sagonline.pipeline.diagnose import diagnose_scene
+from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import (
     SceneReport,
     check_ground_truth,
@@ -32,109 +30,12 @@ from sagonline.pipeline.scoring import (
     record_scores,
     segmenter_miou,
 )
-from sagonline.pipeline.stages import (
-    FRAMES,
-    MASKS,
-    VOTE,
-    FeedbackInputs,
-    Frames,
-    FramesInputs,
-    MasksInputs,
-    SegmenterRun,
-    VoteInputs,
-    label_count,
-)
-from sagonline.prompts import Prompt
+from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
+from sagonline.pipeline.stages import SegmenterRun
 from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.recording import Recorder
 from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
-from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
-
-
-@dataclass
-class PipelineSettings:
-    """How a scene is run: renderer (auto: the compiled kernel on the CPU, gsplat on CUDA,
-    else PyTorch), device, the label render's threshold, the metrics' resize rule, progress
-    bars, the render background, consensus feedback."""
-
-    backend: str = "auto"
-    device: str = "cpu"
-    label_min_weight: float = 0.2
-    resize: str = "pred_to_gt"
-    progress: bool = True
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
-
-
-@dataclass
-class StageOneOutput:
-    """What Stage I hands on (to scoring, Stage II, `segment` and `export`): the stages'
-    outputs (with their keys), what each stage did (`computed` or `cached`, and seconds), the
-    label count and the names of the views whose masks voted."""
-
-    frames: Output[Frames]
-    masks: Output[SegmentationResult]
-    vote: Output[VoteResult]
-    num_labels: int
-    voted: set[str]
-    runs: dict[str, StageRun] = field(default_factory=dict)
-
-    @property
-    def labels(self) -> np.ndarray:
-        """(N,) int64 labels per Gaussian: -1 unlabelled, 0 background, 1.. the objects."""
-        v = self.vote.value
-        return torch.where(v.labelled, v.labels, torch.full_like(v.labels, -1)).cpu().numpy()
-
-    @property
-    def keys(self) -> dict[str, str]:
-        return {"frames": self.frames.key, "masks": self.masks.key, "vote": self.vote.key}
-
-
-def compose_stage_one(
-    gaussians: Gaussians,
-    trajectory: list[Camera],
-    prompt: Prompt,
-    segmenter: SegmenterRun,
-    vote_cfg: VoteConfig,
-    settings: PipelineSettings,
-    *,
-    num_labels: int,
-    trajectory_gt: list[np.ndarray] | None = None,
-    cache: StageCache | None = None,
-    on_masks=None,
-) -> StageOneOutput:
-    """Stage I, the one composition every command runs (eval, `segment`, `export`): render the
-    trajectory, segment it, vote the masks; each stage cached under the key of its inputs.
-
-    gaussians: the scene on `settings.device`; trajectory: T cameras in video order; prompt:
-    on one of its frames; num_labels: the labels the caller knows of (the masks may add more);
-    trajectory_gt: T (H, W) label maps (read by the oracle only); on_masks(frames, masks,
-    num_labels): called between the masks and the vote (a recorder keeps them even if the
-    vote is interrupted)."""
-    cache = cache or StageCache(None)
-    progress = settings.progress
-    backend = resolve_backend(settings.backend, settings.device)
-    device = torch.device(settings.device).type
-    runs: dict[str, StageRun] = {}
-    frames_in = FramesInputs(
-        gaussians, list(trajectory), backend, tuple(settings.background), device
-    )
-    frames, runs["frames"] = run_stage(FRAMES, frames_in, cache, progress)
-    feedback = None  # with consensus feedback on, the masks also depend on what it votes with
-    if settings.feedback.enabled:
-        feedback = FeedbackInputs(
-            settings.feedback, vote_cfg, gaussians, list(trajectory), num_labels,
-            settings.label_min_weight, backend,
-        )  # fmt: skip
-    masks_in = MasksInputs(frames, prompt, trajectory_gt, segmenter, feedback)
-    masks, runs["masks"] = run_stage(MASKS, masks_in, cache, progress)
-    labels = label_count(num_labels, masks.value.masks)
-    if on_masks is not None:
-        on_masks(frames.value.images, masks.value.masks, labels)
-    vote_in = VoteInputs(masks, gaussians, list(trajectory), num_labels, vote_cfg, backend, device)
-    vote, runs["vote"] = run_stage(VOTE, vote_in, cache, progress)
-    voted = {trajectory[i].name for i in vote.value.frames}
-    return StageOneOutput(frames, masks, vote, labels, voted, runs)
+from sagonline.segmenters.base import VideoSegmenter
 
 
 def input_digests(task: SceneTask) -> dict:
@@ -177,10 +78,11 @@ def run_scene(
     def on_masks(frames, masks, num_labels):
         record_trajectory(task, recorder, frames, masks, num_labels)
 
+    cache = StageCache(cache_dir)
     stage_one = compose_stage_one(
         g, task.trajectory, task.prompt, segmenter, vote_cfg, settings,
         num_labels=task.num_labels, trajectory_gt=task.trajectory_gt,
-        cache=StageCache(cache_dir), on_masks=on_masks,
+        cache=cache, on_masks=on_masks,
     )  # fmt: skip
     report.stages = {k: v.status for k, v in stage_one.runs.items()}
     report.stage_keys = stage_one.keys
@@ -193,7 +95,12 @@ def run_scene(
         report.labels3d = labels3d_metrics(
             result.labels, result.labelled, task.gt_labels3d, num_labels
         )
-    record_eval_views(task, recorder, preds, report, g, backend)
+    causes = None
+    if settings.diagnose and not is_automatic(task):
+        causes = diagnose_scene(
+            task, g, stage_one, preds, segmenter, vote_cfg, settings, report, cache
+        )
+    record_eval_views(task, recorder, preds, report, g, backend, causes)
     recorder.gaussians(
         task.name,
         task.gaussians,
@@ -292,8 +199,9 @@ def record_trajectory(
         recorder.trajectory_frame(task.name, i, frame, mask, camera=task.trajectory[i])
 
 
-def record_eval_views(task, recorder, preds, report, gaussians, backend) -> None:
-    """Each eval view's render, prediction and ground truth, at its nearest trajectory frame."""
+def record_eval_views(task, recorder, preds, report, gaussians, backend, causes=None) -> None:
+    """Each eval view's render, prediction, ground truth and (with a diagnosis) the causes of
+    its wrong pixels, at its nearest trajectory frame."""
     if not recorder.enabled:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
@@ -301,8 +209,9 @@ def record_eval_views(task, recorder, preds, report, gaussians, backend) -> None
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
         rgb = to_uint8(render(gaussians, view.camera, backend=backend).rgb)
         recorder.eval_view(
-            task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i], frame=frames[i]
-        )
+            task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i], frame=frames[i],
+            diagnosis=None if causes is None else causes[i],
+        )  # fmt: skip
 
 
 def nearest_frames(task: SceneTask) -> list[int]:

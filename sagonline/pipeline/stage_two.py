@@ -20,8 +20,9 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.datasets.base import SceneTask
-from sagonline.pipeline.scene import PipelineSettings, StageOneOutput, nearest_frames
+from sagonline.pipeline.scene import nearest_frames
 from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
+from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput
 from sagonline.pipeline.stages import REFINE, RefineInputs
 from sagonline.recording import Recorder
 from sagonline.refine import RefineConfig, RefinementTrainer

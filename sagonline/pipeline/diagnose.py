@@ -1,0 +1,76 @@
+"""Stage I's diagnosis of a scored scene (`sagonline.diagnosis`): every eval view's wrong pixels
+sorted by cause, in per_view.csv (the view's row), in metrics.json (the scene's shares) and in
+the recording (a colour image of the causes beside the prediction).
+
+The split between the fit and the segmenter needs the vote the truth's own masks would give on
+the same views by the same rule: for a dataset with the trajectory's ground truth, that vote is
+Stage I run with the oracle segmenter (cached like any stage; for an oracle run it is the run's
+own vote)."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from sagonline.consensus import VoteConfig, VoteResult
+from sagonline.datasets.base import SceneTask
+from sagonline.diagnosis import GaussianCauses, cause_image, diagnose_view, shares
+from sagonline.gaussians import Gaussians
+from sagonline.pipeline.graph import StageCache
+from sagonline.pipeline.scoring import SceneReport
+from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
+from sagonline.pipeline.stages import SegmenterRun, segmenter_run
+
+
+def truth_vote(
+    task: SceneTask,
+    gaussians: Gaussians,
+    stage_one: StageOneOutput,
+    segmenter: SegmenterRun,
+    vote_cfg: VoteConfig,
+    settings: PipelineSettings,
+    cache: StageCache,
+) -> VoteResult | None:
+    """The vote of the trajectory's ground-truth masks on the run's voting views, by the run's
+    rule; None without that ground truth."""
+    if task.trajectory_gt is None:
+        return None
+    oracle = segmenter_run({"kind": "oracle"}, check=False)
+    if segmenter.digest() == oracle.digest():
+        return stage_one.vote.value
+    quiet = PipelineSettings(**{**settings.__dict__, "progress": False})
+    truth = compose_stage_one(
+        gaussians, task.trajectory, task.prompt, oracle, vote_cfg, quiet,
+        num_labels=task.num_labels, trajectory_gt=task.trajectory_gt, cache=cache,
+    )  # fmt: skip
+    return truth.vote.value
+
+
+def diagnose_scene(
+    task: SceneTask,
+    gaussians: Gaussians,
+    stage_one: StageOneOutput,
+    preds: list[np.ndarray],
+    segmenter: SegmenterRun,
+    vote_cfg: VoteConfig,
+    settings: PipelineSettings,
+    report: SceneReport,
+    cache: StageCache,
+) -> list[np.ndarray]:
+    """Add each eval view's cause counts to its per-view row and the scene's shares to
+    report.extra["diagnosis"]; returns the (H, W, 3) cause images (for the recording)."""
+    truth = truth_vote(task, gaussians, stage_one, segmenter, vote_cfg, settings, cache)
+    causes = GaussianCauses.of(stage_one.vote.value, vote_cfg, truth)
+    rows = {(r["view"], r["mode"]): r for r in report.views}
+    counts, images = [], []
+    for view, pred in zip(task.eval_views, preds, strict=True):
+        c, kinds = diagnose_view(
+            gaussians, view.camera, view.gt, pred, causes,
+            ignore=task.ignore_label, backend=settings.backend,
+        )  # fmt: skip
+        rows[(view.name, "initial")].update(c)
+        counts.append(c)
+        images.append(cause_image(kinds))
+    report.extra["diagnosis"] = shares(counts) | {
+        "counterfactual": "truth's masks" if truth is not None else None
+    }
+    return images
