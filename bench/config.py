@@ -248,7 +248,13 @@ def check_plugin_nodes(cfg) -> None:
             if unknown:
                 raise KeyError(f"dataset.{unknown[0]}: no such setting (dataset.adapter.* holds "
                                "the dataset's settings)")  # fmt: skip
-        values = node["adapter"] if group == "dataset" else node
+        from sagonline.plugins import NODE_KEYS
+
+        values = (
+            node["adapter"]
+            if group == "dataset"
+            else {k: v for k, v in node.items() if k not in NODE_KEYS}
+        )
         registry[kind].settings(
             values, where=f"{group}" + (".adapter" if group == "dataset" else "")
         )

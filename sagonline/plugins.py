@@ -143,7 +143,6 @@ def typed_settings(config: type[C], values: Mapping[str, Any], where: str) -> C:
 
     if not isinstance(values, Mapping):
         raise PluginError(f"{where}: settings must be a mapping, got {type(values).__name__}")
-    values = {k: v for k, v in values.items() if k not in NODE_KEYS}
     try:
         check_finite(values, where)
         merged = OmegaConf.merge(OmegaConf.structured(config), values)
