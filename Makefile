@@ -136,9 +136,12 @@ table-masks: install
 	$(BIN)/python -m bench.tables masks $(TABLE_OPTS)
 	rm -rf $(SWEEP_CACHE)   # kept until the table is built, so an interrupted sweep resumes
 
+# The registered vote rules (`python -m sagonline plugins vote-rules`), read when a table needs them.
+VOTE_RULES = $(shell $(BIN)/python -m sagonline plugins vote-rules --keys)
+
 table-ablation: install
 	$(foreach s,$(SOURCES),\
-	  $(call SWEEP_INTO,ablation,$(s),consensus=rgc$(COMMA)flashsplat$(COMMA)weighted_mean,methods) && \
+	  $(call SWEEP_INTO,ablation,$(s),consensus=$(VOTE_RULES),methods) && \
 	  $(call SWEEP_INTO,ablation,$(s),consensus.eps=0.001$(COMMA)0.1$(COMMA)0.5,eps) && \
 	  $(call SWEEP_INTO,ablation,$(s),consensus.delta=0.5$(COMMA)1$(COMMA)4$(COMMA)8,delta) && \
 	  $(call SWEEP_INTO,ablation,$(s),consensus.min_votes=3$(COMMA)10 \

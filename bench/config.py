@@ -128,12 +128,14 @@ def register_schemas() -> None:
     import)."""
     from hydra.core.config_store import ConfigStore
 
-    from sagonline.plugins import DATASETS, SEGMENTERS
+    from sagonline.plugins import DATASETS, SEGMENTERS, VOTE_RULES
 
     store = ConfigStore.instance()
     store.store(name="eval_schema", node=EvalConfig)
     store.store(name="scenes_schema", node=ScenesConfig)
     store.store(group="consensus", name="schema", node=VoteConfig)
+    for plugin in VOTE_RULES:
+        store.store(group="consensus", name=plugin.key, node=vote_node(plugin.key))
     store.store(group="fit", name="schema", node=FitConfig)
     store.store(group="refine", name="schema", node=RefineStage)
     store.store(group="feedback", name="schema", node=FeedbackConfig)
@@ -153,6 +155,13 @@ def follow_root(node: DictConfig) -> DictConfig:
         elif key in ROOT_SETTINGS:
             node[key] = ROOT_SETTINGS[key]
     return node
+
+
+def vote_node(method: str) -> DictConfig:
+    """A vote rule's option: VoteConfig with its method (settings it does not read stay at
+    their defaults; changing one is refused, naming it)."""
+    node = OmegaConf.structured(VoteConfig(method=method))
+    return follow_root(node)
 
 
 def segmenter_node(plugin) -> DictConfig:

@@ -103,6 +103,11 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
     seed_everything(cfg.seed)
     set_threads(cfg)
     run = prepare_segmenter(cfg.segmenter, cfg.corrupt)
+    try:  # a protocol that says something other than what the segmenter will receive
+        getattr(adapter, "check_segmenter", lambda reads: None)(run.segmenter.reads)
+    except DatasetError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        raise SystemExit(2) from None
     vote_cfg, weights = cfg.consensus, run.weights
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):

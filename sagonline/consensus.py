@@ -14,14 +14,20 @@ Two baselines share the interface:
   indicator; a Gaussian takes the best non-background label if its mean reaches `threshold`
   (0.9), else background.
 
-Labels: 0 is background and also the value of unlabelled Gaussians; `labelled` tells them apart.
+Labels: 0 is background and also the value of unlabelled Gaussians; `labelled` tells them apart
+(every output outside the vote writes -1 for unlabelled: `StageOneOutput.labels`).
+
+Each method is a vote rule registered in `plugins.VOTE_RULES` under its name: the pairs its
+kernels count (`VoteConfig.rule`, a `render.rule.VoteRule`) and how a histogram becomes labels
+(its `decide`). A setting a method does not read is refused when the config is built
+(`consensus=flashsplat consensus.delta=1.5` stops, naming delta).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
 
 import numpy as np
 import torch
@@ -29,11 +35,11 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.io.store import stored
+from sagonline.plugins import VOTE_RULES
 from sagonline.render.rasterize import T_STOP
+from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_histogram
 from sagonline.settings import check_settings
-
-METHODS = ("rgc", "flashsplat", "weighted_mean")
 
 
 class MaskError(ValueError):
@@ -45,11 +51,13 @@ class VoteConfig:
     """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
 
     method: str = "rgc"
-    """rgc (the paper's), flashsplat or weighted_mean."""
+    """A registered vote rule: rgc (the paper's), flashsplat or weighted_mean
+    (`python -m sagonline plugins vote-rules`)."""
     eps: float = 0.01
     """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps."""
-    delta: float = 2.0
-    """rgc: ... and only if its projected centre lies within delta px of the pixel centre."""
+    delta: float | None = 2.0
+    """rgc: ... and only if its projected centre lies within delta px of the pixel centre;
+    null: no distance rule."""
     min_votes: int = 1
     """Fewer votes leave a Gaussian unlabelled."""
     margin: float = 0.2
@@ -69,16 +77,21 @@ class VoteConfig:
 
     def __post_init__(self) -> None:
         n = self.num_masks
+        methods = VOTE_RULES.keys()
         check_settings(
             "consensus",
-            method=(self.method in METHODS, self.method, f"one of {METHODS}"),
+            method=(self.method in methods, self.method, f"one of {methods}"),
             selection=(
                 self.selection in ("uniform", "first", "random"),
                 self.selection,
                 "uniform, first or random",
             ),
             eps=(0 <= self.eps < 1, self.eps, "a transmittance in [0, 1)"),
-            delta=(self.delta > 0, self.delta, "a distance in pixels > 0"),
+            delta=(
+                self.delta is None or self.delta > 0,
+                self.delta,
+                "a distance in pixels > 0, or null (no distance rule)",
+            ),
             min_votes=(self.min_votes >= 0, self.min_votes, ">= 0"),
             margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
             num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
@@ -86,6 +99,44 @@ class VoteConfig:
             background_slack=(self.background_slack >= 0, self.background_slack, ">= 0"),
             threshold=(0 <= self.threshold <= 1, self.threshold, "in [0, 1]"),
         )
+        self.method_rule().check_reads(self)
+
+    def method_rule(self) -> VoteMethod:
+        """The registered method this config names."""
+        return VOTE_RULES.build(self.method, {})
+
+    @property
+    def rule(self) -> VoteRule:
+        """The rule the kernels apply, built once from these settings by the method."""
+        return self.method_rule().rule(self)
+
+
+# The settings every method reads: which masks vote.
+SELECTION = ("method", "num_masks", "stride", "selection", "seed")
+
+
+@dataclass(frozen=True)
+class VoteMethod:
+    """A registered vote rule: the VoteConfig settings it reads (besides SELECTION), the kernel
+    rule it builds from them, and how an (N, K) histogram becomes labels (N,) and labelled
+    (N,)."""
+
+    reads: tuple[str, ...]
+    rule: Callable[[VoteConfig], VoteRule]
+    decide: Callable[[torch.Tensor, VoteConfig], tuple[torch.Tensor, torch.Tensor]]
+
+    def check_reads(self, cfg: VoteConfig) -> None:
+        """Refuse a setting this method does not read that differs from its default: it would
+        be ignored without a word."""
+        defaults = VoteConfig.__dataclass_fields__
+        for f in fields(cfg):
+            if f.name in SELECTION or f.name in self.reads:
+                continue
+            if getattr(cfg, f.name) != defaults[f.name].default:
+                raise ValueError(
+                    f"consensus.{f.name}={getattr(cfg, f.name)!r}: the method {cfg.method} "
+                    f"does not read {f.name} (it reads {', '.join(self.reads) or 'nothing'})"
+                )
 
 
 @stored
@@ -129,16 +180,8 @@ class VoteAccumulator:
         cfg: VoteConfig,
         device: torch.device | str = "cpu",
     ):
-        self.cfg, self.k = cfg, num_labels
+        self.cfg, self.k, self.rule = cfg, num_labels, cfg.rule
         self.hist = torch.zeros(num_gaussians, num_labels, dtype=torch.float64, device=device)
-
-    def rule(self) -> dict:
-        """The pairs this method counts: rgc's (T_i > eps, the projected centre within delta px,
-        +1) or, for the weighted methods, every pair that is composited (T_i > T_STOP) with its
-        blend weight alpha_i T_i."""
-        if self.cfg.method == "rgc":
-            return dict(t_min=self.cfg.eps, max_distance=self.cfg.delta, weighting="count")
-        return dict(t_min=T_STOP, max_distance=None, weighting="blend")
 
     def add_view(
         self, gaussians: Gaussians, camera: Camera, mask, backend: str, where: str = "mask"
@@ -146,44 +189,82 @@ class VoteAccumulator:
         """Vote one view's (H, W) label map; `where` names the mask in errors."""
         labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
         vote_histogram(
-            gaussians,
-            camera,
-            labels.to(gaussians.device),
-            self.k,
-            backend=backend,
-            out=self.hist,
-            **self.rule(),
-        )
+            gaussians, camera, labels.to(gaussians.device), self.k, self.rule,
+            backend=backend, out=self.hist,
+        )  # fmt: skip
 
     def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """labels (N,), labelled (N,), histogram (N, K)."""
         return decide(self.hist, self.cfg)
 
 
-def decide(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """(N, K) histogram -> labels (N,), labelled (N,) and the histogram as float32, by the
-    method's rule (see the module docstring)."""
-    k = hist.shape[1]
-    total = hist.sum(1)
-    if cfg.method == "rgc":
-        top2 = hist.topk(min(2, k), dim=1)
-        labels = top2.indices[:, 0]
-        second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
-        share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
-        labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
-        labelled &= share_gap >= cfg.margin
-    elif cfg.method == "flashsplat":
-        norm = hist / total.clamp_min(1e-12)[:, None]
-        norm[:, 0] += cfg.background_slack
-        labels = norm.argmax(1)
-        labelled = total > 0
-    else:
-        mean = hist / total.clamp_min(1e-12)[:, None]
-        best_val, best = mean[:, 1:].max(1)
-        labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
-        labelled = total > 0
+def decide(
+    hist: torch.Tensor,  # [N, K] votes or blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N] long, [N] bool, [N, K] float32
+    """Histogram -> labels, labelled and the histogram as float32, by the method's rule (see
+    the module docstring); unlabelled Gaussians carry label 0."""
+    labels, labelled = cfg.method_rule().decide(hist, cfg)
     labels = torch.where(labelled, labels, torch.zeros_like(labels))
     return labels, labelled, hist.float()
+
+
+def decide_majority(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """rgc: the label of most votes, unless fewer than min_votes, a tie, or a top-1 minus top-2
+    share below margin."""
+    k = hist.shape[1]
+    total = hist.sum(1)
+    top2 = hist.topk(min(2, k), dim=1)
+    labels = top2.indices[:, 0]
+    second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
+    share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
+    labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
+    return labels, labelled & (share_gap >= cfg.margin)
+
+
+def decide_flashsplat(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """flashsplat: normalised weights, background slack added to label 0, argmax."""
+    total = hist.sum(1)
+    norm = hist / total.clamp_min(1e-12)[:, None]
+    norm[:, 0] += cfg.background_slack
+    return norm.argmax(1), total > 0
+
+
+def decide_weighted_mean(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+    """weighted_mean: the best foreground label whose weighted mean reaches threshold, else
+    background."""
+    total = hist.sum(1)
+    mean = hist / total.clamp_min(1e-12)[:, None]
+    best_val, best = mean[:, 1:].max(1)
+    labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
+    return labels, total > 0
+
+
+def count_rule(cfg: VoteConfig) -> VoteRule:
+    """rgc's pairs: T_i > eps and the centre within delta px, +1 each."""
+    return VoteRule(cfg.eps, cfg.delta, "count", cfg.min_votes, cfg.margin)
+
+
+def blend_rule(cfg: VoteConfig) -> VoteRule:
+    """The weighted methods' pairs: every composited one (T_i > T_STOP), alpha_i T_i each."""
+    return VoteRule(T_STOP, None, "blend", 0, 0.0)
+
+
+@dataclass
+class NoSettings:
+    """A vote rule's own settings live on VoteConfig (`consensus.*`)."""
+
+
+for _key, _method in (
+    ("rgc", VoteMethod(("eps", "delta", "min_votes", "margin"), count_rule, decide_majority)),
+    ("flashsplat", VoteMethod(("background_slack",), blend_rule, decide_flashsplat)),
+    ("weighted_mean", VoteMethod(("threshold",), blend_rule, decide_weighted_mean)),
+):
+    VOTE_RULES.register(
+        _key, NoSettings, lambda cfg, m=_method: m,
+        summary=(_method.decide.__doc__ or "").split(":", 1)[0] + ": "
+        + (_method.decide.__doc__ or "").split(":", 1)[-1].split(".")[0].strip(),
+    )  # fmt: skip
 
 
 def check_mask(

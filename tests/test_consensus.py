@@ -15,7 +15,7 @@ from sagonline.consensus import (
     select_frames,
 )
 from sagonline.render import TraceChunk, TraceRequest
-from sagonline.render.vote import add_pairs
+from sagonline.render._torch_impl import add_pairs
 from tests.fixtures import small_camera
 
 
@@ -27,11 +27,11 @@ def chunk(pixel, gaussian, T, alpha, dist):
 def streamed(acc, mask, c):
     """Feed `c` as the reference vote does: the renderer keeps the pairs the method's rule
     asks for (`TraceRequest.keeps`), `add_pairs` adds them to the histogram."""
-    rule = acc.rule()
-    request = TraceRequest(print, t_min=rule["t_min"], max_distance=rule["max_distance"])
+    rule = acc.rule
+    request = TraceRequest(print, eps=rule.eps, delta=rule.delta)
     keep = request.keeps(c.transmittance, c.alpha, c.distance**2)
     kept = TraceChunk(*(getattr(c, f)[keep] for f in TraceChunk.__dataclass_fields__))
-    add_pairs(acc.hist, mask, kept, weighting=rule["weighting"])
+    add_pairs(acc.hist, mask, kept, rule.weighting)
 
 
 def test_rgc_votes_only_visible_aligned_gaussians():

@@ -17,7 +17,7 @@ from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
 from sagonline.plugins import DATASETS, settings_dict
 from sagonline.settings import check_settings
 
-PROMPTS = ("clicks", "text", "none")
+PROMPTS = ("mask", "clicks", "text", "none")
 ORDERS = ("name", "path")
 
 
@@ -47,8 +47,9 @@ class PosedMasksConfig:
     """ids / palette: the label names, background first; None: "1", "2", ..."""
     ignore: int | None = None
     """A ground-truth value never scored (void pixels)."""
-    prompt: str = "clicks"
-    """clicks (seeded, on the reference view's ground truth) | text (the label names) | none."""
+    prompt: str = "mask"
+    """mask (the reference view's ground-truth mask, with `clicks` seeded clicks in it: a
+    segmenter reads either) | clicks (the clicks alone) | text (the label names) | none."""
     clicks: int = 3
     """Positive clicks per object."""
     reference: str | None = None

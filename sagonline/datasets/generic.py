@@ -13,7 +13,8 @@ kitti360).
 
 The trajectory is every camera in pseudo-temporal (name) order; the scored views are those
 with a label map (optionally without the reference view). The prompt is seeded random clicks
-on the reference view's ground truth (`prompt: clicks`), the classes as text
+on the reference view's ground truth with that view's mask offered beside them
+(`prompt: mask`; a segmenter reads either), the clicks alone (`prompt: clicks`), the classes as text
 (`prompt: text`), or nothing for automatic segmenters (`prompt: none`).
 """
 
@@ -124,13 +125,30 @@ class PosedMasksDataset(DatasetAdapter):
 
     @property
     def protocol(self) -> str:
-        """e.g. `mold_cape/exclude-reference@1`, `spinnerf/all-views@1`; a prompt other than
-        3 ground-truth clicks on the reference view is named after the views."""
+        """What is scored and what the segmenter is offered, e.g. `mold_cape/exclude-reference@1`
+        (the default: the reference view's mask with 3 clicks in it, on the first view with a
+        mask), `...-clicks1@1` (one click, no mask), `...-mask-clicks1@1`, `...-ref-IMG_5961@1`
+        (another reference view)."""
         views = "exclude-reference" if self.exclude_reference else "all-views"
-        prompt = "" if (self.prompt_kind, self.clicks) == ("clicks", 3) else f"-{self.prompt_kind}"
-        if self.prompt_kind == "clicks" and self.clicks != 3:
+        prompt = "" if self.prompt_kind == "mask" else f"-{self.prompt_kind}"
+        if self.prompt_kind == "clicks":
             prompt += str(self.clicks)
-        return f"{self.name}/{views}{prompt}@1"
+        elif self.prompt_kind == "mask" and self.clicks != 3:
+            prompt += f"-clicks{self.clicks}"
+        ref = f"-ref-{self.reference}" if self.reference else ""
+        return f"{self.name}/{views}{prompt}{ref}@1"
+
+    def check_segmenter(self, reads: tuple[str, ...]) -> None:
+        """Refuse a protocol that says something other than what the segmenter will receive:
+        the clicks' count under the mask protocol, for a segmenter that reads the mask (it never
+        sees the clicks)."""
+        if self.prompt_kind == "mask" and self.clicks != 3 and "masks" in reads:
+            raise DatasetError(
+                f"{self.name}: dataset.adapter.clicks={self.clicks} changes nothing for this "
+                "segmenter: it reads the reference mask (segmenter.use_masks=true), not the "
+                "clicks. For a click protocol set dataset.adapter.prompt=clicks (or "
+                "segmenter.use_masks=false)"
+            )
 
     def describe(self) -> dict:
         return {
@@ -298,7 +316,11 @@ class PosedMasksDataset(DatasetAdapter):
             return Prompt(frame=frame, texts=names[1:])
         scale = (cam.width / gt.shape[1], cam.height / gt.shape[0])
         clean = np.where(gt == self.ignore, 0, gt) if self.ignore is not None else gt
-        return click_prompt(clean, frame, num_labels, self.clicks, self.seed, scale)
+        prompt = click_prompt(clean, frame, num_labels, self.clicks, self.seed, scale)
+        if self.prompt_kind == "clicks":  # the clicks alone: no mask is offered
+            for obj in prompt.objects:
+                obj.mask = None
+        return prompt
 
 
 def group_by_photographs(

@@ -69,7 +69,11 @@ def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig
     """On screen (and in the run's log): why the student stopped, and a warning when a time
     budget stopped it."""
     why = {
-        "converged": f"converged (no gain of {cfg.min_delta} in {cfg.patience} steps)",
+        "converged": (
+            f"converged (no gain of {cfg.min_delta} in the smoothed loss for {cfg.patience} "
+            f"steps after a warm-up of {cfg.patience}; lowest at step "
+            f"{trainer.plateau.best_step})"
+        ),
         "steps": f"its step budget (refine.max_steps={cfg.max_steps})",
         "time_budget": f"its time budget (refine.time_budget_s={cfg.time_budget_s})",
     }.get(trainer.status, trainer.status)
@@ -152,7 +156,8 @@ def run_stage_two(
     report.extra["refine"] = {
         "status": trainer.status,
         "steps": trainer.step,
-        "final_loss": trainer.ema,
+        "final_loss": trainer.plateau.ema,
+        "best_step": trainer.plateau.best_step,
         "resumed_finished": resumed_done,
         "answers_while_training": {mode: len(v) for mode, v in during.items()},
         "encoder": cfg.encoder,

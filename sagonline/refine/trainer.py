@@ -3,7 +3,8 @@
 Inputs per trajectory view: the rendered RGB frame and the coarse label render of the fused
 Stage I labels (one-hot, lightly smoothed); target: the 2D segmenter's mask of that frame
 (the teacher). Loss: pixel-wise cross-entropy. Training stops when the smoothed loss has not
-improved by `min_delta` for `patience` steps ("converged"), at `max_steps` ("steps"), or, only
+improved by `min_delta` for `patience` steps after a warm-up of `patience` steps ("converged":
+`Plateau`), at `max_steps` ("steps"), or, only
 when one is set, at `time_budget_s` seconds of training ("time_budget": then the result depends
 on how busy the machine was). The same seed and settings give the same weights on a quiet and on
 a loaded machine. A checkpoint (model, optimiser, step, loss, status) is
@@ -28,6 +29,38 @@ from sagonline.refine.network import ARCHS, DualBranchRefiner
 from sagonline.settings import check_settings
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
+
+
+@dataclass
+class Plateau:
+    """When the smoothed loss stops improving. The loss is smoothed by an exponential moving
+    average (0.9); its best value counts only after `warmup` steps, so one lucky first batch
+    cannot set a best that the noisy steps after it never beat (which made "converged" mean
+    "the first `patience` steps ended"); then `patience` steps without a gain of `min_delta`
+    over the best mean converged. `best_step` is the step of the best smoothed loss."""
+
+    patience: int
+    min_delta: float
+    warmup: int
+    ema: float | None = None
+    best: float = float("inf")
+    best_step: int = -1
+    since_best: int = 0
+    steps: int = 0
+
+    def add(self, loss: float) -> None:
+        self.ema = loss if self.ema is None else 0.9 * self.ema + 0.1 * loss
+        self.steps += 1
+        if self.steps < self.warmup:
+            return
+        if self.ema < self.best - self.min_delta:
+            self.best, self.best_step, self.since_best = self.ema, self.steps - 1, 0
+        else:
+            self.since_best += 1
+
+    @property
+    def converged(self) -> bool:
+        return self.steps >= self.warmup and self.since_best >= self.patience
 
 
 @dataclass
@@ -130,7 +163,8 @@ class RefinementTrainer:
                 f"teacher masks hold label {int(self.teacher.max())} but the "
                 f"student has {num_classes} classes"
             )
-        self.step, self.best, self.since_best, self.ema = 0, float("inf"), 0, None
+        self.step = 0
+        self.plateau = Plateau(cfg.patience, cfg.min_delta, warmup=cfg.patience)
         self.status, self.train_s, self.losses = "idle", 0.0, []
         self.done = threading.Event()
         self._lock = threading.Lock()
@@ -160,9 +194,10 @@ class RefinementTrainer:
             return  # another setting: start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
-        self.step, self.best, self.ema = state["step"], state["best"], state["ema"]
-        self.since_best, self.train_s = state["since_best"], state["train_s"]
+        self.step, self.train_s = state["step"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
+        for loss in self.losses:  # the plateau rule replayed: the same state as before
+            self.plateau.add(loss)
         if self.status in STOPS:
             self.done.set()
 
@@ -174,9 +209,7 @@ class RefinementTrainer:
                 "model": self.model.state_dict(),
                 "optim": self.optim.state_dict(),
                 "step": self.step,
-                "best": self.best,
-                "ema": self.ema,
-                "since_best": self.since_best,
+                "best_step": self.plateau.best_step,
                 "train_s": self.train_s,
                 "losses": self.losses,
                 "status": self.status,
@@ -218,7 +251,7 @@ class RefinementTrainer:
             if cfg.time_budget_s is not None and self.train_s >= cfg.time_budget_s:
                 self.status = "time_budget"
                 break
-            if self.since_best >= cfg.patience:
+            if self.plateau.converged:
                 self.status = "converged"
                 break
             rgb, coarse, teacher = self._batch(gen)
@@ -231,11 +264,7 @@ class RefinementTrainer:
                 self.optim.step()
             value = loss.item()
             self.losses.append(value)
-            self.ema = value if self.ema is None else 0.9 * self.ema + 0.1 * value
-            if self.ema < self.best - cfg.min_delta:
-                self.best, self.since_best = self.ema, 0
-            else:
-                self.since_best += 1
+            self.plateau.add(value)
             self.step += 1
             self.train_s = session_start + time.perf_counter() - start
             if self.step % cfg.checkpoint_every == 0:

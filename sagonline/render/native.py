@@ -1,12 +1,12 @@
 """The compiled CPU rasterizer: `rasterize`'s compositing in C++ with a hand-written backward.
 
-Same projection (`project`, autograd), same tile lists (`_bin_tiles`'s, built by a counting sort
+Same projection (`project`, autograd), same tile lists (`bin_tiles`'s, built by a counting sort
 in C++), same compositing rules
 as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per tile
 (csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
 tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
 use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
-most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_native`, behind
+most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
 `render.vote_histogram`) and the label renders (`label_weights_native`) walk a view prepared in
 C++ (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/vote_cpu.cpp); a
 streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
@@ -28,6 +28,7 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
 from sagonline.render.projection import project
 from sagonline.render.rasterize import T_STOP, RenderOutput
+from sagonline.render.rule import VoteRule
 
 log = logging.getLogger(__name__)
 CSRC = Path(__file__).parent / "csrc"
@@ -78,7 +79,7 @@ def native_available() -> bool:
 
 
 def bin_tiles(proj, ntx: int, nty: int, tile_size: int):
-    """`rasterize._bin_tiles`'s (order, offsets, counts) by a counting sort in C++: the same
+    """`rasterize.bin_tiles`'s (order, offsets, counts) by a counting sort in C++: the same
     lists in the same order, in O(splats + intersections) instead of a sort of every
     intersection."""
     by_depth = torch.sort(proj.depths.detach(), stable=True).indices
@@ -228,18 +229,15 @@ def prepare_view(
     return PreparedView(g.kind == "2dgs", *out)
 
 
-def vote_native(
+def vote_into(
     gaussians: Gaussians,
     camera: Camera,
-    labels: torch.Tensor,
-    hist: torch.Tensor,
-    *,
-    t_min: float,
-    max_distance: float | None,
-    weighting: str,
+    labels: torch.Tensor,  # [H, W] long, the view's mask
+    hist: torch.Tensor,  # [N, K] float64, added into
+    rule: VoteRule,
 ) -> None:
-    """Add one view's votes to hist (N, K) float64; labels: (H, W) long. As `vote_histogram`:
-    the pairs of its PyTorch reference, walked in C++ (csrc/vote_cpu.cpp)."""
+    """The op `render.vote.vote_histogram` in C++ (csrc/vote_cpu.cpp): the pairs of its
+    PyTorch reference under `rule`, added into hist."""
     view = prepare_view(gaussians, camera)
     load_extension().vote(
         view.surfel,
@@ -254,9 +252,9 @@ def vote_native(
         8,
         labels.flatten().long(),
         hist.shape[1],
-        float(t_min),
-        -1.0 if max_distance is None else float(max_distance),
-        weighting == "blend",
+        float(rule.eps),
+        None if rule.delta is None else float(rule.delta),
+        rule.weighting == "blend",
         hist.view(-1),
     )
 
@@ -329,6 +327,6 @@ __all__ = [
     "rasterize_native",
     "PreparedView",
     "prepare_view",
-    "vote_native",
+    "vote_into",
     "vote_simd",
 ]

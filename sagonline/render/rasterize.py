@@ -15,8 +15,8 @@ splat that would break that ends the pixel.
 
 The trace streams, per block, the (pixel, Gaussian) pairs met front to back with T_i (the
 transmittance before the splat), alpha_i and the distance of the splat's projected centre from
-the pixel centre, filtered as a `TraceRequest` asks (T_i > t_min, the centre within
-max_distance). A consumer reduces each `TraceChunk` as it
+the pixel centre, filtered as a `TraceRequest` asks (T_i > eps, the centre within
+delta). A consumer reduces each `TraceChunk` as it
 arrives (the consensus vote scatter-adds into a per-Gaussian histogram), so a frame never holds
 all of its traces at once.
 """
@@ -61,20 +61,26 @@ TraceConsumer = Callable[[TraceChunk], None]
 @dataclass(frozen=True)
 class TraceRequest:
     """Stream a render's trace to `consumer`: each (pixel, Gaussian) pair met front to back
-    with T_i > t_min and alpha_i > 0 (and, with `max_distance`, the splat's projected centre
-    within that many pixels of the pixel centre). With `image=False` (the vote's pass) nothing
-    is composited, each pixel stops once T <= t_min, and the render returns None."""
+    with T_i > eps and alpha_i > 0 (and, with `delta`, the splat's projected centre within
+    that many pixels of the pixel centre; None: no distance rule). With `image=False` (the
+    vote's pass) nothing is composited, each pixel stops once T <= eps, and the render returns
+    None."""
 
     consumer: TraceConsumer
-    t_min: float
-    max_distance: float | None = None
+    eps: float
+    delta: float | None = None
     image: bool = False
 
-    def keeps(self, T_before: torch.Tensor, alpha: torch.Tensor, dist2: torch.Tensor):
-        """Bool mask of the pairs this request streams; dist2: squared centre distance."""
-        hit = (T_before > self.t_min) & (alpha > 0)
-        if self.max_distance is not None:
-            hit &= dist2 < self.max_distance**2
+    def keeps(
+        self,
+        T_before: torch.Tensor,  # [P] transmittance before the splat
+        alpha: torch.Tensor,  # [P]
+        dist2: torch.Tensor,  # [P] squared distance of the splat's centre to the pixel's
+    ) -> torch.Tensor:  # [P] bool
+        """The pairs this request streams."""
+        hit = (T_before > self.eps) & (alpha > 0)
+        if self.delta is not None:
+            hit &= dist2 < self.delta**2
         return hit
 
 
@@ -143,9 +149,9 @@ def rasterize(
     acc_depth = torch.zeros(n_tiles, P, device=device)
     final_T = torch.ones(n_tiles, P, device=device)
     best_id = torch.full((n_tiles, P), -1, dtype=torch.long, device=device) if return_ids else None
-    stop_T = trace.t_min if trace_only else t_stop
+    stop_T = trace.eps if trace_only else t_stop
 
-    tile_ids, splat_order, tile_offsets, tile_counts = _bin_tiles(proj, ntx, nty, ts)
+    tile_ids, splat_order, tile_offsets, tile_counts = bin_tiles(proj, ntx, nty, ts)
     if stats is not None:
         stats.splats, stats.intersections, stats.evaluations = len(proj), splat_order.numel(), 0
     params = proj.params()
@@ -255,7 +261,7 @@ def rasterize(
     )
 
 
-def _bin_tiles(proj: ProjectedSplats, ntx: int, nty: int, ts: int):
+def bin_tiles(proj: ProjectedSplats, ntx: int, nty: int, ts: int):
     """Sorted (tile, depth) lists: per-tile offsets/counts into `order` (indices into proj)."""
     device = proj.means2d.device
     m = len(proj)

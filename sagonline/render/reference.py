@@ -48,7 +48,7 @@ def reference_render(
     features: torch.Tensor | None = None,
     background=(0.0, 0.0, 0.0),
     t_stop: float = 1e-4,
-    trace_t_min: float = 0.01,
+    trace_eps: float = 0.01,
     near: float = 0.01,
 ) -> ReferenceRender:
     """Brute force in float64: every pixel against every Gaussian, front to back.
@@ -137,7 +137,7 @@ def reference_render(
                 a = min(ALPHA_MAX, opac[i] * np.exp(-0.5 * m2))
                 if a < ALPHA_MIN:
                     continue
-                if trace_t_min < T:
+                if trace_eps < T:
                     trace.append((yy * W + xx, int(i), T, a, float(np.sqrt(d @ d))))
                 if T * (1 - a) < t_stop:
                     break

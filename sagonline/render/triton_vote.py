@@ -1,11 +1,11 @@
 """The fused GPU walk in Triton: trace-and-vote, and the label renders, one launch per view.
 
 One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sorted splats once
-(the tile lists of `rasterize._bin_tiles`), keeping T for its 256 pixels, and does one of:
-- the vote: a splat votes at the pixels where T_i > t_min, alpha_i > 0 and (with a distance
-  rule) its projected centre lies within max_distance px; the tile's votes are summed per label
+(the tile lists of `rasterize.bin_tiles`), keeping T for its 256 pixels, and does one of:
+- the vote: a splat votes at the pixels where T_i > eps, alpha_i > 0 and (with a distance
+  rule) its projected centre lies within delta px; the tile's votes are summed per label
   first, so a splat costs one masked atomic add of K values per tile, not one atomic per pixel.
-  The walk ends once every pixel's T <= t_min.
+  The walk ends once every pixel's T <= eps.
 - the label renders: the one-hot label composite and the most visible Gaussian per pixel, by
   the compositing rules of `rasterize` (a pixel ends at the splat that would take T under
   t_stop).
@@ -36,7 +36,8 @@ import triton.language as tl  # noqa: E402
 from sagonline.cameras import Camera  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.render.projection import project  # noqa: E402
-from sagonline.render.rasterize import T_STOP, _bin_tiles  # noqa: E402
+from sagonline.render.rasterize import T_STOP, bin_tiles  # noqa: E402
+from sagonline.render.rule import VoteRule  # noqa: E402
 
 TILE = 16
 # Compiled for CUDA, or interpreted on the CPU (no CUDA, or TRITON_INTERPRET=1): one mode per
@@ -67,8 +68,9 @@ def _walk_kernel(
     height,
     tiles_x,
     num_labels,
-    t_min,
-    max_d2,
+    eps,
+    delta,
+    t_stop,
     LABELS: tl.constexpr,
     SURFEL: tl.constexpr,
     WEIGHTED: tl.constexpr,
@@ -79,7 +81,8 @@ def _walk_kernel(
 ):
     """One tile's walk. LABELS=False, the vote: pixel_labels (H*W,) -> out (N, K) float64
     histogram. LABELS=True, the label renders: splat_labels (M,) (-1: none) -> out (H*W, KP)
-    one-hot weights, best (H*W,) the most visible Gaussian; t_min is then t_stop. Reductions
+    one-hot weights, best (H*W,) the most visible Gaussian, each pixel ending at t_stop (the
+    vote ends at eps, and counts within delta px where USE_DISTANCE). Reductions
     go through tl.reduce with Triton's own combine functions (its interpreter runs them as numpy
     reductions).
 
@@ -102,7 +105,7 @@ def _walk_kernel(
     else:
         lab = tl.load(pixel_labels_ptr + y * width + x, mask=inside, other=0)
         onehot = (lab[:, None] == kk[None, :]).to(tl.float32)
-        live = inside & (t_min < 1.0)
+        live = inside & (eps < 1.0)
     T = tl.full((TILE * TILE,), 1.0, tl.float32)
     start = tl.load(offsets_ptr + tile)
     n = tl.load(counts_ptr + tile)
@@ -152,7 +155,7 @@ def _walk_kernel(
         hit = live & (alpha > 0)
         after = T * (1.0 - alpha)
         if LABELS:  # rasterize's rule: a pixel ends at the splat that would take T under t_stop
-            kept = hit & (after >= t_min)
+            kept = hit & (after >= t_stop)
             w = tl.where(kept, alpha * T, 0.0)
             splat_label = tl.load(splat_labels_ptr + s)
             feat += w[:, None] * (kk[None, :] == splat_label).to(tl.float32)
@@ -160,11 +163,11 @@ def _walk_kernel(
             best_w = tl.where(better, w, best_w)
             best = tl.where(better, tl.load(ids_ptr + s), best)
             T = tl.where(kept, after, T)
-            live = live & (after >= t_min)
-        else:  # the vote: T_i > t_min, alpha_i > 0 and, with the distance rule, |d| < delta
+            live = live & (after >= t_stop)
+        else:  # the vote: T_i > eps, alpha_i > 0 and, with the distance rule, |d| < delta
             vote = hit
             if USE_DISTANCE:
-                vote = vote & (dx * dx + dy * dy < max_d2)
+                vote = vote & (dx * dx + dy * dy < delta * delta)
             if WEIGHTED:  # noqa: SIM108 (a constexpr branch, compiled out)
                 w = tl.where(vote, alpha * T, 0.0)
             else:
@@ -176,7 +179,7 @@ def _walk_kernel(
                 mask=(kk < num_labels) & (per_label > 0),
             )
             T = tl.where(hit, after, T)
-            live = live & (t_min < T)
+            live = live & (eps < T)
         alive = tl.reduce(live.to(tl.int32), 0, tl.standard._elementwise_max) > 0
         j += 1
     if LABELS:
@@ -195,9 +198,8 @@ def _launch(
     splat_labels=None,
     out=None,
     best=None,
-    t_min: float,
-    max_distance: float | None = None,
-    weighted: bool = False,
+    rule: VoteRule | None = None,
+    t_stop: float = T_STOP,
 ) -> None:
     """Project, bin 16x16 tiles (torch, on the Gaussians' device) and run the walk."""
     device = gaussians.device
@@ -213,7 +215,7 @@ def _launch(
         if len(proj) == 0:
             return
         tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
-        _, order, offsets, counts = _bin_tiles(proj, tiles_x, tiles_y, TILE)
+        _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
         params = proj.params().float().contiguous()
         unused = proj.ids
         _walk_kernel[(tiles_x * tiles_y,)](
@@ -230,29 +232,28 @@ def _launch(
             camera.height,
             tiles_x,
             num_labels,
-            float(t_min),
-            -1.0 if max_distance is None else float(max_distance) ** 2,
+            float(rule.eps) if rule is not None else 1.0,
+            float(rule.delta) if rule is not None and rule.delta is not None else 0.0,
+            float(t_stop),
             LABELS=labels_mode,
             SURFEL=proj.kind == "2dgs",
-            WEIGHTED=weighted,
-            USE_DISTANCE=max_distance is not None,
+            WEIGHTED=rule is not None and rule.weighting == "blend",
+            USE_DISTANCE=rule is not None and rule.delta is not None,
             TILE=TILE,
             KP=max(2, triton.next_power_of_2(num_labels)),
             NP=params.shape[1],
         )
 
 
-def vote_triton(
+def vote_into(
     gaussians: Gaussians,
     camera: Camera,
-    labels: torch.Tensor,
-    hist: torch.Tensor,
-    *,
-    t_min: float,
-    max_distance: float | None,
-    weighting: str,
+    labels: torch.Tensor,  # [H, W] long, the view's mask
+    hist: torch.Tensor,  # [N, K] float64, added into
+    rule: VoteRule,
 ) -> None:
-    """Add one view's votes to hist (N, K) float64; labels: (H, W) long. As `vote_histogram`."""
+    """The op `render.vote.vote_histogram` as one fused Triton walk: one view's votes under
+    `rule` added into hist."""
     _launch(
         gaussians,
         camera,
@@ -260,9 +261,7 @@ def vote_triton(
         num_labels=hist.shape[1],
         pixel_labels=labels,
         out=hist,
-        t_min=t_min,
-        max_distance=max_distance,
-        weighted=weighting == "blend",
+        rule=rule,
     )
 
 
@@ -289,6 +288,6 @@ def label_weights_triton(
         splat_labels=splat_labels,
         out=weights,
         best=best,
-        t_min=t_stop,
+        t_stop=t_stop,
     )
     return weights[:, :num_labels].view(H, W, num_labels), best.view(H, W)

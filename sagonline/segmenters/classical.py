@@ -97,6 +97,7 @@ class FlowWatershedSegmenter(VideoSegmenter):
         self.grabcut_iters, self.click_radius = grabcut_iters, click_radius
         self.prior_radius, self.motion_px, self.prior_floor = prior_radius, motion_px, prior_floor
         self.adapt, self.bins, self.use_masks = adapt, bins, use_masks
+        self.reads = ("masks", "clicks", "boxes") if use_masks else ("clicks", "boxes")
         self.hists: dict[int, np.ndarray] = {}
 
     # --- prompt frame -------------------------------------------------------------------------

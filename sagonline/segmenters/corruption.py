@@ -134,7 +134,7 @@ class CorruptedSegmenter(VideoSegmenter):
 
     def __init__(self, inner: VideoSegmenter, corruption: MaskCorruption):
         self.inner, self.corruption = inner, corruption
-        self.name = inner.name
+        self.name, self.reads = inner.name, inner.reads
 
     def weight_files(self) -> list[str]:
         return self.inner.weight_files()

@@ -114,6 +114,7 @@ class SAM2VideoSegmenter(VideoSegmenter):
             raise FileNotFoundError(f"segmenter.checkpoint={checkpoint}: no such file")
         self.checkpoint, self.config, self.device = checkpoint, config, device
         self.image_size, self.use_masks = image_size, use_masks
+        self.reads = ("masks", "clicks", "boxes") if use_masks else ("clicks", "boxes")
         self._predictor = None
 
     def weight_files(self) -> list[str]:

@@ -35,7 +35,7 @@ def test_distortion_is_the_pairwise_sum_over_each_ray(kind):
     out = rasterize(g, cam, features=geometry)
     per_pixel = out.alpha * out.features[..., 4] - out.features[..., 3] ** 2
     # the brute-force renderer's trace lists every composited (pixel, splat, T_i, alpha_i)
-    ref = reference_render(g, cam, trace_t_min=0.0)
+    ref = reference_render(g, cam, trace_eps=0.0)
     m = geometry[:, 3].double()
     rays = defaultdict(list)
     for pixel, splat, T, alpha, _ in ref.trace:

@@ -202,3 +202,22 @@ def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "the student stopped at step" in err and "its time budget" in err
     assert "depend on how busy the machine was" in (tmp_path / "eval.log").read_text()
+
+
+def test_a_lucky_first_batch_does_not_end_training():
+    """The old rule took the first batch's loss as the best: noisy losses that never beat it by
+    min_delta "converged" at step patience + 1. The plateau counts only after a warm-up."""
+    from sagonline.refine.trainer import Plateau
+
+    rng = np.random.default_rng(0)
+    losses = [0.30] + list(0.50 - 0.002 * np.arange(300) + rng.normal(0, 0.02, 300))
+    plateau = Plateau(patience=60, min_delta=1e-3, warmup=60)
+    stop = next((i for i, loss in enumerate(losses) if (plateau.add(loss), plateau.converged)[1]),
+                None)  # fmt: skip
+    assert stop is None or stop > 200  # the trend still falls: no "convergence" at step 61
+    flat = Plateau(patience=60, min_delta=1e-3, warmup=60)
+    for i in range(200):
+        flat.add(0.2 + 0.01 * np.sin(i))
+        if flat.converged:
+            break
+    assert flat.converged and 120 <= i < 200 and flat.best_step >= 59

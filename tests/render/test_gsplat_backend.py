@@ -56,7 +56,7 @@ def test_trace_step_matches_tiled_trace(kind, n_batches):
         )
         chunks.append(chunk)
     expected = []
-    rasterize(g, cam, trace=TraceRequest(expected.append, t_min=0.01))
+    rasterize(g, cam, trace=TraceRequest(expected.append, eps=0.01))
     got, want = _trace_set(chunks), _trace_set(expected)
     assert set(got) == set(want)
     assert max(abs(got[k] - want[k]) for k in want) < 1e-5
@@ -101,7 +101,7 @@ def test_gsplat_trace_agrees_with_torch(kind):
     g = random_gaussians(400, kind, seed=4, spread=1.2).to("cuda")
     cam = small_camera(96, 64).to("cuda")
     a, b = [], []
-    render(g, cam, backend="torch", trace=TraceRequest(a.append, t_min=0.01))
-    render(g, cam, backend="gsplat", trace=TraceRequest(b.append, t_min=0.01))
+    render(g, cam, backend="torch", trace=TraceRequest(a.append, eps=0.01))
+    render(g, cam, backend="gsplat", trace=TraceRequest(b.append, eps=0.01))
     sa, sb = set(_trace_set(a)), set(_trace_set(b))
     assert len(sa & sb) / len(sa | sb) > 0.97

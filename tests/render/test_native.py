@@ -74,7 +74,7 @@ def test_render_routes_traces_to_the_pytorch_path():
     g = random_gaussians(40, "2dgs", seed=2)
     cam = small_camera()
     chunks = []
-    request = TraceRequest(chunks.append, t_min=0.01, image=True)
+    request = TraceRequest(chunks.append, eps=0.01, image=True)
     out = render(g, cam, backend="native", return_ids=True, trace=request)
     assert out.ids is not None and chunks  # ids and traces come from the tiled PyTorch path
     plain = render(g, cam, backend="native")
@@ -122,13 +122,13 @@ def test_counting_sort_bins_like_the_pytorch_sort(kind):
 
     from sagonline.render.native import bin_tiles
     from sagonline.render.projection import project
-    from sagonline.render.rasterize import _bin_tiles
+    from sagonline.render.rasterize import bin_tiles as torch_bin_tiles
 
     g = random_gaussians(500, kind, seed=7, spread=1.2)
     cam = small_camera(61, 45)
     proj = project(g, cam)
     ntx, nty = math.ceil(61 / 8), math.ceil(45 / 8)
-    _, order, offsets, counts = _bin_tiles(proj, ntx, nty, 8)
+    _, order, offsets, counts = torch_bin_tiles(proj, ntx, nty, 8)
     got = bin_tiles(proj, ntx, nty, 8)
     assert order.numel() > 500
     for a, b in zip(got, (order, offsets, counts), strict=True):

@@ -11,9 +11,9 @@ from sagonline.render.reference import reference_render
 from tests.fixtures import random_gaussians, small_camera
 
 
-def _fast_trace(g, cam, t_min):
+def _fast_trace(g, cam, eps):
     rows = []
-    rasterize(g, cam, trace=TraceRequest(rows.append, t_min=t_min))
+    rasterize(g, cam, trace=TraceRequest(rows.append, eps=eps))
     if not rows:
         return {}
     cat = {
@@ -56,13 +56,13 @@ def test_image_matches_reference(kind, seed, tile_size, block):
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
 @pytest.mark.parametrize("seed", [3, 4])
-@pytest.mark.parametrize("t_min", [0.01, 0.3])
-def test_trace_matches_reference(kind, seed, t_min):
+@pytest.mark.parametrize("eps", [0.01, 0.3])
+def test_trace_matches_reference(kind, seed, eps):
     g = random_gaussians(40, kind, seed=seed)
     cam = small_camera()
-    ref = reference_render(g, cam, trace_t_min=t_min)
+    ref = reference_render(g, cam, trace_eps=eps)
     expected = {(p, i): (t, a, d) for p, i, t, a, d in ref.trace}
-    got = _fast_trace(g, cam, t_min)
+    got = _fast_trace(g, cam, eps)
     assert len(expected) > 200
     assert set(got) == set(expected)
     for key, (t, a, d) in expected.items():
@@ -76,7 +76,7 @@ def test_trace_is_streamed_in_chunks():
     g = random_gaussians(200, "3dgs", seed=5, spread=1.5)
     cam = small_camera(64, 48)
     sizes = []
-    request = TraceRequest(lambda c: sizes.append(len(c)), t_min=0.01)
+    request = TraceRequest(lambda c: sizes.append(len(c)), eps=0.01)
     rasterize(g, cam, trace=request, max_elements=1 << 13)
     assert len(sizes) > 3
     assert max(sizes) < sum(sizes)
@@ -88,7 +88,7 @@ def test_trace_distance_filter_and_stats():
     full = _fast_trace(g, cam, 0.01)
     near = []
     stats = RasterStats()
-    rasterize(g, cam, trace=TraceRequest(near.append, 0.01, max_distance=2.0), stats=stats)
+    rasterize(g, cam, trace=TraceRequest(near.append, 0.01, delta=2.0), stats=stats)
     kept = {(int(p), int(i)) for c in near for p, i in zip(c.pixel, c.gaussian, strict=True)}
     assert kept == {k for k, v in full.items() if v[2] < 2.0}
     assert stats.intersections > 0 and stats.evaluations >= stats.intersections

@@ -13,6 +13,7 @@ import torch
 
 from sagonline.gaussians import Gaussians
 from sagonline.render import rasterize, vote_histogram
+from sagonline.render.rule import VoteRule
 from tests.fixtures import random_gaussians, small_camera
 
 HAS_COMPILER = shutil.which("c++") is not None or shutil.which("g++") is not None
@@ -22,10 +23,10 @@ needs_triton = pytest.mark.skipif(
     not HAS_TRITON, reason="triton is not installed (pip install -e '.[triton]')"
 )
 RULES = {
-    "rgc": dict(t_min=0.01, max_distance=2.0, weighting="count"),
-    "rgc-eps.2-delta.7": dict(t_min=0.2, max_distance=0.7, weighting="count"),
-    "rgc-eps0-delta6": dict(t_min=0.0, max_distance=6.0, weighting="count"),
-    "blend": dict(t_min=1e-4, max_distance=None, weighting="blend"),
+    "rgc": VoteRule(eps=0.01, delta=2.0, weighting="count"),
+    "rgc-eps.2-delta.7": VoteRule(eps=0.2, delta=0.7, weighting="count"),
+    "rgc-eps0-delta6": VoteRule(eps=0.0, delta=6.0, weighting="count"),
+    "blend": VoteRule(eps=1e-4, delta=None, weighting="blend"),
 }
 
 
@@ -58,9 +59,9 @@ def test_native_matches_the_reference(kind, seed, rule):
     for i, cam in enumerate(cams):
         k = 3 + i  # 3, 4 and 5 labels
         labels = _masks(cam, k, seed + i)
-        ref = vote_histogram(g, cam, labels, k, backend="torch", **RULES[rule])
-        got = vote_histogram(g, cam, labels, k, backend="native", **RULES[rule])
-        _same(got, ref, RULES[rule]["weighting"])
+        ref = vote_histogram(g, cam, labels, k, RULES[rule], backend="torch")
+        got = vote_histogram(g, cam, labels, k, RULES[rule], backend="native")
+        _same(got, ref, RULES[rule].weighting)
 
 
 @needs_triton
@@ -70,9 +71,9 @@ def test_triton_kernel_matches_the_reference(kind, rule):
     """The fused GPU kernel, run by Triton's interpreter on the CPU (on CUDA with -m gpu)."""
     g, cams = _scene_views(kind, 3, 40, 20, 15)
     labels = _masks(cams[0], 3, 0)
-    ref = vote_histogram(g, cams[0], labels, 3, backend="torch", **RULES[rule])
-    got = vote_histogram(g, cams[0], labels, 3, backend="triton", **RULES[rule])
-    _same(got, ref, RULES[rule]["weighting"])
+    ref = vote_histogram(g, cams[0], labels, 3, RULES[rule], backend="torch")
+    got = vote_histogram(g, cams[0], labels, 3, RULES[rule], backend="triton")
+    _same(got, ref, RULES[rule].weighting)
 
 
 def _walls(*walls: tuple[float, float]) -> Gaussians:
@@ -98,8 +99,8 @@ def test_a_front_surface_hides_the_back_one_until_eps(backend):
     g = _walls((-1.0, 50.0), (1.0, 2.0))
     cam = small_camera(16, 12, eye=(0.0, -4.0, 0.0))
     labels = torch.ones(12, 16, dtype=torch.long)
-    strict = vote_histogram(g, cam, labels, 2, t_min=0.01, max_distance=None, backend=backend)
-    loose = vote_histogram(g, cam, labels, 2, t_min=0.001, max_distance=None, backend=backend)
+    strict = vote_histogram(g, cam, labels, 2, VoteRule(eps=0.01, delta=None), backend=backend)
+    loose = vote_histogram(g, cam, labels, 2, VoteRule(eps=0.001, delta=None), backend=backend)
     assert strict[0, 1] > 0 and strict[1].sum() == 0
     assert loose[1, 1] > 0 and loose[0, 1] == strict[0, 1]
 
@@ -110,7 +111,7 @@ def test_delta_keeps_only_gaussians_centred_near_the_pixel(backend):
     cam = small_camera(20, 15)
     labels = _masks(cam, 2, 1)
     total = [
-        float(vote_histogram(g, cam, labels, 2, max_distance=d, backend=backend).sum())
+        float(vote_histogram(g, cam, labels, 2, VoteRule(delta=d), backend=backend).sum())
         for d in (1e-6, 0.5, 2.0, 6.0)
     ]
     assert total[0] == 0 and 0 < total[1] < total[2] < total[3]
@@ -122,11 +123,11 @@ def test_avx2_and_baseline_walks_agree_bit_for_bit(monkeypatch):
 
     g, cams = _scene_views("2dgs", 4, 300, 37, 29)
     labels = _masks(cams[0], 3, 0)
-    fast = vote_histogram(g, cams[0], labels, 3, backend="native", **RULES["blend"])
+    fast = vote_histogram(g, cams[0], labels, 3, RULES["blend"], backend="native")
     simd = vote_simd()
     monkeypatch.setenv("SAGONLINE_VOTE_SIMD", "generic")
     assert vote_simd() == "generic"
-    plain = vote_histogram(g, cams[0], labels, 3, backend="native", **RULES["blend"])
+    plain = vote_histogram(g, cams[0], labels, 3, RULES["blend"], backend="native")
     assert torch.equal(fast, plain), simd
 
 
@@ -137,9 +138,9 @@ def test_native_vote_does_not_depend_on_the_thread_count():
     threads = torch.get_num_threads()
     try:
         torch.set_num_threads(1)
-        one = vote_histogram(g, cams[0], labels, 2, backend="native", **RULES["blend"])
+        one = vote_histogram(g, cams[0], labels, 2, RULES["blend"], backend="native")
         torch.set_num_threads(2)
-        two = vote_histogram(g, cams[0], labels, 2, backend="native", **RULES["blend"])
+        two = vote_histogram(g, cams[0], labels, 2, RULES["blend"], backend="native")
     finally:
         torch.set_num_threads(threads)
     assert torch.equal(one, two)  # merged in tile order
@@ -167,13 +168,14 @@ def test_the_op_rejects_bad_inputs():
     g = random_gaussians(10, "3dgs")
     cam = small_camera(8, 6)
     with pytest.raises(ValueError, match="6x8"):
-        vote_histogram(g, cam, torch.zeros(5, 8, dtype=torch.long), 2)
+        vote_histogram(g, cam, torch.zeros(5, 8, dtype=torch.long), 2, VoteRule())
     with pytest.raises(ValueError, match=r"\[0, 2\)"):
-        vote_histogram(g, cam, torch.full((6, 8), 2), 2)
+        vote_histogram(g, cam, torch.full((6, 8), 2), 2, VoteRule())
     with pytest.raises(ValueError, match="float64"):
-        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, out=torch.zeros(10, 2))
+        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, VoteRule(),
+                       out=torch.zeros(10, 2))  # fmt: skip
     with pytest.raises(ValueError, match="weighting"):
-        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, weighting="mean")
+        VoteRule(weighting="mean")
 
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
@@ -205,6 +207,6 @@ def test_triton_on_cuda_matches_the_reference(kind):
         cam = replace(cam).to("cuda")
         labels = _masks(cam, 4, 0).cuda()
         for rule in ("rgc", "blend"):
-            ref = vote_histogram(g, cam, labels, 4, backend="torch", **RULES[rule])
-            got = vote_histogram(g, cam, labels, 4, backend="triton", **RULES[rule])
-            _same(got, ref, RULES[rule]["weighting"])
+            ref = vote_histogram(g, cam, labels, 4, RULES[rule], backend="torch")
+            got = vote_histogram(g, cam, labels, 4, RULES[rule], backend="triton")
+            _same(got, ref, RULES[rule].weighting)

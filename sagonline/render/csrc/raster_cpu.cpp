@@ -366,7 +366,7 @@ torch::Tensor sum_parts(const torch::Tensor& all) {
   return out;
 }
 
-// Tile lists, as rasterize._bin_tiles builds them (same order): every splat's bounding box
+// Tile lists, as rasterize.bin_tiles builds them (same order): every splat's bounding box
 // [x0, x1) x [y0, y1) in tiles, splats listed per tile in the order of `by_depth` (splat
 // indices sorted by depth, stable). A counting sort, O(splats + intersections), run by bands of
 // tile rows in parallel: each band counts and fills only its own tiles, so the lists are the

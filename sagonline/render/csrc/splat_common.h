@@ -3,6 +3,7 @@
 // scheduler and the tile lists.
 #pragma once
 
+#include <optional>
 #include <torch/extension.h>
 #include <ATen/Parallel.h>
 
@@ -76,6 +77,6 @@ std::vector<torch::Tensor> prepare_view(bool surfel, torch::Tensor means, torch:
                                         double near, int64_t tile);
 int64_t vote(bool surfel, torch::Tensor ids, torch::Tensor params, torch::Tensor spans,
              torch::Tensor order, torch::Tensor offsets, torch::Tensor counts, int64_t width,
-             int64_t height, int64_t tile, torch::Tensor labels, int64_t num_labels, double t_min,
-             double max_distance, bool weighted, torch::Tensor hist);
+             int64_t height, int64_t tile, torch::Tensor labels, int64_t num_labels, double eps,
+             std::optional<double> delta, bool weighted, torch::Tensor hist);
 std::string vote_simd();

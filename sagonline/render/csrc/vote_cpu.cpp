@@ -5,9 +5,9 @@
 //   same packed parameters [mx, my, opacity, depth, conic a b c | surfel transform M]) plus a
 //   stable radix sort by depth and the tile lists of `bin_tiles`. Its boxes are tighter than
 //   the 3-sigma boxes: they bound where alpha >= 1/255, which depends on the opacity.
-// vote: every pixel of every tile walks its splats front to back while T > t_min; a splat that
+// vote: every pixel of every tile walks its splats front to back while T > eps; a splat that
 //   reaches the pixel (alpha > 0) votes for the pixel's label when, in addition, its projected
-//   centre is closer than max_distance (if given): +1, or alpha_i T_i when weighted. Votes are
+//   centre is closer than delta (if given): +1, or alpha_i T_i when weighted. Votes are
 //   summed per (splat, label) inside a tile before they reach the histogram, and tiles are
 //   added in tile order: the histogram does not depend on the thread count.
 //
@@ -16,6 +16,8 @@
 // processor has it. Both run the same float operations in the same order (no FMA contraction,
 // the same polynomial exp), so they give the same histogram bit for bit.
 
+#include <limits>
+#include <optional>
 #include "splat_common.h"
 
 #include <cstdint>
@@ -101,7 +103,9 @@ struct VoteView {
   const float* params;
   const int32_t* spans;  // (M, 4) pixels [x0, x1) x [y0, y1) a splat can reach
   const int64_t *ids, *order, *offsets, *counts, *labels;
-  float t_min, max_d2;  // max_d2 < 0: no distance rule
+  float eps;       // a splat votes while T > eps; a pixel's walk ends once T <= eps
+  float delta_sq;  // ... and only within delta px of its projected centre: delta squared once
+                   // in double then rounded (as the PyTorch reference compares); +inf: no rule
 };
 
 // One 8x8 tile. The pixels still walking are the set bits of a 64-bit word; a tile's labels are
@@ -120,7 +124,7 @@ INLINE int64_t walk_tile(const VoteView& V, int64_t ti, std::vector<Entry>& out)
   for (int q = 0; q < 64; ++q) {
     const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
     slot[q] = 0;
-    if (x >= V.width || y >= V.height || !(1.f > V.t_min)) continue;
+    if (x >= V.width || y >= V.height || !(1.f > V.eps)) continue;
     const int64_t lab = V.labels[y * V.width + x];
     int k = 0;
     while (k < slots && slot_label[k] != lab) ++k;
@@ -160,13 +164,13 @@ INLINE int64_t walk_tile(const VoteView& V, int64_t ti, std::vector<Entry>& out)
       const v8f after = hit ? before * (1.f - alpha) : before;
       T[ly] = after;
       v8i aligned = hit;
-      if (V.max_d2 >= 0.f) {
+      if (V.delta_sq < std::numeric_limits<float>::infinity()) {
         const v8f dx = xs - p[0];
         const float dy = py - p[1];
-        aligned &= (dx * dx + dy * dy) < V.max_d2;
+        aligned &= (dx * dx + dy * dy) < V.delta_sq;
       }
       const uint32_t row_votes = lane_bits<Avx2>(aligned);
-      const uint32_t ended = lane_bits<Avx2>(hit & ~(after > V.t_min));
+      const uint32_t ended = lane_bits<Avx2>(hit & ~(after > V.eps));
       active &= ~(static_cast<uint64_t>(ended) << (ly * tile));
       votes |= static_cast<uint64_t>(row_votes) << (ly * tile);
       if constexpr (Weighted) {
@@ -440,8 +444,8 @@ std::vector<torch::Tensor> prepare_view(bool surfel, torch::Tensor means, torch:
 // ids (M,): the Gaussian of each projected splat; labels (H * W,): the view's mask.
 int64_t vote(bool surfel, torch::Tensor ids, torch::Tensor params, torch::Tensor spans,
              torch::Tensor order, torch::Tensor offsets, torch::Tensor counts, int64_t width,
-             int64_t height, int64_t tile, torch::Tensor labels, int64_t num_labels, double t_min,
-             double max_distance, bool weighted, torch::Tensor hist) {
+             int64_t height, int64_t tile, torch::Tensor labels, int64_t num_labels, double eps,
+             std::optional<double> delta, bool weighted, torch::Tensor hist) {
   params = params.contiguous();
   spans = spans.contiguous();
   TORCH_CHECK(spans.dtype() == torch::kInt32, "spans: int32");
@@ -467,8 +471,9 @@ int64_t vote(bool surfel, torch::Tensor ids, torch::Tensor params, torch::Tensor
                    offsets.data_ptr<int64_t>(),
                    counts.data_ptr<int64_t>(),
                    labels.data_ptr<int64_t>(),
-                   static_cast<float>(t_min),
-                   max_distance < 0 ? -1.f : static_cast<float>(max_distance * max_distance)};
+                   static_cast<float>(eps),
+                   delta ? static_cast<float>(*delta * *delta)
+                         : std::numeric_limits<float>::infinity()};
   const WalkFn walk = pick_walk(surfel, weighted);
   std::vector<std::vector<Entry>> per_tile(n_tiles);
   std::vector<int64_t> cast(n_tiles, 0);
