@@ -252,19 +252,27 @@ def blend_rule(cfg: VoteConfig) -> VoteRule:
 
 @dataclass
 class NoSettings:
-    """A vote rule's own settings live on VoteConfig (`consensus.*`)."""
+    """A vote rule's settings live on VoteConfig (`consensus.*`): it names those it reads."""
 
 
-for _key, _method in (
-    ("rgc", VoteMethod(("eps", "delta", "min_votes", "margin"), count_rule, decide_majority)),
-    ("flashsplat", VoteMethod(("background_slack",), blend_rule, decide_flashsplat)),
-    ("weighted_mean", VoteMethod(("threshold",), blend_rule, decide_weighted_mean)),
+for _key, _method, _summary in (
+    (
+        "rgc",
+        VoteMethod(("eps", "delta", "min_votes", "margin"), count_rule, decide_majority),
+        "the paper's consensus: visible (T > eps), aligned (delta px) votes, majority, margin",
+    ),
+    (
+        "flashsplat",
+        VoteMethod(("background_slack",), blend_rule, decide_flashsplat),
+        "FlashSplat: alpha*T weights per label, normalised, background slack, argmax",
+    ),
+    (
+        "weighted_mean",
+        VoteMethod(("threshold",), blend_rule, decide_weighted_mean),
+        "GaussianCut / LUDVIG: the alpha*T-weighted mean of each label, threshold",
+    ),
 ):
-    VOTE_RULES.register(
-        _key, NoSettings, lambda cfg, m=_method: m,
-        summary=(_method.decide.__doc__ or "").split(":", 1)[0] + ": "
-        + (_method.decide.__doc__ or "").split(":", 1)[-1].split(".")[0].strip(),
-    )  # fmt: skip
+    VOTE_RULES.register(_key, NoSettings, lambda cfg, m=_method: m, summary=_summary)
 
 
 def check_mask(

@@ -69,5 +69,6 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             continue
         print(f"{kind}:")
         for plugin in registry:
-            print(f"  {plugin.key:<14} {plugin.summary} ({plugin.config.__name__})")
+            where = "consensus.*" if kind == "vote-rules" else plugin.config.__name__
+            print(f"  {plugin.key:<14} {plugin.summary} ({where})")
     return 0
