@@ -186,7 +186,7 @@ SEGMENTERS: Registry = Registry(
 DATASETS: Registry = Registry(
     "dataset",
     "sagonline.datasets",
-    ("sagonline.datasets.configs",),
+    ("sagonline.datasets.registry",),
 )
 VOTE_RULES: Registry = Registry("vote rule", "sagonline.vote_rules", ("sagonline.consensus",))
 

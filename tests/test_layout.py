@@ -38,3 +38,90 @@ def test_fitting_does_not_depend_on_the_datasets():
     code = "import sys, sagonline.fitting; print([m for m in sys.modules if 'datasets' in m])"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)
     assert out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+def _module_imports() -> dict[str, set[str]]:
+    """sagonline module -> the sagonline modules it imports (anywhere in it, lazily too)."""
+    mods = {}
+    for p in PACKAGE.rglob("*.py"):
+        name = ".".join(p.relative_to(ROOT).with_suffix("").parts).removesuffix(".__init__")
+        mods[name] = p
+
+    def resolve(name: str) -> str | None:
+        while name and name not in mods:
+            name = name.rpartition(".")[0]
+        return name or None
+
+    graph: dict[str, set[str]] = {m: set() for m in mods}
+    for m, p in mods.items():
+        for node in ast.walk(ast.parse(p.read_text())):
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+                targets = [f"{node.module}.{a.name}" for a in node.names]
+            else:
+                continue
+            for t in targets:
+                r = resolve(t) if t.startswith("sagonline") else None
+                # a package's own submodules and the top package (which imports nothing) aside
+                if r and r not in (m, "sagonline") and not m.startswith(r + "."):
+                    graph[m].add(r)
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected components of more than one module (Tarjan)."""
+    index, low, stack, on, found = {}, {}, [], set(), []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                found.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return found
+
+
+def test_no_import_cycles_and_nothing_imports_the_entry_point():
+    graph = _module_imports()
+    assert import_cycles(graph) == []
+    assert not [m for m, deps in graph.items() if "sagonline.__main__" in deps]
+    assert import_cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": set()}) == [["a", "b", "c"]]
+
+
+# Every environment variable the library sets, and where: docs/development.md says why.
+ENVIRONMENT_WRITES = {
+    ("sagonline/__init__.py", "OMP_WAIT_POLICY"),
+    ("sagonline/render/triton_vote.py", "TRITON_INTERPRET"),
+    ("sagonline/segmenters/yolo.py", "YOLO_OFFLINE"),
+}
+
+
+def test_the_environment_is_changed_only_where_the_docs_say():
+    import re
+
+    found = set()
+    for p in PACKAGE.rglob("*.py"):
+        for m in re.finditer(r"os\.environ(?:\.setdefault\(|\[)\s*\"(\w+)\"", p.read_text()):
+            found.add((str(p.relative_to(ROOT)), m.group(1)))
+    assert found == ENVIRONMENT_WRITES
+    docs = (ROOT / "docs" / "development.md").read_text()
+    assert all(var in docs for _, var in ENVIRONMENT_WRITES)

@@ -1,8 +1,8 @@
-"""One small typed config per dataset, registered under its key in `plugins.DATASETS` with
-the adapter it builds; each setting is stated once, on its field. The entry points turn every
-registered dataset into a Hydra config (`dataset=<key>`, root `datasets/<key>` unless the
-config says otherwise), so a dataset needs no YAML; a YAML in conf/dataset/ only says where
-another copy of a dataset's data is (`defaults: [<key>]` and `root:`).
+"""One small typed config per dataset, each setting stated once, on its field; each is
+registered under its key in `plugins.DATASETS` with the adapter it builds (`registry.py`). The
+entry points turn every registered dataset into a Hydra config (`dataset=<key>`, root
+`datasets/<key>`), so a dataset needs no YAML; a YAML in conf/dataset/ only says where another
+copy of a dataset's data is (`defaults: [<key>]` and `root:`).
 
 The captures with poses and per-view label maps share one adapter (`generic.PosedMasksDataset`)
 whose settings differ per dataset only in their defaults: each dataset's config below states
@@ -14,7 +14,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
-from sagonline.plugins import DATASETS, settings_dict
 from sagonline.settings import check_settings
 
 PROMPTS = ("mask", "clicks", "text", "none")
@@ -301,49 +300,3 @@ class SyntheticConfig:
 
     def presets(self) -> dict[str, SyntheticPreset]:
         return {"forward_single": self.forward_single, "cluttered_360": self.cluttered_360}
-
-
-def _posed_masks(cfg: PosedMasksConfig):
-    """A capture with poses and per-view label maps."""
-    from sagonline.datasets.generic import PosedMasksDataset
-
-    return PosedMasksDataset(**settings_dict(cfg))
-
-
-def _nvos(cfg: NVOSConfig):
-    """NVOS: 8 tasks, the target view of each scored."""
-    from sagonline.datasets.nvos import NVOSDataset
-
-    return NVOSDataset(**settings_dict(cfg))
-
-
-def _spinnerf(cfg: SPInNeRFConfig):
-    """SPIn-NeRF: 10 scenes, every masked view scored."""
-    from sagonline.datasets.spinnerf import SPInNeRFDataset
-
-    return SPInNeRFDataset(**settings_dict(cfg))
-
-
-def _synthetic(cfg: SyntheticConfig):
-    """Generated 2DGS scenes with per-Gaussian ground truth (the embedded default)."""
-    from dataclasses import asdict
-
-    from sagonline.datasets.synthetic import SyntheticDataset
-
-    return SyntheticDataset({k: asdict(p) for k, p in cfg.presets().items()}, cfg.scenes)
-
-
-for _key, _config, _build in (
-    ("generic", PosedMasksConfig, _posed_masks),
-    ("capture", CaptureConfig, _posed_masks),
-    ("kitti360", KITTI360Config, _posed_masks),
-    ("udd", UDDConfig, _posed_masks),
-    ("mip360", Mip360Config, _posed_masks),
-    ("lerf_mask", LERFMaskConfig, _posed_masks),
-    ("desktop360", Desktop360Config, _posed_masks),
-    ("nerds360", NeRDS360Config, _posed_masks),
-    ("spinnerf", SPInNeRFConfig, _spinnerf),
-    ("nvos", NVOSConfig, _nvos),
-    ("synthetic", SyntheticConfig, _synthetic),
-):
-    DATASETS.register(_key, _config, _build, summary=(_config.__doc__ or "").split("\n")[0])

@@ -9,32 +9,11 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
+from sagonline.render.backends import resolve_backend, resolve_vote_backend
 from sagonline.render.rasterize import RenderOutput, rasterize
 
-BACKENDS = ("torch", "native", "gsplat", "auto")
 # Every option `render` takes: those of the readable twin, `rasterize`.
 RENDER_OPTIONS = frozenset(inspect.signature(rasterize).parameters) - {"gaussians", "camera"}
-
-
-def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """'auto' picks gsplat on CUDA when installed, the compiled CPU kernel on the CPU when it
-    builds, else the torch rasterizer."""
-    if backend not in BACKENDS:
-        raise ValueError(f"renderer backend {backend!r} is not one of {BACKENDS}")
-    if backend == "gsplat" and torch.device(device).type != "cuda":
-        raise ValueError(
-            f"renderer backend 'gsplat' runs on CUDA only (device {device}); on the CPU use "
-            "native, torch or auto"
-        )
-    if backend == "auto":
-        if torch.device(device).type == "cuda":
-            from sagonline.render.gsplat_backend import gsplat_available
-
-            return "gsplat" if gsplat_available() else "torch"
-        from sagonline.render.native import native_available
-
-        return "native" if native_available() else "torch"
-    return backend
 
 
 def render(
@@ -119,8 +98,6 @@ def render_labels(
 
 def _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend):
     """(H, W, K) one-hot weights (None for mode 'ids') and (H, W) most visible Gaussians."""
-    from sagonline.render.vote import resolve_vote_backend
-
     chosen = resolve_vote_backend(backend, gaussians.device)
     if chosen == "native":
         from sagonline.render.native import label_weights_native

@@ -29,27 +29,8 @@ import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
+from sagonline.render.backends import resolve_vote_backend
 from sagonline.render.rule import VoteRule
-
-VOTE_BACKENDS = ("torch", "native", "triton", "gsplat")
-
-
-def resolve_vote_backend(backend: str, device: torch.device | str) -> str:
-    """The vote implementation for a renderer backend: 'auto' takes the fastest one the device
-    has (CPU: native; CUDA: triton, else gsplat), 'gsplat' on CUDA prefers the fused Triton
-    kernel when Triton is installed; 'torch', 'native' and 'triton' are taken as asked."""
-    from sagonline.render.api import resolve_backend
-
-    if backend == "triton":
-        return backend
-    if backend not in ("auto", "gsplat"):
-        return resolve_backend(backend, device)
-    if torch.device(device).type == "cuda":
-        from sagonline.render.triton_vote import triton_available
-
-        if triton_available():
-            return "triton"
-    return resolve_backend(backend, device)
 
 
 def vote_histogram(
