@@ -11,9 +11,11 @@ Makefile's lists (`python -m sagonline plugins`) are read from these registries.
 run, a cache or another user wrote (metrics.json, a cache entry) names a registry key and
 settings; the class always comes from here, never from a name read out of the file.
 
-Plug-ins outside this package register through the entry-point groups `sagonline.segmenters`,
-`sagonline.datasets` and `sagonline.vote_rules` (a module imported on first use), or by
-importing a module that calls `register` before the registry is read.
+Plug-ins outside this package register from a module of their own, imported when a registry
+is first read: named in the environment variable `SAGONLINE_PLUGINS` (comma-separated module
+names, e.g. `SAGONLINE_PLUGINS=my_segmenter make eval ARGS=segmenter=colour`), or declared
+by an installed package under the entry-point groups `sagonline.segmenters`,
+`sagonline.datasets` or `sagonline.vote_rules` (docs/extending.md).
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ from __future__ import annotations
 import dataclasses
 import importlib
 import math
+import os
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any, Generic, TypeVar
@@ -91,7 +94,8 @@ class Registry(Generic[C]):
         return decorate
 
     def _load(self) -> None:
-        """Import the built-in modules (each registers its plug-ins) and the entry points."""
+        """Import the built-in modules (each registers its plug-ins), the entry points and the
+        modules SAGONLINE_PLUGINS names."""
         if self._loaded:
             return
         self._loaded = True
@@ -101,6 +105,15 @@ class Registry(Generic[C]):
 
         for ep in entry_points(group=self.group):
             ep.load()
+        for module in os.environ.get("SAGONLINE_PLUGINS", "").split(","):
+            if module.strip():
+                try:
+                    importlib.import_module(module.strip())
+                except ImportError as exc:
+                    raise PluginError(
+                        f"SAGONLINE_PLUGINS names {module.strip()!r}, which cannot be "
+                        f"imported ({exc}); is its folder on PYTHONPATH?"
+                    ) from None
 
     def __getitem__(self, key: str) -> Plugin:
         self._load()

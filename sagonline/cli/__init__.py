@@ -37,8 +37,8 @@ def main(argv: list[str] | None = None) -> int:
     unexpected failure."""
     from sagonline.errors import DatasetError
 
-    args = build_parser().parse_args(argv)
     try:
+        args = build_parser().parse_args(argv)
         return args.func(args)
     except KeyboardInterrupt:
         print("interrupted: nothing was left half-written", file=sys.stderr)
