@@ -142,14 +142,21 @@ class VoteMethod:
 @stored
 @dataclass
 class VoteResult:
-    """labels: (N,) long; labelled: (N,) bool; histogram: (N, K) float votes or weights;
-    frames: indices of the masks that voted; stats: fractions, counts and timings."""
+    """labels: (N,) long (0 where unlabelled); labelled: (N,) bool; histogram: (N, K) float
+    votes or weights; frames: indices of the masks that voted; stats: fractions, counts and
+    timings. `assigned` is what leaves the vote: (N,) long with -1 for unlabelled."""
 
     labels: torch.Tensor
     labelled: torch.Tensor
     histogram: torch.Tensor
     frames: list[int]
     stats: dict = field(default_factory=dict)
+
+    @property
+    def assigned(self) -> torch.Tensor:
+        """(N,) long: -1 unlabelled, 0 background, 1.. the objects (the one encoding every
+        output and label render uses)."""
+        return torch.where(self.labelled, self.labels, torch.full_like(self.labels, -1))
 
 
 def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:

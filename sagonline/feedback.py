@@ -18,6 +18,7 @@ import time
 from dataclasses import dataclass
 
 import numpy as np
+import torch
 
 from sagonline.cameras import Camera
 from sagonline.consensus import VoteAccumulator, VoteConfig
@@ -103,14 +104,9 @@ def segment_with_feedback(
         nonlocal render_s
         t0 = time.perf_counter()
         labels, labelled, _ = acc.finalize()
+        objects = torch.where(labelled & (labels > 0), labels, -1)  # the objects alone
         out = render_labels(
-            gaussians,
-            cameras[t],
-            labels,
-            num_labels,
-            labelled=labelled & (labels > 0),
-            min_weight=min_weight,
-            backend=backend,
+            gaussians, cameras[t], objects, num_labels, min_weight=min_weight, backend=backend
         )
         render_s += time.perf_counter() - t0
         return out.cpu().numpy().astype(np.int64)

@@ -235,13 +235,9 @@ def write_outputs(out: Path, g, seg, scene: Path, info: dict, args, inputs) -> N
     from sagonline.render.api import render_labels
 
     labels = torch.from_numpy(seg.labels)
-    known = labels >= 0
     views = []
     for cam, frame in zip(seg.cameras, seg.frames, strict=True):
-        lab = render_labels(
-            g.to(args.device), cam, labels.clamp_min(0), len(seg.names),
-            labelled=known & (labels > 0), backend=args.backend,
-        )  # fmt: skip
+        lab = render_labels(g.to(args.device), cam, labels, len(seg.names), backend=args.backend)
         views.append((cam.name, frame, lab.cpu().numpy()))
 
     def record(path: Path) -> None:

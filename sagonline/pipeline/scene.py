@@ -171,9 +171,8 @@ def score_views(
         pred = render_labels(
             g,
             view.camera,
-            vote.labels,
+            vote.assigned,
             num_labels,
-            labelled=vote.labelled,
             min_weight=settings.label_min_weight,
             backend=settings.backend,
         )

@@ -66,8 +66,7 @@ class StageOneOutput:
     @property
     def labels(self) -> np.ndarray:
         """(N,) int64 labels per Gaussian: -1 unlabelled, 0 background, 1.. the objects."""
-        v = self.vote.value
-        return torch.where(v.labelled, v.labels, torch.full_like(v.labels, -1)).cpu().numpy()
+        return self.vote.value.assigned.cpu().numpy()
 
     @property
     def keys(self) -> dict[str, str]:

@@ -118,8 +118,7 @@ def run_stage_two(
         )
     service = OnlineSegmentation(
         task.gaussians.to(settings.device),
-        vote.labels,
-        vote.labelled,
+        vote.assigned,
         stage_one.num_labels,
         segmenter=novel,
         backend=settings.backend,

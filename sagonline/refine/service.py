@@ -33,14 +33,13 @@ class Answer:
 
 
 class OnlineSegmentation:
-    """gaussians with their fused (N,) labels and (N,) labelled flags; `trainer`: the student
-    (refined mode); `segmenter`: the 2D segmenter for novel views (initial mode)."""
+    """gaussians with their fused labels (N,) (-1: unlabelled); `trainer`: the student (refined
+    mode); `segmenter`: the 2D segmenter for novel views (initial mode)."""
 
     def __init__(
         self,
         gaussians: Gaussians,
         labels: torch.Tensor,
-        labelled: torch.Tensor,
         num_labels: int,
         trainer: RefinementTrainer | None = None,
         segmenter: NovelViewSegmenter | None = None,
@@ -48,7 +47,7 @@ class OnlineSegmentation:
         backend: str = "torch",
         min_weight: float = 0.2,
     ):
-        self.g, self.labels, self.labelled = gaussians, labels, labelled
+        self.g, self.labels = gaussians, labels
         self.num_labels, self.trainer, self.segmenter = num_labels, trainer, segmenter
         self.backend, self.min_weight = backend, min_weight
 
@@ -67,7 +66,6 @@ class OnlineSegmentation:
                 camera,
                 self.labels,
                 self.num_labels,
-                labelled=self.labelled,
                 min_weight=self.min_weight,
                 backend=self.backend,
             )

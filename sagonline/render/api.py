@@ -59,39 +59,36 @@ def to_uint8(rgb: torch.Tensor) -> np.ndarray:
 def render_labels(
     gaussians: Gaussians,
     camera: Camera,
-    labels: torch.Tensor,
+    labels: torch.Tensor,  # [N] long in [-1, num_labels): -1 unlabelled, 0 background, 1.. objects
     num_labels: int,
     *,
-    labelled: torch.Tensor | None = None,
     min_weight: float = 0.2,
     mode: str = "onehot",
     backend: str = "torch",
-) -> torch.Tensor:
-    """(H, W) long label mask from per-Gaussian labels (N,) in [0, num_labels).
+) -> torch.Tensor:  # [H, W] long in [0, num_labels)
+    """A label mask of one view from per-Gaussian labels (-1: unlabelled, the one encoding).
 
-    mode "onehot": labels are composited as one-hot attributes over the `labelled` Gaussians
-    (default: labels > 0); a pixel takes the class of largest weight, or 0 where the labelled
+    mode "onehot": the labels of the labelled Gaussians (background included) are composited as
+    one-hot attributes; a pixel takes the label of largest weight, or 0 where the labelled
     weight is below `min_weight`. Unlabelled Gaussians still occlude. mode "ids": each pixel
-    takes the label of its single most visible Gaussian (largest blend weight). The compiled
-    CPU kernel and, on CUDA, the Triton walk render both without shading; the torch backend
-    (and gsplat without Triton) composite one-hot features with the PyTorch rasterizer.
+    takes the label of its single most visible Gaussian (largest blend weight; 0 where that one
+    is unlabelled). The compiled CPU kernel and, on CUDA, the Triton walk render both without
+    shading; the torch backend (and gsplat without Triton) composite one-hot features with the
+    PyTorch rasterizer.
     """
     labels = labels.to(gaussians.device).long()
     if labels.shape != (len(gaussians),):
         raise ValueError(f"labels has shape {tuple(labels.shape)}, expected ({len(gaussians)},)")
-    if labels.numel() and (labels.min() < 0 or labels.max() >= num_labels):
+    if labels.numel() and (labels.min() < -1 or labels.max() >= num_labels):
         raise ValueError(
-            f"label ids must lie in [0, {num_labels}); got "
+            f"label ids must lie in [-1, {num_labels}) (-1: unlabelled); got "
             f"[{int(labels.min())}, {int(labels.max())}]"
         )
     if mode not in ("onehot", "ids"):
         raise ValueError(f"label render mode {mode!r} is not 'onehot' or 'ids'")
-    if labelled is None:
-        labelled = labels > 0
-    splat_labels = torch.where(labelled.to(labels.device), labels, -1)
-    weights, ids = _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend)
+    weights, ids = _label_walk(gaussians, camera, labels, num_labels, mode, backend)
     if mode == "ids":
-        return torch.where(ids >= 0, labels[ids.clamp_min(0)], torch.zeros_like(ids))
+        return torch.where(ids >= 0, labels[ids.clamp_min(0)].clamp_min(0), torch.zeros_like(ids))
     best = weights.argmax(dim=-1)
     return torch.where(weights.sum(-1) >= min_weight, best, torch.zeros_like(best))
 

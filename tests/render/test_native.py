@@ -146,7 +146,7 @@ def test_native_most_visible_ids_and_label_renders_match(kind, seed):
     got = rasterize_native(g, cam, return_ids=True).ids
     assert (ref >= 0).any() and (ref < 0).any()
     assert torch.equal(got, ref)
-    labels = torch.randint(0, 4, (len(g),), generator=torch.Generator().manual_seed(seed))
+    labels = torch.randint(-1, 4, (len(g),), generator=torch.Generator().manual_seed(seed))
     for mode in ("ids", "onehot"):
         a = render_labels(g, cam, labels, 4, mode=mode, backend="torch")
         b = render_labels(g, cam, labels, 4, mode=mode, backend="native")

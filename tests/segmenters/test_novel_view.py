@@ -109,7 +109,7 @@ def test_answer_modes(tiny_task):
     n = tiny_task.gaussians.means.shape[0]
     labels = torch.ones(n, dtype=torch.long)
     view = tiny_task.eval_views[0].camera
-    plain = OnlineSegmentation(tiny_task.gaussians, labels, labels > 0, 2)
+    plain = OnlineSegmentation(tiny_task.gaussians, labels, 2)
     assert plain.mode == "coarse" and plain.answer(view).mode == "coarse"
     with pytest.raises(RuntimeError, match="initial mode"):
         plain.answer(view, "initial")
@@ -118,9 +118,7 @@ def test_answer_modes(tiny_task):
     with pytest.raises(ValueError, match="coarse, initial, refined"):
         plain.answer(view, "instant")
     spy = Recording()
-    online = OnlineSegmentation(
-        tiny_task.gaussians, labels, labels > 0, 2, segmenter=_novel(tiny_task, spy)
-    )
+    online = OnlineSegmentation(tiny_task.gaussians, labels, 2, segmenter=_novel(tiny_task, spy))
     answer = online.answer(view)
     assert online.mode == answer.mode == "initial" and answer.ms > 0 and len(spy.calls) == 1
     assert answer.mask.shape == (view.height, view.width)
