@@ -61,21 +61,29 @@ class Camera:
             )
 
     @property
-    def rotation(self) -> torch.Tensor:
+    def rotation(
+        self,
+    ) -> torch.Tensor:  # [3, 3] world-to-camera rotation
         """(3, 3) world-to-camera rotation."""
         return self.world_to_cam[:3, :3]
 
     @property
-    def translation(self) -> torch.Tensor:
+    def translation(
+        self,
+    ) -> torch.Tensor:  # [3]
         return self.world_to_cam[:3, 3]
 
     @property
-    def center(self) -> torch.Tensor:
+    def center(
+        self,
+    ) -> torch.Tensor:  # [3] camera centre, world coordinates
         """(3,) camera centre in world coordinates."""
         return -self.rotation.T @ self.translation
 
     @property
-    def cam_to_world(self) -> torch.Tensor:
+    def cam_to_world(
+        self,
+    ) -> torch.Tensor:  # [4, 4]
         return torch.linalg.inv(self.world_to_cam)
 
     def scaled(self, width: int, height: int) -> Camera:
@@ -89,13 +97,19 @@ class Camera:
     def to(self, device: torch.device | str) -> Camera:
         return replace(self, K=self.K.to(device), world_to_cam=self.world_to_cam.to(device))
 
-    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def project(
+        self,
+        points: torch.Tensor,  # [N, 3] world points
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # [N, 2] pixels, [N] camera depth
         """(N, 3) world points -> (N, 2) pixel coordinates and (N,) camera-space depth."""
         cam = points @ self.rotation.T + self.translation
         uvw = cam @ self.K.T
         return uvw[:, :2] / uvw[:, 2:3].clamp_min(1e-12), cam[:, 2]
 
-    def in_frame(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def in_frame(
+        self,
+        points: torch.Tensor,  # [N, 3] world points
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # [N] bool inside, [N] depth
         """(N, 3) world points -> (N,) bool: in front of the camera and inside the image, and
         (N,) camera-space depth."""
         uv, z = self.project(points)

@@ -21,7 +21,11 @@ import torch
 _shimmed = False
 
 
-def nms_reference(boxes: torch.Tensor, scores: torch.Tensor, iou_threshold: float) -> torch.Tensor:
+def nms_reference(
+    boxes: torch.Tensor,  # [N, 4] x1, y1, x2, y2
+    scores: torch.Tensor,  # [N]
+    iou_threshold: float,
+) -> torch.Tensor:  # [K] kept indices, by score
     """Greedy NMS. boxes: (N, 4) x1, y1, x2, y2; scores: (N,). Returns kept indices (K,)
     sorted by decreasing score, like torchvision.ops.nms."""
     if boxes.numel() == 0:

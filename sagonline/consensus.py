@@ -153,7 +153,9 @@ class VoteResult:
     stats: dict = field(default_factory=dict)
 
     @property
-    def assigned(self) -> torch.Tensor:
+    def assigned(
+        self,
+    ) -> torch.Tensor:  # [N] long, -1 unlabelled
         """(N,) long: -1 unlabelled, 0 background, 1.. the objects (the one encoding every
         output and label render uses)."""
         return torch.where(self.labelled, self.labels, torch.full_like(self.labels, -1))
@@ -200,7 +202,7 @@ class VoteAccumulator:
             backend=backend, out=self.hist,
         )  # fmt: skip
 
-    def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K]
         """labels (N,), labelled (N,), histogram (N, K)."""
         return decide(self.hist, self.cfg)
 
@@ -216,7 +218,10 @@ def decide(
     return labels, labelled, hist.float()
 
 
-def decide_majority(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def decide_majority(
+    hist: torch.Tensor,  # [N, K] votes
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
     """rgc: the label of most votes, unless fewer than min_votes, a tie, or a top-1 minus top-2
     share below margin."""
     k = hist.shape[1]
@@ -229,7 +234,10 @@ def decide_majority(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, 
     return labels, labelled & (share_gap >= cfg.margin)
 
 
-def decide_flashsplat(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def decide_flashsplat(
+    hist: torch.Tensor,  # [N, K] blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
     """flashsplat: normalised weights, background slack added to label 0, argmax."""
     total = hist.sum(1)
     norm = hist / total.clamp_min(1e-12)[:, None]
@@ -237,7 +245,10 @@ def decide_flashsplat(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor
     return norm.argmax(1), total > 0
 
 
-def decide_weighted_mean(hist: torch.Tensor, cfg: VoteConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def decide_weighted_mean(
+    hist: torch.Tensor,  # [N, K] blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
     """weighted_mean: the best foreground label whose weighted mean reaches threshold, else
     background."""
     total = hist.sum(1)
@@ -283,8 +294,11 @@ for _key, _method, _summary in (
 
 
 def check_mask(
-    mask: np.ndarray | torch.Tensor, camera: Camera, num_labels: int, where: str
-) -> torch.Tensor:
+    mask: np.ndarray | torch.Tensor,  # [H, W] label ids
+    camera: Camera,
+    num_labels: int,
+    where: str,
+) -> torch.Tensor:  # [H * W] long
     """Validate one frame's mask against its view; returns (H*W,) long."""
     m = torch.as_tensor(np.asarray(mask))
     if m.shape != (camera.height, camera.width):

@@ -77,7 +77,10 @@ class Gaussians:
     def to(self, device: torch.device | str) -> Gaussians:
         return self._map(lambda t: t.to(device))
 
-    def subset(self, index: torch.Tensor) -> Gaussians:
+    def subset(
+        self,
+        index: torch.Tensor,  # [N] bool, or [M] indices
+    ) -> Gaussians:
         """Gaussians selected by a boolean mask or index tensor."""
         return self._map(lambda t: t[index])
 
@@ -85,11 +88,15 @@ class Gaussians:
         values = {f.name: getattr(self, f.name) for f in fields(self)}
         return replace(self, **{k: (fn(v) if v is not None else None) for k, v in values.items()})
 
-    def bounding_box(self) -> tuple[torch.Tensor, torch.Tensor]:
+    def bounding_box(
+        self,
+    ) -> tuple[torch.Tensor, torch.Tensor]:  # [3] min, [3] max
         return self.means.min(dim=0).values, self.means.max(dim=0).values
 
 
-def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+def quat_to_rotmat(
+    quats: torch.Tensor,  # [N, 4] unit wxyz
+) -> torch.Tensor:  # [N, 3, 3]
     """(N, 4) unit wxyz quaternions -> (N, 3, 3) rotation matrices."""
     w, x, y, z = quats.unbind(-1)
     return torch.stack(
@@ -108,7 +115,9 @@ def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
     ).reshape(*quats.shape[:-1], 3, 3)
 
 
-def rotmat_to_quat(rot: torch.Tensor) -> torch.Tensor:
+def rotmat_to_quat(
+    rot: torch.Tensor,  # [N, 3, 3]
+) -> torch.Tensor:  # [N, 4] unit wxyz, w >= 0
     """(N, 3, 3) rotation matrices -> (N, 4) unit wxyz quaternions (w >= 0)."""
     from scipy.spatial.transform import Rotation
 

@@ -85,7 +85,10 @@ def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None
 
 
 def labels3d_metrics(
-    labels: torch.Tensor, labelled: torch.Tensor, gt: torch.Tensor, num_labels: int
+    labels: torch.Tensor,  # [N] long
+    labelled: torch.Tensor,  # [N] bool
+    gt: torch.Tensor,  # [N] long, the truth
+    num_labels: int,
 ) -> dict:
     """3D label quality against per-Gaussian ground truth.
 

@@ -183,7 +183,11 @@ def ring_around(camera: Camera, center, count: int, prefix: str = "orbit") -> li
 
 
 def orbit_around(
-    means: torch.Tensor, count: int, width: int = 640, height: int = 480, fov_deg: float = 60.0
+    means: torch.Tensor,  # [N, 3] the Gaussians' centres
+    count: int,
+    width: int = 640,
+    height: int = 480,
+    fov_deg: float = 60.0,
 ) -> tuple[list[Camera], str]:
     """`count` views on a ring around a scene that comes without cameras: centred on the
     median of the Gaussians' centres (N, 3), far enough that 90% of them fit in a
@@ -223,6 +227,8 @@ def orbit_around(
     return cams, line
 
 
-def cameras_to_tensors(cameras: list[Camera]) -> tuple[torch.Tensor, torch.Tensor]:
+def cameras_to_tensors(
+    cameras: list[Camera],
+) -> tuple[torch.Tensor, torch.Tensor]:  # [C, 4, 4] world-to-camera, [C, 3, 3] K
     """(C, 4, 4) world-to-camera and (C, 3, 3) intrinsics stacked."""
     return (torch.stack([c.world_to_cam for c in cameras]), torch.stack([c.K for c in cameras]))

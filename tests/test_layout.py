@@ -125,3 +125,31 @@ def test_the_environment_is_changed_only_where_the_docs_say():
     assert found == ENVIRONMENT_WRITES
     docs = (ROOT / "docs" / "development.md").read_text()
     assert all(var in docs for _, var in ENVIRONMENT_WRITES)
+
+
+def test_public_functions_say_the_shapes_of_their_tensors():
+    """gsplat's habit: every tensor a public function takes or returns has a shape comment on
+    its line of the signature (`means: Tensor,  # [N, 3]`)."""
+    import re
+
+    shape = re.compile(r"#.*\[")
+    silent = []
+    for p in PACKAGE.rglob("*.py"):
+        lines = p.read_text().splitlines()
+        tree = ast.parse("\n".join(lines))
+        scopes = [tree] + [n for n in tree.body if isinstance(n, ast.ClassDef)]
+        for scope in scopes:
+            for node in scope.body:
+                if not isinstance(node, ast.FunctionDef) or node.name.startswith("_"):
+                    continue
+                args = node.args.posonlyargs + node.args.args + node.args.kwonlyargs
+                for arg in args:
+                    if arg.annotation is not None and "Tensor" in ast.unparse(arg.annotation):
+                        if not shape.search(lines[arg.lineno - 1]):
+                            silent.append(f"{p.relative_to(ROOT)}:{arg.lineno} {arg.arg}")
+                ret = node.returns
+                if ret is not None and "Tensor" in ast.unparse(ret):
+                    sig = "\n".join(lines[node.lineno - 1 : ret.end_lineno])
+                    if not shape.search(sig.split("->", 1)[-1]):
+                        silent.append(f"{p.relative_to(ROOT)}:{node.lineno} {node.name} returns")
+    assert not silent, silent

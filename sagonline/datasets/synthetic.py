@@ -14,7 +14,12 @@ from sagonline.render.api import render_labels
 from sagonline.scene_generator import SEMANTIC_NAMES, SyntheticScene, make_scene
 
 
-def gt_mask(scene: SyntheticScene, camera, labels: torch.Tensor, num_labels: int) -> np.ndarray:
+def gt_mask(
+    scene: SyntheticScene,
+    camera,
+    labels: torch.Tensor,  # [N] every Gaussian's label
+    num_labels: int,
+) -> np.ndarray:
     """Ground truth of a view: per pixel, the label of largest composited weight (every
     Gaussian labelled, background 0 included); empty pixels are background."""
     return render_labels(

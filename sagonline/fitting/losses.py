@@ -16,7 +16,12 @@ from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians, quat_to_rotmat
 
 
-def ssim(a: torch.Tensor, b: torch.Tensor, window: int = 11, sigma: float = 1.5) -> torch.Tensor:
+def ssim(
+    a: torch.Tensor,  # [H, W, 3] in [0, 1]
+    b: torch.Tensor,  # [H, W, 3] in [0, 1]
+    window: int = 11,
+    sigma: float = 1.5,
+) -> torch.Tensor:  # [] mean SSIM
     """Mean SSIM of two (H, W, 3) images in [0, 1] (Gaussian window, the usual constants)."""
     x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
     g = torch.exp(-((torch.arange(window, device=a.device) - window // 2) ** 2) / (2 * sigma**2))
@@ -38,17 +43,27 @@ def psnr_from_mse(mse: float) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 
 
-def psnr(a: torch.Tensor, b: torch.Tensor) -> float:
+def psnr(
+    a: torch.Tensor,  # [H, W, 3]
+    b: torch.Tensor,  # [H, W, 3]
+) -> float:
     return psnr_from_mse(float(((a - b) ** 2).mean()))
 
 
-def photometric_loss(rgb: torch.Tensor, gt: torch.Tensor, lambda_dssim: float) -> torch.Tensor:
+def photometric_loss(
+    rgb: torch.Tensor,  # [H, W, 3] render
+    gt: torch.Tensor,  # [H, W, 3] photograph
+    lambda_dssim: float,
+) -> torch.Tensor:  # []
     """(1 - lambda) L1 + lambda (1 - SSIM) of two (H, W, 3) images."""
     l1 = (rgb - gt).abs().mean()
     return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(rgb, gt))
 
 
-def anisotropy_penalty(log_scales: torch.Tensor, max_aspect: float) -> torch.Tensor:
+def anisotropy_penalty(
+    log_scales: torch.Tensor,  # [N, 2] or [N, 3]
+    max_aspect: float,
+) -> torch.Tensor:  # []
     """Mean excess of each Gaussian's axis ratio over `max_aspect` (0 when none exceeds it):
     keeps surfels from turning into needles that look right only edge-on. log_scales: (N, 2|3)."""
     log_ratio = log_scales.max(dim=1).values - log_scales.min(dim=1).values
@@ -58,7 +73,12 @@ def anisotropy_penalty(log_scales: torch.Tensor, max_aspect: float) -> torch.Ten
 GEOMETRY_CHANNELS = 5  # splat_geometry's columns: normal (3), depth m, m^2
 
 
-def splat_geometry(gaussians: Gaussians, camera: Camera, near: float, far: float) -> torch.Tensor:
+def splat_geometry(
+    gaussians: Gaussians,
+    camera: Camera,
+    near: float,
+    far: float,
+) -> torch.Tensor:  # [N, 5] normal, depth m, m^2
     """(N, 5) per-splat attributes to composite for the regularisers: the unit normal in camera
     space, turned to face the camera (a surfel's third axis; a 3D Gaussian's shortest axis), and
     the centre depth z mapped as 2DGS maps it, m = far / (far - near) * (1 - near / z) (0 at the
@@ -78,7 +98,11 @@ def splat_geometry(gaussians: Gaussians, camera: Camera, near: float, far: float
     return torch.cat([normal_cam * facing, m[:, None], (m * m)[:, None]], dim=1)
 
 
-def depth_distortion(alpha: torch.Tensor, m1: torch.Tensor, m2: torch.Tensor) -> torch.Tensor:
+def depth_distortion(
+    alpha: torch.Tensor,  # [H, W]
+    m1: torch.Tensor,  # [H, W] composited m
+    m2: torch.Tensor,  # [H, W] composited m^2
+) -> torch.Tensor:  # []
     """2DGS's depth distortion, sum over pairs i < j of w_i w_j (m_i - m_j)^2 per pixel, as
     alpha * M2 - M1^2 with M1 = sum w_i m_i, M2 = sum w_i m_i^2 and alpha = sum w_i (the same
     sum, expanded); mean over pixels. alpha, m1, m2: (H, W) composites of `splat_geometry`'s
@@ -86,7 +110,11 @@ def depth_distortion(alpha: torch.Tensor, m1: torch.Tensor, m2: torch.Tensor) ->
     return (alpha * m2 - m1 * m1).clamp_min(0).mean()
 
 
-def depth_normals(depth: torch.Tensor, alpha: torch.Tensor, camera: Camera) -> torch.Tensor:
+def depth_normals(
+    depth: torch.Tensor,  # [H, W] alpha-weighted depth
+    alpha: torch.Tensor,  # [H, W]
+    camera: Camera,
+) -> torch.Tensor:  # [H, W, 3] unit normals
     """(H, W, 3) unit normals, facing the camera, of the surface given by the expected depth
     (depth / alpha) by central differences of the back-projected points; 0 on the border."""
     H, W = depth.shape
@@ -108,8 +136,11 @@ def depth_normals(depth: torch.Tensor, alpha: torch.Tensor, camera: Camera) -> t
 
 
 def normal_consistency(
-    rendered_normal: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, camera: Camera
-) -> torch.Tensor:
+    rendered_normal: torch.Tensor,  # [H, W, 3] composited normals
+    depth: torch.Tensor,  # [H, W]
+    alpha: torch.Tensor,  # [H, W]
+    camera: Camera,
+) -> torch.Tensor:  # []
     """2DGS's normal consistency: mean over pixels of 1 - <N, alpha N_d>, N the composited splat
     normals (H, W, 3), N_d `depth_normals` of the rendered depth: the splats lie along the surface
     their depths describe. Both sides take the gradient, as in 2DGS; alpha weights without it."""

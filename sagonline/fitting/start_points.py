@@ -20,7 +20,7 @@ def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]
 
 def init_from_views(
     cameras: list[Camera],
-    images: list[torch.Tensor],
+    images: list[torch.Tensor],  # V of [H, W, 3] in [0, 1]
     count: int,
     near_far: tuple[float, float],
     rng: np.random.Generator,
@@ -73,7 +73,7 @@ def median_depth(cam: Camera, xyz: np.ndarray, default: float) -> float:
 
 def start_points(
     cameras: list[Camera],
-    images: list[torch.Tensor],
+    images: list[torch.Tensor],  # V of [H, W, 3] in [0, 1]
     points: tuple[np.ndarray, np.ndarray] | None,
     near_far: tuple[float, float],
     init_points: int,

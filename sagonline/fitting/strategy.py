@@ -57,8 +57,10 @@ class DensifyStrategy:
         self.grad_count = state["grad_count"].to(self.cfg.device)
 
     def clear_of_cameras(
-        self, means: torch.Tensor, log_scales: torch.Tensor | None = None
-    ) -> torch.Tensor:
+        self,
+        means: torch.Tensor,  # [N, 3]
+        log_scales: torch.Tensor | None = None,  # [N, 2] or [N, 3]
+    ) -> torch.Tensor:  # [N] bool
         """(N,) bool: centres at least `camera_clearance` from every camera centre and, with
         `view_clearance`, footprints (3 sigma of the largest scale; the centre alone without
         log_scales) clear of every view's image nearer than view_clearance x its near depth."""
@@ -169,8 +171,11 @@ class DensifyStrategy:
 
 
 def in_front_of_view(
-    means: torch.Tensor, radius: torch.Tensor, cam: Camera, depth: float
-) -> torch.Tensor:
+    means: torch.Tensor,  # [N, 3]
+    radius: torch.Tensor,  # [N] world units
+    cam: Camera,
+    depth: float,
+) -> torch.Tensor:  # [N] bool
     """(N,) bool: centres in front of `cam` nearer than `depth` whose disc of `radius` (N,)
     (world units, drawn at the centre's depth) overlaps its image."""
     uv, z = cam.to(means.device).project(means)

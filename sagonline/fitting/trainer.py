@@ -196,7 +196,9 @@ class SceneFitter:
         return self.params["means"].shape[0]
 
     @property
-    def camera_centers(self) -> torch.Tensor:
+    def camera_centers(
+        self,
+    ) -> torch.Tensor:  # [C, 3]
         """(C, 3) centres of every camera of the capture."""
         return self.strategy.camera_centers
 
@@ -221,14 +223,23 @@ class SceneFitter:
             }
         )
 
-    def render(self, gaussians: Gaussians, view: int, features: torch.Tensor | None = None):
+    def render(
+        self,
+        gaussians: Gaussians,
+        view: int,
+        features: torch.Tensor | None = None,  # [N, F] composited beside RGB
+    ):
         """Render training view `view` as the fit sees it (its background and backend)."""
         bg = torch.tensor(self.cfg.background, device=self.cfg.device)
         return render(
             gaussians, self.cams[view], background=bg, backend=self.cfg.backend, features=features
         )
 
-    def loss(self, gaussians: Gaussians, view: int) -> tuple[torch.Tensor, torch.Tensor, dict]:
+    def loss(
+        self,
+        gaussians: Gaussians,
+        view: int,
+    ) -> tuple[torch.Tensor, torch.Tensor, dict]:  # [] loss, [H, W, 3] render, values
         """The training loss of one view, its render (H, W, 3) and the regularisers' values."""
         cfg, cam = self.cfg, self.cams[view]
         use_dist = cfg.lambda_dist > 0 and self.step >= cfg.dist_from
@@ -249,7 +260,9 @@ class SceneFitter:
             loss = loss + cfg.lambda_normal * terms["normal"]
         return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
 
-    def anisotropy_penalty(self) -> torch.Tensor:
+    def anisotropy_penalty(
+        self,
+    ) -> torch.Tensor:  # []
         return anisotropy_penalty(self.params["log_scales"], self.cfg.max_aspect)
 
     def prune_near_cameras(self) -> int:

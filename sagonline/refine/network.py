@@ -121,7 +121,10 @@ class ResNetEncoder(nn.Module):
         layers += [block(self.inplanes, planes) for _ in range(1, blocks)]
         return nn.Sequential(*layers)
 
-    def forward(self, x) -> list[torch.Tensor]:
+    def forward(
+        self,
+        x,
+    ) -> list[torch.Tensor]:  # 4 x [B, C_i, H / 2^(i+2), W / 2^(i+2)] features
         c1 = self.relu(self.bn1(self.conv1(x)))
         c2 = self.layer1(self.maxpool(c1))
         c3 = self.layer2(c2)
@@ -179,7 +182,10 @@ class MaskEncoder(nn.Module):
         self.stages = nn.ModuleList(stages)
         self.channels = list(widths)
 
-    def forward(self, m) -> list[torch.Tensor]:
+    def forward(
+        self,
+        m,
+    ) -> list[torch.Tensor]:  # features per scale [B, C_i, H_i, W_i]
         feats = []
         for stage in self.stages:
             m = stage(m)
@@ -223,7 +229,11 @@ class DualBranchRefiner(nn.Module):
         self.register_buffer("mean", torch.tensor([0.485, 0.456, 0.406])[None, :, None, None])
         self.register_buffer("std", torch.tensor([0.229, 0.224, 0.225])[None, :, None, None])
 
-    def forward(self, rgb: torch.Tensor, coarse: torch.Tensor) -> torch.Tensor:
+    def forward(
+        self,
+        rgb: torch.Tensor,  # [B, 3, H, W]
+        coarse: torch.Tensor,  # [B, C, H, W] smoothed one-hot
+    ) -> torch.Tensor:  # [B, C, H, W] logits
         H, W = rgb.shape[-2:]
         ph, pw = (-H) % 32, (-W) % 32
         x = F.pad((rgb - self.mean) / self.std, (0, pw, 0, ph), mode="replicate")

@@ -117,15 +117,19 @@ class RefineConfig:
 
 
 def coarse_input(
-    labels: np.ndarray | torch.Tensor, num_classes: int, smoothing: float = 0.1
-) -> torch.Tensor:
+    labels: np.ndarray | torch.Tensor,  # [H, W] coarse label map
+    num_classes: int,
+    smoothing: float = 0.1,
+) -> torch.Tensor:  # [C, H, W] smoothed one-hot
     """(H, W) coarse label map -> (C, H, W) smoothed one-hot, the student's mask input."""
     lab = torch.as_tensor(np.asarray(labels), dtype=torch.long)
     onehot = F.one_hot(lab, num_classes).permute(2, 0, 1).float()
     return onehot * (1 - smoothing) + smoothing / num_classes
 
 
-def rgb_input(frame: np.ndarray) -> torch.Tensor:
+def rgb_input(
+    frame: np.ndarray,
+) -> torch.Tensor:  # [3, H, W] in [0, 1]
     """(H, W, 3) uint8 -> (3, H, W) float in [0, 1]."""
     return torch.from_numpy(np.ascontiguousarray(frame)).permute(2, 0, 1).float() / 255.0
 

@@ -51,7 +51,9 @@ def _backend_function(name: str):
     return rasterize
 
 
-def to_uint8(rgb: torch.Tensor) -> np.ndarray:
+def to_uint8(
+    rgb: torch.Tensor,  # [H, W, 3] linear in [0, 1]
+) -> np.ndarray:
     """(H, W, 3) linear RGB in [0, 1] -> uint8 image (clipped, rounded)."""
     return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 

@@ -29,7 +29,9 @@ def gsplat_available() -> bool:
     return torch.cuda.is_available()
 
 
-def surfel_scales(scales: torch.Tensor) -> torch.Tensor:
+def surfel_scales(
+    scales: torch.Tensor,  # [N, 2]
+) -> torch.Tensor:  # [N, 3]
     """(N, 2) surfel scales -> the (N, 3) gsplat's 2DGS functions take (the third axis, the
     normal, is never used by them: their ray transform keeps the first two columns of R S)."""
     return torch.cat([scales, torch.zeros_like(scales[:, :1])], dim=1)
@@ -156,16 +158,16 @@ def _walk_trace(indices_fn, meta, shape_key, proj, n, cam, request, tile_size, b
 
 
 def trace_step(
-    gids: torch.Tensor,
-    pids: torch.Tensor,
-    T: torch.Tensor,
-    local: torch.Tensor,
-    rank: torch.Tensor,
-    params: torch.Tensor,
+    gids: torch.Tensor,  # [E] Gaussian ids
+    pids: torch.Tensor,  # [E] pixel ids
+    T: torch.Tensor,  # [H * W] transmittance before
+    local: torch.Tensor,  # [E]
+    rank: torch.Tensor,  # [E] depth rank
+    params: torch.Tensor,  # [M, P] packed splats
     kind: str,
     width: int,
     request: TraceRequest,
-) -> tuple[TraceChunk, torch.Tensor]:
+) -> tuple[TraceChunk, torch.Tensor]:  # chunk, [H * W] transmittance after
     """One depth batch of (Gaussian, pixel) pairs -> the traced chunk and the updated T.
 
     gids/pids: (E,) original Gaussian ids and linear pixel ids in any order; T: (H*W,)

@@ -135,8 +135,8 @@ def rasterize_native(
     gaussians: Gaussians,
     camera: Camera,
     *,
-    background: torch.Tensor | None = None,
-    features: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,  # [3]
+    features: torch.Tensor | None = None,  # [N, F]
     t_stop: float = T_STOP,
     near: float = 0.01,
     tile_size: int = 8,
@@ -262,12 +262,12 @@ def vote_into(
 def label_weights_native(
     gaussians: Gaussians,
     camera: Camera,
-    splat_labels: torch.Tensor,
+    splat_labels: torch.Tensor,  # [N] long, -1 none
     num_labels: int,
     *,
     with_weights: bool = True,
     t_stop: float = T_STOP,
-) -> tuple[torch.Tensor | None, torch.Tensor]:
+) -> tuple[torch.Tensor | None, torch.Tensor]:  # [H, W, K] weights or None, [H, W] ids
     """The label renders' walk in C++ on a `prepare_view` view (no SH, no autograd): (H, W, K)
     composited one-hot weights of the Gaussians whose label (splat_labels (N,), -1: none) is
     >= 0 (None without `with_weights`), and (H, W) the most visible Gaussian (-1: none)."""

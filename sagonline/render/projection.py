@@ -53,7 +53,9 @@ class ProjectedSplats:
     def __len__(self) -> int:
         return self.ids.shape[0]
 
-    def params(self) -> torch.Tensor:
+    def params(
+        self,
+    ) -> torch.Tensor:  # [M, P] packed per splat
         """(M, P) packed per-splat parameters consumed by `splat_response`."""
         shape_params = self.conics if self.kind == "3dgs" else self.transforms.reshape(-1, 9)
         return torch.cat(
@@ -175,7 +177,12 @@ def _project_surfels(g, rot, R, p_cam, K):
     return valid, means2d, bbox, M
 
 
-def splat_response(kind: str, params: torch.Tensor, px: torch.Tensor, py: torch.Tensor):
+def splat_response(
+    kind: str,
+    params: torch.Tensor,  # [..., B, P] packed splats
+    px: torch.Tensor,  # [..., 1, Q]
+    py: torch.Tensor,  # [..., 1, Q]
+):
     """Alpha of gathered splats at pixel centres.
 
     params: (..., B, K) packed splat parameters (see `ProjectedSplats.params`), broadcast against
@@ -212,7 +219,9 @@ def splat_response(kind: str, params: torch.Tensor, px: torch.Tensor, py: torch.
     return alpha, depth_px, dist2
 
 
-def depth_rank(proj: ProjectedSplats) -> torch.Tensor:
+def depth_rank(
+    proj: ProjectedSplats,
+) -> torch.Tensor:  # [M]
     """(M,) each projected splat's place in front-to-back order (ties keep projection order)."""
     m = len(proj)
     rank = torch.empty(m, dtype=torch.long, device=proj.depths.device)

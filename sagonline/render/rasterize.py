@@ -111,8 +111,8 @@ def rasterize(
     gaussians: Gaussians,
     camera: Camera,
     *,
-    background: torch.Tensor | None = None,
-    features: torch.Tensor | None = None,
+    background: torch.Tensor | None = None,  # [3]
+    features: torch.Tensor | None = None,  # [N, F]
     return_ids: bool = False,
     trace: TraceRequest | None = None,
     t_stop: float = T_STOP,

@@ -45,9 +45,9 @@ def reference_render(
     gaussians: Gaussians,
     camera: Camera,
     *,
-    features: torch.Tensor | None = None,
+    features: torch.Tensor | None = None,  # [N, F]
     background=(0.0, 0.0, 0.0),
-    t_stop: float = 1e-4,
+    t_stop: float = 0.0001,
     trace_eps: float = 0.01,
     near: float = 0.01,
 ) -> ReferenceRender:

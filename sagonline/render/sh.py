@@ -24,7 +24,10 @@ C3 = (
 )
 
 
-def eval_sh(sh: torch.Tensor, dirs: torch.Tensor) -> torch.Tensor:
+def eval_sh(
+    sh: torch.Tensor,  # [N, K, 3], K in 1, 4, 9, 16
+    dirs: torch.Tensor,  # [N, 3] unit, camera -> point
+) -> torch.Tensor:  # [N, 3] RGB
     """Colour from SH coefficients.
 
     sh: (N, K, 3) with K in {1, 4, 9, 16}; dirs: (N, 3) unit view directions (camera -> point).

@@ -268,11 +268,11 @@ def vote_into(
 def label_weights_triton(
     gaussians: Gaussians,
     camera: Camera,
-    splat_labels: torch.Tensor,
+    splat_labels: torch.Tensor,  # [N] long, -1 none
     num_labels: int,
     *,
     t_stop: float = T_STOP,
-) -> tuple[torch.Tensor, torch.Tensor]:
+) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W, K] weights, [H, W] ids
     """The label renders' walk: (H, W, K) composited one-hot weights of the Gaussians whose
     label (splat_labels (N,), -1: none) is >= 0, and (H, W) the most visible Gaussian (-1:
     none)."""
