@@ -13,7 +13,7 @@ from tests.fixtures import shared_data
 
 def _run(*args):
     return subprocess.run(
-        [sys.executable, "-m", "sagonline", *args], capture_output=True, text=True, timeout=120
+        [sys.executable, "-m", "sagonline", *args], capture_output=True, text=True
     )
 
 

@@ -144,9 +144,9 @@ def test_public_functions_say_the_shapes_of_their_tensors():
                     continue
                 args = node.args.posonlyargs + node.args.args + node.args.kwonlyargs
                 for arg in args:
-                    if arg.annotation is not None and "Tensor" in ast.unparse(arg.annotation):
-                        if not shape.search(lines[arg.lineno - 1]):
-                            silent.append(f"{p.relative_to(ROOT)}:{arg.lineno} {arg.arg}")
+                    tensor = arg.annotation is not None and "Tensor" in ast.unparse(arg.annotation)
+                    if tensor and not shape.search(lines[arg.lineno - 1]):
+                        silent.append(f"{p.relative_to(ROOT)}:{arg.lineno} {arg.arg}")
                 ret = node.returns
                 if ret is not None and "Tensor" in ast.unparse(ret):
                     sig = "\n".join(lines[node.lineno - 1 : ret.end_lineno])

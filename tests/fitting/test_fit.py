@@ -296,7 +296,6 @@ def test_scenes_cli_errors(tmp_path):
         [sys.executable, "-m", "bench.scenes", "dataset=synthetic"],
         capture_output=True,
         text=True,
-        timeout=120,
     )
     assert res.returncode == 2 and "generated, not fitted" in res.stderr
     empty = tmp_path / "cap"
@@ -305,7 +304,6 @@ def test_scenes_cli_errors(tmp_path):
         [sys.executable, "-m", "bench.scenes", "dataset=generic", f"dataset.root={tmp_path}"],
         capture_output=True,
         text=True,
-        timeout=120,
     )
     assert res.returncode == 2 and "no data at" in res.stderr
 

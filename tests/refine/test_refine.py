@@ -80,14 +80,21 @@ def _toy(n=6, h=40, w=48):
 
 
 def test_distillation_lowers_the_loss_in_the_background(tmp_path):
+    import threading
+
     frames, coarse, teacher = _toy()
-    cfg = RefineConfig(
-        max_steps=30, time_budget_s=60, batch_size=4, crop=32, lr=3e-3, patience=1000
-    )
+    cfg = RefineConfig(max_steps=30, batch_size=4, crop=32, lr=3e-3, patience=1000)
     tr = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    batch, threads = tr._batch, set()
+
+    def batch_on_its_thread(gen):
+        threads.add(threading.get_ident())
+        return batch(gen)
+
+    tr._batch = batch_on_its_thread
     tr.start()
-    assert not tr.done.is_set() or tr.step == 30  # start() returned before training ended
-    assert tr.wait(120)
+    tr.wait()
+    assert threads and threading.get_ident() not in threads  # trained on a thread of its own
     assert tr.status == "steps" and tr.step == 30
     assert np.mean(tr.losses[-5:]) < 0.7 * np.mean(tr.losses[:5])
     pred = tr.predict(frames[0], coarse[0])
@@ -159,11 +166,10 @@ def test_eval_with_refinement_reports_both_modes(tmp_path):
     assert list((tmp_path / "cache" / "forward_single").glob("refine-*.store"))
 
 
-def test_a_step_budget_gives_the_same_weights_on_a_loaded_machine(tmp_path):
-    """Bounded by steps (the default), the same seed gives the same student with a competing
-    process beside it as without."""
-    import subprocess
-    import sys
+def test_a_step_budget_gives_the_same_weights_twice(tmp_path):
+    """Bounded by steps (the default), the same seed gives the same student: training depends
+    on the seed and the thread count, never on how long a step took (so a loaded machine, which
+    only slows the steps down, gets the same student as a quiet one)."""
 
     frames, coarse, teacher = _toy(4)
     cfg = RefineConfig(max_steps=6, batch_size=2, crop=32, patience=1000)
@@ -174,16 +180,9 @@ def test_a_step_budget_gives_the_same_weights_on_a_loaded_machine(tmp_path):
         assert tr.status == "steps" and tr.step == 6
         return {k: v.clone() for k, v in tr.model.state_dict().items()}
 
-    quiet = weights()
-    spin = "import time\nt = time.time()\nwhile time.time() - t < 60: pass"
-    busy = [subprocess.Popen([sys.executable, "-c", spin]) for _ in range(2)]
-    try:
-        loaded = weights()
-    finally:
-        for p in busy:
-            p.kill()
-    assert quiet.keys() == loaded.keys()
-    assert all(torch.equal(quiet[k], loaded[k]) for k in quiet)
+    one, two = weights(), weights()
+    assert one.keys() == two.keys()
+    assert all(torch.equal(one[k], two[k]) for k in one)
 
 
 def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):

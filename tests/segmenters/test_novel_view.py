@@ -44,10 +44,40 @@ class Recording(VideoSegmenter):
         return [out] * len(frames), None
 
 
-def test_the_oracle_answers_a_novel_view_with_its_truth(tiny_task):
-    novel = _novel(tiny_task, OracleSegmenter())
+class TruthSpy(OracleSegmenter):
+    """The oracle, remembering the two-frame video's ground truth it was handed."""
+
+    def _segment(self, frames, prompt, ground_truth):
+        self.truth = ground_truth
+        return super()._segment(frames, prompt, ground_truth)
+
+
+def test_a_novel_view_hands_the_oracle_the_right_truths(tiny_task):
+    """The two-frame video is (nearest other trajectory frame, the novel view): the oracle must
+    get that frame's truth first and the view's own truth second, at the view's size, and
+    answer the second."""
+    spy = TruthSpy()
+    novel = _novel(tiny_task, spy)
     for view in tiny_task.eval_views:
-        mask = novel.answer(_rgb(tiny_task, view.camera), view.camera, view.gt)
+        cam = view.camera.scaled(view.camera.width * 2, view.camera.height * 2)  # another size
+        mask = novel.answer(_rgb(tiny_task, cam), cam, view.gt)
+        k = novel.nearest(cam)
+        shape = (cam.height, cam.width)
+        first, second = spy.truth
+        assert first.shape == second.shape == mask.shape == shape
+        assert np.array_equal(
+            first,
+            cv2.resize(
+                tiny_task.trajectory_gt[k].astype(np.uint8),
+                shape[::-1],
+                interpolation=cv2.INTER_NEAREST,
+            ),
+        )
+        assert np.array_equal(
+            second,
+            cv2.resize(view.gt.astype(np.uint8), shape[::-1], interpolation=cv2.INTER_NEAREST),
+        )
+        assert np.array_equal(mask, second)
         assert view_metrics(mask, view.gt, "pred_to_gt")["iou"] == 1.0
 
 
