@@ -35,7 +35,7 @@ class RefineStage(RefineConfig):
     """Stage II as the harness runs it: the student's settings and whether it runs."""
 
     enabled: bool = True
-    """Train the student (refine=student) or answer in the initial mode only (refine=none)."""
+    """Train the student (refine=student), or score the fused labels alone (refine=none)."""
 
 
 @dataclass

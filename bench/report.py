@@ -25,6 +25,9 @@ from sagonline.files import atomic_write_image, atomic_write_text
 from sagonline.fitting import FitConfig
 
 ROOT = Path(__file__).resolve().parents[1]
+# per_view.csv's rows of the fused labels rendered ("coarse"; runs before the name was given
+# one meaning called them "initial", which is Table II's 2D segmenter on a novel view)
+COARSE = ("coarse", "initial")
 
 
 def find_runs(roots: list[Path]) -> list[Path]:
@@ -182,7 +185,7 @@ def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
     rows, per_view = [], {}
     for run in runs:
         views = pd.read_csv(run / "per_view.csv")
-        views = views[views["mode"] == "initial"]
+        views = views[views["mode"].isin(COARSE)]
         if "photo_angle_deg" not in views:
             continue
         m = load(run)

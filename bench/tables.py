@@ -22,7 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.report import device_text
+from bench.report import COARSE, device_text
 from bench.rundir import read_run_metrics
 from sagonline.files import atomic_write_text
 
@@ -65,7 +65,7 @@ def heldout_miou(per_view: Path) -> dict[str, float | None]:
     df = pd.read_csv(per_view)
     if "voted" not in df or "mode" not in df:
         return {}
-    held = df[(df["mode"] == "initial") & (~df["voted"].astype(bool))]
+    held = df[df["mode"].isin(COARSE) & (~df["voted"].astype(bool))]
     out = {scene: None for scene in df["scene"].astype(str).unique()}
     out.update(held.groupby(held["scene"].astype(str))["iou"].mean().to_dict())
     return out

@@ -11,52 +11,88 @@ from sagonline.settings import check_settings
 @dataclass
 class FitConfig:
     kind: str = "2dgs"
-    init: str = "auto"  # auto: COLMAP points, else triangulated (poses fixed), else random
-    background_points: int = 5000  # random points in the frusta added to a sparse-point start
-    max_side: int = 228  # images downsampled so the longer side is at most this (`make scenes`)
-    iterations: int = 3000  # the paper trains 30k on a GPU; CPU fits are for small scenes
+    """2dgs (surfels, the paper's) or 3dgs (ellipsoids)."""
+    init: str = "auto"
+    """Start points: auto (the capture's COLMAP points, else SIFT matches triangulated with the
+    poses fixed, else random points in the frusta)."""
+    background_points: int = 5000
+    """Random points in the frusta, behind what sparse start points explain."""
+    max_side: int = 228
+    """Images downsampled so the longer side is at most this (`make scenes`)."""
+    iterations: int = 3000
+    """Training steps (the paper trains 30k on a GPU: fit=paper); CPU fits are for small
+    scenes."""
     sh_degree: int = 3
+    """Spherical-harmonics degree of the colours (0-3)."""
     init_points: int = 15000
+    """Random start points when the capture has no points to start from."""
     lambda_dssim: float = 0.2
-    lambda_aniso: float = 0.0  # weight of the needle penalty (see `anisotropy_penalty`)
-    max_aspect: float = 10.0  # longest / shortest axis allowed before the penalty starts
-    # 2DGS's geometric regularisers (`losses.depth_distortion`, `losses.normal_consistency`),
-    # each from its own iteration on (2DGS: 3000 and 7000 of 30000); 0: off. Chosen on mold_cape
-    # (README, "Fitting on CPU"): real masks voting, 85.2 -> 89.5 / 91.1 mIoU on two seeds;
-    # lambda_dist=1 gave 88.3, 100 collapsed the fit (55.9)
+    """Weight of 1 - SSIM beside L1 in the photometric loss."""
+    lambda_aniso: float = 0.0
+    """Weight of the needle penalty (`losses.anisotropy_penalty`); 0: off."""
+    max_aspect: float = 10.0
+    """Longest / shortest axis allowed before the needle penalty starts."""
     lambda_dist: float = 10.0
+    """2DGS's depth distortion (`losses.depth_distortion`): gathers each ray's weight at one
+    depth; 0: off. Chosen on mold_cape (docs/fitting.md): real masks voting, 85.2 -> 89.5 / 91.1
+    mIoU on two seeds; 1 gave 88.3, 100 collapsed the fit (55.9)."""
     dist_from: int = 300
+    """The iteration the depth distortion starts at (2DGS: 3000 of 30000)."""
     lambda_normal: float = 0.05
+    """2DGS's normal consistency (`losses.normal_consistency`): surfel normals along the
+    rendered depth's; 0: off."""
     normal_from: int = 700
-    lr_means: float = 1.6e-4  # times the scene extent, decayed to 1% by the end
+    """The iteration the normal consistency starts at (2DGS: 7000 of 30000)."""
+    lr_means: float = 1.6e-4
+    """Learning rate of the centres, times the scene extent, decayed to 1% by the end."""
     lr_scales: float = 5e-3
+    """Learning rate of the log scales."""
     lr_quats: float = 1e-3
+    """Learning rate of the rotations."""
     lr_opacity: float = 5e-2
-    lr_sh: float = 2.5e-3  # degree 0; higher degrees learn 20x slower (as 3DGS)
-    # prune Gaussians this close to any camera centre; 0: off; None: the caller's automatic
-    # value (`make scenes`: half the nearest recorded depth), off when none is given
+    """Learning rate of the opacity logits."""
+    lr_sh: float = 2.5e-3
+    """Learning rate of the SH degree 0; higher degrees learn 20x slower (as 3DGS)."""
     camera_clearance: float | None = None
-    # prune Gaussians whose 3-sigma footprint reaches into a view nearer than this fraction of
-    # the nearest depth recorded for that view (LLFF bounds, else the start points' depths in
-    # it); 0: off. The floaters that hide the object in views between the photographs sit there.
-    # Chosen on mold_cape (README, "Fitting on CPU"): real masks voting 89.5 / 91.1 -> 94.8 / 94.6
+    """Prune Gaussians this close to any camera centre; 0: off; None: the caller's automatic
+    value (`make scenes`: half the nearest recorded depth), off when none is given."""
     view_clearance: float = 0.85
-    view_clearance_views: str = "train"  # train: the training photographs' depths; all: every pose
+    """Prune Gaussians whose 3-sigma footprint reaches into a view nearer than this fraction of
+    the nearest depth recorded for that view (LLFF bounds, else the start points' depths); 0:
+    off. The floaters that hide the object in views between the photographs sit there. Chosen
+    on mold_cape (docs/fitting.md): real masks voting 89.5 / 91.1 -> 94.8 / 94.6."""
+    view_clearance_views: str = "train"
+    """train: the training photographs' recorded depths; all: every pose's."""
     densify_from: int = 200
+    """The iteration densification starts at."""
     densify_until: int = 1500
+    """The iteration densification stops at."""
     densify_every: int = 100
+    """Iterations between densification (and pruning) steps."""
     grad_threshold: float = 2e-4
+    """A Gaussian whose mean screen-space gradient exceeds this is cloned or split."""
     percent_dense: float = 0.01
+    """Gaussians smaller than this fraction of the scene extent are cloned, larger ones split."""
     max_gaussians: int = 40_000
+    """Densification stops adding Gaussians at this count."""
     opacity_reset_every: int = 1000
+    """Iterations between opacity resets (3DGS's trick against floaters)."""
     prune_opacity: float = 0.005
+    """Gaussians below this opacity are pruned."""
     holdout_every: int = 8
+    """Every n-th photograph is held out of the fit (its PSNR is the held-out PSNR)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """The render's background colour during the fit."""
     checkpoint_every: int = 100
-    time_budget_s: float | None = None  # seconds; None: bounded by iterations alone
+    """Iterations between checkpoints (an interrupted fit resumes from the last)."""
+    time_budget_s: float | None = None
+    """Seconds; None: bounded by iterations alone (reproducible)."""
     seed: int = 0
+    """Seeds the start points, the densification noise and the held-out split's order."""
     device: str = "cpu"
-    backend: str = "auto"  # auto: gsplat on CUDA, the compiled kernel on the CPU, else PyTorch
+    """cpu (the compiled kernel) or cuda (gsplat)."""
+    backend: str = "auto"
+    """auto: gsplat on CUDA, the compiled kernel on the CPU, else PyTorch."""
 
     def __post_init__(self) -> None:
         self.background = tuple(self.background)  # Hydra hands lists in

@@ -67,7 +67,7 @@ def diagnose_scene(
             gaussians, view.camera, view.gt, pred, causes,
             ignore=task.ignore_label, backend=settings.backend,
         )  # fmt: skip
-        rows[(view.name, "initial")].update(c)
+        rows[(view.name, "coarse")].update(c)
         counts.append(c)
         images.append(cause_image(kinds))
     report.extra["diagnosis"] = shares(counts) | {

@@ -161,7 +161,7 @@ def score_views(
     voted: set[str],
     save_to: str | Path | None = None,
 ) -> list[np.ndarray]:
-    """Render the fused labels at every eval view, score them (the initial mode) and time the
+    """Render the fused labels at every eval view, score them (the coarse mode) and time the
     label render; returns the (H, W) predictions. g: the scene on `settings.device`."""
     preds, seconds = [], []
     for view in tqdm(
@@ -178,7 +178,7 @@ def score_views(
         )
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)
-    record_scores(task, preds, settings.resize, report, "initial", voted, save_to)
+    record_scores(task, preds, settings.resize, report, "coarse", voted, save_to)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     return preds
 

@@ -54,14 +54,14 @@ class SceneReport:
 def save_predictions(
     task: SceneTask, preds: list[np.ndarray], report: SceneReport, mode: str, run: Path
 ) -> None:
-    """The scored label maps of `mode` (and, with the initial mode, the ground truth) as PNGs
+    """The scored label maps of `mode` (and, with the coarse mode, the ground truth) as PNGs
     under the run folder; their folders' SHA-256 into report.extra."""
-    folder = run / ("predictions" if mode == "initial" else f"predictions_{mode}")
+    folder = run / ("predictions" if mode == "coarse" else f"predictions_{mode}")
     for view, pred in zip(task.eval_views, preds, strict=True):
         write_label_map(view_file(folder, task.name, view.name), pred)
     digests = report.extra.setdefault("sha256", {})
     digests[f"predictions_{mode}"] = folder_sha256(folder / task.name)
-    if mode == "initial":
+    if mode == "coarse":
         truth = run / "ground_truth"
         for view in task.eval_views:
             write_label_map(view_file(truth, task.name, view.name), view.gt)
@@ -138,7 +138,8 @@ def record_scores(
     voted: set[str] | None = None,
     save_to: Path | None = None,
 ) -> tuple[float | None, float | None]:
-    """Per-view rows for `mode` ("initial" or "refined") and their means; the initial mode's
+    """Per-view rows for `mode` ("coarse": the fused labels rendered, or "refined": the student)
+    and their means; the coarse mode's
     means are the report's `miou`/`macc`. `voted`: names of the views whose masks voted.
     preds: one (H, W) label map per eval view (automatic ids are matched here). `save_to`: a
     run folder to write the scored label maps (and the ground truth) into, as PNGs with their
@@ -175,7 +176,7 @@ def record_scores(
     report.views.extend(rows)
     miou = scored_mean([r["iou"] for r in rows])
     macc = scored_mean([r["acc"] for r in rows])
-    if mode == "initial":
+    if mode == "coarse":
         report.miou, report.macc = miou, macc
     return miou, macc
 

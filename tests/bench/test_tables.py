@@ -96,7 +96,7 @@ def test_views_report_splits_photographed_and_mask_only(tmp_path):
         {
             "scene": "s",
             "view": ["p0", "p1", "m0", "m1", "m2"],
-            "mode": "initial",
+            "mode": "coarse",
             "iou": [0.9, 0.8, 0.7, 0.6, 0.5],
             "acc": 0.9,
             "voted": [True, False, False, False, True],

@@ -162,7 +162,7 @@ def test_eval_with_refinement_reports_both_modes(tmp_path):
     # initial mode: the oracle answering the eval views (their own ground truth)
     assert scene["extra"]["initial_mode_miou"] > 0.99
     rows = pd.read_csv(tmp_path / "per_view.csv")
-    assert set(rows["mode"]) == {"initial", "refined"}
+    assert set(rows["mode"]) == {"coarse", "refined"}
     assert list((tmp_path / "cache" / "forward_single").glob("refine-*.store"))
 
 
