@@ -74,6 +74,10 @@ class VoteConfig:
     """flashsplat: added to the background's normalised weight."""
     threshold: float = 0.9
     """weighted_mean: the weighted mean a foreground label must reach."""
+    fill: int = 0
+    """Unlabelled Gaussians take the label a strict majority of their `fill` nearest labelled
+    neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
+    0: off, the paper's protocol (`fill_from_neighbours`)."""
 
     def __post_init__(self) -> None:
         n = self.num_masks
@@ -98,6 +102,7 @@ class VoteConfig:
             stride=(self.stride >= 1, self.stride, ">= 1"),
             background_slack=(self.background_slack >= 0, self.background_slack, ">= 0"),
             threshold=(0 <= self.threshold <= 1, self.threshold, "in [0, 1]"),
+            fill=(0 <= self.fill <= 64, self.fill, "in [0, 64] neighbours (0: off)"),
         )
         self.method_rule().check_reads(self)
 
@@ -111,8 +116,8 @@ class VoteConfig:
         return self.method_rule().rule(self)
 
 
-# The settings every method reads: which masks vote.
-SELECTION = ("method", "num_masks", "stride", "selection", "seed")
+# The settings every method reads: which masks vote, and the fill after the vote.
+SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill")
 
 
 @dataclass(frozen=True)
@@ -293,6 +298,44 @@ for _key, _method, _summary in (
     VOTE_RULES.register(_key, NoSettings, lambda cfg, m=_method: m, summary=_summary)
 
 
+def fill_from_neighbours(
+    means: torch.Tensor,  # [N, 3]
+    labels: torch.Tensor,  # [N] long
+    labelled: torch.Tensor,  # [N] bool
+    k: int,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] bool filled
+    """Each unlabelled Gaussian takes the label a strict majority of its k nearest labelled
+    neighbours share, counting only neighbours within 4x the labelled Gaussians' median
+    nearest-neighbour spacing (a Gaussian far from every labelled one, a floater, stays
+    unlabelled). The vote's own labels are never changed."""
+    from scipy.spatial import cKDTree
+
+    known = labelled.cpu().numpy()
+    unknown = ~known
+    out = labels.clone()
+    filled = torch.zeros_like(labelled)
+    if known.sum() < 2 or not unknown.any():
+        return out, filled
+    pts = means.detach().float().cpu().numpy()
+    tree = cKDTree(pts[known])
+    spacing = float(np.median(tree.query(pts[known], k=2)[0][:, 1]))
+    k = min(k, int(known.sum()))
+    dist, idx = tree.query(pts[unknown], k=k, distance_upper_bound=4 * spacing)
+    dist, idx = dist.reshape(len(idx), -1), idx.reshape(len(idx), -1)
+    near = np.isfinite(dist)
+    known_labels = labels.cpu().numpy()[known]
+    neighbour = np.where(near, known_labels[np.minimum(idx, len(known_labels) - 1)], -1)
+    best = np.full(len(idx), -1, np.int64)
+    for label in np.unique(known_labels):
+        count = (neighbour == label).sum(1)
+        best = np.where(count * 2 > k, label, best)
+    rows = np.flatnonzero(unknown)[best >= 0]
+    rows_t = torch.from_numpy(rows).to(labels.device)
+    out[rows_t] = torch.from_numpy(best[best >= 0]).to(labels.device, labels.dtype)
+    filled[rows_t] = True
+    return out, filled
+
+
 def check_mask(
     mask: np.ndarray | torch.Tensor,  # [H, W] label ids
     camera: Camera,
@@ -346,10 +389,15 @@ def consensus_vote(
     for f in iterator:
         acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}")
     labels, labelled, hist = acc.finalize()
+    filled = torch.zeros_like(labelled)
+    if cfg.fill:
+        labels, filled = fill_from_neighbours(gaussians.means, labels, labelled, cfg.fill)
+        labelled = labelled | filled
     elapsed = time.perf_counter() - start
     total = hist.sum(1)
     voted = total > 0
     stats = {
+        "fraction_filled": float(filled.float().mean()),
         "num_masks": len(frames),
         "fraction_labelled": float(labelled.float().mean()),
         "fraction_voted": float(voted.float().mean()),

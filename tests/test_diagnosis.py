@@ -1,0 +1,121 @@
+"""The diagnosis of missed pixels (sagonline/diagnosis.py) on generated scenes with a planted
+cause: a sheet in front of the object in some views (the fit), masks that flicker (the
+segmenter and the vote); and the fill rule on a scene with unlabelled interior Gaussians."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.consensus import VoteConfig, consensus_vote
+from sagonline.diagnosis import CAUSE_GROUPS
+from sagonline.gaussians import Gaussians
+from sagonline.pipeline import PipelineSettings, run_scene
+from sagonline.segmenters.oracle import OracleSegmenter
+
+
+@pytest.fixture(scope="module")
+def scene():
+    from sagonline.datasets.synthetic import load_synthetic
+
+    return load_synthetic(
+        preset="forward_single", layout="forward", num_gaussians=4000, width=64, height=48,
+        num_train_views=10, num_eval_views=3,
+    )[0]  # fmt: skip
+
+
+def _group_share(report, view: str, group: str) -> float:
+    row = next(r for r in report.views if r["view"] == view and r["mode"] == "coarse")
+    missed = row["missed_px"]
+    return sum(row[c] for c in CAUSE_GROUPS[group]) / missed if missed else 0.0
+
+
+def _sheet(task, view: int, fraction: float = 0.25, count: int = 400) -> Gaussians:
+    """Opaque grey surfels on a small disc a `fraction` of the way from eval camera `view` to
+    the object: in front of the object in that view, far off it in the others."""
+    cam = task.eval_views[view].camera
+    target = task.gaussians.means[task.gt_labels3d == 1].mean(0)
+    eye = cam.center.float()
+    centre = eye + fraction * (target - eye)
+    axis = (target - eye) / (target - eye).norm()
+    a = torch.linalg.cross(axis, torch.tensor([0.0, 0.0, 1.0]))
+    a, b = a / a.norm(), torch.linalg.cross(axis, a / a.norm())
+    rng = np.random.default_rng(0)
+    r = float((target - eye).norm()) * fraction * 0.12
+    uv = torch.tensor(rng.uniform(-r, r, (count, 2)), dtype=torch.float32)
+    means = centre + uv[:, :1] * a + uv[:, 1:] * b
+    q = torch.tensor([[1.0, 0, 0, 0]]).repeat(count, 1)
+    sh = torch.zeros(count, task.gaussians.sh.shape[1], 3)
+    return Gaussians(
+        means=means, quats=q, scales=torch.full((count, 2), r / 6), opacities=torch.full(
+            (count,), 0.95), sh=sh,
+    )  # fmt: skip
+
+
+def test_a_sheet_in_front_of_the_object_is_the_fits_fault(scene):
+    """The truth stays the clean object's (as a photograph's mask would); the sheet is a fit's
+    floater that covers the object in eval view 0: its misses are the fit's."""
+    sheet = _sheet(scene, 0)
+    g = scene.gaussians
+    fitted = Gaussians(
+        *(torch.cat([getattr(g, f.name), getattr(sheet, f.name)]) for f in
+          dataclasses.fields(Gaussians) if f.name != "normals"),
+    )  # fmt: skip
+    planted = dataclasses.replace(scene, gaussians=fitted)
+    planted.gt_labels3d = None
+    clean, _ = run_scene(scene, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False))
+    report, _ = run_scene(
+        planted, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False)
+    )
+    view = scene.eval_views[0].name
+    iou = {r["view"]: r["iou"] for r in report.views}
+    assert iou[view] < {r["view"]: r["iou"] for r in clean.views}[view] - 0.05  # it hurts
+    assert _group_share(report, view, "fit") > 0.8
+    row = next(r for r in report.views if r["view"] == view)
+    assert row["fit_occluded"] > row["missed_px"] / 2
+
+
+def test_flickering_masks_are_the_segmenters_and_the_votes_fault(scene):
+    flicker = OracleSegmenter(flicker=0.45, seed=3)
+    report, _ = run_scene(scene, flicker, VoteConfig(), PipelineSettings(progress=False))
+    missed = sum(r["missed_px"] for r in report.views)
+    assert missed > 0
+    d = report.extra["diagnosis"]
+    assert d["counterfactual"] == "truth's masks"
+    assert d["share_segmenter"] + d["share_vote"] > 0.8 and d["share_fit"] < 0.2
+
+
+def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
+    """Holes in a labelled surface (a fifth of the object's Gaussians left unlabelled, inside
+    the labelled patch) take their neighbours' label; a floater far from every labelled
+    Gaussian stays unlabelled; labels the vote gave are never changed."""
+    from sagonline.consensus import fill_from_neighbours
+
+    g = scene.gaussians
+    truth = scene.gt_labels3d
+    rng = np.random.default_rng(2)
+    holes = torch.from_numpy(rng.random(len(g)) < 0.2) & (truth == 1)
+    means = torch.cat([g.means, g.means[truth == 1].mean(0, keepdim=True) + 50.0])
+    labels = torch.cat([torch.where(holes, 0, truth), torch.tensor([0])])
+    labelled = torch.cat([~holes, torch.tensor([False])])
+    filled_labels, filled = fill_from_neighbours(means, labels, labelled, 8)
+    assert (filled_labels[:-1][holes] == 1).float().mean() > 0.9
+    assert filled[:-1][holes].float().mean() > 0.9 and not filled[-1]
+    assert torch.equal(filled_labels[labelled], labels[labelled])
+
+    sparse = VoteConfig(stride=5)  # 2 of 10 views vote: many Gaussians go unseen
+    off = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2, sparse, backend="native")
+    on = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2,
+                        dataclasses.replace(sparse, fill=8), backend="native")  # fmt: skip
+    assert on.stats["fraction_filled"] > 0 and on.labelled.sum() > off.labelled.sum()
+    assert torch.equal(on.labels[off.labelled], off.labels[off.labelled])  # votes kept
+
+
+def test_fill_is_refused_nowhere_and_off_by_default():
+    assert VoteConfig().fill == 0
+    VoteConfig(method="flashsplat", fill=4)  # every method reads it
+    with pytest.raises(ValueError, match="consensus.fill=-1"):
+        VoteConfig(fill=-1)
