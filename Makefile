@@ -18,7 +18,7 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
             progress=false cache_dir=$(SWEEP_CACHE)
 
 .PHONY: install install-extras eval test test-fast report bench lint format clean-runs clean-cache \
-        tables table-timing table-masks table-ablation table-robustness scenes
+        tables table-timing table-masks table-ablation table-robustness scenes tables-real
 
 install: $(STAMP)
 
@@ -155,3 +155,8 @@ table-robustness: install
 	$(BIN)/python -m bench.tables robustness $(TABLE_OPTS)
 
 tables: table-timing table-masks table-ablation table-robustness
+
+# Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
+# scenes DATASET=<capture>`): real masks every 4th and the classical segmenter, one table.
+tables-real: install
+	$(BIN)/python -m bench.real $(ARGS)

@@ -215,7 +215,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
                     recorder,
                     checkpoint,
                     out_dir,
-                    segmenter.segmenter,
+                    segmenter,
                 )
             log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
             reports.append(report)

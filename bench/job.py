@@ -42,8 +42,7 @@ def refine_config_from(cfg) -> RefineConfig | None:
     opened (weights_only) before any work: a problem stops with the key's name."""
     if not cfg.refine.enabled:
         return None
-    fields = {k: v for k, v in vars(cfg.refine).items() if k != "enabled"}
-    refine = RefineConfig(**fields)
+    refine = cfg.refine  # a RefineStage is the student's RefineConfig, plus `enabled`
     if refine.pretrained:
         from sagonline.refine.network import ResNetEncoder, load_imagenet_weights
 

@@ -66,30 +66,40 @@ def mask_prompt(labels: np.ndarray, frame: int) -> Prompt:
     return Prompt(frame=frame, objects=objects)
 
 
+@dataclass(frozen=True)
+class FeedbackInputs:
+    """What consensus feedback votes and renders with: its settings, the vote's, the scene,
+    the trajectory's cameras, the label count, the label render's threshold, the renderer."""
+
+    config: FeedbackConfig
+    vote: VoteConfig
+    gaussians: Gaussians
+    cameras: list[Camera]
+    num_labels: int
+    label_min_weight: float
+    backend: str
+
+
 def segment_with_feedback(
     segmenter: VideoSegmenter,
     frames: list[np.ndarray],
     prompt: Prompt,
-    gaussians: Gaussians,
-    cameras: list[Camera],
-    num_labels: int,
-    vote_cfg: VoteConfig,
-    cfg: FeedbackConfig,
-    *,
-    backend: str = "auto",
-    min_weight: float = 0.2,
+    setup: FeedbackInputs,
     ground_truth: list[np.ndarray] | None = None,
 ) -> tuple[SegmentationResult, dict]:
-    """Segment `frames` (T RGB images, the rendered trajectory of `cameras`) with consensus
-    feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and times.
+    """Segment `frames` (T RGB images, the rendered trajectory of `setup.cameras`) with
+    consensus feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and
+    times.
 
     Why one function: its three closures (vote, fused render, re-segment) share the running
     vote, the masks and the timers; apart, they would pass all of them back and forth."""
+    cfg, gaussians, cameras = setup.config, setup.gaussians, setup.cameras
+    num_labels, backend, min_weight = setup.num_labels, setup.backend, setup.label_min_weight
     start = time.perf_counter()
     first = segmenter.segment(frames, prompt, ground_truth=ground_truth)
     masks, seconds = list(first.masks), list(first.seconds)
     n, p = len(frames), prompt.frame
-    acc = VoteAccumulator(len(gaussians), num_labels, vote_cfg, device=gaussians.device)
+    acc = VoteAccumulator(len(gaussians), num_labels, setup.vote, device=gaussians.device)
     voted, restarts, vote_s, render_s = 0, [], 0.0, 0.0
 
     def vote(frames_done: list[int]) -> None:
@@ -150,4 +160,10 @@ def segment_with_feedback(
     return SegmentationResult(masks, seconds, first.name, info={"feedback": stats}), stats
 
 
-__all__ = ["FeedbackConfig", "foreground_iou", "mask_prompt", "segment_with_feedback"]
+__all__ = [
+    "FeedbackConfig",
+    "FeedbackInputs",
+    "foreground_iou",
+    "mask_prompt",
+    "segment_with_feedback",
+]

@@ -2,7 +2,7 @@
 
 A run writes, beside metrics.json:
 
-    predictions/<scene>/<view>.png           the coarse mode's label maps (the fused labels), as scored
+    predictions/<scene>/<view>.png           the fused labels rendered (coarse mode), as scored
     predictions_refined/<scene>/<view>.png   the student's (refine=student)
     ground_truth/<scene>/<view>.png          the ground truth they were scored against
     ground_truth/scoring.json                protocol id, resize rule, ignored label

@@ -27,11 +27,14 @@ class ObjectPrompt:
 @dataclass
 class Prompt:
     """Prompts on frame `frame` of the video; `texts` for open-vocabulary segmenters
-    (label i+1 is texts[i]); no objects and no texts means automatic segmentation."""
+    (label i+1 is texts[i]); no objects and no texts means automatic segmentation. `names`:
+    the labels' names, background first, where the prompt's maker knows them (they name the
+    outputs; the masks do not depend on them, so the digest leaves them out)."""
 
     frame: int = 0
     objects: list[ObjectPrompt] = field(default_factory=list)
     texts: list[str] = field(default_factory=list)
+    names: list[str] = field(default_factory=list)
 
     @property
     def num_labels(self) -> int:

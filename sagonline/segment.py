@@ -62,9 +62,9 @@ def clicks_prompt(
     view: int,
     objects: dict[str, list[tuple[float, float]]],
     negatives: dict[str, list[tuple[float, float]]] | None = None,
-) -> tuple[Prompt, list[str]]:
-    """Clicks (x, y pixels of the view at its render size) per object name -> the prompt and
-    the label names (background first); objects are labelled 1.. in the order given."""
+) -> Prompt:
+    """Clicks (x, y pixels of the view at its render size) per object name -> the prompt, its
+    label names background first; objects are labelled 1.. in the order given."""
     negatives = negatives or {}
     unknown = sorted(set(negatives) - set(objects))
     if unknown:
@@ -92,14 +92,14 @@ def clicks_prompt(
                 point_labels=np.array([1] * len(points) + [0] * len(neg), np.int64),
             )
         )
-    return Prompt(frame=view, objects=prompts), ["background", *objects]
+    return Prompt(frame=view, objects=prompts, names=["background", *objects])
 
 
 def mask_prompt(
     cameras: list[Camera], view: int, mask: np.ndarray, names: list[str] | None = None
-) -> tuple[Prompt, list[str]]:
-    """A label map (0 background, 1..K objects) on one view -> the prompt and the label names.
-    A 0/1 or 0/255 mask is one object."""
+) -> Prompt:
+    """A label map (0 background, 1..K objects) on one view -> the prompt with its label
+    names. A 0/1 or 0/255 mask is one object."""
     check_view(cameras, view)
     cam, mask = cameras[view], np.asarray(mask)
     if mask.shape[:2] != (cam.height, cam.width):
@@ -117,7 +117,7 @@ def mask_prompt(
         raise PromptError(f"the mask on view {view} ('{cam.name}') marks no object")
     objects = [ObjectPrompt(label=k, mask=mask == k) for k in ids]
     names = names or ["background"] + [f"object_{k}" for k in range(1, max(ids) + 1)]
-    return Prompt(frame=view, objects=objects), names
+    return Prompt(frame=view, objects=objects, names=names)
 
 
 def check_view(cameras: list[Camera], view: int) -> None:
@@ -157,11 +157,10 @@ def plain_settings(obj) -> dict:
 def segment_scene(
     gaussians: Gaussians,
     cameras: list[Camera],
-    prompt: Prompt | tuple[Prompt, list[str]],
+    prompt: Prompt,
     *,
     segmenter: VideoSegmenter | None = None,
     vote: VoteConfig | None = None,
-    names: list[str] | None = None,
     backend: str = "auto",
     device: str = "cpu",
     cache_dir: str | Path | None = None,
@@ -170,8 +169,7 @@ def segment_scene(
     """Render `cameras` (in the order given), segment the video from `prompt` with `segmenter`
     (the weight-free classical one by default), vote the masks into one label per Gaussian:
     the same Stage I as an evaluation (`pipeline.compose_stage_one`)."""
-    if isinstance(prompt, tuple):
-        prompt, names = prompt
+    names = list(prompt.names)
     if segmenter is None:
         from sagonline.segmenters.classical import FlowWatershedSegmenter
 

@@ -170,11 +170,11 @@ def parse_prompt(items: list[tuple[str, str]], cams) -> ParsedPrompt:
 
 
 def to_prompt(parsed: ParsedPrompt, frame: int):
-    """The segmenters' Prompt (objects labelled 1.. in order) and the label names."""
+    """The segmenters' Prompt (objects labelled 1.. in order), with its label names."""
     from sagonline.prompts import ObjectPrompt, Prompt
 
     if parsed.texts:
-        return Prompt(frame=frame, texts=list(parsed.texts)), ["background", *parsed.texts]
+        return Prompt(frame=frame, texts=list(parsed.texts), names=["background", *parsed.texts])
     objects = []
     for label, o in enumerate(parsed.objects, start=1):
         pts = [*o.points, *o.negatives]
@@ -187,4 +187,6 @@ def to_prompt(parsed: ParsedPrompt, frame: int):
                 mask=o.mask,
             )
         )
-    return Prompt(frame=frame, objects=objects), ["background", *(o.name for o in parsed.objects)]
+    return Prompt(
+        frame=frame, objects=objects, names=["background", *(o.name for o in parsed.objects)]
+    )

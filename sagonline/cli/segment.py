@@ -158,13 +158,13 @@ def cmd_segment(args) -> int:
     check_trajectory(traj)
     parsed = parse_prompt(args.prompt_items, given)
     frame = [c.name for c in traj].index(given[parsed.view].name)
-    prompt, names = to_prompt(parsed, frame)
+    prompt = to_prompt(parsed, frame)
     from sagonline.export import object_file_names
 
-    object_file_names(names)  # names that cannot each have a file: refused before any work
+    object_file_names(prompt.names)  # names that cannot each have a file: refused now
     segmenter = build_segmenter(args, prompt)
     seg = segment_scene(
-        g, traj, (prompt, names), segmenter=segmenter, vote=vote, backend=args.backend,
+        g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
         device=args.device, progress=sys.stderr.isatty(),
     )  # fmt: skip
     info = {

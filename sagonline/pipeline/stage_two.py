@@ -23,12 +23,11 @@ from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.scene import nearest_frames
 from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
 from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput
-from sagonline.pipeline.stages import REFINE, RefineInputs
+from sagonline.pipeline.stages import REFINE, RefineInputs, SegmenterRun
 from sagonline.recording import Recorder
 from sagonline.refine import RefineConfig, RefinementTrainer
 from sagonline.refine.service import OnlineSegmentation
 from sagonline.render.api import resolve_backend
-from sagonline.segmenters.base import VideoSegmenter
 from sagonline.segmenters.novel_view import NovelViewSegmenter
 
 
@@ -97,10 +96,11 @@ def run_stage_two(
     recorder: Recorder,
     checkpoint: str | Path | None = None,
     predictions_to: str | Path | None = None,
-    segmenter: VideoSegmenter | None = None,
+    segmenter: SegmenterRun | None = None,
 ) -> None:
     """Train the student in the background while the eval views are answered in every mode
-    (initial only with a `segmenter`), then answer them in each mode alone; the refined
+    (initial only with a `segmenter`: the run's), then answer them in each mode alone; the
+    refined
     answers are scored into `report`, the timings of every mode go into `report.timings`.
 
     Why one function: it is the Stage II timeline (start, answer while training, switch,
@@ -109,7 +109,7 @@ def run_stage_two(
     novel = None
     if segmenter is not None:
         novel = NovelViewSegmenter(
-            segmenter,
+            segmenter.segmenter,
             stage_one.frames.value.images,
             stage_one.masks.value.masks,
             task.trajectory,

@@ -23,7 +23,7 @@ from tqdm import tqdm
 
 from sagonline.cameras import Camera
 from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
-from sagonline.feedback import FeedbackConfig, segment_with_feedback
+from sagonline.feedback import FeedbackInputs, segment_with_feedback
 from sagonline.gaussians import Gaussians
 from sagonline.io.store import stored
 from sagonline.pipeline.graph import Output, Stage
@@ -106,19 +106,6 @@ def segmenter_run(
 
 
 @dataclass(frozen=True)
-class FeedbackInputs:
-    """What consensus feedback votes and renders with (`sagonline.feedback`)."""
-
-    config: FeedbackConfig
-    vote: VoteConfig
-    gaussians: Gaussians
-    cameras: list[Camera]
-    num_labels: int
-    label_min_weight: float
-    backend: str
-
-
-@dataclass(frozen=True)
 class MasksInputs:
     frames: Output[Frames]
     prompt: Prompt
@@ -132,19 +119,7 @@ def segment_frames(inputs: MasksInputs, progress: bool = False) -> SegmentationR
     segmenter = inputs.segmenter.segmenter
     if fb is None:
         return segmenter.segment(frames, inputs.prompt, ground_truth=inputs.trajectory_gt)
-    seg, _ = segment_with_feedback(
-        segmenter,
-        frames,
-        inputs.prompt,
-        fb.gaussians,
-        fb.cameras,
-        fb.num_labels,
-        fb.vote,
-        fb.config,
-        backend=fb.backend,
-        min_weight=fb.label_min_weight,
-        ground_truth=inputs.trajectory_gt,
-    )
+    seg, _ = segment_with_feedback(segmenter, frames, inputs.prompt, fb, inputs.trajectory_gt)
     return seg
 
 

@@ -123,8 +123,22 @@ def changed(name: str, value):
         for sub in dataclasses.fields(value):
             new = changed(sub.name, getattr(value, sub.name))
             if new is not None:
-                return dataclasses.replace(value, **{sub.name: new})
+                return replaced(value, sub.name, new)
     return None
+
+
+def replaced(value, name: str, new):
+    """`value` with one field changed; a vote setting its method does not read changes with the
+    method that reads it (changing it alone is refused)."""
+    try:
+        return dataclasses.replace(value, **{name: new})
+    except ValueError:
+        if not isinstance(value, VoteConfig):
+            raise
+        from sagonline.plugins import VOTE_RULES
+
+        method = next(p.key for p in VOTE_RULES if name in p.build(p.config()).reads)
+        return dataclasses.replace(value, method=method, **{name: new})
 
 
 def field_changes(values: dict, feedback_on: dict):
@@ -143,7 +157,7 @@ def field_changes(values: dict, feedback_on: dict):
                     new = changed(sub.name, getattr(value, sub.name))
                     cases.append(
                         (f"{f.name}.{sub.name}", None if new is None else
-                         dataclasses.replace(value, **{sub.name: new}))
+                         replaced(value, sub.name, new))
                     )  # fmt: skip
             else:
                 cases.append((f.name, changed(f.name, value)))

@@ -1,0 +1,135 @@
+"""The cross-capture table: every real capture present, the same recipe and vote on each.
+
+    python -m bench.real [--captures mold_cape,duck_queen] [--out reports]     (make tables-real)
+
+A capture is any dataset whose config in conf/dataset/ builds on `capture` (`defaults:
+[capture]`: images_4/, masks_4/, poses_bounds.npy); a capture of one's own joins by adding
+such a YAML. For each capture whose data is present and whose scene is fitted (`make scenes
+DATASET=<capture>`), two evaluations run with the reference view left out of the scores:
+its real masks voting on every 4th view (`segmenter=oracle consensus.stride=4`) and the
+weight-free classical segmenter (every mask votes). Each run goes to
+`multirun/real/<capture>/<source>/`, so a rerun skips what is finished. The table: capture |
+fit PSNR (held-out, in the object masks) | real masks every 4th | classical | the segmenter
+alone | where the missed pixels are lost (fit / vote / segmenter) | protocol; with each row's
+commands below it (reports/real_captures.md and .csv).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import yaml
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = {
+    "real": ["segmenter=oracle", "consensus.stride=4"],
+    "classical": ["segmenter=classical"],
+}
+COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=false"]
+
+
+def captures() -> list[str]:
+    """The datasets in conf/dataset/ that build on `capture`, sorted."""
+    found = []
+    for path in sorted((ROOT / "conf" / "dataset").glob("*.yaml")):
+        config = yaml.safe_load(path.read_text()) or {}
+        if "capture" in [d if isinstance(d, str) else None for d in config.get("defaults", [])]:
+            found.append(path.stem)
+    return found
+
+
+def command(capture: str, source: str) -> list[str]:
+    folder = f"multirun/real/{capture}/{source}"
+    return [f"dataset={capture}", *SOURCES[source], *COMMON, f"hydra.run.dir={folder}"]
+
+
+def run(capture: str, source: str) -> dict | None:
+    """The evaluation's metrics (run now, or the finished run found in its folder)."""
+    args = [sys.executable, "-m", "bench.eval", *command(capture, source)]
+    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
+        print(f"{capture}/{source}: skipped: {last}", file=sys.stderr)
+        return None
+    return json.loads((ROOT / f"multirun/real/{capture}/{source}/metrics.json").read_text())
+
+
+def row(capture: str, real: dict | None, classical: dict | None) -> dict:
+    def pct(v):
+        return None if v is None else round(100 * v, 2)
+
+    def share(m, group):
+        d = ((m or {}).get("scenes") or [{}])[0].get("extra", {}).get("diagnosis") or {}
+        return pct(d.get(f"share_{group}"))
+
+    fit = (((real or classical or {}).get("scenes") or [{}])[0].get("extra") or {}).get("fit") or {}
+    fit_file = Path(fit["path"]) if fit.get("path") else None
+    in_mask = None
+    if fit_file is not None and fit_file.is_file():
+        in_mask = json.loads(fit_file.read_text()).get("psnr_heldout_object")
+    return {
+        "capture": capture,
+        "PSNR held-out": None if fit.get("psnr_heldout") is None else round(fit["psnr_heldout"], 2),
+        "PSNR in mask": None if in_mask is None else round(in_mask, 2),
+        "real masks, every 4th": pct((real or {}).get("miou")),
+        "classical": pct((classical or {}).get("miou")),
+        "segmenter alone": pct((classical or {}).get("segmenter_miou")),
+        "real: fit / vote / segmenter %": "/".join(str(share(real, g)) for g in
+                                                   ("fit", "vote", "segmenter")),
+        "classical: fit / vote / segmenter %": "/".join(str(share(classical, g)) for g in
+                                                        ("fit", "vote", "segmenter")),
+        "protocol": (real or classical or {}).get("protocol_id"),
+    }  # fmt: skip
+
+
+def main(argv: list[str] | None = None) -> pd.DataFrame:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
+    ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    args = ap.parse_args(argv)
+    names = args.captures.split(",") if args.captures else captures()
+    rows, commands = [], []
+    for capture in names:
+        results = {source: run(capture, source) for source in SOURCES}
+        if not any(results.values()):
+            continue
+        rows.append(row(capture, results["real"], results["classical"]))
+        for source in SOURCES:
+            commands.append(f"- {capture}, {source}: `python -m bench.eval "
+                            f"{' '.join(command(capture, source))}`")  # fmt: skip
+    if not rows:
+        raise SystemExit("error: no capture could be evaluated (fit them: make scenes DATASET=...)")
+    df = pd.DataFrame(rows)
+    from sagonline.files import atomic_write_text
+
+    text = [
+        "# Real captures: one recipe, one vote configuration",
+        "",
+        "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
+        "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
+        "  weight-free segmenter's masks, all voting; `segmenter alone`: its masks' own mIoU.",
+        "- fit / vote / segmenter: where the missed pixels are lost (sagonline/diagnosis.py).",
+        "- built by `make tables-real` (`python -m bench.real`).",
+        "",
+        df.to_markdown(index=False),
+        "",
+        "Commands:",
+        "",
+        *commands,
+        "",
+    ]
+    args.out.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(args.out / "real_captures.md", "\n".join(text))
+    atomic_write_text(args.out / "real_captures.csv", df.to_csv(index=False))
+    print(df.to_string(index=False))
+    print(f"\nwrote {args.out}/real_captures.md and .csv")
+    return df
+
+
+if __name__ == "__main__":
+    main()
