@@ -186,6 +186,30 @@ def test_near_depths_of_views_from_llff_bounds_or_points(tmp_path):
     assert view_near_depths(tmp_path / "cap", [cam], (xyz[:5], None)) == {}  # too few points
 
 
+def test_the_capture_points_lower_an_llff_bound_that_lies_beyond_the_object(tmp_path):
+    """A bound computed from some other point set can lie beyond a small object in front of
+    the background (mother_child's IMG_0977: near 4.65, the statuette at 3.7): the view's near
+    depth is then its own points', so the view clearance never prunes the object."""
+    from sagonline.fitting.capture import view_near_depths
+    from sagonline.io.cameras import load_llff
+    from tests.fixtures import llff_scene
+
+    names = [f"IMG_{i:04d}" for i in range(3)]
+    llff_scene(tmp_path / "cap", names, with_scene=False)
+    rows = np.load(tmp_path / "cap" / "poses_bounds.npy")
+    cams = load_llff(tmp_path / "cap", names=names)
+    cam = cams[0]
+    bound = float(rows[0, 15])
+    nearer = torch.linspace(0.6 * bound, 2.0 * bound, 60)  # the object, in front of the bound
+    xyz = (cam.center + nearer[:, None] * cam.rotation[2]).numpy()
+    near = view_near_depths(tmp_path / "cap", [cam], (xyz, None))
+    assert near[cam.name] == pytest.approx(float(torch.quantile(nearer, 0.02)), rel=1e-4)
+    farther = (cam.center + (nearer + 2 * bound)[:, None] * cam.rotation[2]).numpy()
+    assert view_near_depths(tmp_path / "cap", [cam], (farther, None))[cam.name] == pytest.approx(
+        bound
+    )  # points beyond the bound leave it
+
+
 def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
     cams, imgs = views
     f = SceneFitter(tiny(max_aspect=4.0), cams, imgs)
