@@ -20,52 +20,17 @@ import functools
 import logging
 import math
 from dataclasses import dataclass
-from pathlib import Path
 
 import torch
 
 from sagonline.cameras import Camera
 from sagonline.gaussians import Gaussians
+from sagonline.render.kernels import NativeBuildError, load_extension
 from sagonline.render.projection import project
 from sagonline.render.rasterize import T_STOP, RenderOutput
 from sagonline.render.rule import VoteRule
 
 log = logging.getLogger(__name__)
-CSRC = Path(__file__).parent / "csrc"
-SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "vote_cpu.cpp")
-HEADERS = (CSRC / "splat_common.h",)
-
-
-class NativeBuildError(RuntimeError):
-    """The C++ rasterizer could not be compiled here (no compiler, no ninja, ...)."""
-
-
-@functools.cache
-def load_extension():
-    """Compile (once per machine, cached by torch) and import the C++ rasterizer."""
-    import hashlib
-
-    from torch.utils import cpp_extension
-
-    # The source's digest in the name: each version of the kernel gets its own build folder, so
-    # a build cached from another checkout or version is never loaded by mistake (torch's
-    # loader trusts file times, and a newer build of other source looks up to date).
-    digest = hashlib.blake2b(digest_size=6)
-    for path in SOURCES + HEADERS:
-        digest.update(path.read_bytes())
-    try:
-        return cpp_extension.load(
-            name=f"sagonline_raster_cpu_{digest.hexdigest()}",
-            sources=[str(path) for path in SOURCES],
-            extra_include_paths=[str(CSRC)],
-            # no FMA contraction: the AVX2 and baseline builds of the vote (and x86 and ARM)
-            # then run the same float operations
-            extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", "-Wno-psabi"],
-            extra_ldflags=["-fopenmp"],
-            verbose=False,
-        )
-    except Exception as exc:  # compiler missing, ninja missing, build error
-        raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
 
 
 @functools.cache

@@ -1,0 +1,115 @@
+"""The compiled CPU kernels (csrc/): built once per Python environment, never a silent wait.
+
+`load_extension` compiles them through torch's extension loader the first time (saying so, and
+how long it took) into a folder of the environment itself (`kernel_root`), so checkouts with
+environments of their own never rebuild each other's. One process builds while the others
+wait and say so (`build_once`); a build that was killed midway is noticed and its leftover
+lock cleared, instead of every later run waiting on it forever.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import sys
+import time
+from pathlib import Path
+
+CSRC = Path(__file__).parent / "csrc"
+SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "vote_cpu.cpp")
+HEADERS = (CSRC / "splat_common.h",)
+
+
+class NativeBuildError(RuntimeError):
+    """The C++ rasterizer could not be compiled here (no compiler, no ninja, ...)."""
+
+
+def kernel_root() -> Path:
+    """Where the compiled kernels live: inside the Python environment (a virtual environment's
+    own folder), or SAGONLINE_KERNEL_DIR; a Python whose prefix cannot be written uses the
+    user's cache, one folder per prefix."""
+    import hashlib
+
+    if os.environ.get("SAGONLINE_KERNEL_DIR"):
+        return Path(os.environ["SAGONLINE_KERNEL_DIR"])
+    root = Path(sys.prefix) / "share" / "sagonline" / "kernels"
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        if os.access(root, os.W_OK):
+            return root
+    except OSError:
+        pass
+    prefix = hashlib.blake2b(sys.prefix.encode(), digest_size=6).hexdigest()
+    return Path.home() / ".cache" / "sagonline" / f"kernels-{prefix}"
+
+
+@functools.cache
+def load_extension():
+    """Compile (once per environment) and import the C++ rasterizer and vote."""
+    import hashlib
+
+    from torch.utils import cpp_extension
+
+    # The source's digest in the name: each version of the kernel gets its own build folder, so
+    # a build of another version is never loaded by mistake (torch's loader trusts file times,
+    # and a newer build of other source looks up to date).
+    digest = hashlib.blake2b(digest_size=6)
+    for path in SOURCES + HEADERS:
+        digest.update(path.read_bytes())
+    name = f"sagonline_raster_cpu_{digest.hexdigest()}"
+    build_dir = kernel_root() / name
+
+    def build():
+        return cpp_extension.load(
+            name=name,
+            sources=[str(path) for path in SOURCES],
+            extra_include_paths=[str(CSRC)],
+            # no FMA contraction: the AVX2 and baseline builds of the vote (and x86 and ARM)
+            # then run the same float operations
+            extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", "-Wno-psabi"],
+            extra_ldflags=["-fopenmp"],
+            build_directory=str(build_dir),
+            verbose=False,
+        )
+
+    try:
+        return build_once(build_dir, name, build)
+    except Exception as exc:  # compiler missing, ninja missing, build error
+        raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
+
+
+def build_once(build_dir: Path, name: str, build, say=None):
+    """Run torch's loader `build()` for the extension `name` in `build_dir` under an exclusive
+    lock of our own (`flock`, released by the system when its owner ends, kill -9 included):
+    one process builds, the others wait for it and say so. Holding that lock, a `lock` file of
+    torch's in the folder was left by a build that was killed: it is removed with a message
+    instead of being waited on forever. The first build says that it compiles, and how long
+    it took."""
+    import fcntl
+
+    say = say or (lambda text: print(text, file=sys.stderr, flush=True))
+    build_dir.mkdir(parents=True, exist_ok=True)
+    fd = os.open(build_dir.parent / f"{name}.build-lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            say(f"waiting for another process that is compiling the CPU kernels ({build_dir})")
+            fcntl.flock(fd, fcntl.LOCK_EX)
+        stale = build_dir / "lock"
+        if stale.exists():
+            say(f"removed {stale}: a build of the CPU kernels was killed before it finished")
+            stale.unlink(missing_ok=True)
+        fresh = not (build_dir / f"{name}.so").exists()
+        if fresh:
+            say("compiling the CPU kernels, one time for this environment (about 1-3 min) ...")
+        start = time.perf_counter()
+        module = build()
+        if fresh:
+            say(f"compiled the CPU kernels in {time.perf_counter() - start:.0f} s ({build_dir})")
+        return module
+    finally:
+        os.close(fd)
+
+
+__all__ = ["NativeBuildError", "build_once", "kernel_root", "load_extension"]

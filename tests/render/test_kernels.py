@@ -1,0 +1,75 @@
+"""Building the CPU kernels: once per environment, said out loud, never an endless wait on a
+build that was killed (the build itself is stood in for by a function)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+from sagonline.render.kernels import build_once, kernel_root
+
+
+def test_the_kernels_live_in_the_environment(monkeypatch, tmp_path):
+    monkeypatch.delenv("SAGONLINE_KERNEL_DIR", raising=False)
+    assert kernel_root().is_relative_to(sys.prefix)  # two checkouts, two environments, two builds
+    monkeypatch.setenv("SAGONLINE_KERNEL_DIR", str(tmp_path))
+    assert kernel_root() == tmp_path
+
+
+def test_a_first_build_says_so_and_a_second_does_not(tmp_path):
+    said, built = [], []
+
+    def build():
+        built.append(1)
+        (tmp_path / "k" / "ext.so").write_bytes(b"")
+        return "module"
+
+    assert build_once(tmp_path / "k", "ext", build, said.append) == "module"
+    assert any("compiling the CPU kernels, one time" in s for s in said)
+    said.clear()
+    assert build_once(tmp_path / "k", "ext", build, said.append) == "module"
+    assert said == [] and len(built) == 2  # torch's loader finds its build and loads it
+
+
+def test_a_lock_left_by_a_killed_build_is_cleared(tmp_path):
+    """A build killed midway leaves torch's `lock` file; its owner is gone (our own lock is
+    free), so the next run removes it and goes on instead of waiting forever."""
+    said = []
+    (tmp_path / "k").mkdir()
+    (tmp_path / "k" / "lock").write_text("")
+
+    def build():
+        assert not (tmp_path / "k" / "lock").exists()
+        return "module"
+
+    assert build_once(tmp_path / "k", "ext", build, said.append) == "module"
+    assert any("killed before it finished" in s for s in said)
+
+
+def test_a_second_process_waits_for_a_live_build_and_says_so(tmp_path):
+    (tmp_path / "k").mkdir()
+    holder = subprocess.Popen(
+        [sys.executable, "-c",
+         "import fcntl, os, sys\n"
+         f"fd = os.open({str(tmp_path / 'ext.build-lock')!r}, os.O_RDWR | os.O_CREAT)\n"
+         "fcntl.flock(fd, fcntl.LOCK_EX)\nprint('holding', flush=True)\nsys.stdin.readline()\n"],
+        stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True,
+    )  # fmt: skip
+    assert holder.stdout.readline().strip() == "holding"
+    said, waiting, result = [], threading.Event(), []
+
+    def say(text):
+        said.append(text)
+        if text.startswith("waiting"):
+            waiting.set()
+
+    worker = threading.Thread(
+        target=lambda: result.append(build_once(tmp_path / "k", "ext", lambda: "module", say))
+    )
+    worker.start()
+    waiting.wait()  # the worker is blocked on the live builder's lock and said so
+    assert result == []
+    holder.communicate("done\n")  # the live build ends
+    worker.join()
+    assert result == ["module"] and said[0].startswith("waiting for another process")
