@@ -6,7 +6,8 @@
 - scene_labelled.ply: the input scene with a `label` vertex property added;
 - objects/<name>.ply: only that object's Gaussians, with every property of the input (same
   names and dtypes: any 3DGS viewer and the harness load it); scene_without_<name>.ply: the rest;
-- views/<i>_<view>_rgb.png and _labels.png (label ids as a grey PNG) of each trajectory view;
+- views/<i>_<view>_rgb.png, _labels.png (the label ids, raw, for scoring), _labels_color.png
+  and _overlay.png (the labels in colour, and over the render) of each trajectory view;
 - recording.rrd (rerun), where asked for;
 - .sagonline-output.json, the manifest that lets `--overwrite` recognise the folder as ours.
 
@@ -32,6 +33,7 @@ from sagonline.files import atomic_write_image, atomic_write_json, atomic_write_
 from sagonline.gaussians import Gaussians
 from sagonline.io import write_ply
 from sagonline.outputs import OutputError, output_folder
+from sagonline.recording import label_colors
 
 RESERVED_NAMES = ("background", "unlabelled")
 # The most labels a segmentation may have: each object is written as two PLYs of the scene.
@@ -156,14 +158,26 @@ def write_segmentation(
         atomic_write_npy(tmp / "labels.npy", labels)
         record_info = {"names": names, "files": dict(zip(names[1:], files, strict=True))}
         atomic_write_json(tmp / "labels.json", record_info | {"counts": counts, **(info or {})})
+        colours = label_colors(len(names))
         for i, (name, rgb, lab) in enumerate(views or []):
             stem = f"{i:04d}_{safe_name(name)}"
             atomic_write_image(tmp / "views" / f"{stem}_rgb.png", rgb)
             ids = lab.astype(np.uint8 if len(names) < 256 else np.uint16)
-            atomic_write_image(tmp / "views" / f"{stem}_labels.png", ids)
+            atomic_write_image(tmp / "views" / f"{stem}_labels.png", ids)  # raw ids, to score
+            atomic_write_image(tmp / "views" / f"{stem}_labels_color.png", colours[lab])
+            atomic_write_image(tmp / "views" / f"{stem}_overlay.png", overlay(rgb, lab, colours))
         if record is not None:
             record(tmp / "recording.rrd")
     return out
+
+
+def overlay(rgb: np.ndarray, labels: np.ndarray, colours: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8: the render with each object's pixels tinted by its colour (background
+    left as it is)."""
+    out = rgb.astype(np.float32)
+    on = labels > 0
+    out[on] = 0.45 * out[on] + 0.55 * colours[labels[on]]
+    return out.clip(0, 255).astype(np.uint8)
 
 
 def _write_ply_files(

@@ -50,6 +50,7 @@ class Segmentation:
     frames: list[np.ndarray]
     masks: list[np.ndarray]
     timings: dict = field(default_factory=dict)
+    prompt_frame: int = 0
 
     @property
     def coverage(self) -> float:
@@ -197,4 +198,4 @@ def segment_scene(
         "total_s": time.perf_counter() - start,
     }
     return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
-                        frames.images, seg.masks, timings)  # fmt: skip
+                        frames.images, seg.masks, timings, prompt.frame)  # fmt: skip

@@ -103,6 +103,7 @@ def test_overwrite_replaces_only_what_the_tool_wrote(user_scene, tmp_path, capsy
     assert (mine / "thesis.tex").read_text() == "months of work"
     out = tmp_path / "seg"
     assert _segment(folder, "--click", click, "--out", str(out)) == 0
+    capsys.readouterr()  # the run's own progress lines
     assert (out / ".sagonline-output.json").is_file()
     assert _segment(folder, "--click", click, "--out", str(out)) == 2
     _one_line_error(capsys, "pass --overwrite")

@@ -231,30 +231,39 @@ def write_outputs(out: Path, g, seg, scene: Path, info: dict, args, inputs) -> N
     import torch
 
     from sagonline.export import write_segmentation
-    from sagonline.recording import Recorder
     from sagonline.render.api import render_labels
+    from sagonline.segment_recording import record_segmentation
 
     labels = torch.from_numpy(seg.labels)
     views = []
-    for cam, frame in zip(seg.cameras, seg.frames, strict=True):
+    for cam, frame in progress(list(zip(seg.cameras, seg.frames, strict=True)), "label renders"):
         lab = render_labels(g.to(args.device), cam, labels, len(seg.names), backend=args.backend)
         views.append((cam.name, frame, lab.cpu().numpy()))
 
     def record(path: Path) -> None:
-        rec = Recorder(path, scenes=["segment"])
-        rec.annotate("segment", seg.names)
-        for i, (cam, frame, mask) in enumerate(
-            zip(seg.cameras, seg.frames, seg.masks, strict=True)
-        ):
-            rec.trajectory_frame("segment", i, frame, mask, camera=cam)
-        rec.gaussians("segment", g, seg.labels.clip(0), seg.labels >= 0, seg.vote.histogram.numpy())
-        rec.close()
+        record_segmentation(
+            path, g, seg.labels, seg.names, seg.cameras, seg.frames, seg.masks,
+            [v[2] for v in views], info["prompt"], seg.prompt_frame,
+        )  # fmt: skip
 
     write_segmentation(
         out, g, seg.labels, seg.names, source=scene, info=info, views=views,
         record=None if args.no_record else record, overwrite=args.overwrite, inputs=inputs,
         command="segment",
     )  # fmt: skip
+
+
+def progress(items: list, what: str):
+    """A bar on a terminal; elsewhere (a log file, CI) one plain line when done."""
+    import sys
+
+    from tqdm import tqdm
+
+    if sys.stderr.isatty():
+        yield from tqdm(items, desc=what, leave=False)
+        return
+    yield from items
+    print(f"{what}: {len(items)} done", file=sys.stderr)
 
 
 def print_segmentation(seg, out: Path, wall_s: float) -> None:
