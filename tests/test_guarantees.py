@@ -309,19 +309,28 @@ def test_a_file_that_is_no_mask_is_refused_with_what_was_seen(tmp_path, image, s
 
 
 def test_prompts_after_a_mask_are_kept(user_scene, tmp_path):
+    """A mask for one object and a click for another: both objects, named, in order."""
     folder, click = user_scene
     from sagonline.io.cameras import load_cameras
 
+    from sagonline.io import read_scene
+    from sagonline.render import render
+
     cam = load_cameras(folder / "transforms.json")[0]
-    mask = np.zeros((cam.height, cam.width), np.uint8)
-    mask[2:8, 2:8] = 255
+    drawn = render(read_scene(folder / "point_cloud.ply"), cam, backend="native").alpha > 0.5
+    x, y = (float(v) for v in click.split(":")[1].split(","))
+    rows, cols = np.mgrid[: cam.height, : cam.width]
+    far_from_vase = np.hypot(cols - x, rows - y) > cam.width / 4
+    mask = (255 * (drawn.numpy() & far_from_vase)).astype(np.uint8)  # the backdrop, drawn
+    assert mask.any()
     Image.fromarray(mask).save(tmp_path / "m.png")
     out = tmp_path / "o"
-    assert _segment(folder, "--object", "corner", "--mask", f"0:{tmp_path / 'm.png'}",
+    assert _segment(folder, "--object", "wall", "--mask", f"0:{tmp_path / 'm.png'}",
                     "--object", "vase", "--click", click, "--out", str(out)) == 0  # fmt: skip
     info = json.loads((out / "labels.json").read_text())
-    assert info["names"] == ["background", "corner", "vase"]
-    assert [o["name"] for o in info["prompt"]["objects"]] == ["corner", "vase"]
+    assert info["names"] == ["background", "wall", "vase"]
+    assert [o["name"] for o in info["prompt"]["objects"]] == ["wall", "vase"]
+    assert info["counts"]["wall"] > 0 and info["counts"]["vase"] > 0
 
 
 def test_duplicate_camera_names_are_refused(tmp_path, capsys):

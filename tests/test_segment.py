@@ -149,6 +149,29 @@ def test_cameras_of_another_scene_are_refused(tmp_path, capsys):
     assert "no Gaussian of the scene" in capsys.readouterr().err
 
 
+def test_a_click_on_empty_space_is_refused(tmp_path, capsys):
+    sc, cams, m = _scene(tmp_path, "forward")
+    write_ply(tmp_path / "scene.ply", sc.gaussians.subset(sc.instance == 1))  # the vase alone
+    alpha = render(read_scene(tmp_path / "scene.ply"), cams[0], backend="native").alpha
+    ys, xs = np.nonzero(alpha.reshape(72, 96).numpy() < 0.05)
+    assert _segment(tmp_path, "--click", f"0:{xs[0] + 0.5},{ys[0] + 0.5}") == 2
+    err = capsys.readouterr().err
+    assert "lands where no Gaussian is drawn" in err and "--preview" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_object_that_selects_nothing_writes_nothing(tmp_path, capsys):
+    """A one-pixel mask: the segmenter keeps it in one view, no Gaussian gets enough votes."""
+    _scene(tmp_path, "forward")
+    speck = np.zeros((72, 96), np.uint8)
+    speck[1, 1] = 255
+    Image.fromarray(speck).save(tmp_path / "speck.png")
+    assert _segment(tmp_path, "--mask", f"0:{tmp_path / 'speck.png'}", "--no-record") == 2
+    err = capsys.readouterr().err
+    assert "selected no Gaussian" in err and "nothing was written" in err, err
+    assert not (tmp_path / "out").exists()
+
+
 def test_existing_output_is_kept_without_overwrite(clicked, capsys):
     tmp, _ = clicked
     before = (tmp / "out" / "labels.npy").read_bytes()

@@ -13,6 +13,7 @@ import numpy as np
 from sagonline.cli.prompts import PromptItems, parse_prompt, to_prompt
 from sagonline.cli.render import add_view_arguments
 from sagonline.cli.views import CLICK_HELP
+from sagonline.segment import PromptError
 
 
 def add_parsers(sub) -> None:
@@ -127,7 +128,7 @@ def cmd_segment(args) -> int:
     from sagonline.machine import check_device
     from sagonline.outputs import check_not_input, check_replaceable
     from sagonline.render.api import resolve_backend
-    from sagonline.segment import segment_scene
+    from sagonline.segment import check_cameras_see_scene, segment_scene
     from sagonline.trajectory import insert_between
 
     started = time.perf_counter()
@@ -163,10 +164,14 @@ def cmd_segment(args) -> int:
 
     object_file_names(prompt.names)  # names that cannot each have a file: refused now
     segmenter = build_segmenter(args, prompt)
+    check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
+    check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
+    print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
     seg = segment_scene(
         g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
         device=args.device, progress=sys.stderr.isatty(),
     )  # fmt: skip
+    check_objects_were_found(seg)
     info = {
         "scene": str(scene),
         "cameras": str(args.cameras) if args.cameras else None,
@@ -182,6 +187,40 @@ def cmd_segment(args) -> int:
     write_outputs(out, g, seg, scene, info, args, inputs)
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
+
+
+def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:
+    """Refuse a positive click where nothing of the scene is rendered (a click on the
+    background of an object scan, or on empty sky): it would select nothing."""
+    from sagonline.render.api import render
+
+    alpha = render(g.to(args.device), cam.to(args.device), backend=args.backend).alpha
+    alpha = alpha.detach().cpu().numpy()
+    for obj in parsed.objects:
+        for x, y in obj.points:
+            a = float(alpha[min(int(y), cam.height - 1), min(int(x), cam.width - 1)])
+            if a < 0.5:
+                raise PromptError(
+                    f"--click on {obj.name!r} at ({x:g}, {y:g}) of view {parsed.view} "
+                    f"('{cam.name}') lands where no Gaussian is drawn (opacity {a:.2f}): "
+                    "click on the object (`--preview` shows the view)"
+                )
+
+
+def check_objects_were_found(seg) -> None:
+    """Refuse to write an object that selected no Gaussian (an empty PLY and exit 0 would say
+    it worked)."""
+    for k, name in enumerate(seg.names):
+        if k == 0:
+            continue
+        count = int((seg.labels == k).sum())
+        if count == 0:
+            seen = sum(int((m == k).any()) for m in seg.masks)
+            raise PromptError(
+                f"object {name!r} selected no Gaussian (the 2D segmenter marked it in {seen} of "
+                f"{len(seg.masks)} views, and no Gaussian's votes made it {name!r}); nothing was "
+                "written: give another click, a mask, or another segmenter"
+            )
 
 
 def write_preview(g, cams, index: int, out: Path, args) -> int:
