@@ -311,9 +311,8 @@ def test_a_file_that_is_no_mask_is_refused_with_what_was_seen(tmp_path, image, s
 def test_prompts_after_a_mask_are_kept(user_scene, tmp_path):
     """A mask for one object and a click for another: both objects, named, in order."""
     folder, click = user_scene
-    from sagonline.io.cameras import load_cameras
-
     from sagonline.io import read_scene
+    from sagonline.io.cameras import load_cameras
     from sagonline.render import render
 
     cam = load_cameras(folder / "transforms.json")[0]
