@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -61,3 +62,35 @@ def test_render_errors_name_the_problem(tmp_path):
         str(tmp_path / "x.png"),
     )
     assert res.returncode != 0 and "out of range" in res.stderr
+
+
+def test_one_view_numbering_for_every_command(tmp_path, capsys):
+    """Frames r_0 .. r_11 listed in file order: index 2 is r_10 (cameras sorted by name) for
+    `cameras`, `render --view`, `segment --preview` and `segment --click` alike."""
+    from sagonline.cli import main
+    from tests.fixtures import own_scene
+
+    folder, *_ = own_scene(tmp_path / "scene", views=12)
+    ply, cams = str(folder / "point_cloud.ply"), str(folder / "transforms.json")
+    assert main(["cameras", cams]) == 0
+    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
+    assert [r[:2] for r in rows[:5]] == [["0", "r_0"], ["1", "r_1"], ["2", "r_10"],
+                                         ["3", "r_11"], ["4", "r_2"]]  # fmt: skip
+    for view in ("2", "r_10", "r_2"):
+        assert main(["render", ply, "--cameras", cams, "--view", view,
+                     "--out", str(tmp_path / f"{view}.png")]) == 0  # fmt: skip
+    by_index, by_name = (np.asarray(Image.open(tmp_path / f"{v}.png")) for v in ("2", "r_10"))
+    assert np.array_equal(by_index, by_name)
+    assert not np.array_equal(by_index, np.asarray(Image.open(tmp_path / "r_2.png")))
+    assert main(["segment", ply, "--cameras", cams, "--preview", "2",
+                 "--out", str(tmp_path / "preview.png")]) == 0  # fmt: skip
+    assert "view 2 'r_10' at 48x36" in capsys.readouterr().out
+    preview = np.asarray(Image.open(tmp_path / "preview.png").convert("RGB")).astype(int)
+    other = np.asarray(Image.open(tmp_path / "r_2.png")).astype(int)
+    same = (np.abs(preview - by_index).max(-1) <= 2).mean()  # the same view under a light grid
+    assert same > 0.8 and same > (np.abs(preview - other).max(-1) <= 2).mean() + 0.3, same
+    out = tmp_path / "seg"
+    assert main(["segment", ply, "--cameras", cams, "--click", "2:24,18", "--out", str(out),
+                 "--no-record"]) == 0  # fmt: skip
+    prompt = json.loads((out / "labels.json").read_text())["prompt"]
+    assert (prompt["view"], prompt["view_name"], prompt["render_size"]) == (2, "r_10", [48, 36])

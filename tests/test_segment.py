@@ -74,6 +74,36 @@ def test_clicks_label_the_scene(clicked):
     assert len(list((tmp / "out" / "views").glob("*_labels.png"))) == 12
 
 
+def test_the_recording_has_its_own_layout_and_no_empty_panel(clicked):
+    """RGB with the clicks on the prompt frame, the segmenter's mask, the fused labels, the scene
+    as splats coloured by label and a legend; nothing of the evaluation layout."""
+    from tests.test_recording import read_back
+
+    tmp, sc = clicked
+    found, _ = read_back(tmp / "out" / "recording.rrd")
+    base = "/segment/view/camera"
+    for image in ("rgb", "segmenter", "labels"):
+        assert found[f"{base}/{image}"]["rows"] == 12, image
+    assert found[f"{base}/clicks"]["instances"]["Points2D:positions"] == 2  # a click, a negative
+    splats = found["/segment/scene/splats"]
+    assert "GaussianSplats3D:quaternions" in splats["columns"]
+    assert splats["instances"]["GaussianSplats3D:centers"] == len(sc.gaussians)
+    assert found["/segment/scene/legend"]["instances"]["Points3D:positions"] == 2
+    assert not [e for e in found if e.startswith("/scenes") or "ground_truth" in e]
+
+
+def test_label_pngs_have_colours_and_overlays(clicked):
+    tmp, _ = clicked
+    views = tmp / "out" / "views"
+    raw = np.asarray(Image.open(views / "0000_train_0000_labels.png"))
+    colour = np.asarray(Image.open(views / "0000_train_0000_labels_color.png"))
+    overlay = np.asarray(Image.open(views / "0000_train_0000_overlay.png"))
+    assert raw.ndim == 2 and raw.max() <= 1  # the raw ids, for scoring
+    assert colour.shape == overlay.shape == (*raw.shape, 3)
+    assert len(np.unique(colour.reshape(-1, 3), axis=0)) >= 2 and colour.max() > 100
+    assert not np.array_equal(colour, overlay)
+
+
 def test_object_ply_keeps_every_property_and_only_its_gaussians(clicked):
     tmp, _ = clicked
     labels, _ = read_labels(tmp / "out")
@@ -170,6 +200,25 @@ def test_an_object_that_selects_nothing_writes_nothing(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "selected no Gaussian" in err and "nothing was written" in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_scene_without_cameras_gets_an_orbit_said_out_loud(tmp_path, capsys):
+    from sagonline.trajectory import orbit_around
+
+    sc, _, _ = _scene(tmp_path, "360")
+    scan = sc.gaussians.subset(sc.instance == 1)  # an object scan, as a capture app gives it
+    write_ply(tmp_path / "scene.ply", scan)
+    ring, _ = orbit_around(scan.means, 24, 64, 48)
+    view0 = render(scan, ring[0], backend="native").alpha.reshape(48, 64).numpy() > 0.5
+    out = tmp_path / "out"
+    argv = ["segment", str(tmp_path / "scene.ply"), "--width", "64", "--height", "48",
+            "--click", f"0:{_click_inside(view0)}", "--out", str(out), "--no-record"]  # fmt: skip
+    assert main(argv) == 0
+    said = capsys.readouterr().err
+    assert "no --cameras given: an orbit of 24 views around the scene (64x48" in said
+    info = json.loads((out / "labels.json").read_text())
+    assert info["cameras"] is None and info["views"].startswith("no --cameras given")
+    assert info["counts"]["object"] > 0
 
 
 def test_existing_output_is_kept_without_overwrite(clicked, capsys):

@@ -1,9 +1,10 @@
 """A weight-free video segmenter: colour models + optical-flow priors + watershed (OpenCV).
 
 Prompt frame: object masks are used as given (unless `use_masks` is off); boxes and clicks
-seed GrabCut, each click adding what it says: a positive click's region of like colour is
-probable foreground (its disc definite), a negative click's region definite background, the
-image border background. Each label (background included) gets a colour histogram (16^3
+seed GrabCut, each click adding what it says: a positive click's region of like colour (its
+chromaticity, its brightness within a factor) is probable foreground (its disc definite), a
+negative click's region definite background, the image border background where no click's
+region reaches it. Each label (background included) gets a colour histogram (16^3
 bins) from that frame.
 Then, frame by frame, forwards and backwards from the prompt frame:
 1. dense optical flow (Farneback) from the new frame back to the previous one warps the
@@ -47,9 +48,12 @@ class ClassicalConfig:
     """Radius in pixels of the definite disc a click marks."""
     prior_radius: float = 0.25
     """How far a click's region reaches: twice this fraction of the image's shorter side."""
-    click_tolerance: int = 14
-    """A click's region: the connected pixels within this Lab distance (per channel) of its
-    colour."""
+    click_tolerance: float = 0.05
+    """A click's region: the connected pixels whose chromaticity (r, g over r + g + b) lies
+    within this of the click's own..."""
+    click_brightness_ratio: float = 2.0
+    """... and whose brightness (r + g + b) within this factor of it, either way: shading and
+    texture change the brightness across one surface far more than its hue."""
     motion_px: float = 6.0
     """How fast a label's spatial prior decays with the distance to its warped region (px)."""
     prior_floor: float = 1e-3
@@ -70,7 +74,12 @@ class ClassicalConfig:
             grabcut_iters=(1 <= self.grabcut_iters <= 100, self.grabcut_iters, "in [1, 100]"),
             click_radius=(self.click_radius >= 1, self.click_radius, ">= 1"),
             prior_radius=(0 < self.prior_radius <= 1, self.prior_radius, "in (0, 1]"),
-            click_tolerance=(1 <= self.click_tolerance <= 128, self.click_tolerance, "in [1, 128]"),
+            click_tolerance=(0 < self.click_tolerance <= 1, self.click_tolerance, "in (0, 1]"),
+            click_brightness_ratio=(
+                self.click_brightness_ratio >= 1,
+                self.click_brightness_ratio,
+                ">= 1",
+            ),
             motion_px=(self.motion_px > 0, self.motion_px, "> 0"),
             prior_floor=(0 <= self.prior_floor < 1, self.prior_floor, "in [0, 1)"),
             adapt=(0 <= self.adapt <= 1, self.adapt, "in [0, 1]"),
@@ -97,13 +106,15 @@ class FlowWatershedSegmenter(VideoSegmenter):
         adapt: float = 0.02,
         bins: int = 16,
         use_masks: bool = True,
-        click_tolerance: int = 14,
+        click_tolerance: float = 0.05,
+        click_brightness_ratio: float = 2.0,
     ):
         self.band_px, self.flow_levels, self.flow_window = band_px, flow_levels, flow_window
         self.grabcut_iters, self.click_radius = grabcut_iters, click_radius
         self.prior_radius, self.motion_px, self.prior_floor = prior_radius, motion_px, prior_floor
         self.adapt, self.bins, self.use_masks = adapt, bins, use_masks
         self.click_tolerance = click_tolerance
+        self.click_brightness_ratio = click_brightness_ratio
         self.reads = ("masks", "clicks", "boxes") if use_masks else ("clicks", "boxes")
         self.hists: dict[int, np.ndarray] = {}
 
@@ -132,7 +143,8 @@ class FlowWatershedSegmenter(VideoSegmenter):
         """GrabCut seeded by a box and/or clicks. Each click adds what it says: a positive
         click makes the region of like colour around it (`click_region`) probable foreground
         and its disc definite foreground; a negative click makes the region it lies in definite
-        background. The image border is background (without a box)."""
+        background. The image border is background (without a box) where no click's region
+        reaches it."""
         h, w = frame.shape[:2]
         bgr = np.ascontiguousarray(frame[..., ::-1])
         gc = np.full((h, w), cv2.GC_PR_BGD, np.uint8)
@@ -142,38 +154,43 @@ class FlowWatershedSegmenter(VideoSegmenter):
             gc[max(y0, 0) : y1, max(x0, 0) : x1] = cv2.GC_PR_FGD
         pts = np.zeros((0, 2)) if obj.points is None else np.asarray(obj.points).reshape(-1, 2)
         lab = np.ones(len(pts), int) if obj.point_labels is None else np.asarray(obj.point_labels)
-        lab_img = cv2.cvtColor(bgr, cv2.COLOR_BGR2LAB)
+        colour = chromaticity_and_brightness(frame)
         for (x, y), v in zip(pts, lab, strict=True):
             if v > 0:
-                region = self.click_region(lab_img, (int(x), int(y)))
+                region = self.click_region(colour, (int(x), int(y)))
                 gc[region & (gc != cv2.GC_BGD)] = cv2.GC_PR_FGD
         for (x, y), v in zip(pts, lab, strict=True):  # negatives win over positives' regions
             if v <= 0:
-                gc[self.click_region(lab_img, (int(x), int(y)))] = cv2.GC_BGD
+                gc[self.click_region(colour, (int(x), int(y)))] = cv2.GC_BGD
         for (x, y), v in zip(pts, lab, strict=True):
             cv2.circle(gc, (int(x), int(y)), self.click_radius,
                        cv2.GC_FGD if v > 0 else cv2.GC_BGD, -1)  # fmt: skip
         if obj.box is None:
             border = max(2, min(h, w) // 40)
-            for sl in (np.s_[:border], np.s_[-border:]):
-                gc[sl][gc[sl] != cv2.GC_FGD] = cv2.GC_BGD
-                gc[:, sl][gc[:, sl] != cv2.GC_FGD] = cv2.GC_BGD
+            for sl in (np.s_[:border], np.s_[-border:]):  # what no click's region reaches
+                gc[sl][gc[sl] == cv2.GC_PR_BGD] = cv2.GC_BGD
+                gc[:, sl][gc[:, sl] == cv2.GC_PR_BGD] = cv2.GC_BGD
         if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
             raise ValueError(f"object {obj.label}: no positive click or box to start from")
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
         cv2.grabCut(bgr, gc, None, bgd, fgd, self.grabcut_iters, cv2.GC_INIT_WITH_MASK)
         return (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
 
-    def click_region(self, lab_img: np.ndarray, xy: tuple[int, int]) -> np.ndarray:
-        """(H, W) bool: the pixels connected to the click whose Lab colour lies within
-        `click_tolerance` of the click's own (a flood fill from it), within `prior_radius`
-        of the image's shorter side around it."""
-        h, w = lab_img.shape[:2]
+    def click_region(self, colour: np.ndarray, xy: tuple[int, int]) -> np.ndarray:
+        """(H, W) bool: the pixels connected to the click whose colour lies near the click's own
+        (a flood fill from it over `chromaticity_and_brightness`: chromaticity within
+        `click_tolerance`, brightness within a factor `click_brightness_ratio`), within
+        `prior_radius` of the image's shorter side around it."""
+        h, w = colour.shape[:2]
         x, y = min(max(xy[0], 0), w - 1), min(max(xy[1], 0), h - 1)
         mask = np.zeros((h + 2, w + 2), np.uint8)
-        tol = (self.click_tolerance,) * 3
+        tol = (
+            self.click_tolerance,
+            self.click_tolerance,
+            float(np.log(self.click_brightness_ratio)),
+        )
         flags = 4 | cv2.FLOODFILL_MASK_ONLY | cv2.FLOODFILL_FIXED_RANGE | (1 << 8)
-        cv2.floodFill(lab_img.copy(), mask, (x, y), 0, tol, tol, flags)
+        cv2.floodFill(colour.copy(), mask, (x, y), 0, tol, tol, flags)
         region = mask[1:-1, 1:-1] > 0
         reach = np.zeros((h, w), np.uint8)
         cv2.circle(reach, (x, y), int(self.prior_radius * min(h, w) * 2), 1, -1)
@@ -267,3 +284,11 @@ class FlowWatershedSegmenter(VideoSegmenter):
             masks[t] = self.propagate(frames[src], frames[t], masks[src])
             seconds[t] = time.perf_counter() - start
         return masks, seconds
+
+
+def chromaticity_and_brightness(frame: np.ndarray) -> np.ndarray:
+    """(H, W, 3) uint8 RGB -> (H, W, 3) float32: r / s, g / s and log s, with s = r + g + b
+    (+ 3, so black is a colour too). Shading scales s and leaves r / s, g / s alone."""
+    rgb = frame.astype(np.float32) + 1.0
+    total = rgb.sum(-1, keepdims=True)
+    return np.concatenate([rgb[..., :2] / total, np.log(total)], -1).astype(np.float32)
