@@ -96,7 +96,8 @@ def test_more_clicks_keep_the_icing_of_the_real_donut():
     truth = (closed > 0) & (out.alpha.reshape(closed.shape).numpy() > 0.5)
     icing, dough = [(150, 60), (330, 50), (240, 40)], [(240, 135)]
     for positive, negative in [(icing[:1], []), (icing, []), (icing, dough)]:
-        seg = segment_scene(g, ring, clicks_prompt(ring, 0, {"icing": positive}, {"icing": negative}))
+        prompt = clicks_prompt(ring, 0, {"icing": positive}, {"icing": negative})
+        seg = segment_scene(g, ring, prompt)
         labels = torch.from_numpy(seg.labels)
         pred = render_labels(g, unseen, labels, 2, backend="native").numpy() == 1
         iou = (pred & truth).sum() / (pred | truth).sum()
