@@ -17,7 +17,7 @@ SWEEP_CACHE = .cache/stages
 SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
             progress=false cache_dir=$(SWEEP_CACHE)
 
-.PHONY: install install-extras eval test test-fast report bench lint format clean-runs clean-cache \
+.PHONY: install install-extras eval test test-fast report report-fits bench lint format clean-runs clean-cache \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real
 
 install: $(STAMP)
@@ -54,8 +54,12 @@ test: install install-extras
 test-fast: install
 	$(BIN)/python -m pytest -q -m "not slow and not gpu" $(ARGS)
 
+# reports/runs.* and scenes.* only; `make report-fits`: reports/fits.* and the held-out renders.
 report: install
 	$(BIN)/python -m bench.report $(ARGS)
+
+report-fits: install
+	$(BIN)/python -m bench.report --fits $(ARGS)
 
 # CPU rows here; on a GPU machine `make bench ARGS="--devices cuda --out
 # reports/bench_render_cuda.csv"` (with .[gsplat,triton] installed) gives the CUDA table.

@@ -1,11 +1,15 @@
-"""Gather run directories into `reports/`: Markdown and CSV tables.
+"""Gather run directories into `reports/`: Markdown and CSV tables, scores in percent.
 
-    python -m bench.report [RUN_DIR_OR_ROOT ...] [--out reports]
+    python -m bench.report [RUN_DIR_OR_ROOT ...] [--out reports]     # runs.*, scenes.*
+    python -m bench.report --fits                                    # fits.*, fit_*_heldout.jpg
+    python -m bench.report --views NAME RUN ...                      # NAME.*, NAME_iou_vs_angle.png
 
 Every `metrics.json` below the given folders (default: runs/ and multirun/) becomes one row of
-`reports/runs.{md,csv}` and one row per scene of `reports/scenes.{md,csv}`. Each table states
-the device, torch version and resize rule of its rows. Every `fit_metrics.json` written by
-`make scenes` (under scenes/ and datasets/) becomes one row of `reports/fits.{md,csv}`.
+`reports/runs.{md,csv}` and one row per scene of `reports/scenes.{md,csv}`; runs whose results
+and settings are identical (a run copied, or repeated) are one row that counts them. Each table
+states the device, torch version and resize rule of its rows. Nothing else in `reports/` is
+written unless asked: `--fits` tabulates every `fit_metrics.json` written by `make scenes`
+(under scenes/ and datasets/), `--views` one capture's views by kind.
 """
 
 from __future__ import annotations
@@ -61,6 +65,7 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
             "min_votes": c.get("min_votes"),
             "margin": c.get("margin"),
             "num_masks": c.get("num_masks"),
+            "overrides": " ".join(m.get("overrides", [])),
         }
         l3 = [s["labels3d"]["accuracy"] for s in m.get("scenes", []) if s.get("labels3d")]
         runs_rows.append(
@@ -190,7 +195,7 @@ def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
             continue
         m = load(run)
         label = " ".join([m.get("segmenter", "?"), *m.get("overrides", [])])
-        per_view[label] = views
+        per_view[label] = views.assign(_overrides=[m.get("overrides", [])] * len(views))
         photo = views["photographed"].astype(bool)
         by_angle = pd.cut(views["photo_angle_deg"], ANGLE_BINS, labels=ANGLE_LABELS)
         row = {
@@ -210,20 +215,47 @@ def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
     return pd.DataFrame(rows), per_view
 
 
+def short_labels(overrides: dict[str, list[str]]) -> dict[str, str]:
+    """A legend entry per run: only the overrides that differ between the runs shown, each key
+    by its last part (`dataset.adapter.exclude_reference=true` -> `exclude_reference=true`);
+    the full label where two would read the same."""
+    shared = set.intersection(*(set(o) for o in overrides.values())) if overrides else set()
+    short = {}
+    for label, items in overrides.items():
+        parts = [label.split(" ")[0]]  # the segmenter
+        for item in items:
+            if item in shared or item.startswith(("hydra.", "progress=", "record=")):
+                continue
+            key, sep, value = item.partition("=")
+            parts.append(f"{key.rsplit('.', 1)[-1]}{sep}{value}")
+        short[label] = " ".join(parts)
+    if len(set(short.values())) < len(short):
+        return {label: label for label in overrides}
+    return short
+
+
 def plot_iou_against_angle(per_view: dict[str, pd.DataFrame], path: Path) -> Path:
-    """Scatter of per-view IoU against the angle to the nearest photograph, one colour per run."""
+    """Scatter of per-view IoU (%) against the angle to the nearest photograph, one colour per
+    run, the legend (short labels) beside the plot."""
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    fig, ax = plt.subplots(figsize=(7, 4.2), dpi=120)
+    names = short_labels(
+        {label: list(v["_overrides"].iloc[0]) if "_overrides" in v and len(v) else []
+         for label, v in per_view.items()}
+    )  # fmt: skip
+    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=120)
     for label, views in per_view.items():
-        ax.scatter(views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7, label=label)
+        ax.scatter(views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7,
+                   label=names[label])  # fmt: skip
     ax.set_xlabel("viewing angle to the nearest photograph (degrees; 0: a photographed view)")
     ax.set_ylabel("IoU (%)")
+    ax.set_ylim(0, 101)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=7, loc="lower left")
+    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0,
+              title="run", title_fontsize=8)  # fmt: skip
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_image(path, np.asarray(_figure_rgb(fig)))
@@ -236,22 +268,61 @@ def _figure_rgb(fig) -> np.ndarray:
     return np.asarray(fig.canvas.buffer_rgba())[..., :3]
 
 
-def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
-    pct = [
-        c
-        for c in df.columns
-        if c.endswith(("mIoU", "mAcc", "_acc", "_coverage")) or c in ("mIoU", "mAcc")
-    ]
+def score_columns(df: pd.DataFrame) -> list[str]:
+    """The columns that hold scores (fractions in metrics.json and per_view.csv)."""
+    return [c for c in df.columns if c.endswith(("mIoU", "mAcc", "_acc", "_coverage"))]
+
+
+def in_percent(df: pd.DataFrame) -> pd.DataFrame:
+    """The table with its scores in percent, rounded to 0.01 (what every report shows)."""
     shown = df.copy()
-    for c in pct:
-        shown[c] = shown[c].map(lambda v: f"{100 * v:.2f}" if pd.notna(v) else "-")
+    for c in score_columns(df):
+        shown[c] = (100 * pd.to_numeric(shown[c], errors="coerce")).round(2)
+    return shown
+
+
+TIMING_HINTS = ("_s", "_ms", "ms_per", "seconds", "per_frame", "per_mask")
+
+
+def merge_identical(df: pd.DataFrame) -> pd.DataFrame:
+    """Rows that differ only in their run folder and timings are one row: `runs` counts them,
+    `run` names the first (+ how many more), each timing is the median of those that have one."""
+    if df.empty:
+        return df.assign(runs=pd.Series(dtype=int))
+    timing = [c for c in df.columns if c != "run" and any(h in c for h in TIMING_HINTS)]
+    key = [c for c in df.columns if c not in ("run", *timing)]
+    filled = df[key].astype(object).where(df[key].notna(), "\0none")
+    groups = filled.astype(str).agg("\x1f".join, axis=1)
+    rows = []
+    for _, index in df.groupby(groups, sort=False).groups.items():
+        part = df.loc[index]
+        row = part.iloc[0].copy()
+        row["runs"] = len(part)
+        if len(part) > 1:
+            row["run"] = f"{row['run']} (+{len(part) - 1} identical)"
+        for c in timing:
+            values = pd.to_numeric(part[c], errors="coerce").dropna()
+            row[c] = float(values.median()) if len(values) else None
+        rows.append(row)
+    merged = pd.DataFrame(rows, columns=[*df.columns, "runs"]).reset_index(drop=True)
+    return merged[["run", "runs", *[c for c in df.columns if c != "run"]]]
+
+
+def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
+    """A titled Markdown table with its notes (the frame's scores already in percent)."""
+    shown = df.copy()
+    for c in score_columns(df):
+        shown[c] = shown[c].map(lambda v: f"{v:.2f}" if pd.notna(v) else "-")
+    shown = shown.astype(object).where(shown.notna(), "-")  # a missing value reads "-", not nan
     body = shown.to_markdown(index=False, floatfmt=".4g")
     return f"# {title}\n\n" + "".join(f"- {n}\n" for n in notes) + "\n" + body + "\n"
 
 
 def write_table(df: pd.DataFrame, out: Path, stem: str, title: str, notes: list[str]) -> None:
-    atomic_write_text(out / f"{stem}.csv", df.to_csv(index=False))
-    atomic_write_text(out / f"{stem}.md", to_markdown(df, title, notes))
+    """`stem`.csv and `stem`.md in `out`, both with the scores in percent."""
+    shown = in_percent(df)
+    atomic_write_text(out / f"{stem}.csv", shown.to_csv(index=False))
+    atomic_write_text(out / f"{stem}.md", to_markdown(shown, title, notes))
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -263,6 +334,11 @@ def main(argv: list[str] | None = None) -> None:
         metavar="NAME",
         help="only the per-view table and plot of the given runs (captures with photographs "
         "for some views): reports/NAME.{md,csv} and reports/NAME_iou_vs_angle.png",
+    )
+    ap.add_argument(
+        "--fits",
+        action="store_true",
+        help="also (or, without folders, only) reports/fits.{md,csv} and the held-out renders",
     )
     args = ap.parse_args(argv)
     if args.views:
@@ -278,35 +354,50 @@ def main(argv: list[str] | None = None) -> None:
         plot_iou_against_angle(per_view, args.out / f"{args.views}_iou_vs_angle.png")
         print(table.to_string(index=False))
         return
+    if args.fits:
+        write_fits(args.out)
+        if not args.roots:
+            return
     roots = args.roots or [ROOT / "runs", ROOT / "multirun"]
-    fits = fit_rows([SCENES_ROOT, ROOT / "datasets"])
-    if len(fits):
-        atomic_write_text(args.out / "fits.csv", fits.to_csv(index=False))
-        atomic_write_text(
-            args.out / "fits.md",
-            "# Fitted scenes (`make scenes`)\n\n- PSNR in dB on the training views, the held-out "
-            "views (every 8th by name) and, where the dataset has object masks, inside them.\n"
-            "- recipe: the fit's settings that differ from today's defaults "
-            "(`sagonline.fitting.FitConfig`); `predates:` names settings the fit ran without.\n\n"
-            + fits.to_markdown(index=False, floatfmt=".4g")
-            + "\n",
-        )
-        for folder in fits["folder"]:
-            stack_heldout_renders(ROOT / folder, args.out)
-        print(f"{len(fits)} fitted scenes -> {args.out}/fits.md, fits.csv")
     runs = find_runs(roots)
     if not runs:
         print(f"no runs found under {', '.join(map(str, roots))}: run `make eval` first")
         return
-    runs_df, scenes_df = run_rows(runs)
+    runs_df, scenes_df = (merge_identical(df) for df in run_rows(runs))
     notes = [
         "mIoU / mAcc in percent: mean over views, then over scenes.",
-        "Resize rule and device are per row.",
+        "Resize rule and device are per row; runs: how many run folders gave this row (identical "
+        "settings and results; timings are their median).",
     ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)
-    print(runs_df.drop(columns=["run", "device", "resize"]).to_string(index=False))
-    print(f"\n{len(runs)} runs -> {args.out}/runs.md, runs.csv, scenes.md, scenes.csv")
+    shown = in_percent(runs_df).drop(columns=["run", "device", "resize", "overrides"])
+    print(shown.to_string(index=False))
+    print(
+        f"\n{len(runs)} runs ({len(runs_df)} rows) -> {args.out}/runs.md, runs.csv, scenes.md, "
+        "scenes.csv"
+    )
+
+
+def write_fits(out: Path) -> None:
+    """reports/fits.{md,csv} and each fit's held-out renders (`--fits`)."""
+    fits = fit_rows([SCENES_ROOT, ROOT / "datasets"])
+    if fits.empty:
+        print(f"no fitted scenes under {SCENES_ROOT} or datasets/: run `make scenes` first")
+        return
+    atomic_write_text(out / "fits.csv", fits.to_csv(index=False))
+    atomic_write_text(
+        out / "fits.md",
+        "# Fitted scenes (`make scenes`)\n\n- PSNR in dB on the training views, the held-out "
+        "views (every 8th by name) and, where the dataset has object masks, inside them.\n"
+        "- recipe: the fit's settings that differ from today's defaults "
+        "(`sagonline.fitting.FitConfig`); `predates:` names settings the fit ran without.\n\n"
+        + fits.to_markdown(index=False, floatfmt=".4g")
+        + "\n",
+    )
+    for folder in fits["folder"]:
+        stack_heldout_renders(ROOT / folder, out)
+    print(f"{len(fits)} fitted scenes -> {out}/fits.md, fits.csv")
 
 
 if __name__ == "__main__":

@@ -104,7 +104,12 @@ class GaussianCauses:
         return cls(run.labels.cpu(), labelled, votes, enough & ~labelled, truth_labels)
 
 
-def object_depths(gaussians: Gaussians, camera: Camera, members: torch.Tensor, backend: str):
+def object_depths(
+    gaussians: Gaussians,
+    camera: Camera,
+    members: torch.Tensor,  # [N] bool
+    backend: str,
+) -> tuple[np.ndarray, np.ndarray]:  # [H, W] alpha, [H, W] depth
     """The fitted object alone in one view: (H, W) alpha and expected depth (NaN where it
     renders nothing). members: (N,) bool, the object's Gaussians."""
     from sagonline.render.api import render

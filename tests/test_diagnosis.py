@@ -92,7 +92,7 @@ def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
     """Holes in a labelled surface (a fifth of the object's Gaussians left unlabelled, inside
     the labelled patch) take their neighbours' label; a floater far from every labelled
     Gaussian stays unlabelled; labels the vote gave are never changed."""
-    from sagonline.consensus import fill_from_neighbours
+    from sagonline.fill import fill_from_neighbours
 
     g = scene.gaussians
     truth = scene.gt_labels3d

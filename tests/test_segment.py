@@ -104,6 +104,24 @@ def test_label_pngs_have_colours_and_overlays(clicked):
     assert not np.array_equal(colour, overlay)
 
 
+def test_figure_shows_the_folder_from_its_own_record(clicked, capsys):
+    """`sagonline figure`: views rebuilt from labels.json, one titled column per picture."""
+    tmp, _ = clicked
+    out = tmp / "figure.png"
+    assert main(["figure", str(tmp / "out"), "--views", "0,5", "--out", str(out)]) == 0
+    assert "scene | labels | vase alone | without vase" in capsys.readouterr().out
+    image = np.asarray(Image.open(out))
+    assert image.shape == (22 + 2 * 72, 4 * 96, 3)
+    assert (image[:22] > 200).mean() > 0.8  # the title strip
+    labels = np.asarray(Image.open(tmp / "out" / "views" / "0005_train_0005_labels.png"))
+    from sagonline.recording import label_colors
+
+    assert np.array_equal(image[22 + 72 :, 96:192], label_colors(2)[labels].astype(np.uint8))
+    assert main(["figure", str(tmp / "out"), "--out", str(out)]) == 2  # exists: kept
+    assert main(["figure", str(tmp / "out"), "--views", "12", "--out", str(tmp / "f2.png")]) == 2
+    assert "view 12 is out of range (the folder has 12)" in capsys.readouterr().err
+
+
 def test_object_ply_keeps_every_property_and_only_its_gaussians(clicked):
     tmp, _ = clicked
     labels, _ = read_labels(tmp / "out")

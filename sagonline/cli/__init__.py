@@ -1,9 +1,10 @@
-"""Command line: `sagonline info | cameras | render | segment | export | plugins`.
+"""Command line: `sagonline info | cameras | render | segment | figure | export | plugins`.
 
     sagonline info SCENE                      format, Gaussian count, SH degree, bounds
     sagonline cameras CAMERAS                 every view's index, name and size
     sagonline render SCENE --cameras C --view VIEW --out view.png
     sagonline segment SCENE [--cameras C] --click VIEW:X,Y [--object NAME] ...
+    sagonline figure SEGMENT_DIR --out x.png  render | labels | each object alone, titled
     sagonline export RUN_DIR                  a finished eval run's labels, per scene
     sagonline plugins [segmenters|datasets|vote-rules]
 
@@ -19,14 +20,14 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sagonline.cli import export, inspect, render, segment
+    from sagonline.cli import export, figure, inspect, render, segment
 
     parser = argparse.ArgumentParser(
         prog="sagonline",
         description="Segment any Gaussians online: inspect, render, segment and export scenes.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (inspect, render, segment, export):
+    for module in (inspect, render, segment, figure, export):
         module.add_parsers(sub)
     return parser
 

@@ -30,8 +30,9 @@ def kernel_root() -> Path:
     user's cache, one folder per prefix."""
     import hashlib
 
-    if os.environ.get("SAGONLINE_KERNEL_DIR"):
-        return Path(os.environ["SAGONLINE_KERNEL_DIR"])
+    chosen = os.environ.get("SAGONLINE_KERNEL_DIR")
+    if chosen:
+        return Path(chosen)
     root = Path(sys.prefix) / "share" / "sagonline" / "kernels"
     try:
         root.mkdir(parents=True, exist_ok=True)

@@ -109,7 +109,72 @@ def test_views_report_splits_photographed_and_mask_only(tmp_path):
     table = pd.read_csv(tmp_path / "reports" / "cap.csv")
     row = table.iloc[0]
     assert row["run"] == "oracle a=1" and row["views"] == 5
-    assert abs(row["photographed_mIoU"] - 0.85) < 1e-9 and row["mask_only_views"] == 3
-    assert abs(row["not_voted_mIoU"] - 0.7) < 1e-9  # p1, m0, m1
-    assert row["0-10 deg views"] == 1 and abs(row[">30 deg mIoU"] - 0.5) < 1e-9
+    assert row["photographed_mIoU"] == 85.0 and row["mask_only_views"] == 3  # percent
+    assert row["not_voted_mIoU"] == 70.0  # p1, m0, m1
+    assert row["0-10 deg views"] == 1 and row[">30 deg mIoU"] == 50.0
     assert Image.open(tmp_path / "reports" / "cap_iou_vs_angle.png").size[0] > 400
+
+
+def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp_path):
+    """`make report`: reports/runs.* and scenes.* and nothing else (the fits table and other
+    tracked reports are left alone); a copied run is one row counting two; scores in percent."""
+    import json
+    import shutil
+
+    from bench.report import main
+
+    runs = tmp_path / "runs"
+    first = runs / "a"
+    first.mkdir(parents=True)
+    metrics = {
+        "dataset": "d",
+        "scenes": [{"scene": "s", "status": "ok", "miou": 0.8125, "macc": 0.9,
+                    "timings": {"vote_ms_per_mask": 3.0}}],
+        "miou": 0.8125,
+        "macc": 0.9,
+        "segmenter": "oracle",
+        "overrides": ["dataset=d"],
+        "timings": {"vote_ms_per_mask": 3.0},
+    }  # fmt: skip
+    (first / "metrics.json").write_text(json.dumps(metrics))
+    shutil.copytree(first, runs / "b")
+    metrics["timings"] = {}  # the same run scored again, without timings
+    metrics["scenes"][0]["timings"] = {}
+    (runs / "c").mkdir()
+    (runs / "c" / "metrics.json").write_text(json.dumps(metrics))
+    other = dict(metrics, miou=0.5, overrides=["dataset=d", "consensus.eps=0.1"])
+    (runs / "d").mkdir()
+    (runs / "d" / "metrics.json").write_text(json.dumps(other))
+    out = tmp_path / "reports"
+    out.mkdir()
+    (out / "fits.md").write_text("kept\n")
+    main([str(runs), "--out", str(out)])
+    assert sorted(p.name for p in out.iterdir()) == [
+        "fits.md", "runs.csv", "runs.md", "scenes.csv", "scenes.md",
+    ]  # fmt: skip
+    assert (out / "fits.md").read_text() == "kept\n"
+    table = pd.read_csv(out / "runs.csv")
+    assert sorted(table["runs"]) == [1, 3] and len(table) == 2
+    merged = table[table["runs"] == 3].iloc[0]
+    assert merged["mIoU"] == 81.25 and merged["vote_ms_per_mask"] == 3.0
+    assert merged["run"].endswith("(+2 identical)")
+    scenes = pd.read_csv(out / "scenes.csv")
+    assert sorted(scenes["runs"]) == [1, 3] and set(scenes["mIoU"]) == {81.25}
+    md = (out / "runs.md").read_text()
+    assert " 81.25 " in md and "0.8125" not in md and "nan" not in md
+
+
+def test_plot_legend_names_only_what_differs():
+    from bench.report import short_labels
+
+    shared = ["dataset=m", "dataset.adapter.exclude_reference=true"]
+    names = short_labels({
+        "oracle a b=1": [*shared, "consensus.stride=4"],
+        "oracle a b=2": [*shared, "consensus.stride=8"],
+        "classical a": [*shared, "record=false"],
+    })  # fmt: skip
+    assert names == {
+        "oracle a b=1": "oracle stride=4",
+        "oracle a b=2": "oracle stride=8",
+        "classical a": "classical",
+    }
