@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import time
 from abc import ABC, abstractmethod
+from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -78,6 +79,31 @@ class VideoSegmenter(ABC):
         return SegmentationResult(
             [np.asarray(m, dtype=np.int64) for m in masks], seconds, self.name
         )
+
+    def stream(
+        self, frames: list[np.ndarray], prompt: Prompt
+    ) -> Iterator[tuple[int, np.ndarray]]:  # (frame index, [H, W] int64 mask)
+        """The masks one by one as they are made, the prompt frame's first (the viewer votes
+        each as it comes). Segmenters that propagate frame by frame override `_stream`; the
+        others answer the whole video first."""
+        if not frames:
+            raise ValueError(f"{self.name}: no frames to segment")
+        if not 0 <= prompt.frame < len(frames):
+            raise ValueError(
+                f"{self.name}: prompt frame {prompt.frame} is outside the {len(frames)}-frame video"
+            )
+        for i, mask in self._stream(frames, prompt):
+            if mask.shape != frames[i].shape[:2]:
+                raise RuntimeError(
+                    f"{self.name}: mask {i} is {mask.shape}, frame is {frames[i].shape[:2]}"
+                )
+            yield i, np.asarray(mask, dtype=np.int64)
+
+    def _stream(self, frames, prompt) -> Iterator[tuple[int, np.ndarray]]:
+        masks, _ = self._segment(frames, prompt, None)
+        order = [prompt.frame, *(i for i in range(len(frames)) if i != prompt.frame)]
+        for i in order:
+            yield i, masks[i]
 
     @abstractmethod
     def _segment(

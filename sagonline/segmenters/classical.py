@@ -266,24 +266,31 @@ class FlowWatershedSegmenter(VideoSegmenter):
     def _segment(self, frames, prompt: Prompt, ground_truth):
         import time
 
+        masks: list[np.ndarray | None] = [None] * len(frames)
+        seconds = [0.0] * len(frames)
+        start = time.perf_counter()
+        for t, mask in self._stream(frames, prompt):
+            masks[t] = mask
+            seconds[t] = time.perf_counter() - start
+            start = time.perf_counter()
+        return masks, seconds
+
+    def _stream(self, frames, prompt: Prompt):
+        """The prompt frame, then forwards to the end, then backwards from the prompt frame."""
         n = len(frames)
         masks: list[np.ndarray | None] = [None] * n
-        seconds = [0.0] * n
-        start = time.perf_counter()
         masks[prompt.frame] = self.initial_labels(frames[prompt.frame], prompt)
         self.hists = {}
         self.fit_colors(frames[prompt.frame], masks[prompt.frame])
         initial = dict(self.hists)
-        seconds[prompt.frame] = time.perf_counter() - start
+        yield prompt.frame, masks[prompt.frame]
         order = list(range(prompt.frame + 1, n)) + list(range(prompt.frame - 1, -1, -1))
         for t in order:
             if t == prompt.frame - 1:
                 self.hists = dict(initial)  # the backward pass starts from the prompt frame
-            start = time.perf_counter()
             src = t - 1 if t > prompt.frame else t + 1
             masks[t] = self.propagate(frames[src], frames[t], masks[src])
-            seconds[t] = time.perf_counter() - start
-        return masks, seconds
+            yield t, masks[t]
 
 
 def chromaticity_and_brightness(frame: np.ndarray) -> np.ndarray:

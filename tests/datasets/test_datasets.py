@@ -297,7 +297,7 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     assert all(rows[n]["photo_angle_deg"] == 0.0 for n in NAMES[:3])
     assert all(rows[n]["photo_angle_deg"] > 0.0 for n in NAMES[3:])
     split = report.extra["by_view_group"]
-    assert split["initial_photographed_views"] == 3 and split["initial_mask_only_views"] == 3
+    assert split["coarse_photographed_views"] == 3 and split["coarse_mask_only_views"] == 3
     with pytest.raises(DatasetError, match="order"):
         PosedMasksDataset(tmp_path / "cap", order="random")
     dense = PosedMasksDataset(tmp_path / "cap", mask_dir="masks", reference=NAMES[4], inbetween=2)
