@@ -110,6 +110,9 @@ class ScenesConfig:
     """One scene of the dataset; None: all of them."""
     overwrite: bool = False
     """Fit again over a finished fit (a scene that is not ours is kept as a .bak file)."""
+    finish: bool = False
+    """Apply the steps the recipe runs after the last iteration (`fit.pose_view_clearance`) to
+    a scene fitted before they existed: it becomes what a fit with this recipe writes."""
     progress: bool = True
     """Progress bars (always off when CI=true)."""
     device: str = "cpu"

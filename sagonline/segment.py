@@ -199,3 +199,82 @@ def segment_scene(
     }
     return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
                         frames.images, seg.masks, timings, prompt.frame)  # fmt: skip
+
+
+def check_click_on_scene(
+    alpha: np.ndarray,  # [H, W] the view's accumulated opacity
+    cam: Camera,
+    view: int,
+    x: float,
+    y: float,
+    name: str,
+    hint: str = "the view panel",
+) -> None:
+    """Refuse a positive click where nothing of the scene is drawn (a click on the background
+    of an object scan, or on empty sky): it would select nothing."""
+    a = float(alpha[min(int(y), cam.height - 1), min(int(x), cam.width - 1)])
+    if a < 0.5:
+        raise PromptError(
+            f"a click on {name!r} at ({x:g}, {y:g}) of view {view} ('{cam.name}') lands where no "
+            f"Gaussian is drawn (opacity {a:.2f}): click on the object ({hint} shows the view)"
+        )
+
+
+def check_objects_were_found(seg) -> None:
+    """Refuse to write an object that selected no Gaussian (an empty PLY and exit 0 would say
+    it worked)."""
+    for k, name in enumerate(seg.names):
+        if k == 0:
+            continue
+        count = int((seg.labels == k).sum())
+        if count == 0:
+            seen = sum(int((m == k).any()) for m in seg.masks)
+            raise PromptError(
+                f"object {name!r} selected no Gaussian (the 2D segmenter marked it in {seen} of "
+                f"{len(seg.masks)} views, and no Gaussian's votes made it {name!r}); nothing was "
+                "written: give another click, a mask, or another segmenter"
+            )
+
+
+def write_segment_folder(
+    out: Path,
+    gaussians: Gaussians,
+    seg: Segmentation,
+    scene: Path | None,
+    info: dict,
+    *,
+    backend: str = "auto",
+    device: str = "cpu",
+    record: bool = True,
+    overwrite: bool = False,
+    inputs=(),
+    progress=None,
+) -> Path:
+    """The segment folder (`sagonline.export.write_segmentation`): label renders of every
+    trajectory view, labels, object PLYs and the recording; what `sagonline segment` and the
+    viewer's Export both write. progress(items, what) wraps the label renders (a bar)."""
+    import torch
+
+    from sagonline.export import write_segmentation
+    from sagonline.render.api import render_labels
+    from sagonline.segment_recording import record_segmentation
+
+    labels = torch.from_numpy(seg.labels)
+    g = gaussians.to(device)
+    pairs = list(zip(seg.cameras, seg.frames, strict=True))
+    views = []
+    for cam, frame in progress(pairs, "label renders") if progress else pairs:
+        lab = render_labels(g, cam.to(device), labels, len(seg.names), backend=backend)
+        views.append((cam.name, frame, lab.cpu().numpy()))
+
+    def write_recording(path: Path) -> None:
+        record_segmentation(
+            path, gaussians, seg.labels, seg.names, seg.cameras, seg.frames, seg.masks,
+            [v[2] for v in views], info["prompt"], seg.prompt_frame,
+        )  # fmt: skip
+
+    return write_segmentation(
+        out, gaussians, seg.labels, seg.names, source=scene, info=info, views=views,
+        record=write_recording if record else None, overwrite=overwrite, inputs=inputs,
+        command="segment",
+    )  # fmt: skip

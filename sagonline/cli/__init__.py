@@ -1,9 +1,11 @@
-"""Command line: `sagonline info | cameras | render | segment | figure | export | plugins`.
+"""Command line: `sagonline info | cameras | render | segment | view | figure | export | plugins`.
 
     sagonline info SCENE                      format, Gaussian count, SH degree, bounds
     sagonline cameras CAMERAS                 every view's index, name and size
     sagonline render SCENE --cameras C --view VIEW --out view.png
     sagonline segment SCENE [--cameras C] --click VIEW:X,Y [--object NAME] ...
+    sagonline segment SCENE --prompts SEGMENT_DIR/labels.json   a segmentation again, no browser
+    sagonline view SCENE [--cameras C]        click in the browser, watch the labels form, export
     sagonline figure SEGMENT_DIR --out x.png  render | labels | each object alone, titled
     sagonline export RUN_DIR                  a finished eval run's labels, per scene
     sagonline plugins [segmenters|datasets|vote-rules]
@@ -20,14 +22,14 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sagonline.cli import export, figure, inspect, render, segment
+    from sagonline.cli import export, figure, inspect, render, segment, view
 
     parser = argparse.ArgumentParser(
         prog="sagonline",
         description="Segment any Gaussians online: inspect, render, segment and export scenes.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (inspect, render, segment, figure, export):
+    for module in (inspect, render, segment, view, figure, export):
         module.add_parsers(sub)
     return parser
 

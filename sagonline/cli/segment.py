@@ -39,11 +39,18 @@ def add_parsers(sub) -> None:
         "(one object per id)",
     )  # fmt: skip
     prompts.add_argument("--text", action=PromptItems, metavar="TEXT", help="a text prompt (SAM 3)")
+    prompts.add_argument(
+        "--prompts", metavar="LABELS_JSON",
+        help="the prompts (and views, segmenter, vote) a segment folder or a viewer export "
+        "recorded in its labels.json; what the command line gives wins",
+    )  # fmt: skip
     seg.add_argument(
         "--preview", metavar="VIEW",
         help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit",
     )  # fmt: skip
-    seg.add_argument("--segmenter", default="classical", choices=SEGMENTERS.keys())
+    seg.add_argument(
+        "--segmenter", default=None, choices=SEGMENTERS.keys(), help="default: classical"
+    )
     seg.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
     seg.add_argument(
         "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
@@ -105,9 +112,11 @@ def build_segmenter(args, prompt):
 
 
 def vote_config(args):
-    """The vote's settings: VoteConfig's defaults, with what the command line gave."""
+    """The vote's settings: VoteConfig's defaults (or the --prompts file's), with what the
+    command line gave."""
     from sagonline.consensus import VoteConfig
 
+    recorded = getattr(args, "recorded_vote", None) or {}
     given = {
         "method": args.method,
         "eps": args.eps,
@@ -115,7 +124,58 @@ def vote_config(args):
         "min_votes": args.min_votes,
         "margin": args.margin,
     }
-    return VoteConfig(**{k: v for k, v in given.items() if v is not None})
+    return VoteConfig(**(recorded | {k: v for k, v in given.items() if v is not None}))
+
+
+def apply_recorded_prompts(args) -> None:
+    """--prompts labels.json: its prompt becomes the prompt items, and its views, segmenter and
+    vote the defaults of whatever the command line left out."""
+    import json
+
+    from sagonline.consensus import VoteConfig
+
+    path = Path(args.prompts)
+    if args.prompt_items:
+        raise PromptError(
+            "--prompts replaces --click/--object/--mask/--text: give one or the other"
+        )
+    try:
+        record = json.loads(path.read_text())
+        prompt = record["prompt"]
+        view = str(prompt["view_name"])
+        items = [("text", t) for t in prompt.get("texts", [])]
+        for obj in prompt.get("objects", []):
+            items.append(("object", obj["name"]))
+            items += [("click", f"{view}:{x!r},{y!r}") for x, y in obj.get("clicks", [])]
+            if obj.get("mask"):
+                items.append(("mask", f"{view}:{obj['mask']}"))
+            items += [
+                ("click", f"{view}:{x!r},{y!r}:neg={obj['name']}")
+                for x, y in obj.get("negatives", [])
+            ]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise PromptError(
+            f"--prompts {path}: not a labels.json with a prompt ({type(exc).__name__}: {exc})"
+        ) from None
+    args.prompt_items = items
+    if args.cameras is None and not args.orbit and record.get("cameras"):
+        args.cameras = record["cameras"]
+    if not args.orbit and record.get("orbit"):
+        args.orbit = int(record["orbit"])
+    if args.width is None and prompt.get("render_size"):
+        args.width, args.height = (int(v) for v in prompt["render_size"])
+    if not args.inbetween and record.get("inbetween"):
+        args.inbetween = int(record["inbetween"])
+    segmenter = record.get("segmenter") or {}
+    if args.segmenter is None and segmenter.get("kind"):
+        args.segmenter = segmenter["kind"]
+        args.segmenter_option = [*segmenter.get("options", []), *args.segmenter_option]
+    vote = record.get("vote") or {}
+    known = set(VoteConfig.__dataclass_fields__)
+    unknown = sorted(set(vote) - known)
+    if unknown:
+        raise PromptError(f"--prompts {path}: vote settings {unknown} are not VoteConfig's")
+    args.recorded_vote = vote
 
 
 # --- the command ------------------------------------------------------------------------------
@@ -128,10 +188,18 @@ def cmd_segment(args) -> int:
     from sagonline.machine import check_device
     from sagonline.outputs import check_not_input, check_replaceable
     from sagonline.render.api import resolve_backend
-    from sagonline.segment import check_cameras_see_scene, segment_scene
+    from sagonline.segment import (
+        check_cameras_see_scene,
+        check_objects_were_found,
+        segment_scene,
+        write_segment_folder,
+    )
     from sagonline.trajectory import insert_between
 
     started = time.perf_counter()
+    if args.prompts:
+        apply_recorded_prompts(args)
+    args.segmenter = args.segmenter or "classical"
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
     check_device(args.device)
@@ -184,43 +252,24 @@ def cmd_segment(args) -> int:
         "vote": asdict(vote),
         "timings": seg.timings,
     }
-    write_outputs(out, g, seg, scene, info, args, inputs)
+    write_segment_folder(
+        out, g, seg, scene, info, backend=args.backend, device=args.device,
+        record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
+    )  # fmt: skip
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
 
 
 def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:
-    """Refuse a positive click where nothing of the scene is rendered (a click on the
-    background of an object scan, or on empty sky): it would select nothing."""
+    """Refuse a positive click where nothing of the scene is rendered (`check_click_on_scene`)."""
     from sagonline.render.api import render
+    from sagonline.segment import check_click_on_scene
 
     alpha = render(g.to(args.device), cam.to(args.device), backend=args.backend).alpha
     alpha = alpha.detach().cpu().numpy()
     for obj in parsed.objects:
         for x, y in obj.points:
-            a = float(alpha[min(int(y), cam.height - 1), min(int(x), cam.width - 1)])
-            if a < 0.5:
-                raise PromptError(
-                    f"--click on {obj.name!r} at ({x:g}, {y:g}) of view {parsed.view} "
-                    f"('{cam.name}') lands where no Gaussian is drawn (opacity {a:.2f}): "
-                    "click on the object (`--preview` shows the view)"
-                )
-
-
-def check_objects_were_found(seg) -> None:
-    """Refuse to write an object that selected no Gaussian (an empty PLY and exit 0 would say
-    it worked)."""
-    for k, name in enumerate(seg.names):
-        if k == 0:
-            continue
-        count = int((seg.labels == k).sum())
-        if count == 0:
-            seen = sum(int((m == k).any()) for m in seg.masks)
-            raise PromptError(
-                f"object {name!r} selected no Gaussian (the 2D segmenter marked it in {seen} of "
-                f"{len(seg.masks)} views, and no Gaussian's votes made it {name!r}); nothing was "
-                "written: give another click, a mask, or another segmenter"
-            )
+            check_click_on_scene(alpha, cam, parsed.view, x, y, obj.name, hint="`--preview`")
 
 
 def write_preview(g, cams, index: int, out: Path, args) -> int:
@@ -263,33 +312,6 @@ def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
     if cameras:
         out |= {f"cameras:{p.name}": digest_file(p) for p in camera_input_files(cameras)}
     return out | {f"mask:{p.name}": digest_file(p) for p in masks}
-
-
-def write_outputs(out: Path, g, seg, scene: Path, info: dict, args, inputs) -> None:
-    """Label renders of every trajectory view, the recording, the files."""
-    import torch
-
-    from sagonline.export import write_segmentation
-    from sagonline.render.api import render_labels
-    from sagonline.segment_recording import record_segmentation
-
-    labels = torch.from_numpy(seg.labels)
-    views = []
-    for cam, frame in progress(list(zip(seg.cameras, seg.frames, strict=True)), "label renders"):
-        lab = render_labels(g.to(args.device), cam, labels, len(seg.names), backend=args.backend)
-        views.append((cam.name, frame, lab.cpu().numpy()))
-
-    def record(path: Path) -> None:
-        record_segmentation(
-            path, g, seg.labels, seg.names, seg.cameras, seg.frames, seg.masks,
-            [v[2] for v in views], info["prompt"], seg.prompt_frame,
-        )  # fmt: skip
-
-    write_segmentation(
-        out, g, seg.labels, seg.names, source=scene, info=info, views=views,
-        record=None if args.no_record else record, overwrite=args.overwrite, inputs=inputs,
-        command="segment",
-    )  # fmt: skip
 
 
 def progress(items: list, what: str):

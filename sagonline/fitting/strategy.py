@@ -28,7 +28,8 @@ class DensifyStrategy:
     """Gradient statistics and the densify / prune / opacity-reset rules of one fit.
     camera_centers: (C, 3) every camera of the capture; extent: the scene's radius; views and
     view_near: the posed views and the nearest depth recorded for each (0: unknown), for
-    `view_clearance`."""
+    `view_clearance`; pose_views: (camera, near depth) of the views without a photograph, for
+    `pose_view_clearance`."""
 
     def __init__(
         self,
@@ -37,9 +38,11 @@ class DensifyStrategy:
         extent: float,
         views: list[Camera] = (),
         view_near: list[float] = (),
+        pose_views: list[tuple[Camera, float]] = (),
     ):
         pairs = zip(views, view_near, strict=True)  # one near depth per view
         self.views = [(c.to(cfg.device), float(d)) for c, d in pairs if d > 0]
+        self.pose_views = [(c.to(cfg.device), float(d)) for c, d in pose_views if d > 0]
         self.cfg, self.extent = cfg, extent
         self.camera_centers = camera_centers.to(cfg.device, torch.float32)
         self.reset(0)
@@ -168,6 +171,35 @@ class DensifyStrategy:
         if not dropped:
             return None, 0
         return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
+
+    @torch.no_grad()
+    def prune_pose_views(self, params: Params) -> tuple[Params | None, int]:
+        """After the fit: drop Gaussians reaching into a pose-only view (`clear_of_pose_views`)."""
+        keep = clear_of_pose_views(
+            params["means"].detach(), params["log_scales"].detach(), self.pose_views,
+            self.cfg.pose_view_clearance,
+        )  # fmt: skip
+        dropped = int((~keep).sum())
+        if not dropped:
+            return None, 0
+        return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
+
+
+def clear_of_pose_views(
+    means: torch.Tensor,  # [N, 3]
+    log_scales: torch.Tensor,  # [N, 2] or [N, 3]
+    pose_views: list[tuple[Camera, float]],  # (camera, near depth) of the pose-only views
+    fraction: float,
+) -> torch.Tensor:  # [N] bool
+    """(N,) bool: footprints (3 sigma of the largest scale) clear of every pose-only view's
+    image nearer than fraction x its near depth (`FitConfig.pose_view_clearance`)."""
+    keep = torch.ones(len(means), dtype=torch.bool, device=means.device)
+    if fraction <= 0:
+        return keep
+    radius = 3.0 * torch.exp(log_scales).max(dim=1).values
+    for cam, near in pose_views:
+        keep &= ~in_front_of_view(means, radius, cam, fraction * near)
+    return keep
 
 
 def in_front_of_view(

@@ -138,6 +138,7 @@ class SceneFitter:
             self.extent,
             views=views,
             view_near=[near.get(c.name, 0.0) for c in views],
+            pose_views=[(c, near.get(c.name, 0.0)) for c in other_cameras],
         )
         clear = self.strategy.clear_of_cameras(torch.tensor(xyz, dtype=torch.float32))
         clear = clear.cpu().numpy()
@@ -315,6 +316,9 @@ class SceneFitter:
                 self.save(checkpoint)
         bar.close()
         self.prune_near_cameras()
+        params, self.pruned_pose_views = self.strategy.prune_pose_views(self.params)
+        if params is not None:
+            self._set_params(params)
         self.elapsed = time.perf_counter() - start
         if checkpoint is not None:
             self.save(checkpoint)
@@ -336,6 +340,7 @@ class SceneFitter:
             "iterations": self.step,
             "iterations_planned": self.cfg.iterations,
             "stopped": self.stopped,
+            "pruned_pose_views": getattr(self, "pruned_pose_views", 0),
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "final_loss": float(np.mean(self.history[-20:])) if self.history else None,

@@ -1,0 +1,134 @@
+"""The viewer's session without a browser: clicks -> the prompt, the incremental vote equal to
+`segment_scene`'s batch vote, stop and resume, refusals that change nothing."""
+
+from __future__ import annotations
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.segment import PromptError, clicks_prompt, segment_scene
+from sagonline.segmenters.classical import FlowWatershedSegmenter
+from sagonline.trajectory import orbit_around
+from sagonline.viewer.session import SegmentSession
+from tests.segmenters.test_clicks import iced_donut
+
+
+@pytest.fixture(scope="module")
+def donut():
+    g, parts = iced_donut(60, 28)
+    ring, _ = orbit_around(g.means, 8, width=96, height=72)
+    return g, parts, ring
+
+
+def icing_pixel(session: SegmentSession, parts: torch.Tensor, view: int = 0) -> tuple[float, float]:
+    """A pixel of view `view` well inside the icing (label 2)."""
+    import cv2
+
+    from sagonline.render.api import render_labels
+
+    lab = render_labels(session.gaussians, session.cameras[view], parts, 3, backend="native")
+    inner = cv2.erode((lab.numpy() == 2).astype(np.uint8), np.ones((5, 5), np.uint8))
+    ys, xs = np.nonzero(inner)
+    i = np.argsort(xs)[len(xs) // 2]
+    return float(xs[i]) + 0.5, float(ys[i]) + 0.5
+
+
+def test_incremental_vote_equals_the_batch_vote(donut):
+    g, parts, ring = donut
+    updates = []
+    session = SegmentSession(g, ring, backend="native", recolour_every=3,
+                             on_update=lambda labels, p: updates.append((p.voted, labels.copy())))  # fmt: skip
+    xy = icing_pixel(session, parts)
+    session.add_click(0, *xy)
+    assert session.wait(30).state == "done"
+    batch = segment_scene(g, ring, clicks_prompt(ring, 0, {"object": [xy]}), backend="native")
+    np.testing.assert_array_equal(session.labels, batch.labels)
+    assert (session.labels == 1).sum() > 100
+    voted = [v for v, _ in updates]
+    assert voted[0] == 1 and voted[-1] == len(ring) and voted == sorted(voted), voted
+    first = (updates[0][1] == 1).sum()  # the labels already visible after one view
+    assert first > 0
+    # a second click on the same object runs again on the same frames
+    frames = session.frames
+    session.add_click(0, xy[0] + 2, xy[1])
+    session.wait(30)
+    assert session.frames is frames and session.objects[0].points == [xy, (xy[0] + 2, xy[1])]
+
+
+class GatedSegmenter(FlowWatershedSegmenter):
+    """The classical segmenter that waits at frame `at` until `gate` is set."""
+
+    def __init__(self, at: int):
+        super().__init__()
+        self.at, self.gate, self.reached = at, threading.Event(), threading.Event()
+
+    def _stream(self, frames, prompt):
+        for i, mask in super()._stream(frames, prompt):
+            if i == self.at:
+                self.reached.set()
+                self.gate.wait(30)
+            yield i, mask
+
+
+def test_stop_keeps_the_labels_and_resume_finishes_them(donut):
+    g, parts, ring = donut
+    gated = GatedSegmenter(at=3)
+    session = SegmentSession(g, ring, segmenter=gated, backend="native")
+    session.add_click(0, *icing_pixel(session, parts))
+    assert gated.reached.wait(30)
+    stopper = threading.Thread(target=session.stop)
+    stopper.start()
+    gated.gate.set()  # the view in hand finishes, then the run stops
+    stopper.join(30)
+    assert session.progress.state == "stopped"
+    assert 0 < session.progress.voted < len(ring) and (session.labels == 1).any()
+    session.resume()
+    assert session.wait(30).state == "done" and session.progress.voted == len(ring)
+    ref = SegmentSession(g, ring, backend="native")
+    ref.add_click(0, *icing_pixel(ref, parts))
+    ref.wait(30)
+    np.testing.assert_array_equal(session.labels, ref.labels)
+
+
+def test_a_ray_through_a_pixel_lands_on_that_pixel(donut):
+    g, parts, ring = donut
+    session = SegmentSession(g, ring, backend="native")
+    x, y = icing_pixel(session, parts, view=2)
+    cam = ring[2]
+    ray = cam.cam_to_world[:3, :3] @ torch.linalg.inv(cam.K) @ torch.tensor([x, y, 1.0])
+    click = session.click_from_ray(cam.center.numpy(), ray.numpy(), start=False)
+    assert click.view == 2 and abs(click.x - x) < 4 and abs(click.y - y) < 4, click
+    # later clicks go to the session's view, wherever the ray comes from
+    other = ring[3]
+    x3, y3 = icing_pixel(session, parts, view=3)
+    ray3 = other.cam_to_world[:3, :3] @ torch.linalg.inv(other.K) @ torch.tensor([x3, y3, 1.0])
+    assert session.click_from_ray(other.center.numpy(), ray3.numpy(), start=False).view == 2
+
+
+def test_bad_clicks_are_refused_and_change_nothing(donut):
+    g, parts, ring = donut
+    session = SegmentSession(g, ring, backend="native")
+    cases = [
+        (lambda: session.add_click(0, 500, 10), "outside view 0"),
+        (lambda: session.add_click(0, 1, 1), "no Gaussian is drawn"),  # the black corner
+        (lambda: session.add_click(0, *icing_pixel(session, parts), positive=False),
+         "negative click"),
+        (lambda: session.click_from_ray([0, 0, 10], [0, 0, 1]), "hits no Gaussian"),
+        (lambda: session.click_from_ray([0, 0, 10], [0, 0, -1]), "outside every view"),
+        (lambda: session.new_object("  "), "needs a name"),
+    ]  # fmt: skip
+    for action, message in cases[:4] + cases[5:]:
+        with pytest.raises(PromptError, match=message):
+            action()
+        assert session.clicks == [] and session.view is None
+    session.add_click(0, *icing_pixel(session, parts), start=False)
+    with pytest.raises(PromptError, match="clicks are on view 0"):
+        session.add_click(1, *icing_pixel(session, parts, view=1), start=False)
+    with pytest.raises(PromptError, match="already an object"):
+        session.new_object("object")
+    assert len(session.clicks) == 1
+    with pytest.raises(PromptError, match="nothing to export"):
+        session.export("never-written")
