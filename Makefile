@@ -42,13 +42,15 @@ $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet torch==2.13.0
-	$(BIN)/python -m pip install --quiet -e '.[dev,launchers]'
+	$(BIN)/python -m pip install --quiet -e '.[dev,launchers,viewer]'
 	touch $(STAMP)
 
 eval: install
 	$(BIN)/python -m bench.eval dataset=$(DATASET) $(ARGS)
 
+# The viewer's browser test needs chromium and its driver: installed here where apt-get can.
 test: install install-extras
+	-@scripts/ensure_browser.sh
 	$(BIN)/python -m pytest -q -m "not gpu" $(ARGS)
 
 test-fast: install

@@ -126,13 +126,12 @@ class ViewerApp:
         self.server.initial_camera.up = tuple((-first.cam_to_world[:3, 1]).cpu().numpy().tolist())
         rotations = torch.stack([c.cam_to_world[:3, :3].cpu() for c in s.cameras])
         wxyz = rotmat_to_quat(rotations).numpy()
-        for i, (cam, frame) in enumerate(zip(s.cameras, s.frames, strict=True)):
+        for i, cam in enumerate(s.cameras):
             fy = float(cam.K[1, 1])
-            thumb = frame[:: max(1, cam.height // 64), :: max(1, cam.height // 64)]
             frustum = self.server.scene.add_camera_frustum(
                 f"/cameras/{i:04d}", fov=2 * np.arctan(cam.height / (2 * fy)),
-                aspect=cam.width / cam.height, scale=0.06 * size, image=thumb,
-                wxyz=wxyz[i], position=centres[i], color=(90, 90, 90),
+                aspect=cam.width / cam.height, scale=0.04 * size, thickness=0.002 * size,
+                wxyz=wxyz[i], position=centres[i], color=(120, 120, 120),
             )  # fmt: skip
             frustum.on_click(lambda _event, view=i: self.select_view(view))
 

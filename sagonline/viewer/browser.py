@@ -84,11 +84,8 @@ def click_canvas(chrome, fx: float = 0.5, fy: float = 0.5, shift: bool = False) 
     actions = ActionChains(chrome).move_to_element_with_offset(
         element, int((fx - 0.5) * w), int((fy - 0.5) * h)
     )
-    if shift:
-        actions = actions.key_down(Keys.SHIFT).click().key_up(Keys.SHIFT)
-    else:
-        actions = actions.click()
-    actions.perform()
+    held = actions.key_down(Keys.SHIFT).click().key_up(Keys.SHIFT) if shift else None
+    (held or actions.click()).perform()
 
 
 def click_button(chrome, text: str) -> None:

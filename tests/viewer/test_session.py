@@ -39,8 +39,11 @@ def icing_pixel(session: SegmentSession, parts: torch.Tensor, view: int = 0) -> 
 def test_incremental_vote_equals_the_batch_vote(donut):
     g, parts, ring = donut
     updates = []
-    session = SegmentSession(g, ring, backend="native", recolour_every=3,
-                             on_update=lambda labels, p: updates.append((p.voted, labels.copy())))  # fmt: skip
+
+    def record(labels, progress):
+        updates.append((progress.voted, labels.copy()))
+
+    session = SegmentSession(g, ring, backend="native", recolour_every=3, on_update=record)
     xy = icing_pixel(session, parts)
     session.add_click(0, *xy)
     assert session.wait(30).state == "done"

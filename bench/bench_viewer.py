@@ -1,0 +1,109 @@
+"""The viewer's latencies, driven through its session object (no browser): the captured donut,
+24 orbit views at 480x270, the classical segmenter, frames already rendered.
+
+    python bench/bench_viewer.py [--repeats 3] [--screenshot docs/viewer_donut.png]
+
+Prints, per repeat and as the median: seconds from a click to the first labels on the splats,
+to all 24 views voted, and from a second click on the same object to its first and last
+labels; the machine's load (`uptime`) before and after. --screenshot: the viewer in headless
+Chromium (the browser test's code), after a click, saved as a PNG.
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from sagonline.cli.views import load_views  # noqa: E402
+from sagonline.io import read_scene  # noqa: E402
+from sagonline.viewer.session import SegmentSession  # noqa: E402
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "donut_3dgs"
+ICING = [(150.0, 60.0), (330.0, 50.0)]  # two clicks on the icing of view 0 at 480x270
+TARGETS = {"first labels": 1.0, "all views voted": 4.0, "second click, all voted": 4.0}
+
+
+def timed_click(session: SegmentSession, xy) -> tuple[float, float]:
+    """(seconds to the first published labels, seconds to the last) after one click."""
+    stamps: list[float] = []
+    session.on_update = lambda labels, progress: stamps.append(time.perf_counter())
+    start = time.perf_counter()
+    session.add_click(0, *xy)
+    session.wait()
+    return stamps[0] - start, stamps[-1] - start
+
+
+def uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--data", type=Path, default=DATA)
+    parser.add_argument("--screenshot", type=Path)
+    args = parser.parse_args()
+    g = read_scene(args.data / "point_cloud.ply")
+    views = load_views(args.data / "transforms.json", g, orbit=24, width=480, height=270)
+    print(f"before: {uptime()}")
+    start = time.perf_counter()
+    session = SegmentSession(g, views.cameras)
+    print(f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
+          f"{time.perf_counter() - start:.2f} s")  # fmt: skip
+    rows = []
+    for repeat in range(args.repeats):
+        session.clear()
+        first, last = timed_click(session, ICING[0])
+        second_first, second_last = timed_click(session, ICING[1])
+        rows.append({
+            "repeat": repeat, "first labels": first, "all views voted": last,
+            "second click, first labels": second_first, "second click, all voted": second_last,
+        })  # fmt: skip
+    table = pd.DataFrame(rows).set_index("repeat")
+    median = table.median()
+    print(table.round(2).to_markdown())
+    print("\n| latency | median s | target s |\n|---|---|---|")
+    for name, value in median.items():
+        target = TARGETS.get(name)
+        print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
+    print(f"labelled object: {int((session.labels == 1).sum())} of {len(g)} Gaussians")
+    print(f"after: {uptime()}")
+    if args.screenshot:
+        shoot(session, args.screenshot)
+
+
+def shoot(session: SegmentSession, path: Path) -> None:
+    """The viewer after the clicks above, in headless Chromium, looking from behind view 0."""
+    from sagonline.viewer import browser
+    from sagonline.viewer.app import ViewerApp
+
+    app = ViewerApp(session, port=8091)
+    app.on_update(session.labels, session.progress)
+    app.select_view(0)
+    chrome = browser.open_browser(app.url, 1200, 700)
+    try:
+        browser.wait_for(lambda: app.server.get_clients(), 30, "the page")
+        browser.wait_for(lambda: browser.canvas(chrome), 30, "the canvas")
+        cam = session.cameras[0]
+        middle = np.median(session.gaussians.means.numpy(), axis=0)
+        for client in app.server.get_clients().values():
+            client.camera.position = middle + 0.9 * (cam.center.numpy() - middle)
+            client.camera.look_at = middle
+        time.sleep(4.0)
+        browser.screenshot(chrome, path)
+        print(f"screenshot: {path}")
+    finally:
+        chrome.quit()
+        app.server.stop()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,24 @@
+#!/usr/bin/env bash
+# Chromium and chromedriver for the viewer's browser test (tests/viewer/test_browser.py):
+# installed with apt-get when missing and this user may; otherwise the test skips and says why.
+set -u
+if command -v chromedriver >/dev/null && { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; }; then
+  exit 0
+fi
+if ! command -v apt-get >/dev/null; then
+  echo "ensure_browser: no apt-get here; the browser test will skip (install chromium and chromedriver)" >&2
+  exit 0
+fi
+SUDO=""
+if [ "$(id -u)" -ne 0 ]; then
+  if sudo -n true 2>/dev/null; then SUDO="sudo -n"; else
+    echo "ensure_browser: not root and no sudo; the browser test will skip" >&2
+    exit 0
+  fi
+fi
+echo "ensure_browser: installing chromium and chromium-driver (apt-get) ..." >&2
+export DEBIAN_FRONTEND=noninteractive
+$SUDO apt-get update -qq >/dev/null 2>&1
+$SUDO apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 \
+  || echo "ensure_browser: apt-get could not install chromium; the browser test will skip" >&2
+exit 0
