@@ -267,3 +267,24 @@ def test_export_gives_the_runs_vote(tmp_path):
         labels, info = read_labels(run / "export" / scene["scene"])
         assert np.array_equal(labels, want) and info["stage_keys"]["vote"] == key
     assert json.loads((run / "export" / "forward_single" / "labels.json").read_text())["names"]
+
+
+def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):
+    """`--prompts labels.json` (what `segment` and the viewer's Export write) gives the same
+    labels without repeating the clicks; the command line still wins; a bad file is named."""
+    tmp, _ = clicked
+    recorded = tmp / "out" / "labels.json"
+    again = tmp_path / "again"
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--out",
+                 str(again), "--no-record"]) == 0  # fmt: skip
+    np.testing.assert_array_equal(read_labels(again)[0], read_labels(tmp / "out")[0])
+    info = json.loads((again / "labels.json").read_text())
+    assert info["prompt"]["objects"] == json.loads(recorded.read_text())["prompt"]["objects"]
+    wider = tmp_path / "wider"
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--delta",
+                 "3", "--out", str(wider), "--no-record"]) == 0  # fmt: skip
+    assert json.loads((wider / "labels.json").read_text())["vote"]["delta"] == 3
+    bad = tmp_path / "bad.json"
+    bad.write_text('{"names": []}')
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(bad)]) == 2
+    assert "bad.json: not a labels.json with a prompt" in capsys.readouterr().err
