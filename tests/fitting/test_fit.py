@@ -165,6 +165,32 @@ def test_view_clearance_prunes_floaters_only_where_a_view_records_depth(views):
         SceneFitter(tiny(view_clearance_views="some"), cams, imgs)
 
 
+def test_pose_view_clearance_prunes_only_in_front_of_pose_only_views(views):
+    """After the fit, a floater at 0.3 x the near depth of a view without a photograph goes;
+    one at 0.7 x (possibly the object) stays, as does everything with the rule off."""
+    from sagonline.fitting.strategy import clear_of_pose_views
+
+    cams, imgs = views
+    pose = cams[-1]  # a camera of the capture with no image
+    axis = pose.rotation[2]
+    means = torch.stack([pose.center + axis * 0.6, pose.center + axis * 1.4])  # near: 2.0
+    log_scales = torch.full((2, 3), -6.0)
+    keep = clear_of_pose_views(means, log_scales, [(pose, 2.0)], fraction=0.5)
+    assert keep.tolist() == [False, True]
+    assert clear_of_pose_views(means, log_scales, [(pose, 2.0)], fraction=0.0).all()
+    # the fitter runs it once, after its last iteration, on the pose-only cameras alone
+    f = SceneFitter(tiny(iterations=2, densify_from=10_000, view_clearance=0.0), cams[:-1],
+                    imgs[:-1], other_cameras=[pose], view_near={pose.name: 2.0})  # fmt: skip
+    with torch.no_grad():
+        f.params["means"][:1] = pose.center + axis * 0.6
+        f.params["log_scales"][:1] = -6.0
+    n = len(f)
+    metrics = f.fit(progress=False)
+    assert metrics["pruned_pose_views"] >= 1 and len(f) <= n - 1
+    with pytest.raises(ValueError, match="pose_view_clearance"):
+        tiny(pose_view_clearance=1.5)
+
+
 def test_near_depths_of_views_from_llff_bounds_or_points(tmp_path):
     from sagonline.fitting.capture import view_near_depths
     from sagonline.io.cameras import load_llff
