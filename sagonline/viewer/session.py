@@ -38,6 +38,7 @@ from sagonline.segment import (
     write_segment_folder,
 )
 from sagonline.segmenters.base import VideoSegmenter
+from sagonline.viewer.clicks import pick_gaussian, view_for_point
 
 
 @dataclass
@@ -210,52 +211,10 @@ class SegmentSession:
         """A click in the 3D view (a ray from the viewer's camera) -> a click on a view: the
         front-most opaque Gaussian the ray passes through, projected into the session's view
         (or, for the first click, into the view that looks at it most nearly along the ray)."""
-        point = self.pick(origin, direction)
-        centre = torch.as_tensor(point, dtype=torch.float32, device=self.device)[None]
-        ray = np.asarray(direction, np.float64) / np.linalg.norm(direction)
+        point = pick_gaussian(self.gaussians, origin, direction)
         views = [self.view] if self.view is not None else range(len(self.cameras))
-        best = None
-        for i in views:
-            cam = self.cameras[i]
-            inside, depth = cam.in_frame(centre)
-            if not bool(inside[0]):
-                continue
-            xy = cam.project(centre)[0][0].cpu().numpy()
-            x, y = float(xy[0]), float(xy[1])
-            surface = float(self.depths[i][int(y), int(x)])
-            if float(depth[0]) > 1.05 * surface + 1e-6:  # another surface is in front of it
-                continue
-            look = point - cam.center.cpu().numpy()
-            angle = float(np.arccos(np.clip(look @ ray / np.linalg.norm(look), -1, 1)))
-            if best is None or angle < best[0]:
-                best = (angle, i, x, y)
-        if best is None:
-            where = (
-                f"hidden or outside view {self.view} ('{self.cameras[self.view].name}'), the "
-                "session's view"
-                if self.view is not None
-                else "outside every view (or hidden in each)"
-            )
-            raise PromptError(f"the point clicked is {where}: click on what the views show")
-        _, view, x, y = best
+        view, x, y = view_for_point(self.cameras, self.depths, point, direction, views)
         return self.add_click(view, x, y, positive, point=point, start=start)
-
-    def pick(self, origin, direction) -> np.ndarray:
-        """(3,) the centre of the front-most Gaussian (opacity >= 0.5) whose 3-sigma footprint
-        the ray crosses; PromptError when it crosses none."""
-        o = torch.as_tensor(origin, dtype=torch.float32, device=self.device)
-        d = torch.as_tensor(direction, dtype=torch.float32, device=self.device)
-        d = d / d.norm()
-        g = self.gaussians
-        rel = g.means.detach().float() - o
-        along = rel @ d
-        off = (rel - along[:, None] * d).norm(dim=1)
-        reach = 3.0 * g.scales.detach().float().max(dim=1).values
-        hit = (along > 0) & (off <= reach) & (g.opacities.detach().float() >= 0.5)
-        if not bool(hit.any()):
-            raise PromptError("the click hits no Gaussian of the scene: click on the object")
-        first = torch.where(hit, along, torch.full_like(along, float("inf"))).argmin()
-        return g.means[first].detach().float().cpu().numpy().astype(np.float64)
 
     def clear(self) -> None:
         """Forget every object and click (the labels too); the rendered views stay."""
