@@ -170,6 +170,12 @@ class ViewerApp:
             )
             self.segmenter_choice.on_update(lambda _: self.guarded(self.change_segmenter))
             defaults = VoteConfig()
+            from sagonline.plugins import VOTE_RULES
+
+            self.method = gui.add_dropdown(
+                "vote method", list(VOTE_RULES.keys()), initial_value=s.vote.method
+            )
+            self.method.on_update(lambda _: self.guarded(self.change_vote))
             self.vote_inputs = {
                 "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=1.0, step=0.001),
                 "delta": gui.add_number("delta (px)", s.vote.delta, min=0.0, step=0.5),
@@ -262,6 +268,7 @@ class ViewerApp:
 
     def change_vote(self) -> None:
         values = {k: h.value for k, h in self.vote_inputs.items()}
+        values["method"] = str(self.method.value)
         values["min_votes"] = int(values["min_votes"])
         self.session.stop()
         self.session.vote = replace(self.session.vote, **values)
