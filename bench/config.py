@@ -85,7 +85,7 @@ class EvalConfig:
     """A finished run directory: the same config and inputs are skipped, others refused; true
     replaces it."""
     progress: bool = True
-    """Progress bars (always off when CI=true)."""
+    """Progress bars (always off when CI=true or off a terminal)."""
     cache: bool = True
     """Cache the stages' outputs, so an interrupted run resumes."""
     threads: int | None = None
@@ -114,7 +114,7 @@ class ScenesConfig:
     """Apply the steps the recipe runs after the last iteration (`fit.pose_view_clearance`) to
     a scene fitted before they existed: it becomes what a fit with this recipe writes."""
     progress: bool = True
-    """Progress bars (always off when CI=true)."""
+    """Progress bars (always off when CI=true or off a terminal)."""
     device: str = "cpu"
     """cpu: the compiled kernel; cuda: gsplat."""
     seed: int = 0

@@ -21,7 +21,10 @@ def seed_everything(seed: int) -> None:
 
 
 def quiet(cfg) -> bool:
-    return not cfg.progress or os.environ.get("CI", "").lower() in ("1", "true")
+    """No progress bars: asked for (progress=false), on CI, or off a terminal (a log file
+    would keep every `\r` redraw; the run's log has a line per stage instead)."""
+    ci = os.environ.get("CI", "").lower() in ("1", "true")
+    return not cfg.progress or ci or not sys.stderr.isatty()
 
 
 def settings_from(cfg) -> PipelineSettings:

@@ -31,7 +31,7 @@ import torch
 from omegaconf import DictConfig
 
 from bench.config import ScenesConfig, register_schemas, to_config
-from bench.job import build_dataset
+from bench.job import build_dataset, quiet
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
 from sagonline.files import atomic_write_image, atomic_write_json
@@ -162,7 +162,7 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
-    metrics = fitter.fit(progress=cfg.progress, checkpoint=ckpt)
+    metrics = fitter.fit(progress=not quiet(cfg), checkpoint=ckpt)
     first = fitter.cams[0]
     metrics.update(
         {

@@ -288,3 +288,12 @@ def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):
     bad.write_text('{"names": []}')
     assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(bad)]) == 2
     assert "bad.json: not a labels.json with a prompt" in capsys.readouterr().err
+
+
+def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):
+    """Off a terminal (a log file, CI): one plain line per long step, never a `\\r` bar."""
+    sc, cams, m = _scene(tmp_path, "forward")
+    assert _segment(tmp_path, "--click", f"0:{_click_inside(m == 1)}", "--no-record") == 0
+    err = capsys.readouterr().err
+    assert "\r" not in err
+    assert "segmenting 12 views with classical ..." in err and "label renders: 12 done" in err

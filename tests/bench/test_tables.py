@@ -178,3 +178,26 @@ def test_plot_legend_names_only_what_differs():
         "oracle a b=2": "oracle stride=8",
         "classical a": "classical",
     }
+
+
+def test_no_progress_bars_off_a_terminal(monkeypatch):
+    """A log file keeps every `\\r` redraw of a bar: off a terminal, or on CI, or when asked,
+    the runs draw none."""
+    import io
+    import types
+
+    from bench.job import quiet
+
+    cfg = types.SimpleNamespace(progress=True)
+    monkeypatch.delenv("CI", raising=False)
+    monkeypatch.setattr("sys.stderr", io.StringIO())
+    assert quiet(cfg)
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr("sys.stderr", Terminal())
+    assert not quiet(cfg) and quiet(types.SimpleNamespace(progress=False))
+    monkeypatch.setenv("CI", "true")
+    assert quiet(cfg)
