@@ -173,6 +173,9 @@ class FlowWatershedSegmenter(VideoSegmenter):
         if not (gc == cv2.GC_FGD).any() and not (gc == cv2.GC_PR_FGD).any():
             raise ValueError(f"object {obj.label}: no positive click or box to start from")
         bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+        # GrabCut's k-means draws from OpenCV's per-thread RNG: seeded here, the same prompt gives
+        # the same mask in any thread and after any earlier call (the viewer's worker thread)
+        cv2.setRNGSeed(0x5A6)
         cv2.grabCut(bgr, gc, None, bgd, fgd, self.grabcut_iters, cv2.GC_INIT_WITH_MASK)
         return (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
 

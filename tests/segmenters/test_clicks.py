@@ -102,3 +102,21 @@ def test_more_clicks_keep_the_icing_of_the_real_donut():
         pred = render_labels(g, unseen, labels, 2, backend="native").numpy() == 1
         iou = (pred & truth).sum() / (pred | truth).sum()
         assert iou >= 0.9, (len(positive), len(negative), iou)
+
+
+def test_the_same_prompt_gives_the_same_masks_in_any_thread(donut):
+    """GrabCut draws from OpenCV's per-thread RNG: seeded, a prompt's masks do not depend on
+    earlier calls or on the thread (the viewer segments in a worker thread)."""
+    import threading
+
+    g, parts, ring, _, view0 = donut
+    prompt = clicks_prompt(ring, 0, {"icing": _pixels(view0 == 2, 1)})
+    runs = [segment_scene(g, ring, prompt, backend="native") for _ in range(2)]
+    worker = threading.Thread(
+        target=lambda: runs.append(segment_scene(g, ring, prompt, backend="native"))
+    )
+    worker.start()
+    worker.join()
+    for other in runs[1:]:
+        assert all(np.array_equal(a, b) for a, b in zip(runs[0].masks, other.masks, strict=True))
+        np.testing.assert_array_equal(runs[0].labels, other.labels)
