@@ -75,6 +75,15 @@ def test_a_segmenter_config_outside_its_package_is_refused(tmp_path):
     for name in (str(tmp_path / "evil.yaml"), "../evil.yaml", "configs/../../evil.yaml"):
         with pytest.raises(ValueError, match="under the sam2 package's configs"):
             package_config(pkg, name)
+    # and inside the package's own file, only sam2's classes are built
+    from omegaconf import OmegaConf
+
+    from sagonline.segmenters.sam2_video import check_targets
+
+    check_targets(OmegaConf.create({"_target_": "sam2.modeling.X", "a": [{"_target_": "sam2.Y"}]}))
+    planted = OmegaConf.create({"_target_": "sam2.X", "parts": [{"_target_": "os.system"}]})
+    with pytest.raises(ValueError, match=r"model.parts\[0\]._target_='os.system'"):
+        check_targets(planted)
 
 
 # --- 2. nothing outside --out is lost ---------------------------------------------------------

@@ -89,6 +89,22 @@ def package_config(pkg: Path, name: str) -> Path:
     return path
 
 
+def check_targets(node, where: str = "model") -> None:
+    """Refuse any `_target_` in a model config that is not a class of the sam2 package: only
+    sam2's own classes are built from the config, whatever the file says."""
+    from omegaconf import DictConfig, ListConfig
+
+    if isinstance(node, DictConfig):
+        target = node.get("_target_")
+        if target is not None and not str(target).startswith("sam2."):
+            raise ValueError(f"sam2 model config: {where}._target_={target!r} is not sam2's own")
+        for key in node:
+            check_targets(node[key], f"{where}.{key}")
+    elif isinstance(node, ListConfig):
+        for i, item in enumerate(node):
+            check_targets(item, f"{where}[{i}]")
+
+
 @SEGMENTERS.register("sam2", SAM2Config)
 class SAM2VideoSegmenter(VideoSegmenter):
     """SAM 2 video predictor from a local checkpoint (extra: .[sam2])."""
@@ -145,6 +161,7 @@ class SAM2VideoSegmenter(VideoSegmenter):
         for key, value in overrides.items():
             OmegaConf.update(cfg, key, value, force_add=True)
         OmegaConf.resolve(cfg)
+        check_targets(cfg.model)
         model = instantiate(cfg.model, _recursive_=True)
         if self.checkpoint is not None:
             # sam2 itself loads with weights_only=True: a pickled object is refused either way
