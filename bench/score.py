@@ -33,6 +33,7 @@ import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
 from sagonline.errors import DatasetError  # noqa: E402
+from sagonline.files import read_json_object  # noqa: E402
 from sagonline.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
 from sagonline.predictions import SCORING_FILE, folder_sha256, read_label_map  # noqa: E402
 
@@ -52,12 +53,7 @@ def read_rules(gt_dir: Path) -> ScoringRules:
     path = gt_dir / SCORING_FILE
     if not path.is_file():
         return ScoringRules()
-    try:
-        raw = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise DatasetError(f"{path}: not readable JSON ({exc})") from None
-    if not isinstance(raw, dict):
-        raise DatasetError(f"{path}: holds a {type(raw).__name__}, not an object")
+    raw = read_json_object(path, DatasetError)
     unknown = sorted(set(raw) - {"protocol_id", "resize", "ignore_label"})
     if unknown:
         raise DatasetError(

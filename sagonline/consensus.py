@@ -212,6 +212,19 @@ class VoteAccumulator:
         """labels (N,), labelled (N,), histogram (N, K)."""
         return decide(self.hist, self.cfg)
 
+    def finalize_filled(
+        self,
+        means: torch.Tensor,  # [N, 3] the Gaussians' centres (for the fill)
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K], [N]
+        """`finalize`, then the config's fill (`fill_from_neighbours`): labels, labelled (fill
+        included), histogram and which Gaussians the fill labelled."""
+        labels, labelled, hist = self.finalize()
+        filled = torch.zeros_like(labelled)
+        if self.cfg.fill:
+            labels, filled = fill_from_neighbours(means, labels, labelled, self.cfg.fill)
+            labelled = labelled | filled
+        return labels, labelled, hist, filled
+
 
 def decide(
     hist: torch.Tensor,  # [N, K] votes or blend weights
@@ -351,11 +364,7 @@ def consensus_vote(
     start = time.perf_counter()
     for f in iterator:
         acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}")
-    labels, labelled, hist = acc.finalize()
-    filled = torch.zeros_like(labelled)
-    if cfg.fill:
-        labels, filled = fill_from_neighbours(gaussians.means, labels, labelled, cfg.fill)
-        labelled = labelled | filled
+    labels, labelled, hist, filled = acc.finalize_filled(gaussians.means)
     elapsed = time.perf_counter() - start
     total = hist.sum(1)
     voted = total > 0

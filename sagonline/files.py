@@ -76,6 +76,20 @@ def finite_tree(obj):
     return obj
 
 
+def read_json_object(
+    path: Path, error: type[Exception], unreadable: str = "not readable JSON", kind="an object"
+) -> dict:
+    """The JSON object in `path`; `error` naming the file when it cannot be read or parsed
+    ("{path}: {unreadable} (why)") or holds something else ("{path}: holds a list, not {kind}")."""
+    try:
+        value = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise error(f"{path}: {unreadable} ({exc})") from None
+    if not isinstance(value, dict):
+        raise error(f"{path}: holds a {type(value).__name__}, not {kind}")
+    return value
+
+
 def atomic_write_npy(path: str | Path, array: np.ndarray) -> Path:
     def write(p: Path) -> None:
         with open(p, "wb") as f:

@@ -167,10 +167,7 @@ class DensifyStrategy:
     def prune_near_cameras(self, params: Params) -> tuple[Params | None, int]:
         """Drop Gaussians inside the camera clearance: (new parameters or None, how many)."""
         keep = self.clear_of_cameras(params["means"].detach(), params["log_scales"].detach())
-        dropped = int((~keep).sum())
-        if not dropped:
-            return None, 0
-        return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
+        return keep_only(params, keep)
 
     @torch.no_grad()
     def prune_pose_views(self, params: Params) -> tuple[Params | None, int]:
@@ -179,10 +176,18 @@ class DensifyStrategy:
             params["means"].detach(), params["log_scales"].detach(), self.pose_views,
             self.cfg.pose_view_clearance,
         )  # fmt: skip
-        dropped = int((~keep).sum())
-        if not dropped:
-            return None, 0
-        return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
+        return keep_only(params, keep)
+
+
+def keep_only(
+    params: Params,
+    keep: torch.Tensor,  # [N] bool
+) -> tuple[Params | None, int]:
+    """The parameters of the kept Gaussians and how many went (None, 0 when none went)."""
+    dropped = int((~keep).sum())
+    if not dropped:
+        return None, 0
+    return {k: v.detach()[keep].contiguous() for k, v in params.items()}, dropped
 
 
 def clear_of_pose_views(

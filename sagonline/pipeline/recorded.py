@@ -13,7 +13,6 @@ cleaned: its folder is one the file named.
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -22,6 +21,7 @@ from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetAdapter
 from sagonline.errors import DatasetError
 from sagonline.feedback import FeedbackConfig
+from sagonline.files import read_json_object
 from sagonline.pipeline.stage_one import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.plugins import DATASETS, PluginError, typed_settings
@@ -63,14 +63,10 @@ class RecordedRun:
 
 def read_metrics(run: Path) -> dict:
     """The run's metrics.json as a JSON object; RunFileError naming the file otherwise."""
-    path = Path(run) / "metrics.json"
-    try:
-        metrics = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise RunFileError(f"{path}: not a finished eval run's metrics ({exc})") from None
-    if not isinstance(metrics, dict):
-        raise RunFileError(f"{path}: holds a {type(metrics).__name__}, not a JSON object")
-    return metrics
+    return read_json_object(
+        Path(run) / "metrics.json", RunFileError, "not a finished eval run's metrics",
+        "a JSON object",
+    )  # fmt: skip
 
 
 def _group(config: dict, key: str, path: Path) -> dict:

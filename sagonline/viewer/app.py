@@ -52,7 +52,7 @@ def label_tint(rgbs: np.ndarray, labels: np.ndarray, num_labels: int) -> np.ndar
     return np.where((labels >= 1)[:, None], tinted, rgbs).astype(np.float32)
 
 
-def draw_clicks(frame: np.ndarray, clicks, view: int | None, objects) -> np.ndarray:
+def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
     """The view's render with its clicks: a green ring per positive, a red cross per negative."""
     import cv2
 
@@ -205,7 +205,7 @@ class ViewerApp:
         if self.view_choice.value != label:
             self.view_choice.value = label
         self.view_image.image = draw_clicks(
-            s.frames[view], s.clicks, s.view if s.view == view else None, s.objects
+            s.frames[view], s.view if s.view == view else None, s.objects
         )
         self.view_image.label = label
 

@@ -27,7 +27,6 @@ import torch
 from sagonline.cameras import Camera
 from sagonline.cli.prompts import ObjectClicks, ParsedPrompt, to_prompt
 from sagonline.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
-from sagonline.fill import fill_from_neighbours
 from sagonline.gaussians import Gaussians
 from sagonline.segment import (
     PromptError,
@@ -319,12 +318,7 @@ class SegmentSession:
             self.on_update(self.labels, self.progress)
 
     def vote_result(self, run: Run) -> VoteResult:
-        labels, labelled, hist = run.votes.finalize()
-        if self.vote.fill:
-            labels, filled = fill_from_neighbours(
-                self.gaussians.means, labels, labelled, self.vote.fill
-            )
-            labelled = labelled | filled
+        labels, labelled, hist, _ = run.votes.finalize_filled(self.gaussians.means)
         voted = sorted(i for i in run.voting if run.masks[i] is not None)
         return VoteResult(labels, labelled, hist, voted, {"num_masks": len(voted)})
 
