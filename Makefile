@@ -18,6 +18,7 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
             progress=false cache_dir=$(SWEEP_CACHE)
 
 .PHONY: install install-extras eval test test-fast report report-fits bench lint format clean-runs clean-cache \
+        gpu-bundle gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real
 
 install: $(STAMP)
@@ -68,6 +69,23 @@ report-fits: install
 bench: install
 	$(BIN)/python bench/bench_render.py $(ARGS)
 	$(BIN)/python bench/bench_contention.py
+
+# A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
+# environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
+# scripts/gpu_check.sh puts on PYTHONPATH. See docs/performance.md.
+GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py
+gpu-bundle: install
+	rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
+	cd $$($(BIN)/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") && \
+	  cp -r $(GPU_BUNDLE) hydra_core-*.dist-info omegaconf-*.dist-info \
+	    antlr4_python3_runtime-*.dist-info plyfile-*.dist-info $(CURDIR)/.gpu-bundle/site/
+	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
+	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
+
+# On a GPU machine (python3 with torch + triton; .gpu-bundle carried): tests, eval, benchmark
+# and tables on CUDA, into reports/*_cuda.*.
+gpu-check:
+	scripts/gpu_check.sh $(ARGS)
 
 lint: install
 	$(BIN)/pre-commit run --all-files

@@ -1,6 +1,6 @@
 """Two votes at once on shared cores: each one's ms per mask against the same vote alone.
 
-    python bench/bench_contention.py [--masks 5] [--out reports/bench_contention.csv]
+    python bench/bench_contention.py [--masks 5] [--out reports/bench_contention.csv] [--quick]
 
 Parallel sweeps (`LAUNCHER=local`), Stage II training beside the initial mode and shared cluster
 nodes all run a vote beside other work. For each backend (torch: the tiled PyTorch trace reduced
@@ -8,7 +8,8 @@ by the vote's accumulator; native: the compiled trace-and-vote kernel) and threa
 vote pass on the donut at 960x540 (the generated 200k-surfel scene when the donut is absent) is
 timed alone in this process, then in two processes started together; "slowdown" is the median
 per-mask time together over alone. Numbers depend on what else the machine runs: the table's
-header says how many cores there are and the load before it started.
+header says how many cores there are and the load before it started. --quick: the small
+scenes of `bench_render --quick`, 2 masks, one thread count (what the tests run).
 """
 
 from __future__ import annotations
@@ -27,14 +28,16 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 
-def scene():
+def scene(quick: bool = False):
     """The first scene `make bench` times: the donut, else the generated 200k-surfel scene."""
     from bench.bench_render import scenes
 
-    return next(scenes())
+    return next(scenes(quick))
 
 
-def vote_times(backend: str, threads: int, masks: int, start_at: float | None = None) -> list:
+def vote_times(
+    backend: str, threads: int, masks: int, start_at: float | None = None, quick: bool = False
+) -> list:
     """ms per mask of `masks` RGC votes (after one warm-up), optionally waiting until
     `start_at` (time.time()) so that two processes start together."""
     import torch
@@ -42,7 +45,7 @@ def vote_times(backend: str, threads: int, masks: int, start_at: float | None = 
     from sagonline.consensus import VoteConfig, consensus_vote
 
     torch.set_num_threads(threads)
-    _, g, cam, _ = scene()
+    _, g, cam, _ = scene(quick)
     gen = torch.Generator().manual_seed(0)
     mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
     run = lambda n: consensus_vote(g, [cam] * n, [mask] * n, 3, VoteConfig(), backend=backend)  # noqa: E731
@@ -60,7 +63,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--masks", type=int, default=5)
     ap.add_argument("--out", default=str(ROOT / "reports" / "bench_contention.csv"))
+    ap.add_argument("--quick", action="store_true", help="small scenes, 2 masks, 1 thread")
     args = ap.parse_args()
+    if args.quick:
+        args.masks = 2
     from sagonline.machine import describe_device
     from sagonline.render.native import native_available
 
@@ -70,14 +76,12 @@ def main() -> None:
     ctx = mp.get_context("spawn")
     rows = []
     for backend in backends:
-        for threads in sorted({1, cores}):
-            alone = statistics.median(vote_times(backend, threads, args.masks))
+        for threads in [1] if args.quick else sorted({1, cores}):
+            alone = statistics.median(vote_times(backend, threads, args.masks, quick=args.quick))
             queue = ctx.Queue()
             start_at = time.time() + 8.0  # both children have loaded the scene by then
-            procs = [
-                ctx.Process(target=_child, args=((backend, threads, args.masks, start_at), queue))
-                for _ in range(2)
-            ]
+            job = (backend, threads, args.masks, start_at, args.quick)
+            procs = [ctx.Process(target=_child, args=(job, queue)) for _ in range(2)]
             for p in procs:
                 p.start()
             together = [statistics.median(queue.get()) for _ in procs]
@@ -94,7 +98,9 @@ def main() -> None:
             )
     table = pd.DataFrame(rows)
     info = describe_device("cpu")
-    print(f"{scene()[0]} at 960x540; cpu {info['cpu']} ({cores} cores), load before {load:.2f}")
+    name, _, cam, _ = scene(args.quick)
+    where = f"cpu {info['cpu']} ({cores} cores), load before {load:.2f}"
+    print(f"{name} at {cam.width}x{cam.height}; {where}")
     print(f"median of {args.masks} masks; together = the slower of two votes started at once\n")
     print(table.to_string(index=False, float_format=lambda v: f"{v:,.2f}"))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -1,12 +1,12 @@
 """Peak memory of reading a large scene file, against the file's size.
 
-    python bench/bench_read.py [--gigabytes 2] [--dir /tmp] [--out reports/bench_read.csv]
+    python bench/bench_read.py [--gigabytes 2] [--dir /tmp] [--out reports/bench_read.csv] [--quick]
 
 Writes a 3DGS `point_cloud.ply` of the full 62-property layout (SH degree 3, normals) of about
 `--gigabytes` GB, streamed row block by row block so that writing it needs little memory, then
 reads it with `sagonline.io.read_scene` in a fresh process and reports that process's peak
 resident memory (ru_maxrss) less its resident memory before the read (torch and numpy loaded),
-as a multiple of the file's size. The file is removed afterwards.
+as a multiple of the file's size. The file is removed afterwards. --quick: a 10 MB file.
 """
 
 from __future__ import annotations
@@ -63,7 +63,10 @@ def main() -> None:
     parser.add_argument("--gigabytes", type=float, default=2.0)
     parser.add_argument("--dir", default="/tmp")
     parser.add_argument("--out", default=str(ROOT / "reports" / "bench_read.csv"))
+    parser.add_argument("--quick", action="store_true", help="a 10 MB file")
     args = parser.parse_args()
+    if args.quick:
+        args.gigabytes = 0.01
     rows = int(args.gigabytes * 1e9 / (4 * len(PROPS)))
     path = Path(args.dir) / f"bench_read_{rows}.ply"
     try:

@@ -2,7 +2,7 @@
 Table III setting), the label renders, and the training step, per backend, beside the paper.
 
     python bench/bench_render.py [--repeats 3] [--devices cpu,cuda] [--masks 206]
-                                 [--out reports/bench_render.csv]
+                                 [--out reports/bench_render.csv] [--quick]
 
 Scenes: the trained donut (3DGS, 45,624 Gaussians, from ../shared/data) and a generated 360-degree
 2DGS scene of 200k surfels, both at 960x540. Backends: on the CPU the PyTorch reference (torch)
@@ -13,13 +13,13 @@ walk, histogram); "vote speed-up" is the torch row's time over it; "aggregate ms
 views in a row (the paper: 206 masks in 1466 ms on an RTX 4090, 7.1 ms/mask); "label" columns
 are the label renders scoring uses (one-hot composite, most-visible ids) and "label ratio" the
 slower one over the image render; "step" is forward + backward through every Gaussian
-parameter, the fitting loop's inner cost (not for the vote-only Triton row).
+parameter, the fitting loop's inner cost (not for the vote-only Triton row). --quick: tiny
+scenes at 96x54, 4 masks, one repeat (what the tests run: every line of this script, in seconds).
 """
 
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import statistics
 import sys
 import time
@@ -37,25 +37,35 @@ from sagonline.io.cameras import load_nerf_transforms  # noqa: E402
 from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.io import read_scene  # noqa: E402
 from sagonline.render import RasterStats, render, render_labels, vote_histogram  # noqa: E402
-from sagonline.render.gsplat_backend import gsplat_available  # noqa: E402
+from sagonline.render.backends import installed  # noqa: E402
 from sagonline.render.native import native_available, vote_simd  # noqa: E402
+from sagonline.render.rule import VoteRule  # noqa: E402
 from sagonline.scene_generator import make_scene  # noqa: E402
 from sagonline.machine import describe_device  # noqa: E402
 
 
 PAPER_MS_PER_MASK = 7.1  # the paper's Table III: RTX 4090, 960x540
 PAPER_AGGREGATE_MS = 1466.0  # 206 masks
+RULE = VoteRule()  # the paper's RGC: eps 0.01, delta 2 px, +1 per pair
 
 
-def scenes():
+def scenes(quick: bool = False):
+    """(name, Gaussians, camera, views) of each scene timed: the trained donut and a generated
+    200k-surfel 360 scene at 960x540 (quick: every 50th donut Gaussian and 4k surfels, 96x54)."""
+    width, height = (96, 54) if quick else (960, 540)
     donut_dir = ROOT.parent / "shared" / "data" / "donut_3dgs"
     if donut_dir.exists():
-        cam = load_nerf_transforms(donut_dir / "transforms.json")[0].scaled(960, 540)
-        views = [c.scaled(960, 540) for c in load_nerf_transforms(donut_dir / "transforms.json")]
-        yield "donut (3DGS, 45,624)", read_scene(donut_dir / "point_cloud.ply"), cam, views
+        views = [
+            c.scaled(width, height) for c in load_nerf_transforms(donut_dir / "transforms.json")
+        ]
+        g = read_scene(donut_dir / "point_cloud.ply")
+        if quick:
+            g = g.subset(torch.arange(0, len(g), 50))
+        yield f"donut (3DGS, {len(g):,})", g, views[0], views
     else:
         print(f"note: {donut_dir} not found; skipping the donut", file=sys.stderr)
-    s = make_scene(layout="360", num_gaussians=200_000, width=960, height=540, num_train_views=4)
+    count = 4_000 if quick else 200_000
+    s = make_scene(layout="360", num_gaussians=count, width=width, height=height, num_train_views=4)
     name = f"synthetic 360 (2DGS, {len(s.gaussians):,})"
     yield name, s.gaussians, s.train_cameras[1], s.train_cameras
 
@@ -79,7 +89,7 @@ def aggregate(g: Gaussians, views, masks, backend: str) -> None:
     """One RGC vote of len(masks) masks into one histogram, as `consensus_vote` runs it."""
     hist = torch.zeros(len(g), 3, dtype=torch.float64, device=g.device)
     for i, mask in enumerate(masks):
-        vote_histogram(g, views[i % len(views)], mask, 3, backend=backend, out=hist)
+        vote_histogram(g, views[i % len(views)], mask, 3, RULE, backend=backend, out=hist)
 
 
 def label_render(g: Gaussians, cam, backend: str, mode: str) -> None:
@@ -88,15 +98,17 @@ def label_render(g: Gaussians, cam, backend: str, mode: str) -> None:
     render_labels(g, cam, labels, 3, mode=mode, backend=backend)
 
 
-def backends(device: str) -> list[tuple[str, str]]:
-    """(row name, image backend) per device; the row name is also the vote backend."""
+def backends(device: str, have=None) -> list[tuple[str, str]]:
+    """(row name, image backend) per device; the row name is also the vote backend. `have`:
+    what is installed (`render.backends.Installed`; this machine's by default)."""
+    have = have or installed()
     if device == "cpu":
-        return [("torch", "torch")] + ([("native", "native")] if native_available() else [])
+        return [("torch", "torch")] + ([("native", "native")] if have.has("native") else [])
     rows = [("torch", "torch")]
-    if gsplat_available():
+    if have.has("gsplat"):
         rows.append(("gsplat", "gsplat"))
-    if importlib.util.find_spec("triton") is not None:
-        rows.append(("triton", "gsplat" if gsplat_available() else "torch"))
+    if have.has("triton"):
+        rows.append(("triton", "gsplat" if have.has("gsplat") else "torch"))
     return rows
 
 
@@ -122,16 +134,19 @@ def main() -> None:
     ap.add_argument("--devices", default="cpu,cuda")
     ap.add_argument("--masks", type=int, default=206, help="masks in the aggregation column")
     ap.add_argument("--out", default=str(ROOT / "reports" / "bench_render.csv"))
+    ap.add_argument("--quick", action="store_true", help="tiny scenes, 4 masks, one repeat")
     args = ap.parse_args()
+    if args.quick:
+        args.repeats, args.masks = 1, 4
     devices = [d for d in args.devices.split(",") if d == "cpu" or torch.cuda.is_available()]
     rows = []
-    for name, gaussians, cam, views in scenes():
+    for name, gaussians, cam, views in scenes(args.quick):
         for device in devices:
             g, c = gaussians.to(device), cam.to(device)
             ring = [v.to(device) for v in views]
             masks = [random_mask(v) for v in ring]
             for backend, image_backend in backends(device):
-                vote = partial(vote_histogram, g, c, masks[0], 3, backend=backend)
+                vote = partial(vote_histogram, g, c, masks[0], 3, RULE, backend=backend)
                 vote_ms = 1000 * timed(vote, args.repeats, device)
                 if backend == "torch":
                     torch_vote_ms = vote_ms
@@ -184,7 +199,8 @@ def main() -> None:
         f"{info['torch_threads']} threads, vote walk {vote_simd() if native_available() else '-'})"
         + (f"  gpu {info['gpu']}" if "gpu" in info else "")
     )
-    print("960x540, median of", args.repeats, "runs after a warm-up (aggregate: one run)")
+    size = f"{cam.width}x{cam.height}"
+    print(f"{size}, median of {args.repeats} runs after a warm-up (aggregate: one run)")
     print("paper (RTX 4090, 960x540): 7.1 ms/mask, 206 masks in 1466 ms\n")
     shown = table.drop(columns=["paper_vote_ms_per_mask", "paper_aggregate_ms_206"])
     print(

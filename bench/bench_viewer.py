@@ -1,12 +1,13 @@
 """The viewer's latencies, driven through its session object (no browser): the captured donut,
 24 orbit views at 480x270, the classical segmenter, frames already rendered.
 
-    python bench/bench_viewer.py [--repeats 3] [--screenshot docs/viewer_donut.png]
+    python bench/bench_viewer.py [--repeats 3] [--screenshot docs/viewer_donut.png] [--quick]
 
 Prints, per repeat and as the median: seconds from a click to the first labels on the splats,
 to all 24 views voted, and from a second click on the same object to its first and last
 labels; the machine's load (`uptime`) before and after. --screenshot: the viewer in headless
-Chromium (the browser test's code), after a click, saved as a PNG.
+Chromium (the browser test's code), after a click, saved as a PNG. --quick: 6 views at 240x135,
+one repeat (what the tests run).
 """
 
 from __future__ import annotations
@@ -50,9 +51,13 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--screenshot", type=Path)
+    parser.add_argument("--quick", action="store_true", help="6 views at 240x135, one repeat")
     args = parser.parse_args()
+    orbit, width, height = (6, 240, 135) if args.quick else (24, 480, 270)
+    if args.quick:
+        args.repeats = 1
     g = read_scene(args.data / "point_cloud.ply")
-    views = load_views(args.data / "transforms.json", g, orbit=24, width=480, height=270)
+    views = load_views(args.data / "transforms.json", g, orbit=orbit, width=width, height=height)
     print(f"before: {uptime()}")
     start = time.perf_counter()
     session = SegmentSession(g, views.cameras)
@@ -61,8 +66,9 @@ def main() -> None:
     rows = []
     for repeat in range(args.repeats):
         session.clear()
-        first, last = timed_click(session, ICING[0])
-        second_first, second_last = timed_click(session, ICING[1])
+        scale = width / 480  # the clicks are given at 480x270
+        first, last = timed_click(session, [v * scale for v in ICING[0]])
+        second_first, second_last = timed_click(session, [v * scale for v in ICING[1]])
         rows.append({
             "repeat": repeat, "first labels": first, "all views voted": last,
             "second click, first labels": second_first, "second click, all voted": second_last,

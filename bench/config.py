@@ -41,8 +41,11 @@ class RefineStage(RefineConfig):
 @dataclass
 class RendererConfig:
     backend: str = "auto"
-    """auto: the compiled kernel on the CPU, gsplat on CUDA; native | gsplat | torch (the
-    readable PyTorch twin)."""
+    """Images: auto (the compiled kernel on the CPU; gsplat on CUDA, else torch); native |
+    gsplat | torch (the readable PyTorch twin)."""
+    vote_backend: str = "auto"
+    """The vote and the label renders, resolved on their own: auto (the compiled kernel on the
+    CPU; on CUDA triton, else gsplat, else torch); native | triton | gsplat | torch."""
 
 
 @dataclass
@@ -75,8 +78,9 @@ class EvalConfig:
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     label_render: LabelRenderConfig = field(default_factory=LabelRenderConfig)
     metrics: MetricsConfig = field(default_factory=MetricsConfig)
-    device: str = "cpu"
-    """cpu, cuda or cuda:N; checked before any work."""
+    device: str = "auto"
+    """auto (the GPU when CUDA is available, else the CPU), cpu, cuda or cuda:N; resolved and
+    checked before any work (the run records the device it resolved to)."""
     seed: int = 0
     """Seeds the prompts' clicks, the noisy oracle, mask selection and the student."""
     record: bool = True
@@ -116,7 +120,7 @@ class ScenesConfig:
     progress: bool = True
     """Progress bars (always off when CI=true or off a terminal)."""
     device: str = "cpu"
-    """cpu: the compiled kernel; cuda: gsplat."""
+    """cpu: the compiled kernel; cuda: gsplat; auto: cuda when available."""
     seed: int = 0
     """Seeds the start points, densification noise and held-out split order."""
 
@@ -210,6 +214,10 @@ def to_config(cfg: DictConfig, schema: type):
     nodes come out as plain dicts, checked against their registered configs."""
     try:
         refuse_unknown_keys(cfg)
+        if cfg.get("device") == "auto":  # resolved once, so `${device}` reads the real one
+            from sagonline.render.backends import resolve_device
+
+            cfg.device = resolve_device("auto")
         typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
         out = OmegaConf.to_object(typed)
         for group in ("dataset", "segmenter"):

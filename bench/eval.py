@@ -54,7 +54,7 @@ from sagonline.pipeline import (
 from sagonline.predictions import write_scoring_rules
 from sagonline.provenance import git_state
 from sagonline.recording import Recorder
-from sagonline.render.api import resolve_backend
+from sagonline.render.backends import plan_backends
 from sagonline.segmenters.corruption import MaskCorruption
 
 log = logging.getLogger("sagonline.eval")
@@ -73,7 +73,7 @@ def evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
 
 
 def _evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
-    check_device(cfg.device)
+    check_device(cfg.device, cfg.renderer)
     settings = settings_from(cfg)
     fingerprint, flat_cfg = config_fingerprint(cfg)
     adapter = build_dataset(cfg.dataset)
@@ -125,7 +125,9 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
             "overrides": overrides,
             "git": git_state(),
             "stage_versions": STAGE_VERSIONS,
-            "renderer_resolved": resolve_backend(settings.backend, settings.device),
+            "backends": plan_backends(
+                settings.backend, settings.vote_backend, settings.device
+            ).describe(),
             "segmenter_weights": weights,
             "protocol": adapter.describe(),
             "cache_root": str(cache_root(cfg, out_dir)) if cfg.cache else None,

@@ -31,6 +31,7 @@ def settings_from(cfg) -> PipelineSettings:
     """What the pipeline takes from an EvalConfig."""
     return PipelineSettings(
         backend=cfg.renderer.backend,
+        vote_backend=cfg.renderer.vote_backend,
         device=cfg.device,
         label_min_weight=cfg.label_render.min_weight,
         resize=cfg.metrics.resize,
@@ -79,15 +80,23 @@ def set_threads(cfg) -> int:
     return int(threads)
 
 
-def check_device(device: str) -> None:
-    """Stop before any work when the requested device does not exist here."""
+def check_device(device: str, backends=None) -> None:
+    """Stop before any work when the requested device does not exist here, or when a backend
+    (the renderer group's `backend` and `vote_backend`) cannot run on it or is not installed."""
     from sagonline.machine import check_device as check
+    from sagonline.render.backends import BackendError, plan_backends
 
     try:
         check(device)
     except ValueError as exc:
         print(f"error: device={device}: {str(exc).split(': ', 1)[-1]}", file=sys.stderr)
         raise SystemExit(2) from None
+    if backends is not None:
+        try:
+            plan_backends(backends.backend, backends.vote_backend, device)
+        except BackendError as exc:
+            print(f"error: renderer: {exc}", file=sys.stderr)
+            raise SystemExit(2) from None
 
 
 def build_dataset(node: dict):

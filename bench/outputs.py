@@ -91,10 +91,14 @@ def print_summary(
     out_dir: Path, metrics: dict, reports: list[SceneReport], cache: Path | None = None
 ) -> None:
     """One screen: per-scene rows, overall numbers, where the outputs are."""
+    plan = metrics.get("backends") or {}
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
         f"consensus {metrics['consensus']['method']}  renderer {metrics['renderer']}",
         f"protocol {metrics.get('protocol_id') or '-'}",
+        f"ran on {plan.get('device', '-')}: images {plan.get('images', '-')}, vote "
+        f"{plan.get('vote', '-')}, label renders {plan.get('labels', '-')}"
+        + (f" ({metrics['device']['gpu']})" if metrics["device"].get("gpu") else ""),
         "",
     ]
     lines.append(

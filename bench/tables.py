@@ -300,10 +300,18 @@ def load_text(runs: list[dict]) -> str:
 
 
 def renderer_text(runs: list[dict]) -> str:
-    """The renderer asked for, and the ones it resolved to (auto: native on CPU, gsplat on CUDA)."""
+    """The renderer asked for, and what each stage ran on (`render.backends.plan_backends`;
+    older runs recorded the image renderer alone)."""
     asked = sorted({str(m.get("renderer")) for m in runs})
-    used = sorted({str(m.get("renderer_resolved", m.get("renderer"))) for m in runs})
-    return ", ".join(asked) + ("" if used == asked else f" ({', '.join(used)})")
+
+    def used(m: dict) -> str:
+        plan = m.get("backends")
+        if plan:
+            return f"images {plan['images']}, vote {plan['vote']}, labels {plan['labels']}"
+        return str(m.get("renderer_resolved", m.get("renderer")))
+
+    resolved = sorted({used(m) for m in runs})
+    return ", ".join(asked) + ("" if resolved == asked else f" ({'; '.join(resolved)})")
 
 
 def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataFrame:
@@ -337,7 +345,8 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
     pattern = "masks_{}" + (f"_{tag}" if tag else "")
     plots = plot_masks(df, out, pattern) if name == "masks" else []
     images = "".join(f"\n![{p.stem}]({p.name})\n" for p in plots)
-    atomic_write_text(out / f"{stem}.csv", df.to_csv(index=False))
+    # the CSV names the machine in every row (the markdown says it once, in its header)
+    atomic_write_text(out / f"{stem}.csv", df.assign(device="; ".join(devices)).to_csv(index=False))
     atomic_write_text(out / f"{stem}.md", "\n".join(header) + "\n" + body + "\n" + images)
     return df
 

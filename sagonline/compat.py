@@ -19,6 +19,7 @@ import sys
 import torch
 
 _shimmed = False
+_lib = None  # the torchvision op library, kept alive once defined
 
 
 def nms_reference(

@@ -28,10 +28,12 @@ def describe_device(device: str = "cpu") -> dict:
 
 
 def check_device(device: str) -> str:
-    """`device` if it exists here; ValueError naming it otherwise (no CUDA, no such index, a
-    name torch does not know)."""
+    """`device` if it exists here ('auto': cuda when CUDA is available, else cpu); ValueError
+    naming it otherwise (no CUDA, no such index, a name torch does not know)."""
     import torch
 
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as exc:

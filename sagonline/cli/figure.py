@@ -15,6 +15,8 @@ from pathlib import Path
 
 import numpy as np
 
+from sagonline.render.backends import BACKENDS
+
 TITLE_PX = 22  # height of the title strip above the columns
 
 
@@ -28,7 +30,7 @@ def add_parsers(sub) -> None:
     )
     fig.add_argument("--out", required=True, help="output .png or .jpg")
     fig.add_argument("--overwrite", action="store_true", help="replace an earlier --out")
-    fig.add_argument("--backend", default="auto", choices=["torch", "native", "gsplat", "auto"])
+    fig.add_argument("--backend", default="auto", choices=BACKENDS)
     fig.set_defaults(func=cmd_figure)
 
 

@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.cli.views import CLICK_HELP
+from sagonline.render.backends import BACKENDS
 
 OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
-BACKENDS = ("torch", "native", "gsplat", "auto")
 
 
 def add_parsers(sub) -> None:
@@ -25,7 +25,10 @@ def add_parsers(sub) -> None:
         "--overwrite", action="store_true", help="replace an earlier --out (a file, not an input)"
     )
     rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
-    rend.add_argument("--backend", default="torch", choices=BACKENDS)
+    rend.add_argument(
+        "--backend", default="auto", choices=BACKENDS,
+        help="auto: the compiled kernel on the CPU, gsplat on CUDA (else torch)",
+    )  # fmt: skip
     rend.set_defaults(func=cmd_render)
 
 
@@ -44,7 +47,9 @@ def add_view_arguments(parser) -> None:
     )  # fmt: skip
     parser.add_argument("--width", type=int, help="render width (cameras rescaled)")
     parser.add_argument("--height", type=int, help="render height")
-    parser.add_argument("--device", default="cpu", help="cpu or cuda[:N]")
+    parser.add_argument(
+        "--device", default="auto", help="auto (cuda when available, else cpu), cpu or cuda[:N]"
+    )
     parser.add_argument(
         "--drop-nonfinite", action="store_true", help="drop Gaussians with NaN/Inf values"
     )
@@ -85,7 +90,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     if out.exists() and not args.overwrite:
         raise OutputError(f"--out {out} exists; pass --overwrite to replace it")
     background = parse_background(args.background)
-    check_device(args.device)
+    args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)

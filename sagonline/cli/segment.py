@@ -13,6 +13,7 @@ import numpy as np
 from sagonline.cli.prompts import PromptItems, parse_prompt, to_prompt
 from sagonline.cli.render import add_view_arguments
 from sagonline.cli.views import CLICK_HELP
+from sagonline.render.backends import BACKENDS
 from sagonline.segment import PromptError
 
 
@@ -63,7 +64,7 @@ def add_parsers(sub) -> None:
     vote.add_argument("--min-votes", type=int)
     vote.add_argument("--margin", type=float)
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
-    seg.add_argument("--backend", default="auto", choices=["torch", "native", "gsplat", "auto"])
+    seg.add_argument("--backend", default="auto", choices=BACKENDS)
     seg.add_argument("--out", help="output folder (default: segment-<scene>-<time>)")
     seg.add_argument(
         "--overwrite", action="store_true", help="replace an earlier output of this command"
@@ -202,7 +203,7 @@ def cmd_segment(args) -> int:
     args.segmenter = args.segmenter or "classical"
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
-    check_device(args.device)
+    args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     if args.inbetween < 0 or args.inbetween > 32:
         raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")

@@ -8,6 +8,7 @@ import sys
 import time
 
 from sagonline.cli.render import add_view_arguments
+from sagonline.render.backends import BACKENDS
 
 
 def add_parsers(sub) -> None:
@@ -24,7 +25,7 @@ def add_parsers(sub) -> None:
         "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
     )  # fmt: skip
-    view.add_argument("--backend", default="auto", choices=["torch", "native", "gsplat", "auto"])
+    view.add_argument("--backend", default="auto", choices=BACKENDS)
     view.add_argument("--host", default="127.0.0.1", help="address to serve on (local only)")
     view.add_argument("--port", type=int, default=8080)
     view.add_argument("--out", help="the Export button's folder (default: segment-<scene>-<time>)")
@@ -56,7 +57,7 @@ def cmd_view(args) -> int:
 
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
-    check_device(args.device)
+    args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)

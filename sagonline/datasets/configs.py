@@ -288,6 +288,9 @@ class SyntheticConfig:
     """A cluttered 360-degree multi-object scene (DesktopObjects-like)."""
     scenes: list[str] | None = None
     """The presets to run (forward_single, cluttered_360); None: both."""
+    device: str = "cpu"
+    """Where the ground truth is rendered: the run's device (a GPU run renders it there, with
+    the label walk the vote uses, instead of building and running the CPU kernel first)."""
 
     def __post_init__(self) -> None:
         for name, preset in self.presets().items():

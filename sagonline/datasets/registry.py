@@ -43,7 +43,8 @@ def _spinnerf(cfg: SPInNeRFConfig):
 
 def _synthetic(cfg: SyntheticConfig):
     """Generated 2DGS scenes with per-Gaussian ground truth (the embedded default)."""
-    return SyntheticDataset({k: asdict(p) for k, p in cfg.presets().items()}, cfg.scenes)
+    presets = {k: asdict(p) for k, p in cfg.presets().items()}
+    return SyntheticDataset(presets, cfg.scenes, device=cfg.device)
 
 
 for _key, _config, _build in (

@@ -34,7 +34,7 @@ from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compo
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.recording import Recorder
-from sagonline.render.api import render, render_labels, resolve_backend, to_uint8
+from sagonline.render.api import render, render_labels, to_uint8
 from sagonline.segmenters.base import VideoSegmenter
 
 
@@ -72,7 +72,6 @@ def run_scene(
     report = SceneReport(scene=task.name, inputs=input_digests(task))
     report.extra["empty_ground_truth_views"] = check_ground_truth(task)
     note_fit(task, report)
-    backend = resolve_backend(settings.backend, settings.device)
     g = task.gaussians.to(settings.device)
 
     def on_masks(frames, masks, num_labels):
@@ -85,12 +84,15 @@ def run_scene(
         cache=cache, on_masks=on_masks,
     )  # fmt: skip
     report.stages = {k: v.status for k, v in stage_one.runs.items()}
+    plan = stage_one.backends
+    report.extra["backends"] = plan.describe()
     report.stage_keys = stage_one.keys
     num_labels, result = stage_one.num_labels, stage_one.vote.value
     note_stage_one(task, report, stage_one, settings.resize)
     preds = score_views(
-        task, g, result, num_labels, settings, report, stage_one.voted, predictions_to
-    )
+        task, g, result, num_labels, settings, report, stage_one.voted, predictions_to,
+        backend=plan.labels,
+    )  # fmt: skip
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(
             result.labels, result.labelled, task.gt_labels3d, num_labels
@@ -100,7 +102,7 @@ def run_scene(
         causes = diagnose_scene(
             task, g, stage_one, preds, segmenter, vote_cfg, settings, report, cache
         )
-    record_eval_views(task, recorder, preds, report, g, backend, causes)
+    record_eval_views(task, recorder, preds, report, g, plan.images, causes)
     recorder.gaussians(
         task.name,
         task.gaussians,
@@ -160,9 +162,12 @@ def score_views(
     report: SceneReport,
     voted: set[str],
     save_to: str | Path | None = None,
+    *,
+    backend: str = "auto",
 ) -> list[np.ndarray]:
-    """Render the fused labels at every eval view, score them (the coarse mode) and time the
-    label render; returns the (H, W) predictions. g: the scene on `settings.device`."""
+    """Render the fused labels at every eval view (by `backend`'s label walk), score them (the
+    coarse mode) and time the label render; returns the (H, W) predictions. g: the scene on
+    `settings.device`."""
     preds, seconds = [], []
     for view in tqdm(
         task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
@@ -174,7 +179,7 @@ def score_views(
             vote.assigned,
             num_labels,
             min_weight=settings.label_min_weight,
-            backend=settings.backend,
+            backend=backend,
         )
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)

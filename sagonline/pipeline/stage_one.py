@@ -30,17 +30,18 @@ from sagonline.pipeline.stages import (
     label_count,
 )
 from sagonline.prompts import Prompt
-from sagonline.render.api import resolve_backend
+from sagonline.render.backends import BackendPlan, plan_backends
 from sagonline.segmenters.base import SegmentationResult
 
 
 @dataclass
 class PipelineSettings:
-    """How a scene is run: renderer (auto: the compiled kernel on the CPU, gsplat on CUDA,
-    else PyTorch), device, the label render's threshold, the metrics' resize rule, progress
-    bars, the render background, consensus feedback."""
+    """How a scene is run: the image renderer and the vote's implementation, each resolved on
+    its own for the device (`render.backends.plan_backends`), the label render's threshold, the
+    metrics' resize rule, progress bars, the render background, consensus feedback."""
 
     backend: str = "auto"
+    vote_backend: str = "auto"
     device: str = "cpu"
     label_min_weight: float = 0.2
     resize: str = "pred_to_gt"
@@ -62,6 +63,7 @@ class StageOneOutput:
     num_labels: int
     voted: set[str]
     runs: dict[str, StageRun] = field(default_factory=dict)
+    backends: BackendPlan | None = None
 
     @property
     def labels(self) -> np.ndarray:
@@ -96,25 +98,27 @@ def compose_stage_one(
     vote is interrupted)."""
     cache = cache or StageCache(None)
     progress = settings.progress
-    backend = resolve_backend(settings.backend, settings.device)
-    device = torch.device(settings.device).type
+    plan = plan_backends(settings.backend, settings.vote_backend, settings.device)
+    device = torch.device(plan.device).type
     runs: dict[str, StageRun] = {}
     frames_in = FramesInputs(
-        gaussians, list(trajectory), backend, tuple(settings.background), device
+        gaussians, list(trajectory), plan.images, tuple(settings.background), device
     )
     frames, runs["frames"] = run_stage(FRAMES, frames_in, cache, progress)
     feedback = None  # with consensus feedback on, the masks also depend on what it votes with
     if settings.feedback.enabled:
         feedback = FeedbackInputs(
             settings.feedback, vote_cfg, gaussians, list(trajectory), num_labels,
-            settings.label_min_weight, backend,
+            settings.label_min_weight, plan.vote,
         )  # fmt: skip
     masks_in = MasksInputs(frames, prompt, trajectory_gt, segmenter, feedback)
     masks, runs["masks"] = run_stage(MASKS, masks_in, cache, progress)
     labels = label_count(num_labels, masks.value.masks)
     if on_masks is not None:
         on_masks(frames.value.images, masks.value.masks, labels)
-    vote_in = VoteInputs(masks, gaussians, list(trajectory), num_labels, vote_cfg, backend, device)
+    vote_in = VoteInputs(
+        masks, gaussians, list(trajectory), num_labels, vote_cfg, plan.vote, device
+    )
     vote, runs["vote"] = run_stage(VOTE, vote_in, cache, progress)
     voted = {trajectory[i].name for i in vote.value.frames}
-    return StageOneOutput(frames, masks, vote, labels, voted, runs)
+    return StageOneOutput(frames, masks, vote, labels, voted, runs, plan)

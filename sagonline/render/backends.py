@@ -1,50 +1,176 @@
 """Which implementation renders and which votes, for a backend name and a device.
 
-Renderers: torch (the readable twin), native (the compiled CPU kernel), gsplat (CUDA); auto
-picks the compiled kernel on the CPU and gsplat on CUDA. The vote has one more, triton (the
-fused GPU kernel), which auto prefers on CUDA.
+Image renderers: torch (the readable twin, CPU or CUDA), native (the compiled CPU kernel),
+gsplat (CUDA). The vote and the label renders have one more, triton (the fused walk, CUDA; its
+interpreter runs it on the CPU when asked for by name). 'auto' takes the fastest one the
+device has, for images and for the vote each on its own:
+
+| device | images (auto)            | vote and label renders (auto)     |
+|--------|--------------------------|-----------------------------------|
+| cpu    | native, else torch       | native, else torch                |
+| cuda   | gsplat, else torch       | triton, else gsplat, else torch   |
+
+What is installed is asked through an `Installed` (`installed()` probes this machine, lazily:
+the compiled kernel is built only when the CPU resolution needs it), so every branch,
+the CUDA ones included, is a plain function of (name, device, what is installed) that runs and
+is tested on any machine: building `torch.device("cuda")` needs no GPU.
 """
 
 from __future__ import annotations
 
+import functools
+import importlib.util
+from dataclasses import dataclass, field
+
 import torch
 
 BACKENDS = ("torch", "native", "gsplat", "auto")
-VOTE_BACKENDS = ("torch", "native", "triton", "gsplat")
+VOTE_BACKENDS = ("torch", "native", "triton", "gsplat", "auto")
+DEVICES = ("cpu", "cuda", "cuda:N", "auto")
+
+# What to install for a backend that is not there, named in every refusal.
+EXTRA = {
+    "gsplat": "pip install -e '.[gsplat]' (CUDA only)",
+    "triton": "pip install -e '.[triton]'",
+    "native": "a C++ compiler and ninja (pip install ninja)",
+}
 
 
-def resolve_backend(backend: str, device: torch.device | str) -> str:
-    """'auto' picks gsplat on CUDA when installed, the compiled CPU kernel on the CPU when it
-    builds, else the torch rasterizer."""
+class BackendError(ValueError):
+    """A backend that cannot run on this device or is not installed: says which and why."""
+
+
+def _has_module(name: str) -> bool:
+    return importlib.util.find_spec(name) is not None
+
+
+def _native_builds() -> bool:
+    from sagonline.render.native import native_available
+
+    return native_available()
+
+
+@dataclass
+class Installed:
+    """What this machine has, each probed once on first use: CUDA, the gsplat and triton
+    packages, and whether the compiled CPU kernel builds. Tests pass their own values."""
+
+    cuda: bool | None = None
+    gsplat: bool | None = None
+    triton: bool | None = None
+    native: bool | None = None
+    _probes: dict = field(
+        default_factory=lambda: {
+            "cuda": torch.cuda.is_available,
+            "gsplat": lambda: _has_module("gsplat"),
+            "triton": lambda: _has_module("triton"),
+            "native": _native_builds,
+        },
+        repr=False,
+    )
+
+    def has(self, what: str) -> bool:
+        value = getattr(self, what)
+        if value is None:
+            value = bool(self._probes[what]())
+            setattr(self, what, value)
+        return value
+
+
+@functools.cache
+def installed() -> Installed:
+    """This machine's `Installed`, probed lazily and once per process."""
+    return Installed()
+
+
+def resolve_device(device: str | torch.device) -> str:
+    """'auto' -> 'cuda' when CUDA is available, else 'cpu'; any other name as given."""
+    if str(device) == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return str(device)
+
+
+def _device_type(device: torch.device | str) -> str:
+    return torch.device(resolve_device(device)).type
+
+
+def resolve_backend(backend: str, device: torch.device | str, have: Installed | None = None) -> str:
+    """The image renderer for `backend` on `device` (see the module's table); a backend that
+    cannot run there, or is not installed, is refused naming what to use or install."""
+    have = have or installed()
     if backend not in BACKENDS:
-        raise ValueError(f"renderer backend {backend!r} is not one of {BACKENDS}")
-    if backend == "gsplat" and torch.device(device).type != "cuda":
-        raise ValueError(
+        raise BackendError(f"renderer backend {backend!r} is not one of {BACKENDS}")
+    on_cuda = _device_type(device) == "cuda"
+    if backend == "gsplat" and not on_cuda:
+        raise BackendError(
             f"renderer backend 'gsplat' runs on CUDA only (device {device}); on the CPU use "
             "native, torch or auto"
         )
-    if backend == "auto":
-        if torch.device(device).type == "cuda":
-            from sagonline.render.gsplat_backend import gsplat_available
-
-            return "gsplat" if gsplat_available() else "torch"
-        from sagonline.render.native import native_available
-
-        return "native" if native_available() else "torch"
-    return backend
-
-
-def resolve_vote_backend(backend: str, device: torch.device | str) -> str:
-    """The vote implementation for a renderer backend: 'auto' takes the fastest one the device
-    has (CPU: native; CUDA: triton, else gsplat), 'gsplat' on CUDA prefers the fused Triton
-    kernel when Triton is installed; 'torch', 'native' and 'triton' are taken as asked."""
-    if backend == "triton":
+    if backend == "native" and on_cuda:
+        raise BackendError(
+            f"renderer backend 'native' is the compiled CPU kernel (device {device}); on CUDA "
+            "use auto, gsplat or torch"
+        )
+    if backend == "gsplat" and not have.has("gsplat"):
+        raise BackendError(f"renderer backend 'gsplat' is not installed: {EXTRA['gsplat']}")
+    if backend != "auto":
         return backend
-    if backend not in ("auto", "gsplat"):
-        return resolve_backend(backend, device)
-    if torch.device(device).type == "cuda":
-        from sagonline.render.triton_vote import triton_available
+    if on_cuda:
+        return "gsplat" if have.has("gsplat") else "torch"
+    return "native" if have.has("native") else "torch"
 
-        if triton_available():
-            return "triton"
-    return resolve_backend(backend, device)
+
+def resolve_vote_backend(
+    backend: str, device: torch.device | str, have: Installed | None = None
+) -> str:
+    """The vote's (and the label renders') implementation for `backend` on `device`, resolved
+    on its own, never from the image renderer's choice: 'auto' takes the fastest the device
+    has (see the module's table); a named one is taken as asked, or refused when it cannot
+    run there or is not installed (triton on the CPU runs in Triton's interpreter)."""
+    have = have or installed()
+    if backend not in VOTE_BACKENDS:
+        raise BackendError(f"vote backend {backend!r} is not one of {VOTE_BACKENDS}")
+    on_cuda = _device_type(device) == "cuda"
+    if backend in ("triton", "gsplat") and not have.has(backend):
+        raise BackendError(f"vote backend {backend!r} is not installed: {EXTRA[backend]}")
+    if backend == "gsplat" and not on_cuda:
+        raise BackendError(f"vote backend 'gsplat' runs on CUDA only (device {device})")
+    if backend == "native" and on_cuda:
+        raise BackendError(
+            f"vote backend 'native' is the compiled CPU kernel (device {device}); on CUDA use "
+            "auto, triton or torch"
+        )
+    if backend != "auto":
+        return backend
+    if on_cuda:
+        for fast in ("triton", "gsplat"):
+            if have.has(fast):
+                return fast
+        return "torch"
+    return "native" if have.has("native") else "torch"
+
+
+@dataclass(frozen=True)
+class BackendPlan:
+    """What each stage of a run uses, resolved once before any work: images (the trajectory
+    frames, the recorded renders), the vote, and the label renders that scoring reads."""
+
+    device: str
+    images: str
+    vote: str
+    labels: str
+
+    def describe(self) -> dict[str, str]:
+        return {"device": self.device, "images": self.images, "vote": self.vote,
+                "labels": self.labels}  # fmt: skip
+
+
+def plan_backends(
+    images: str, vote: str, device: torch.device | str, have: Installed | None = None
+) -> BackendPlan:
+    """Resolve a run's image and vote backends (each its own setting) for `device` ('auto'
+    included): the label renders take the vote's walk (`render.api.render_labels`)."""
+    have = have or installed()
+    dev = resolve_device(device)
+    chosen_vote = resolve_vote_backend(vote, dev, have)
+    return BackendPlan(dev, resolve_backend(images, dev, have), chosen_vote, chosen_vote)

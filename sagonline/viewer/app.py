@@ -15,6 +15,7 @@ import threading
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -176,7 +177,7 @@ class ViewerApp:
                 "vote method", list(VOTE_RULES.keys()), initial_value=s.vote.method
             )
             self.method.on_update(lambda _: self.guarded(self.change_vote))
-            self.vote_inputs = {
+            self.vote_inputs: dict[str, Any] = {
                 "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=1.0, step=0.001),
                 "delta": gui.add_number("delta (px)", s.vote.delta, min=0.0, step=0.5),
                 "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),

@@ -1,0 +1,134 @@
+#!/usr/bin/env bash
+# One command for a GPU machine: the CUDA tests, the default evaluation, the render/vote
+# benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
+#
+#   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick]
+#
+# It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
+# registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
+# antlr4-python3-runtime, plyfile) from `make gpu-bundle`, run beforehand where the project is
+# installed: they land in .gpu-bundle/ (ignored by git), which travels with the checkout and is
+# put on PYTHONPATH here. No recording is written (rerun-sdk is not needed).
+#
+# Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv} (each
+# with the GPU's name) and OUT/gpu_check.md (what ran, how long, pass or fail). --quick: tiny
+# scenes and sweeps (the tests run it on the CPU with --device cpu, so the script cannot rot
+# unseen). Every step runs even when one before it failed; the exit code says whether all passed.
+set -uo pipefail
+cd "$(dirname "$0")/.."
+ROOT=$PWD
+
+DEVICE=cuda
+OUT=reports
+QUICK=0
+while [ $# -gt 0 ]; do
+  case "$1" in
+    --device) DEVICE=$2; shift 2 ;;
+    --out) OUT=$2; shift 2 ;;
+    --quick) QUICK=1; shift ;;
+    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
+  esac
+done
+
+if [ -n "${PYTHON:-}" ]; then PY=$PYTHON
+elif [ -x .venv/bin/python ]; then PY=.venv/bin/python
+else PY=python3
+fi
+export PYTHONPATH="$ROOT:$ROOT/.gpu-bundle/site${PYTHONPATH:+:$PYTHONPATH}"
+export PYTHONUNBUFFERED=1 HYDRA_FULL_ERROR=0
+mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
+WORK=$(mktemp -d "${TMPDIR:-/tmp}/gpu_check.XXXXXX")
+SUMMARY="$OUT/gpu_check.md"
+STAMP=$(date +%Y-%m-%d_%H-%M-%S)
+TAG=$([ "$DEVICE" = cpu ] && echo cpu_check || echo cuda)
+failed=0
+rows=()
+
+step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fail
+  local name=$1; shift
+  local log="$WORK/$(echo "$name" | tr ' /' '__').log"
+  local start end status
+  echo "== $name: $*"
+  start=$(date +%s)
+  "$@" >"$log" 2>&1
+  status=$?
+  end=$(date +%s)
+  tail -n 25 "$log"
+  if [ $status -eq 0 ]; then rows+=("| $name | pass | $((end - start)) s |")
+  else rows+=("| $name | FAIL (exit $status; log $log) | $((end - start)) s |"); failed=1
+  fi
+  echo "== $name: exit $status in $((end - start)) s"
+}
+
+step "environment" "$PY" - "$DEVICE" <<'EOF'
+import importlib.util, sys
+import torch
+device = sys.argv[1]
+print("python", sys.version.split()[0], "torch", torch.__version__)
+for name in ("triton", "gsplat", "hydra", "omegaconf", "plyfile"):
+    print(f"{name}: {'yes' if importlib.util.find_spec(name) else 'MISSING'}")
+missing = [n for n in ("hydra", "omegaconf", "plyfile") if importlib.util.find_spec(n) is None]
+if missing:
+    sys.exit(f"missing {missing}: run `make gpu-bundle` where the project is installed, carry .gpu-bundle/")
+if device.startswith("cuda"):
+    if not torch.cuda.is_available():
+        sys.exit("CUDA is not available here")
+    print("gpu", torch.cuda.get_device_name(0))
+from sagonline.render.backends import plan_backends
+print("backends", plan_backends("auto", "auto", device).describe())
+EOF
+
+if [ "$QUICK" = 1 ]; then
+  EVAL_DATA=(dataset=synthetic "dataset.adapter.scenes=[forward_single]"
+             dataset.adapter.forward_single.num_train_views=6
+             dataset.adapter.forward_single.num_eval_views=2
+             dataset.adapter.forward_single.num_gaussians=2000
+             dataset.adapter.forward_single.width=64 dataset.adapter.forward_single.height=48)
+  TIMING_DATA=("${EVAL_DATA[@]}" refine.max_steps=3 refine.crop=32 refine.batch_size=2)
+  MASKS_DATA=("${EVAL_DATA[@]}")
+  MASK_COUNTS=1,3
+  RENDER_ARGS=(--quick)
+else
+  EVAL_DATA=(dataset=synthetic)
+  TIMING_DATA=(dataset=synthetic_360)
+  # the paper's Table III votes 206 masks: the 960x540 scene with 206 trajectory views
+  MASKS_DATA=(dataset=synthetic_360_hd dataset.adapter.cluttered_360.num_train_views=206)
+  MASK_COUNTS=1,3,6,12,25,50,100,206
+  RENDER_ARGS=()
+fi
+COMMON=(device="$DEVICE" record=false progress=false)
+
+step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider tests \
+  -o cache_dir="$WORK/pytest_cache"
+step "eval (make eval)" "$PY" -m bench.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
+  cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
+step "bench_render" "$PY" bench/bench_render.py --devices "$DEVICE" "${RENDER_ARGS[@]}" \
+  --out "$OUT/bench_render_$TAG.csv"
+step "table-timing" "$PY" -m bench.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
+  refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
+step "table-timing (build)" "$PY" -m bench.tables timing "$WORK/multirun/timing_$TAG/$STAMP" \
+  --out "$OUT" --tag "$TAG"
+step "table-masks" "$PY" -m bench.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
+  segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
+  hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
+step "table-masks (build)" "$PY" -m bench.tables masks "$WORK/multirun/masks_$TAG/$STAMP" \
+  --out "$OUT" --tag "$TAG"
+
+gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
+{
+  echo "# GPU check ($STAMP)"
+  echo
+  echo "device $DEVICE ($gpu); \`scripts/gpu_check.sh$([ "$QUICK" = 1 ] && echo " --quick")\`; logs in $WORK"
+  echo
+  echo "| step | result | time |"
+  echo "|---|---|---|"
+  printf '%s\n' "${rows[@]}"
+  echo
+  for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv"; do
+    [ -f "$f" ] && echo "- wrote $f"
+  done
+} >"$SUMMARY"
+cat "$SUMMARY"
+exit $failed

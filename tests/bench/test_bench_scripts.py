@@ -1,0 +1,64 @@
+"""Every benchmark script under bench/ runs, end to end, in its --quick setting: a script no test
+runs rots unseen (bench_render crashed for weeks on a changed signature)."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from bench.bench_render import backends
+from sagonline.render.backends import Installed
+
+ROOT = Path(__file__).resolve().parents[2]
+DONUT = ROOT.parent / "shared" / "data" / "donut_3dgs"
+
+
+def _run(script: str, *args: str) -> str:
+    proc = subprocess.run(
+        [sys.executable, f"bench/{script}", "--quick", *args],
+        cwd=ROOT, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
+    return proc.stdout
+
+
+def test_bench_render_quick_writes_its_table(tmp_path):
+    out = tmp_path / "render.csv"
+    text = _run("bench_render.py", "--devices", "cpu", "--out", str(out))
+    table = pd.read_csv(out)
+    assert {"torch"} <= set(table.backend) and (table.vote_ms_per_mask > 0).all()
+    assert "96x54" in text and "wrote" in text
+
+
+def test_bench_render_rows_on_cuda_follow_what_is_installed():
+    cuda = dict(cuda=True, native=False)
+    assert backends("cuda", Installed(**cuda, gsplat=False, triton=True)) == [
+        ("torch", "torch"), ("triton", "torch")
+    ]  # fmt: skip
+    assert [b for b, _ in backends("cuda", Installed(**cuda, gsplat=True, triton=True))] == [
+        "torch", "gsplat", "triton"
+    ]  # fmt: skip
+
+
+@pytest.mark.slow
+def test_bench_contention_quick(tmp_path):
+    out = tmp_path / "contention.csv"
+    _run("bench_contention.py", "--out", str(out))
+    assert (pd.read_csv(out).slowdown > 0).all()
+
+
+def test_bench_read_quick(tmp_path):
+    out = tmp_path / "read.csv"
+    _run("bench_read.py", "--dir", str(tmp_path), "--out", str(out))
+    assert pd.read_csv(out).gaussians.iloc[0] > 0
+    assert not list(tmp_path.glob("*.ply"))  # its file is removed afterwards
+
+
+@pytest.mark.skipif(not DONUT.exists(), reason=f"{DONUT} not found")
+def test_bench_viewer_quick():
+    text = _run("bench_viewer.py")
+    assert "first labels" in text and "labelled object" in text

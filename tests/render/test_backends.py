@@ -1,0 +1,147 @@
+"""Backend and device resolution, the CUDA branches included, on any machine: what is installed
+is an `Installed` the test chooses, and `torch.device("cuda")` needs no GPU to exist."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from sagonline.consensus import VoteResult
+from sagonline.render.backends import (
+    BackendError,
+    Installed,
+    installed,
+    plan_backends,
+    resolve_backend,
+    resolve_vote_backend,
+)
+from sagonline.segmenters.base import SegmentationResult
+
+EVERYTHING = dict(cuda=True, gsplat=True, triton=True, native=True)
+
+
+def have(**changes) -> Installed:
+    return Installed(**{**EVERYTHING, **changes})
+
+
+@pytest.mark.parametrize(
+    ("what", "images", "vote"),
+    [
+        ({}, "gsplat", "triton"),
+        ({"gsplat": False}, "torch", "triton"),  # the H100 without gsplat: the fused kernel votes
+        ({"triton": False}, "gsplat", "gsplat"),
+        ({"gsplat": False, "triton": False}, "torch", "torch"),
+    ],
+)
+@pytest.mark.parametrize("device", ["cuda", "cuda:1", torch.device("cuda", 0)])
+def test_auto_on_cuda_resolves_images_and_the_vote_each_on_its_own(what, images, vote, device):
+    plan = plan_backends("auto", "auto", device, have(**what))
+    assert (plan.images, plan.vote, plan.labels) == (images, vote, vote)
+    assert plan.describe()["images"] == images
+
+
+@pytest.mark.parametrize(("native", "expected"), [(True, "native"), (False, "torch")])
+def test_auto_on_the_cpu_takes_the_compiled_kernel_where_it_builds(native, expected):
+    plan = plan_backends("auto", "auto", "cpu", have(cuda=False, native=native))
+    assert (plan.device, plan.images, plan.vote) == ("cpu", expected, expected)
+
+
+def test_auto_device_picks_the_gpu_only_when_there_is_one():
+    assert plan_backends("auto", "auto", "auto", have()).device == (
+        "cuda" if torch.cuda.is_available() else "cpu"
+    )
+
+
+@pytest.mark.parametrize(
+    ("call", "words"),
+    [
+        (lambda h: resolve_backend("gsplat", "cpu", h), "CUDA only"),
+        (lambda h: resolve_backend("native", "cuda", h), "CPU kernel"),
+        (lambda h: resolve_backend("gsplat", "cuda", have(gsplat=False)), ".[gsplat]"),
+        (lambda h: resolve_vote_backend("triton", "cuda", have(triton=False)), ".[triton]"),
+        (lambda h: resolve_vote_backend("gsplat", "cpu", h), "CUDA only"),
+        (lambda h: resolve_vote_backend("native", "cuda:0", h), "CPU kernel"),
+        (lambda h: resolve_vote_backend("fast", "cpu", h), "not one of"),
+        (lambda h: resolve_backend("triton", "cuda", h), "not one of"),
+    ],
+)
+def test_a_backend_that_cannot_run_is_refused_naming_what_to_do(call, words):
+    with pytest.raises(BackendError, match=words.replace(".", r"\.").replace("[", r"\[")):
+        call(have())
+
+
+def test_a_named_backend_is_taken_as_asked():
+    assert resolve_vote_backend("torch", "cuda", have()) == "torch"
+    assert resolve_vote_backend("triton", "cpu", have(cuda=False)) == "triton"  # interpreter
+    assert resolve_backend("torch", "cuda", have()) == "torch"
+
+
+def test_probes_run_once_and_only_when_asked():
+    calls = []
+    h = Installed(cuda=True)
+    h._probes["triton"] = lambda: calls.append("triton") or True
+    h._probes["native"] = lambda: calls.append("native") or True
+    assert resolve_vote_backend("auto", "cuda", h) == "triton"
+    assert resolve_vote_backend("auto", "cuda", h) == "triton"
+    assert calls == ["triton"]  # the CPU kernel is never built for a CUDA run
+
+
+def test_this_machines_probes_answer():
+    """The real probes (imports included) run here: a missing name in them fails this test,
+    not a user's first `device=cuda` run."""
+    here = installed()
+    for what in ("cuda", "gsplat", "triton"):
+        assert isinstance(here.has(what), bool)
+    real = Installed(cuda=True, native=False)  # this machine's packages, as if it had a GPU
+    assert resolve_vote_backend("auto", "cuda", real) in ("triton", "gsplat", "torch")
+    assert resolve_backend("auto", "cuda", real) in ("gsplat", "torch")
+
+
+def test_the_pipeline_votes_with_its_own_backend(monkeypatch):
+    """Stage I's stages take their backends from one plan: on CUDA without gsplat the frames
+    render with torch and the vote is the fused kernel, not the image renderer's choice."""
+    from sagonline.pipeline import stage_one
+    from sagonline.pipeline.graph import Output, StageRun
+
+    cuda_without_gsplat = have(gsplat=False)
+    monkeypatch.setattr(
+        stage_one,
+        "plan_backends",
+        lambda images, vote, device: plan_backends(images, vote, device, cuda_without_gsplat),
+    )
+    used = {}
+
+    def fake_run_stage(stage, inputs, cache, progress):  # records what each stage would run on
+        used[stage.name] = inputs
+        if stage.name == "frames":
+            return Output("f", stage_one.Frames([np.zeros((6, 8, 3), np.uint8)], 0.0)), StageRun(
+                "computed", 0.0
+            )
+        if stage.name == "masks":
+            seg = SegmentationResult([np.zeros((6, 8), np.int64)], [0.0], "fake")
+            return Output("m", seg), StageRun("computed", 0.0)
+        return Output("v", VoteResult(*[torch.zeros(1)] * 3, frames=[0])), StageRun("computed", 0)
+
+    monkeypatch.setattr(stage_one, "run_stage", fake_run_stage)
+    out = stage_one.compose_stage_one(
+        *_tiny_stage_one_inputs(), stage_one.PipelineSettings(device="cuda"), num_labels=2
+    )
+    assert used["frames"].backend == "torch" and used["frames"].device == "cuda"
+    assert used["vote"].backend == "triton" and used["vote"].device == "cuda"
+    assert out.backends.describe() == {
+        "device": "cuda", "images": "torch", "vote": "triton", "labels": "triton"
+    }  # fmt: skip
+
+
+def _tiny_stage_one_inputs():
+    from sagonline.consensus import VoteConfig
+    from sagonline.pipeline.stages import SegmenterRun
+    from sagonline.prompts import ObjectPrompt, Prompt
+    from sagonline.segmenters.oracle import OracleSegmenter
+    from tests.fixtures import random_gaussians, small_camera
+
+    g = random_gaussians(20, "3dgs")
+    cam = small_camera(8, 6)
+    prompt = Prompt(frame=0, objects=[ObjectPrompt(label=1, mask=np.ones((6, 8), bool))])
+    return g, [cam], prompt, SegmenterRun(OracleSegmenter()), VoteConfig()

@@ -1,0 +1,40 @@
+"""scripts/gpu_check.sh, the one command for a GPU machine, runs every one of its steps here on
+the CPU (--device cpu --quick): the script and the commands it calls cannot rot unseen between
+the rare runs on a GPU."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+pytestmark = pytest.mark.slow
+
+
+def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
+    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)],
+        cwd=ROOT, capture_output=True, text=True, timeout=600, env=env,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    summary = (tmp_path / "gpu_check.md").read_text()
+    for step in ("environment", "pytest -m gpu", "eval", "bench_render", "table-timing",
+                 "table-masks"):  # fmt: skip
+        assert f"| {step}" in summary
+    assert "FAIL" not in summary
+    for table in ("bench_render", "timing", "masks"):
+        rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
+        assert len(rows) and "device" in rows.columns
+
+
+def test_an_unknown_option_is_refused():
+    proc = subprocess.run(["bash", "scripts/gpu_check.sh", "--fast"], cwd=ROOT,
+                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    assert proc.returncode == 2 and "unknown option --fast" in proc.stderr
