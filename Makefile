@@ -172,7 +172,7 @@ table-ablation: install
 	    consensus.margin=0$(COMMA)0.5,votes) &&) true
 	$(BIN)/python -m bench.tables ablation $(TABLE_OPTS)
 
-# corrupt.* degrades any source's masks by the same seeded rules (sagonline/segmenters/corruption.py)
+# corrupt.* degrades any source's masks by the same seeded rules (sagonline/segment/corruption.py)
 table-robustness: install
 	$(foreach s,$(ROBUST_SOURCES),$(call SWEEP_INTO,robustness,$(s),\
 	  corrupt.boundary_px=0$(COMMA)2$(COMMA)4 corrupt.flicker=0$(COMMA)0.1$(COMMA)0.3) &&) true

@@ -42,7 +42,7 @@ def vote_times(
     `start_at` (time.time()) so that two processes start together."""
     import torch
 
-    from sagonline.consensus import VoteConfig, consensus_vote
+    from sagonline.vote.consensus import VoteConfig, consensus_vote
 
     torch.set_num_threads(threads)
     _, g, cam, _ = scene(quick)
@@ -67,7 +67,7 @@ def main() -> None:
     args = ap.parse_args()
     if args.quick:
         args.masks = 2
-    from sagonline.machine import describe_device
+    from sagonline.core.machine import describe_device
     from sagonline.render.native import native_available
 
     backends = ["torch"] + (["native"] if native_available() else [])

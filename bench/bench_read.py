@@ -4,7 +4,7 @@
 
 Writes a 3DGS `point_cloud.ply` of the full 62-property layout (SH degree 3, normals) of about
 `--gigabytes` GB, streamed row block by row block so that writing it needs little memory, then
-reads it with `sagonline.io.read_scene` in a fresh process and reports that process's peak
+reads it with `sagonline.scene.io.read_scene` in a fresh process and reports that process's peak
 resident memory (ru_maxrss) less its resident memory before the read (torch and numpy loaded),
 as a multiple of the file's size. The file is removed afterwards. --quick: a 10 MB file.
 """
@@ -28,7 +28,7 @@ PROPS += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
 READER = """
 import resource, sys, time
 import torch  # noqa: F401
-from sagonline.io import read_scene
+from sagonline.scene.io import read_scene
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 start = time.perf_counter()
 g = read_scene(sys.argv[1])

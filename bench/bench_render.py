@@ -33,15 +33,15 @@ import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy b
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from sagonline.io.cameras import load_nerf_transforms  # noqa: E402
-from sagonline.gaussians import Gaussians  # noqa: E402
-from sagonline.io import read_scene  # noqa: E402
+from sagonline.scene.io.cameras import load_nerf_transforms  # noqa: E402
+from sagonline.scene.gaussians import Gaussians  # noqa: E402
+from sagonline.scene.io import read_scene  # noqa: E402
 from sagonline.render import RasterStats, render, render_labels, vote_histogram  # noqa: E402
 from sagonline.render.backends import installed  # noqa: E402
 from sagonline.render.native import native_available, vote_simd  # noqa: E402
 from sagonline.render.rule import VoteRule  # noqa: E402
-from sagonline.scene_generator import make_scene  # noqa: E402
-from sagonline.machine import describe_device  # noqa: E402
+from sagonline.scene.generator import make_scene  # noqa: E402
+from sagonline.core.machine import describe_device  # noqa: E402
 
 
 PAPER_MS_PER_MASK = 7.1  # the paper's Table III: RTX 4090, 960x540

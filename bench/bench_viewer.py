@@ -23,9 +23,9 @@ import pandas as pd
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sagonline.cli.views import load_views  # noqa: E402
-from sagonline.io import read_scene  # noqa: E402
-from sagonline.viewer.session import SegmentSession  # noqa: E402
+from sagonline.apps.viewer.session import SegmentSession  # noqa: E402
+from sagonline.scene.io import read_scene  # noqa: E402
+from sagonline.scene.views import load_views  # noqa: E402
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "donut_3dgs"
 ICING = [(150.0, 60.0), (330.0, 50.0)]  # two clicks on the icing of view 0 at 480x270
@@ -88,8 +88,8 @@ def main() -> None:
 
 def shoot(session: SegmentSession, path: Path) -> None:
     """The viewer after the clicks above, in headless Chromium, looking from behind view 0."""
-    from sagonline.viewer import browser
-    from sagonline.viewer.app import ViewerApp
+    from sagonline.apps.viewer import browser
+    from sagonline.apps.viewer.app import ViewerApp
 
     app = ViewerApp(session, port=8091)
     app.on_update(session.labels, session.progress)

@@ -4,7 +4,7 @@
 conf/eval.yaml and conf/scenes.yaml, and the groups they pick from, only select and override:
 each default is stated once, on its field below or in the library's own settings dataclasses
 (VoteConfig, RefineConfig, FeedbackConfig, FitConfig, and each plug-in's config). Segmenters
-and datasets are plug-ins (`sagonline.plugins`): every registered one is a Hydra option
+and datasets are plug-ins (`sagonline.core.plugins`): every registered one is a Hydra option
 (`segmenter=<key>`, `dataset=<key>`) whose node is its typed config plus `kind` (the registry
 key) and `name` (how runs and reports name it); conf/ holds only presets and data locations.
 A wrong type or an unknown key fails at composition, naming the key, `+key=...` included; a
@@ -23,11 +23,11 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
-from sagonline.consensus import VoteConfig
-from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
-from sagonline.segmenters.corruption import MaskCorruption
+from sagonline.segment.corruption import MaskCorruption
+from sagonline.vote.consensus import VoteConfig
+from sagonline.vote.feedback import FeedbackConfig
 
 
 @dataclass
@@ -96,7 +96,7 @@ class EvalConfig:
     """Threads of this job's torch ops and kernels; None: the cores shared among parallel jobs."""
     diagnose: bool = True
     """Sort every scored view's wrong pixels by cause (the fit, the vote, the 2D segmenter:
-    `sagonline.diagnosis`) into per_view.csv, metrics.json and the recording."""
+    `sagonline.score.diagnosis`) into per_view.csv, metrics.json and the recording."""
     cache_dir: str | None = ".cache/stages"
     """Where the stages' outputs are cached: one folder shared by every run and sweep (the
     stages are keyed by their inputs' content, so sharing is safe; `make clean-cache` empties
@@ -135,7 +135,7 @@ def register_schemas() -> None:
     import)."""
     from hydra.core.config_store import ConfigStore
 
-    from sagonline.plugins import DATASETS, SEGMENTERS, VOTE_RULES
+    from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
 
     store = ConfigStore.instance()
     store.store(name="eval_schema", node=EvalConfig)
@@ -226,7 +226,7 @@ def to_config(cfg: DictConfig, schema: type):
         check_plugin_nodes(out)
         return out
     except (ValueError, TypeError, KeyError) as exc:
-        from sagonline.plugins import one_line
+        from sagonline.core.plugins import one_line
 
         print(f"error: {one_line(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -254,7 +254,7 @@ DATASET_NODE_KEYS = ("kind", "name", "root", "adapter")
 
 def check_plugin_nodes(cfg) -> None:
     """The dataset's and segmenter's settings checked against their registered configs."""
-    from sagonline.plugins import DATASETS, SEGMENTERS
+    from sagonline.core.plugins import DATASETS, SEGMENTERS
 
     for group, registry in (("segmenter", SEGMENTERS), ("dataset", DATASETS)):
         node = getattr(cfg, group, None)
@@ -268,7 +268,7 @@ def check_plugin_nodes(cfg) -> None:
             if unknown:
                 raise KeyError(f"dataset.{unknown[0]}: no such setting (dataset.adapter.* holds "
                                "the dataset's settings)")  # fmt: skip
-        from sagonline.plugins import NODE_KEYS
+        from sagonline.core.plugins import NODE_KEYS
 
         values = (
             node["adapter"]

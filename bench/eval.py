@@ -39,8 +39,9 @@ from bench.rundir import (
     write_hydra_files,
 )
 from bench.runlog import FILE_ONLY, run_log
+from sagonline.core.outputs import OutputError, RunLock
+from sagonline.core.provenance import git_state
 from sagonline.datasets.base import DatasetError
-from sagonline.outputs import OutputError, RunLock
 from sagonline.pipeline import (
     STAGE_VERSIONS,
     SceneReport,
@@ -51,11 +52,10 @@ from sagonline.pipeline import (
     student_checkpoint,
     summarize,
 )
-from sagonline.predictions import write_scoring_rules
-from sagonline.provenance import git_state
-from sagonline.recording import Recorder
+from sagonline.record.recording import Recorder
 from sagonline.render.backends import plan_backends
-from sagonline.segmenters.corruption import MaskCorruption
+from sagonline.score.predictions import write_scoring_rules
+from sagonline.segment.corruption import MaskCorruption
 
 log = logging.getLogger("sagonline.eval")
 
@@ -164,8 +164,8 @@ def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
 def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> SegmenterRun:
     """The segmenter built from the registry (its answers corrupted where `corrupt` is
     active), its checkpoints opened and digested, before anything is rendered."""
+    from sagonline.core.plugins import PluginError
     from sagonline.pipeline.stages import segmenter_run
-    from sagonline.plugins import PluginError
 
     try:
         return segmenter_run(node, corrupt)

@@ -83,7 +83,7 @@ def set_threads(cfg) -> int:
 def check_device(device: str, backends=None) -> None:
     """Stop before any work when the requested device does not exist here, or when a backend
     (the renderer group's `backend` and `vote_backend`) cannot run on it or is not installed."""
-    from sagonline.machine import check_device as check
+    from sagonline.core.machine import check_device as check
     from sagonline.render.backends import BackendError, plan_backends
 
     try:
@@ -102,8 +102,8 @@ def check_device(device: str, backends=None) -> None:
 def build_dataset(node: dict):
     """The dataset's adapter, built from the registry by `node['kind']` with the node's
     `adapter` settings; a problem stops with one line naming the key."""
-    from sagonline.errors import DatasetError
-    from sagonline.plugins import DATASETS, PluginError
+    from sagonline.core.errors import DatasetError
+    from sagonline.core.plugins import DATASETS, PluginError
 
     try:
         return DATASETS.build(node.get("kind"), node.get("adapter") or {}, where="dataset.adapter")
@@ -114,7 +114,7 @@ def build_dataset(node: dict):
 
 def segmenter_settings(node: dict) -> dict:
     """A segmenter node's own settings (without `kind` and `name`)."""
-    from sagonline.plugins import NODE_KEYS
+    from sagonline.core.plugins import NODE_KEYS
 
     return {k: v for k, v in node.items() if k not in NODE_KEYS}
 
@@ -122,7 +122,7 @@ def segmenter_settings(node: dict) -> dict:
 def build_segmenter(node: dict):
     """The segmenter, built from the registry by `node['kind']`; a problem with its settings
     (a missing checkpoint, a value out of range) stops with one line naming the setting."""
-    from sagonline.plugins import SEGMENTERS, PluginError
+    from sagonline.core.plugins import SEGMENTERS, PluginError
 
     try:
         return SEGMENTERS.build(node.get("kind"), segmenter_settings(node), where="segmenter")

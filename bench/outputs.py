@@ -9,8 +9,8 @@ from pathlib import Path
 import pandas as pd
 
 from bench.runlog import FILE_ONLY
-from sagonline.files import atomic_write_json, atomic_write_text
-from sagonline.machine import describe_device
+from sagonline.core.files import atomic_write_json, atomic_write_text
+from sagonline.core.machine import describe_device
 from sagonline.pipeline import SceneReport
 
 
@@ -22,8 +22,8 @@ def write_outputs(
     extra: dict | None = None,
 ) -> dict:
     """metrics.json (+ per_view.csv) atomically into the run directory."""
-    from sagonline.metrics import RESIZE_RULES
-    from sagonline.predictions import folder_sha256
+    from sagonline.score.metrics import RESIZE_RULES
+    from sagonline.score.predictions import folder_sha256
 
     folders = ("predictions", "predictions_refined", "ground_truth")
     digests = {f: folder_sha256(out_dir / f) for f in folders if (out_dir / f).is_dir()}
@@ -42,7 +42,7 @@ def write_outputs(
     }
     rows = [{**v, "protocol": r.protocol} for r in reports for v in r.views]
     columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
-    from sagonline.diagnosis import EXTRA, MISSED
+    from sagonline.score.diagnosis import EXTRA, MISSED
 
     diagnosis = ("object_px", "missed_px", *MISSED, "extra_px", *EXTRA)
     columns += [
@@ -120,7 +120,7 @@ def print_summary(
             lines.append(
                 f"    missed pixels {d['missed_px']}: fit {fmt(d['share_fit'])}%, vote "
                 f"{fmt(d['share_vote'])}%, segmenter {fmt(d['share_segmenter'])}% "
-                "(per view: per_view.csv; the causes: sagonline/diagnosis.py)"
+                "(per view: per_view.csv; the causes: sagonline/score/diagnosis.py)"
             )
         groups = r.extra.get("by_view_group") or {}
         for key, value in groups.items():  # e.g. photographed / mask-only views of a capture

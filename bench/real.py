@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if not rows:
         raise SystemExit("error: no capture could be evaluated (fit them: make scenes DATASET=...)")
     df = pd.DataFrame(rows)
-    from sagonline.files import atomic_write_text
+    from sagonline.core.files import atomic_write_text
 
     text = [
         "# Real captures: one recipe, one vote configuration",
@@ -113,7 +113,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
         "  weight-free segmenter's masks, all voting; `segmenter alone`: its masks' own mIoU.",
-        "- fit / vote / segmenter: where the missed pixels are lost (sagonline/diagnosis.py).",
+        "- fit / vote / segmenter: where the missed pixels are lost",
+        "  (sagonline/score/diagnosis.py).",
         "- built by `make tables-real` (`python -m bench.real`).",
         "",
         df.to_markdown(index=False),

@@ -24,8 +24,8 @@ import pandas as pd
 from PIL import Image
 
 from bench.rundir import read_run_metrics
+from sagonline.core.files import atomic_write_image, atomic_write_text
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.files import atomic_write_image, atomic_write_text
 from sagonline.fitting import FitConfig
 
 ROOT = Path(__file__).resolve().parents[1]

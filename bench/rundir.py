@@ -18,8 +18,8 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from sagonline.files import atomic_write_text
-from sagonline.provenance import digest_json
+from sagonline.core.files import atomic_write_text
+from sagonline.core.provenance import digest_json
 
 
 class RunExists(SystemExit):

@@ -32,9 +32,11 @@ from omegaconf import DictConfig
 
 from bench.config import ScenesConfig, register_schemas, to_config
 from bench.job import build_dataset, quiet
+from sagonline.core.files import atomic_write_image, atomic_write_json
+from sagonline.core.machine import cpu_capability
+from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT
-from sagonline.files import atomic_write_image, atomic_write_json
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     initial_points,
@@ -42,10 +44,8 @@ from sagonline.fitting.capture import (
     near_depth,
     view_near_depths,
 )
-from sagonline.io.cameras import load_llff_bounds
-from sagonline.io.images import resize_nearest
-from sagonline.machine import cpu_capability
-from sagonline.provenance import digest_file
+from sagonline.scene.io.cameras import load_llff_bounds
+from sagonline.scene.io.images import resize_nearest
 
 
 def output_dir(scene_dir: Path, dataset: str) -> Path:
@@ -199,7 +199,7 @@ def finish_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
     """`finish=true`: the after-the-fit steps on a finished fit that predates them (the fitted
     scene is the state they run on, so the result is what a fit with this recipe writes)."""
     from sagonline.fitting.strategy import clear_of_pose_views
-    from sagonline.io import read_scene, write_ply
+    from sagonline.scene.io import read_scene, write_ply
 
     scene_dir, cams, images = adapter.capture(scene)
     out = output_dir(scene_dir, adapter.name)

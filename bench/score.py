@@ -4,7 +4,7 @@
     python -m bench.score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--ignore LABEL]
 
 Both folders hold `<scene>/<view>.png` single-channel label maps (0 = background), as a run
-writes them (`predictions/`, `ground_truth/`; see sagonline/predictions.py): so a peer's
+writes them (`predictions/`, `ground_truth/`; see sagonline/score/predictions.py): so a peer's
 predictions can be scored by our protocol, and ours by theirs. Every ground-truth view needs a
 prediction. The rules come from GT_DIR/scoring.json (checked against its schema: the protocol
 id, the resize rule, the ignored label), flags override them. The rules are strict:
@@ -32,10 +32,10 @@ if str(ROOT) not in sys.path:
 import numpy as np  # noqa: E402
 import pandas as pd  # noqa: E402
 
-from sagonline.errors import DatasetError  # noqa: E402
-from sagonline.files import read_json_object  # noqa: E402
-from sagonline.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
-from sagonline.predictions import SCORING_FILE, folder_sha256, read_label_map  # noqa: E402
+from sagonline.core.errors import DatasetError  # noqa: E402
+from sagonline.core.files import read_json_object  # noqa: E402
+from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
+from sagonline.score.predictions import SCORING_FILE, folder_sha256, read_label_map  # noqa: E402
 
 
 @dataclass(frozen=True)

@@ -24,7 +24,7 @@ import pandas as pd
 
 from bench.report import COARSE, device_text
 from bench.rundir import read_run_metrics
-from sagonline.files import atomic_write_text
+from sagonline.core.files import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[1]
 PAPER_MASK_MS = {1: 111, 3: 114, 6: 140, 12: 162, 25: 224, 50: 384, 100: 571, 206: 1466}

@@ -1,8 +1,8 @@
-"""`python -m sagonline ...`: the command line (sagonline/cli)."""
+"""`python -m sagonline ...`: the command line (sagonline/apps/cli)."""
 
 import sys
 
-from sagonline.cli import main
+from sagonline.apps.cli import main
 
 if __name__ == "__main__":
     sys.exit(main())

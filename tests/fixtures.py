@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.cameras import Camera, intrinsics, look_at, make_camera
-from sagonline.gaussians import Gaussians
-from sagonline.io import write_ply
-from sagonline.scene_generator import make_scene
+from sagonline.scene.cameras import Camera, intrinsics, look_at, make_camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.scene.generator import make_scene
+from sagonline.scene.io import write_ply
 
 ROOT = Path(__file__).resolve().parents[1]  # the repository
 CONF = str(ROOT / "conf")
@@ -207,7 +207,7 @@ def own_scene(folder: Path, views: int = 8, width: int = 48, height: int = 36, s
     names = [f"r_{i}" for i in range(views)]
     write_nerf_transforms(folder / "transforms.json", scene.train_cameras, names)
     (folder / "notes.txt").write_text("my notes\n")
-    from sagonline.io.cameras import load_cameras
+    from sagonline.scene.io.cameras import load_cameras
 
     cams = load_cameras(folder / "transforms.json")
     return folder, scene, cams, gt_mask(scene, cams[0], scene.instance, scene.num_instances)

@@ -20,13 +20,13 @@ import pytest
 import torch
 
 from bench.eval import evaluate
-from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import load_mask
-from sagonline.io import SceneFileError, read_scene, write_ply
-from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.pipeline import PipelineSettings, run_scene
-from sagonline.segmenters.oracle import OracleSegmenter
+from sagonline.scene.io import SceneFileError, read_scene, write_ply
+from sagonline.scene.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.vote.consensus import VoteConfig
 from tests.fixtures import (
     ROOT,
     cfg_with,
@@ -105,8 +105,8 @@ def test_pickled_fit_and_student_checkpoints_never_run(tmp_path):
 
 def test_pickled_yolo_weights_are_refused_by_name(tmp_path):
     pytest.importorskip("ultralytics")
-    from sagonline.io.checkpoints import UntrustedCheckpoint
-    from sagonline.segmenters.yolo import YOLOSegmenter
+    from sagonline.scene.io.checkpoints import UntrustedCheckpoint
+    from sagonline.segment.yolo import YOLOSegmenter
 
     marker = tmp_path / "ran.txt"
     weights = plant(tmp_path / "yolo.pt", marker)
@@ -119,7 +119,7 @@ def test_pickled_yolo_weights_are_refused_by_name(tmp_path):
 
 def test_a_real_yolo_checkpoint_loads_without_trust(tmp_path):
     pytest.importorskip("ultralytics")
-    from sagonline.segmenters.yolo import YOLOSegmenter
+    from sagonline.segment.yolo import YOLOSegmenter
 
     model = YOLOSegmenter(model_yaml="yolo11n-seg.yaml").load_model()  # random weights
     model.save(tmp_path / "random.pt")  # a full ultralytics checkpoint (pickled model)
@@ -129,9 +129,9 @@ def test_a_real_yolo_checkpoint_loads_without_trust(tmp_path):
 
 @pytest.mark.parametrize("option", ["sam3", "pretrained"])
 def test_pickled_user_checkpoints_are_refused_by_name(tmp_path, option):
-    from sagonline.io.checkpoints import UntrustedCheckpoint
     from sagonline.refine.network import ResNetEncoder, load_imagenet_weights
-    from sagonline.segmenters.sam3_text import SAM3TextSegmenter
+    from sagonline.scene.io.checkpoints import UntrustedCheckpoint
+    from sagonline.segment.sam3_text import SAM3TextSegmenter
 
     marker = tmp_path / "ran.txt"
     path = plant(tmp_path / "w.pt", marker)
@@ -160,7 +160,7 @@ def test_changed_bytes_inside_a_cache_entry_are_recomputed(tiny_task, tmp_path):
 
 
 def test_store_refuses_damage_before_decoding(tmp_path):
-    from sagonline.io import store
+    from sagonline.core import store
 
     value = {"a": torch.arange(10), (1, 2): [np.ones(3), None, float("inf")], "s": {3, 1}}
     path = store.save(tmp_path / "x.store", value)
@@ -195,8 +195,8 @@ def _scenes_cfg(*overrides):
 
 def test_interrupted_overwrite_keeps_the_users_scene(tmp_path, capsys):
     from bench.scenes import fit_scene
+    from sagonline.core import store
     from sagonline.datasets.generic import PosedMasksDataset
-    from sagonline.io import store
 
     cams, sc = llff_scene(tmp_path / "cap", NAMES)
     for cam, name in zip(cams, NAMES, strict=True):
@@ -262,7 +262,7 @@ def test_render_sizes_and_backgrounds_are_checked(tmp_path, scene_files, args, m
 
 
 def test_pixel_ceiling_names_itself():
-    from sagonline.cameras import MAX_PIXELS, intrinsics, make_camera
+    from sagonline.scene.cameras import MAX_PIXELS, intrinsics, make_camera
 
     with pytest.raises(ValueError, match=r"MAX_PIXELS.*SAGONLINE_MAX_PIXELS"):
         make_camera(intrinsics(10, 10, 5, 5), np.eye(4), 100_000, MAX_PIXELS // 100_000 + 1)
@@ -381,7 +381,7 @@ def test_singular_llff_pose_names_the_frame(tmp_path):
 
 
 def test_reading_a_ply_peaks_below_one_and_a_half_times_its_size(tmp_path, monkeypatch):
-    from sagonline.io import ply_rows
+    from sagonline.scene.io import ply_rows
 
     path = write_ply(tmp_path / "big.ply", random_gaussians(40_000, sh_degree=3))
     monkeypatch.setattr(ply_rows, "BLOCK_ROWS", 2048)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.io import read_scene
-from sagonline.io.cameras import (
+from sagonline.scene.io import read_scene
+from sagonline.scene.io.cameras import (
     CameraFileError,
     load_cameras,
     load_colmap,
@@ -19,7 +19,7 @@ from sagonline.io.cameras import (
     read_colmap_points,
     write_3dgs_cameras_json,
 )
-from sagonline.trajectory import pseudo_temporal_order, smooth_path
+from sagonline.scene.trajectory import pseudo_temporal_order, smooth_path
 from tests.fixtures import shared_data, small_camera
 
 
@@ -153,7 +153,7 @@ def test_smooth_path_rejects_mixed_sizes():
 
 
 def test_shortest_path_order_follows_the_orbit_from_the_start():
-    from sagonline.trajectory import nearest_view, path_steps, shortest_path_order
+    from sagonline.scene.trajectory import nearest_view, path_steps, shortest_path_order
     from tests.fixtures import orbit_cameras
 
     ring = orbit_cameras(12)

@@ -67,7 +67,7 @@ def test_render_errors_name_the_problem(tmp_path):
 def test_one_view_numbering_for_every_command(tmp_path, capsys):
     """Frames r_0 .. r_11 listed in file order: index 2 is r_10 (cameras sorted by name) for
     `cameras`, `render --view`, `segment --preview` and `segment --click` alike."""
-    from sagonline.cli import main
+    from sagonline.apps.cli import main
     from tests.fixtures import own_scene
 
     folder, *_ = own_scene(tmp_path / "scene", views=12)

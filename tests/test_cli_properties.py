@@ -19,7 +19,7 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from sagonline.cli import main
+from sagonline.apps.cli import main
 from tests.fixtures import cfg_with, own_scene, tree_digest
 
 pytestmark = pytest.mark.slow

@@ -6,7 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.consensus import (
+from sagonline.render import TraceChunk, TraceRequest
+from sagonline.render._torch_impl import add_pairs
+from sagonline.vote.consensus import (
     MaskError,
     VoteAccumulator,
     VoteConfig,
@@ -14,8 +16,6 @@ from sagonline.consensus import (
     consensus_vote,
     select_frames,
 )
-from sagonline.render import TraceChunk, TraceRequest
-from sagonline.render._torch_impl import add_pairs
 from tests.fixtures import small_camera
 
 

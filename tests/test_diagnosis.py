@@ -1,4 +1,4 @@
-"""The diagnosis of missed pixels (sagonline/diagnosis.py) on generated scenes with a planted
+"""The diagnosis of missed pixels (sagonline/score/diagnosis.py) on generated scenes with a planted
 cause: a sheet in front of the object in some views (the fit), masks that flicker (the
 segmenter and the vote); and the fill rule on a scene with unlabelled interior Gaussians."""
 
@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.consensus import VoteConfig, consensus_vote
-from sagonline.diagnosis import CAUSE_GROUPS
-from sagonline.gaussians import Gaussians
 from sagonline.pipeline import PipelineSettings, run_scene
-from sagonline.segmenters.oracle import OracleSegmenter
+from sagonline.scene.gaussians import Gaussians
+from sagonline.score.diagnosis import CAUSE_GROUPS
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.vote.consensus import VoteConfig, consensus_vote
 
 
 @pytest.fixture(scope="module")
@@ -92,7 +92,7 @@ def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
     """Holes in a labelled surface (a fifth of the object's Gaussians left unlabelled, inside
     the labelled patch) take their neighbours' label; a floater far from every labelled
     Gaussian stays unlabelled; labels the vote gave are never changed."""
-    from sagonline.fill import fill_from_neighbours
+    from sagonline.vote.fill import fill_from_neighbours
 
     g = scene.gaussians
     truth = scene.gt_labels3d

@@ -13,7 +13,7 @@ import sys
 import numpy as np
 import pytest
 
-from sagonline.plugins import DATASETS, SEGMENTERS, VOTE_RULES
+from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
 from tests.fixtures import ROOT, compose_config, llff_scene, object_mask, own_scene, write_image
 
 DOC = ROOT / "docs" / "extending.md"
@@ -55,7 +55,7 @@ def test_the_page_has_the_three_examples():
 
 
 def test_a_new_segmenter_in_one_file(example, tmp_path, capsys):
-    from sagonline.cli import main
+    from sagonline.apps.cli import main
 
     example("colour_segmenter.py")
     folder, _, cams, gt = own_scene(tmp_path / "scene")
@@ -84,7 +84,7 @@ def test_a_new_dataset_adapter(example, tmp_path):
     cams, scene = llff_scene(root, names, width=48, height=36, with_scene=False)
     for cam, name in zip(cams, names, strict=True):
         write_image(root / "masks" / f"{name}.png", (object_mask(scene, cam) > 0) * 255)
-    from sagonline.io import write_ply
+    from sagonline.scene.io import write_ply
 
     write_ply(root / "point_cloud.ply", scene.gaussians)
     cfg = compose_config("eval", "dataset=folder", f"dataset.root={root}", "segmenter=oracle",
@@ -95,7 +95,7 @@ def test_a_new_dataset_adapter(example, tmp_path):
 
 
 def test_a_new_vote_rule_through_both_kernels(example, tiny_task, capsys):
-    from sagonline.consensus import VoteConfig, consensus_vote
+    from sagonline.vote.consensus import VoteConfig, consensus_vote
 
     example("unanimous_vote.py")
     cfg = VoteConfig(method="unanimous")

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from sagonline.consensus import VoteConfig
 from sagonline.datasets.synthetic import load_synthetic
-from sagonline.feedback import FeedbackConfig, foreground_iou, mask_prompt
 from sagonline.pipeline import PipelineSettings, run_scene
-from sagonline.segmenters.base import VideoSegmenter
+from sagonline.segment.base import VideoSegmenter
+from sagonline.vote.consensus import VoteConfig
+from sagonline.vote.feedback import FeedbackConfig, foreground_iou, mask_prompt
 
 
 class ForgetfulSegmenter(VideoSegmenter):

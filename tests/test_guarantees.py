@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from sagonline.cli import main
+from sagonline.apps.cli import main
 from tests.fixtures import cfg_with, own_scene, tree_digest
 
 
@@ -53,7 +53,7 @@ def test_export_builds_nothing_named_by_the_run_folder(tmp_path, capsys):
     run = tmp_path / "run"
     run.mkdir()
     planted = {
-        "_target_": "sagonline.files.atomic_write_text",
+        "_target_": "sagonline.core.files.atomic_write_text",
         "_args_": [str(target), "import os; os.system('touch /tmp/owned')"],
     }
     for node in ({"adapter": planted}, {"kind": "generic", "adapter": planted}, planted):
@@ -67,7 +67,7 @@ def test_export_builds_nothing_named_by_the_run_folder(tmp_path, capsys):
 
 def test_a_segmenter_config_outside_its_package_is_refused(tmp_path):
     """sam2's model config is instantiated: it must be the package's own file."""
-    from sagonline.segmenters.sam2_video import package_config
+    from sagonline.segment.sam2_video import package_config
 
     pkg = tmp_path / "sam2"
     (pkg / "configs").mkdir(parents=True)
@@ -78,7 +78,7 @@ def test_a_segmenter_config_outside_its_package_is_refused(tmp_path):
     # and inside the package's own file, only sam2's classes are built
     from omegaconf import OmegaConf
 
-    from sagonline.segmenters.sam2_video import check_targets
+    from sagonline.segment.sam2_video import check_targets
 
     check_targets(OmegaConf.create({"_target_": "sam2.modeling.X", "a": [{"_target_": "sam2.Y"}]}))
     planted = OmegaConf.create({"_target_": "sam2.X", "parts": [{"_target_": "os.system"}]})
@@ -138,7 +138,7 @@ def test_object_names_that_clash_are_refused(user_scene, tmp_path, names, messag
 
 
 def test_names_in_any_script_get_files_of_their_own():
-    from sagonline.export import object_file_names
+    from sagonline.labels.export import object_file_names
 
     names, files = object_file_names(["background", "стул", "椅子", "chair"])
     assert len(set(files)) == 3 and "стул" in files
@@ -149,7 +149,7 @@ def test_names_in_any_script_get_files_of_their_own():
 
 def test_a_16_bit_binary_mask_is_one_object(user_scene, tmp_path):
     folder, _ = user_scene
-    from sagonline.io.cameras import load_cameras
+    from sagonline.scene.io.cameras import load_cameras
 
     cam = load_cameras(folder / "transforms.json")[0]
     mask = np.zeros((cam.height, cam.width), np.uint16)
@@ -167,9 +167,9 @@ def test_a_cache_entry_under_another_key_is_never_used(tmp_path, tiny_task):
     """A valid vote entry copied over another key's file: refused, removed, recomputed."""
     import warnings
 
-    from sagonline.consensus import VoteConfig
     from sagonline.pipeline import PipelineSettings, run_scene
-    from sagonline.segmenters import OracleSegmenter
+    from sagonline.segment import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
 
     settings = PipelineSettings(progress=False)
     seg = OracleSegmenter()
@@ -200,9 +200,9 @@ def test_an_unusable_cache_folder_warns_once_and_the_run_goes_on(
 ):
     import warnings
 
-    from sagonline.consensus import VoteConfig
     from sagonline.pipeline import PipelineSettings, run_scene
-    from sagonline.segmenters import OracleSegmenter
+    from sagonline.segment import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
 
     cache = tmp_path / "cache"
     if kind == "file":
@@ -210,7 +210,7 @@ def test_an_unusable_cache_folder_warns_once_and_the_run_goes_on(
     elif kind == "loop":
         os.symlink(cache, cache)
     else:  # read-only (root writes anyway: the writes themselves are made to fail)
-        from sagonline.io import store
+        from sagonline.core import store
 
         cache.mkdir()
         cache.chmod(0o500)
@@ -234,7 +234,7 @@ def test_export_redoes_a_vote_whose_recorded_key_lies(tmp_path, capsys):
     """metrics.json's vote key, pointed at another config's cached vote: export keys the vote
     again from the run's settings and exports the labels that belong to them."""
     from bench.eval import evaluate
-    from sagonline.export import read_labels
+    from sagonline.labels.export import read_labels
 
     cache = tmp_path / "cache"
     runs = {}
@@ -269,7 +269,7 @@ def test_export_redoes_a_vote_whose_recorded_key_lies(tmp_path, capsys):
     ],
 )
 def test_masks_are_read_as_what_they_are(tmp_path, make, kind, objects):
-    from sagonline.io.masks import read_mask
+    from sagonline.scene.io.masks import read_mask
 
     disc = np.zeros((60, 80), np.uint8)
     cv2.circle(disc, (40, 30), 15, 255, -1)
@@ -310,7 +310,7 @@ def test_masks_are_read_as_what_they_are(tmp_path, make, kind, objects):
     ],
 )
 def test_a_file_that_is_no_mask_is_refused_with_what_was_seen(tmp_path, image, seen):
-    from sagonline.io.masks import MaskFileError, read_mask
+    from sagonline.scene.io.masks import MaskFileError, read_mask
 
     cv2.imwrite(str(tmp_path / "m.png"), image)
     with pytest.raises(MaskFileError, match=seen):
@@ -320,9 +320,9 @@ def test_a_file_that_is_no_mask_is_refused_with_what_was_seen(tmp_path, image, s
 def test_prompts_after_a_mask_are_kept(user_scene, tmp_path):
     """A mask for one object and a click for another: both objects, named, in order."""
     folder, click = user_scene
-    from sagonline.io import read_scene
-    from sagonline.io.cameras import load_cameras
     from sagonline.render import render
+    from sagonline.scene.io import read_scene
+    from sagonline.scene.io.cameras import load_cameras
 
     cam = load_cameras(folder / "transforms.json")[0]
     drawn = render(read_scene(folder / "point_cloud.ply"), cam, backend="native").alpha > 0.5
@@ -342,8 +342,8 @@ def test_prompts_after_a_mask_are_kept(user_scene, tmp_path):
 
 
 def test_duplicate_camera_names_are_refused(tmp_path, capsys):
-    from sagonline.errors import CameraFileError
-    from sagonline.io.cameras import load_cameras
+    from sagonline.core.errors import CameraFileError
+    from sagonline.scene.io.cameras import load_cameras
     from tests.fixtures import orbit_cameras, write_nerf_transforms
 
     cams = orbit_cameras(4)
@@ -452,7 +452,7 @@ def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
 
 def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
     from bench.eval import evaluate
-    from sagonline.outputs import RunLock
+    from sagonline.core.outputs import RunLock
 
     run = tmp_path / "run"
     with RunLock(run), pytest.raises(SystemExit) as exc:
@@ -558,7 +558,7 @@ def test_settings_out_of_range_name_their_key(override, key, capsys):
 
 
 def test_metrics_are_strict_json():
-    from sagonline.files import to_json
+    from sagonline.core.files import to_json
 
     text = to_json({"a": float("nan"), "b": [float("inf"), 1.5], "c": np.float32(2)})
     assert json.loads(text) == {"a": None, "b": [None, 1.5], "c": 2.0}
@@ -590,15 +590,15 @@ def _transforms(tmp_path, **changes):
     ],
 )
 def test_camera_files_are_refused_naming_the_field(tmp_path, changes, message):
-    from sagonline.errors import CameraFileError
-    from sagonline.io.cameras import load_cameras
+    from sagonline.core.errors import CameraFileError
+    from sagonline.scene.io.cameras import load_cameras
 
     with pytest.raises(CameraFileError, match=message):
         load_cameras(_transforms(tmp_path, **changes))
 
 
 def test_a_3x4_transform_matrix_is_read(tmp_path):
-    from sagonline.io.cameras import load_cameras
+    from sagonline.scene.io.cameras import load_cameras
 
     full = load_cameras(_transforms(tmp_path))
     short = load_cameras(_transforms(tmp_path, matrix3x4=True))
@@ -607,8 +607,8 @@ def test_a_3x4_transform_matrix_is_read(tmp_path):
 
 
 def test_colmap_models_missing_images_or_with_a_zero_quaternion(tmp_path):
-    from sagonline.errors import CameraFileError
-    from sagonline.io.cameras import load_cameras
+    from sagonline.core.errors import CameraFileError
+    from sagonline.scene.io.cameras import load_cameras
     from tests.fixtures import orbit_cameras, write_colmap_text
 
     write_colmap_text(tmp_path / "m", orbit_cameras(3))
@@ -627,9 +627,9 @@ def test_colmap_models_missing_images_or_with_a_zero_quaternion(tmp_path):
 
 
 def test_a_camera_file_beyond_the_ceiling_is_refused_quickly(tmp_path):
-    from sagonline.errors import CameraFileError
-    from sagonline.io.cameras import load_cameras
-    from sagonline.io.pose import MAX_CAMERAS
+    from sagonline.core.errors import CameraFileError
+    from sagonline.scene.io.cameras import load_cameras
+    from sagonline.scene.io.pose import MAX_CAMERAS
 
     one = {"transform_matrix": np.eye(4).tolist(), "file_path": "x"}
     meta = {"fl_x": 50, "w": 64, "h": 48, "frames": [one] * (MAX_CAMERAS + 1)}

@@ -100,6 +100,44 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
+# The rooms of sagonline/ in the order the data flows through them (docs/architecture.md): a
+# module imports only from its own room and the rooms before it, never one after it.
+ROOMS = (
+    "core", "scene", "render", "segment", "vote", "record", "labels", "score", "refine",
+    "fitting", "datasets", "pipeline", "apps",
+)  # fmt: skip
+
+
+def room_of(module: str) -> str:
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else "sagonline"
+
+
+def upward_imports(graph: dict[str, set[str]]) -> list[str]:
+    rank = {room: i for i, room in enumerate(ROOMS)}
+    found = []
+    for module, deps in graph.items():
+        src = room_of(module)
+        if src in ("sagonline", "__main__"):
+            continue
+        for dep in deps:
+            dst = room_of(dep)
+            if dst != src and rank.get(dst, len(ROOMS)) > rank.get(src, -1):
+                found.append(f"{module} ({src}) imports {dep} ({dst})")
+    return sorted(found)
+
+
+def test_rooms_follow_the_data_flow():
+    graph = _module_imports()
+    rooms = {room_of(m) for m in graph} - {"sagonline", "__main__"}
+    assert rooms == set(ROOMS), f"rank the new room(s) {sorted(rooms - set(ROOMS))} in ROOMS"
+    assert upward_imports(graph) == []
+    planted = {"sagonline.scene.views": {"sagonline.apps.cli.segment"}}
+    assert upward_imports(planted) == [
+        "sagonline.scene.views (scene) imports sagonline.apps.cli.segment (apps)"
+    ]
+
+
 def test_no_import_cycles_and_nothing_imports_the_entry_point():
     graph = _module_imports()
     assert import_cycles(graph) == []
@@ -111,7 +149,7 @@ def test_no_import_cycles_and_nothing_imports_the_entry_point():
 ENVIRONMENT_WRITES = {
     ("sagonline/__init__.py", "OMP_WAIT_POLICY"),
     ("sagonline/render/triton_vote.py", "TRITON_INTERPRET"),
-    ("sagonline/segmenters/yolo.py", "YOLO_OFFLINE"),
+    ("sagonline/segment/yolo.py", "YOLO_OFFLINE"),
 }
 
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.metrics import labels3d_metrics, view_metrics
+from sagonline.score.metrics import labels3d_metrics, view_metrics
 
 
 def test_binary_iou_and_accuracy_by_hand():

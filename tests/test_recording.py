@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bench.eval import evaluate
-from sagonline.recording import ELLIPSOID_LIMIT
+from sagonline.record.recording import ELLIPSOID_LIMIT
 from tests.fixtures import cfg_with
 
 TRAJECTORY, EVAL = 8, 3  # the tiny synthetic preset of the runner tests
@@ -93,7 +93,7 @@ def test_default_blueprint_is_sent(recorded):
 def test_large_scenes_fall_back_to_points(tmp_path):
     import torch
 
-    from sagonline.recording import Recorder
+    from sagonline.record.recording import Recorder
     from tests.fixtures import random_gaussians
 
     g = random_gaussians(ELLIPSOID_LIMIT + 1, "2dgs", seed=0)

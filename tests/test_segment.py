@@ -14,12 +14,12 @@ import torch
 from PIL import Image
 from plyfile import PlyData
 
-from sagonline.cli import main
+from sagonline.apps.cli import main
 from sagonline.datasets.synthetic import gt_mask
-from sagonline.export import read_labels
-from sagonline.io import read_scene, write_3dgs_cameras_json, write_ply
+from sagonline.labels.export import read_labels
 from sagonline.render import render, render_labels
-from sagonline.scene_generator import make_scene
+from sagonline.scene.generator import make_scene
+from sagonline.scene.io import read_scene, write_3dgs_cameras_json, write_ply
 from tests.fixtures import ROOT, cfg_with
 
 
@@ -114,7 +114,7 @@ def test_figure_shows_the_folder_from_its_own_record(clicked, capsys):
     assert image.shape == (22 + 2 * 72, 4 * 96, 3)
     assert (image[:22] > 200).mean() > 0.8  # the title strip
     labels = np.asarray(Image.open(tmp / "out" / "views" / "0005_train_0005_labels.png"))
-    from sagonline.recording import label_colors
+    from sagonline.record.recording import label_colors
 
     assert np.array_equal(image[22 + 72 :, 96:192], label_colors(2)[labels].astype(np.uint8))
     assert main(["figure", str(tmp / "out"), "--out", str(out)]) == 2  # exists: kept
@@ -221,7 +221,7 @@ def test_an_object_that_selects_nothing_writes_nothing(tmp_path, capsys):
 
 
 def test_a_scene_without_cameras_gets_an_orbit_said_out_loud(tmp_path, capsys):
-    from sagonline.trajectory import orbit_around
+    from sagonline.scene.trajectory import orbit_around
 
     sc, _, _ = _scene(tmp_path, "360")
     scan = sc.gaussians.subset(sc.instance == 1)  # an object scan, as a capture app gives it
@@ -249,7 +249,7 @@ def test_existing_output_is_kept_without_overwrite(clicked, capsys):
 
 def test_export_gives_the_runs_vote(tmp_path):
     from bench.eval import evaluate
-    from sagonline.io import store
+    from sagonline.core import store
 
     run = tmp_path / "run"
     metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)

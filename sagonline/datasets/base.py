@@ -7,10 +7,10 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.errors import DatasetError
-from sagonline.gaussians import Gaussians
-from sagonline.prompts import Prompt
+from sagonline.core.errors import DatasetError
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.prompts import Prompt
 
 __all__ = ["DatasetAdapter", "DatasetError", "EvalView", "SceneTask"]
 

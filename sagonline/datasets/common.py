@@ -9,15 +9,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from sagonline.cameras import Camera
 from sagonline.datasets.base import DatasetError
-from sagonline.gaussians import Gaussians
-from sagonline.io import SceneFileError, read_scene
-from sagonline.io.cameras import load_cameras, load_llff
-from sagonline.io.images import IMAGE_SUFFIXES, list_images
-from sagonline.io.masks import MAX_LABELS, MaskFileError, read_mask
-from sagonline.prompts import ObjectPrompt, Prompt
-from sagonline.trajectory import pseudo_temporal_order
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.scene.io import SceneFileError, read_scene
+from sagonline.scene.io.cameras import load_cameras, load_llff
+from sagonline.scene.io.images import IMAGE_SUFFIXES, list_images
+from sagonline.scene.io.masks import MAX_LABELS, MaskFileError, read_mask
+from sagonline.scene.trajectory import pseudo_temporal_order
+from sagonline.segment.prompts import ObjectPrompt, Prompt
 
 TRAINED_SCENE_HELP = (
     "put the trained Gaussian scene at {dir}/gaussians/point_cloud.ply (2DGS or 3DGS layout; "

@@ -13,8 +13,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from sagonline.core.settings import check_settings
 from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
-from sagonline.settings import check_settings
 
 PROMPTS = ("mask", "clicks", "text", "none")
 ORDERS = ("name", "path")
@@ -234,7 +234,7 @@ MAX_SYNTHETIC_GAUSSIANS = 5_000_000
 
 @dataclass
 class SyntheticPreset:
-    """One generated scene (`sagonline.scene_generator.make_scene`)."""
+    """One generated scene (`sagonline.scene.generator.make_scene`)."""
 
     layout: str = "360"
     """forward: one object, cameras on a 60-degree arc (NVOS-like); 360: objects clustered

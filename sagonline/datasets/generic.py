@@ -24,7 +24,6 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.cameras import Camera
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import (
     check_mask_size,
@@ -39,10 +38,11 @@ from sagonline.datasets.common import (
 )
 from sagonline.datasets.configs import PosedMasksConfig
 from sagonline.datasets.labels import label_reader
-from sagonline.io.cameras import CameraFileError, read_poses_bounds
-from sagonline.io.images import IMAGE_SUFFIXES, resize_nearest
-from sagonline.prompts import Prompt
-from sagonline.trajectory import insert_between, nearest_view, shortest_path_order
+from sagonline.scene.cameras import Camera
+from sagonline.scene.io.cameras import CameraFileError, read_poses_bounds
+from sagonline.scene.io.images import IMAGE_SUFFIXES, resize_nearest
+from sagonline.scene.trajectory import insert_between, nearest_view, shortest_path_order
+from sagonline.segment.prompts import Prompt
 
 
 class PosedMasksDataset(DatasetAdapter):

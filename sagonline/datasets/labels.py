@@ -21,9 +21,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from sagonline.core.errors import DatasetError
 from sagonline.datasets.common import load_mask
-from sagonline.errors import DatasetError
-from sagonline.io.images import IMAGE_SUFFIXES
+from sagonline.scene.io.images import IMAGE_SUFFIXES
 
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
 

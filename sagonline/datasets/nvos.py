@@ -49,7 +49,7 @@ from sagonline.datasets.nvos_prompts import (
     skeleton_points,
     uniform_points,
 )
-from sagonline.prompts import ObjectPrompt, Prompt
+from sagonline.segment.prompts import ObjectPrompt, Prompt
 
 PROMPTS = ("scribbles", "click", "points", "clicks")
 TASKS = {
@@ -221,7 +221,7 @@ class NVOSDataset(DatasetAdapter):
 
     def capture(self, scene: str) -> tuple[Path, list, dict[str, Path]]:
         """The LLFF scene behind a task (or a scene name): folder, cameras, images."""
-        from sagonline.io.images import list_images
+        from sagonline.scene.io.images import list_images
 
         scene_dir = self.scene_dir(scene)
         cams = scene_cameras(scene_dir, self.image_dir)

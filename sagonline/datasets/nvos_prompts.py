@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.errors import DatasetError
+from sagonline.core.errors import DatasetError
 
 SKELETON_KEEP = {1: 0.98, 0: 0.995}  # SAGA: keep a skeleton pixel where uniform() > this
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 from dataclasses import asdict
 
+from sagonline.core.plugins import DATASETS, settings_dict
 from sagonline.datasets.configs import (
     CaptureConfig,
     Desktop360Config,
@@ -23,7 +24,6 @@ from sagonline.datasets.generic import PosedMasksDataset
 from sagonline.datasets.nvos import NVOSDataset
 from sagonline.datasets.spinnerf import SPInNeRFDataset
 from sagonline.datasets.synthetic import SyntheticDataset
-from sagonline.plugins import DATASETS, settings_dict
 
 
 def _posed_masks(cfg: PosedMasksConfig):

@@ -12,7 +12,7 @@ import torch
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import click_prompt
 from sagonline.render.api import render_labels
-from sagonline.scene_generator import SEMANTIC_NAMES, SyntheticScene, make_scene
+from sagonline.scene.generator import SEMANTIC_NAMES, SyntheticScene, make_scene
 
 
 def gt_mask(

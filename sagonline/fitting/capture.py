@@ -10,12 +10,12 @@ import numpy as np
 import torch
 from PIL import Image
 
-from sagonline.errors import DatasetError
+from sagonline.core import store
+from sagonline.core.errors import DatasetError
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.start_points import split_views
 from sagonline.fitting.triangulate import triangulate_known_poses
-from sagonline.io import store
-from sagonline.io.cameras import read_colmap_points, read_poses_bounds
+from sagonline.scene.io.cameras import read_colmap_points, read_poses_bounds
 
 
 def load_images(cams, images: dict[str, Path], max_side: int):

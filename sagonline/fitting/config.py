@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from sagonline.settings import check_settings
+from sagonline.core.settings import check_settings
 
 
 @dataclass

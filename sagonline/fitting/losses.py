@@ -12,8 +12,8 @@ import math
 import torch
 import torch.nn.functional as F
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians, quat_to_rotmat
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians, quat_to_rotmat
 
 
 def ssim(

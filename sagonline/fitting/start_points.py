@@ -8,7 +8,7 @@ import math
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
+from sagonline.scene.cameras import Camera
 
 
 def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]]:

@@ -17,9 +17,9 @@ import math
 import torch
 import torch.nn.functional as F
 
-from sagonline.cameras import Camera
 from sagonline.fitting.config import FitConfig
-from sagonline.gaussians import quat_to_rotmat
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import quat_to_rotmat
 
 Params = dict[str, torch.Tensor]  # raw parameters: means, log_scales, quats, opacity_logit, sh_*
 

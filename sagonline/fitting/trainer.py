@@ -32,8 +32,9 @@ import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
-from sagonline.cameras import Camera
-from sagonline.files import atomic_write_json
+from sagonline.core import store
+from sagonline.core.files import atomic_write_json
+from sagonline.core.provenance import digest_file
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.losses import (
     anisotropy_penalty,
@@ -45,11 +46,11 @@ from sagonline.fitting.losses import (
 )
 from sagonline.fitting.start_points import split_views, start_points
 from sagonline.fitting.strategy import DensifyStrategy, Params
-from sagonline.gaussians import SH_C0, Gaussians
-from sagonline.io import store, write_ply
-from sagonline.io.cameras import write_3dgs_cameras_json
-from sagonline.provenance import digest_file
 from sagonline.render.api import render
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import SH_C0, Gaussians
+from sagonline.scene.io import write_ply
+from sagonline.scene.io.cameras import write_3dgs_cameras_json
 
 
 def on_one_torch_thread(method):

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from sagonline.cameras import Camera
+from sagonline.scene.cameras import Camera
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,4 @@
-"""Stage I's diagnosis of a scored scene (`sagonline.diagnosis`): every eval view's wrong pixels
+"""Stage I's diagnosis of a scored scene (`score.diagnosis`): every eval view's wrong pixels
 sorted by cause, in per_view.csv (the view's row), in metrics.json (the scene's shares) and in
 the recording (a colour image of the causes beside the prediction).
 
@@ -11,14 +11,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from sagonline.consensus import VoteConfig, VoteResult
 from sagonline.datasets.base import SceneTask
-from sagonline.diagnosis import GaussianCauses, cause_image, diagnose_view, shares
-from sagonline.gaussians import Gaussians
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import SceneReport
 from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
+from sagonline.scene.gaussians import Gaussians
+from sagonline.score.diagnosis import GaussianCauses, cause_image, diagnose_view, shares
+from sagonline.vote.consensus import VoteConfig, VoteResult
 
 
 def truth_vote(
@@ -34,7 +34,7 @@ def truth_vote(
     rule; None without that ground truth."""
     if task.trajectory_gt is None:
         return None
-    from sagonline.segmenters.oracle import OracleSegmenter
+    from sagonline.segment.oracle import OracleSegmenter
 
     own = segmenter.segmenter
     if type(own) is OracleSegmenter and not own.corruption.active:  # the run's masks are the truth

@@ -21,10 +21,10 @@ from typing import Any, Generic, TypeVar
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
-from sagonline.io import store
-from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians, digest_json
+from sagonline.core import store
+from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians, digest_json
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 I = TypeVar("I")  # noqa: E741 (inputs)
 O = TypeVar("O")  # noqa: E741 (output)
@@ -88,7 +88,7 @@ def digest_value(value: Any) -> Any:
 
 
 class StageCache:
-    """`<dir>/<stage>-<key>.store` files (`sagonline.io.store`: arrays and JSON, never a
+    """`<dir>/<stage>-<key>.store` files (`sagonline.core.store`: arrays and JSON, never a
     pickle, each checked against the digest of its own bytes) written atomically; no dir: no
     caching.
 

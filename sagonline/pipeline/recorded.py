@@ -2,7 +2,7 @@
 
 A run folder may come from anyone, so its metrics.json is data, never code: it names the
 dataset and the segmenter by registry key (`kind`) with settings, and each is rebuilt from the
-registries (`sagonline.plugins`) after its settings are checked against the plug-in's typed
+registries (`sagonline.core.plugins`) after its settings are checked against the plug-in's typed
 config; every other group (vote, corruption, feedback, renderer) is checked against its own
 dataclass. Nothing is built from a class name in the file, no checkpoint is unpickled on its
 say-so (`trust_checkpoint` is turned off), and the cache keys it records are never trusted:
@@ -17,15 +17,15 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sagonline.consensus import VoteConfig
+from sagonline.core.errors import DatasetError
+from sagonline.core.files import read_json_object
+from sagonline.core.plugins import DATASETS, PluginError, typed_settings
 from sagonline.datasets.base import DatasetAdapter
-from sagonline.errors import DatasetError
-from sagonline.feedback import FeedbackConfig
-from sagonline.files import read_json_object
 from sagonline.pipeline.stage_one import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
-from sagonline.plugins import DATASETS, PluginError, typed_settings
-from sagonline.segmenters.corruption import MaskCorruption
+from sagonline.segment.corruption import MaskCorruption
+from sagonline.vote.consensus import VoteConfig
+from sagonline.vote.feedback import FeedbackConfig
 
 # Runs written before the registries named their dataset by class path: these (compared as
 # strings, never imported) are read as the registry keys beside them.
@@ -35,11 +35,11 @@ LEGACY_DATASETS = {
     "sagonline.datasets.spinnerf.SPInNeRFDataset": "spinnerf",
 }
 LEGACY_SEGMENTERS = {
-    "sagonline.segmenters.classical.FlowWatershedSegmenter": "classical",
-    "sagonline.segmenters.oracle.OracleSegmenter": "oracle",
-    "sagonline.segmenters.sam2_video.SAM2VideoSegmenter": "sam2",
-    "sagonline.segmenters.sam3_text.SAM3TextSegmenter": "sam3",
-    "sagonline.segmenters.yolo.YOLOSegmenter": "yolo",
+    "sagonline.segment.classical.FlowWatershedSegmenter": "classical",
+    "sagonline.segment.oracle.OracleSegmenter": "oracle",
+    "sagonline.segment.sam2_video.SAM2VideoSegmenter": "sam2",
+    "sagonline.segment.sam3_text.SAM3TextSegmenter": "sam3",
+    "sagonline.segment.yolo.YOLOSegmenter": "yolo",
 }
 
 

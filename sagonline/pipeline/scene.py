@@ -17,10 +17,8 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from sagonline.consensus import VoteConfig, VoteResult
+from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.datasets.base import SceneTask
-from sagonline.gaussians import Gaussians
-from sagonline.metrics import labels3d_metrics
 from sagonline.pipeline.diagnose import diagnose_scene
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import (
@@ -32,10 +30,12 @@ from sagonline.pipeline.scoring import (
 )
 from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun
-from sagonline.provenance import digest_arrays, digest_cameras, digest_gaussians
-from sagonline.recording import Recorder
+from sagonline.record.recording import Recorder
 from sagonline.render.api import render, render_labels, to_uint8
-from sagonline.segmenters.base import VideoSegmenter
+from sagonline.scene.gaussians import Gaussians
+from sagonline.score.metrics import labels3d_metrics
+from sagonline.segment.base import VideoSegmenter
+from sagonline.vote.consensus import VoteConfig, VoteResult
 
 
 def input_digests(task: SceneTask) -> dict:
@@ -65,7 +65,7 @@ def run_scene(
 ) -> tuple[SceneReport, StageOneOutput]:
     """Run and score Stage I on one scene: its report, and what Stage II reuses.
     `predictions_to`: a run folder to write the scored label maps into (PNG, see
-    `sagonline.predictions`)."""
+    `sagonline.score.predictions`)."""
     recorder = recorder or Recorder(None)
     if isinstance(segmenter, VideoSegmenter):
         segmenter = SegmenterRun(segmenter)

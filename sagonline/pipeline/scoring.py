@@ -15,10 +15,10 @@ from pathlib import Path
 
 import numpy as np
 
+from sagonline.core.errors import DatasetError
 from sagonline.datasets.base import SceneTask
-from sagonline.errors import DatasetError
-from sagonline.metrics import match_and_relabel, view_metrics
-from sagonline.predictions import folder_sha256, view_file, write_label_map
+from sagonline.score.metrics import match_and_relabel, view_metrics
+from sagonline.score.predictions import folder_sha256, view_file, write_label_map
 
 
 @dataclass
@@ -143,7 +143,7 @@ def record_scores(
     means are the report's `miou`/`macc`. `voted`: names of the views whose masks voted.
     preds: one (H, W) label map per eval view (automatic ids are matched here). `save_to`: a
     run folder to write the scored label maps (and the ground truth) into, as PNGs with their
-    SHA-256 in the report (`sagonline.predictions`)."""
+    SHA-256 in the report (`sagonline.score.predictions`)."""
     if is_automatic(task) and preds:
         preds = match_and_relabel(preds, [v.gt for v in task.eval_views], resize, task.ignore_label)
         report.extra["label_matching"] = "hungarian, scene-wide"

@@ -12,10 +12,6 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.consensus import VoteConfig, VoteResult
-from sagonline.feedback import FeedbackConfig
-from sagonline.gaussians import Gaussians
 from sagonline.pipeline.graph import Output, StageCache, StageRun, run_stage
 from sagonline.pipeline.stages import (
     FRAMES,
@@ -29,9 +25,13 @@ from sagonline.pipeline.stages import (
     VoteInputs,
     label_count,
 )
-from sagonline.prompts import Prompt
 from sagonline.render.backends import BackendPlan, plan_backends
-from sagonline.segmenters.base import SegmentationResult
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.base import SegmentationResult
+from sagonline.segment.prompts import Prompt
+from sagonline.vote.consensus import VoteConfig, VoteResult
+from sagonline.vote.feedback import FeedbackConfig
 
 
 @dataclass

@@ -24,11 +24,11 @@ from sagonline.pipeline.scene import nearest_frames
 from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
 from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput
 from sagonline.pipeline.stages import REFINE, RefineInputs, SegmenterRun
-from sagonline.recording import Recorder
+from sagonline.record.recording import Recorder
 from sagonline.refine import RefineConfig, RefinementTrainer
 from sagonline.refine.service import OnlineSegmentation
 from sagonline.render.api import resolve_backend
-from sagonline.segmenters.novel_view import NovelViewSegmenter
+from sagonline.segment.novel_view import NovelViewSegmenter
 
 
 def student_checkpoint(

@@ -21,17 +21,17 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from sagonline.cameras import Camera
-from sagonline.consensus import VoteConfig, VoteResult, consensus_vote
-from sagonline.feedback import FeedbackInputs, segment_with_feedback
-from sagonline.gaussians import Gaussians
-from sagonline.io.store import stored
+from sagonline.core.provenance import digest_json
+from sagonline.core.store import stored
 from sagonline.pipeline.graph import Output, Stage
-from sagonline.prompts import Prompt
-from sagonline.provenance import digest_json
 from sagonline.refine import RefineConfig
 from sagonline.render.api import render, to_uint8
-from sagonline.segmenters.base import SegmentationResult, VideoSegmenter
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.base import SegmentationResult, VideoSegmenter
+from sagonline.segment.prompts import Prompt
+from sagonline.vote.consensus import VoteConfig, VoteResult, consensus_vote
+from sagonline.vote.feedback import FeedbackInputs, segment_with_feedback
 
 
 @stored
@@ -84,9 +84,9 @@ def segmenter_run(
     now. `untrusted`: the node was read from a file someone else may have written (a run
     folder): `trust_checkpoint` is turned off whatever it says. The masks' key holds the node's
     settings as given, so every command that rebuilds a run's segmenter finds its masks."""
-    from sagonline.plugins import NODE_KEYS, SEGMENTERS
-    from sagonline.provenance import digest_file
-    from sagonline.segmenters.corruption import CorruptedSegmenter
+    from sagonline.core.plugins import NODE_KEYS, SEGMENTERS
+    from sagonline.core.provenance import digest_file
+    from sagonline.segment.corruption import CorruptedSegmenter
 
     kind = node.get("kind")
     settings = {k: v for k, v in node.items() if k not in NODE_KEYS}

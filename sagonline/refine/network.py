@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from sagonline.io.checkpoints import load_user_checkpoint
+from sagonline.scene.io.checkpoints import load_user_checkpoint
 
 
 def _conv_bn(cin: int, cout: int, k: int = 3, stride: int = 1) -> list[nn.Module]:

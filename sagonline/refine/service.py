@@ -2,7 +2,7 @@
 
 - coarse: the fused Stage I labels rendered at the view (ready as soon as the vote is done);
 - initial: the view's RGB render answered by the 2D video segmenter (the paper's "instant
-  response via the foundation model"; `sagonline.segmenters.novel_view`);
+  response via the foundation model"; `sagonline.segment.novel_view`);
 - refined: the student's answer from the view's RGB render and its coarse label render, once
   its background training has converged or spent its budget.
 Every answer says which mode produced it and how long it took, render included.
@@ -16,11 +16,11 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.refine.trainer import RefinementTrainer
 from sagonline.render.api import render, render_labels, to_uint8
-from sagonline.segmenters.novel_view import NovelViewSegmenter
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.novel_view import NovelViewSegmenter
 
 MODES = ("coarse", "initial", "refined")
 

@@ -24,9 +24,9 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sagonline.io import store
+from sagonline.core import store
+from sagonline.core.settings import check_settings
 from sagonline.refine.network import ARCHS, DualBranchRefiner
-from sagonline.settings import check_settings
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
 

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.rasterize import TraceChunk, TraceRequest, rasterize
 from sagonline.render.rule import VoteRule
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 
 def vote_into(

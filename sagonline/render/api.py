@@ -7,10 +7,10 @@ import inspect
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.backends import resolve_backend, resolve_vote_backend
 from sagonline.render.rasterize import RenderOutput, rasterize
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 # Every option `render` takes: those of the readable twin, `rasterize`.
 RENDER_OPTIONS = frozenset(inspect.signature(rasterize).parameters) - {"gaussians", "camera"}

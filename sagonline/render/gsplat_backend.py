@@ -15,10 +15,10 @@ from __future__ import annotations
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.projection import depth_rank, project, splat_response
 from sagonline.render.rasterize import RenderOutput, TraceChunk, TraceRequest
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 
 def gsplat_available() -> bool:

@@ -23,12 +23,12 @@ from dataclasses import dataclass
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.kernels import NativeBuildError, load_extension
 from sagonline.render.projection import project
 from sagonline.render.rasterize import T_STOP, RenderOutput
 from sagonline.render.rule import VoteRule
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 log = logging.getLogger(__name__)
 

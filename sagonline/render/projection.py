@@ -19,9 +19,9 @@ from dataclasses import dataclass
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians, quat_to_rotmat
 from sagonline.render.sh import eval_sh
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians, quat_to_rotmat
 
 SIGMA_CUTOFF = 3.0
 LOW_PASS = 0.3  # px^2 added to every 3DGS 2D covariance

@@ -29,9 +29,9 @@ from dataclasses import dataclass
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.projection import ProjectedSplats, depth_rank, project, splat_response
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 T_STOP = 1e-4
 

@@ -13,9 +13,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.sh import eval_sh
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 ALPHA_MIN, ALPHA_MAX, CUTOFF2 = 1.0 / 255.0, 0.99, 9.0
 

@@ -33,11 +33,11 @@ if not torch.cuda.is_available() and "triton" not in sys.modules:
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
 
-from sagonline.cameras import Camera  # noqa: E402
-from sagonline.gaussians import Gaussians  # noqa: E402
 from sagonline.render.projection import project  # noqa: E402
 from sagonline.render.rasterize import T_STOP, bin_tiles  # noqa: E402
 from sagonline.render.rule import VoteRule  # noqa: E402
+from sagonline.scene.cameras import Camera  # noqa: E402
+from sagonline.scene.gaussians import Gaussians  # noqa: E402
 
 TILE = 16
 # Compiled for CUDA, or interpreted on the CPU (no CUDA, or TRITON_INTERPRET=1): one mode per

@@ -6,7 +6,7 @@ label when the transmittance before it is T_i > eps and it reaches the pixel (al
 and, with `delta`, only if its projected centre lies within delta pixels of the pixel centre.
 A vote is +1 (weighting "count", RGC) or alpha_i T_i ("blend", FlashSplat and the weighted
 mean). A pixel's walk ends once T <= eps. Turning histograms into labels is
-`sagonline.consensus`'s business, not this module's.
+`sagonline.vote.consensus`'s business, not this module's.
 
 One op, `vote_histogram`, and one function of the same name and signature per implementation,
 `vote_into(gaussians, camera, labels, hist, rule)` (as gsplat pairs `_wrapper.py` with
@@ -27,10 +27,10 @@ import functools
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.backends import resolve_vote_backend
 from sagonline.render.rule import VoteRule
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 
 def vote_histogram(

@@ -13,10 +13,10 @@ import pytest
 from hydra.errors import ConfigCompositionException
 
 from bench.config import EvalConfig, ScenesConfig
-from sagonline.consensus import VoteConfig
-from sagonline.feedback import FeedbackConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
+from sagonline.vote.consensus import VoteConfig
+from sagonline.vote.feedback import FeedbackConfig
 from tests.fixtures import compose_config
 
 

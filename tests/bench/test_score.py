@@ -12,7 +12,7 @@ import pytest
 from bench.eval import evaluate
 from bench.score import main as score
 from bench.tables import build
-from sagonline.predictions import folder_sha256, read_label_map, write_label_map
+from sagonline.score.predictions import folder_sha256, read_label_map, write_label_map
 from tests.fixtures import cfg_with
 
 

@@ -278,9 +278,9 @@ def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
 def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     """Views with a photograph vs pose-and-mask-only views: both are scored and told apart,
     with the angle to the nearest photograph; `order=path` starts the video at the prompt."""
-    from sagonline.consensus import VoteConfig
     from sagonline.pipeline import PipelineSettings, run_scene
-    from sagonline.segmenters.oracle import OracleSegmenter
+    from sagonline.segment.oracle import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
 
     cams, scene = llff_scene(tmp_path / "cap", NAMES)
     _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)

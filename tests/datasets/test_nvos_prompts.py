@@ -8,9 +8,9 @@ import json
 import numpy as np
 import pytest
 
+from sagonline.core.errors import DatasetError
 from sagonline.datasets.nvos import NVOSDataset
 from sagonline.datasets.nvos_prompts import SKELETON_KEEP, skeleton_points
-from sagonline.errors import DatasetError
 from tests.datasets.test_datasets import _nvos
 
 

@@ -7,8 +7,8 @@ import pytest
 import torch
 
 from sagonline.datasets.synthetic import load_synthetic
-from sagonline.scene_generator import make_scene
-from sagonline.segmenters import OracleSegmenter, Prompt
+from sagonline.scene.generator import make_scene
+from sagonline.segment import OracleSegmenter, Prompt
 
 
 def test_same_seed_same_scene_other_seed_other_scene():
@@ -112,7 +112,7 @@ def test_corruptions_are_controlled_across_settings():
     """Each kind draws from its own stream: more flicker flickers a superset of the frames, and
     boundary noise does not change which frames flicker (a robustness table's rows differ
     only in what they name)."""
-    from sagonline.segmenters.corruption import MaskCorruption
+    from sagonline.segment.corruption import MaskCorruption
 
     gts = [_square() for _ in range(60)]
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
+from sagonline.core import store
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
-from sagonline.io import store
 from sagonline.render import rasterize
-from sagonline.scene_generator import make_scene
+from sagonline.scene.generator import make_scene
 from tests.fixtures import compose_config
 
 
@@ -80,10 +80,10 @@ def test_same_seed_same_scene_and_budget_stops_are_recorded(views):
 def test_runs_on_a_budget_stopped_fit_say_so(tmp_path):
     import dataclasses
 
-    from sagonline.consensus import VoteConfig
     from sagonline.datasets.synthetic import load_synthetic
     from sagonline.pipeline import PipelineSettings, run_scene
-    from sagonline.segmenters.oracle import OracleSegmenter
+    from sagonline.segment.oracle import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
 
     task = load_synthetic(
         layout="forward", num_gaussians=1500, width=40, height=30, num_train_views=5
@@ -193,7 +193,7 @@ def test_pose_view_clearance_prunes_only_in_front_of_pose_only_views(views):
 
 def test_near_depths_of_views_from_llff_bounds_or_points(tmp_path):
     from sagonline.fitting.capture import view_near_depths
-    from sagonline.io.cameras import load_llff
+    from sagonline.scene.io.cameras import load_llff
     from tests.fixtures import llff_scene
 
     names = [f"IMG_{i:04d}" for i in range(5)]
@@ -217,7 +217,7 @@ def test_the_capture_points_lower_an_llff_bound_that_lies_beyond_the_object(tmp_
     the background (mother_child's IMG_0977: near 4.65, the statuette at 3.7): the view's near
     depth is then its own points', so the view clearance never prunes the object."""
     from sagonline.fitting.capture import view_near_depths
-    from sagonline.io.cameras import load_llff
+    from sagonline.scene.io.cameras import load_llff
     from tests.fixtures import llff_scene
 
     names = [f"IMG_{i:04d}" for i in range(3)]
@@ -401,7 +401,7 @@ import hashlib, sys, torch
 torch.set_num_threads(int(sys.argv[1]))
 from sagonline.fitting import FitConfig, SceneFitter
 from sagonline.render import rasterize
-from sagonline.scene_generator import make_scene
+from sagonline.scene.generator import make_scene
 s = make_scene(layout="forward", num_gaussians=2000, width=48, height=36, num_train_views=9)
 imgs = [rasterize(s.gaussians, c).rgb.clamp(0, 1) for c in s.train_cameras]
 if sys.argv[3] == "small":

@@ -11,16 +11,16 @@ from collections import defaultdict
 import pytest
 import torch
 
-from sagonline.cameras import intrinsics, make_camera
 from sagonline.fitting.losses import (
     depth_distortion,
     depth_normals,
     normal_consistency,
     splat_geometry,
 )
-from sagonline.gaussians import Gaussians
 from sagonline.render import rasterize
 from sagonline.render.reference import reference_render
+from sagonline.scene.cameras import intrinsics, make_camera
+from sagonline.scene.gaussians import Gaussians
 from tests.fixtures import random_gaussians, small_camera
 
 NEAR, FAR = 1.0, 8.0

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial import cKDTree
 
-from sagonline.files import atomic_write_image
+from sagonline.core.files import atomic_write_image
 from sagonline.fitting.triangulate import triangulate_known_poses
 from sagonline.render import rasterize
 from sagonline.render.api import to_uint8
-from sagonline.scene_generator import make_scene
+from sagonline.scene.generator import make_scene
 
 
 def test_points_land_on_the_synthetic_surfaces(tmp_path):

@@ -7,7 +7,7 @@ import pytest
 import torch
 from plyfile import PlyData, PlyElement
 
-from sagonline.io import SceneFileError, read_scene, write_ply
+from sagonline.scene.io import SceneFileError, read_scene, write_ply
 from tests.fixtures import random_gaussians, shared_data
 
 FIELDS = ("means", "quats", "scales", "opacities", "sh")

@@ -10,10 +10,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from sagonline.cameras import Camera
-from sagonline.consensus import VoteConfig
-from sagonline.feedback import FeedbackConfig
-from sagonline.gaussians import Gaussians
 from sagonline.pipeline.graph import Output, digest_value
 from sagonline.pipeline.stages import (
     REFINE,
@@ -24,9 +20,13 @@ from sagonline.pipeline.stages import (
     SegmenterRun,
     VoteInputs,
 )
-from sagonline.prompts import Prompt
 from sagonline.refine import RefineConfig
-from sagonline.segmenters.oracle import OracleSegmenter
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.segment.prompts import Prompt
+from sagonline.vote.consensus import VoteConfig
+from sagonline.vote.feedback import FeedbackConfig
 
 # Valid other values for settings whose field is a string or None (numbers and flags are
 # changed by rule: see `changed`).
@@ -135,7 +135,7 @@ def replaced(value, name: str, new):
     except ValueError:
         if not isinstance(value, VoteConfig):
             raise
-        from sagonline.plugins import VOTE_RULES
+        from sagonline.core.plugins import VOTE_RULES
 
         method = next(p.key for p in VOTE_RULES if name in p.build(p.config()).reads)
         return dataclasses.replace(value, method=method, **{name: new})

@@ -22,10 +22,7 @@ import torch
 
 from bench.eval import evaluate
 from bench.rundir import RunExists
-from sagonline.consensus import VoteConfig
 from sagonline.datasets.base import DatasetError
-from sagonline.io import write_ply
-from sagonline.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
 from sagonline.pipeline import (
     PipelineSettings,
     SceneReport,
@@ -35,7 +32,10 @@ from sagonline.pipeline import (
     run_scene,
 )
 from sagonline.pipeline.stages import VOTE
-from sagonline.segmenters.oracle import OracleSegmenter
+from sagonline.scene.io import write_ply
+from sagonline.scene.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.vote.consensus import VoteConfig
 from tests.fixtures import (
     ROOT,
     TINY,
@@ -238,7 +238,7 @@ def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
         before
     )
     assert b"summary" in before["eval.log"]
-    from sagonline.files import _umask
+    from sagonline.core.files import _umask
 
     assert (run / "metrics.json").stat().st_mode & 0o777 == 0o666 & ~_umask()
     metrics = json.loads(before["metrics.json"])
@@ -446,7 +446,7 @@ def test_unreadable_yolo_weights_fail_before_rendering(tmp_path, capsys):
 
 
 def test_weights_digest_joins_the_masks_key(tmp_path):
-    from sagonline.provenance import digest_file
+    from sagonline.core.provenance import digest_file
 
     f = tmp_path / "w.pt"
     f.write_bytes(b"a" * 10)

@@ -28,7 +28,7 @@ def test_encoder_matches_torchvision_layout(arch, params, last):
     assert tuple(sd[key].shape) == last
     assert "layer1.0.downsample.0.weight" in sd or arch == "resnet18"
     try:
-        from sagonline.compat import import_torchvision
+        from sagonline.segment.compat import import_torchvision
 
         tv = import_torchvision()
     except ImportError:

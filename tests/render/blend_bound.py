@@ -34,11 +34,11 @@ import sys
 
 import torch
 
-from sagonline.cameras import Camera
-from sagonline.gaussians import Gaussians
 from sagonline.render.projection import ALPHA_MIN, SIGMA_CUTOFF, SURFEL_FILTER_INV_SQ, project
 from sagonline.render.rasterize import TraceChunk, TraceRequest, rasterize
 from sagonline.render.rule import VoteRule
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
 
 U = 2.0**-24  # float32 unit roundoff
 R_ALPHA = 16 * U

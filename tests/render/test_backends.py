@@ -7,7 +7,6 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.consensus import VoteResult
 from sagonline.render.backends import (
     BackendError,
     Installed,
@@ -16,7 +15,8 @@ from sagonline.render.backends import (
     resolve_backend,
     resolve_vote_backend,
 )
-from sagonline.segmenters.base import SegmentationResult
+from sagonline.segment.base import SegmentationResult
+from sagonline.vote.consensus import VoteResult
 
 EVERYTHING = dict(cuda=True, gsplat=True, triton=True, native=True)
 
@@ -135,10 +135,10 @@ def test_the_pipeline_votes_with_its_own_backend(monkeypatch):
 
 
 def _tiny_stage_one_inputs():
-    from sagonline.consensus import VoteConfig
     from sagonline.pipeline.stages import SegmenterRun
-    from sagonline.prompts import ObjectPrompt, Prompt
-    from sagonline.segmenters.oracle import OracleSegmenter
+    from sagonline.segment.oracle import OracleSegmenter
+    from sagonline.segment.prompts import ObjectPrompt, Prompt
+    from sagonline.vote.consensus import VoteConfig
     from tests.fixtures import random_gaussians, small_camera
 
     g = random_gaussians(20, "3dgs")

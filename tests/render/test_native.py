@@ -8,8 +8,8 @@ import shutil
 import pytest
 import torch
 
-from sagonline.gaussians import Gaussians
 from sagonline.render import TraceRequest, rasterize, render
+from sagonline.scene.gaussians import Gaussians
 from tests.fixtures import random_gaussians, small_camera
 
 if shutil.which("c++") is None and shutil.which("g++") is None:

@@ -12,9 +12,9 @@ from functools import partial
 import pytest
 import torch
 
-from sagonline.gaussians import Gaussians
 from sagonline.render import rasterize, vote_histogram
 from sagonline.render.rule import VoteRule
+from sagonline.scene.gaussians import Gaussians
 from tests.fixtures import random_gaussians, small_camera
 from tests.render.blend_bound import blend_bound
 

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.gaussians import SH_C0, Gaussians
+from sagonline.pipeline.segment import clicks_prompt, segment_scene
 from sagonline.render import render_labels
-from sagonline.segment import clicks_prompt, segment_scene
-from sagonline.trajectory import orbit_around
+from sagonline.scene.gaussians import SH_C0, Gaussians
+from sagonline.scene.trajectory import orbit_around
 
 ICING, DOUGH = (0.95, 0.45, 0.7), (0.6, 0.4, 0.2)
 
@@ -77,10 +77,10 @@ def test_more_clicks_keep_the_icing_of_the_real_donut():
     hue in a view 37.5 degrees from the prompt view, between two segmented views."""
     import cv2
 
-    from sagonline.io import read_scene
-    from sagonline.io.cameras import load_cameras
     from sagonline.render.api import render, to_uint8
-    from sagonline.trajectory import ring_around
+    from sagonline.scene.io import read_scene
+    from sagonline.scene.io.cameras import load_cameras
+    from sagonline.scene.trajectory import ring_around
     from tests.fixtures import shared_data
 
     g = read_scene(shared_data("donut_3dgs", "point_cloud.ply"))

@@ -7,14 +7,14 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.metrics import view_metrics
-from sagonline.prompts import Prompt
 from sagonline.refine.service import OnlineSegmentation
 from sagonline.render.api import render, to_uint8
-from sagonline.segmenters.base import VideoSegmenter
-from sagonline.segmenters.classical import FlowWatershedSegmenter
-from sagonline.segmenters.novel_view import NovelViewSegmenter
-from sagonline.segmenters.oracle import OracleSegmenter
+from sagonline.score.metrics import view_metrics
+from sagonline.segment.base import VideoSegmenter
+from sagonline.segment.classical import FlowWatershedSegmenter
+from sagonline.segment.novel_view import NovelViewSegmenter
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.segment.prompts import Prompt
 
 
 def _rgb(task, camera):

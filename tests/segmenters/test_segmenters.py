@@ -7,12 +7,12 @@ import pytest
 import torch
 
 from bench.job import build_segmenter
-from sagonline.compat import nms_reference
-from sagonline.metrics import match_labels, relabel, view_metrics
-from sagonline.segmenters import ObjectPrompt, Prompt
-from sagonline.segmenters.classical import FlowWatershedSegmenter
-from sagonline.segmenters.sam3_text import SAM3TextSegmenter, merge_text_masks
-from sagonline.segmenters.yolo import TrackLabeler
+from sagonline.score.metrics import match_labels, relabel, view_metrics
+from sagonline.segment import ObjectPrompt, Prompt
+from sagonline.segment.classical import FlowWatershedSegmenter
+from sagonline.segment.compat import nms_reference
+from sagonline.segment.sam3_text import SAM3TextSegmenter, merge_text_masks
+from sagonline.segment.yolo import TrackLabeler
 from tests.fixtures import (
     compose_config,
 )
@@ -128,7 +128,7 @@ def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
 
 def test_sam2_random_weights_tiny_video():
     pytest.importorskip("sam2", reason="install the sam2 extra")
-    from sagonline.segmenters.sam2_video import SAM2VideoSegmenter
+    from sagonline.segment.sam2_video import SAM2VideoSegmenter
 
     torch.manual_seed(0)
     seg = SAM2VideoSegmenter(allow_random_weights=True, image_size=256)
@@ -148,7 +148,7 @@ def test_sam2_random_weights_tiny_video():
 
 def test_sam2_checkpoint_must_fit_the_config(tmp_path):
     pytest.importorskip("sam2", reason="install the sam2 extra")
-    from sagonline.segmenters.sam2_video import SAM2VideoSegmenter
+    from sagonline.segment.sam2_video import SAM2VideoSegmenter
 
     bad = tmp_path / "bad.pt"
     torch.save({"model": {"not_a_key": torch.zeros(1)}}, bad)
@@ -158,7 +158,7 @@ def test_sam2_checkpoint_must_fit_the_config(tmp_path):
 
 def test_yolo_random_weights_tracks_tiny_video():
     pytest.importorskip("ultralytics", reason="install the yolo extra")
-    from sagonline.segmenters.yolo import YOLOSegmenter
+    from sagonline.segment.yolo import YOLOSegmenter
 
     torch.manual_seed(0)
     seg = YOLOSegmenter(model_yaml="yolo11n-seg.yaml", classes=None, imgsz=96, conf=0.001)

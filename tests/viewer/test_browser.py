@@ -9,7 +9,7 @@ import socket
 import numpy as np
 import pytest
 
-from sagonline.viewer.browser import missing_browser_reason
+from sagonline.apps.viewer.browser import missing_browser_reason
 
 pytestmark = pytest.mark.skipif(
     missing_browser_reason() is not None, reason=str(missing_browser_reason())
@@ -28,10 +28,10 @@ def viewer(tmp_path):
     port; yields (app, session, ply path, parts)."""
     from plyfile import PlyData, PlyElement
 
-    from sagonline.io import read_scene, write_ply
-    from sagonline.trajectory import orbit_around
-    from sagonline.viewer.app import ViewerApp
-    from sagonline.viewer.session import SegmentSession
+    from sagonline.apps.viewer.app import ViewerApp
+    from sagonline.apps.viewer.session import SegmentSession
+    from sagonline.scene.io import read_scene, write_ply
+    from sagonline.scene.trajectory import orbit_around
     from tests.segmenters.test_clicks import iced_donut
 
     g, parts = iced_donut(60, 28)
@@ -54,7 +54,7 @@ def viewer(tmp_path):
 def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
     from plyfile import PlyData
 
-    from sagonline.viewer import browser
+    from sagonline.apps.viewer import browser
 
     app, session, ply, parts = viewer
     chrome = browser.open_browser(app.url, 900, 600)

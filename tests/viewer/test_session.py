@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.segment import PromptError, clicks_prompt, segment_scene
-from sagonline.segmenters.classical import FlowWatershedSegmenter
-from sagonline.trajectory import orbit_around
-from sagonline.viewer.session import SegmentSession
+from sagonline.apps.viewer.session import SegmentSession
+from sagonline.pipeline.segment import PromptError, clicks_prompt, segment_scene
+from sagonline.scene.trajectory import orbit_around
+from sagonline.segment.classical import FlowWatershedSegmenter
 from tests.segmenters.test_clicks import iced_donut
 
 

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import socket
 
-from sagonline.cli import main
-from sagonline.io import write_ply
+from sagonline.apps.cli import main
+from sagonline.scene.io import write_ply
 from tests.segmenters.test_clicks import iced_donut
 
 
@@ -20,7 +20,7 @@ def test_view_serves_prints_its_url_and_stops_on_ctrl_c(tmp_path, capsys, monkey
     def interrupt(_seconds):
         raise KeyboardInterrupt
 
-    monkeypatch.setattr("sagonline.cli.view.time.sleep", interrupt)
+    monkeypatch.setattr("sagonline.apps.cli.view.time.sleep", interrupt)
     argv = ["view", str(tmp_path / "donut.ply"), "--orbit", "6", "--width", "64", "--height",
             "48", "--port", str(port), "--backend", "native"]  # fmt: skip
     assert main(argv) == 130

@@ -1,0 +1,1 @@
+"""The front ends: the command line (`apps.cli`) and the browser viewer (`apps.viewer`)."""

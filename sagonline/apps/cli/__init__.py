@@ -1,0 +1,73 @@
+"""Command line: `sagonline info | cameras | render | segment | view | figure | export | plugins`.
+
+    sagonline info SCENE                      format, Gaussian count, SH degree, bounds
+    sagonline cameras CAMERAS                 every view's index, name and size
+    sagonline render SCENE --cameras C --view VIEW --out view.png
+    sagonline segment SCENE [--cameras C] --click VIEW:X,Y [--object NAME] ...
+    sagonline segment SCENE --prompts SEGMENT_DIR/labels.json   a segmentation again, no browser
+    sagonline view SCENE [--cameras C]        click in the browser, watch the labels form, export
+    sagonline figure SEGMENT_DIR --out x.png  render | labels | each object alone, titled
+    sagonline export RUN_DIR                  a finished eval run's labels, per scene
+    sagonline plugins [segmenters|datasets|vote-rules]
+
+Every problem with an input ends in one line that names the file, flag or setting, and a
+non-zero exit status; nothing outside `--out` is ever written (`sagonline.core.outputs`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from sagonline.apps.cli import export, figure, inspect, render, segment, view
+
+    parser = argparse.ArgumentParser(
+        prog="sagonline",
+        description="Segment any Gaussians online: inspect, render, segment and export scenes.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+    for module in (inspect, render, segment, view, figure, export):
+        module.add_parsers(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run one command; returns its exit status (0: done, 2: a problem with the input, 1: an
+    unexpected failure, 130: interrupted). SAGONLINE_DEBUG=1 shows the traceback of an
+    unexpected failure."""
+    from sagonline.core.errors import DatasetError
+
+    try:
+        args = build_parser().parse_args(argv)
+        return args.func(args)
+    except KeyboardInterrupt:
+        print("interrupted: nothing was left half-written", file=sys.stderr)
+        return 130
+    except (ValueError, DatasetError, OSError, MemoryError) as exc:
+        if os.environ.get("SAGONLINE_DEBUG"):
+            raise
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # a bug: still one line, with the way to see more
+        if os.environ.get("SAGONLINE_DEBUG"):
+            raise
+        print(
+            f"error: unexpected {type(exc).__name__}: {one_line(exc)} (a bug: rerun with "
+            "SAGONLINE_DEBUG=1 for the traceback, and report it)",
+            file=sys.stderr,
+        )
+        return 1
+
+
+def one_line(exc: BaseException) -> str:
+    """An error's message on one line."""
+    text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    if isinstance(exc, MemoryError):
+        text = f"out of memory ({text or 'no detail'}); try a smaller size or fewer views"
+    return " ".join(text.split()) or type(exc).__name__
+
+
+__all__ = ["build_parser", "main"]

@@ -1,0 +1,96 @@
+"""`sagonline export RUN_DIR`: a finished eval run's labels, per scene, as the files `segment`
+writes (`sagonline.labels.export`). The run's Stage I is redone from its metrics.json
+(`pipeline.recorded`): nothing in the folder is executed or trusted, and the cached stages
+are used only where today's inputs give the same keys."""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import asdict
+from pathlib import Path
+
+
+def add_parsers(sub) -> None:
+    exp = sub.add_parser("export", help="a finished eval run's labels as files (per scene)")
+    exp.add_argument("run_dir")
+    exp.add_argument("--out", help="output folder (default: <run_dir>/export)")
+    exp.add_argument(
+        "--overwrite", action="store_true", help="replace earlier exports (and only those)"
+    )
+    exp.add_argument("--device", help="redo on this device (default: the run's)")
+    exp.set_defaults(func=cmd_export)
+
+
+def cmd_export(args) -> int:
+    from sagonline.core.machine import check_device
+    from sagonline.core.outputs import check_not_input, check_replaceable
+    from sagonline.labels.export import write_segmentation
+    from sagonline.pipeline.graph import StageCache
+    from sagonline.pipeline.recorded import read_recorded_run
+    from sagonline.pipeline.stage_one import compose_stage_one
+
+    run = Path(args.run_dir)
+    recorded = read_recorded_run(run, device=args.device)
+    check_device(recorded.settings.device)
+    for note in recorded.notes:
+        print(f"note: {note}", file=sys.stderr)
+    out_root = Path(args.out) if args.out else run / "export"
+    metrics_file = run / "metrics.json"
+    done = 0
+    for row in recorded.scenes:
+        scene = str(row.get("scene"))
+        if row.get("status") != "ok":
+            print(f"warning: {scene}: did not finish in the run; skipped", file=sys.stderr)
+            continue
+        task = recorded.adapter.load_scene(scene)
+        source = task.meta.get("scene_file")
+        inputs = [metrics_file, *([Path(source)] if source else [])]
+        out = out_root / task.name
+        check_not_input(out, inputs)
+        check_replaceable(out, args.overwrite)
+        cache = StageCache(
+            recorded.cache_root / scene if recorded.cache_root else None, writable=False
+        )
+        stage_one = compose_stage_one(
+            task.gaussians.to(recorded.settings.device), task.trajectory, task.prompt,
+            recorded.segmenter, recorded.vote, recorded.settings, num_labels=task.num_labels,
+            trajectory_gt=task.trajectory_gt, cache=cache,
+        )  # fmt: skip
+        say_what_was_redone(scene, stage_one, row)
+        labels = stage_one.labels
+        names = list(task.label_names or ["background"])
+        names += [f"id_{i}" for i in range(len(names), stage_one.num_labels)]
+        info = {
+            "run": str(run),
+            "scene": scene,
+            "stage_keys": stage_one.keys,
+            "vote": asdict(recorded.vote),
+            "protocol": recorded.adapter.protocol,
+        }
+        write_segmentation(
+            out, task.gaussians, labels, names[: stage_one.num_labels],
+            source=Path(source) if source else None, info=info, overwrite=args.overwrite,
+            inputs=inputs, command="export", on_clash="suffix",
+        )  # fmt: skip
+        done += 1
+        print(f"{scene}: {int((labels >= 0).sum())} of {len(labels)} Gaussians labelled -> {out}")
+    if not done:
+        print(f"error: {run}: no scene of the run could be exported", file=sys.stderr)
+    return 0 if done else 1
+
+
+def say_what_was_redone(scene: str, stage_one, row: dict) -> None:
+    """Name the stages computed again (not in the run's cache), and a vote key that differs
+    from the one the run recorded (its inputs or the code changed since)."""
+    redone = [name for name, r in stage_one.runs.items() if r.status == "computed"]
+    if redone:
+        print(f"note: {scene}: computed again (not in the run's cache): {', '.join(redone)}",
+              file=sys.stderr)  # fmt: skip
+    recorded = (row.get("stage_keys") or {}).get("vote") if isinstance(row, dict) else None
+    if recorded is not None and recorded != stage_one.vote.key:
+        print(
+            f"note: {scene}: the vote's key today ({stage_one.vote.key[:12]}) is not the one the "
+            f"run recorded ({str(recorded)[:12]}): its inputs, settings or code changed since; "
+            "the labels exported are today's",
+            file=sys.stderr,
+        )

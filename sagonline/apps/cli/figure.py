@@ -1,0 +1,123 @@
+"""`sagonline figure SEGMENT_DIR --out x.png`: a picture of a `sagonline segment` folder.
+
+For a few of its views (rows, each named in its first tile): the scene's render, the label
+render, each object PLY rendered alone and, with one object, the scene without it (columns,
+titled once at the top). The object PLYs are read back
+like any scene file, so the picture shows what another 3DGS tool gets from them. The views are
+the folder's own trajectory, rebuilt from its labels.json (cameras, orbit, in-between views,
+render size).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.render.backends import BACKENDS
+
+TITLE_PX = 22  # height of the title strip above the columns
+
+
+def add_parsers(sub) -> None:
+    fig = sub.add_parser(
+        "figure", help="a picture of a segment folder: render | labels | each object alone"
+    )
+    fig.add_argument("folder", help="a `sagonline segment` output folder")
+    fig.add_argument(
+        "--views", default="0", help="comma-separated view indices of the folder (default 0)"
+    )
+    fig.add_argument("--out", required=True, help="output .png or .jpg")
+    fig.add_argument("--overwrite", action="store_true", help="replace an earlier --out")
+    fig.add_argument("--backend", default="auto", choices=BACKENDS)
+    fig.set_defaults(func=cmd_figure)
+
+
+def folder_views(info: dict, scene) -> list:
+    """The segment folder's trajectory, as its labels.json records it."""
+    from sagonline.scene.trajectory import insert_between
+    from sagonline.scene.views import load_views
+
+    width, height = info["prompt"]["render_size"]
+    views = load_views(
+        info.get("cameras"), scene, orbit=info.get("orbit") or 0, width=width, height=height
+    )
+    return insert_between(views.cameras, info.get("inbetween") or 0)
+
+
+def put_text(image: np.ndarray, text: str, org: tuple[int, int], height: int, color) -> None:
+    """Write `text` into `image` (in place) at most `height` px tall and as wide as fits."""
+    import cv2
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    (w, h), _ = cv2.getTextSize(text, font, 1.0, 1)
+    scale = min(height / max(h, 1), (image.shape[1] - org[0] - 2) / max(w, 1), 0.6)
+    cv2.putText(image, text, org, font, max(scale, 0.2), color, 1, cv2.LINE_AA)
+
+
+def header(widths: list[int], titles: list[str]) -> np.ndarray:
+    """A white strip naming each column (the columns' widths in px)."""
+    strips = []
+    for width, title in zip(widths, titles, strict=True):
+        strip = np.full((TITLE_PX, width, 3), 255, np.uint8)
+        put_text(strip, title, (3, TITLE_PX - 7), TITLE_PX - 10, (0, 0, 0))
+        strips.append(strip)
+    return np.concatenate(strips, axis=1)
+
+
+def cmd_figure(args) -> int:
+    from PIL import Image
+
+    from sagonline.core.files import atomic_write_image
+    from sagonline.core.outputs import OutputError, check_not_input
+    from sagonline.record.recording import label_colors
+    from sagonline.render.api import render, to_uint8
+    from sagonline.scene.io import read_scene
+
+    folder, out = Path(args.folder), Path(args.out)
+    if not (folder / "labels.json").is_file():
+        raise ValueError(f"{folder}: no labels.json (not a `sagonline segment` output folder)")
+    if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"--out {out}: a figure is a .png or .jpg file")
+    info = json.loads((folder / "labels.json").read_text())
+    check_not_input(
+        out, [folder, info["scene"], *([info["cameras"]] if info.get("cameras") else [])]
+    )
+    if out.exists() and not args.overwrite:
+        raise OutputError(f"--out {out} exists; pass --overwrite to replace it")
+    scene = read_scene(info["scene"])
+    cams = folder_views(info, scene)
+    try:
+        picks = [int(v) for v in args.views.split(",")]
+    except ValueError:
+        raise ValueError(f"--views {args.views!r}: comma-separated view indices") from None
+    bad = [v for v in picks if not 0 <= v < len(cams)]
+    if bad:
+        raise ValueError(f"--views: view {bad[0]} is out of range (the folder has {len(cams)})")
+    objects = {p.stem: read_scene(p) for p in sorted((folder / "objects").glob("*.ply"))}
+    rest = sorted(folder.glob("scene_without_*.ply"))
+    colors = label_colors(len(info["names"]))
+    titles = ["scene", "labels", *(f"{name} alone" for name in objects)]
+    if len(objects) == 1 and rest:
+        titles.append(f"without {next(iter(objects))}")
+    rows = []
+    for v in picks:
+        cam = cams[v]
+        label_png = next((folder / "views").glob(f"{v:04d}_*_labels.png"), None)
+        if label_png is None:
+            raise ValueError(f"{folder}/views: no label render of view {v}")
+        labels = np.asarray(Image.open(label_png))
+        tiles = [
+            to_uint8(render(scene, cam, backend=args.backend).rgb),
+            colors[labels].astype(np.uint8),
+        ]
+        tiles += [to_uint8(render(g, cam, backend=args.backend).rgb) for g in objects.values()]
+        if len(titles) > len(tiles):
+            tiles.append(to_uint8(render(read_scene(rest[0]), cam, backend=args.backend).rgb))
+        put_text(tiles[0], f"view {v}", (3, 14), 10, (255, 255, 255))
+        rows.append(np.concatenate(tiles, axis=1))
+    widths = [tile.shape[1] for tile in tiles]
+    atomic_write_image(out, np.concatenate([header(widths, titles), *rows], axis=0))
+    print(f"wrote {out}: " + " | ".join(titles) + f"; views {args.views}")
+    return 0

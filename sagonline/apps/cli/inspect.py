@@ -1,0 +1,74 @@
+"""`sagonline info SCENE`, `sagonline cameras CAMERAS` and `sagonline plugins`."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def add_parsers(sub) -> None:
+    info = sub.add_parser("info", help="format, Gaussian count, SH degree, bounding box")
+    info.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
+    info.add_argument("--drop-nonfinite", action="store_true", help="drop NaN/Inf rows")
+    info.set_defaults(func=cmd_info)
+    cams = sub.add_parser(
+        "cameras",
+        help="every view's index, name and size, in the order every command numbers them",
+    )
+    cams.add_argument(
+        "cameras", help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz"
+    )
+    cams.set_defaults(func=cmd_cameras)
+    plugins = sub.add_parser("plugins", help="the registered segmenters, datasets, vote rules")
+    plugins.add_argument(
+        "kind", nargs="?", choices=["segmenters", "datasets", "vote-rules"], default=None
+    )
+    plugins.add_argument("--keys", action="store_true", help="keys only, comma-separated")
+    plugins.set_defaults(func=cmd_plugins)
+
+
+def cmd_info(args: argparse.Namespace) -> int:
+    from sagonline.scene.io import read_scene, scene_file
+
+    path = scene_file(args.scene)
+    g = read_scene(path, drop_nonfinite=args.drop_nonfinite)
+    lo, hi = g.bounding_box()
+    fmt = "splat (32 bytes per splat)" if Path(path).suffix == ".splat" else "ply"
+    kind = "2DGS surfels" if g.kind == "2dgs" else "3DGS ellipsoids"
+    print(f"file:        {path}")
+    print(f"format:      {fmt}, {kind}")
+    print(f"gaussians:   {len(g)}")
+    print(f"sh degree:   {g.sh_degree}")
+    print(f"normals:     {'yes' if g.normals is not None else 'no'}")
+    print(f"bbox min:    {' '.join(f'{v:.4g}' for v in lo.tolist())}")
+    print(f"bbox max:    {' '.join(f'{v:.4g}' for v in hi.tolist())}")
+    print(f"opacity:     mean {g.opacities.mean():.3f}, min {g.opacities.min():.3f}")
+    return 0
+
+
+def cmd_cameras(args: argparse.Namespace) -> int:
+    from sagonline.scene.views import load_views
+
+    views = load_views(args.cameras)
+    print(f"# {views.source}: VIEW in render --view, segment --click VIEW:X,Y, --preview VIEW")
+    print(f"{'index':>5}  {'name':<32} size")
+    for i, cam in enumerate(views.cameras):
+        print(f"{i:>5}  {cam.name:<32} {cam.width}x{cam.height}")
+    return 0
+
+
+def cmd_plugins(args: argparse.Namespace) -> int:
+    from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
+
+    registries = {"segmenters": SEGMENTERS, "datasets": DATASETS, "vote-rules": VOTE_RULES}
+    chosen = [args.kind] if args.kind else list(registries)
+    for kind in chosen:
+        registry = registries[kind]
+        if args.keys:
+            print(",".join(registry.keys()))
+            continue
+        print(f"{kind}:")
+        for plugin in registry:
+            where = "consensus.*" if kind == "vote-rules" else plugin.config.__name__
+            print(f"  {plugin.key:<14} {plugin.summary} ({where})")
+    return 0

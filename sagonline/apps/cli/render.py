@@ -1,0 +1,107 @@
+"""`sagonline render SCENE --cameras C --view VIEW --out view.png`: one view to PNG or .npy."""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.render.backends import BACKENDS
+from sagonline.scene.views import CLICK_HELP
+
+OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
+
+
+def add_parsers(sub) -> None:
+    rend = sub.add_parser("render", help="render one view to PNG or .npy (float32 HxWx3)")
+    rend.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
+    add_view_arguments(rend)
+    rend.add_argument(
+        "--view", default="0", help="an index in `sagonline cameras` (sorted by name) or a name"
+    )
+    rend.add_argument("--out", required=True, help="output .png/.jpg, or .npy (linear RGB)")
+    rend.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier --out (a file, not an input)"
+    )
+    rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
+    rend.add_argument(
+        "--backend", default="auto", choices=BACKENDS,
+        help="auto: the compiled kernel on the CPU, gsplat on CUDA (else torch)",
+    )  # fmt: skip
+    rend.set_defaults(func=cmd_render)
+
+
+def add_view_arguments(parser) -> None:
+    """--cameras, --orbit, --width/--height, --device, --drop-nonfinite: how every command that
+    renders picks its views."""
+    parser.add_argument(
+        "--cameras",
+        help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder or .npz; without "
+        "it, an orbit around the scene's bounds",
+    )
+    parser.add_argument(
+        "--orbit", type=int, default=0, metavar="N",
+        help="N views on a ring around the scene (from the first camera, or around the "
+        "scene's bounds without --cameras)",
+    )  # fmt: skip
+    parser.add_argument("--width", type=int, help="render width (cameras rescaled)")
+    parser.add_argument("--height", type=int, help="render height")
+    parser.add_argument(
+        "--device", default="auto", help="auto (cuda when available, else cpu), cpu or cuda[:N]"
+    )
+    parser.add_argument(
+        "--drop-nonfinite", action="store_true", help="drop Gaussians with NaN/Inf values"
+    )
+    parser.epilog = f"Views and clicks: {CLICK_HELP}."
+
+
+def parse_background(text: str) -> list[float]:
+    """'r,g,b' with each value in [0, 1]."""
+    try:
+        values = [float(v) for v in text.split(",")]
+    except ValueError:
+        values = []
+    if len(values) != 3 or not all(0.0 <= v <= 1.0 for v in values):
+        raise ValueError(f"--background {text!r}: give three values r,g,b in [0, 1]")
+    return values
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    import torch
+
+    from sagonline.core.files import atomic_write_image, atomic_write_npy
+    from sagonline.core.machine import check_device
+    from sagonline.core.outputs import OutputError, check_not_input
+    from sagonline.render import render
+    from sagonline.render.api import resolve_backend
+    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io.cameras import camera_input_files
+    from sagonline.scene.views import load_views, view_index
+
+    scene = scene_file(args.scene)
+    out = Path(args.out)
+    inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else [])]
+    check_not_input(out, inputs)
+    if out.is_dir():
+        raise OutputError(f"--out {out} is a folder; give a file path such as {out}/view.png")
+    if out.suffix.lower() not in OUT_SUFFIXES:
+        raise ValueError(f"--out {out}: use a .png, .jpg or .npy path (got {out.suffix!r})")
+    if out.exists() and not args.overwrite:
+        raise OutputError(f"--out {out} exists; pass --overwrite to replace it")
+    background = parse_background(args.background)
+    args.device = check_device(args.device)
+    resolve_backend(args.backend, args.device)
+    g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
+    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    index = view_index(args.view, views.cameras)
+    cam = views.cameras[index]
+    out_img = render(g.to(args.device), cam.to(args.device), background=torch.tensor(background),
+                     backend=args.backend)  # fmt: skip
+    rgb = out_img.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
+    if out.suffix.lower() == ".npy":
+        atomic_write_npy(out, rgb)
+    else:
+        atomic_write_image(out, (rgb.clip(0, 1) * 255 + 0.5).astype(np.uint8))
+    print(f"wrote {out} ({cam.width}x{cam.height}, view {index} '{cam.name}'; {views.source})")
+    return 0

@@ -1,0 +1,349 @@
+"""`sagonline segment SCENE`: a scene of one's own segmented from clicks, masks or text, written
+as labels, object PLYs, renders and a recording (`sagonline.labels.export.write_segmentation`)."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from dataclasses import asdict, fields
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.apps.cli.render import add_view_arguments
+from sagonline.core.errors import PromptError
+from sagonline.render.backends import BACKENDS
+from sagonline.scene.views import CLICK_HELP
+from sagonline.segment.clicks import parse_prompt, to_prompt
+
+
+class PromptItems(argparse.Action):
+    """Keeps --click, --object, --mask and --text in the order given."""
+
+    def __call__(self, parser, namespace, value, option_string=None):
+        items = list(getattr(namespace, "prompt_items", None) or [])
+        items.append((option_string.lstrip("-"), value))
+        namespace.prompt_items = items
+
+
+def add_parsers(sub) -> None:
+    from sagonline.core.plugins import SEGMENTERS, VOTE_RULES
+
+    seg = sub.add_parser(
+        "segment",
+        help="segment a scene from clicks, masks or text; write labels, object PLYs, renders",
+    )
+    seg.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
+    add_view_arguments(seg)
+    prompts = seg.add_argument_group(f"prompts (all on one view; {CLICK_HELP})")
+    prompts.add_argument(
+        "--click", action=PromptItems, metavar="VIEW:X,Y[:neg[=NAME]]",
+        help="a positive click on the current object, or a negative one (:neg)",
+    )  # fmt: skip
+    prompts.add_argument(
+        "--object", action=PromptItems, metavar="NAME", help="start an object named NAME"
+    )
+    prompts.add_argument(
+        "--mask", action=PromptItems, metavar="VIEW:PATH",
+        help="a mask at the view's render size: binary (the current object) or a label map "
+        "(one object per id)",
+    )  # fmt: skip
+    prompts.add_argument("--text", action=PromptItems, metavar="TEXT", help="a text prompt (SAM 3)")
+    prompts.add_argument(
+        "--prompts", metavar="LABELS_JSON",
+        help="the prompts (and views, segmenter, vote) a segment folder or a viewer export "
+        "recorded in its labels.json; what the command line gives wins",
+    )  # fmt: skip
+    seg.add_argument(
+        "--preview", metavar="VIEW",
+        help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit",
+    )  # fmt: skip
+    seg.add_argument(
+        "--segmenter", default=None, choices=SEGMENTERS.keys(), help="default: classical"
+    )
+    seg.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
+    seg.add_argument(
+        "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
+        help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
+    )  # fmt: skip
+    vote = seg.add_argument_group("vote (defaults: sagonline.vote.consensus.VoteConfig)")
+    vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
+    vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
+    vote.add_argument("--delta", type=float, help="... and its centre is within delta px")
+    vote.add_argument("--min-votes", type=int)
+    vote.add_argument("--margin", type=float)
+    seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
+    seg.add_argument("--backend", default="auto", choices=BACKENDS)
+    seg.add_argument("--out", help="output folder (default: segment-<scene>-<time>)")
+    seg.add_argument(
+        "--overwrite", action="store_true", help="replace an earlier output of this command"
+    )
+    seg.add_argument("--no-record", action="store_true", help="skip the rerun recording")
+    seg.set_defaults(func=cmd_segment, prompt_items=[])
+
+
+# --- segmenter and vote -----------------------------------------------------------------------
+
+
+def build_segmenter(args, prompt):
+    """The chosen segmenter from the registry, its checkpoint and options applied; refused when
+    it cannot read the prompt given (text to a click segmenter, clicks to a text one)."""
+    from sagonline.core.plugins import SEGMENTERS
+
+    plugin = SEGMENTERS[args.segmenter]
+    names = {f.name for f in fields(plugin.config)}
+    values: dict = {}
+    for option in args.segmenter_option:
+        key, sep, value = option.partition("=")
+        if not sep:
+            raise ValueError(f"--segmenter-option {option!r}: expected KEY=VALUE")
+        values[key.strip()] = value
+    if args.checkpoint:
+        key = next((k for k in ("checkpoint", "weights") if k in names), None)
+        if key is None:
+            raise ValueError(f"--checkpoint: segmenter {args.segmenter} takes no checkpoint")
+        values[key] = args.checkpoint
+    if "device" in names:
+        values.setdefault("device", args.device)
+    segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
+    wants = set(getattr(segmenter, "reads", ()))
+    given = {"text"} if prompt.texts else {"clicks"}
+    if "ground_truth" in wants:
+        raise ValueError(
+            f"--segmenter {args.segmenter} reads the views' ground truth, which a scene of "
+            "one's own does not have"
+        )
+    if not wants & given:
+        what = "text (--text)" if prompt.texts else "clicks and masks"
+        reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
+        raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
+    segmenter.check()
+    return segmenter
+
+
+def vote_config(args):
+    """The vote's settings: VoteConfig's defaults (or the --prompts file's), with what the
+    command line gave."""
+    from sagonline.vote.consensus import VoteConfig
+
+    recorded = getattr(args, "recorded_vote", None) or {}
+    given = {
+        "method": args.method,
+        "eps": args.eps,
+        "delta": args.delta,
+        "min_votes": args.min_votes,
+        "margin": args.margin,
+    }
+    return VoteConfig(**(recorded | {k: v for k, v in given.items() if v is not None}))
+
+
+def apply_recorded_prompts(args) -> None:
+    """--prompts labels.json: its prompt becomes the prompt items, and its views, segmenter and
+    vote the defaults of whatever the command line left out."""
+    import json
+
+    from sagonline.vote.consensus import VoteConfig
+
+    path = Path(args.prompts)
+    if args.prompt_items:
+        raise PromptError(
+            "--prompts replaces --click/--object/--mask/--text: give one or the other"
+        )
+    try:
+        record = json.loads(path.read_text())
+        prompt = record["prompt"]
+        view = str(prompt["view_name"])
+        items = [("text", t) for t in prompt.get("texts", [])]
+        for obj in prompt.get("objects", []):
+            items.append(("object", obj["name"]))
+            items += [("click", f"{view}:{x!r},{y!r}") for x, y in obj.get("clicks", [])]
+            if obj.get("mask"):
+                items.append(("mask", f"{view}:{obj['mask']}"))
+            items += [
+                ("click", f"{view}:{x!r},{y!r}:neg={obj['name']}")
+                for x, y in obj.get("negatives", [])
+            ]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise PromptError(
+            f"--prompts {path}: not a labels.json with a prompt ({type(exc).__name__}: {exc})"
+        ) from None
+    args.prompt_items = items
+    if args.cameras is None and not args.orbit and record.get("cameras"):
+        args.cameras = record["cameras"]
+    if not args.orbit and record.get("orbit"):
+        args.orbit = int(record["orbit"])
+    if args.width is None and prompt.get("render_size"):
+        args.width, args.height = (int(v) for v in prompt["render_size"])
+    if not args.inbetween and record.get("inbetween"):
+        args.inbetween = int(record["inbetween"])
+    segmenter = record.get("segmenter") or {}
+    if args.segmenter is None and segmenter.get("kind"):
+        args.segmenter = segmenter["kind"]
+        args.segmenter_option = [*segmenter.get("options", []), *args.segmenter_option]
+    vote = record.get("vote") or {}
+    known = set(VoteConfig.__dataclass_fields__)
+    unknown = sorted(set(vote) - known)
+    if unknown:
+        raise PromptError(f"--prompts {path}: vote settings {unknown} are not VoteConfig's")
+    args.recorded_vote = vote
+
+
+# --- the command ------------------------------------------------------------------------------
+
+
+def cmd_segment(args) -> int:
+    from sagonline.core.machine import check_device
+    from sagonline.core.outputs import check_not_input, check_replaceable
+    from sagonline.pipeline.segment import (
+        check_cameras_see_scene,
+        check_objects_were_found,
+        segment_scene,
+        write_segment_folder,
+    )
+    from sagonline.render.api import resolve_backend
+    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io.cameras import camera_input_files
+    from sagonline.scene.trajectory import insert_between
+    from sagonline.scene.views import check_trajectory, load_views, view_index
+
+    started = time.perf_counter()
+    if args.prompts:
+        apply_recorded_prompts(args)
+    args.segmenter = args.segmenter or "classical"
+    scene = scene_file(args.scene)
+    stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
+    args.device = check_device(args.device)
+    resolve_backend(args.backend, args.device)
+    if args.inbetween < 0 or args.inbetween > 32:
+        raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
+    masks = [Path(v.partition(":")[2]) for k, v in args.prompt_items if k == "mask"]
+    inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
+    if args.preview is not None:
+        out = Path(args.out or f"preview-{stem}-{args.preview}.png")
+    else:
+        out = Path(args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    check_not_input(out, inputs)
+    if args.preview is None:
+        check_replaceable(out, args.overwrite)
+    vote = vote_config(args)
+    g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
+    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    if args.cameras is None or args.orbit:
+        print(f"views: {views.source}", file=sys.stderr)
+    given = views.cameras
+    if args.preview is not None:
+        return write_preview(g, given, view_index(args.preview, given), out, args)
+    traj = insert_between(given, args.inbetween)
+    check_trajectory(traj)
+    parsed = parse_prompt(args.prompt_items, given)
+    frame = [c.name for c in traj].index(given[parsed.view].name)
+    prompt = to_prompt(parsed, frame)
+    from sagonline.labels.export import object_file_names
+
+    object_file_names(prompt.names)  # names that cannot each have a file: refused now
+    segmenter = build_segmenter(args, prompt)
+    check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
+    check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
+    print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
+    seg = segment_scene(
+        g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
+        device=args.device, progress=sys.stderr.isatty(),
+    )  # fmt: skip
+    check_objects_were_found(seg)
+    info = {
+        "scene": str(scene),
+        "cameras": str(args.cameras) if args.cameras else None,
+        "views": views.source,
+        "orbit": args.orbit,
+        "inbetween": args.inbetween,
+        "prompt": parsed.record(given),
+        "inputs": input_digests(scene, args.cameras, masks),
+        "segmenter": {"kind": args.segmenter, "options": args.segmenter_option},
+        "vote": asdict(vote),
+        "timings": seg.timings,
+    }
+    write_segment_folder(
+        out, g, seg, scene, info, backend=args.backend, device=args.device,
+        record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
+    )  # fmt: skip
+    print_segmentation(seg, out, time.perf_counter() - started)
+    return 0
+
+
+def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:
+    """Refuse a positive click where nothing of the scene is rendered (`check_click_on_scene`)."""
+    from sagonline.pipeline.segment import check_click_on_scene
+    from sagonline.render.api import render
+
+    alpha = render(g.to(args.device), cam.to(args.device), backend=args.backend).alpha
+    alpha = alpha.detach().cpu().numpy()
+    for obj in parsed.objects:
+        for x, y in obj.points:
+            check_click_on_scene(alpha, cam, parsed.view, x, y, obj.name, hint="`--preview`")
+
+
+def write_preview(g, cams, index: int, out: Path, args) -> int:
+    """The view at its render size with a light pixel grid (every 50 px, labelled every 100)."""
+    import cv2
+
+    from sagonline.core.files import atomic_write_image
+    from sagonline.render.api import render, to_uint8
+
+    if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
+        raise ValueError(f"--out {out}: a preview is a .png or .jpg file")
+    if out.exists() and not args.overwrite:
+        raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
+    cam = cams[index]
+    rgb = to_uint8(render(g.to(args.device), cam.to(args.device), backend=args.backend).rgb)
+    image = np.ascontiguousarray(rgb)
+    grid = image.copy()
+    for x in range(0, cam.width, 50):
+        cv2.line(grid, (x, 0), (x, cam.height - 1), (255, 255, 255), 1)
+    for y in range(0, cam.height, 50):
+        cv2.line(grid, (0, y), (cam.width - 1, y), (255, 255, 255), 1)
+    image = cv2.addWeighted(image, 0.7, grid, 0.3, 0)
+    for x in range(0, cam.width, 100):
+        for y in range(0, cam.height, 100):
+            cv2.putText(image, f"{x},{y}", (x + 2, y + 11), cv2.FONT_HERSHEY_PLAIN, 0.8,
+                        (255, 255, 0), 1, cv2.LINE_AA)  # fmt: skip
+    atomic_write_image(out, image)
+    print(
+        f"wrote {out}: view {index} '{cam.name}' at {cam.width}x{cam.height} (its render size: "
+        f"click with --click {index}:X,Y in these pixels)"
+    )
+    return 0
+
+
+def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
+    from sagonline.core.provenance import digest_file
+    from sagonline.scene.io.cameras import camera_input_files
+
+    out = {"scene": digest_file(scene)}
+    if cameras:
+        out |= {f"cameras:{p.name}": digest_file(p) for p in camera_input_files(cameras)}
+    return out | {f"mask:{p.name}": digest_file(p) for p in masks}
+
+
+def progress(items: list, what: str):
+    """A bar on a terminal; elsewhere (a log file, CI) one plain line when done."""
+    import sys
+
+    from tqdm import tqdm
+
+    if sys.stderr.isatty():
+        yield from tqdm(items, desc=what, leave=False)
+        return
+    yield from items
+    print(f"{what}: {len(items)} done", file=sys.stderr)
+
+
+def print_segmentation(seg, out: Path, wall_s: float) -> None:
+    t = seg.timings
+    counts = ", ".join(f"{name} {int((seg.labels == k).sum())}" for k, name in enumerate(seg.names))
+    print(
+        f"time to first mask {t['time_to_first_mask_s']:.2f} s, aggregation "
+        f"{t['vote_ms_per_mask']:.1f} ms per mask ({len(seg.vote.frames)} masks), coverage "
+        f"{100 * seg.coverage:.1f}% of {len(seg.labels)} Gaussians ({counts}, unlabelled "
+        f"{int((seg.labels < 0).sum())}), {wall_s:.1f} s in all -> {out}"
+    )

@@ -1,0 +1,94 @@
+"""`sagonline view SCENE`: the scene in the browser (viser), clicks as prompts, the labels
+spreading through the splats view by view, and the exports of `sagonline segment`
+(`sagonline.apps.viewer`)."""
+
+from __future__ import annotations
+
+import sys
+import time
+
+from sagonline.apps.cli.render import add_view_arguments
+from sagonline.render.backends import BACKENDS
+
+
+def add_parsers(sub) -> None:
+    from sagonline.core.plugins import SEGMENTERS
+
+    view = sub.add_parser(
+        "view", help="segment a scene in the browser: click, watch the labels form, export"
+    )
+    view.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
+    add_view_arguments(view)
+    view.add_argument("--segmenter", default="classical", choices=SEGMENTERS.keys())
+    view.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
+    view.add_argument(
+        "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
+        help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
+    )  # fmt: skip
+    view.add_argument("--backend", default="auto", choices=BACKENDS)
+    view.add_argument("--host", default="127.0.0.1", help="address to serve on (local only)")
+    view.add_argument("--port", type=int, default=8080)
+    view.add_argument("--out", help="the Export button's folder (default: segment-<scene>-<time>)")
+    view.set_defaults(func=cmd_view)
+
+
+def segmenter_builder(args):
+    """kind -> that segmenter of the registry, with the command line's checkpoint and options
+    (the checks of `sagonline segment`, for a click prompt)."""
+    from argparse import Namespace
+
+    from sagonline.apps.cli.segment import build_segmenter
+    from sagonline.segment.prompts import Prompt
+
+    def build(kind: str):
+        return build_segmenter(Namespace(**{**vars(args), "segmenter": kind}), Prompt())
+
+    return build
+
+
+def cmd_view(args) -> int:
+    from sagonline.apps.viewer.app import ViewerApp
+    from sagonline.apps.viewer.session import SegmentSession
+    from sagonline.core.machine import check_device
+    from sagonline.core.plugins import SEGMENTERS
+    from sagonline.render.api import resolve_backend
+    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.views import check_trajectory, load_views
+
+    scene = scene_file(args.scene)
+    stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
+    args.device = check_device(args.device)
+    resolve_backend(args.backend, args.device)
+    g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
+    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    check_trajectory(views.cameras)
+    build = segmenter_builder(args)
+    segmenter = build(args.segmenter)
+    print(f"views: {views.source}; rendering {len(views.cameras)} views ...", file=sys.stderr)
+    session = SegmentSession(
+        g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter,
+        backend=args.backend, device=args.device,
+    )  # fmt: skip
+    info = {
+        "cameras": str(args.cameras) if args.cameras else None,
+        "views": views.source,
+        "orbit": args.orbit,
+        "render_size": [args.width, args.height] if args.width else None,
+        "inbetween": 0,
+    }
+    app = ViewerApp(
+        session, scene=scene, info=info, host=args.host, port=args.port,
+        out=args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}",
+        make_segmenter=build, segmenters=tuple(SEGMENTERS.keys()),
+    )  # fmt: skip
+    print(
+        f"viewer at {app.url} ({len(views.cameras)} views rendered in "
+        f"{session.render_seconds:.1f} s); Ctrl+C stops it",
+        flush=True,
+    )
+    try:
+        while True:
+            time.sleep(1.0)
+    finally:
+        session.stop()
+        app.server.stop()

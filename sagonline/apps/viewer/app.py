@@ -1,0 +1,308 @@
+"""The browser side of `sagonline view`, on viser: the scene as splats, the views as frustums,
+clicks in the 3D view as prompts, the labels recoloured as they form, the exports.
+
+    click                 a positive click on the object (on the session's view)
+    shift + click         a negative click (what the object is not)
+    a frustum             selects that view: its render, index and name in the panel
+
+Everything it does goes through `SegmentSession` (sagonline.apps.viewer.session); this module only
+draws and forwards.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from sagonline.apps.viewer.session import Progress, SegmentSession
+from sagonline.record.recording import label_colors
+from sagonline.scene.gaussians import SH_C0, Gaussians, quat_to_rotmat, rotmat_to_quat
+
+TINT = 0.7  # an object's splats: this much of its label colour over their own
+
+
+def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
+    """viser's splat arrays: centers (N, 3), covariances (N, 3, 3), rgbs (N, 3) in [0, 1]
+    (the SH's constant term), opacities (N, 1). Surfels get a thin third axis."""
+    g = g.to("cpu")
+    scales = g.scales.detach().float()
+    if scales.shape[1] == 2:
+        scales = torch.cat([scales, scales.min(dim=1, keepdim=True).values * 1e-2], 1)
+    rot = quat_to_rotmat(g.quats.detach().float())
+    cov = rot @ torch.diag_embed(scales**2) @ rot.transpose(1, 2)
+    rgb = (0.5 + SH_C0 * g.sh[:, 0].detach().float()).clamp(0, 1)
+    return {
+        "centers": g.means.detach().float().numpy(),
+        "covariances": cov.numpy(),
+        "rgbs": rgb.numpy(),
+        "opacities": g.opacities.detach().float().numpy()[:, None],
+    }
+
+
+def label_tint(rgbs: np.ndarray, labels: np.ndarray, num_labels: int) -> np.ndarray:
+    """(N, 3): objects (labels >= 1) tinted by their label colour; background and unlabelled
+    keep their own colour."""
+    colours = label_colors(max(num_labels, 2)).astype(np.float32) / 255.0
+    tinted = (1 - TINT) * rgbs + TINT * colours[labels.clip(0)]
+    return np.where((labels >= 1)[:, None], tinted, rgbs).astype(np.float32)
+
+
+def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
+    """The view's render with its clicks: a green ring per positive, a red cross per negative."""
+    import cv2
+
+    image = frame.copy()
+    if view is None:
+        return image
+    for obj in objects:
+        for x, y in obj.points:
+            cv2.circle(image, (int(x), int(y)), 6, (0, 255, 0), 2, cv2.LINE_AA)
+        for x, y in obj.negatives:
+            p = (int(x), int(y))
+            cv2.drawMarker(image, p, (255, 0, 0), cv2.MARKER_TILTED_CROSS, 12, 2, cv2.LINE_AA)
+    return image
+
+
+class ViewerApp:
+    """One viser server around one session. scene: the file (labels.json records it); out:
+    the default export folder; make_segmenter(kind) -> a segmenter of the registry (the CLI's
+    builder, checkpoint included)."""
+
+    def __init__(
+        self,
+        session: SegmentSession,
+        *,
+        scene: Path | None = None,
+        info: dict | None = None,
+        out: str = "segment-view",
+        host: str = "127.0.0.1",
+        port: int = 8080,
+        make_segmenter=None,
+        segmenters: tuple[str, ...] = ("classical",),
+    ):
+        import viser
+
+        self.session, self.scene, self.info = session, scene, dict(info or {})
+        self.make_segmenter = make_segmenter
+        self.server = viser.ViserServer(host=host, port=port, verbose=False)
+        self.host = host
+        self.selected = session.view or 0
+        self.updates = 0  # recolours sent (the browser test waits on it)
+        self.click_markers: list = []
+        self._draw_lock = threading.Lock()
+        self.arrays = splat_arrays(session.gaussians)
+        self._draw_scene()
+        self._build_gui(out, segmenters)
+        session.on_update = self.on_update
+        self.server.scene.on_click()(lambda event: self.on_scene_click(event, positive=True))
+        self.server.scene.on_click(modifier="shift")(
+            lambda event: self.on_scene_click(event, positive=False)
+        )
+
+    @property
+    def url(self) -> str:
+        return f"http://{self.host}:{self.server.get_port()}"
+
+    # --- the scene ----------------------------------------------------------------------------
+
+    def _draw_scene(self) -> None:
+        a, s = self.arrays, self.session
+        self.splats = self.server.scene.add_gaussian_splats(
+            "/scene/splats", a["centers"], a["covariances"], a["rgbs"], a["opacities"]
+        )
+        centres = np.stack([c.center.cpu().numpy() for c in s.cameras])
+        middle = np.median(a["centers"], axis=0)
+        size = float(np.median(np.linalg.norm(centres - middle, axis=1)))
+        self.click_radius = 0.01 * size
+        first = s.cameras[0]
+        back = middle + 1.6 * (first.center.cpu().numpy() - middle)  # the first view, stepped back
+        self.server.initial_camera.position = tuple(back.tolist())
+        self.server.initial_camera.look_at = tuple(middle.tolist())
+        self.server.initial_camera.up = tuple((-first.cam_to_world[:3, 1]).cpu().numpy().tolist())
+        rotations = torch.stack([c.cam_to_world[:3, :3].cpu() for c in s.cameras])
+        wxyz = rotmat_to_quat(rotations).numpy()
+        for i, cam in enumerate(s.cameras):
+            fy = float(cam.K[1, 1])
+            frustum = self.server.scene.add_camera_frustum(
+                f"/cameras/{i:04d}", fov=2 * np.arctan(cam.height / (2 * fy)),
+                aspect=cam.width / cam.height, scale=0.04 * size, thickness=0.002 * size,
+                wxyz=wxyz[i], position=centres[i], color=(120, 120, 120),
+            )  # fmt: skip
+            frustum.on_click(lambda _event, view=i: self.select_view(view))
+
+    # --- the panel ----------------------------------------------------------------------------
+
+    def _build_gui(self, out: str, segmenters: tuple[str, ...]) -> None:
+        from sagonline.vote.consensus import VoteConfig
+
+        gui, s = self.server.gui, self.session
+        gui.add_markdown(
+            "**Click** the object in the 3D view: a positive click. **Shift+click**: a negative "
+            "one. A frustum shows its view here. The labels spread view by view."
+        )
+        self.status = gui.add_markdown("click on the object")
+        self.bar = gui.add_progress_bar(0.0)
+        with gui.add_folder("View"):
+            self.view_choice = gui.add_dropdown(
+                "view", [self.view_label(i) for i in range(len(s.cameras))],
+                initial_value=self.view_label(self.selected),
+            )  # fmt: skip
+            self.view_choice.on_update(lambda _: self.select_view(self.view_choice_index()))
+            self.view_image = gui.add_image(
+                s.frames[self.selected], label=self.view_label(self.selected)
+            )
+            gui.add_button("Look through this view").on_click(self.look_through)
+        with gui.add_folder("Objects"):
+            self.object_name = gui.add_text("name", initial_value="object")
+            gui.add_button("New object").on_click(lambda _: self.guarded(self.new_object))
+            self.stop_button = gui.add_button("Stop")
+            self.stop_button.on_click(lambda _: self.guarded(s.stop))
+            gui.add_button("Resume").on_click(lambda _: self.guarded(s.resume))
+            gui.add_button("Clear").on_click(lambda _: self.guarded(self.clear))
+        with gui.add_folder("Segmenter and vote"):
+            self.segmenter_choice = gui.add_dropdown(
+                "segmenter", list(segmenters), initial_value=s.segmenter_kind
+            )
+            self.segmenter_choice.on_update(lambda _: self.guarded(self.change_segmenter))
+            defaults = VoteConfig()
+            from sagonline.core.plugins import VOTE_RULES
+
+            self.method = gui.add_dropdown(
+                "vote method", list(VOTE_RULES.keys()), initial_value=s.vote.method
+            )
+            self.method.on_update(lambda _: self.guarded(self.change_vote))
+            self.vote_inputs: dict[str, Any] = {
+                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=1.0, step=0.001),
+                "delta": gui.add_number("delta (px)", s.vote.delta, min=0.0, step=0.5),
+                "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
+                "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=1.0, step=0.05),
+            }
+            for handle in self.vote_inputs.values():
+                handle.on_update(lambda _: self.guarded(self.change_vote))
+            gui.add_markdown(f"defaults: eps {defaults.eps}, delta {defaults.delta} px")
+        with gui.add_folder("Export"):
+            self.out_text = gui.add_text("folder", initial_value=out)
+            self.overwrite = gui.add_checkbox("replace an earlier export", initial_value=False)
+            self.export_button = gui.add_button("Export objects, labels, recording")
+            self.export_button.on_click(lambda _: self.guarded(self.export))
+
+    def view_label(self, i: int) -> str:
+        return f"{i}: {self.session.cameras[i].name}"
+
+    def view_choice_index(self) -> int:
+        return int(str(self.view_choice.value).split(":", 1)[0])
+
+    def select_view(self, view: int) -> None:
+        """Show `view`'s render (with the session's clicks when it is their view)."""
+        s = self.session
+        self.selected = view
+        label = self.view_label(view)
+        if self.view_choice.value != label:
+            self.view_choice.value = label
+        self.view_image.image = draw_clicks(
+            s.frames[view], s.view if s.view == view else None, s.objects
+        )
+        self.view_image.label = label
+
+    def look_through(self, _event=None) -> None:
+        """Move every browser's camera to the selected view (a click then lands on it)."""
+        cam = self.session.cameras[self.selected]
+        wxyz = rotmat_to_quat(cam.cam_to_world[None, :3, :3].cpu())[0].numpy()
+        for client in self.server.get_clients().values():
+            with client.atomic():
+                client.camera.wxyz = wxyz
+                client.camera.position = cam.center.cpu().numpy()
+                client.camera.fov = float(2 * np.arctan(cam.height / (2 * float(cam.K[1, 1]))))
+
+    # --- what the buttons and clicks do ----------------------------------------------------
+
+    def guarded(self, action) -> None:
+        """Run a GUI action; a refusal (bad click, name, setting) becomes the status line."""
+        try:
+            action()
+        except (ValueError, RuntimeError) as exc:
+            self.status.content = f"**refused:** {exc}"
+
+    def on_scene_click(self, event, positive: bool) -> None:
+        if event.ray_origin is None or event.ray_direction is None:
+            return
+        self.guarded(lambda: self.click(event.ray_origin, event.ray_direction, positive))
+
+    def click(self, origin, direction, positive: bool) -> None:
+        click = self.session.click_from_ray(origin, direction, positive)
+        n = len(self.session.clicks)
+        marker = self.server.scene.add_icosphere(
+            f"/clicks/{n:03d}", radius=self.click_radius, position=click.point,
+            color=(0, 220, 0) if positive else (230, 0, 0),
+        )  # fmt: skip
+        self.click_markers.append(marker)
+        self.status.content = (
+            f"{'positive' if positive else 'negative'} click on {self.session.current!r}: "
+            f"view {click.view} at ({click.x:.0f}, {click.y:.0f})"
+        )
+        self.select_view(click.view)
+
+    def new_object(self) -> None:
+        self.session.new_object(self.object_name.value)
+        self.status.content = f"new object {self.object_name.value!r}: click on it"
+
+    def clear(self) -> None:
+        self.session.clear()
+        for marker in self.click_markers:
+            marker.remove()
+        self.click_markers = []
+        self.on_update(self.session.labels, self.session.progress)
+
+    def change_segmenter(self) -> None:
+        kind = str(self.segmenter_choice.value)
+        if self.make_segmenter is None:
+            raise ValueError("this viewer was started with one segmenter")
+        self.session.stop()
+        self.session.segmenter, self.session.segmenter_kind = self.make_segmenter(kind), kind
+        self.restart()
+
+    def change_vote(self) -> None:
+        values = {k: h.value for k, h in self.vote_inputs.items()}
+        values["method"] = str(self.method.value)
+        values["min_votes"] = int(values["min_votes"])
+        self.session.stop()
+        self.session.vote = replace(self.session.vote, **values)
+        self.restart()
+
+    def restart(self) -> None:
+        if self.session.clicks:
+            self.session.start()
+
+    def export(self) -> Path:
+        out = Path(self.out_text.value)
+        self.status.content = f"exporting to {out} ..."
+        written = self.session.export(
+            out, scene=self.scene, info=self.info, overwrite=self.overwrite.value
+        )
+        self.status.content = f"exported to {written} (labels.json: `sagonline segment --prompts`)"
+        return written
+
+    # --- from the session's worker ----------------------------------------------------------
+
+    def on_update(self, labels: np.ndarray, progress: Progress) -> None:
+        """Recolour the splats by the current labels; move the progress line."""
+        with self._draw_lock:
+            a = self.arrays
+            rgbs = label_tint(a["rgbs"], labels, len(self.session.names))
+            self.splats.rgbs = rgbs
+            self.bar.value = 100.0 * progress.voted / max(len(self.session.cameras), 1)
+            counts = ", ".join(
+                f"{name} {int((labels == k).sum())}"
+                for k, name in enumerate(self.session.names)
+                if k
+            )
+            line = progress.message or progress.state
+            self.status.content = f"{progress.state}: {line}" + (f" ({counts})" if counts else "")
+            self.updates += 1
+            self.last_update = time.perf_counter()

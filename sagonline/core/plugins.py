@@ -1,0 +1,206 @@
+"""Plug-in registries: segmenters, datasets and vote rules, each under a key with a typed config.
+
+A plug-in registers once, with the dataclass of its settings (each setting documented on its
+field) and a function that builds it from them:
+
+    @SEGMENTERS.register("threshold", ThresholdConfig)
+    class ThresholdSegmenter(VideoSegmenter): ...
+
+The command line's choices, Hydra's config groups (`bench.config.register_schemas`) and the
+Makefile's lists (`python -m sagonline plugins`) are read from these registries. A file that a
+run, a cache or another user wrote (metrics.json, a cache entry) names a registry key and
+settings; the class always comes from here, never from a name read out of the file.
+
+Plug-ins outside this package register from a module of their own, imported when a registry
+is first read: named in the environment variable `SAGONLINE_PLUGINS` (comma-separated module
+names, e.g. `SAGONLINE_PLUGINS=my_segmenter make eval ARGS=segmenter=colour`), or declared
+by an installed package under the entry-point groups `sagonline.segment`,
+`sagonline.datasets` or `sagonline.vote_rules` (docs/extending.md).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import math
+import os
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
+from typing import Any, Generic, TypeVar
+
+C = TypeVar("C")
+
+# The keys a plug-in's config node holds for the harness, not for the plug-in: its registry key
+# and the name it is shown and reported under (a preset such as oracle_noisy has its own name).
+NODE_KEYS = ("kind", "name")
+
+
+class PluginError(ValueError):
+    """An unknown plug-in key or settings that do not fit the plug-in's config; names both."""
+
+
+@dataclass(frozen=True)
+class Plugin(Generic[C]):
+    """One registered plug-in: its key, the dataclass of its settings, the function that builds
+    it from them, and a line that says what it is."""
+
+    key: str
+    config: type[C]
+    build: Callable[[C], Any]
+    summary: str = ""
+
+    def settings(self, values: Mapping[str, Any] | None = None, *, where: str = "") -> C:
+        """`values` (a mapping of setting -> value, e.g. read from a file) as this plug-in's
+        typed config: an unknown setting, a value of the wrong type or out of range raises
+        PluginError naming the setting (and `where` the values came from)."""
+        return typed_settings(self.config, values or {}, f"{where or self.key}")
+
+
+class Registry(Generic[C]):
+    """Plug-ins of one kind (`what`: "segmenter", "dataset", "vote rule") under their keys."""
+
+    def __init__(self, what: str, entry_point_group: str, builtins: tuple[str, ...] = ()):
+        self.what, self.group, self.builtins = what, entry_point_group, builtins
+        self._plugins: dict[str, Plugin] = {}
+        self._loaded = False
+
+    def register(
+        self,
+        key: str,
+        config: type,
+        build: Callable[[Any], Any] | None = None,
+        summary: str = "",
+    ):
+        """Register `key`: `config` is the settings dataclass; `build(config) -> plug-in`.
+        Without `build`, returns a class decorator whose class is built as
+        `cls(**settings)` (the config's fields are the constructor's keywords)."""
+        if not dataclasses.is_dataclass(config):
+            raise TypeError(f"{self.what} {key!r}: its config {config!r} is not a dataclass")
+
+        def add(factory: Callable[[Any], Any], doc: str) -> None:
+            old = self._plugins.get(key)
+            if old is not None and (old.config, old.build) != (config, factory):
+                raise PluginError(f"{self.what} {key!r} is registered twice")
+            self._plugins[key] = Plugin(key, config, factory, summary or doc)
+
+        if build is not None:
+            add(build, first_line(build.__doc__))
+            return build
+
+        def decorate(cls):
+            add(lambda cfg: cls(**settings_dict(cfg)), first_line(cls.__doc__))
+            return cls
+
+        return decorate
+
+    def _load(self) -> None:
+        """Import the built-in modules (each registers its plug-ins), the entry points and the
+        modules SAGONLINE_PLUGINS names."""
+        if self._loaded:
+            return
+        self._loaded = True
+        for module in self.builtins:
+            importlib.import_module(module)
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group=self.group):
+            ep.load()
+        for module in os.environ.get("SAGONLINE_PLUGINS", "").split(","):
+            if module.strip():
+                try:
+                    importlib.import_module(module.strip())
+                except ImportError as exc:
+                    raise PluginError(
+                        f"SAGONLINE_PLUGINS names {module.strip()!r}, which cannot be "
+                        f"imported ({exc}); is its folder on PYTHONPATH?"
+                    ) from None
+
+    def __getitem__(self, key: str) -> Plugin:
+        self._load()
+        if key not in self._plugins:
+            raise PluginError(f"no {self.what} named {key!r}; known: {', '.join(self.keys())}")
+        return self._plugins[key]
+
+    def __contains__(self, key: object) -> bool:
+        self._load()
+        return key in self._plugins
+
+    def __iter__(self) -> Iterator[Plugin]:
+        self._load()
+        return iter(sorted(self._plugins.values(), key=lambda p: p.key))
+
+    def keys(self) -> list[str]:
+        self._load()
+        return sorted(self._plugins)
+
+    def build(self, key: str, values: Mapping[str, Any] | None = None, *, where: str = ""):
+        """The plug-in `key` built from `values` (checked against its config first)."""
+        plugin = self[key]
+        return plugin.build(plugin.settings(values, where=where))
+
+
+def first_line(doc: str | None) -> str:
+    return (doc or "").strip().split("\n")[0]
+
+
+def settings_dict(cfg) -> dict:
+    """A config's own fields as keywords (shallow: nested dataclasses stay objects)."""
+    return {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)}
+
+
+def typed_settings(config: type[C], values: Mapping[str, Any], where: str) -> C:
+    """`values` checked against the dataclass `config` through OmegaConf's typed merge (types,
+    nested dataclasses, no unknown key) and built (its __post_init__ checks ranges)."""
+    from omegaconf import OmegaConf
+    from omegaconf.errors import OmegaConfBaseException
+
+    if not isinstance(values, Mapping):
+        raise PluginError(f"{where}: settings must be a mapping, got {type(values).__name__}")
+    try:
+        check_finite(values, where)
+        merged = OmegaConf.merge(OmegaConf.structured(config), values)
+        return OmegaConf.to_object(merged)
+    except (OmegaConfBaseException, ValueError, TypeError) as exc:
+        raise PluginError(f"{where}: {one_line(exc)}") from None
+
+
+def check_finite(values: Any, where: str, path: str = "") -> None:
+    """Refuse NaN and infinite numbers anywhere in a settings tree, naming the key."""
+    if isinstance(values, float) and not math.isfinite(values):
+        raise PluginError(f"{where}: {path or 'value'}={values}: must be a finite number")
+    if isinstance(values, Mapping):
+        for k, v in values.items():
+            check_finite(v, where, f"{path}.{k}" if path else str(k))
+    elif isinstance(values, (list, tuple)):
+        for i, v in enumerate(values):
+            check_finite(v, where, f"{path}[{i}]")
+
+
+def one_line(exc: BaseException) -> str:
+    """An exception's message without OmegaConf's trailing 'full_key: ...' context lines (and
+    without the quotes str() puts around a KeyError's)."""
+    text = str(exc.args[0]) if isinstance(exc, KeyError) and exc.args else str(exc)
+    lines = [ln for ln in text.splitlines() if ln.strip()]
+    keep = [ln for ln in lines if not ln.strip().startswith(("full_key:", "object_type", "    "))]
+    return "; ".join(keep or lines[:1])
+
+
+SEGMENTERS: Registry = Registry(
+    "segmenter",
+    "sagonline.segmenters",
+    (
+        "sagonline.segment.classical",
+        "sagonline.segment.oracle",
+        "sagonline.segment.sam2_video",
+        "sagonline.segment.sam3_text",
+        "sagonline.segment.yolo",
+    ),
+)
+DATASETS: Registry = Registry(
+    "dataset",
+    "sagonline.datasets",
+    ("sagonline.datasets.registry",),
+)
+VOTE_RULES: Registry = Registry("vote rule", "sagonline.vote_rules", ("sagonline.vote.consensus",))
+
+__all__ = ["DATASETS", "SEGMENTERS", "VOTE_RULES", "Plugin", "PluginError", "Registry"]

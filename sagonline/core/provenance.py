@@ -1,0 +1,142 @@
+"""Content digests: what a cached stage or a reported number was computed from.
+
+Every stage cache key and every run's metrics.json is built from these, so a number can be
+traced to the exact bytes of its inputs: the scene's parameters, the cameras (intrinsics, pose,
+size), the masks, the segmenter checkpoint. Digests are BLAKE2b-128 hex strings.
+
+File digests are streamed and memoised by (path, size, mtime) in memory and in
+`$SAGONLINE_DIGEST_CACHE` (default `~/.cache/sagonline/file_digests.json`), so a multi-GB
+checkpoint is read once per change, not once per run.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import subprocess
+from collections.abc import Iterable
+from pathlib import Path
+
+import numpy as np
+import torch
+
+_FILE_MEMO: dict[tuple[str, int, int], str] = {}
+
+
+def _hasher():
+    return hashlib.blake2b(digest_size=16)
+
+
+def digest_json(*parts) -> str:
+    """Digest of JSON-able settings (keys sorted, so dict order never matters)."""
+    blob = json.dumps(parts, sort_keys=True, default=str)
+    return hashlib.blake2b(blob.encode(), digest_size=16).hexdigest()
+
+
+def _update_array(h, array) -> None:
+    if isinstance(array, torch.Tensor):
+        array = array.detach().cpu().contiguous().numpy()
+    array = np.ascontiguousarray(array)
+    h.update(f"{array.dtype.str}{array.shape}".encode())
+    h.update(array.view(np.uint8).reshape(-1).data if array.size else b"")
+
+
+def digest_arrays(arrays: Iterable) -> str:
+    """Digest of a sequence of arrays/tensors: their dtypes, shapes and bytes (None allowed)."""
+    h = _hasher()
+    for a in arrays:
+        if a is None:
+            h.update(b"none")
+        else:
+            _update_array(h, a)
+    return h.hexdigest()
+
+
+def digest_gaussians(gaussians) -> str:
+    """Digest of a scene's parameters (kind and every activated tensor, on any device)."""
+    fields = ("means", "quats", "scales", "opacities", "sh", "normals")
+    h = _hasher()
+    h.update(str(gaussians.kind).encode())
+    h.update(digest_arrays(getattr(gaussians, f, None) for f in fields).encode())
+    return h.hexdigest()
+
+
+def digest_cameras(cameras) -> str:
+    """Digest of cameras: name, size, intrinsics and pose of each, in order."""
+    h = _hasher()
+    for cam in cameras:
+        h.update(f"{cam.name}|{cam.width}x{cam.height}".encode())
+        _update_array(h, cam.K.float())
+        _update_array(h, cam.world_to_cam.float())
+    return h.hexdigest()
+
+
+def _memo_path() -> Path:
+    default = Path.home() / ".cache" / "sagonline" / "file_digests.json"
+    return Path(os.environ.get("SAGONLINE_DIGEST_CACHE", default))
+
+
+def _load_memo() -> dict:
+    try:
+        return json.loads(_memo_path().read_text())
+    except (OSError, ValueError):
+        return {}
+
+
+def digest_file(path: str | Path) -> str:
+    """Streamed digest of a file's bytes, memoised by (resolved path, size, mtime_ns)."""
+    path = Path(path).resolve()
+    st = path.stat()
+    key = (str(path), st.st_size, st.st_mtime_ns)
+    if key in _FILE_MEMO:
+        return _FILE_MEMO[key]
+    memo = _load_memo()
+    disk_key = f"{key[0]}|{key[1]}|{key[2]}"
+    if disk_key in memo:
+        _FILE_MEMO[key] = memo[disk_key]
+        return memo[disk_key]
+    h = _hasher()
+    with open(path, "rb") as f:
+        while chunk := f.read(1 << 22):
+            h.update(chunk)
+    value = _FILE_MEMO[key] = h.hexdigest()
+    memo[disk_key] = value
+    try:  # best effort: a read-only home only costs a re-read next time
+        from sagonline.core.files import atomic_write_text
+
+        atomic_write_text(_memo_path(), json.dumps(memo))
+    except OSError:
+        pass
+    return value
+
+
+def digest_path(path: str | Path) -> str:
+    """A file's digest, or a folder's: the names and digests of every file below it."""
+    path = Path(path)
+    if path.is_file():
+        return digest_file(path)
+    h = _hasher()
+    for p in sorted(q for q in path.rglob("*") if q.is_file()):
+        h.update(f"{p.relative_to(path)}={digest_file(p)}".encode())
+    return h.hexdigest()
+
+
+def git_state(repo: str | Path | None = None) -> dict:
+    """The harness's commit and whether its working tree differs from it."""
+    repo = Path(repo) if repo is not None else Path(__file__).resolve().parents[1]
+
+    def git(*args) -> str | None:
+        try:
+            out = subprocess.run(
+                ["git", "-C", str(repo), *args], capture_output=True, text=True, timeout=10
+            )
+        except (OSError, subprocess.TimeoutExpired):
+            return None
+        return out.stdout.strip() if out.returncode == 0 else None
+
+    commit = git("rev-parse", "HEAD")
+    if commit is None:
+        return {"commit": None, "dirty": None}
+    status = git("status", "--porcelain", "--untracked-files=no")
+    return {"commit": commit, "dirty": bool(status)}

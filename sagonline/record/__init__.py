@@ -1,0 +1,1 @@
+"""Rerun recordings: a run's cameras, frames, masks, label renders and labelled Gaussians."""

@@ -1,0 +1,117 @@
+"""Which views a command works on, in one numbering for every command.
+
+A camera file's views are numbered in one documented order: **sorted by camera name** (the
+pseudo-temporal order of the harness's trajectories). `sagonline cameras PATH` prints that
+numbering; `render --view`, `segment --click VIEW:X,Y` and `segment --preview VIEW` all take an
+index in it, or a camera's name; from Python, `load_views` gives the same list. With
+`--orbit N` the views are a ring of N views instead (around the scene from the first camera,
+or, for a scene without cameras, around its bounds), numbered in ring order.
+
+Clicks are pixels of the view **at its render size** (`--width`/`--height`, else the
+camera's own size): x to the right, y down, origin at the top-left corner.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+
+# Ceilings that name themselves: every view is rendered and held in memory.
+MAX_ORBIT = int(os.environ.get("SAGONLINE_MAX_ORBIT", 720))
+MAX_TRAJECTORY = int(os.environ.get("SAGONLINE_MAX_TRAJECTORY", 2000))
+DEFAULT_ORBIT = 24
+
+CLICK_HELP = (
+    "VIEW is an index in `sagonline cameras` (cameras sorted by name) or a camera's name; X,Y "
+    "are pixels of that view at its render size (--width/--height, else the camera's own), x "
+    "right, y down, from the top-left corner"
+)
+
+
+class ViewError(ValueError):
+    """A view, a size or an orbit that the cameras cannot give; says which and why."""
+
+
+@dataclass
+class Views:
+    """The views a command works on (documented order), and where they came from."""
+
+    cameras: list[Camera]
+    source: str
+
+
+def load_views(
+    cameras: str | Path | None,
+    gaussians: Gaussians | None = None,
+    *,
+    orbit: int = 0,
+    width: int | None = None,
+    height: int | None = None,
+) -> Views:
+    """The views: the camera file's, sorted by name (or a ring of `orbit` views from its first
+    camera); without a camera file, a ring around the scene's bounds (`orbit`, default 24).
+    Rescaled to width x height when given."""
+    from sagonline.scene.io.cameras import load_cameras
+    from sagonline.scene.trajectory import orbit_around, pseudo_temporal_order, ring_around
+
+    if (width is None) != (height is None):
+        raise ViewError("give both --width and --height, or neither")
+    if orbit < 0 or orbit == 1 or orbit > MAX_ORBIT:
+        raise ViewError(
+            f"--orbit {orbit}: takes 2 to {MAX_ORBIT} views (sagonline.scene.views.MAX_ORBIT; "
+            "the environment variable SAGONLINE_MAX_ORBIT raises it)"
+        )
+    if cameras is None:
+        if gaussians is None:
+            raise ViewError("no --cameras given and no scene to place an orbit around")
+        count = orbit or DEFAULT_ORBIT
+        cams, line = orbit_around(gaussians.means, count, width or 640, height or 480)
+        return Views(cams, f"no --cameras given: {line}")
+    cams = pseudo_temporal_order(load_cameras(cameras))
+    source = f"{len(cams)} cameras of {cameras}, sorted by name"
+    if orbit:
+        if gaussians is None:
+            raise ViewError("--orbit needs the scene")
+        centre = gaussians.means.detach().float().median(dim=0).values.cpu().numpy()
+        cams = ring_around(cams[0], centre, orbit)
+        source = f"an orbit of {orbit} views around the scene from camera {cams[0].name!r}"
+    if width is not None:
+        try:
+            cams = [c.scaled(width, height) for c in cams]
+        except ValueError as exc:
+            raise ViewError(f"--width {width} --height {height}: {exc}") from None
+    return Views(cams, source)
+
+
+def view_index(text: str, cams: list[Camera]) -> int:
+    """A VIEW (an index in the documented order, or a camera's name) -> its index."""
+    names = [c.name for c in cams]
+    text = str(text).strip()
+    if text in names:
+        return names.index(text)
+    if text.lstrip("-").isdigit():
+        i = int(text)
+        if not 0 <= i < len(cams):
+            raise ViewError(
+                f"view {i} is out of range: there are {len(cams)} views (0..{len(cams) - 1}; "
+                "`sagonline cameras` lists them)"
+            )
+        return i
+    shown = f"{names[0]} ... {names[-1]}" if len(names) > 1 else names[0]
+    raise ViewError(f"no view named {text!r} (views: {shown}; `sagonline cameras` lists them)")
+
+
+def check_trajectory(cams: list[Camera]) -> None:
+    if len(cams) > MAX_TRAJECTORY:
+        raise ViewError(
+            f"{len(cams)} views exceed the ceiling of {MAX_TRAJECTORY} for one trajectory "
+            "(sagonline.scene.views.MAX_TRAJECTORY; SAGONLINE_MAX_TRAJECTORY raises it): every "
+            "view is rendered and kept in memory"
+        )
+
+
+__all__ = ["CLICK_HELP", "MAX_ORBIT", "MAX_TRAJECTORY", "ViewError", "Views", "load_views"]

@@ -1,0 +1,214 @@
+"""Where a scored view's missed pixels are lost: the fit, the vote, or the 2D segmenter.
+
+For every pixel of an eval view that the label render gets wrong, the view is rendered three
+ways: the whole scene (its alpha, its depth, and the Gaussian of largest blend weight,
+`return_ids`), and the fitted object alone (the Gaussians the truth's own masks label as that
+object when the trajectory's ground truth is known, else the run's). Then, for a missed pixel
+(ground truth object k, predicted something else):
+
+- `fit_empty`: nothing opaque is rendered there (alpha < 0.5);
+- `fit_missing`: the fitted object renders nothing there: its surface is not where the object
+  is (it is smaller than the object's silhouette, or elsewhere);
+- `fit_occluded`: something nearer than the fitted object covers it (a floater or background
+  surfel in front: the scene's depth there is more than 5% nearer than the object's);
+- `vote_unseen`: the Gaussian shown got no vote (no voting view saw it within eps and delta);
+- `vote_few`: fewer votes than `min_votes`;
+- `vote_ambiguous`: its top two labels were within `margin` of each other (or tied);
+- `segmenter`: it is labelled another label, but the truth's masks, voting on the same views by
+  the same rule, label it k: the 2D masks outvoted the truth;
+- `vote_outvoted`: it is labelled another label, and so would the truth's masks (or they are
+  unknown): it lies on the object but the views it votes in see it outside the object's mask
+  (at its edge, or where the fit's surface and the masks disagree);
+- `label_render`: the Gaussian shown is labelled k, yet the pixel's label blend (other labelled
+  Gaussians behind or beside it, or less than `min_weight` in all) gave another label.
+
+extra (ground truth background, predicted an object): `extra_fit` where the fitted object
+renders there (its surface reaches beyond the object's silhouette), `extra_segmenter` where
+the Gaussian shown is that object by the run's vote but not by the truth's, `extra_other`.
+
+Counts are pixels at the render's resolution (the ground truth resized to it by nearest
+neighbour). The groups: fit (fit_*), vote (vote_*, label_render), segmenter.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.scene.io.images import resize_nearest
+from sagonline.vote.consensus import VoteConfig, VoteResult
+
+MISSED = (
+    "fit_empty",
+    "fit_missing",
+    "fit_occluded",
+    "vote_unseen",
+    "vote_few",
+    "vote_ambiguous",
+    "segmenter",
+    "vote_outvoted",
+    "label_render",
+)
+EXTRA = ("extra_fit", "extra_segmenter", "extra_other")
+CAUSE_GROUPS = {
+    "fit": ("fit_empty", "fit_missing", "fit_occluded"),
+    "vote": ("vote_unseen", "vote_few", "vote_ambiguous", "vote_outvoted", "label_render"),
+    "segmenter": ("segmenter",),
+}
+# Colours of the causes in the recording's diagnosis image (RGB).
+CAUSE_COLOURS = {
+    "fit_empty": (255, 40, 40),
+    "fit_missing": (255, 120, 60),
+    "fit_occluded": (255, 180, 0),
+    "vote_unseen": (40, 120, 255),
+    "vote_few": (0, 200, 255),
+    "vote_ambiguous": (255, 240, 60),
+    "segmenter": (170, 60, 255),
+    "vote_outvoted": (60, 90, 200),
+    "label_render": (120, 255, 120),
+    "extra_fit": (120, 0, 0),
+    "extra_segmenter": (80, 0, 120),
+    "extra_other": (0, 90, 0),
+}
+OCCLUSION = 0.05  # a surface this much nearer than the object's covers it
+
+
+@dataclass
+class GaussianCauses:
+    """Per Gaussian (N,): its state in the run's vote and, where known, in the truth's vote."""
+
+    labels: torch.Tensor  # [N] long, the run's label (meaningful where labelled)
+    labelled: torch.Tensor  # [N] bool
+    votes: torch.Tensor  # [N] float, votes cast for it
+    ambiguous: torch.Tensor  # [N] bool, voted enough but within the margin (or tied)
+    truth: torch.Tensor | None  # [N] long label by the truth's masks (-1 unlabelled), or None
+
+    def members(self, k: int) -> torch.Tensor:  # [N] bool
+        """The fitted object k: its Gaussians by the truth's vote where known, else the run's."""
+        if self.truth is not None:
+            return self.truth == k
+        return self.labelled & (self.labels == k)
+
+    @classmethod
+    def of(cls, run: VoteResult, cfg: VoteConfig, truth: VoteResult | None) -> GaussianCauses:
+        votes = run.histogram.sum(1).cpu()
+        enough = votes >= max(cfg.min_votes, 1)
+        labelled = run.labelled.cpu()
+        truth_labels = None
+        if truth is not None:
+            truth_labels = torch.where(truth.labelled, truth.labels, -1).cpu()
+        return cls(run.labels.cpu(), labelled, votes, enough & ~labelled, truth_labels)
+
+
+def object_depths(
+    gaussians: Gaussians,
+    camera: Camera,
+    members: torch.Tensor,  # [N] bool
+    backend: str,
+) -> tuple[np.ndarray, np.ndarray]:  # [H, W] alpha, [H, W] depth
+    """The fitted object alone in one view: (H, W) alpha and expected depth (NaN where it
+    renders nothing). members: (N,) bool, the object's Gaussians."""
+    from sagonline.render.api import render
+
+    if not bool(members.any()):
+        shape = (camera.height, camera.width)
+        return np.zeros(shape, np.float32), np.full(shape, np.nan, np.float32)
+    out = render(gaussians.subset(members.to(gaussians.device)), camera, backend=backend)
+    alpha = out.alpha.detach().cpu().numpy()
+    depth = np.where(
+        alpha > 1e-6, out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6), np.nan
+    )
+    return alpha, depth
+
+
+def diagnose_view(
+    gaussians: Gaussians,
+    camera: Camera,
+    gt: np.ndarray,
+    pred: np.ndarray,
+    causes: GaussianCauses,
+    *,
+    ignore: int | None = None,
+    backend: str = "auto",
+) -> tuple[dict[str, int], np.ndarray]:
+    """Counts of one view's wrong pixels by cause, and an (H, W) uint8 map of the causes
+    (index into MISSED + EXTRA, +1; 0: right). gt: the view's ground truth (any resolution of
+    the camera's aspect); pred: the label render at the camera's size."""
+    from sagonline.render.api import render
+
+    h, w = camera.height, camera.width
+    truth = resize_nearest(np.asarray(gt), (h, w)).astype(np.int64)
+    pred = resize_nearest(np.asarray(pred), (h, w)).astype(np.int64)
+    out = render(gaussians, camera, backend=backend, return_ids=True)
+    alpha = out.alpha.detach().cpu().numpy()
+    depth = out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6)
+    ids = out.ids.cpu().numpy().astype(np.int64)
+    valid = np.ones_like(truth, bool) if ignore is None else truth != ignore
+    missed = valid & (truth > 0) & (pred != truth)
+    extra = valid & (truth == 0) & (pred > 0)
+    g = np.clip(ids, 0, None)
+    shown = ids >= 0
+    run_label = causes.labels.numpy()[g]
+    labelled = causes.labelled.numpy()[g] & shown
+    votes = causes.votes.numpy()[g]
+    ambiguous = causes.ambiguous.numpy()[g]
+    truth_label = causes.truth.numpy()[g] if causes.truth is not None else None
+    kinds = np.zeros((h, w), np.uint8)
+
+    def mark(name: str, where: np.ndarray) -> None:
+        kinds[where & (kinds == 0)] = (MISSED + EXTRA).index(name) + 1
+
+    mark("fit_empty", missed & ((alpha < 0.5) | ~shown))
+    for k in np.unique(truth[missed | extra]).tolist() + np.unique(pred[extra]).tolist():
+        if k <= 0 or not (missed | extra).any():
+            continue
+        obj_alpha, obj_depth = object_depths(gaussians, camera, causes.members(k), backend)
+        at_k = missed & (truth == k)
+        mark("fit_missing", at_k & (obj_alpha < 0.5))
+        with np.errstate(invalid="ignore"):
+            mark("fit_occluded", at_k & (depth < (1 - OCCLUSION) * obj_depth))
+        mark("extra_fit", extra & (pred == k) & (obj_alpha >= 0.5))
+    mark("label_render", missed & labelled & (run_label == truth))
+    unlabelled = missed & ~labelled
+    mark("vote_unseen", unlabelled & (votes == 0))
+    mark("vote_few", unlabelled & (votes > 0) & ~ambiguous)
+    mark("vote_ambiguous", unlabelled)
+    if truth_label is not None:
+        mark("segmenter", missed & labelled & (truth_label == truth))
+        mark("extra_segmenter", extra & labelled & (run_label == pred) & (truth_label != pred))
+    mark("vote_outvoted", missed)
+    mark("extra_other", extra)
+    counts = {name: int((kinds == i + 1).sum()) for i, name in enumerate(MISSED + EXTRA)}
+    counts["missed_px"] = int(missed.sum())
+    counts["extra_px"] = int(extra.sum())
+    counts["object_px"] = int((valid & (truth > 0)).sum())
+    return counts, kinds
+
+
+def shares(rows: list[dict]) -> dict[str, float | None]:
+    """Over several views' counts: each cause group's share of the missed pixels (fit, vote,
+    segmenter) and each cause's; None where nothing was missed."""
+    missed = sum(r.get("missed_px", 0) for r in rows)
+    out: dict[str, float | None] = {"missed_px": missed}
+    for group, names in CAUSE_GROUPS.items():
+        n = sum(r.get(name, 0) for r in rows for name in names)
+        out[f"share_{group}"] = n / missed if missed else None
+    for name in MISSED:
+        n = sum(r.get(name, 0) for r in rows)
+        out[f"share_{name}"] = n / missed if missed else None
+    return out
+
+
+def cause_image(kinds: np.ndarray) -> np.ndarray:
+    """(H, W) cause map -> (H, W, 3) uint8 colours (black where right)."""
+    colours = np.zeros((len(MISSED + EXTRA) + 1, 3), np.uint8)
+    for i, name in enumerate(MISSED + EXTRA):
+        colours[i + 1] = CAUSE_COLOURS[name]
+    return colours[kinds]
+
+
+__all__ = ["CAUSE_GROUPS", "EXTRA", "MISSED", "GaussianCauses", "diagnose_view", "shares"]

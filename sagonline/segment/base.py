@@ -1,0 +1,111 @@
+"""The plug-in interface every 2D video segmenter implements (prompts: `sagonline.segment.prompts`).
+
+A segmenter watches a video (the rendered trajectory) and answers one label map per frame.
+Prompts say what to segment: clicks (positive/negative per object), boxes, masks, text, or
+nothing (automatic). Label 0 is background; objects are 1..K in the order of `Prompt.objects`.
+"""
+
+from __future__ import annotations
+
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from sagonline.core.store import stored
+from sagonline.segment.prompts import Prompt
+
+
+@stored
+@dataclass
+class SegmentationResult:
+    """masks: T label maps (H, W) int64; seconds: wall time per frame; name: who made them;
+    info: what else the run reports (e.g. the consensus feedback's restarts)."""
+
+    masks: list[np.ndarray]
+    seconds: list[float]
+    name: str
+    info: dict = field(default_factory=dict)
+
+    @property
+    def ms_per_frame(self) -> float:
+        return 1000.0 * float(np.mean(self.seconds)) if self.seconds else 0.0
+
+
+class VideoSegmenter(ABC):
+    """Subclasses implement `_segment`; `segment` checks the output and times it."""
+
+    name = "segmenter"
+    reads: tuple[str, ...] = ("clicks", "boxes", "masks")
+    """The prompts it reads: clicks / boxes / masks, text, ground_truth (the oracle), or none
+    (it segments automatically); a command refuses a prompt its segmenter cannot read."""
+
+    def weight_files(self) -> list[str]:
+        """Local files the segmenter's answers depend on (checkpoints); their digests join the
+        masks stage's cache key and the run's recorded inputs."""
+        return []
+
+    def check(self) -> None:  # noqa: B027 (optional hook: most segmenters have nothing to check)
+        """Fail fast, before anything is rendered: open and validate weights and settings.
+        Raise ValueError naming the option and the file."""
+
+    def segment(
+        self,
+        frames: list[np.ndarray],
+        prompt: Prompt,
+        *,
+        ground_truth: list[np.ndarray] | None = None,
+    ) -> SegmentationResult:
+        """frames: T RGB uint8 (H, W, 3) images in video order. `ground_truth` is read only
+        by the oracle."""
+        if not frames:
+            raise ValueError(f"{self.name}: no frames to segment")
+        if not 0 <= prompt.frame < len(frames):
+            raise ValueError(
+                f"{self.name}: prompt frame {prompt.frame} is outside the {len(frames)}-frame video"
+            )
+        start = time.perf_counter()
+        masks, seconds = self._segment(frames, prompt, ground_truth)
+        total = time.perf_counter() - start
+        if seconds is None:
+            seconds = [total / len(frames)] * len(frames)
+        if len(masks) != len(frames):
+            raise RuntimeError(f"{self.name}: returned {len(masks)} masks for {len(frames)} frames")
+        for i, (m, f) in enumerate(zip(masks, frames, strict=True)):
+            if m.shape != f.shape[:2]:
+                raise RuntimeError(f"{self.name}: mask {i} is {m.shape}, frame is {f.shape[:2]}")
+        return SegmentationResult(
+            [np.asarray(m, dtype=np.int64) for m in masks], seconds, self.name
+        )
+
+    def stream(
+        self, frames: list[np.ndarray], prompt: Prompt
+    ) -> Iterator[tuple[int, np.ndarray]]:  # (frame index, [H, W] int64 mask)
+        """The masks one by one as they are made, the prompt frame's first (the viewer votes
+        each as it comes). Segmenters that propagate frame by frame override `_stream`; the
+        others answer the whole video first."""
+        if not frames:
+            raise ValueError(f"{self.name}: no frames to segment")
+        if not 0 <= prompt.frame < len(frames):
+            raise ValueError(
+                f"{self.name}: prompt frame {prompt.frame} is outside the {len(frames)}-frame video"
+            )
+        for i, mask in self._stream(frames, prompt):
+            if mask.shape != frames[i].shape[:2]:
+                raise RuntimeError(
+                    f"{self.name}: mask {i} is {mask.shape}, frame is {frames[i].shape[:2]}"
+                )
+            yield i, np.asarray(mask, dtype=np.int64)
+
+    def _stream(self, frames, prompt) -> Iterator[tuple[int, np.ndarray]]:
+        masks, _ = self._segment(frames, prompt, None)
+        order = [prompt.frame, *(i for i in range(len(frames)) if i != prompt.frame)]
+        for i in order:
+            yield i, masks[i]
+
+    @abstractmethod
+    def _segment(
+        self, frames, prompt, ground_truth
+    ) -> tuple[list[np.ndarray], list[float] | None]: ...

@@ -1,0 +1,383 @@
+"""Lift 2D label masks to one discrete label per Gaussian.
+
+`rgc` is the paper's Rasterization-aware Geometric Consensus: for every pixel of every selected
+mask, walk its Gaussians front to back; a Gaussian votes for the pixel's label only while the
+transmittance before it is T_i > eps (the walk stops once T falls to eps) and only if its
+projected centre lies within delta px of the pixel centre. One vote histogram per Gaussian;
+the label is the argmax; too few votes (< min_votes) or an ambiguous winner (top-1 share minus
+top-2 share < margin, or a tie) leaves the Gaussian unlabelled.
+
+Two baselines share the interface:
+- `flashsplat`: every traced contribution adds its blend weight alpha_i T_i to its label;
+  normalised per Gaussian, a background slack is added to label 0, argmax.
+- `weighted_mean` (GaussianCut / LUDVIG): the alpha_i T_i-weighted mean of each label's
+  indicator; a Gaussian takes the best non-background label if its mean reaches `threshold`
+  (0.9), else background.
+
+Labels: 0 is background and also the value of unlabelled Gaussians; `labelled` tells them apart
+(every output outside the vote writes -1 for unlabelled: `StageOneOutput.labels`).
+
+Each method is a vote rule registered in `plugins.VOTE_RULES` under its name: the pairs its
+kernels count (`VoteConfig.rule`, a `render.rule.VoteRule`) and how a histogram becomes labels
+(its `decide`). A setting a method does not read is refused when the config is built
+(`consensus=flashsplat consensus.delta=1.5` stops, naming delta).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field, fields
+
+import numpy as np
+import torch
+
+from sagonline.core.plugins import VOTE_RULES
+from sagonline.core.settings import check_settings
+from sagonline.core.store import stored
+from sagonline.render.rasterize import T_STOP
+from sagonline.render.rule import VoteRule
+from sagonline.render.vote import vote_histogram
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.vote.fill import fill_from_neighbours
+
+
+class MaskError(ValueError):
+    """A 2D mask does not fit its view (size, dtype or label range)."""
+
+
+@dataclass
+class VoteConfig:
+    """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
+
+    method: str = "rgc"
+    """A registered vote rule: rgc (the paper's), flashsplat or weighted_mean
+    (`python -m sagonline plugins vote-rules`)."""
+    eps: float = 0.01
+    """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps."""
+    delta: float | None = 2.0
+    """rgc: ... and only if its projected centre lies within delta px of the pixel centre;
+    null: no distance rule."""
+    min_votes: int = 1
+    """Fewer votes leave a Gaussian unlabelled."""
+    margin: float = 0.2
+    """A top-1 minus top-2 vote share below this (or a tie) leaves it unlabelled."""
+    num_masks: int | None = None
+    """How many masks vote (None: all of those `stride` picks)."""
+    stride: int = 1
+    """Every stride-th mask is a candidate to vote."""
+    selection: str = "uniform"
+    """Which num_masks of the candidates: uniform (evenly spaced), first, or random (seeded)."""
+    seed: int = 0
+    """Seeds `selection=random`."""
+    background_slack: float = 0.0
+    """flashsplat: added to the background's normalised weight."""
+    threshold: float = 0.9
+    """weighted_mean: the weighted mean a foreground label must reach."""
+    fill: int = 0
+    """Unlabelled Gaussians take the label a strict majority of their `fill` nearest labelled
+    neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
+    0: off, the paper's protocol (`fill_from_neighbours`)."""
+
+    def __post_init__(self) -> None:
+        n = self.num_masks
+        methods = VOTE_RULES.keys()
+        check_settings(
+            "consensus",
+            method=(self.method in methods, self.method, f"one of {methods}"),
+            selection=(
+                self.selection in ("uniform", "first", "random"),
+                self.selection,
+                "uniform, first or random",
+            ),
+            eps=(0 <= self.eps < 1, self.eps, "a transmittance in [0, 1)"),
+            delta=(
+                self.delta is None or self.delta > 0,
+                self.delta,
+                "a distance in pixels > 0, or null (no distance rule)",
+            ),
+            min_votes=(self.min_votes >= 0, self.min_votes, ">= 0"),
+            margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
+            num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
+            stride=(self.stride >= 1, self.stride, ">= 1"),
+            background_slack=(self.background_slack >= 0, self.background_slack, ">= 0"),
+            threshold=(0 <= self.threshold <= 1, self.threshold, "in [0, 1]"),
+            fill=(0 <= self.fill <= 64, self.fill, "in [0, 64] neighbours (0: off)"),
+        )
+        self.method_rule().check_reads(self)
+
+    def method_rule(self) -> VoteMethod:
+        """The registered method this config names."""
+        return VOTE_RULES.build(self.method, {})
+
+    @property
+    def rule(self) -> VoteRule:
+        """The rule the kernels apply, built once from these settings by the method."""
+        return self.method_rule().rule(self)
+
+
+# The settings every method reads: which masks vote, and the fill after the vote.
+SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill")
+
+
+@dataclass(frozen=True)
+class VoteMethod:
+    """A registered vote rule: the VoteConfig settings it reads (besides SELECTION), the kernel
+    rule it builds from them, and how an (N, K) histogram becomes labels (N,) and labelled
+    (N,)."""
+
+    reads: tuple[str, ...]
+    rule: Callable[[VoteConfig], VoteRule]
+    decide: Callable[[torch.Tensor, VoteConfig], tuple[torch.Tensor, torch.Tensor]]
+
+    def check_reads(self, cfg: VoteConfig) -> None:
+        """Refuse a setting this method does not read that differs from its default: it would
+        be ignored without a word."""
+        defaults = VoteConfig.__dataclass_fields__
+        for f in fields(cfg):
+            if f.name in SELECTION or f.name in self.reads:
+                continue
+            if getattr(cfg, f.name) != defaults[f.name].default:
+                raise ValueError(
+                    f"consensus.{f.name}={getattr(cfg, f.name)!r}: the method {cfg.method} "
+                    f"does not read {f.name} (it reads {', '.join(self.reads) or 'nothing'})"
+                )
+
+
+@stored
+@dataclass
+class VoteResult:
+    """labels: (N,) long (0 where unlabelled); labelled: (N,) bool; histogram: (N, K) float
+    votes or weights; frames: indices of the masks that voted; stats: fractions, counts and
+    timings. `assigned` is what leaves the vote: (N,) long with -1 for unlabelled."""
+
+    labels: torch.Tensor
+    labelled: torch.Tensor
+    histogram: torch.Tensor
+    frames: list[int]
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def assigned(
+        self,
+    ) -> torch.Tensor:  # [N] long, -1 unlabelled
+        """(N,) long: -1 unlabelled, 0 background, 1.. the objects (the one encoding every
+        output and label render uses)."""
+        return torch.where(self.labelled, self.labels, torch.full_like(self.labels, -1))
+
+
+def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:
+    """Indices of the masks that vote: every `stride`-th, then `num_masks` of those."""
+    candidates = list(range(0, num_frames, cfg.stride))
+    n = cfg.num_masks
+    if n is None or n >= len(candidates):
+        return candidates
+    if n <= 0:
+        raise ValueError(f"num_masks must be positive, got {n}")
+    if cfg.selection == "first":
+        return candidates[:n]
+    if cfg.selection == "random":
+        rng = np.random.default_rng(cfg.seed)
+        return sorted(rng.choice(candidates, size=n, replace=False).tolist())
+    picks = np.linspace(0, len(candidates) - 1, n).round().astype(int)
+    return [candidates[i] for i in sorted(set(picks.tolist()))]
+
+
+class VoteAccumulator:
+    """The running (N, K) vote histogram of one method: views are added by the vote op
+    (`render.vote_histogram`), labels are read off by `finalize`."""
+
+    def __init__(
+        self,
+        num_gaussians: int,
+        num_labels: int,
+        cfg: VoteConfig,
+        device: torch.device | str = "cpu",
+    ):
+        self.cfg, self.k, self.rule = cfg, num_labels, cfg.rule
+        self.hist = torch.zeros(num_gaussians, num_labels, dtype=torch.float64, device=device)
+
+    def add_view(
+        self, gaussians: Gaussians, camera: Camera, mask, backend: str, where: str = "mask"
+    ) -> None:
+        """Vote one view's (H, W) label map; `where` names the mask in errors."""
+        labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
+        vote_histogram(
+            gaussians, camera, labels.to(gaussians.device), self.k, self.rule,
+            backend=backend, out=self.hist,
+        )  # fmt: skip
+
+    def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K]
+        """labels (N,), labelled (N,), histogram (N, K)."""
+        return decide(self.hist, self.cfg)
+
+    def finalize_filled(
+        self,
+        means: torch.Tensor,  # [N, 3] the Gaussians' centres (for the fill)
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K], [N]
+        """`finalize`, then the config's fill (`fill_from_neighbours`): labels, labelled (fill
+        included), histogram and which Gaussians the fill labelled."""
+        labels, labelled, hist = self.finalize()
+        filled = torch.zeros_like(labelled)
+        if self.cfg.fill:
+            labels, filled = fill_from_neighbours(means, labels, labelled, self.cfg.fill)
+            labelled = labelled | filled
+        return labels, labelled, hist, filled
+
+
+def decide(
+    hist: torch.Tensor,  # [N, K] votes or blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N] long, [N] bool, [N, K] float32
+    """Histogram -> labels, labelled and the histogram as float32, by the method's rule (see
+    the module docstring); unlabelled Gaussians carry label 0."""
+    labels, labelled = cfg.method_rule().decide(hist, cfg)
+    labels = torch.where(labelled, labels, torch.zeros_like(labels))
+    return labels, labelled, hist.float()
+
+
+def decide_majority(
+    hist: torch.Tensor,  # [N, K] votes
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
+    """rgc: the label of most votes, unless fewer than min_votes, a tie, or a top-1 minus top-2
+    share below margin."""
+    k = hist.shape[1]
+    total = hist.sum(1)
+    top2 = hist.topk(min(2, k), dim=1)
+    labels = top2.indices[:, 0]
+    second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
+    share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
+    labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
+    return labels, labelled & (share_gap >= cfg.margin)
+
+
+def decide_flashsplat(
+    hist: torch.Tensor,  # [N, K] blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
+    """flashsplat: normalised weights, background slack added to label 0, argmax."""
+    total = hist.sum(1)
+    norm = hist / total.clamp_min(1e-12)[:, None]
+    norm[:, 0] += cfg.background_slack
+    return norm.argmax(1), total > 0
+
+
+def decide_weighted_mean(
+    hist: torch.Tensor,  # [N, K] blend weights
+    cfg: VoteConfig,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
+    """weighted_mean: the best foreground label whose weighted mean reaches threshold, else
+    background."""
+    total = hist.sum(1)
+    mean = hist / total.clamp_min(1e-12)[:, None]
+    best_val, best = mean[:, 1:].max(1)
+    labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
+    return labels, total > 0
+
+
+def count_rule(cfg: VoteConfig) -> VoteRule:
+    """rgc's pairs: T_i > eps and the centre within delta px, +1 each."""
+    return VoteRule(cfg.eps, cfg.delta, "count", cfg.min_votes, cfg.margin)
+
+
+def blend_rule(cfg: VoteConfig) -> VoteRule:
+    """The weighted methods' pairs: every composited one (T_i > T_STOP), alpha_i T_i each."""
+    return VoteRule(T_STOP, None, "blend", 0, 0.0)
+
+
+@dataclass
+class NoSettings:
+    """A vote rule's settings live on VoteConfig (`consensus.*`): it names those it reads."""
+
+
+for _key, _method, _summary in (
+    (
+        "rgc",
+        VoteMethod(("eps", "delta", "min_votes", "margin"), count_rule, decide_majority),
+        "the paper's consensus: visible (T > eps), aligned (delta px) votes, majority, margin",
+    ),
+    (
+        "flashsplat",
+        VoteMethod(("background_slack",), blend_rule, decide_flashsplat),
+        "FlashSplat: alpha*T weights per label, normalised, background slack, argmax",
+    ),
+    (
+        "weighted_mean",
+        VoteMethod(("threshold",), blend_rule, decide_weighted_mean),
+        "GaussianCut / LUDVIG: the alpha*T-weighted mean of each label, threshold",
+    ),
+):
+    VOTE_RULES.register(_key, NoSettings, lambda cfg, m=_method: m, summary=_summary)
+
+
+def check_mask(
+    mask: np.ndarray | torch.Tensor,  # [H, W] label ids
+    camera: Camera,
+    num_labels: int,
+    where: str,
+) -> torch.Tensor:  # [H * W] long
+    """Validate one frame's mask against its view; returns (H*W,) long."""
+    m = torch.as_tensor(np.asarray(mask))
+    if m.shape != (camera.height, camera.width):
+        raise MaskError(
+            f"{where}: mask is {tuple(m.shape)} but its view '{camera.name}' renders "
+            f"at {camera.height}x{camera.width} (H x W)"
+        )
+    if m.dtype.is_floating_point or m.dtype == torch.bool:
+        if m.dtype == torch.bool:
+            m = m.long()
+        elif not torch.equal(m, m.round()):
+            raise MaskError(f"{where}: mask holds non-integer values; pass label ids")
+    m = m.long()
+    lo, hi = int(m.min()), int(m.max())
+    if lo < 0 or hi >= num_labels:
+        raise MaskError(f"{where}: label ids must lie in [0, {num_labels}), found [{lo}, {hi}]")
+    return m.flatten()
+
+
+def consensus_vote(
+    gaussians: Gaussians,
+    cameras: Sequence[Camera],
+    masks: Sequence,
+    num_labels: int,
+    cfg: VoteConfig | None = None,
+    *,
+    backend: str = "torch",
+    progress: bool = False,
+) -> VoteResult:
+    """Vote every selected (camera, mask) pair into one label per Gaussian.
+
+    cameras: T views; masks: T label maps (H, W) with ids in [0, num_labels), one per view.
+    """
+    cfg = cfg or VoteConfig()
+    if len(cameras) != len(masks):
+        raise MaskError(f"{len(cameras)} cameras but {len(masks)} masks")
+    frames = select_frames(len(cameras), cfg)
+    acc = VoteAccumulator(len(gaussians), num_labels, cfg, device=gaussians.device)
+    iterator = frames
+    if progress:
+        from tqdm import tqdm
+
+        iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
+    start = time.perf_counter()
+    for f in iterator:
+        acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}")
+    labels, labelled, hist, filled = acc.finalize_filled(gaussians.means)
+    elapsed = time.perf_counter() - start
+    total = hist.sum(1)
+    voted = total > 0
+    stats = {
+        "fraction_filled": float(filled.float().mean()),
+        "num_masks": len(frames),
+        "fraction_labelled": float(labelled.float().mean()),
+        "fraction_voted": float(voted.float().mean()),
+        "fraction_ambiguous": float((voted & ~labelled).float().mean()),
+        "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
+        "votes_per_gaussian_median": float(total[voted].median()) if voted.any() else 0.0,
+        "votes_cast": int(acc.hist.sum()) if cfg.method == "rgc" else None,
+        "aggregation_s": elapsed,
+        "ms_per_mask": 1000.0 * elapsed / max(len(frames), 1),
+    }
+    return VoteResult(labels=labels, labelled=labelled, histogram=hist, frames=frames, stats=stats)

@@ -1,0 +1,169 @@
+"""Consensus feedback: a video segmenter that cannot drift away for good.
+
+While the trajectory is segmented, the masks accepted so far are voted into the Gaussians and
+the fused labels are rendered into each next frame. Where the segmenter's own mask disagrees
+with that render (foreground IoU below `min_iou`) or has lost the object, the segmenter is
+re-prompted on that frame with the render as its mask prompt and the rest of the video in that
+direction is segmented again from there. Works for any segmenter that takes mask prompts
+(classical, SAM 2); the oracle reads the ground truth and needs none.
+
+Order: the prompt frame is voted first; then forwards to the last frame, then backwards to the
+first, `every` frames at a time (each block is checked against the vote of everything accepted
+before it, then voted). The render is trusted once `min_frames` masks have voted.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from sagonline.render.api import render_labels
+from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import Gaussians
+from sagonline.segment.base import SegmentationResult, VideoSegmenter
+from sagonline.segment.prompts import ObjectPrompt, Prompt
+from sagonline.vote.consensus import VoteAccumulator, VoteConfig
+
+
+@dataclass
+class FeedbackConfig:
+    """Consensus feedback (`feedback=on`): the fused labels re-prompt a drifting segmenter."""
+
+    enabled: bool = False
+    """Off by default: the paper's protocol has no feedback."""
+    every: int = 8
+    """Frames segmented between two votes of what was accepted so far."""
+    min_iou: float = 0.5
+    """Re-prompt where the mask and the fused render agree less than this."""
+    min_frames: int = 4
+    """Masks voted before the fused render is trusted."""
+    min_area: float = 0.002
+    """The render must show this fraction of the frame as foreground."""
+    max_restarts: int = 30
+    """Re-prompts at most, per video."""
+
+
+def foreground_iou(a: np.ndarray, b: np.ndarray) -> float:
+    """Mean IoU over the foreground labels present in either (H, W) label map (1 if none)."""
+    labels = [k for k in np.union1d(np.unique(a), np.unique(b)) if k != 0]
+    if not labels:
+        return 1.0
+    ious = []
+    for k in labels:
+        x, y = a == k, b == k
+        ious.append(np.logical_and(x, y).sum() / max(np.logical_or(x, y).sum(), 1))
+    return float(np.mean(ious))
+
+
+def mask_prompt(labels: np.ndarray, frame: int) -> Prompt:
+    """A prompt that marks every foreground label of `labels` by its mask on `frame`."""
+    objects = [
+        ObjectPrompt(label=int(k), mask=labels == k) for k in np.unique(labels) if int(k) != 0
+    ]
+    return Prompt(frame=frame, objects=objects)
+
+
+@dataclass(frozen=True)
+class FeedbackInputs:
+    """What consensus feedback votes and renders with: its settings, the vote's, the scene,
+    the trajectory's cameras, the label count, the label render's threshold, the renderer."""
+
+    config: FeedbackConfig
+    vote: VoteConfig
+    gaussians: Gaussians
+    cameras: list[Camera]
+    num_labels: int
+    label_min_weight: float
+    backend: str
+
+
+def segment_with_feedback(
+    segmenter: VideoSegmenter,
+    frames: list[np.ndarray],
+    prompt: Prompt,
+    setup: FeedbackInputs,
+    ground_truth: list[np.ndarray] | None = None,
+) -> tuple[SegmentationResult, dict]:
+    """Segment `frames` (T RGB images, the rendered trajectory of `setup.cameras`) with
+    consensus feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and
+    times.
+
+    Why one function: its three closures (vote, fused render, re-segment) share the running
+    vote, the masks and the timers; apart, they would pass all of them back and forth."""
+    cfg, gaussians, cameras = setup.config, setup.gaussians, setup.cameras
+    num_labels, backend, min_weight = setup.num_labels, setup.backend, setup.label_min_weight
+    start = time.perf_counter()
+    first = segmenter.segment(frames, prompt, ground_truth=ground_truth)
+    masks, seconds = list(first.masks), list(first.seconds)
+    n, p = len(frames), prompt.frame
+    acc = VoteAccumulator(len(gaussians), num_labels, setup.vote, device=gaussians.device)
+    voted, restarts, vote_s, render_s = 0, [], 0.0, 0.0
+
+    def vote(frames_done: list[int]) -> None:
+        nonlocal voted, vote_s
+        t0 = time.perf_counter()
+        for t in frames_done:
+            acc.add_view(gaussians, cameras[t], masks[t], backend, f"mask of frame {t}")
+        voted += len(frames_done)
+        vote_s += time.perf_counter() - t0
+
+    def fused_render(t: int) -> np.ndarray:
+        nonlocal render_s
+        t0 = time.perf_counter()
+        labels, labelled, _ = acc.finalize()
+        objects = torch.where(labelled & (labels > 0), labels, -1)  # the objects alone
+        out = render_labels(
+            gaussians, cameras[t], objects, num_labels, min_weight=min_weight, backend=backend
+        )
+        render_s += time.perf_counter() - t0
+        return out.cpu().numpy().astype(np.int64)
+
+    def resegment(t: int, forward: bool, fused: np.ndarray) -> None:
+        """Re-prompt on frame t with the fused render; segment on from there."""
+        span = range(t, n) if forward else range(0, t + 1)
+        sub = [frames[i] for i in span]
+        sub_prompt = mask_prompt(fused, 0 if forward else len(sub) - 1)
+        sub_gt = [ground_truth[i] for i in span] if ground_truth is not None else None
+        again = segmenter.segment(sub, sub_prompt, ground_truth=sub_gt)
+        for i, m, s in zip(span, again.masks, again.seconds, strict=True):
+            masks[i], seconds[i] = m, seconds[i] + s
+        masks[t] = fused  # the re-prompt itself is what the segmenter was told
+
+    vote([p])
+    for forward in (True, False):
+        order = list(range(p + 1, n)) if forward else list(range(p - 1, -1, -1))
+        for b in range(0, len(order), max(cfg.every, 1)):
+            block = order[b : b + max(cfg.every, 1)]
+            if voted >= cfg.min_frames and len(restarts) < cfg.max_restarts:
+                for t in block:
+                    fused = fused_render(t)
+                    if (fused > 0).mean() < cfg.min_area:
+                        continue  # the vote does not see the object here: nothing to tell
+                    iou = foreground_iou(masks[t], fused)
+                    if iou < cfg.min_iou:
+                        restarts.append({"frame": t, "iou": iou})
+                        resegment(t, forward, fused)
+                        break  # the rest of the block was segmented again from t
+            vote(block)
+    stats = {
+        "restarts": len(restarts),
+        "restarted_frames": [r["frame"] for r in restarts],
+        "restart_ious": [round(r["iou"], 4) for r in restarts],
+        "vote_s": vote_s,
+        "render_s": render_s,
+        "total_s": time.perf_counter() - start,
+    }
+    masks = [np.asarray(m, np.int64) for m in masks]
+    return SegmentationResult(masks, seconds, first.name, info={"feedback": stats}), stats
+
+
+__all__ = [
+    "FeedbackConfig",
+    "FeedbackInputs",
+    "foreground_iou",
+    "mask_prompt",
+    "segment_with_feedback",
+]
