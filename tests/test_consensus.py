@@ -50,10 +50,8 @@ def test_rgc_votes_only_visible_aligned_gaussians():
             [0.5, 0.5, 3.0, 1.0, 1.9, 0.1],
         ),
     )
-    labels, labelled, hist = acc.finalize()
-    assert hist.tolist() == [[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 0, 2]]
-    assert labels.tolist() == [1, 0, 0, 2]
-    assert labelled.tolist() == [True, False, False, True]
+    assert acc.hist.tolist() == [[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 0, 2]]
+    assert acc.labels().tolist() == [1, -1, -1, 2]  # -1: unlabelled, the one encoding
 
 
 def test_min_votes_margin_and_ties():
@@ -62,15 +60,11 @@ def test_min_votes_margin_and_ties():
     def run(cfg):
         acc = VoteAccumulator(4, 3, cfg)
         acc.hist = torch.tensor(hist_rows, dtype=torch.float64)
-        return acc.finalize()
+        return acc.labels()
 
-    labels, labelled, _ = run(VoteConfig(margin=0.0))
-    assert labelled.tolist() == [True, False, True, True]  # the tie is ambiguous
-    labels, labelled, _ = run(VoteConfig(margin=0.3))
-    assert labelled.tolist() == [True, False, False, True]  # 3:2 is a 0.2 share gap
-    labels, labelled, _ = run(VoteConfig(margin=0.0, min_votes=3))
-    assert labelled.tolist() == [True, False, True, False]
-    assert labels.tolist() == [1, 0, 1, 0]
+    assert run(VoteConfig(margin=0.0)).tolist() == [1, -1, 1, 1]  # the tie is ambiguous
+    assert run(VoteConfig(margin=0.3)).tolist() == [1, -1, -1, 1]  # 3:2 is a 0.2 share gap
+    assert run(VoteConfig(margin=0.0, min_votes=3)).tolist() == [1, -1, 1, -1]
 
 
 def test_flashsplat_and_weighted_mean_use_blend_weights():
@@ -78,16 +72,15 @@ def test_flashsplat_and_weighted_mean_use_blend_weights():
     mask = torch.tensor([1, 0])
     fs = VoteAccumulator(2, 2, VoteConfig(method="flashsplat"))
     streamed(fs, mask, c)
-    labels, labelled, hist = fs.finalize()
-    assert hist[0].tolist() == pytest.approx([0.2, 0.8])  # distance is ignored
-    assert labels.tolist() == [1, 0]
+    assert fs.hist[0].tolist() == pytest.approx([0.2, 0.8])  # distance is ignored
+    assert fs.labels().tolist() == [1, 0]
     fs.cfg = VoteConfig(method="flashsplat", background_slack=0.7)
-    assert fs.finalize()[0].tolist() == [0, 0]
+    assert fs.labels().tolist() == [0, 0]
     wm = VoteAccumulator(2, 2, VoteConfig(method="weighted_mean", threshold=0.75))
     streamed(wm, mask, c)
-    assert wm.finalize()[0].tolist() == [1, 0]  # 0.8 >= 0.75
+    assert wm.labels().tolist() == [1, 0]  # 0.8 >= 0.75
     wm.cfg = VoteConfig(method="weighted_mean", threshold=0.9)
-    assert wm.finalize()[0].tolist() == [0, 0]
+    assert wm.labels().tolist() == [0, 0]
 
 
 def test_select_frames():
@@ -144,7 +137,7 @@ def test_vote_on_rendered_scene(tiny_task, method, floor):
     res = consensus_vote(
         t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels, VoteConfig(method=method)
     )
-    ok = res.labelled
+    ok = res.labels >= 0
     acc = float((res.labels[ok] == t.gt_labels3d[ok]).float().mean())
     assert acc > floor, acc
     assert 0.3 < res.stats["fraction_labelled"] <= 1.0

@@ -99,9 +99,9 @@ def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
     rng = np.random.default_rng(2)
     holes = torch.from_numpy(rng.random(len(g)) < 0.2) & (truth == 1)
     means = torch.cat([g.means, g.means[truth == 1].mean(0, keepdim=True) + 50.0])
-    labels = torch.cat([torch.where(holes, 0, truth), torch.tensor([0])])
-    labelled = torch.cat([~holes, torch.tensor([False])])
-    filled_labels, filled = fill_from_neighbours(means, labels, labelled, 8)
+    labels = torch.cat([torch.where(holes, -1, truth), torch.tensor([-1])])
+    labelled = labels >= 0
+    filled_labels, filled = fill_from_neighbours(means, labels, 8)
     assert (filled_labels[:-1][holes] == 1).float().mean() > 0.9
     assert filled[:-1][holes].float().mean() > 0.9 and not filled[-1]
     assert torch.equal(filled_labels[labelled], labels[labelled])
@@ -110,8 +110,9 @@ def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
     off = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2, sparse, backend="native")
     on = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2,
                         dataclasses.replace(sparse, fill=8), backend="native")  # fmt: skip
-    assert on.stats["fraction_filled"] > 0 and on.labelled.sum() > off.labelled.sum()
-    assert torch.equal(on.labels[off.labelled], off.labels[off.labelled])  # votes kept
+    kept = off.labels >= 0
+    assert on.stats["fraction_filled"] > 0 and (on.labels >= 0).sum() > kept.sum()
+    assert torch.equal(on.labels[kept], off.labels[kept])  # votes kept
 
 
 def test_fill_is_refused_nowhere_and_off_by_default():

@@ -48,9 +48,8 @@ def test_resize_rules():
 
 def test_labels3d_metrics():
     gt = torch.tensor([1, 1, 2, 0, 0])
-    labels = torch.tensor([1, 2, 2, 0, 0])
-    labelled = torch.tensor([True, True, True, True, False])
-    m = labels3d_metrics(labels, labelled, gt, 3)
+    labels = torch.tensor([1, 2, 2, 0, -1])  # -1: unlabelled
+    m = labels3d_metrics(labels, gt, 3)
     assert m["accuracy"] == pytest.approx(3 / 4)
     assert m["coverage"] == pytest.approx(4 / 5)
     assert m["per_label_iou"] == {1: pytest.approx(1 / 2), 2: pytest.approx(1 / 2)}

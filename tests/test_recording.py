@@ -101,7 +101,7 @@ def test_large_scenes_fall_back_to_points(tmp_path):
     rec = Recorder(tmp_path / "r.rrd", scenes=["s"])
     rec.annotate("s", ["background", "object"])
     hist = torch.zeros(len(g), 2).numpy()
-    rec.gaussians("s", g, labels, labels > 0, hist)
+    rec.gaussians("s", g, np.where(labels > 0, labels, -1), hist)
     rec.close()
     found, _ = read_back(tmp_path / "r.rrd")
     assert found["/scenes/s/gaussians/labelled"]["instances"]["Points3D:positions"] == len(g)

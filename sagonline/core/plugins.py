@@ -21,11 +21,13 @@ by an installed package under the entry-point groups `sagonline.segment`,
 from __future__ import annotations
 
 import dataclasses
+import functools
 import importlib
 import math
 import os
 from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Generic, TypeVar
 
 C = TypeVar("C")
@@ -48,6 +50,15 @@ class Plugin(Generic[C]):
     config: type[C]
     build: Callable[[C], Any]
     summary: str = ""
+    module: str = ""
+    """The module that registered it (its source digest is part of `version`)."""
+
+    @property
+    def version(self) -> str:
+        """What produced a plug-in's answers, for the cache keys: the version of the package
+        that ships it and a digest of its module's source (a changed plug-in never reuses an
+        entry of the old one)."""
+        return module_version(self.module)
 
     def settings(self, values: Mapping[str, Any] | None = None, *, where: str = "") -> C:
         """`values` (a mapping of setting -> value, e.g. read from a file) as this plug-in's
@@ -81,13 +92,16 @@ class Registry(Generic[C]):
             old = self._plugins.get(key)
             if old is not None and (old.config, old.build) != (config, factory):
                 raise PluginError(f"{self.what} {key!r} is registered twice")
-            self._plugins[key] = Plugin(key, config, factory, summary or doc)
+            self._plugins[key] = Plugin(key, config, factory, summary or doc, module)
 
+        module = getattr(build, "__module__", "") or ""
         if build is not None:
             add(build, first_line(build.__doc__))
             return build
 
         def decorate(cls):
+            nonlocal module
+            module = cls.__module__
             add(lambda cfg: cls(**settings_dict(cfg)), first_line(cls.__doc__))
             return cls
 
@@ -137,6 +151,27 @@ class Registry(Generic[C]):
         """The plug-in `key` built from `values` (checked against its config first)."""
         plugin = self[key]
         return plugin.build(plugin.settings(values, where=where))
+
+
+@functools.cache
+def module_version(module: str) -> str:
+    """'<package version>+<12 hex digits of the module's source>' ('unknown' parts where a
+    module has no file or no package metadata)."""
+    import hashlib
+    import sys
+    from importlib.metadata import PackageNotFoundError, version
+
+    top = module.split(".")[0]
+    try:
+        package = version(top)
+    except (PackageNotFoundError, ValueError):
+        package = "unknown"
+    path = getattr(sys.modules.get(module), "__file__", None)
+    try:
+        source = hashlib.blake2b(Path(path).read_bytes(), digest_size=6).hexdigest()
+    except (OSError, TypeError):
+        source = "unknown"
+    return f"{package}+{source}"
 
 
 def first_line(doc: str | None) -> str:

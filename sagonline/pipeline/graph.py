@@ -11,9 +11,8 @@ input added to an inputs dataclass is part of the key the moment it exists; a fi
 from __future__ import annotations
 
 import dataclasses
-import time
 import warnings
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Generic, TypeVar
@@ -41,15 +40,15 @@ class Output(Generic[O]):
 
 @dataclass(frozen=True)
 class Stage(Generic[I, O]):
-    """name, code version (bump it when a change to `compute` changes what it returns: every
-    cached entry of this stage and of the stages downstream is then recomputed), the inputs
-    dataclass, and `compute(inputs, progress) -> output` (None for a stage that is run by its
-    own driver and uses only its key, like the student's background training)."""
+    """name, code version (bump it when a change to what computes it changes what it returns:
+    every cached entry of this stage and of the stages downstream is then recomputed) and the
+    inputs dataclass. Stages are computed by their drivers (Stage I's engine,
+    `stage_one.StageOne`; the student's background training, `stage_two`), which look their
+    outputs up in a `StageCache` under `key(inputs)` first."""
 
     name: str
     version: int
     inputs: type
-    compute: Callable[[Any, bool], Any] | None
 
     def key(self, inputs: I) -> str:
         if not isinstance(inputs, self.inputs):
@@ -177,19 +176,3 @@ class StageRun:
 
     status: str
     seconds: float
-
-
-def run_stage(
-    stage: Stage[I, O], inputs: I, cache: StageCache, progress: bool = False
-) -> tuple[Output[O], StageRun]:
-    """The stage's output from the cache when its key is there, else computed and cached."""
-    if stage.compute is None:
-        raise TypeError(f"stage {stage.name} is run by its own driver, not by run_stage")
-    key = stage.key(inputs)
-    start = time.perf_counter()
-    value = cache.load(stage, key)
-    if value is not None:
-        return Output(key, value), StageRun("cached", time.perf_counter() - start)
-    value = stage.compute(inputs, progress)
-    cache.save(stage, key, value)
-    return Output(key, value), StageRun("computed", time.perf_counter() - start)

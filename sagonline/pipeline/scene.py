@@ -17,6 +17,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from sagonline.core.progress import Progress
 from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.diagnose import diagnose_scene
@@ -28,7 +29,14 @@ from sagonline.pipeline.scoring import (
     record_scores,
     segmenter_miou,
 )
-from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
+from sagonline.pipeline.stage_one import (
+    FrameRendered,
+    MaskReady,
+    PipelineSettings,
+    StageOne,
+    StageOneConfig,
+    StageOneOutput,
+)
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.record.recording import Recorder
 from sagonline.render.api import render, render_labels, to_uint8
@@ -73,16 +81,21 @@ def run_scene(
     report.extra["empty_ground_truth_views"] = check_ground_truth(task)
     note_fit(task, report)
     g = task.gaussians.to(settings.device)
-
-    def on_masks(frames, masks, num_labels):
-        record_trajectory(task, recorder, frames, masks, num_labels)
-
     cache = StageCache(cache_dir)
-    stage_one = compose_stage_one(
-        g, task.trajectory, task.prompt, segmenter, vote_cfg, settings,
-        num_labels=task.num_labels, trajectory_gt=task.trajectory_gt,
-        cache=cache, on_masks=on_masks,
-    )  # fmt: skip
+    engine = StageOne(
+        StageOneConfig(
+            g,
+            task.trajectory,
+            segmenter,
+            vote_cfg,
+            settings,
+            task.num_labels,
+            task.trajectory_gt,
+            cache,
+        ),  # fmt: skip
+        task.prompt,
+    )
+    stage_one = follow_stage_one(task, engine, recorder, settings.progress)
     report.stages = {k: v.status for k, v in stage_one.runs.items()}
     plan = stage_one.backends
     report.extra["backends"] = plan.describe()
@@ -94,9 +107,7 @@ def run_scene(
         backend=plan.labels,
     )  # fmt: skip
     if task.gt_labels3d is not None and not is_automatic(task):
-        report.labels3d = labels3d_metrics(
-            result.labels, result.labelled, task.gt_labels3d, num_labels
-        )
+        report.labels3d = labels3d_metrics(result.labels, task.gt_labels3d, num_labels)
     causes = None
     if settings.diagnose and not is_automatic(task):
         causes = diagnose_scene(
@@ -104,13 +115,37 @@ def run_scene(
         )
     record_eval_views(task, recorder, preds, report, g, plan.images, causes)
     recorder.gaussians(
-        task.name,
-        task.gaussians,
-        result.labels.cpu().numpy(),
-        result.labelled.cpu().numpy(),
-        result.histogram.cpu().numpy(),
+        task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
     )
     return report, stage_one
+
+
+def follow_stage_one(
+    task: SceneTask, engine: StageOne, recorder: Recorder, show: bool
+) -> StageOneOutput:
+    """Drain the engine's stream: progress said (frames, then masks and votes), each frame and
+    mask recorded as it comes (an interrupted run keeps them), the stages' outputs."""
+    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
+    recorder.annotate(task.name, names)
+    n = len(task.trajectory)
+    frames_bar = Progress(f"{task.name}: render", n, enabled=show)
+    masks_bar = None
+    for event in engine.stream():
+        if isinstance(event, FrameRendered):
+            frames_bar.update()
+        elif isinstance(event, MaskReady):
+            if masks_bar is None:
+                frames_bar.close()
+                masks_bar = Progress(f"{task.name}: segment and vote", n, enabled=show)
+            masks_bar.update()
+            recorder.trajectory_frame(task.name, event.index, engine.frames[event.index],
+                                      event.mask, camera=task.trajectory[event.index])  # fmt: skip
+    frames_bar.close()
+    if masks_bar is not None:
+        masks_bar.close()
+    out = engine.result()
+    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), out.num_labels)])
+    return out
 
 
 def note_fit(task: SceneTask, report: SceneReport) -> None:
@@ -176,7 +211,7 @@ def score_views(
         pred = render_labels(
             g,
             view.camera,
-            vote.assigned,
+            vote.labels,
             num_labels,
             min_weight=settings.label_min_weight,
             backend=backend,
@@ -186,21 +221,6 @@ def score_views(
     record_scores(task, preds, settings.resize, report, "coarse", voted, save_to)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     return preds
-
-
-def record_trajectory(
-    task: SceneTask,
-    recorder: Recorder,
-    frames: list[np.ndarray],
-    masks: list[np.ndarray],
-    num_labels: int,
-) -> None:
-    """The trajectory's frames and the segmenter's masks (recorded before the vote runs, so an
-    interrupted run keeps them)."""
-    names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
-    recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), num_labels)])
-    for i, (frame, mask) in enumerate(zip(frames, masks, strict=True)):
-        recorder.trajectory_frame(task.name, i, frame, mask, camera=task.trajectory[i])
 
 
 def record_eval_views(task, recorder, preds, report, gaussians, backend, causes=None) -> None:

@@ -23,9 +23,16 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.core.errors import PromptError
+from sagonline.core.progress import Progress
 from sagonline.core.provenance import digest_file
 from sagonline.pipeline.graph import StageCache
-from sagonline.pipeline.stage_one import PipelineSettings, compose_stage_one
+from sagonline.pipeline.stage_one import (
+    FrameRendered,
+    MaskReady,
+    PipelineSettings,
+    StageOne,
+    StageOneConfig,
+)
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -157,16 +164,18 @@ def segment_scene(
     cameras: list[Camera],
     prompt: Prompt,
     *,
-    segmenter: VideoSegmenter | None = None,
+    segmenter: VideoSegmenter | SegmenterRun | None = None,
     vote: VoteConfig | None = None,
     backend: str = "auto",
+    vote_backend: str = "auto",
     device: str = "cpu",
     cache_dir: str | Path | None = None,
     progress: bool = False,
 ) -> Segmentation:
     """Render `cameras` (in the order given), segment the video from `prompt` with `segmenter`
     (the weight-free classical one by default), vote the masks into one label per Gaussian:
-    the same Stage I as an evaluation (`pipeline.compose_stage_one`)."""
+    Stage I's engine (`pipeline.stage_one.StageOne`), drained, with progress said when asked
+    (a bar on a terminal, a line every 15 s elsewhere)."""
     names = list(prompt.names)
     if segmenter is None:
         from sagonline.segment.classical import FlowWatershedSegmenter
@@ -175,14 +184,21 @@ def segment_scene(
     vote = vote or VoteConfig()
     check_view(cameras, prompt.frame)
     check_cameras_see_scene(gaussians, cameras)
-    weights = {f: digest_file(f) for f in segmenter.weight_files()}
-    run = SegmenterRun(segmenter, plain_settings(segmenter), weights)
-    settings = PipelineSettings(backend=backend, device=device, progress=progress)
+    run = segmenter if isinstance(segmenter, SegmenterRun) else segmenter_run_of(segmenter)
+    settings = PipelineSettings(backend=backend, vote_backend=vote_backend, device=device,
+                                progress=progress)  # fmt: skip
     start = time.perf_counter()
-    stage_one = compose_stage_one(
-        gaussians.to(device), list(cameras), prompt, run, vote, settings,
-        num_labels=max(prompt.num_labels, len(names or [])), cache=StageCache(cache_dir),
+    config = StageOneConfig(
+        gaussians, list(cameras), run, vote, settings, max(prompt.num_labels, len(names)),
+        cache=StageCache(cache_dir),
     )  # fmt: skip
+    engine = StageOne(config, prompt)
+    steps = Progress("segment and vote", 2 * len(cameras), enabled=progress)
+    for event in engine.stream():
+        if isinstance(event, (FrameRendered, MaskReady)):
+            steps.update()
+    steps.close()
+    stage_one = engine.result()
     frames, seg, v = stage_one.frames.value, stage_one.masks.value, stage_one.vote.value
     k = stage_one.num_labels
     names = list(names or ["background"]) + [f"object_{i}" for i in range(len(names or [1]), k)]
@@ -196,6 +212,13 @@ def segment_scene(
     }
     return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
                         frames.images, seg.masks, timings, prompt.frame)  # fmt: skip
+
+
+def segmenter_run_of(segmenter: VideoSegmenter) -> SegmenterRun:
+    """A segmenter built in code (not from a config node): what its masks depend on are its
+    plain attributes and the digests of its weight files."""
+    weights = {f: digest_file(f) for f in segmenter.weight_files()}
+    return SegmenterRun(segmenter, plain_settings(segmenter), weights)
 
 
 def check_click_on_scene(

@@ -118,7 +118,7 @@ def run_stage_two(
         )
     service = OnlineSegmentation(
         task.gaussians.to(settings.device),
-        vote.assigned,
+        vote.labels,
         stage_one.num_labels,
         segmenter=novel,
         backend=settings.backend,

@@ -1,37 +1,36 @@
 """The cached stages of one scene: frames -> masks -> vote, and the student's checkpoint.
 
-Each stage is a function of one inputs dataclass (`graph.Stage`); its key digests every field,
-so what a stage depends on is exactly what its inputs dataclass holds:
-- frames: the scene, the trajectory cameras, the resolved renderer, the background, the device;
+Each stage's key digests every field of one inputs dataclass (`graph.Stage`), so what a stage
+depends on is exactly what its inputs dataclass holds; Stage I's engine
+(`stage_one.StageOne`) computes the first three, `stage_two` the student:
+- frames: the scene, the trajectory cameras, the image renderer that ran and a digest of its
+  sources, the background, the device;
 - masks: the frames (by their key), the prompt, the trajectory's ground truth (the oracle
-  reads it), the segmenter (settings and weight digests) and, with consensus feedback on, what
-  the feedback votes and renders with;
-- vote: the masks (by their key), the scene, the cameras, the label count, the vote settings,
-  the renderer and the device;
+  reads it), the segmenter (settings, weight digests, its plug-in's version) and, with
+  consensus feedback on, what the feedback votes and renders with;
+- vote: the masks (by their key), the scene, the cameras, the label count, the vote settings
+  and its rule's plug-in version, the vote backend that ran and a digest of its kernel, the
+  device;
 - refine: the frames, masks and vote (by their keys) and the student's settings: the key
   names the student's checkpoint (`stage_two`), which trains in the background.
 """
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
 from sagonline.core.provenance import digest_json
 from sagonline.core.store import stored
 from sagonline.pipeline.graph import Output, Stage
 from sagonline.refine import RefineConfig
-from sagonline.render.api import render, to_uint8
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult, VideoSegmenter
 from sagonline.segment.prompts import Prompt
-from sagonline.vote.consensus import VoteConfig, VoteResult, consensus_vote
-from sagonline.vote.feedback import FeedbackInputs, segment_with_feedback
+from sagonline.vote.consensus import VoteConfig, VoteResult
+from sagonline.vote.feedback import FeedbackInputs
 
 
 @stored
@@ -47,19 +46,10 @@ class Frames:
 class FramesInputs:
     gaussians: Gaussians  # on `device`
     cameras: list[Camera]  # the trajectory, in video order
-    backend: str  # the resolved renderer: native | torch | gsplat
+    backend: str  # the image renderer that runs: native | torch | gsplat
+    kernel: str  # render.backends.implementation_digest(backend)
     background: tuple[float, float, float]
     device: str  # cpu | cuda
-
-
-def render_frames(inputs: FramesInputs, progress: bool = False) -> Frames:
-    bg = torch.tensor(inputs.background)
-    images, start = [], time.perf_counter()
-    for cam in tqdm(inputs.cameras, desc="render", leave=False, disable=not progress):
-        images.append(
-            to_uint8(render(inputs.gaussians, cam, background=bg, backend=inputs.backend).rgb)
-        )
-    return Frames(images, (time.perf_counter() - start) / max(len(images), 1))
 
 
 @dataclass(frozen=True)
@@ -72,7 +62,12 @@ class SegmenterRun:
     weights: dict[str, str] = field(default_factory=dict)  # path -> file digest
 
     def digest(self) -> str:
-        return digest_json(self.segmenter.name, self.settings, sorted(self.weights.values()))
+        return digest_json(
+            self.segmenter.name,
+            self.settings,
+            sorted(self.weights.values()),
+            self.segmenter.version,
+        )
 
 
 def segmenter_run(
@@ -114,15 +109,6 @@ class MasksInputs:
     feedback: FeedbackInputs | None  # None: consensus feedback off
 
 
-def segment_frames(inputs: MasksInputs, progress: bool = False) -> SegmentationResult:
-    frames, fb = inputs.frames.value.images, inputs.feedback
-    segmenter = inputs.segmenter.segmenter
-    if fb is None:
-        return segmenter.segment(frames, inputs.prompt, ground_truth=inputs.trajectory_gt)
-    seg, _ = segment_with_feedback(segmenter, frames, inputs.prompt, fb, inputs.trajectory_gt)
-    return seg
-
-
 def label_count(num_labels: int, masks: list[np.ndarray]) -> int:
     """Labels to vote over: the dataset's count, or more where a segmenter's ids go beyond it."""
     return max(num_labels, 1 + max((int(m.max()) for m in masks), default=0))
@@ -135,21 +121,10 @@ class VoteInputs:
     cameras: list[Camera]  # the trajectory the masks belong to
     num_labels: int  # the dataset's (the masks may add more)
     config: VoteConfig
-    backend: str
+    rule_version: str  # the vote rule plug-in's (core.plugins.Plugin.version)
+    backend: str  # the vote backend that runs: native | triton | gsplat | torch
+    kernel: str  # render.backends.implementation_digest(backend)
     device: str
-
-
-def vote(inputs: VoteInputs, progress: bool = False) -> VoteResult:
-    masks = inputs.masks.value.masks
-    return consensus_vote(
-        inputs.gaussians,
-        inputs.cameras,
-        masks,
-        label_count(inputs.num_labels, masks),
-        inputs.config,
-        backend=inputs.backend,
-        progress=progress,
-    )
 
 
 @dataclass(frozen=True)
@@ -162,9 +137,9 @@ class RefineInputs:
     device: str
 
 
-FRAMES = Stage("frames", 4, FramesInputs, render_frames)
-MASKS = Stage("masks", 5, MasksInputs, segment_frames)  # 5: corruption streams per kind
-VOTE = Stage("vote", 3, VoteInputs, vote)
-REFINE = Stage("refine", 3, RefineInputs, None)  # trained in the background: stage_two
+FRAMES = Stage("frames", 5, FramesInputs)  # 5: the renderer's source digest in the key
+MASKS = Stage("masks", 6, MasksInputs)  # 6: streamed, their order kept in info["order"]
+VOTE = Stage("vote", 4, VoteInputs)  # 4: labels -1 for unlabelled, no `labelled`
+REFINE = Stage("refine", 3, RefineInputs)  # trained in the background: stage_two
 STAGES = (FRAMES, MASKS, VOTE, REFINE)  # in graph order: each reads only those before it
 STAGE_VERSIONS = {s.name: s.version for s in STAGES}

@@ -190,18 +190,18 @@ class Recorder:
         scene: str,
         gaussians,
         labels: np.ndarray,
-        labelled: np.ndarray,
         histogram: np.ndarray | None = None,
         max_points: int = 200_000,
     ) -> None:
         """The Gaussians: labelled ones in their label colour (ellipsoids up to
         ELLIPSOID_LIMIT, else points), unlabelled ones grey, and the vote's confidence.
-        labels, labelled: (N,); histogram: (N, K) votes or weights."""
+        labels: (N,) int64, -1 unlabelled; histogram: (N, K) votes or weights."""
         if not self.enabled:
             return
         rr, base = self.rr, f"scenes/{scene}/gaussians"
         means = gaussians.means.detach().cpu().numpy()
-        labels, labelled = np.asarray(labels), np.asarray(labelled, dtype=bool)
+        labels = np.asarray(labels)
+        labelled = labels >= 0
         self.rec.reset_time()
         on = np.flatnonzero(labelled)
         palette = label_colors(int(labels.max(initial=0)) + 1)

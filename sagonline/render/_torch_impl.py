@@ -21,14 +21,15 @@ def vote_into(
     rule: VoteRule,
     *,
     via: str = "torch",
-) -> None:
+) -> int:
     """One view's votes under `rule`, added into hist: the (pixel, Gaussian) pairs the rule
     keeps, streamed from a render's trace (`rasterize`, or gsplat's ids with via="gsplat") and
-    reduced by `add_pairs`."""
+    reduced by `add_pairs`; returns how many pairs voted."""
     flat = labels.flatten()
+    cast = [0]
 
     def add(chunk: TraceChunk) -> None:
-        add_pairs(hist, flat, chunk, rule.weighting)
+        cast[0] += add_pairs(hist, flat, chunk, rule.weighting)
 
     request = TraceRequest(add, eps=rule.eps, delta=rule.delta)
     if via == "gsplat":
@@ -37,6 +38,7 @@ def vote_into(
         rasterize_gsplat(gaussians, camera, trace=request)
     else:
         rasterize(gaussians, camera, trace=request)
+    return cast[0]
 
 
 def add_pairs(

@@ -18,9 +18,11 @@ is tested on any machine: building `torch.device("cuda")` needs no GPU.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import importlib.util
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import torch
 
@@ -174,3 +176,34 @@ def plan_backends(
     dev = resolve_device(device)
     chosen_vote = resolve_vote_backend(vote, dev, have)
     return BackendPlan(dev, resolve_backend(images, dev, have), chosen_vote, chosen_vote)
+
+
+# The source files each implementation's results depend on (its own and what it calls).
+_HERE = Path(__file__).parent
+_SOURCES = {
+    "torch": ("_torch_impl.py", "rasterize.py", "projection.py", "sh.py"),
+    "native": ("native.py", "projection.py", "csrc/raster_cpu.cpp", "csrc/vote_cpu.cpp",
+               "csrc/splat_common.h"),
+    "triton": ("triton_vote.py", "projection.py", "rasterize.py"),
+    "gsplat": ("gsplat_backend.py", "_torch_impl.py", "projection.py", "rasterize.py", "sh.py"),
+}  # fmt: skip
+
+
+@functools.cache
+def implementation_digest(backend: str) -> str:
+    """A digest of what a resolved backend computes with: its source files (kernels included)
+    and, for gsplat and triton, the installed package's version; part of every cache key that
+    a render or a vote produced, so a changed kernel never reuses an old entry."""
+    import hashlib
+
+    if backend not in _SOURCES:
+        raise BackendError(f"no implementation named {backend!r}")
+    digest = hashlib.blake2b(backend.encode(), digest_size=8)
+    for name in _SOURCES[backend]:
+        digest.update((_HERE / name).read_bytes())
+    if backend in ("gsplat", "triton"):
+        from importlib.metadata import PackageNotFoundError, version
+
+        with contextlib.suppress(PackageNotFoundError):
+            digest.update(version(backend).encode())
+    return digest.hexdigest()

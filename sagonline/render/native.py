@@ -200,11 +200,11 @@ def vote_into(
     labels: torch.Tensor,  # [H, W] long, the view's mask
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
-) -> None:
-    """The op `render.vote.vote_histogram` in C++ (csrc/vote_cpu.cpp): the pairs of its
-    PyTorch reference under `rule`, added into hist."""
+) -> int:
+    """The op `render.vote.vote_into` in C++ (csrc/vote_cpu.cpp): the pairs of its PyTorch
+    reference under `rule`, added into hist; returns how many pairs voted."""
     view = prepare_view(gaussians, camera)
-    load_extension().vote(
+    return load_extension().vote(
         view.surfel,
         view.ids,
         view.params,

@@ -64,6 +64,7 @@ def _walk_kernel(
     splat_labels_ptr,
     out_ptr,
     best_ptr,
+    cast_ptr,
     width,
     height,
     tiles_x,
@@ -80,11 +81,11 @@ def _walk_kernel(
     NP: tl.constexpr,
 ):
     """One tile's walk. LABELS=False, the vote: pixel_labels (H*W,) -> out (N, K) float64
-    histogram. LABELS=True, the label renders: splat_labels (M,) (-1: none) -> out (H*W, KP)
-    one-hot weights, best (H*W,) the most visible Gaussian, each pixel ending at t_stop (the
-    vote ends at eps, and counts within delta px where USE_DISTANCE). Reductions
-    go through tl.reduce with Triton's own combine functions (its interpreter runs them as numpy
-    reductions).
+    histogram, and the tile's count of pairs that voted into cast (tiles,). LABELS=True, the
+    label renders: splat_labels (M,) (-1: none) -> out (H*W, KP) one-hot weights, best (H*W,)
+    the most visible Gaussian, each pixel ending at t_stop (the vote ends at eps, and counts
+    within delta px where USE_DISTANCE). Reductions go through tl.reduce with Triton's own
+    combine functions (its interpreter runs them as numpy reductions).
 
     Why one function: a Triton kernel's helpers are separate device functions, and both the
     fused walk's speed on a GPU and its interpreter's speed in CI depend on the per-splat body
@@ -107,6 +108,7 @@ def _walk_kernel(
         onehot = (lab[:, None] == kk[None, :]).to(tl.float32)
         live = inside & (eps < 1.0)
     T = tl.full((TILE * TILE,), 1.0, tl.float32)
+    cast = tl.zeros((TILE * TILE,), tl.int32)
     start = tl.load(offsets_ptr + tile)
     n = tl.load(counts_ptr + tile)
     j = 0
@@ -172,6 +174,7 @@ def _walk_kernel(
                 w = tl.where(vote, alpha * T, 0.0)
             else:
                 w = vote.to(tl.float32)
+            cast += vote.to(tl.int32)
             per_label = tl.reduce(w[:, None] * onehot, 0, tl.standard._sum_combine)
             tl.atomic_add(
                 out_ptr + tl.load(ids_ptr + s) * num_labels + kk,
@@ -186,6 +189,8 @@ def _walk_kernel(
         pixel = y * width + x
         tl.store(out_ptr + pixel[:, None] * KP + kk[None, :], feat, mask=inside[:, None])
         tl.store(best_ptr + pixel, best, mask=inside)
+    else:
+        tl.store(cast_ptr + tile, tl.reduce(cast.to(tl.int64), 0, tl.standard._sum_combine))
 
 
 def _launch(
@@ -200,8 +205,9 @@ def _launch(
     best=None,
     rule: VoteRule | None = None,
     t_stop: float = T_STOP,
-) -> None:
-    """Project, bin 16x16 tiles (torch, on the Gaussians' device) and run the walk."""
+) -> int:
+    """Project, bin 16x16 tiles (torch, on the Gaussians' device) and run the walk; returns
+    the pairs that voted (0 for the label renders)."""
     device = gaussians.device
     if (device.type == "cuda") == INTERPRET:
         mode = "Triton's interpreter (CPU tensors)" if INTERPRET else "CUDA (CUDA tensors)"
@@ -213,11 +219,12 @@ def _launch(
     with torch.no_grad():
         proj = project(gaussians, camera, with_colors=False)
         if len(proj) == 0:
-            return
+            return 0
         tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
         _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
         params = proj.params().float().contiguous()
         unused = proj.ids
+        cast = torch.zeros(tiles_x * tiles_y, dtype=torch.int64, device=device)
         _walk_kernel[(tiles_x * tiles_y,)](
             params,
             order,
@@ -228,6 +235,7 @@ def _launch(
             unused if splat_labels is None else splat_labels[proj.ids].to(torch.int32),
             out,
             unused if best is None else best,
+            cast,
             camera.width,
             camera.height,
             tiles_x,
@@ -243,6 +251,7 @@ def _launch(
             KP=max(2, triton.next_power_of_2(num_labels)),
             NP=params.shape[1],
         )
+        return 0 if labels_mode else int(cast.sum())
 
 
 def vote_into(
@@ -251,10 +260,10 @@ def vote_into(
     labels: torch.Tensor,  # [H, W] long, the view's mask
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
-) -> None:
-    """The op `render.vote.vote_histogram` as one fused Triton walk: one view's votes under
-    `rule` added into hist."""
-    _launch(
+) -> int:
+    """The op `render.vote.vote_into` as one fused Triton walk: one view's votes under `rule`
+    added into hist; returns the pairs that voted."""
+    return _launch(
         gaussians,
         camera,
         labels_mode=False,

@@ -8,9 +8,9 @@ A vote is +1 (weighting "count", RGC) or alpha_i T_i ("blend", FlashSplat and th
 mean). A pixel's walk ends once T <= eps. Turning histograms into labels is
 `sagonline.vote.consensus`'s business, not this module's.
 
-One op, `vote_histogram`, and one function of the same name and signature per implementation,
-`vote_into(gaussians, camera, labels, hist, rule)` (as gsplat pairs `_wrapper.py` with
-`_torch_impl.py`):
+One op, `vote_into` (and `vote_histogram`, which returns the histogram), and one function of
+the same name and signature per implementation, `vote_into(gaussians, camera, labels, hist,
+rule) -> pairs voted` (as gsplat pairs `_wrapper.py` with `_torch_impl.py`):
 - torch (`_torch_impl.py`): the readable reference, `rasterize`'s tiled walk streaming its
   (pixel, Gaussian) pairs into a scatter-add (CPU or CUDA);
 - native (`native.py`): the compiled CPU pass (csrc/vote_cpu.cpp: projection, tile lists and an
@@ -44,9 +44,28 @@ def vote_histogram(
     out: torch.Tensor | None = None,  # [N, K] float64 running histogram, added into
 ) -> torch.Tensor:  # [N, K] float64
     """Add one view's votes under `rule` to an (N, K) histogram and return it (a new zero one
-    when `out` is None; on the Gaussians' device). backend: one of VOTE_BACKENDS or 'auto' (see
+    when `out` is None; on the Gaussians' device). backend: one of VOTE_BACKENDS (see
     `resolve_vote_backend`)."""
-    n, k = len(gaussians), num_labels
+    if out is None:
+        out = torch.zeros(len(gaussians), num_labels, dtype=torch.float64, device=gaussians.device)
+    if out.shape[1] != num_labels:
+        raise ValueError(f"out has {out.shape[1]} labels, not {num_labels}")
+    vote_into(gaussians, camera, labels, rule, out, backend=backend)
+    return out
+
+
+def vote_into(
+    gaussians: Gaussians,
+    camera: Camera,
+    labels: torch.Tensor,  # [H, W] long label ids in [0, K), the view's mask
+    rule: VoteRule,
+    hist: torch.Tensor,  # [N, K] float64 running histogram, added into
+    *,
+    backend: str = "auto",
+) -> int:
+    """The op itself: one view's votes under `rule` added into `hist`; returns how many
+    (pixel, Gaussian) pairs voted (for the count rule, what it added)."""
+    n, k = len(gaussians), hist.shape[1] if hist.dim() == 2 else 0
     if not isinstance(rule, VoteRule):
         raise TypeError(f"rule must be a VoteRule, got {type(rule).__name__}")
     labels = torch.as_tensor(labels, device=gaussians.device).long()
@@ -56,15 +75,12 @@ def vote_histogram(
         )
     if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= k):
         raise ValueError(f"label ids must lie in [0, {k})")
-    if out is None:
-        out = torch.zeros(n, k, dtype=torch.float64, device=gaussians.device)
-    if out.shape != (n, k) or out.dtype != torch.float64 or not out.is_contiguous():
+    if hist.shape != (n, k) or hist.dtype != torch.float64 or not hist.is_contiguous():
         raise ValueError(f"out must be a contiguous ({n}, {k}) float64 histogram")
     chosen = resolve_vote_backend(backend, gaussians.device)
     if n == 0:
-        return out
-    implementation(chosen)(gaussians, camera, labels, out, rule)
-    return out
+        return 0
+    return int(implementation(chosen)(gaussians, camera, labels, hist, rule))
 
 
 def implementation(backend: str):

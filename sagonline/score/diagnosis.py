@@ -81,8 +81,8 @@ OCCLUSION = 0.05  # a surface this much nearer than the object's covers it
 class GaussianCauses:
     """Per Gaussian (N,): its state in the run's vote and, where known, in the truth's vote."""
 
-    labels: torch.Tensor  # [N] long, the run's label (meaningful where labelled)
-    labelled: torch.Tensor  # [N] bool
+    labels: torch.Tensor  # [N] int64, the run's label, -1 unlabelled
+    labelled: torch.Tensor  # [N] bool, labels >= 0 (kept beside them: read per view)
     votes: torch.Tensor  # [N] float, votes cast for it
     ambiguous: torch.Tensor  # [N] bool, voted enough but within the margin (or tied)
     truth: torch.Tensor | None  # [N] long label by the truth's masks (-1 unlabelled), or None
@@ -97,11 +97,10 @@ class GaussianCauses:
     def of(cls, run: VoteResult, cfg: VoteConfig, truth: VoteResult | None) -> GaussianCauses:
         votes = run.histogram.sum(1).cpu()
         enough = votes >= max(cfg.min_votes, 1)
-        labelled = run.labelled.cpu()
-        truth_labels = None
-        if truth is not None:
-            truth_labels = torch.where(truth.labelled, truth.labels, -1).cpu()
-        return cls(run.labels.cpu(), labelled, votes, enough & ~labelled, truth_labels)
+        labels = run.labels.cpu()
+        labelled = labels >= 0
+        truth_labels = truth.labels.cpu() if truth is not None else None
+        return cls(labels, labelled, votes, enough & ~labelled, truth_labels)
 
 
 def object_depths(

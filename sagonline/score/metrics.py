@@ -85,8 +85,7 @@ def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None
 
 
 def labels3d_metrics(
-    labels: torch.Tensor,  # [N] long
-    labelled: torch.Tensor,  # [N] bool
+    labels: torch.Tensor,  # [N] int64, -1 unlabelled
     gt: torch.Tensor,  # [N] long, the truth
     num_labels: int,
 ) -> dict:
@@ -96,7 +95,8 @@ def labels3d_metrics(
     coverage: fraction labelled; per-label IoU over Gaussians (labelled ones only count as
     predictions, unlabelled ones count as misses of their true label).
     """
-    labels, labelled, gt = labels.cpu(), labelled.cpu(), gt.cpu()
+    labels, gt = labels.cpu(), gt.cpu()
+    labelled = labels >= 0
     correct = (labels == gt) & labelled
     out = {
         "accuracy": float(correct.sum() / labelled.sum().clamp_min(1)),

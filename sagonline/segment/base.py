@@ -42,6 +42,14 @@ class VideoSegmenter(ABC):
     """The prompts it reads: clicks / boxes / masks, text, ground_truth (the oracle), or none
     (it segments automatically); a command refuses a prompt its segmenter cannot read."""
 
+    @property
+    def version(self) -> str:
+        """What produced its answers, for the masks' cache key: its package's version and a
+        digest of its module's source (`core.plugins.module_version`)."""
+        from sagonline.core.plugins import module_version
+
+        return module_version(type(self).__module__)
+
     def weight_files(self) -> list[str]:
         """Local files the segmenter's answers depend on (checkpoints); their digests join the
         masks stage's cache key and the run's recorded inputs."""
@@ -81,29 +89,50 @@ class VideoSegmenter(ABC):
         )
 
     def stream(
-        self, frames: list[np.ndarray], prompt: Prompt
-    ) -> Iterator[tuple[int, np.ndarray]]:  # (frame index, [H, W] int64 mask)
-        """The masks one by one as they are made, the prompt frame's first (the viewer votes
-        each as it comes). Segmenters that propagate frame by frame override `_stream`; the
-        others answer the whole video first."""
+        self,
+        frames: list[np.ndarray],
+        prompt: Prompt,
+        *,
+        ground_truth: list[np.ndarray] | None = None,
+    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] int64 mask, seconds)
+        """The masks one by one as they are made, the prompt frame's first, each with the
+        seconds it took (Stage I votes each as it comes). Segmenters that propagate frame by
+        frame override `_stream`; the others answer the whole video first. `ground_truth` is
+        read only by the oracle."""
         if not frames:
             raise ValueError(f"{self.name}: no frames to segment")
         if not 0 <= prompt.frame < len(frames):
             raise ValueError(
                 f"{self.name}: prompt frame {prompt.frame} is outside the {len(frames)}-frame video"
             )
-        for i, mask in self._stream(frames, prompt):
+        seen: set[int] = set()
+        start = time.perf_counter()
+        for item in self._stream(frames, prompt, ground_truth):
+            i, mask = item[0], item[1]
+            seconds = item[2] if len(item) > 2 else time.perf_counter() - start
+            if not 0 <= i < len(frames) or i in seen:
+                raise RuntimeError(f"{self.name}: answered frame {i} twice or out of range")
             if mask.shape != frames[i].shape[:2]:
                 raise RuntimeError(
                     f"{self.name}: mask {i} is {mask.shape}, frame is {frames[i].shape[:2]}"
                 )
-            yield i, np.asarray(mask, dtype=np.int64)
+            seen.add(i)
+            yield i, np.asarray(mask, dtype=np.int64), float(seconds)
+            start = time.perf_counter()
+        if len(seen) != len(frames):
+            raise RuntimeError(f"{self.name}: answered {len(seen)} of {len(frames)} frames")
 
-    def _stream(self, frames, prompt) -> Iterator[tuple[int, np.ndarray]]:
-        masks, _ = self._segment(frames, prompt, None)
+    def _stream(self, frames, prompt, ground_truth) -> Iterator[tuple]:
+        """(frame, mask[, seconds]) in the order made: here, the whole video first."""
+        start = time.perf_counter()
+        masks, seconds = self._segment(frames, prompt, ground_truth)
+        if seconds is None:
+            seconds = [(time.perf_counter() - start) / len(frames)] * len(frames)
+        if len(masks) != len(frames):
+            raise RuntimeError(f"{self.name}: returned {len(masks)} masks for {len(frames)} frames")
         order = [prompt.frame, *(i for i in range(len(frames)) if i != prompt.frame)]
         for i in order:
-            yield i, masks[i]
+            yield i, masks[i], seconds[i]
 
     @abstractmethod
     def _segment(

@@ -272,13 +272,13 @@ class FlowWatershedSegmenter(VideoSegmenter):
         masks: list[np.ndarray | None] = [None] * len(frames)
         seconds = [0.0] * len(frames)
         start = time.perf_counter()
-        for t, mask in self._stream(frames, prompt):
+        for t, mask in self._stream(frames, prompt, ground_truth):
             masks[t] = mask
             seconds[t] = time.perf_counter() - start
             start = time.perf_counter()
         return masks, seconds
 
-    def _stream(self, frames, prompt: Prompt):
+    def _stream(self, frames, prompt: Prompt, ground_truth=None):
         """The prompt frame, then forwards to the end, then backwards from the prompt frame."""
         n = len(frames)
         masks: list[np.ndarray | None] = [None] * n

@@ -136,6 +136,10 @@ class CorruptedSegmenter(VideoSegmenter):
         self.inner, self.corruption = inner, corruption
         self.name, self.reads = inner.name, inner.reads
 
+    @property
+    def version(self) -> str:
+        return f"{self.inner.version};{super().version}"
+
     def weight_files(self) -> list[str]:
         return self.inner.weight_files()
 

@@ -52,4 +52,57 @@ class Prompt:
         return digest_json(self.frame, list(self.texts), objects)
 
 
-__all__ = ["ObjectPrompt", "Prompt"]
+def add_to_prompt(
+    prompt: Prompt,
+    frame: int,
+    *,
+    points=None,  # [P, 2] x, y pixels
+    point_labels=None,  # [P] 1 positive, 0 negative (default: all positive)
+    box=None,  # [4] x0, y0, x1, y1
+    mask=None,  # [H, W] bool
+    text: str | None = None,
+    obj_id: int | None = None,
+    name: str | None = None,
+) -> tuple[Prompt, int]:
+    """A new prompt: `prompt` with clicks, a box, a mask or a text added for one object on
+    `frame`, and that object's label. A new object (labelled next, named `name`) unless
+    `obj_id` names one, whose clicks are added to; every object is on one frame (refused
+    otherwise: the segmenters take their prompt on one view). `prompt` is not changed."""
+    from copy import deepcopy
+
+    from sagonline.core.errors import PromptError
+
+    if (prompt.objects or prompt.texts) and frame != prompt.frame:
+        raise PromptError(
+            f"the prompt is on view {prompt.frame}; add to it there (the segmenters take their "
+            "prompt on one view), or start a new prompt"
+        )
+    objects, names = deepcopy(prompt.objects), list(prompt.names) or ["background"]
+    if text is not None:
+        texts = [*prompt.texts, text]
+        return Prompt(frame, objects, texts, [*names, text]), len(texts)
+    target = next((o for o in objects if o.label == obj_id), None)
+    if target is None:
+        if obj_id is not None:
+            raise PromptError(f"no object {obj_id} in the prompt to add to")
+        target = ObjectPrompt(max((o.label for o in objects), default=0) + 1)
+        objects.append(target)
+        names += [name or f"object_{target.label}"] if len(names) <= target.label else []
+    if points is not None:
+        points = np.asarray(points, np.float64).reshape(-1, 2)
+        kinds = np.ones(len(points), np.int64) if point_labels is None else point_labels
+        kinds = np.asarray(kinds, np.int64).reshape(-1)
+        if len(kinds) != len(points):
+            raise PromptError(f"{len(points)} clicks but {len(kinds)} click labels")
+        have = target.points if target.points is not None else np.zeros((0, 2))
+        had = target.point_labels if target.point_labels is not None else np.zeros(0, np.int64)
+        target.points = np.concatenate([have, points])
+        target.point_labels = np.concatenate([had, kinds]).astype(np.int64)
+    if box is not None:
+        target.box = np.asarray(box, np.float64).reshape(4)
+    if mask is not None:
+        target.mask = np.asarray(mask, bool)
+    return Prompt(frame, objects, list(prompt.texts), names), target.label
+
+
+__all__ = ["ObjectPrompt", "Prompt", "add_to_prompt"]

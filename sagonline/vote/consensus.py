@@ -14,8 +14,8 @@ Two baselines share the interface:
   indicator; a Gaussian takes the best non-background label if its mean reaches `threshold`
   (0.9), else background.
 
-Labels: 0 is background and also the value of unlabelled Gaussians; `labelled` tells them apart
-(every output outside the vote writes -1 for unlabelled: `StageOneOutput.labels`).
+Labels: (N,) int64, -1 unlabelled, 0 background, 1.. the objects, from the vote to every
+output (`VoteResult.labels`).
 
 Each method is a vote rule registered in `plugins.VOTE_RULES` under its name: the pairs its
 kernels count (`VoteConfig.rule`, a `render.rule.VoteRule`) and how a histogram becomes labels
@@ -37,7 +37,7 @@ from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
 from sagonline.render.rasterize import T_STOP
 from sagonline.render.rule import VoteRule
-from sagonline.render.vote import vote_histogram
+from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.vote.fill import fill_from_neighbours
@@ -148,23 +148,15 @@ class VoteMethod:
 @stored
 @dataclass
 class VoteResult:
-    """labels: (N,) long (0 where unlabelled); labelled: (N,) bool; histogram: (N, K) float
-    votes or weights; frames: indices of the masks that voted; stats: fractions, counts and
-    timings. `assigned` is what leaves the vote: (N,) long with -1 for unlabelled."""
+    """labels: (N,) int64, -1 unlabelled, 0 background, 1.. the objects (the one encoding of
+    every output and label render); histogram: (N, K) float32 votes or weights; frames: the
+    trajectory indices of the masks that voted, in the order they voted; stats: fractions,
+    counts and timings."""
 
     labels: torch.Tensor
-    labelled: torch.Tensor
     histogram: torch.Tensor
     frames: list[int]
     stats: dict = field(default_factory=dict)
-
-    @property
-    def assigned(
-        self,
-    ) -> torch.Tensor:  # [N] long, -1 unlabelled
-        """(N,) long: -1 unlabelled, 0 background, 1.. the objects (the one encoding every
-        output and label render uses)."""
-        return torch.where(self.labelled, self.labels, torch.full_like(self.labels, -1))
 
 
 def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:
@@ -185,8 +177,10 @@ def select_frames(num_frames: int, cfg: VoteConfig) -> list[int]:
 
 
 class VoteAccumulator:
-    """The running (N, K) vote histogram of one method: views are added by the vote op
-    (`render.vote_histogram`), labels are read off by `finalize`."""
+    """The running (N, K) vote histogram of one method: views are added one by one by the vote
+    op (`render.vote.vote_into`), labels are read off at any time (`labels`), the result with
+    its statistics at the end (`result`). means: (N, 3) the Gaussians' centres, needed only by
+    the fill (`consensus.fill`)."""
 
     def __init__(
         self,
@@ -194,47 +188,89 @@ class VoteAccumulator:
         num_labels: int,
         cfg: VoteConfig,
         device: torch.device | str = "cpu",
+        means: torch.Tensor | None = None,
     ):
-        self.cfg, self.k, self.rule = cfg, num_labels, cfg.rule
+        self.cfg, self.k, self.rule, self.means = cfg, num_labels, cfg.rule, means
         self.hist = torch.zeros(num_gaussians, num_labels, dtype=torch.float64, device=device)
+        self.frames: list[int] = []
+        self.pairs = 0  # (pixel, Gaussian) pairs that voted
+        self.seconds = 0.0  # spent in the vote op and reading labels off
+
+    def grow(self, num_labels: int) -> None:
+        """Make room for labels up to num_labels - 1 (a segmenter may name more objects than
+        the prompt did)."""
+        if num_labels > self.k:
+            extra = self.hist.new_zeros(self.hist.shape[0], num_labels - self.k)
+            self.hist = torch.cat([self.hist, extra], dim=1).contiguous()
+            self.k = num_labels
 
     def add_view(
-        self, gaussians: Gaussians, camera: Camera, mask, backend: str, where: str = "mask"
-    ) -> None:
-        """Vote one view's (H, W) label map; `where` names the mask in errors."""
-        labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
-        vote_histogram(
-            gaussians, camera, labels.to(gaussians.device), self.k, self.rule,
-            backend=backend, out=self.hist,
-        )  # fmt: skip
-
-    def finalize(self) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K]
-        """labels (N,), labelled (N,), histogram (N, K)."""
-        return decide(self.hist, self.cfg)
-
-    def finalize_filled(
         self,
-        means: torch.Tensor,  # [N, 3] the Gaussians' centres (for the fill)
-    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:  # [N], [N], [N, K], [N]
-        """`finalize`, then the config's fill (`fill_from_neighbours`): labels, labelled (fill
-        included), histogram and which Gaussians the fill labelled."""
-        labels, labelled, hist = self.finalize()
-        filled = torch.zeros_like(labelled)
+        gaussians: Gaussians,
+        camera: Camera,
+        mask,
+        backend: str,
+        where: str = "mask",
+        frame: int | None = None,
+    ) -> int:
+        """Vote one view's (H, W) label map (`where` names it in errors; `frame`: its index in
+        the trajectory); returns the pairs that voted."""
+        start = time.perf_counter()
+        labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
+        cast = vote_into(gaussians, camera, labels.to(gaussians.device), self.rule, self.hist,
+                         backend=backend)  # fmt: skip
+        self.pairs += cast
+        self.frames.append(len(self.frames) if frame is None else frame)
+        self.seconds += time.perf_counter() - start
+        return cast
+
+    def labels(self) -> torch.Tensor:  # [N] int64, -1 unlabelled
+        """The labels of the histogram so far: the method's rule, then the config's fill."""
+        return self._decide()[0]
+
+    def _decide(self) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] filled
+        start = time.perf_counter()
+        labels = decide(self.hist, self.cfg)
+        filled = torch.zeros_like(labels, dtype=torch.bool)
         if self.cfg.fill:
-            labels, filled = fill_from_neighbours(means, labels, labelled, self.cfg.fill)
-            labelled = labelled | filled
-        return labels, labelled, hist, filled
+            if self.means is None:
+                raise ValueError("consensus.fill needs the Gaussians' centres (means)")
+            labels, filled = fill_from_neighbours(self.means, labels, self.cfg.fill)
+        self.seconds += time.perf_counter() - start
+        return labels, filled
+
+    def result(self) -> VoteResult:
+        """The labels, the histogram (float32), the frames that voted and the statistics."""
+        labels, filled = self._decide()
+        total = self.hist.sum(1)
+        voted = total > 0
+        labelled = labels >= 0
+        n = len(self.frames)
+        stats = {
+            "fraction_filled": float(filled.float().mean()) if len(labels) else 0.0,
+            "num_masks": n,
+            "fraction_labelled": float(labelled.float().mean()) if len(labels) else 0.0,
+            "fraction_voted": float(voted.float().mean()) if len(labels) else 0.0,
+            "fraction_ambiguous": float((voted & ~labelled & ~filled).float().mean())
+            if len(labels)
+            else 0.0,
+            "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
+            "votes_per_gaussian_median": float(total[voted].median()) if voted.any() else 0.0,
+            "votes_cast": self.pairs,
+            "aggregation_s": self.seconds,
+            "ms_per_mask": 1000.0 * self.seconds / max(n, 1),
+        }
+        return VoteResult(labels, self.hist.float(), list(self.frames), stats)
 
 
 def decide(
     hist: torch.Tensor,  # [N, K] votes or blend weights
     cfg: VoteConfig,
-) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [N] long, [N] bool, [N, K] float32
-    """Histogram -> labels, labelled and the histogram as float32, by the method's rule (see
-    the module docstring); unlabelled Gaussians carry label 0."""
+) -> torch.Tensor:  # [N] int64, -1 unlabelled
+    """Histogram -> labels by the method's rule (see the module docstring): -1 where it leaves
+    a Gaussian unlabelled."""
     labels, labelled = cfg.method_rule().decide(hist, cfg)
-    labels = torch.where(labelled, labels, torch.zeros_like(labels))
-    return labels, labelled, hist.float()
+    return torch.where(labelled, labels.long(), torch.full_like(labels.long(), -1))
 
 
 def decide_majority(
@@ -344,40 +380,17 @@ def consensus_vote(
     num_labels: int,
     cfg: VoteConfig | None = None,
     *,
-    backend: str = "torch",
-    progress: bool = False,
+    backend: str = "auto",
 ) -> VoteResult:
-    """Vote every selected (camera, mask) pair into one label per Gaussian.
+    """Vote every selected (camera, mask) pair into one label per Gaussian, in one call (the
+    pipeline streams the same accumulator view by view: `pipeline.stage_one.StageOne`).
 
     cameras: T views; masks: T label maps (H, W) with ids in [0, num_labels), one per view.
     """
     cfg = cfg or VoteConfig()
     if len(cameras) != len(masks):
         raise MaskError(f"{len(cameras)} cameras but {len(masks)} masks")
-    frames = select_frames(len(cameras), cfg)
-    acc = VoteAccumulator(len(gaussians), num_labels, cfg, device=gaussians.device)
-    iterator = frames
-    if progress:
-        from tqdm import tqdm
-
-        iterator = tqdm(frames, desc=f"vote ({cfg.method})", leave=False)
-    start = time.perf_counter()
-    for f in iterator:
-        acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}")
-    labels, labelled, hist, filled = acc.finalize_filled(gaussians.means)
-    elapsed = time.perf_counter() - start
-    total = hist.sum(1)
-    voted = total > 0
-    stats = {
-        "fraction_filled": float(filled.float().mean()),
-        "num_masks": len(frames),
-        "fraction_labelled": float(labelled.float().mean()),
-        "fraction_voted": float(voted.float().mean()),
-        "fraction_ambiguous": float((voted & ~labelled).float().mean()),
-        "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
-        "votes_per_gaussian_median": float(total[voted].median()) if voted.any() else 0.0,
-        "votes_cast": int(acc.hist.sum()) if cfg.method == "rgc" else None,
-        "aggregation_s": elapsed,
-        "ms_per_mask": 1000.0 * elapsed / max(len(frames), 1),
-    }
-    return VoteResult(labels=labels, labelled=labelled, histogram=hist, frames=frames, stats=stats)
+    acc = VoteAccumulator(len(gaussians), num_labels, cfg, gaussians.device, gaussians.means)
+    for f in select_frames(len(cameras), cfg):
+        acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}", frame=f)
+    return acc.result()

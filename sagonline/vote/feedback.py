@@ -7,14 +7,15 @@ re-prompted on that frame with the render as its mask prompt and the rest of the
 direction is segmented again from there. Works for any segmenter that takes mask prompts
 (classical, SAM 2); the oracle reads the ground truth and needs none.
 
-Order: the prompt frame is voted first; then forwards to the last frame, then backwards to the
-first, `every` frames at a time (each block is checked against the vote of everything accepted
-before it, then voted). The render is trusted once `min_frames` masks have voted.
+It is a mask policy of Stage I (`FeedbackPolicy`): the engine votes what it releases, under
+the run's own frame selection, so a view the protocol holds out never votes. The render is
+trusted once `min_frames` views have voted.
 """
 
 from __future__ import annotations
 
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,7 +24,7 @@ import torch
 from sagonline.render.api import render_labels
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.segment.base import SegmentationResult, VideoSegmenter
+from sagonline.segment.base import VideoSegmenter
 from sagonline.segment.prompts import ObjectPrompt, Prompt
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig
 
@@ -69,7 +70,8 @@ def mask_prompt(labels: np.ndarray, frame: int) -> Prompt:
 @dataclass(frozen=True)
 class FeedbackInputs:
     """What consensus feedback votes and renders with: its settings, the vote's, the scene,
-    the trajectory's cameras, the label count, the label render's threshold, the renderer."""
+    the trajectory's cameras, the label count, the label render's threshold, the vote's
+    backend (it is part of the masks' cache key: with feedback, the masks depend on it)."""
 
     config: FeedbackConfig
     vote: VoteConfig
@@ -80,90 +82,95 @@ class FeedbackInputs:
     backend: str
 
 
-def segment_with_feedback(
-    segmenter: VideoSegmenter,
-    frames: list[np.ndarray],
-    prompt: Prompt,
-    setup: FeedbackInputs,
-    ground_truth: list[np.ndarray] | None = None,
-) -> tuple[SegmentationResult, dict]:
-    """Segment `frames` (T RGB images, the rendered trajectory of `setup.cameras`) with
-    consensus feedback. Returns the masks and what the feedback did: restarts (frame, IoU) and
-    times.
+class FeedbackPolicy:
+    """Which mask each view votes with, under consensus feedback: a mask policy of Stage I
+    (`pipeline.stage_one.StageOne` calls `masks` and votes each mask it yields, if the view is
+    one of the voting frames, before it asks for the next).
 
-    Why one function: its three closures (vote, fused render, re-segment) share the running
-    vote, the masks and the timers; apart, they would pass all of them back and forth."""
-    cfg, gaussians, cameras = setup.config, setup.gaussians, setup.cameras
-    num_labels, backend, min_weight = setup.num_labels, setup.backend, setup.label_min_weight
-    start = time.perf_counter()
-    first = segmenter.segment(frames, prompt, ground_truth=ground_truth)
-    masks, seconds = list(first.masks), list(first.seconds)
-    n, p = len(frames), prompt.frame
-    acc = VoteAccumulator(len(gaussians), num_labels, setup.vote, device=gaussians.device)
-    voted, restarts, vote_s, render_s = 0, [], 0.0, 0.0
+    Order: the prompt frame first; then forwards to the last frame, then backwards to the
+    first, `every` frames at a time, each block checked against the vote of everything
+    released before it. Where the fused labels' render and the segmenter's mask of a frame
+    disagree (foreground IoU below `min_iou`), the segmenter is prompted again on that frame
+    with the render and segments the rest of the video in that direction again.
 
-    def vote(frames_done: list[int]) -> None:
-        nonlocal voted, vote_s
-        t0 = time.perf_counter()
-        for t in frames_done:
-            acc.add_view(gaussians, cameras[t], masks[t], backend, f"mask of frame {t}")
-        voted += len(frames_done)
-        vote_s += time.perf_counter() - t0
+    Why one class: the running vote (`votes`), the masks and the timers are shared by its three
+    steps (fused render, re-segment, release); apart, they would pass all of them around."""
 
-    def fused_render(t: int) -> np.ndarray:
-        nonlocal render_s
-        t0 = time.perf_counter()
-        labels, labelled, _ = acc.finalize()
-        objects = torch.where(labelled & (labels > 0), labels, -1)  # the objects alone
-        out = render_labels(
-            gaussians, cameras[t], objects, num_labels, min_weight=min_weight, backend=backend
-        )
-        render_s += time.perf_counter() - t0
-        return out.cpu().numpy().astype(np.int64)
+    def __init__(self, setup: FeedbackInputs):
+        self.setup = setup
+        self.stats: dict = {}
 
-    def resegment(t: int, forward: bool, fused: np.ndarray) -> None:
-        """Re-prompt on frame t with the fused render; segment on from there."""
-        span = range(t, n) if forward else range(0, t + 1)
-        sub = [frames[i] for i in span]
-        sub_prompt = mask_prompt(fused, 0 if forward else len(sub) - 1)
-        sub_gt = [ground_truth[i] for i in span] if ground_truth is not None else None
-        again = segmenter.segment(sub, sub_prompt, ground_truth=sub_gt)
-        for i, m, s in zip(span, again.masks, again.seconds, strict=True):
-            masks[i], seconds[i] = m, seconds[i] + s
-        masks[t] = fused  # the re-prompt itself is what the segmenter was told
+    def masks(
+        self,
+        segmenter: VideoSegmenter,
+        frames: list[np.ndarray],
+        prompt: Prompt,
+        votes: VoteAccumulator,
+        ground_truth: list[np.ndarray] | None = None,
+    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] int64 mask, seconds)
+        """The masks the views vote with, one by one, in the feedback's order (see the class
+        docstring); `votes` is the engine's running vote, read between two blocks."""
+        cfg, start = self.setup.config, time.perf_counter()
+        first = segmenter.segment(frames, prompt, ground_truth=ground_truth)
+        masks, seconds = list(first.masks), list(first.seconds)
+        n, p, step = len(frames), prompt.frame, max(cfg.every, 1)
+        restarts: list[dict] = []
+        render_s = 0.0
 
-    vote([p])
-    for forward in (True, False):
-        order = list(range(p + 1, n)) if forward else list(range(p - 1, -1, -1))
-        for b in range(0, len(order), max(cfg.every, 1)):
-            block = order[b : b + max(cfg.every, 1)]
-            if voted >= cfg.min_frames and len(restarts) < cfg.max_restarts:
+        def fused_render(t: int) -> np.ndarray:
+            nonlocal render_s
+            t0 = time.perf_counter()
+            labels = votes.labels()
+            objects = torch.where(labels > 0, labels, -1)  # the objects alone
+            out = render_labels(
+                self.setup.gaussians, self.setup.cameras[t], objects, votes.k,
+                min_weight=self.setup.label_min_weight, backend=self.setup.backend,
+            )  # fmt: skip
+            render_s += time.perf_counter() - t0
+            return out.cpu().numpy().astype(np.int64)
+
+        def resegment(t: int, forward: bool, fused: np.ndarray) -> None:
+            """Prompt the segmenter again on frame t with the fused render; on from there."""
+            span = range(t, n) if forward else range(0, t + 1)
+            sub = [frames[i] for i in span]
+            sub_gt = [ground_truth[i] for i in span] if ground_truth is not None else None
+            again = segmenter.segment(
+                sub, mask_prompt(fused, 0 if forward else len(sub) - 1), ground_truth=sub_gt
+            )
+            for i, m, s in zip(span, again.masks, again.seconds, strict=True):
+                masks[i], seconds[i] = m, seconds[i] + s
+            masks[t] = fused  # the re-prompt itself is what the segmenter was told
+
+        yield p, np.asarray(masks[p], np.int64), seconds[p]
+        for forward in (True, False):
+            order = list(range(p + 1, n)) if forward else list(range(p - 1, -1, -1))
+            for b in range(0, len(order), step):
+                block = order[b : b + step]
+                if len(votes.frames) >= cfg.min_frames and len(restarts) < cfg.max_restarts:
+                    for t in block:
+                        fused = fused_render(t)
+                        if (fused > 0).mean() < cfg.min_area:
+                            continue  # the vote does not see the object here: nothing to tell
+                        iou = foreground_iou(masks[t], fused)
+                        if iou < cfg.min_iou:
+                            restarts.append({"frame": t, "iou": iou})
+                            resegment(t, forward, fused)
+                            break  # the rest of the block was segmented again from t
                 for t in block:
-                    fused = fused_render(t)
-                    if (fused > 0).mean() < cfg.min_area:
-                        continue  # the vote does not see the object here: nothing to tell
-                    iou = foreground_iou(masks[t], fused)
-                    if iou < cfg.min_iou:
-                        restarts.append({"frame": t, "iou": iou})
-                        resegment(t, forward, fused)
-                        break  # the rest of the block was segmented again from t
-            vote(block)
-    stats = {
-        "restarts": len(restarts),
-        "restarted_frames": [r["frame"] for r in restarts],
-        "restart_ious": [round(r["iou"], 4) for r in restarts],
-        "vote_s": vote_s,
-        "render_s": render_s,
-        "total_s": time.perf_counter() - start,
-    }
-    masks = [np.asarray(m, np.int64) for m in masks]
-    return SegmentationResult(masks, seconds, first.name, info={"feedback": stats}), stats
+                    yield t, np.asarray(masks[t], np.int64), seconds[t]
+        self.stats = {
+            "restarts": len(restarts),
+            "restarted_frames": [r["frame"] for r in restarts],
+            "restart_ious": [round(r["iou"], 4) for r in restarts],
+            "render_s": render_s,
+            "total_s": time.perf_counter() - start,
+        }
 
 
 __all__ = [
     "FeedbackConfig",
     "FeedbackInputs",
+    "FeedbackPolicy",
     "foreground_iou",
     "mask_prompt",
-    "segment_with_feedback",
 ]

@@ -9,8 +9,7 @@ import torch
 
 def fill_from_neighbours(
     means: torch.Tensor,  # [N, 3]
-    labels: torch.Tensor,  # [N] long
-    labelled: torch.Tensor,  # [N] bool
+    labels: torch.Tensor,  # [N] int64, -1 unlabelled
     k: int,
 ) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] bool filled
     """Each unlabelled Gaussian takes the label a strict majority of its k nearest labelled
@@ -19,6 +18,7 @@ def fill_from_neighbours(
     unlabelled). The vote's own labels are never changed."""
     from scipy.spatial import cKDTree
 
+    labelled = labels >= 0
     known = labelled.cpu().numpy()
     unknown = ~known
     out = labels.clone()

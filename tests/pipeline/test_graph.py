@@ -12,7 +12,6 @@ import pytest
 
 from sagonline.pipeline.graph import Output, digest_value
 from sagonline.pipeline.stages import (
-    REFINE,
     STAGES,
     FeedbackInputs,
     FramesInputs,
@@ -39,6 +38,8 @@ OTHER = {
     "pretrained": "/weights/resnet.pth",
     "num_masks": 3,
     "time_budget_s": 5.0,
+    "kernel": "another digest",
+    "rule_version": "0.1.0+another",
 }
 BY_STAGE = {s.name: s for s in STAGES}
 WHOLE = (Gaussians, Prompt, SegmenterRun)  # content, changed as a whole; other dataclasses
@@ -70,12 +71,12 @@ def base_values(task, feedback: bool) -> dict[str, dict]:
         else None
     )
     return {
-        "frames": dict(gaussians=g, cameras=cams, backend="native", background=(0.0, 0.0, 0.0),
-                       device="cpu"),
+        "frames": dict(gaussians=g, cameras=cams, backend="native", kernel="k",
+                       background=(0.0, 0.0, 0.0), device="cpu"),
         "masks": dict(prompt=task.prompt, trajectory_gt=task.trajectory_gt,
                       segmenter=SegmenterRun(OracleSegmenter(), {}), feedback=fb),
         "vote": dict(gaussians=g, cameras=cams, num_labels=task.num_labels, config=VoteConfig(),
-                     backend="native", device="cpu"),
+                     rule_version="0.1.0+r", backend="native", kernel="k", device="cpu"),
         "refine": dict(config=RefineConfig(), backend="native", device="cpu"),
     }  # fmt: skip
 
@@ -203,21 +204,25 @@ def test_an_input_of_unknown_kind_stops_the_run():
         digest_value(object())
 
 
-def test_refine_is_keyed_but_run_by_its_own_driver(bases):
-    from sagonline.pipeline.graph import StageCache, run_stage
-
-    assert REFINE.compute is None
-    k = keys(bases[False])
-    inputs = REFINE.inputs(
-        *(Output(k[n], None) for n in ("frames", "masks", "vote")), RefineConfig(), "native", "cpu"
-    )
-    with pytest.raises(TypeError, match="its own driver"):
-        run_stage(REFINE, inputs, StageCache(None))
-
-
 def test_stages_take_only_their_inputs(tiny_task):
-    frames_in = FramesInputs(tiny_task.gaussians, tiny_task.trajectory, "native", (0, 0, 0), "cpu")
+    frames_in = FramesInputs(
+        tiny_task.gaussians, tiny_task.trajectory, "native", "k", (0, 0, 0), "cpu"
+    )
     masks_stage = BY_STAGE["masks"]
     with pytest.raises(TypeError, match="takes MasksInputs"):
         masks_stage.key(frames_in)
     assert {MasksInputs, VoteInputs} <= {s.inputs for s in STAGES}
+
+
+def test_a_plugin_or_kernel_change_is_a_new_entry(bases):
+    """The masks' key names the segmenter plug-in's version (its source digest), the vote's
+    the vote backend that ran and its kernel's digest."""
+    from sagonline.core.plugins import module_version
+
+    base = keys(bases[False])
+    other_kernel = {k: dict(v) for k, v in bases[False].items()}
+    other_kernel["vote"]["kernel"] = "changed"
+    assert keys(other_kernel)["vote"] != base["vote"]
+    seg = bases[False]["masks"]["segmenter"]
+    assert seg.segmenter.version == module_version("sagonline.segment.oracle")
+    assert "+" in seg.segmenter.version and "unknown" not in seg.segmenter.version

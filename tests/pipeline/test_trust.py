@@ -253,11 +253,17 @@ def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
 
 def test_interrupt_keeps_a_recording_of_what_was_done(tmp_path, monkeypatch):
     import bench.eval
+    from sagonline.vote.consensus import VoteAccumulator
 
-    def stop(*args, **kwargs):
-        raise KeyboardInterrupt
+    add_view, votes = VoteAccumulator.add_view, []
 
-    monkeypatch.setattr("sagonline.pipeline.stages.consensus_vote", stop)
+    def stop(self, *args, **kwargs):  # the third view's vote is interrupted
+        votes.append(1)
+        if len(votes) == 3:
+            raise KeyboardInterrupt
+        return add_view(self, *args, **kwargs)
+
+    monkeypatch.setattr(VoteAccumulator, "add_view", stop)
     with pytest.raises(KeyboardInterrupt):
         bench.eval.evaluate(cfg_with("dataset=synthetic_ff"), tmp_path)
     assert not (tmp_path / "metrics.json").exists()

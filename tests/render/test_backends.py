@@ -15,8 +15,6 @@ from sagonline.render.backends import (
     resolve_backend,
     resolve_vote_backend,
 )
-from sagonline.segment.base import SegmentationResult
-from sagonline.vote.consensus import VoteResult
 
 EVERYTHING = dict(cuda=True, gsplat=True, triton=True, native=True)
 
@@ -99,38 +97,37 @@ def test_this_machines_probes_answer():
 
 
 def test_the_pipeline_votes_with_its_own_backend(monkeypatch):
-    """Stage I's stages take their backends from one plan: on CUDA without gsplat the frames
-    render with torch and the vote is the fused kernel, not the image renderer's choice."""
+    """Stage I's engine takes its backends from one plan: the frames render with the plan's
+    image renderer and the views vote with its vote backend (on CUDA without gsplat: torch and
+    triton), never the image renderer's choice. Run here with a CPU plan of two backends."""
     from sagonline.pipeline import stage_one
-    from sagonline.pipeline.graph import Output, StageRun
+    from sagonline.render.backends import BackendPlan
+    from sagonline.vote import consensus
 
-    cuda_without_gsplat = have(gsplat=False)
     monkeypatch.setattr(
-        stage_one,
-        "plan_backends",
-        lambda images, vote, device: plan_backends(images, vote, device, cuda_without_gsplat),
+        stage_one, "plan_backends", lambda *a: BackendPlan("cpu", "torch", "native", "native")
     )
-    used = {}
+    used = {"images": set(), "vote": set()}
+    render, vote_into = stage_one.render, consensus.vote_into
 
-    def fake_run_stage(stage, inputs, cache, progress):  # records what each stage would run on
-        used[stage.name] = inputs
-        if stage.name == "frames":
-            return Output("f", stage_one.Frames([np.zeros((6, 8, 3), np.uint8)], 0.0)), StageRun(
-                "computed", 0.0
-            )
-        if stage.name == "masks":
-            seg = SegmentationResult([np.zeros((6, 8), np.int64)], [0.0], "fake")
-            return Output("m", seg), StageRun("computed", 0.0)
-        return Output("v", VoteResult(*[torch.zeros(1)] * 3, frames=[0])), StageRun("computed", 0)
+    def spy_render(*args, backend, **kw):
+        used["images"].add(backend)
+        return render(*args, backend=backend, **kw)
 
-    monkeypatch.setattr(stage_one, "run_stage", fake_run_stage)
-    out = stage_one.compose_stage_one(
-        *_tiny_stage_one_inputs(), stage_one.PipelineSettings(device="cuda"), num_labels=2
-    )
-    assert used["frames"].backend == "torch" and used["frames"].device == "cuda"
-    assert used["vote"].backend == "triton" and used["vote"].device == "cuda"
+    def spy_vote(*args, backend, **kw):
+        used["vote"].add(backend)
+        return vote_into(*args, backend=backend, **kw)
+
+    monkeypatch.setattr(stage_one, "render", spy_render)
+    monkeypatch.setattr(consensus, "vote_into", spy_vote)
+    g, cams, prompt, run, vote = _tiny_stage_one_inputs()
+    gt = [np.ones((6, 8), np.int64)]
+    engine = stage_one.StageOne(stage_one.StageOneConfig(g, cams, run, vote, trajectory_gt=gt),
+                                prompt)  # fmt: skip
+    out = engine.run()
+    assert used == {"images": {"torch"}, "vote": {"native"}}
     assert out.backends.describe() == {
-        "device": "cuda", "images": "torch", "vote": "triton", "labels": "triton"
+        "device": "cpu", "images": "torch", "vote": "native", "labels": "native"
     }  # fmt: skip
 
 

@@ -23,10 +23,19 @@ def segmenter_from(name: str, *overrides):
     return build_segmenter(cfg.segmenter)
 
 
+def rendered(task) -> list[np.ndarray]:
+    """The task's trajectory rendered by Stage I's engine (its frames, no segmenting)."""
+    from sagonline.pipeline.segment import segmenter_run_of
+    from sagonline.pipeline.stage_one import StageOne, StageOneConfig
+    from sagonline.segment.oracle import OracleSegmenter
+
+    run = segmenter_run_of(OracleSegmenter())
+    return StageOne(StageOneConfig(task.gaussians, task.trajectory, run)).render()
+
+
 @pytest.fixture(scope="module")
 def video():
     from sagonline.datasets.synthetic import load_synthetic
-    from sagonline.pipeline.stages import FramesInputs, render_frames
 
     task = load_synthetic(
         layout="360",
@@ -38,10 +47,7 @@ def video():
         num_eval_views=2,
         seed=2,
     )[0]
-    frames = render_frames(
-        FramesInputs(task.gaussians, task.trajectory, "auto", (0.0, 0.0, 0.0), "cpu")
-    ).images
-    return task, frames
+    return task, rendered(task)
 
 
 def test_classical_tracks_objects_through_the_orbit(video):
@@ -59,7 +65,6 @@ def test_classical_tracks_objects_through_the_orbit(video):
 
 def test_classical_grabcut_from_clicks_on_a_single_object():
     from sagonline.datasets.synthetic import load_synthetic
-    from sagonline.pipeline.stages import FramesInputs, render_frames
 
     task = load_synthetic(
         layout="forward",
@@ -69,9 +74,7 @@ def test_classical_grabcut_from_clicks_on_a_single_object():
         num_train_views=6,
         num_eval_views=1,
     )[0]
-    frames = render_frames(
-        FramesInputs(task.gaussians, task.trajectory, "auto", (0.0, 0.0, 0.0), "cpu")
-    ).images
+    frames = rendered(task)
     res = FlowWatershedSegmenter(use_masks=False).segment(frames, task.prompt)
     ious = [view_metrics(m, g)["iou"] for m, g in zip(res.masks, task.trajectory_gt, strict=True)]
     assert min(ious) > 0.8, ious

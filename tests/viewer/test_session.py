@@ -68,8 +68,8 @@ class GatedSegmenter(FlowWatershedSegmenter):
         super().__init__()
         self.at, self.gate, self.reached = at, threading.Event(), threading.Event()
 
-    def _stream(self, frames, prompt):
-        for i, mask in super()._stream(frames, prompt):
+    def _stream(self, frames, prompt, ground_truth=None):
+        for i, mask in super()._stream(frames, prompt, ground_truth):
             if i == self.at:
                 self.reached.set()
                 self.gate.wait(30)

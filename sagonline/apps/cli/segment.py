@@ -86,6 +86,26 @@ def add_parsers(sub) -> None:
 # --- segmenter and vote -----------------------------------------------------------------------
 
 
+def segmenter_options(args) -> list[str]:
+    """The segmenter's settings the command line gave, as KEY=VALUE items (--checkpoint as the
+    plug-in's own key): what labels.json records, so that a replay builds the same segmenter."""
+    from sagonline.core.plugins import SEGMENTERS
+
+    names = {f.name for f in fields(SEGMENTERS[args.segmenter].config)}
+    items = []
+    for option in args.segmenter_option:
+        key, sep, value = option.partition("=")
+        if not sep:
+            raise ValueError(f"--segmenter-option {option!r}: expected KEY=VALUE")
+        items.append(f"{key.strip()}={value}")
+    if args.checkpoint:
+        key = next((k for k in ("checkpoint", "weights") if k in names), None)
+        if key is None:
+            raise ValueError(f"--checkpoint: segmenter {args.segmenter} takes no checkpoint")
+        items.append(f"{key}={args.checkpoint}")
+    return items
+
+
 def build_segmenter(args, prompt):
     """The chosen segmenter from the registry, its checkpoint and options applied; refused when
     it cannot read the prompt given (text to a click segmenter, clicks to a text one)."""
@@ -93,17 +113,7 @@ def build_segmenter(args, prompt):
 
     plugin = SEGMENTERS[args.segmenter]
     names = {f.name for f in fields(plugin.config)}
-    values: dict = {}
-    for option in args.segmenter_option:
-        key, sep, value = option.partition("=")
-        if not sep:
-            raise ValueError(f"--segmenter-option {option!r}: expected KEY=VALUE")
-        values[key.strip()] = value
-    if args.checkpoint:
-        key = next((k for k in ("checkpoint", "weights") if k in names), None)
-        if key is None:
-            raise ValueError(f"--checkpoint: segmenter {args.segmenter} takes no checkpoint")
-        values[key] = args.checkpoint
+    values: dict = dict(item.split("=", 1) for item in segmenter_options(args))
     if "device" in names:
         values.setdefault("device", args.device)
     segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
@@ -259,7 +269,7 @@ def cmd_segment(args) -> int:
         "inbetween": args.inbetween,
         "prompt": parsed.record(given),
         "inputs": input_digests(scene, args.cameras, masks),
-        "segmenter": {"kind": args.segmenter, "options": args.segmenter_option},
+        "segmenter": {"kind": args.segmenter, "options": segmenter_options(args)},
         "vote": asdict(vote),
         "timings": seg.timings,
     }

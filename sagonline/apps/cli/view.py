@@ -46,6 +46,12 @@ def segmenter_builder(args):
     return build
 
 
+def segmenter_options(args) -> list[str]:
+    from sagonline.apps.cli.segment import segmenter_options as options
+
+    return options(args)
+
+
 def cmd_view(args) -> int:
     from sagonline.apps.viewer.app import ViewerApp
     from sagonline.apps.viewer.session import SegmentSession
@@ -67,7 +73,7 @@ def cmd_view(args) -> int:
     print(f"views: {views.source}; rendering {len(views.cameras)} views ...", file=sys.stderr)
     session = SegmentSession(
         g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter,
-        backend=args.backend, device=args.device,
+        segmenter_options=segmenter_options(args), backend=args.backend, device=args.device,
     )  # fmt: skip
     info = {
         "cameras": str(args.cameras) if args.cameras else None,

@@ -263,16 +263,14 @@ class ViewerApp:
         kind = str(self.segmenter_choice.value)
         if self.make_segmenter is None:
             raise ValueError("this viewer was started with one segmenter")
-        self.session.stop()
-        self.session.segmenter, self.session.segmenter_kind = self.make_segmenter(kind), kind
+        self.session.configure(segmenter=self.make_segmenter(kind), kind=kind)
         self.restart()
 
     def change_vote(self) -> None:
         values = {k: h.value for k, h in self.vote_inputs.items()}
         values["method"] = str(self.method.value)
         values["min_votes"] = int(values["min_votes"])
-        self.session.stop()
-        self.session.vote = replace(self.session.vote, **values)
+        self.session.configure(vote=replace(self.session.vote, **values))
         self.restart()
 
     def restart(self) -> None:

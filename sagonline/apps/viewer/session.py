@@ -1,5 +1,6 @@
-"""The online loop behind `sagonline view`, without a browser: clicks on one view -> the
-segmenter's masks, one by one -> each voted into the running histogram -> labels every few views.
+"""The online session behind `sagonline view`, without a browser: clicks on one view -> Stage I's
+engine streams the segmenter's masks, votes each as it comes and publishes labels every few
+views.
 
     session = SegmentSession(gaussians, cameras)         # renders every view once
     session.add_click(0, 240, 135)                       # a positive click on view 0
@@ -7,43 +8,51 @@ segmenter's masks, one by one -> each voted into the running histogram -> labels
     session.labels                                        # (N,) -1 / 0 background / 1.. objects
     session.export("segment-donut")                      # the layout of `sagonline segment`
 
-A click restarts the run on the same frames with the prompt grown by one click; `stop` keeps
-the labels made so far and `resume` carries on from the next view. When every view has voted,
-the labels are those of `segment_scene` on the same prompt (the same masks, the same vote).
-The browser side is `sagonline.apps.viewer.app`; the timings are `bench/bench_viewer.py`'s.
+A click restarts the engine's stream on the same frames with the prompt grown by one click;
+`stop` keeps the labels made so far and `resume` carries on from the next view. When every view
+has voted, the labels are those of `segment_scene` on the same prompt: it is the same engine
+(`pipeline.stage_one.StageOne`). The browser side is `sagonline.apps.viewer.app`; the timings
+are `bench/bench_viewer.py`'s.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from collections.abc import Callable, Iterator
-from dataclasses import asdict, dataclass, field
+from collections.abc import Callable
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from sagonline.apps.viewer.clicks import pick_gaussian, view_for_point
+from sagonline.core.errors import PromptError
 from sagonline.pipeline.segment import (
-    PromptError,
     Segmentation,
-    check_cameras_see_scene,
     check_click_on_scene,
     check_objects_were_found,
+    segmenter_run_of,
     write_segment_folder,
+)
+from sagonline.pipeline.stage_one import (
+    LabelsUpdated,
+    MaskReady,
+    PipelineSettings,
+    StageOne,
+    StageOneConfig,
+    ViewVoted,
 )
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import VideoSegmenter
 from sagonline.segment.clicks import ObjectClicks, ParsedPrompt, to_prompt
-from sagonline.vote.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
+from sagonline.vote.consensus import VoteConfig
 
 
 @dataclass
 class Progress:
-    """Where the current run stands: views segmented and voted (of `total`), its state
-    ("idle", "running", "stopped", "done" or "failed") and a line to show."""
+    """Where the current run stands: views segmented and voted (of `total` voting views), its
+    state ("idle", "running", "stopped", "done" or "failed") and a line to show."""
 
     segmented: int = 0
     voted: int = 0
@@ -51,19 +60,6 @@ class Progress:
     state: str = "idle"
     message: str = "click on the object"
     seconds: float = 0.0
-
-
-@dataclass
-class Run:
-    """One prompt's pass over the views: the segmenter's stream, the running histogram, the
-    masks made so far (None until made)."""
-
-    stream: Iterator[tuple[int, np.ndarray]]
-    votes: VoteAccumulator
-    voting: set[int]
-    masks: list[np.ndarray | None]
-    started: float = field(default_factory=time.perf_counter)
-    finished: bool = False
 
 
 @dataclass
@@ -81,9 +77,9 @@ class SegmentSession:
     """Clicks -> labels on one scene and its views (see the module docstring).
 
     gaussians: the scene; cameras: the views in trajectory order; segmenter: the registry's
-    `segmenter_kind` built (the classical one by default); on_update(labels, progress)
-    is called from the worker thread after the first voted view, every `recolour_every` voted
-    views, and at the end (labels: (N,) int64)."""
+    `segmenter_kind` built with `segmenter_options` (the classical one by default);
+    on_update(labels, progress) is called from the worker thread after the first voted view,
+    every `recolour_every` voted views, and at the end (labels: (N,) int64)."""
 
     def __init__(
         self,
@@ -92,56 +88,73 @@ class SegmentSession:
         *,
         segmenter: VideoSegmenter | None = None,
         segmenter_kind: str = "classical",
+        segmenter_options: list[str] | None = None,
         vote: VoteConfig | None = None,
         backend: str = "auto",
+        vote_backend: str = "auto",
         device: str = "cpu",
         recolour_every: int = 4,
         on_update: Callable[[np.ndarray, Progress], None] | None = None,
     ):
+        from sagonline.pipeline.segment import check_cameras_see_scene
         from sagonline.segment.classical import FlowWatershedSegmenter
 
         if not cameras:
             raise PromptError("no views to segment")
         if recolour_every < 1:
             raise ValueError(f"recolour_every {recolour_every}: must be at least 1")
-        self.gaussians = gaussians.to(device)
-        self.cameras = [c.to(device) for c in cameras]
-        check_cameras_see_scene(self.gaussians, self.cameras)
         self.segmenter = segmenter or FlowWatershedSegmenter()
         self.segmenter_kind = segmenter_kind  # its name in the registry (labels.json)
-        self.vote = vote or VoteConfig()
+        self.segmenter_options = list(segmenter_options or [])
+        settings = PipelineSettings(backend=backend, vote_backend=vote_backend, device=device,
+                                    progress=False)  # fmt: skip
+        config = StageOneConfig(
+            gaussians, list(cameras), segmenter_run_of(self.segmenter), vote or VoteConfig(),
+            settings, publish_every=recolour_every, keep_depth=True,
+        )  # fmt: skip
+        self.engine = StageOne(config)
+        self.gaussians, self.cameras = self.engine.gaussians, self.engine.cameras
+        check_cameras_see_scene(self.gaussians, self.cameras)
         self.backend, self.device = backend, device
-        self.recolour_every, self.on_update = recolour_every, on_update
+        self.on_update = on_update
         self.objects: list[ObjectClicks] = []
         self.clicks: list[ClickPoint] = []
         self.view: int | None = None  # the prompt view, fixed by the first click
         self.current: str | None = None
         self.labels = np.full(len(gaussians), -1, np.int64)
-        self.progress = Progress(total=len(cameras))
-        self._run: Run | None = None
+        self.progress = Progress(total=len(self.engine.voting))
         self._thread: threading.Thread | None = None
-        self._stop = threading.Event()
         self._lock = threading.RLock()
-        self.frames, self.alphas, self.depths = self._render_views()
-
-    # --- the views, rendered once ---------------------------------------------------------
-
-    def _render_views(self) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
-        """RGB (H, W, 3) uint8, opacity (H, W) and surface depth (H, W) of every view."""
-        from sagonline.render.api import render, to_uint8
-
+        self._started = 0.0
         start = time.perf_counter()
-        frames, alphas, depths = [], [], []
-        with torch.no_grad():
-            for cam in self.cameras:
-                out = render(self.gaussians, cam, backend=self.backend)
-                alpha = out.alpha.detach().float().cpu().numpy()
-                depth = out.depth.detach().float().cpu().numpy() / np.maximum(alpha, 1e-6)
-                frames.append(np.ascontiguousarray(to_uint8(out.rgb)))
-                alphas.append(alpha)
-                depths.append(np.where(alpha > 0.5, depth, np.inf))
+        self.frames = self.engine.render()
+        self.alphas, self.depths = self.engine.alphas, self.engine.depths
         self.render_seconds = time.perf_counter() - start
-        return frames, alphas, depths
+
+    @property
+    def vote(self) -> VoteConfig:
+        return self.engine.config.vote
+
+    def configure(
+        self,
+        *,
+        segmenter: VideoSegmenter | None = None,
+        kind: str | None = None,
+        options: list[str] | None = None,
+        vote: VoteConfig | None = None,
+    ) -> None:
+        """Another segmenter (its registry kind and options) or other vote settings, for the
+        next run; the rendered views stay."""
+        self.stop()
+        changes = {}
+        if segmenter is not None:
+            self.segmenter, self.segmenter_kind = segmenter, kind or self.segmenter_kind
+            if options is not None:  # else the command line's, which built it too
+                self.segmenter_options = list(options)
+            changes["segmenter"] = segmenter_run_of(segmenter)
+        if vote is not None:
+            changes["vote"] = vote
+        self.engine.configure(**changes)
 
     # --- prompts ----------------------------------------------------------------------------
 
@@ -220,9 +233,9 @@ class SegmentSession:
         self.stop()
         with self._lock:
             self.objects, self.clicks, self.view, self.current = [], [], None, None
-            self._run = None
+            self.engine.set_prompt(type(self.engine.prompt)())
             self.labels = np.full(len(self.gaussians), -1, np.int64)
-            self.progress = Progress(total=len(self.cameras))
+            self.progress = Progress(total=len(self.engine.voting))
 
     def parsed(self) -> ParsedPrompt:
         if self.view is None:
@@ -236,33 +249,29 @@ class SegmentSession:
         self.stop()
         prompt = to_prompt(self.parsed(), self.view)
         with self._lock:
-            votes = VoteAccumulator(len(self.gaussians), len(prompt.names), self.vote, self.device)
-            self._run = Run(
-                stream=self.segmenter.stream(self.frames, prompt),
-                votes=votes,
-                voting=set(select_frames(len(self.frames), self.vote)),
-                masks=[None] * len(self.frames),
-            )
-            self.progress = Progress(total=len(self.frames), state="running", message="")
+            self.engine.set_prompt(prompt)
+            self.progress = Progress(total=len(self.engine.voting), state="running", message="")
+            self._started = time.perf_counter()
         self.resume()
 
     def resume(self) -> None:
         """Carry on a stopped run from its next view (nothing to do when it is done)."""
         with self._lock:
-            run = self._run
-            if run is None or run.finished or self.running:
+            state = self.progress.state
+            if self.engine.done or self.running or state not in ("running", "stopped"):
                 return
-            self._stop.clear()
             self.progress.state = "running"
-            self._thread = threading.Thread(target=self._work, args=(run,), daemon=True)
+            self._thread = threading.Thread(target=self._work, daemon=True)
             self._thread.start()
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 60.0) -> None:
         """Stop after the view in hand; the labels made so far stay."""
         thread = self._thread
         if thread is not None and thread.is_alive():
-            self._stop.set()
-            thread.join()
+            self.engine.stop()
+            thread.join(timeout)
+            if thread.is_alive():
+                raise RuntimeError(f"the session's worker did not stop within {timeout:.0f} s")
         self._thread = None
 
     def wait(self, timeout: float | None = None) -> Progress:
@@ -278,62 +287,44 @@ class SegmentSession:
     def running(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def _work(self, run: Run) -> None:
-        since_update = 0
+    def _work(self) -> None:
+        p = self.progress
         try:
-            while not self._stop.is_set():
-                item = next(run.stream, None)
-                if item is None:
-                    run.finished = True
-                    break
-                i, mask = item
-                run.masks[i] = mask
-                self.progress.segmented += 1
-                if i in run.voting:
-                    where = f"mask of view {i}"
-                    run.votes.add_view(self.gaussians, self.cameras[i], mask, self.backend, where)
-                    self.progress.voted += 1
-                    since_update += 1
-                    if self.progress.voted == 1 or since_update >= self.recolour_every:
-                        self._publish(run)
-                        since_update = 0
-            self.progress.state = "done" if run.finished else "stopped"
-            self._publish(run)
+            for event in self.engine.stream():
+                if isinstance(event, MaskReady):
+                    p.segmented += 1
+                elif isinstance(event, ViewVoted):
+                    p.voted = event.voted
+                elif isinstance(event, LabelsUpdated):
+                    self._publish(event.labels)
+            p.state = "done" if self.engine.done else "stopped"
+            if not self.engine.done and p.voted:
+                self._publish(self.engine.vote_so_far().labels.cpu().numpy())
         except Exception as exc:  # shown in the GUI, re-raised by wait()
-            self.progress.state, self.progress.message = "failed", f"{type(exc).__name__}: {exc}"
+            p.state, p.message = "failed", f"{type(exc).__name__}: {exc}"
             if self.on_update is not None:
-                self.on_update(self.labels, self.progress)
+                self.on_update(self.labels, p)
 
-    def _publish(self, run: Run) -> None:
-        """Labels from the histogram so far (the vote's rule, then its fill)."""
-        result = self.vote_result(run)
+    def _publish(self, labels: np.ndarray) -> None:
         with self._lock:
-            if run is not self._run:  # a newer click has started another run
-                return
-            self.labels = result.assigned.cpu().numpy().astype(np.int64)
-            self.progress.seconds = time.perf_counter() - run.started
+            self.labels = np.asarray(labels, np.int64)
             p = self.progress
-            p.message = f"{p.voted} of {len(run.voting)} views voted ({p.seconds:.1f} s)"
+            p.seconds = time.perf_counter() - self._started
+            p.message = f"{p.voted} of {p.total} views voted ({p.seconds:.1f} s)"
         if self.on_update is not None:
             self.on_update(self.labels, self.progress)
-
-    def vote_result(self, run: Run) -> VoteResult:
-        labels, labelled, hist, _ = run.votes.finalize_filled(self.gaussians.means)
-        voted = sorted(i for i in run.voting if run.masks[i] is not None)
-        return VoteResult(labels, labelled, hist, voted, {"num_masks": len(voted)})
 
     # --- take it with you --------------------------------------------------------------------
 
     def segmentation(self) -> Segmentation:
         """What the session holds as `segment_scene` gives it (views without a mask yet, after
         a Stop, carry an empty one)."""
-        run = self._run
-        if run is None or self.progress.voted == 0:
+        if self.progress.voted == 0:
             raise PromptError("nothing to export yet: click on the object and let a view vote")
         masks = [m if m is not None else np.zeros(f.shape[:2], np.int64)
-                 for m, f in zip(run.masks, self.frames, strict=True)]  # fmt: skip
+                 for m, f in zip(self.engine.masks, self.frames, strict=True)]  # fmt: skip
         return Segmentation(
-            self.labels.copy(), self.names, self.vote_result(run), list(self.cameras),
+            self.labels.copy(), self.names, self.engine.vote_so_far(), list(self.cameras),
             self.frames, masks, {"render_s": self.render_seconds}, self.view or 0,
         )  # fmt: skip
 
@@ -355,7 +346,7 @@ class SegmentSession:
         full = {
             "scene": str(scene) if scene else None,
             "prompt": parsed.record(self.cameras),
-            "segmenter": {"kind": self.segmenter_kind, "options": []},
+            "segmenter": {"kind": self.segmenter_kind, "options": list(self.segmenter_options)},
             "vote": asdict(self.vote),
             "viewer": {"views_voted": self.progress.voted, "views": len(self.cameras),
                        "state": self.progress.state},

@@ -1,0 +1,91 @@
+"""Progress of long work, said whether or not anyone watches a terminal.
+
+On a terminal: a bar (tqdm). Elsewhere (a log file, CI, a pipe): one plain line when the work
+starts, then at most one every `every` seconds (views done, elapsed, time left), and one when it
+ends, so no run is silent for minutes.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Iterable, Iterator
+from typing import TextIO, TypeVar
+
+T = TypeVar("T")
+
+
+class Progress:
+    """`update()` once per item of `total`; `close()` at the end (a context manager too)."""
+
+    def __init__(
+        self,
+        what: str,
+        total: int,
+        *,
+        enabled: bool = True,
+        every: float = 15.0,
+        out: TextIO | None = None,
+        terminal: bool | None = None,
+    ):
+        self.what, self.total, self.every = what, total, every
+        self.out = out or sys.stderr
+        self.enabled = enabled and total > 0
+        self.terminal = self.out.isatty() if terminal is None else terminal
+        self.done, self.start = 0, time.perf_counter()
+        self._last = self.start
+        self._bar = None
+        if not self.enabled:
+            return
+        if self.terminal:
+            from tqdm import tqdm
+
+            self._bar = tqdm(total=total, desc=what, leave=False, file=self.out)
+        else:
+            self._say(f"{what}: {total} to do")
+
+    def _say(self, line: str) -> None:
+        print(line, file=self.out, flush=True)
+
+    def update(self, n: int = 1) -> None:
+        self.done += n
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            self._bar.update(n)
+            return
+        now = time.perf_counter()
+        if now - self._last >= self.every and self.done < self.total:
+            self._last = now
+            elapsed = now - self.start
+            left = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
+            self._say(
+                f"{self.what}: {self.done} of {self.total} ({elapsed:.0f} s, about {left:.0f} s "
+                "left)"
+            )
+
+    def close(self) -> None:
+        if not self.enabled:
+            return
+        if self._bar is not None:
+            self._bar.close()
+        else:
+            self._say(
+                f"{self.what}: {self.done} of {self.total} done in "
+                f"{time.perf_counter() - self.start:.1f} s"
+            )
+        self.enabled = False
+
+    def __enter__(self) -> Progress:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+
+def progress(items: Iterable[T], what: str, total: int, **options) -> Iterator[T]:
+    """`items` with a `Progress` (see the class) kept as they pass."""
+    with Progress(what, total, **options) as bar:
+        for item in items:
+            yield item
+            bar.update()
