@@ -18,7 +18,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from sagonline.core.files import atomic_write_text
+from sagonline.core.files import atomic_write_text, read_json_object
 from sagonline.core.provenance import digest_json
 
 
@@ -83,11 +83,10 @@ def finished_run(out_dir: Path) -> dict | None:
     if not path.is_file():
         return None
     try:
-        metrics = json.loads(path.read_text())
-    except (OSError, ValueError):
-        raise RunExists(
-            f"error: {path} is unreadable; move it away or pass overwrite=true"
-        ) from None
+        metrics = read_json_object(path, RunExists, "unreadable", "a run's metrics (an object)")
+    except RunExists as exc:
+        print(f"error: {exc}; move it away or pass overwrite=true", file=sys.stderr)
+        raise RunExists(2) from None
     return None if metrics.get("status") == "failed" else metrics
 
 

@@ -28,6 +28,7 @@ from pathlib import Path
 import hydra
 import numpy as np
 import torch
+from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
 from bench.config import ScenesConfig, register_schemas, to_config
@@ -259,6 +260,25 @@ def print_fit(scene: str, fit_cfg: FitConfig, metrics: dict, out: Path) -> None:
 
 @hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")
 def main(dict_cfg: DictConfig) -> None:
+    try:
+        fit_all(dict_cfg)
+    except SystemExit:
+        forget_refused_run(Path(HydraConfig.get().runtime.output_dir))
+        raise
+
+
+def forget_refused_run(run: Path) -> None:
+    """A command refused before any fit leaves no folder behind (only Hydra's record and the
+    log were in it)."""
+    import shutil
+
+    if run.is_dir() and {p.name for p in run.iterdir()} <= {".hydra", "scenes.log"}:
+        shutil.rmtree(run, ignore_errors=True)
+
+
+def fit_all(dict_cfg: DictConfig) -> None:
+    """Fit (or finish) every scene the config names; a scene that cannot be fitted is named
+    and the others go on; exit 2 if any failed."""
     cfg: ScenesConfig = to_config(dict_cfg, ScenesConfig)
     adapter = build_dataset(cfg.dataset)
     try:

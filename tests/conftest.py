@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -13,6 +14,26 @@ if not torch.cuda.is_available():
     os.environ.setdefault("TRITON_INTERPRET", "1")
 
 from tests.fixtures import random_gaussians
+
+
+def pytest_configure(config) -> None:
+    """The suite writes only below a temporary folder: caches that default to the home folder
+    (the file digests' memo, matplotlib's, YOLO's settings, XDG caches) go to one of the run's
+    own, for this process and every process it starts."""
+    import tempfile
+
+    home = Path(tempfile.mkdtemp(prefix="sagonline-tests-home-"))
+    for var, sub in (("SAGONLINE_DIGEST_CACHE", "digests.json"), ("XDG_CACHE_HOME", "cache"),
+                     ("MPLCONFIGDIR", "matplotlib"), ("YOLO_CONFIG_DIR", "yolo")):  # fmt: skip
+        os.environ[var] = str(home / sub)
+    os.environ["HOME"] = str(home)
+    from hypothesis import settings  # its example database too (it defaults to ./.hypothesis)
+    from hypothesis.database import DirectoryBasedExampleDatabase
+
+    settings.register_profile(
+        "sagonline", database=DirectoryBasedExampleDatabase(str(home / "hypothesis"))
+    )
+    settings.load_profile("sagonline")
 
 
 @pytest.fixture(scope="module")

@@ -232,6 +232,7 @@ def scene_files(tmp_path, tiny_task):
     return ply, cams
 
 
+@pytest.mark.slow
 def test_render_never_writes_over_the_camera_file_of_a_folder(tmp_path, scene_files):
     ply, _ = scene_files
     cams, _ = llff_scene(tmp_path / "llff", NAMES, with_scene=False)
@@ -254,6 +255,7 @@ def test_render_never_writes_over_the_camera_file_of_a_folder(tmp_path, scene_fi
         (["--background", "2,0,0"], "three values"),
     ],
 )
+@pytest.mark.slow
 def test_render_sizes_and_backgrounds_are_checked(tmp_path, scene_files, args, message):
     ply, cams = scene_files
     r = _cli("render", str(ply), "--cameras", str(cams), "--out", str(tmp_path / "v.png"), *args)
@@ -314,6 +316,7 @@ def test_read_only_run_folder_is_one_line(tmp_path, capsys):
         ("refine=student refine.pretrained=/nonexistent.pt", "refine.pretrained=/nonexistent.pt"),
     ],
 )
+@pytest.mark.slow
 def test_settings_out_of_bounds_stop_before_any_work(tmp_path, capsys, override, message):
     run = tmp_path / "run"
     with pytest.raises(SystemExit) as exc:

@@ -7,6 +7,7 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 from PIL import Image
 
 from tests.fixtures import shared_data
@@ -18,6 +19,7 @@ def _run(*args):
     )
 
 
+@pytest.mark.slow
 def test_info_prints_format_count_degree_bbox():
     res = _run("info", str(shared_data("sh3_scene_3dgs", "point_cloud.ply")))
     assert res.returncode == 0, res.stderr
@@ -25,6 +27,7 @@ def test_info_prints_format_count_degree_bbox():
     assert "bbox min:" in res.stdout and "ply" in res.stdout
 
 
+@pytest.mark.slow
 def test_render_png_and_npy(tmp_path):
     scene = shared_data("donut_3dgs", "point_cloud.ply")
     cams = shared_data("donut_3dgs", "transforms.json")
@@ -46,6 +49,7 @@ def test_render_png_and_npy(tmp_path):
     assert np.abs(png / 255.0 - arr.clip(0, 1)).max() < 1 / 255 + 1e-6
 
 
+@pytest.mark.slow
 def test_render_errors_name_the_problem(tmp_path):
     bad = tmp_path / "bad.ply"
     bad.write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n")
@@ -94,3 +98,14 @@ def test_one_view_numbering_for_every_command(tmp_path, capsys):
                  "--no-record"]) == 0  # fmt: skip
     prompt = json.loads((out / "labels.json").read_text())["prompt"]
     assert (prompt["view"], prompt["view_name"], prompt["render_size"]) == (2, "r_10", [48, 36])
+
+
+def test_render_defaults_to_the_backend_everything_else_takes():
+    """`sagonline render` defaults to backend auto (it said torch) and device auto, as
+    `segment`, `view` and the evaluation do."""
+    from sagonline.apps.cli import build_parser
+
+    parser = build_parser()
+    for command in (["render", "s.ply", "--out", "x.png"], ["segment", "s.ply"], ["view", "s.ply"]):
+        args = parser.parse_args(command)
+        assert (args.backend, args.device) == ("auto", "auto"), command

@@ -154,3 +154,20 @@ def test_rgc_eps_controls_depth_of_voting(tiny_task):
     )
     assert crust.stats["votes_cast"] < deep.stats["votes_cast"]
     assert crust.stats["fraction_voted"] < deep.stats["fraction_voted"]
+
+
+@pytest.mark.parametrize("method", ["rgc", "flashsplat", "weighted_mean"])
+def test_every_rule_counts_the_pairs_that_voted(tiny_task, method):
+    """votes_cast is the (pixel, Gaussian) pairs that voted, for every rule (it was None for the
+    weighted ones); for rgc it equals the histogram's sum."""
+    t = tiny_task
+    res = consensus_vote(t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels,
+                         VoteConfig(method=method))  # fmt: skip
+    assert isinstance(res.stats["votes_cast"], int) and res.stats["votes_cast"] > 0
+    if method == "rgc":
+        assert res.stats["votes_cast"] == int(res.histogram.sum())
+
+
+def test_min_votes_below_one_is_refused():
+    with pytest.raises(ValueError, match="min_votes=0: must be >= 1"):
+        VoteConfig(min_votes=0)

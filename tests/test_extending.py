@@ -115,6 +115,7 @@ def test_a_new_vote_rule_through_both_kernels(example, tiny_task, capsys):
     assert "does not read margin" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_plugins_named_in_the_environment_are_loaded(tmp_path):
     (tmp_path / "colour_segmenter.py").write_text(examples()["colour_segmenter.py"])
     env = {"SAGONLINE_PLUGINS": "colour_segmenter", "PYTHONPATH": str(tmp_path)}

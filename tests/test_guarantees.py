@@ -436,6 +436,7 @@ def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
 # --- run folders ------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
     from bench.eval import evaluate
 
@@ -469,6 +470,7 @@ def test_a_misspelt_key_with_a_plus_is_refused(capsys):
         _one_line_error(capsys, "no such setting")
 
 
+@pytest.mark.slow
 def test_a_refused_run_leaves_no_folder(tmp_path):
     import subprocess
     import sys

@@ -8,6 +8,8 @@ import ast
 import subprocess
 import sys
 
+import pytest
+
 from tests.fixtures import ROOT
 
 PACKAGE = ROOT / "sagonline"
@@ -34,6 +36,7 @@ def test_long_functions_say_why():
     assert not silent, silent
 
 
+@pytest.mark.slow
 def test_fitting_does_not_depend_on_the_datasets():
     code = "import sys, sagonline.fitting; print([m for m in sys.modules if 'datasets' in m])"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True)

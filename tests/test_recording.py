@@ -47,6 +47,7 @@ def recorded(tmp_path_factory):
     return metrics, *read_back(out / "recording.rrd")
 
 
+@pytest.mark.slow
 def test_cameras_frames_and_masks_in_their_frusta(recorded):
     _, found, _ = recorded
     base = "/scenes/forward_single"

@@ -247,6 +247,7 @@ def test_existing_output_is_kept_without_overwrite(clicked, capsys):
     assert (tmp / "out" / "labels.npy").read_bytes() == before
 
 
+@pytest.mark.slow
 def test_export_gives_the_runs_vote(tmp_path):
     from bench.eval import evaluate
     from sagonline.core import store

@@ -77,23 +77,45 @@ def _memo_path() -> Path:
     return Path(os.environ.get("SAGONLINE_DIGEST_CACHE", default))
 
 
-def _load_memo() -> dict:
+def _load_memo(path: Path) -> dict:
     try:
-        return json.loads(_memo_path().read_text())
+        memo = json.loads(path.read_text())
     except (OSError, ValueError):
         return {}
+    return memo if isinstance(memo, dict) else {}
+
+
+def _remember(disk_key: str, value: str) -> None:
+    """Add one digest to the memo file: read, merge and write under an exclusive lock, so that
+    processes digesting at once never drop each other's entries (best effort: a read-only home
+    only costs a re-read next time)."""
+    import fcntl
+
+    from sagonline.core.files import atomic_write_text
+
+    path = _memo_path()
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with open(path.with_suffix(".lock"), "a") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)
+            memo = _load_memo(path)
+            memo[disk_key] = value
+            atomic_write_text(path, json.dumps(memo))
+    except OSError:
+        pass
 
 
 def digest_file(path: str | Path) -> str:
-    """Streamed digest of a file's bytes, memoised by (resolved path, size, mtime_ns)."""
+    """Streamed digest of a file's bytes, memoised by (resolved path, device, inode, size,
+    mtime_ns, ctime_ns) in this process and in a memo file (`SAGONLINE_DIGEST_CACHE`)."""
     path = Path(path).resolve()
     st = path.stat()
-    key = (str(path), st.st_size, st.st_mtime_ns)
+    key = (str(path), st.st_dev, st.st_ino, st.st_size, st.st_mtime_ns, st.st_ctime_ns)
     if key in _FILE_MEMO:
         return _FILE_MEMO[key]
-    memo = _load_memo()
-    disk_key = f"{key[0]}|{key[1]}|{key[2]}"
-    if disk_key in memo:
+    disk_key = "|".join(map(str, key))
+    memo = _load_memo(_memo_path())
+    if isinstance(memo.get(disk_key), str):
         _FILE_MEMO[key] = memo[disk_key]
         return memo[disk_key]
     h = _hasher()
@@ -101,13 +123,7 @@ def digest_file(path: str | Path) -> str:
         while chunk := f.read(1 << 22):
             h.update(chunk)
     value = _FILE_MEMO[key] = h.hexdigest()
-    memo[disk_key] = value
-    try:  # best effort: a read-only home only costs a re-read next time
-        from sagonline.core.files import atomic_write_text
-
-        atomic_write_text(_memo_path(), json.dumps(memo))
-    except OSError:
-        pass
+    _remember(disk_key, value)
     return value
 
 

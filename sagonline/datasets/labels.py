@@ -18,7 +18,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from sagonline.core.errors import DatasetError
@@ -70,10 +69,9 @@ class PaletteLabels(IdLabels):
         }
 
     def read(self, path: Path) -> np.ndarray:
-        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-        if img is None:
-            raise DatasetError(f"{path}: not a readable image")
-        rgb = img[..., ::-1].astype(np.int64)
+        from sagonline.scene.io.masks import read_mask_colours
+
+        rgb = read_mask_colours(path).astype(np.int64)
         key = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
         out = np.full(key.shape, -1, np.int64)
         for color, label in self.palette.items():

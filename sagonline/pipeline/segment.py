@@ -2,16 +2,18 @@
 
 The API behind `sagonline segment` (and the way to call it from a notebook):
 
-    from sagonline.scene.io import read_scene, load_cameras
+    from sagonline.scene.io import read_scene
+    from sagonline.scene.views import load_views
     from sagonline.pipeline.segment import segment_scene, clicks_prompt
-    g, cams = read_scene("point_cloud.ply"), load_cameras("sparse/0")
+    g = read_scene("point_cloud.ply")
+    cams = load_views("sparse/0", g).cameras       # the numbering of `sagonline cameras`
     seg = segment_scene(g, cams, clicks_prompt(cams, 0, {"chair": [(412, 230)]}))
     seg.labels          # (N,) int64: -1 unlabelled, 0 background, 1.. the objects
     seg.names           # ["background", "chair"]
 
-It runs the harness's cached stages (frames -> masks -> vote, `sagonline.pipeline`) on the
-cameras in the order given; with `cache_dir`, a rerun with other vote settings reuses the
-frames and masks.
+It drains Stage I's engine (`pipeline.stage_one.StageOne`: frames -> masks -> vote, each a
+cached stage) on the cameras in the order given; with `cache_dir`, a rerun with other vote
+settings reuses the frames and masks.
 """
 
 from __future__ import annotations

@@ -1,8 +1,9 @@
 """The vote's rule: which (pixel, Gaussian) pairs of one view vote, and for how much.
 
-One frozen `VoteRule` travels unchanged from the vote's settings (`consensus.VoteConfig.rule`)
-through the op (`render.vote.vote_histogram`) into every implementation (the PyTorch reference,
-the C++ kernel, the Triton kernel), under the same names everywhere: `eps` and `delta`.
+One frozen `VoteRule` travels unchanged from the vote's settings (`consensus.eps`, `consensus.delta`
+on the command line; `vote.consensus.VoteConfig.rule`) through the op (`render.vote.vote_into`)
+into every implementation (the PyTorch reference, the C++ kernel, the Triton kernel), under the
+same names everywhere: `eps` and `delta`.
 """
 
 from __future__ import annotations
@@ -18,15 +19,15 @@ class VoteRule:
     """eps: a Gaussian votes only while the transmittance before it is T_i > eps, and a pixel's
     walk stops once T <= eps; delta: ... and only if its projected centre lies within delta px
     of the pixel centre (None: no distance rule, the one way to say so); weighting: count (+1
-    per pair, the paper's RGC) or blend (alpha_i T_i, FlashSplat and the weighted mean);
-    min_votes and margin: how a Gaussian's histogram becomes a label (`consensus.decide`; the
-    kernels do not read them)."""
+    per pair, the paper's RGC) or blend (alpha_i T_i, FlashSplat and the weighted mean).
+
+    The paper's eps and delta are defined here and nowhere else: `vote.consensus.VoteConfig`
+    (the `consensus.*` settings) takes its defaults from these. How a histogram becomes labels
+    (min_votes, margin) is the vote's business, not the kernels': `VoteConfig` alone holds it."""
 
     eps: float = 0.01
     delta: float | None = 2.0
     weighting: str = "count"
-    min_votes: int = 1
-    margin: float = 0.2
 
     def __post_init__(self) -> None:
         if not (math.isfinite(self.eps) and 0 <= self.eps < 1):

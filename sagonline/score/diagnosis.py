@@ -96,7 +96,7 @@ class GaussianCauses:
     @classmethod
     def of(cls, run: VoteResult, cfg: VoteConfig, truth: VoteResult | None) -> GaussianCauses:
         votes = run.histogram.sum(1).cpu()
-        enough = votes >= max(cfg.min_votes, 1)
+        enough = votes >= cfg.min_votes
         labels = run.labels.cpu()
         labelled = labels >= 0
         truth_labels = truth.labels.cpu() if truth is not None else None

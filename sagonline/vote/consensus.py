@@ -54,13 +54,15 @@ class VoteConfig:
     method: str = "rgc"
     """A registered vote rule: rgc (the paper's), flashsplat or weighted_mean
     (`python -m sagonline plugins vote-rules`)."""
-    eps: float = 0.01
-    """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps."""
-    delta: float | None = 2.0
+    eps: float = VoteRule.eps
+    """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps
+    (the default, the paper's 0.01, is `render.rule.VoteRule`'s)."""
+    delta: float | None = VoteRule.delta
     """rgc: ... and only if its projected centre lies within delta px of the pixel centre;
-    null: no distance rule."""
+    null: no distance rule (default: the paper's 2 px, `VoteRule`'s)."""
     min_votes: int = 1
-    """Fewer votes leave a Gaussian unlabelled."""
+    """Fewer votes leave a Gaussian unlabelled (at least 1: a Gaussian no view saw is never
+    labelled)."""
     margin: float = 0.2
     """A top-1 minus top-2 vote share below this (or a tie) leaves it unlabelled."""
     num_masks: int | None = None
@@ -97,7 +99,7 @@ class VoteConfig:
                 self.delta,
                 "a distance in pixels > 0, or null (no distance rule)",
             ),
-            min_votes=(self.min_votes >= 0, self.min_votes, ">= 0"),
+            min_votes=(self.min_votes >= 1, self.min_votes, ">= 1"),
             margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
             num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
             stride=(self.stride >= 1, self.stride, ">= 1"),
@@ -285,7 +287,7 @@ def decide_majority(
     labels = top2.indices[:, 0]
     second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
     share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
-    labelled = (total >= max(cfg.min_votes, 1)) & (top2.values[:, 0] > second)
+    labelled = (total >= cfg.min_votes) & (top2.values[:, 0] > second)
     return labels, labelled & (share_gap >= cfg.margin)
 
 
@@ -315,12 +317,12 @@ def decide_weighted_mean(
 
 def count_rule(cfg: VoteConfig) -> VoteRule:
     """rgc's pairs: T_i > eps and the centre within delta px, +1 each."""
-    return VoteRule(cfg.eps, cfg.delta, "count", cfg.min_votes, cfg.margin)
+    return VoteRule(cfg.eps, cfg.delta, "count")
 
 
 def blend_rule(cfg: VoteConfig) -> VoteRule:
     """The weighted methods' pairs: every composited one (T_i > T_STOP), alpha_i T_i each."""
-    return VoteRule(T_STOP, None, "blend", 0, 0.0)
+    return VoteRule(T_STOP, None, "blend")
 
 
 @dataclass

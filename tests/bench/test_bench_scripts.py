@@ -26,6 +26,7 @@ def _run(script: str, *args: str) -> str:
     return proc.stdout
 
 
+@pytest.mark.slow
 def test_bench_render_quick_writes_its_table(tmp_path):
     out = tmp_path / "render.csv"
     text = _run("bench_render.py", "--devices", "cpu", "--out", str(out))
@@ -51,6 +52,7 @@ def test_bench_contention_quick(tmp_path):
     assert (pd.read_csv(out).slowdown > 0).all()
 
 
+@pytest.mark.slow
 def test_bench_read_quick(tmp_path):
     out = tmp_path / "read.csv"
     _run("bench_read.py", "--dir", str(tmp_path), "--out", str(out))
@@ -58,6 +60,7 @@ def test_bench_read_quick(tmp_path):
     assert not list(tmp_path.glob("*.ply"))  # its file is removed afterwards
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not DONUT.exists(), reason=f"{DONUT} not found")
 def test_bench_viewer_quick():
     text = _run("bench_viewer.py")

@@ -73,6 +73,7 @@ def test_feedback_composes_to_the_dataclass_defaults():
         compose_config("eval", "feedback=on", "feedback.every=often")
 
 
+@pytest.mark.slow
 def test_the_root_config_is_typed_all_the_way_down():
     cfg = compose_config("eval")
     assert isinstance(cfg, EvalConfig)

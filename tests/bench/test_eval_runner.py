@@ -12,6 +12,7 @@ from bench.rundir import RunExists
 from tests.fixtures import cfg_with
 
 
+@pytest.mark.slow
 def test_eval_writes_metrics_csv_and_recording(tmp_path):
     metrics = evaluate(cfg_with(), tmp_path)
     saved = json.loads((tmp_path / "metrics.json").read_text())
@@ -43,6 +44,7 @@ def test_eval_writes_metrics_csv_and_recording(tmp_path):
     assert (tmp_path / "recording.rrd").stat().st_size > 10_000
 
 
+@pytest.mark.slow
 def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
     cfg = cfg_with("record=false", "dataset=synthetic_ff")
     first = evaluate(cfg, tmp_path)

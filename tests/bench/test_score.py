@@ -69,6 +69,7 @@ def test_score_scores_a_peers_folder_and_names_what_is_missing(tmp_path):
         score([str(pred_dir), str(gt_dir)])
 
 
+@pytest.mark.slow
 def test_a_table_refuses_to_mix_protocols(tmp_path):
     sweep = tmp_path / "sweep"
     cache = f"cache_dir={tmp_path / 'cache'}"

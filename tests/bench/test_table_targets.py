@@ -37,6 +37,7 @@ def planned_jobs(*make_args: str) -> list[tuple[list[str], str]]:
     return jobs
 
 
+@pytest.mark.slow
 def test_the_real_capture_tables_run_both_mask_sources_on_one_protocol():
     jobs = planned_jobs("tables", "DATASET=mold_cape")
     # timing 1, masks 2 x 8, ablation 2 x 14, robustness 2 x 9
@@ -53,6 +54,7 @@ def test_the_real_capture_tables_run_both_mask_sources_on_one_protocol():
     assert sources == {("oracle", 4), ("oracle", 1), ("classical", 1)}
 
 
+@pytest.mark.slow
 def test_the_default_tables_stay_on_the_synthetic_scenes():
     jobs = planned_jobs("tables")
     assert len(jobs) == 1 + 8 + 14 + 9

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import pandas as pd
+import pytest
 
 from bench.eval import evaluate
 from bench.tables import build
 from tests.fixtures import cfg_with
 
 
+@pytest.mark.slow
 def test_mask_count_table_and_plots(tmp_path):
     sweep = tmp_path / "sweep"
     for i, n in enumerate((1, "null")):
@@ -33,6 +35,7 @@ def test_mask_count_table_and_plots(tmp_path):
     assert len(pd.read_csv(tmp_path / "reports" / "masks_syn.csv")) == 2
 
 
+@pytest.mark.slow
 def test_corrupt_degrades_any_segmenter_as_the_oracle_does(tmp_path):
     """`corrupt.*` on the clean oracle gives the masks the oracle's own corruption gives, and
     the robustness table reads the corruption from either place."""
@@ -64,6 +67,7 @@ def test_timing_rows_name_the_modes_of_old_and_new_runs():
     assert old["initial_ms alone"] is None and old["coarse_ms alone"] is None
 
 
+@pytest.mark.slow
 def test_same_seed_same_accuracy(tmp_path):
     a = evaluate(
         cfg_with("record=false", "segmenter=oracle_noisy", "dataset=synthetic_ff"), tmp_path / "a"

@@ -101,6 +101,7 @@ def _visual_hull_iou(cams, masks, size=228, n=56) -> float:
     return float(np.mean(ious))
 
 
+@pytest.mark.slow
 def test_poses_agree_with_masks(cape):
     root, ds, cams, masks = cape
     small = [
@@ -118,6 +119,7 @@ def test_poses_agree_with_masks(cape):
     assert shifted < 0.5 * right and mirrored < 0.2, (right, shifted, mirrored)
 
 
+@pytest.mark.slow
 def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
     import sagonline.datasets.common as common
 

@@ -52,6 +52,7 @@ def test_ssim_and_split():
     assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
 def test_loss_falls_and_densify_changes_the_count(views, kind):
     cams, imgs = views
@@ -65,6 +66,7 @@ def test_loss_falls_and_densify_changes_the_count(views, kind):
     assert g.kind == kind and torch.isfinite(g.means).all()
 
 
+@pytest.mark.slow
 def test_same_seed_same_scene_and_budget_stops_are_recorded(views):
     cams, imgs = views
     fits = [SceneFitter(tiny(iterations=40), cams, imgs) for _ in range(2)]
@@ -285,6 +287,7 @@ def test_bad_inputs(views):
         SceneFitter(tiny(), cams, [imgs[0][:10]] + imgs[1:])
 
 
+@pytest.mark.slow
 def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
 
     from bench.scenes import fit_scene
@@ -338,20 +341,30 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     )
 
 
+@pytest.mark.slow
 def test_scenes_cli_errors(tmp_path):
     import subprocess
     import sys
 
+    run = tmp_path / "run"
     res = subprocess.run(
-        [sys.executable, "-m", "bench.scenes", "dataset=synthetic"],
+        [sys.executable, "-m", "bench.scenes", "dataset=synthetic", f"hydra.run.dir={run}"],
         capture_output=True,
         text=True,
     )
     assert res.returncode == 2 and "generated, not fitted" in res.stderr
+    assert not run.exists()  # a refused command leaves no folder behind
     empty = tmp_path / "cap"
     (empty / "masks").mkdir(parents=True)
     res = subprocess.run(
-        [sys.executable, "-m", "bench.scenes", "dataset=generic", f"dataset.root={tmp_path}"],
+        [
+            sys.executable,
+            "-m",
+            "bench.scenes",
+            "dataset=generic",
+            f"dataset.root={tmp_path}",
+            f"hydra.run.dir={run}",
+        ],  # fmt: skip
         capture_output=True,
         text=True,
     )
@@ -421,6 +434,7 @@ print(len(g), h.hexdigest())
 """
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("kind,size", [("2dgs", "small"), ("3dgs", "small"), ("2dgs", "large")])
 def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
     """The compiled backward sums its gradients in an order that does not depend on the thread

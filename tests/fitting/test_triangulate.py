@@ -13,6 +13,7 @@ from sagonline.render.api import to_uint8
 from sagonline.scene.generator import make_scene
 
 
+@pytest.mark.slow
 def test_points_land_on_the_synthetic_surfaces(tmp_path):
     s = make_scene(layout="forward", num_gaussians=30000, width=320, height=240, num_train_views=8)
     paths = {}

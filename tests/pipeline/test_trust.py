@@ -130,6 +130,7 @@ def test_cached_stages_report_no_timing_of_their_own(tiny_task, tmp_path):
     assert second.miou == first.miou
 
 
+@pytest.mark.slow
 def test_replaced_scene_file_and_render_size_are_not_served_from_the_cache(tmp_path):
     """The reproduction: a new point_cloud.ply, or another render_max_side, used to bring
     back the old numbers from the shared cache."""
@@ -203,19 +204,19 @@ def test_killed_sweep_resumes_and_finished_jobs_stay_byte_identical(tmp_path):
         assert proc.poll() is None, proc.stdout.read()
         time.sleep(0.02)
     proc.send_signal(signal.SIGKILL)
-    proc.wait()
+    proc.wait(300)
     assert not (sweep / "2" / "metrics.json").exists()
     before = {j: _snapshot(sweep / j) for j in ("0", "1")}
     sweep_file = (sweep / "multirun.yaml").read_bytes()
 
-    out, _ = _bench_eval(*args).communicate()
+    out, _ = _bench_eval(*args).communicate(timeout=300)
     assert out.count("already holds this run") == 2, out
     assert (sweep / "2" / "metrics.json").is_file()
     assert {j: _snapshot(sweep / j) for j in ("0", "1")} == before
     assert (sweep / "multirun.yaml").read_bytes() == sweep_file
     # a sweep with other values into the same folder is refused and changes nothing
     other = _bench_eval(*[a.replace("0.01,0.1,0.5", "0.2,0.3") for a in args])
-    out, _ = other.communicate()
+    out, _ = other.communicate(timeout=300)
     assert other.returncode == 2 and "other overrides" in out
     assert {j: _snapshot(sweep / j) for j in ("0", "1")} == before
     assert (sweep / "multirun.yaml").read_bytes() == sweep_file
@@ -232,7 +233,7 @@ def test_killed_sweep_resumes_and_finished_jobs_stay_byte_identical(tmp_path):
 def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
     run = tmp_path / "run"
     proc = _bench_eval("dataset=synthetic_ff", f"hydra.run.dir={run}")
-    assert proc.wait() == 0
+    assert proc.wait(300) == 0
     before = _snapshot(run)
     assert {".hydra/config.yaml", ".hydra/overrides.yaml", "metrics.json", "eval.log"} <= set(
         before
@@ -245,7 +246,7 @@ def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
     assert metrics["status"] == "complete" and metrics["git"]["commit"]
     assert "dataset=synthetic_ff" in metrics["overrides"]
     refused = _bench_eval("dataset=synthetic_ff", "consensus.eps=0.1", f"hydra.run.dir={run}")
-    out, _ = refused.communicate()
+    out, _ = refused.communicate(timeout=300)
     assert refused.returncode == 2
     assert "consensus.eps: 0.01 -> 0.1" in out and "Nothing was changed" in out
     assert _snapshot(run) == before
@@ -346,6 +347,7 @@ def _cli(*args):
     )
 
 
+@pytest.mark.slow
 def test_render_out_never_destroys_an_input(tmp_path, tiny_task):
     ply = write_ply(tmp_path / "scene.ply", tiny_task.gaussians)
     cams = write_3dgs_cameras_json(tmp_path / "cameras.json", tiny_task.trajectory[:1])
@@ -466,3 +468,40 @@ def test_refusal_is_a_run_exists(tmp_path):
     evaluate(cfg_with("record=false", "dataset=synthetic_ff"), tmp_path)
     with pytest.raises(RunExists):
         evaluate(cfg_with("record=false", "dataset=synthetic_ff", "seed=1"), tmp_path)
+
+
+def _digest_many(args) -> None:
+    from sagonline.core.provenance import digest_file
+
+    folder, start = args
+    for i in range(start, start + 20):
+        digest_file(Path(folder) / f"f{i}.bin")
+
+
+@pytest.mark.slow
+def test_the_digest_memo_keeps_every_process_entries(tmp_path, monkeypatch):
+    """Two processes digesting at once: the memo file holds the entries of both (it was
+    rewritten without a lock, one process's entries lost)."""
+    import json
+    import multiprocessing as mp
+
+    memo = tmp_path / "memo.json"
+    monkeypatch.setenv("SAGONLINE_DIGEST_CACHE", str(memo))
+    for i in range(40):
+        (tmp_path / f"f{i}.bin").write_bytes(os.urandom(64))
+    with mp.get_context("spawn").Pool(2) as pool:
+        pool.map(_digest_many, [(str(tmp_path), 0), (str(tmp_path), 20)])
+    assert len(json.loads(memo.read_text())) == 40
+
+
+def test_a_metrics_json_that_is_no_object_is_named(tmp_path, capsys):
+    """A finished-looking run folder whose metrics.json holds a list: one line naming the file,
+    exit 2 (it was a traceback)."""
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "metrics.json").write_text("[1, 2]")
+    with pytest.raises(SystemExit) as exc:
+        evaluate(cfg_with("dataset=synthetic_ff"), run)
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "metrics.json: holds a list, not a run's metrics" in err and err.count("\n") == 1

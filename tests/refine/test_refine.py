@@ -79,6 +79,7 @@ def _toy(n=6, h=40, w=48):
     return frames, coarse, teacher
 
 
+@pytest.mark.slow
 def test_distillation_lowers_the_loss_in_the_background(tmp_path):
     import threading
 
@@ -93,7 +94,7 @@ def test_distillation_lowers_the_loss_in_the_background(tmp_path):
 
     tr._batch = batch_on_its_thread
     tr.start()
-    tr.wait()
+    assert tr.wait(300)
     assert threads and threading.get_ident() not in threads  # trained on a thread of its own
     assert tr.status == "steps" and tr.step == 30
     assert np.mean(tr.losses[-5:]) < 0.7 * np.mean(tr.losses[:5])
@@ -102,6 +103,7 @@ def test_distillation_lowers_the_loss_in_the_background(tmp_path):
     assert agree(pred, teacher[0]) > agree(coarse[0], teacher[0])
 
 
+@pytest.mark.slow
 def test_checkpoint_resume_and_finished_run(tmp_path):
     frames, coarse, teacher = _toy(3)
     cfg = RefineConfig(max_steps=4, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
@@ -135,6 +137,7 @@ def test_teacher_label_out_of_range():
         RefinementTrainer(RefineConfig(), 2, frames, coarse, teacher)
 
 
+@pytest.mark.slow
 def test_eval_with_refinement_reports_both_modes(tmp_path):
     import pandas as pd
 
@@ -166,6 +169,7 @@ def test_eval_with_refinement_reports_both_modes(tmp_path):
     assert list((tmp_path / "cache" / "forward_single").glob("refine-*.store"))
 
 
+@pytest.mark.slow
 def test_a_step_budget_gives_the_same_weights_twice(tmp_path):
     """Bounded by steps (the default), the same seed gives the same student: training depends
     on the seed and the thread count, never on how long a step took (so a loaded machine, which
@@ -185,6 +189,7 @@ def test_a_step_budget_gives_the_same_weights_twice(tmp_path):
     assert all(torch.equal(one[k], two[k]) for k in one)
 
 
+@pytest.mark.slow
 def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):
     from bench.eval import evaluate
     from tests.fixtures import cfg_with

@@ -68,8 +68,9 @@ def test_a_second_process_waits_for_a_live_build_and_says_so(tmp_path):
         target=lambda: result.append(build_once(tmp_path / "k", "ext", lambda: "module", say))
     )
     worker.start()
-    waiting.wait()  # the worker is blocked on the live builder's lock and said so
+    assert waiting.wait(60)  # the worker is blocked on the live builder's lock and said so
     assert result == []
-    holder.communicate("done\n")  # the live build ends
-    worker.join()
+    holder.communicate("done\n", timeout=60)  # the live build ends
+    worker.join(60)
+    assert not worker.is_alive()
     assert result == ["module"] and said[0].startswith("waiting for another process")

@@ -242,6 +242,7 @@ def test_triton_kernel_on_the_gpu_tests_inputs_in_the_interpreter(case):
     _check_kernel_case(case, "cpu", views=1)
 
 
+@pytest.mark.slow
 def test_the_blend_bound_takes_another_rounding_and_refuses_a_wrong_walk(monkeypatch):
     """The bound accepts the weights of another correct float32 evaluation (alpha from a
     float64 evaluation, rounded: what fused multiply-adds and another exp do on a GPU; it moves

@@ -116,7 +116,7 @@ def test_the_same_prompt_gives_the_same_masks_in_any_thread(donut):
         target=lambda: runs.append(segment_scene(g, ring, prompt, backend="native"))
     )
     worker.start()
-    worker.join()
+    worker.join(120)
     for other in runs[1:]:
         assert all(np.array_equal(a, b) for a, b in zip(runs[0].masks, other.masks, strict=True))
         np.testing.assert_array_equal(runs[0].labels, other.labels)

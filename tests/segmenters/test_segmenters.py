@@ -118,6 +118,7 @@ def test_match_labels_for_automatic_ids():
         ("sam3", "segmenter.checkpoint"),
     ],
 )
+@pytest.mark.slow
 def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
     cfg = compose_config("eval", *[f"segmenter={name}"])
     with pytest.raises(SystemExit):
@@ -129,6 +130,7 @@ def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
     assert f"{option}=/nope.pt: no such file" in capsys.readouterr().err
 
 
+@pytest.mark.slow
 def test_sam2_random_weights_tiny_video():
     pytest.importorskip("sam2", reason="install the sam2 extra")
     from sagonline.segment.sam2_video import SAM2VideoSegmenter

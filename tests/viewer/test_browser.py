@@ -51,6 +51,7 @@ def viewer(tmp_path):
     app.server.stop()
 
 
+@pytest.mark.slow
 def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
     from plyfile import PlyData
 

@@ -135,3 +135,58 @@ def test_bad_clicks_are_refused_and_change_nothing(donut):
     assert len(session.clicks) == 1
     with pytest.raises(PromptError, match="nothing to export"):
         session.export("never-written")
+
+
+def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_path):
+    """labels.json records the segmenter's options (they were written as []) and `segment
+    --prompts` builds the same segmenter from them: the same labels."""
+    import json
+
+    from sagonline.apps.cli import main
+    from sagonline.scene.io import write_ply
+
+    g, parts, ring = donut
+    seg = FlowWatershedSegmenter(band_px=2)
+    session = SegmentSession(g, ring, segmenter=seg, segmenter_options=["band_px=2"],
+                             backend="native")  # fmt: skip
+    session.add_click(0, *icing_pixel(session, parts))
+    session.wait(60)
+    write_ply(tmp_path / "donut.ply", g)
+    out = session.export(tmp_path / "seg", scene=tmp_path / "donut.ply", info={"orbit": 8})
+    record = json.loads((out / "labels.json").read_text())
+    assert record["segmenter"] == {"kind": "classical", "options": ["band_px=2"]}
+    again = tmp_path / "again"
+    assert main(["segment", str(tmp_path / "donut.ply"), "--orbit", "8", "--width", "96",
+                 "--height", "72", "--backend", "native", "--prompts", str(out / "labels.json"),
+                 "--out", str(again), "--no-record"]) == 0  # fmt: skip
+    assert np.array_equal(np.load(again / "labels.npy"), session.labels)
+
+
+def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
+    """The viewer's vote panel: delta off is no distance rule (None), delta 0 is refused by the
+    vote's own check and said in the status line (it was taken); min votes 0 likewise."""
+    import socket
+
+    from sagonline.apps.viewer.app import ViewerApp
+
+    g, _, ring = donut
+    session = SegmentSession(g, ring, backend="native")
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    app = ViewerApp(session, port=port)
+    try:
+        app.vote_inputs["distance"].value = False
+        app.change_vote()
+        assert session.vote.delta is None
+        app.vote_inputs["distance"].value = True
+        app.vote_inputs["delta"].value = 0.0
+        app.guarded(app.change_vote)
+        assert "refused" in app.status.content and "delta" in app.status.content
+        assert session.vote.delta == 2.0  # the last accepted setting stays
+        app.vote_inputs["delta"].value = 2.0
+        app.vote_inputs["min_votes"].value = 0
+        app.guarded(app.change_vote)
+        assert "min_votes" in app.status.content
+    finally:
+        app.server.stop()

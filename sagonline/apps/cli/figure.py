@@ -67,13 +67,12 @@ def header(widths: list[int], titles: list[str]) -> np.ndarray:
 
 
 def cmd_figure(args) -> int:
-    from PIL import Image
-
     from sagonline.core.files import atomic_write_image
     from sagonline.core.outputs import OutputError, check_not_input
     from sagonline.record.recording import label_colors
     from sagonline.render.api import render, to_uint8
     from sagonline.scene.io import read_scene
+    from sagonline.scene.io.masks import read_mask
 
     folder, out = Path(args.folder), Path(args.out)
     if not (folder / "labels.json").is_file():
@@ -107,7 +106,7 @@ def cmd_figure(args) -> int:
         label_png = next((folder / "views").glob(f"{v:04d}_*_labels.png"), None)
         if label_png is None:
             raise ValueError(f"{folder}/views: no label render of view {v}")
-        labels = np.asarray(Image.open(label_png))
+        labels = read_mask(label_png, "ids", max_labels=len(info["names"])).labels
         tiles = [
             to_uint8(render(scene, cam, backend=args.backend).rgb),
             colors[labels].astype(np.uint8),

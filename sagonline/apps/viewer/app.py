@@ -178,14 +178,19 @@ class ViewerApp:
             )
             self.method.on_update(lambda _: self.guarded(self.change_vote))
             self.vote_inputs: dict[str, Any] = {
-                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=1.0, step=0.001),
-                "delta": gui.add_number("delta (px)", s.vote.delta, min=0.0, step=0.5),
+                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=0.999,
+                                      step=0.001),  # fmt: skip
+                "distance": gui.add_checkbox("distance rule (delta)", s.vote.delta is not None),
+                "delta": gui.add_number("delta (px)", s.vote.delta or defaults.delta, min=0.1,
+                                        step=0.5),  # fmt: skip
                 "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
-                "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=1.0, step=0.05),
+                "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=0.99, step=0.05),
             }
             for handle in self.vote_inputs.values():
                 handle.on_update(lambda _: self.guarded(self.change_vote))
-            gui.add_markdown(f"defaults: eps {defaults.eps}, delta {defaults.delta} px")
+            gui.add_markdown(
+                f"defaults: eps {defaults.eps}, delta {defaults.delta} px (off: no distance rule)"
+            )
         with gui.add_folder("Export"):
             self.out_text = gui.add_text("folder", initial_value=out)
             self.overwrite = gui.add_checkbox("replace an earlier export", initial_value=False)
@@ -267,9 +272,13 @@ class ViewerApp:
         self.restart()
 
     def change_vote(self) -> None:
+        """The panel's vote settings as a VoteConfig (a value out of range is refused by it and
+        shown); delta off is no distance rule (None)."""
         values = {k: h.value for k, h in self.vote_inputs.items()}
         values["method"] = str(self.method.value)
         values["min_votes"] = int(values["min_votes"])
+        if not values.pop("distance"):
+            values["delta"] = None
         self.session.configure(vote=replace(self.session.vote, **values))
         self.restart()
 

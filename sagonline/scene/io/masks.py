@@ -70,6 +70,18 @@ def read_mask(
     return decide(plane, path, seen, mode, max_labels, threshold)
 
 
+def read_mask_colours(path: str | Path) -> np.ndarray:  # [H, W, 3] uint8 RGB
+    """A mask drawn in colours (a dataset's palette of label colours) as (H, W, 3) RGB, read
+    by the same loader as `read_mask` (the same checks): MaskFileError names the file."""
+    path = Path(path)
+    image, seen = _load(path)
+    if image.ndim == 2:
+        image = image[..., None].repeat(3, axis=2)
+    if image.dtype != np.uint8 or image.shape[2] not in (3, 4):
+        raise MaskFileError(f"{path}: {seen}; a colour mask is 8-bit RGB (or RGBA)")
+    return np.ascontiguousarray(image[..., 2::-1] if image.shape[2] >= 3 else image)
+
+
 def decide(
     plane: np.ndarray,
     path: Path | str,
@@ -167,4 +179,4 @@ def _binary(plane: np.ndarray, values: np.ndarray, edge_px: int = 8) -> bool:
     return bool(edge[between].mean() >= 0.99)
 
 
-__all__ = ["MAX_LABELS", "MaskFile", "MaskFileError", "decide", "read_mask"]
+__all__ = ["MAX_LABELS", "MaskFile", "MaskFileError", "decide", "read_mask", "read_mask_colours"]
