@@ -77,5 +77,3 @@ class StageOneOutput:
     @property
     def keys(self) -> dict[str, str]:
         return {"frames": self.frames.key, "masks": self.masks.key, "vote": self.vote.key}
-
-

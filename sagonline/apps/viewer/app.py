@@ -178,11 +178,13 @@ class ViewerApp:
             )
             self.method.on_update(lambda _: self.guarded(self.change_vote))
             self.vote_inputs: dict[str, Any] = {
-                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=0.999,
-                                      step=0.001),  # fmt: skip
+                "eps": gui.add_number(
+                    "eps (T > eps)", s.vote.eps, min=0.0, max=0.999, step=0.001
+                ),  # fmt: skip
                 "distance": gui.add_checkbox("distance rule (delta)", s.vote.delta is not None),
-                "delta": gui.add_number("delta (px)", s.vote.delta or defaults.delta, min=0.1,
-                                        step=0.5),  # fmt: skip
+                "delta": gui.add_number(
+                    "delta (px)", s.vote.delta or defaults.delta, min=0.1, step=0.5
+                ),  # fmt: skip
                 "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
                 "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=0.99, step=0.05),
             }
