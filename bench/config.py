@@ -19,6 +19,7 @@ import dataclasses
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
@@ -129,6 +130,61 @@ class ScenesConfig:
 ROOT_SETTINGS = {"seed": "${seed}", "device": "${device}"}
 
 
+def check_override_keys(schema: type, argv: list[str], command: str) -> None:
+    """A command line's `key=value` overrides whose first part is no setting of `schema` stop
+    here, in one line naming the key (Hydra's own refusal is several lines and exit 1)."""
+    known = {f.name for f in dataclasses.fields(schema)} | {"hydra"}
+    for arg in argv:
+        if arg.startswith(("-", "+", "~")) or "=" not in arg:
+            continue
+        key, value = arg.split("=", 1)
+        top = key.split(".", 1)[0].split("@", 1)[0]
+        if "." not in key and top in GROUPS and "," not in value:
+            options = group_options(top)
+            if value not in options | {"schema"}:
+                print(f"error: {command}: {arg}: no such {top} option; the options: "
+                      f"{', '.join(sorted(options))}", file=sys.stderr)  # fmt: skip
+                raise SystemExit(2)
+        if top not in known:
+            other = (
+                "ScenesConfig's (python -m bench.scenes)"
+                if schema is EvalConfig
+                else ("EvalConfig's (python -m bench.eval)")
+            )
+            hint = f"; it is {other}" if top in _fields_of_other(schema) else ""
+            print(f"error: {command}: no setting {top!r} (in {arg!r}){hint}", file=sys.stderr)
+            raise SystemExit(2)
+
+
+# Config groups whose options are the registries' keys and the YAML files of conf/<group>/.
+GROUPS = ("segmenter", "dataset", "consensus", "renderer", "refine", "feedback", "fit")
+
+
+def group_options(group: str) -> set[str]:
+    from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
+
+    registry = {"segmenter": SEGMENTERS, "dataset": DATASETS, "consensus": VOTE_RULES}.get(group)
+    files = {p.stem for p in (Path(__file__).parents[1] / "conf" / group).glob("*.yaml")}
+    return files | set(registry.keys() if registry is not None else [])
+
+
+def _fields_of_other(schema: type) -> set[str]:
+    other = ScenesConfig if schema is EvalConfig else EvalConfig
+    return {f.name for f in dataclasses.fields(other)}
+
+
+def register_schemas_or_exit() -> None:
+    """`register_schemas`, a plug-in that fails to load said in one line naming it (exit 2)
+    instead of a traceback from inside Hydra."""
+    from sagonline.core.plugins import PluginError, one_line
+
+    try:
+        register_schemas()
+    except PluginError as exc:
+        print(f"error: {one_line(exc)}", file=sys.stderr)
+        raise SystemExit(2) from None
+
+
 def register_schemas() -> None:
     """The root schemas, the settings groups' schemas and one option per registered plug-in,
     in Hydra's ConfigStore (the entry points call this before composing; nothing registers on
@@ -224,12 +280,30 @@ def to_config(cfg: DictConfig, schema: type):
             if hasattr(out, group):
                 setattr(out, group, node_values(getattr(out, group)))
         check_plugin_nodes(out)
+        check_dataset_name(out)
         return out
     except (ValueError, TypeError, KeyError) as exc:
         from sagonline.core.plugins import one_line
 
         print(f"error: {one_line(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def check_dataset_name(cfg) -> None:
+    """dataset.name names the run's folder (runs/<name>/...) and its protocol id: a plain name,
+    never a path (`../../x` wrote the run outside runs/)."""
+    import re
+
+    name = (getattr(cfg, "dataset", None) or {}).get("name")
+    if name is None:
+        return
+    if not isinstance(name, str) or not re.fullmatch(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}", name):
+        raise ValueError(
+            f"dataset.name={name!r}: a name of letters, digits, '_', '-' and '.' (it names the "
+            "run's folder and its protocol id), not a path"
+        )
+    if ".." in name:
+        raise ValueError(f"dataset.name={name!r}: '..' is not allowed in a name")
 
 
 def refuse_unknown_keys(cfg: DictConfig, prefix: str = "") -> None:

@@ -17,7 +17,7 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from bench.config import EvalConfig, register_schemas, to_config
+from bench.config import EvalConfig, check_override_keys, register_schemas_or_exit, to_config
 from bench.job import (
     build_dataset,
     check_device,
@@ -274,5 +274,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    register_schemas()
+    check_override_keys(EvalConfig, sys.argv[1:], "bench.eval")
+    register_schemas_or_exit()
     main()

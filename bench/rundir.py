@@ -156,27 +156,45 @@ class SweepGuard(Callback):
             raise RunExists(2)
 
 
-# What a run writes into its folder; an overwritten run keeps none of it (its own stage cache,
-# keyed by content, and the lock stay).
-KEPT_ON_OVERWRITE = (".lock", "cache")
+# What a run writes into its folder: overwrite=true replaces these and nothing else (its own
+# stage cache, keyed by content, and the lock stay; a file of the user's is never touched).
+RUN_OUTPUTS = (
+    "metrics.json", "per_view.csv", "eval.log", ".hydra", "recording.rrd", "predictions",
+    "predictions_refined", "ground_truth",
+)  # fmt: skip
 
 
 @contextmanager
 def replacing(out_dir: Path):
-    """overwrite=true over a finished run: the old run's files are moved aside (a hidden
-    sibling folder) before the new run writes, so the folder ends up holding nothing of the
-    old config; they are deleted once the new run has finished, and put back if it fails."""
+    """overwrite=true over a finished run: the old run's outputs (RUN_OUTPUTS, and folders the
+    harness wrote into it, such as an export: their manifest says so) are moved aside (a hidden
+    sibling folder) before the new run writes, so the folder holds nothing of the old config;
+    they are deleted once the new run has finished, and put back if it fails. Anything else in
+    the folder (a file of the user's) stays where it is, and is named."""
     aside = out_dir.parent / f".{out_dir.name}.replaced-{os.getpid()}"
     shutil.rmtree(aside, ignore_errors=True)
     aside.mkdir()
-    moved = [p for p in out_dir.iterdir() if p.name not in KEPT_ON_OVERWRITE]
+    from sagonline.core.outputs import is_ours
+
+    def written_by_us(p: Path) -> bool:  # the run's outputs, and folders of ours (manifests)
+        if p.name in RUN_OUTPUTS or (p.is_dir() and is_ours(p)):
+            return True
+        entries = list(p.iterdir()) if p.is_dir() else []
+        return bool(entries) and all(e.is_dir() and is_ours(e) for e in entries)
+
+    moved = [p for p in out_dir.iterdir() if written_by_us(p)]
+    kept = sorted(p.name for p in out_dir.iterdir()
+                  if not written_by_us(p) and p.name not in (".lock", "cache"))  # fmt: skip
+    if kept:
+        print(f"note: {out_dir}: kept what the harness did not write: {', '.join(kept)}",
+              file=sys.stderr)  # fmt: skip
     for p in moved:
         p.rename(aside / p.name)
     try:
         yield
     except BaseException:
         for p in out_dir.iterdir():
-            if p.name not in KEPT_ON_OVERWRITE:
+            if written_by_us(p):
                 shutil.rmtree(p) if p.is_dir() else p.unlink()
         for p in aside.iterdir():
             p.rename(out_dir / p.name)

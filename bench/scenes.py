@@ -31,7 +31,7 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from bench.config import ScenesConfig, register_schemas, to_config
+from bench.config import ScenesConfig, check_override_keys, register_schemas_or_exit, to_config
 from bench.job import build_dataset, quiet
 from sagonline.core.files import atomic_write_image, atomic_write_json
 from sagonline.core.machine import cpu_capability
@@ -306,5 +306,6 @@ def fit_all(dict_cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    register_schemas()
+    check_override_keys(ScenesConfig, sys.argv[1:], "bench.scenes")
+    register_schemas_or_exit()
     main()

@@ -35,7 +35,16 @@ import pandas as pd  # noqa: E402
 from sagonline.core.errors import DatasetError  # noqa: E402
 from sagonline.core.files import read_json_object  # noqa: E402
 from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
-from sagonline.score.predictions import SCORING_FILE, folder_sha256, read_label_map  # noqa: E402
+from sagonline.score.predictions import (  # noqa: E402
+    SCORING_FILE,
+    folder_sha256,
+    label_maps,
+    read_label_map,
+)
+
+# A prediction may hold at most this many times its ground truth's pixels (a 4x larger side,
+# for `gt_to_pred`); a larger file is refused from its header, before it is decoded.
+PREDICTION_PIXELS_OVER_TRUTH = 16
 
 
 @dataclass(frozen=True)
@@ -79,7 +88,7 @@ def score_folders(
 ) -> pd.DataFrame:
     """One row per ground-truth view: scene, view, iou, acc (None for a skipped view), and why
     it was skipped."""
-    truths = sorted(gt_dir.glob("*/*.png"))
+    truths = label_maps(gt_dir)
     if not truths:
         raise DatasetError(f"{gt_dir}: no <scene>/<view>.png label maps")
     missing = [
@@ -92,7 +101,9 @@ def score_folders(
     for truth in truths:
         rel = truth.relative_to(gt_dir)
         try:
-            m = view_metrics(read_label_map(pred_dir / rel), read_label_map(truth), resize, ignore)
+            gt = read_label_map(truth)
+            pred = read_label_map(pred_dir / rel, PREDICTION_PIXELS_OVER_TRUTH * gt.size)
+            m = view_metrics(pred, gt, resize, ignore)
         except ScoringError as exc:
             raise DatasetError(f"{pred_dir / rel}: {exc}") from None
         rows.append(
@@ -121,8 +132,10 @@ def parse(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
     ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")
     ap.add_argument("--resize", choices=sorted(RESIZE_RULES), help="default: scoring.json's")
-    ap.add_argument("--ignore", type=int, help="a ground-truth label to skip")
+    ap.add_argument("--ignore", type=int, help="a ground-truth label id to skip, in [0, 65535]")
     args = ap.parse_args(argv)
+    if args.ignore is not None and not 0 <= args.ignore <= 65535:
+        ap.error(f"--ignore {args.ignore}: a label id in [0, 65535]")
     if len(args.folders) == 1:
         args.pred_dir = args.folders[0] / args.predictions
         args.gt_dir = args.folders[0] / "ground_truth"
@@ -139,6 +152,11 @@ def main(argv: list[str] | None = None) -> dict:
         for folder in (args.pred_dir, args.gt_dir):
             if not folder.is_dir():
                 raise DatasetError(f"{folder}: no such folder")
+        if args.pred_dir.resolve() == args.gt_dir.resolve():
+            raise DatasetError(
+                f"{args.pred_dir}: the predictions folder is the ground truth folder: a score "
+                "of 100 would mean nothing"
+            )
         rules = read_rules(args.gt_dir)
         resize = args.resize or rules.resize
         ignore = args.ignore if args.ignore is not None else rules.ignore_label
@@ -149,6 +167,12 @@ def main(argv: list[str] | None = None) -> dict:
         raise SystemExit(2) from None
     scored = views[views["iou"].notna()]
     skipped = views[views["iou"].isna()]
+    truths = {p.relative_to(args.gt_dir) for p in label_maps(args.gt_dir)}
+    unscored = sorted(
+        str(p.relative_to(args.pred_dir))
+        for p in label_maps(args.pred_dir)
+        if p.relative_to(args.pred_dir) not in truths
+    )
     if scored.empty:
         print(f"error: {args.gt_dir}: every view's ground truth is ignored", file=sys.stderr)
         raise SystemExit(2)
@@ -163,6 +187,7 @@ def main(argv: list[str] | None = None) -> dict:
         "macc": float(np.mean(scenes["acc"])),
         "views": len(scored),
         "skipped_views": [f"{r.scene}/{r.view}" for r in skipped.itertuples()],
+        "unscored_predictions": unscored,
         "sha256": digests,
         "matches_run": None,
     }
@@ -176,6 +201,10 @@ def main(argv: list[str] | None = None) -> dict:
     if len(skipped):
         print(f"skipped {len(skipped)} view(s) whose ground truth is all ignored pixels: "
               + ", ".join(result["skipped_views"][:5]))  # fmt: skip
+    if unscored:
+        more = " ..." if len(unscored) > 5 else ""
+        print(f"warning: {len(unscored)} prediction(s) have no ground truth and were not "
+              f"scored: {', '.join(unscored[:5])}{more}")  # fmt: skip
     print(f"sha256 predictions {digests['predictions']}")
     print(f"sha256 ground truth {digests['ground_truth']}")
     run = recorded_digests(args.pred_dir, args.gt_dir)

@@ -508,7 +508,7 @@ def test_a_refused_run_leaves_no_folder(tmp_path):
         (["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--orbit", "100000"],
          "takes 2 to 720"),
         (["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--delta", "inf"],
-         "consensus.delta=inf: must be a finite number"),
+         "--delta inf: must be a finite number"),  # the flag the user typed
         (["segment", "{ply}", "--cameras", "{cams}", "--segmenter", "oracle", "--click", "0:5,5"],
          "reads the views' ground truth"),
         (["export", "{tmp}"], "not a finished eval run"),
@@ -653,3 +653,18 @@ def test_an_eval_with_an_unusable_cache_dir_finishes(tmp_path, kind):
                                 f"cache_dir={cache}"), tmp_path / "run")  # fmt: skip
     assert metrics["status"] == "complete" and metrics["miou"] > 0.9
     assert "is unusable" in (tmp_path / "run" / "eval.log").read_text()  # warned, in the log
+
+
+def test_overwrite_replaces_only_what_the_harness_wrote(tmp_path, capsys):
+    """A file of the user's in a finished run folder survives overwrite=true, and is named
+    (it was moved aside and deleted with the old run)."""
+    from bench.eval import evaluate
+
+    run = tmp_path / "run"
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
+    (run / "notes.txt").write_text("why this run matters")
+    (run / "mine").mkdir()
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1",
+                      "overwrite=true"), run)  # fmt: skip
+    assert (run / "notes.txt").read_text() == "why this run matters" and (run / "mine").is_dir()
+    assert "kept what the harness did not write: mine, notes.txt" in capsys.readouterr().err

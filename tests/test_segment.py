@@ -175,7 +175,7 @@ def test_a_mask_prompt_labels_several_objects(tmp_path):
         (["--click", "0:5,5", "--click", "1:6,6"], "several views"),
         (["--mask", "0:MASK"], "mask is 10x10 but view 0"),
         ([], "no prompt"),
-        (["--click", "0:5,5", "--eps", "2"], "consensus.eps=2.0"),
+        (["--click", "0:5,5", "--eps", "2"], "--eps 2.0: must be"),
     ],
 )
 def test_bad_prompts_stop_before_any_work(tmp_path, args, message, capsys):
@@ -288,7 +288,7 @@ def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text('{"names": []}')
     assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(bad)]) == 2
-    assert "bad.json: not a labels.json with a prompt" in capsys.readouterr().err
+    assert "bad.json: prompt must be dict" in capsys.readouterr().err
 
 
 def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):

@@ -91,7 +91,10 @@ class Registry(Generic[C]):
         def add(factory: Callable[[Any], Any], doc: str) -> None:
             old = self._plugins.get(key)
             if old is not None and (old.config, old.build) != (config, factory):
-                raise PluginError(f"{self.what} {key!r} is registered twice")
+                by = old.module if old.module == module else f"{old.module} and {module}"
+                raise PluginError(
+                    f"{self.what} {key!r} is registered twice (by {by}): rename one of them"
+                )
             self._plugins[key] = Plugin(key, config, factory, summary or doc, module)
 
         module = getattr(build, "__module__", "") or ""
@@ -114,20 +117,42 @@ class Registry(Generic[C]):
             return
         self._loaded = True
         for module in self.builtins:
-            importlib.import_module(module)
+            self._import(module, f"the built-in {self.what} module")
         from importlib.metadata import entry_points
 
         for ep in entry_points(group=self.group):
-            ep.load()
+            try:
+                ep.load()
+            except PluginError:
+                raise
+            except Exception as exc:  # a plug-in's own failure, named as such
+                raise PluginError(
+                    f"the {self.what} plug-in {ep.name!r} (entry point {ep.value}, group "
+                    f"{self.group}) fails to load: {type(exc).__name__}: {exc}"
+                ) from None
         for module in os.environ.get("SAGONLINE_PLUGINS", "").split(","):
             if module.strip():
-                try:
-                    importlib.import_module(module.strip())
-                except ImportError as exc:
-                    raise PluginError(
-                        f"SAGONLINE_PLUGINS names {module.strip()!r}, which cannot be "
-                        f"imported ({exc}); is its folder on PYTHONPATH?"
-                    ) from None
+                self._import(module.strip(), "SAGONLINE_PLUGINS names")
+
+    def _import(self, module: str, who: str) -> None:
+        """Import a module that registers plug-ins; any failure is a PluginError naming it."""
+        if not all(part.isidentifier() for part in module.split(".")):
+            raise PluginError(
+                f"{who} {module!r}: not a module name (a dotted name such as "
+                "my_plugins.segmenters, importable from PYTHONPATH)"
+            )
+        try:
+            importlib.import_module(module)
+        except PluginError:
+            raise
+        except ImportError as exc:
+            raise PluginError(
+                f"{who} {module!r}, which cannot be imported ({exc}); is its folder on PYTHONPATH?"
+            ) from None
+        except Exception as exc:  # the module itself raised while it was imported
+            raise PluginError(
+                f"{who} {module!r}, which fails while it is imported: {type(exc).__name__}: {exc}"
+            ) from None
 
     def __getitem__(self, key: str) -> Plugin:
         self._load()

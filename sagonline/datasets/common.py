@@ -14,7 +14,7 @@ from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io import SceneFileError, read_scene
 from sagonline.scene.io.cameras import load_cameras, load_llff
-from sagonline.scene.io.images import IMAGE_SUFFIXES, list_images
+from sagonline.scene.io.images import IMAGE_SUFFIXES, image_size, list_images
 from sagonline.scene.io.masks import MAX_LABELS, MaskFileError, read_mask
 from sagonline.scene.trajectory import pseudo_temporal_order
 from sagonline.segment.prompts import ObjectPrompt, Prompt
@@ -101,10 +101,7 @@ def scene_cameras(
     if image_dir is not None and (scene_dir / image_dir).is_dir():
         images = list_images(scene_dir / image_dir)
         if images:
-            with open(images[0], "rb"):
-                from PIL import Image
-
-                size = Image.open(images[0]).size
+            size = image_size(images[0])
     gs_cams = gaussians_dir(scene_dir, dataset) / "cameras.json"
     try:
         if gs_cams.is_file():
@@ -172,6 +169,22 @@ def check_mask_size(mask: np.ndarray, camera: Camera, path: Path) -> None:
         raise DatasetError(
             f"{path}: mask is {w}x{h} but its view '{camera.name}' is "
             f"{camera.width}x{camera.height} (different aspect ratio)"
+        )
+
+
+def check_one_mask_size(masks: dict[str, np.ndarray], paths: dict[str, Path]) -> None:
+    """A scene's ground-truth masks share one size (a capture's resolution): one of another
+    size would be scored at its own, its pixels weighing differently, without a word."""
+    from collections import Counter
+
+    sizes = Counter(m.shape for m in masks.values())
+    if len(sizes) > 1:
+        (h, w), _ = sizes.most_common(1)[0]
+        odd = next(n for n, m in masks.items() if m.shape != (h, w))
+        oh, ow = masks[odd].shape
+        raise DatasetError(
+            f"{paths[odd]}: {ow}x{oh}, but the scene's other masks are {w}x{h}: every ground "
+            "truth of a scene is scored at one resolution"
         )
 
 

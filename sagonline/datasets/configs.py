@@ -57,6 +57,10 @@ class PosedMasksConfig:
     """Leave the prompt view out of the scored views."""
     expected_counts: dict[str, int] | None = None
     """Label maps a scene must have (the protocol's counts); None: not checked."""
+    expected_photos: int | None = None
+    """Photographs each scene's image folder must hold (its views' photographed / mask-only
+    groups depend on them: a missing photograph would move a view between them); None: not
+    checked."""
     readme: str | None = None
     """Where the layout is explained; None: datasets/<name>/README.md."""
     keep_classes: list[int] = field(default_factory=lambda: list(KITTI360_VEHICLES))

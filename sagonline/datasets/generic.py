@@ -27,6 +27,7 @@ import numpy as np
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import (
     check_mask_size,
+    check_one_mask_size,
     click_prompt,
     find_trained_scene,
     fit_record,
@@ -72,6 +73,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.prompt_kind, self.clicks, self.reference = cfg.prompt, cfg.clicks, cfg.reference
         self.exclude_reference, self.seed = cfg.exclude_reference, cfg.seed
         self.expected_counts = cfg.expected_counts or {}
+        self.expected_photos = cfg.expected_photos
         self.readme = cfg.readme or f"datasets/{name}/README.md"
         self.render_max_side = cfg.render_max_side
         self.order, self.inbetween = cfg.order, int(cfg.inbetween)
@@ -79,6 +81,11 @@ class PosedMasksDataset(DatasetAdapter):
 
     # --- discovery ----------------------------------------------------------------------------
     def _missing_root(self) -> DatasetError:
+        if self.root.is_file():
+            return DatasetError(
+                f"{self.name}: dataset.root={self.root} is a file; it names the folder that "
+                f"holds the scenes (layout: {self.readme})"
+            )
         return DatasetError(
             f"{self.name}: no data at {self.root.resolve()}\n"
             f"  Put the dataset there (or pass dataset.root=/path/to/{self.name}).\n"
@@ -219,14 +226,29 @@ class PosedMasksDataset(DatasetAdapter):
 
     def photographed(self, scene: str, scene_dir: Path, cams: list[Camera]) -> list[str]:
         """Names of the views with a photograph in the scene's image folder (what a fit sees;
-        the other views have poses and masks only)."""
+        the other views have poses and masks only). A missing folder, or fewer photographs
+        than the protocol expects (`expected_photos`), is refused: the view groups would
+        change without a word."""
         folder = scene_dir / (self.image_dir_for(scene) or "images")
         if not folder.is_dir():
+            if self.expected_photos:
+                raise DatasetError(
+                    f"{self.name}/{scene}: image folder {folder} not found; the protocol "
+                    f"expects {self.expected_photos} photographs there (they define its "
+                    "photographed and mask-only view groups)"
+                )
             return []
         names = {c.name for c in cams}
-        return sorted(
+        found = sorted(
             p.stem for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES and p.stem in names
         )
+        if self.expected_photos is not None and len(found) != self.expected_photos:
+            raise DatasetError(
+                f"{folder}: {len(found)} photographs of the scene's views, the protocol expects "
+                f"{self.expected_photos} (a missing or extra one would move views between the "
+                "photographed and mask-only groups)"
+            )
+        return found
 
     def capture(self, scene: str) -> tuple[Path, list[Camera], dict[str, Path]]:
         """What `make scenes` fits from: the scene folder, every camera, and the images found
@@ -260,6 +282,7 @@ class PosedMasksDataset(DatasetAdapter):
             gt = self.read_label_map(path)
             check_mask_size(gt, by_name[name], path)
             gts[name] = gt
+        check_one_mask_size(gts, mask_paths)
         gts, names = self.labels.finish(gts, scene_dir / self.mask_dir)
         num_labels = len(names)
         gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite)

@@ -16,6 +16,7 @@ from sagonline.fitting.config import FitConfig
 from sagonline.fitting.start_points import split_views
 from sagonline.fitting.triangulate import triangulate_known_poses
 from sagonline.scene.io.cameras import read_colmap_points, read_poses_bounds
+from sagonline.scene.io.images import read_rgb
 
 
 def load_images(cams, images: dict[str, Path], max_side: int):
@@ -25,11 +26,10 @@ def load_images(cams, images: dict[str, Path], max_side: int):
     for cam in cams:
         if cam.name not in images:
             continue
-        with Image.open(images[cam.name]) as im:
-            im = im.convert("RGB")
-            scale = min(1.0, max_side / max(im.size))
-            w, h = max(1, round(im.size[0] * scale)), max(1, round(im.size[1] * scale))
-            arr = np.asarray(im.resize((w, h), Image.Resampling.LANCZOS), np.float32) / 255.0
+        im = Image.fromarray(read_rgb(images[cam.name]))  # whole files only, size checked
+        scale = min(1.0, max_side / max(im.size))
+        w, h = max(1, round(im.size[0] * scale)), max(1, round(im.size[1] * scale))
+        arr = np.asarray(im.resize((w, h), Image.Resampling.LANCZOS), np.float32) / 255.0
         out_cams.append(cam.scaled(w, h))
         out_imgs.append(torch.from_numpy(arr))
     return out_cams, out_imgs

@@ -15,9 +15,9 @@ import tempfile
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 
 from sagonline.scene.cameras import Camera
+from sagonline.scene.io.images import image_size
 
 log = logging.getLogger(__name__)
 
@@ -53,8 +53,7 @@ def triangulate_known_poses(
     folder = folders.pop()
     sizes = {}
     for c in views:
-        with Image.open(image_paths[c.name]) as im:
-            sizes[c.name] = im.size
+        sizes[c.name] = image_size(image_paths[c.name])
     # the cameras may be at another resolution than the files: scale the intrinsics per view
     pinhole = {}
     for c in views:

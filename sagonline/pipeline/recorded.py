@@ -80,6 +80,8 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
     """Rebuild a finished run's dataset, segmenter and settings from its metrics.json (see the
     module docstring). `device` replaces the recorded one (a CUDA run exported on a CPU)."""
     run = Path(run)
+    if run.exists() and not run.is_dir():
+        raise RunFileError(f"{run}: a file; export takes a finished evaluation's run folder")
     path = run / "metrics.json"
     metrics = read_metrics(run)
     config = metrics.get("config")

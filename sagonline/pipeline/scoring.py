@@ -60,12 +60,12 @@ def save_predictions(
     for view, pred in zip(task.eval_views, preds, strict=True):
         write_label_map(view_file(folder, task.name, view.name), pred)
     digests = report.extra.setdefault("sha256", {})
-    digests[f"predictions_{mode}"] = folder_sha256(folder / task.name)
+    digests[f"predictions_{mode}"] = folder_sha256(folder / task.name, "*.png")
     if mode == "coarse":
         truth = run / "ground_truth"
         for view in task.eval_views:
             write_label_map(view_file(truth, task.name, view.name), view.gt)
-        digests["ground_truth"] = folder_sha256(truth / task.name)
+        digests["ground_truth"] = folder_sha256(truth / task.name, "*.png")
         report.extra["ignore_label"] = task.ignore_label
 
 

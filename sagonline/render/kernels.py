@@ -32,6 +32,11 @@ def kernel_root() -> Path:
 
     chosen = os.environ.get("SAGONLINE_KERNEL_DIR")
     if chosen:
+        if Path(chosen).exists() and not Path(chosen).is_dir():
+            raise NativeBuildError(
+                f"SAGONLINE_KERNEL_DIR={chosen} is a file: it must name a folder for the "
+                "compiled kernels (or be unset)"
+            )
         return Path(chosen)
     root = Path(sys.prefix) / "share" / "sagonline" / "kernels"
     try:
@@ -79,14 +84,41 @@ def load_extension():
         raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
 
 
-def build_once(build_dir: Path, name: str, build, say=None):
+def library_digest(path: Path) -> str:
+    import hashlib
+
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def check_library(build_dir: Path, name: str, say) -> None:
+    """A compiled library is loaded only when its bytes are those recorded when its build
+    finished (`<name>.so.sha256`): a build killed while linking, a full disk or a damaged copy
+    leaves a library that would kill the process with SIGBUS when loaded. Such a folder is
+    emptied, said, and built again."""
+    library, record = build_dir / f"{name}.so", build_dir / f"{name}.so.sha256"
+    if not library.exists():
+        return
+    expected = record.read_text().strip() if record.is_file() else None
+    if expected is not None and library_digest(library) == expected:
+        return
+    why = "no digest was recorded" if expected is None else "its bytes changed"
+    say(f"the compiled CPU kernels in {build_dir} are not the build that finished ({why}): "
+        "building them again")  # fmt: skip
+    for entry in build_dir.iterdir():
+        if entry.is_file():
+            entry.unlink(missing_ok=True)
+
+
+def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0):
     """Run torch's loader `build()` for the extension `name` in `build_dir` under an exclusive
     lock of our own (`flock`, released by the system when its owner ends, kill -9 included):
     one process builds, the others wait for it and say so. Holding that lock, a `lock` file of
     torch's in the folder was left by a build that was killed: it is removed with a message
-    instead of being waited on forever. The first build says that it compiles, and how long
-    it took."""
+    instead of being waited on forever; a library whose digest is not the one recorded when its
+    build finished is built again (`check_library`). A build says that it compiles, that it
+    still does every `every` seconds, and how long it took."""
     import fcntl
+    import threading
 
     say = say or (lambda text: print(text, file=sys.stderr, flush=True))
     build_dir.mkdir(parents=True, exist_ok=True)
@@ -101,11 +133,27 @@ def build_once(build_dir: Path, name: str, build, say=None):
         if stale.exists():
             say(f"removed {stale}: a build of the CPU kernels was killed before it finished")
             stale.unlink(missing_ok=True)
-        fresh = not (build_dir / f"{name}.so").exists()
+        check_library(build_dir, name, say)
+        library = build_dir / f"{name}.so"
+        fresh = not library.exists()
+        done = threading.Event()
+        start = time.perf_counter()
         if fresh:
             say("compiling the CPU kernels, one time for this environment (about 1-3 min) ...")
-        start = time.perf_counter()
-        module = build()
+
+            def heartbeat() -> None:
+                while not done.wait(every):
+                    say(f"still compiling the CPU kernels ({time.perf_counter() - start:.0f} s)")
+
+            threading.Thread(target=heartbeat, daemon=True).start()
+        try:
+            module = build()
+        finally:
+            done.set()
+        if fresh and library.exists():
+            from sagonline.core.files import atomic_write_text
+
+            atomic_write_text(build_dir / f"{name}.so.sha256", library_digest(library) + "\n")
         if fresh:
             say(f"compiled the CPU kernels in {time.perf_counter() - start:.0f} s ({build_dir})")
         return module

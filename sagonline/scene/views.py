@@ -72,13 +72,20 @@ def load_views(
         cams, line = orbit_around(gaussians.means, count, width or 640, height or 480)
         return Views(cams, f"no --cameras given: {line}")
     cams = pseudo_temporal_order(load_cameras(cameras))
+    if not cams:
+        raise ViewError(f"{cameras}: holds no cameras (no images in the model?)")
     source = f"{len(cams)} cameras of {cameras}, sorted by name"
     if orbit:
         if gaussians is None:
             raise ViewError("--orbit needs the scene")
         centre = gaussians.means.detach().float().median(dim=0).values.cpu().numpy()
-        cams = ring_around(cams[0], centre, orbit)
-        source = f"an orbit of {orbit} views around the scene from camera {cams[0].name!r}"
+        first = cams[0]
+        cams = ring_around(first, centre, orbit)
+        source = (
+            f"an orbit of {orbit} views (orbit_000..orbit_{orbit - 1:03d}, numbered along the "
+            f"ring: --orbit replaces the camera file's numbering) around the scene, starting "
+            f"at the camera file's first camera {first.name!r}"
+        )
     if width is not None:
         try:
             cams = [c.scaled(width, height) for c in cams]

@@ -42,18 +42,26 @@ def write_label_map(path: Path, labels: np.ndarray) -> None:
     atomic_write(path, lambda tmp: tmp.write_bytes(data.tobytes()))
 
 
-def read_label_map(path: Path) -> np.ndarray:
+def read_label_map(path: Path, max_pixels: int | None = None) -> np.ndarray:
     """A label-map PNG -> (H, W) int64 ids, through the one mask reader (`io.masks`, "ids":
-    ids are kept as they are, 8- or 16-bit); a colour or unreadable file is a clear error."""
+    ids are kept as they are, 8- or 16-bit); a colour or unreadable file, or one of more than
+    `max_pixels` pixels (checked before decoding), is a clear error."""
     from sagonline.scene.io.masks import read_mask
 
-    return read_mask(path, "ids", max_labels=1 << 16).labels
+    return read_mask(path, "ids", max_labels=1 << 16, max_pixels=max_pixels).labels
 
 
-def folder_sha256(folder: Path) -> str:
-    """SHA-256 over every label map below `folder`: relative paths (sorted) and bytes."""
+def label_maps(folder: Path, pattern: str = "*/*.png") -> list[Path]:
+    """The label maps of a run's folder, `<scene>/<view>.png` (pattern "*.png": of one scene's
+    folder), sorted: what is scored and digested (a scene folder that is a symbolic link is
+    entered like any other)."""
+    return sorted(p for p in folder.glob(pattern) if p.is_file())
+
+
+def folder_sha256(folder: Path, pattern: str = "*/*.png") -> str:
+    """SHA-256 over the label maps of `folder` (`label_maps`): relative paths and bytes."""
     digest = hashlib.sha256()
-    for path in sorted(folder.rglob("*.png")):
+    for path in label_maps(folder, pattern):
         digest.update(path.relative_to(folder).as_posix().encode() + b"\0")
         digest.update(hashlib.sha256(path.read_bytes()).digest())
     return digest.hexdigest()

@@ -6,7 +6,10 @@ into the segmenters' `Prompt`."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -33,13 +36,27 @@ class ParsedPrompt:
     objects: list[ObjectClicks]
     texts: list[str]
 
-    def record(self, cams) -> dict:
+    def record(self, cams, folder: str | Path | None = None) -> dict:
+        """What labels.json keeps of the prompt; a mask file as its path relative to `folder`
+        (where labels.json is written; absolute when it has no relative path from there) and
+        its content digest, so a replay finds that file, and no other of the same name."""
+        from sagonline.core.provenance import digest_file
+
+        def mask(o: ObjectClicks) -> dict:
+            if o.mask_file is None:
+                return {"mask": None}
+            path = Path(o.mask_file).absolute()
+            if folder is not None:
+                with contextlib.suppress(ValueError):  # no relative path (another drive)
+                    path = Path(os.path.relpath(path, Path(folder).absolute()))
+            return {"mask": str(path), "mask_digest": digest_file(o.mask_file)}
+
         return {
             "view": self.view,
             "view_name": cams[self.view].name,
             "render_size": [cams[self.view].width, cams[self.view].height],
             "objects": [
-                {"name": o.name, "clicks": o.points, "negatives": o.negatives, "mask": o.mask_file}
+                {"name": o.name, "clicks": o.points, "negatives": o.negatives, **mask(o)}
                 for o in self.objects
             ],  # fmt: skip
             "texts": self.texts,
@@ -87,7 +104,8 @@ class PromptParser:
         if not sep or not path:
             raise PromptError(f"{item}: expected VIEW:PATH")
         i = self.on_view(view, item)
-        read, cam = read_mask(path), self.cams[i]
+        cam = self.cams[i]  # a mask is the view's size: a larger file is refused unread
+        read = read_mask(path, max_pixels=cam.width * cam.height)
         if read.labels.shape != (cam.height, cam.width):
             raise PromptError(
                 f"{item}: the mask is {read.labels.shape[1]}x{read.labels.shape[0]} but view "
@@ -127,7 +145,12 @@ class PromptParser:
         if flag != "neg":
             raise PromptError(f"{item}: the third part must be neg or neg=NAME")
         target = name or self.current
-        if target is None or target not in self.objects:
+        if target is None:
+            raise PromptError(
+                f"{item}: a negative click says what an object is not: click on the object "
+                "first (a positive click), or name one with :neg=NAME"
+            )
+        if target not in self.objects:
             raise PromptError(f"{item}: no object {target!r} to add a negative click to")
         self.objects[target].negatives.append((x, y))
 
@@ -150,14 +173,16 @@ class PromptParser:
         return ParsedPrompt(next(iter(self.views), 0), list(self.objects.values()), self.texts)
 
 
-def parse_prompt(items: list[tuple[str, str]], cams) -> ParsedPrompt:
-    """--click / --object / --mask / --text, in order -> the prompt."""
+def parse_prompt(items: list[tuple], cams) -> ParsedPrompt:
+    """--click / --object / --mask / --text, in order -> the prompt. An item is (kind, value)
+    or (kind, value, where): `where` names it in errors (a field of a labels.json, say),
+    else `--kind value`."""
     parser = PromptParser(cams)
-    for kind, value in items:
+    for kind, value, *where in items:
         handler = getattr(parser, kind, None)
         if kind not in ("object", "text", "mask", "click") or handler is None:
             raise PromptError(f"unknown prompt item {kind!r}")
-        handler(value, f"--{kind} {value}")
+        handler(value, where[0] if where else f"--{kind} {value}")
     return parser.finish()
 
 

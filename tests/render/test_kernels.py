@@ -74,3 +74,58 @@ def test_a_second_process_waits_for_a_live_build_and_says_so(tmp_path):
     worker.join(60)
     assert not worker.is_alive()
     assert result == ["module"] and said[0].startswith("waiting for another process")
+
+
+def test_a_library_that_is_not_the_finished_build_is_built_again(tmp_path):
+    """A build killed while linking (or a full disk) leaves a truncated library that would kill
+    every later process with SIGBUS: its bytes no longer match the digest recorded when its
+    build finished, so the folder is emptied, the reason said, and the kernels built again."""
+    said, built = [], []
+    k = tmp_path / "k"
+
+    def build():
+        library = k / "ext.so"
+        built.append(library.exists())  # torch's loader would only load it if it exists
+        if not library.exists():
+            library.write_bytes(b"\x7fELF" + b"\0" * 4096)
+        return "module"
+
+    assert build_once(k, "ext", build, said.append) == "module"
+    assert (k / "ext.so.sha256").is_file()
+    assert build_once(k, "ext", build, said.append) == "module"
+    assert built == [False, True]  # the recorded build is loaded as it is
+    (k / "ext.so").write_bytes(b"\x7fELF" + b"\0" * 100)  # truncated
+    (k / "ext.o").write_bytes(b"object")
+    said.clear()
+    assert build_once(k, "ext", build, said.append) == "module"
+    assert built[-1] is False and not (k / "ext.o").exists()
+    assert any("not the build that finished (its bytes changed)" in s for s in said)
+    (k / "ext.so.sha256").unlink()  # a build from before digests were recorded
+    said.clear()
+    build_once(k, "ext", build, said.append)
+    assert any("no digest was recorded" in s for s in said) and built[-1] is False
+
+
+def test_a_long_build_says_that_it_still_compiles(tmp_path):
+    import time
+
+    said = []
+
+    def build():
+        time.sleep(0.35)
+        (tmp_path / "k" / "ext.so").write_bytes(b"x")
+        return "module"
+
+    build_once(tmp_path / "k", "ext", build, said.append, every=0.1)
+    assert any(s.startswith("still compiling the CPU kernels") for s in said)
+
+
+def test_a_kernel_folder_that_is_a_file_is_refused(tmp_path, monkeypatch):
+    import pytest
+
+    from sagonline.render.kernels import NativeBuildError
+
+    (tmp_path / "f").write_text("")
+    monkeypatch.setenv("SAGONLINE_KERNEL_DIR", str(tmp_path / "f"))
+    with pytest.raises(NativeBuildError, match="is a file: it must name a folder"):
+        kernel_root()

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import socket
 
+import pytest
+
 from sagonline.apps.cli import main
 from sagonline.scene.io import write_ply
 from tests.segmenters.test_clicks import iced_donut
@@ -33,3 +35,37 @@ def test_view_of_a_missing_scene_is_one_line(tmp_path, capsys):
     assert main(["view", str(tmp_path / "nothing.ply")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "nothing.ply" in err[0]
+
+
+def test_a_port_out_of_range_is_refused_at_once(capsys):
+    """--port -1 or 70000 killed viser's server thread and the command waited forever."""
+    for port in ("-1", "70000", "http"):
+        with pytest.raises(SystemExit) as exc:
+            main(["view", "scene.ply", "--port", port])
+        assert exc.value.code == 2
+        assert "--port" in capsys.readouterr().err
+
+
+def test_a_taken_port_and_an_output_that_is_the_input_are_refused(tmp_path, capsys):
+    g, _ = iced_donut(40, 20)
+    scene = tmp_path / "donut.ply"
+    write_ply(scene, g)
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        assert main(["view", str(scene), "--orbit", "6", "--port", str(port)]) == 2
+        err = capsys.readouterr().err
+        assert f"--port {port}: cannot serve on 127.0.0.1:{port}" in err
+    assert main(["view", str(scene), "--out", str(scene)]) == 2
+    assert "is one of the inputs" in capsys.readouterr().err
+
+
+def test_serving_beyond_this_machine_is_said(capsys):
+    from sagonline.apps.cli.view import warn_if_exposed
+
+    warn_if_exposed("127.0.0.1")
+    warn_if_exposed("localhost")
+    assert capsys.readouterr().err == ""
+    warn_if_exposed("0.0.0.0")
+    assert "anyone who can reach this machine" in capsys.readouterr().err

@@ -34,19 +34,38 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# Options whose value may begin with "-" (a view of -1 is refused by its own rule, naming it,
+# instead of argparse's "expected one argument").
+DASHED_VALUES = ("--click", "--mask", "--preview", "--view")
+
+
+def joined_values(argv: list[str]) -> list[str]:
+    """`--click -1:10,10` as `--click=-1:10,10`, so argparse reads the value as one."""
+    out, i = [], 0
+    while i < len(argv):
+        if argv[i] in DASHED_VALUES and i + 1 < len(argv) and argv[i + 1].startswith("-"):
+            out.append(f"{argv[i]}={argv[i + 1]}")
+            i += 2
+        else:
+            out.append(argv[i])
+            i += 1
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0: done, 2: a problem with the input, 1: an
     unexpected failure, 130: interrupted). SAGONLINE_DEBUG=1 shows the traceback of an
     unexpected failure."""
     from sagonline.core.errors import DatasetError
+    from sagonline.render.kernels import NativeBuildError
 
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser().parse_args(joined_values(sys.argv[1:] if argv is None else argv))
         return args.func(args)
     except KeyboardInterrupt:
         print("interrupted: nothing was left half-written", file=sys.stderr)
         return 130
-    except (ValueError, DatasetError, OSError, MemoryError) as exc:
+    except (ValueError, DatasetError, OSError, MemoryError, NativeBuildError) as exc:
         if os.environ.get("SAGONLINE_DEBUG"):
             raise
         print(f"error: {one_line(exc)}", file=sys.stderr)

@@ -10,7 +10,6 @@ render size).
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +65,51 @@ def header(widths: list[int], titles: list[str]) -> np.ndarray:
     return np.concatenate(strips, axis=1)
 
 
+def read_folder_record(folder: Path) -> dict:
+    """A segment folder's labels.json, with what a figure reads checked: the scene's path, the
+    label names, the prompt's render size (a problem names the file and the field)."""
+    from sagonline.core.errors import PromptError
+    from sagonline.core.files import read_json_object
+
+    path = folder / "labels.json"
+    info = read_json_object(path, ValueError, "not readable JSON", "a labels.json (an object)")
+    names = info.get("names")
+    if not isinstance(info.get("scene"), str):
+        raise PromptError(f"{path}: scene must name the scene file, found {info.get('scene')!r}")
+    if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
+        raise PromptError(f"{path}: names must be a list of label names, found {names!r}")
+    size = (info.get("prompt") or {}).get("render_size") if isinstance(info.get("prompt"),
+                                                                       dict) else None  # fmt: skip
+    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0
+                                                              for v in size)):  # fmt: skip
+        raise PromptError(f"{path}: prompt.render_size must be [width, height], found {size!r}")
+    return info
+
+
+def check_same_scene(folder: Path, info: dict, scene) -> None:
+    """The scene labels.json names must be the one the folder's labels were made on: the same
+    file (its SHA-256, where recorded) and as many Gaussians as labels.npy holds."""
+    import numpy as np
+
+    from sagonline.core.provenance import digest_file
+
+    recorded = (info.get("inputs") or {}).get("scene") if isinstance(info.get("inputs"),
+                                                                      dict) else None  # fmt: skip
+    if recorded and recorded != digest_file(info["scene"]):
+        raise ValueError(
+            f"{folder}/labels.json: its scene {info['scene']} is not the file the labels were "
+            "made on (its SHA-256 differs)"
+        )
+    labels_file = folder / "labels.npy"
+    if labels_file.is_file():
+        count = len(np.load(labels_file, mmap_mode="r", allow_pickle=False))
+        if count != len(scene):
+            raise ValueError(
+                f"{labels_file}: {count} labels, but the scene {info['scene']} has "
+                f"{len(scene)} Gaussians: not this folder's scene"
+            )
+
+
 def cmd_figure(args) -> int:
     from sagonline.core.files import atomic_write_image
     from sagonline.core.outputs import OutputError, check_not_input
@@ -79,13 +123,14 @@ def cmd_figure(args) -> int:
         raise ValueError(f"{folder}: no labels.json (not a `sagonline segment` output folder)")
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise ValueError(f"--out {out}: a figure is a .png or .jpg file")
-    info = json.loads((folder / "labels.json").read_text())
+    info = read_folder_record(folder)
     check_not_input(
         out, [folder, info["scene"], *([info["cameras"]] if info.get("cameras") else [])]
     )
     if out.exists() and not args.overwrite:
         raise OutputError(f"--out {out} exists; pass --overwrite to replace it")
     scene = read_scene(info["scene"])
+    check_same_scene(folder, info, scene)
     cams = folder_views(info, scene)
     try:
         picks = [int(v) for v in args.views.split(",")]
@@ -106,7 +151,13 @@ def cmd_figure(args) -> int:
         label_png = next((folder / "views").glob(f"{v:04d}_*_labels.png"), None)
         if label_png is None:
             raise ValueError(f"{folder}/views: no label render of view {v}")
-        labels = read_mask(label_png, "ids", max_labels=len(info["names"])).labels
+        labels = read_mask(label_png, "ids", max_labels=len(info["names"]),
+                           max_pixels=cam.width * cam.height).labels  # fmt: skip
+        if labels.shape != (cam.height, cam.width):
+            raise ValueError(
+                f"{label_png}: {labels.shape[1]}x{labels.shape[0]}, but view {v} renders at "
+                f"{cam.width}x{cam.height}: not this folder's label render"
+            )
         tiles = [
             to_uint8(render(scene, cam, backend=args.backend).rgb),
             colors[labels].astype(np.uint8),

@@ -67,6 +67,20 @@ def parse_background(text: str) -> list[float]:
     return values
 
 
+def warn_if_empty(alpha, index: int, cam) -> None:
+    """Say so when a view shows (almost) nothing of the scene: an all-background image is
+    otherwise written without a word (a camera of another scene, facing away, too close)."""
+    import sys
+
+    covered = float((alpha > 0.5).float().mean())
+    if covered < 0.001:
+        print(
+            f"warning: view {index} ('{cam.name}') shows almost nothing of the scene ("
+            f"{100 * covered:.2f}% of its pixels): is the camera of this scene, and facing it?",
+            file=sys.stderr,
+        )
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     import torch
 
@@ -99,6 +113,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out_img = render(g.to(args.device), cam.to(args.device), background=torch.tensor(background),
                      backend=args.backend)  # fmt: skip
     rgb = out_img.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
+    warn_if_empty(out_img.alpha, index, cam)
     if out.suffix.lower() == ".npy":
         atomic_write_npy(out, rgb)
     else:

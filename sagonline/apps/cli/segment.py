@@ -12,7 +12,6 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.apps.cli.render import add_view_arguments
-from sagonline.core.errors import PromptError
 from sagonline.render.backends import BACKENDS
 from sagonline.scene.views import CLICK_HELP
 from sagonline.segment.clicks import parse_prompt, to_prompt
@@ -145,58 +144,15 @@ def vote_config(args):
         "min_votes": args.min_votes,
         "margin": args.margin,
     }
-    return VoteConfig(**(recorded | {k: v for k, v in given.items() if v is not None}))
-
-
-def apply_recorded_prompts(args) -> None:
-    """--prompts labels.json: its prompt becomes the prompt items, and its views, segmenter and
-    vote the defaults of whatever the command line left out."""
-    import json
-
-    from sagonline.vote.consensus import VoteConfig
-
-    path = Path(args.prompts)
-    if args.prompt_items:
-        raise PromptError(
-            "--prompts replaces --click/--object/--mask/--text: give one or the other"
-        )
+    given = {k: v for k, v in given.items() if v is not None}
     try:
-        record = json.loads(path.read_text())
-        prompt = record["prompt"]
-        view = str(prompt["view_name"])
-        items = [("text", t) for t in prompt.get("texts", [])]
-        for obj in prompt.get("objects", []):
-            items.append(("object", obj["name"]))
-            items += [("click", f"{view}:{x!r},{y!r}") for x, y in obj.get("clicks", [])]
-            if obj.get("mask"):
-                items.append(("mask", f"{view}:{obj['mask']}"))
-            items += [
-                ("click", f"{view}:{x!r},{y!r}:neg={obj['name']}")
-                for x, y in obj.get("negatives", [])
-            ]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise PromptError(
-            f"--prompts {path}: not a labels.json with a prompt ({type(exc).__name__}: {exc})"
-        ) from None
-    args.prompt_items = items
-    if args.cameras is None and not args.orbit and record.get("cameras"):
-        args.cameras = record["cameras"]
-    if not args.orbit and record.get("orbit"):
-        args.orbit = int(record["orbit"])
-    if args.width is None and prompt.get("render_size"):
-        args.width, args.height = (int(v) for v in prompt["render_size"])
-    if not args.inbetween and record.get("inbetween"):
-        args.inbetween = int(record["inbetween"])
-    segmenter = record.get("segmenter") or {}
-    if args.segmenter is None and segmenter.get("kind"):
-        args.segmenter = segmenter["kind"]
-        args.segmenter_option = [*segmenter.get("options", []), *args.segmenter_option]
-    vote = record.get("vote") or {}
-    known = set(VoteConfig.__dataclass_fields__)
-    unknown = sorted(set(vote) - known)
-    if unknown:
-        raise PromptError(f"--prompts {path}: vote settings {unknown} are not VoteConfig's")
-    args.recorded_vote = vote
+        return VoteConfig(**(recorded | given))
+    except ValueError as exc:  # named as the user gave it: a flag, or the labels.json field
+        message = str(exc)
+        for key in VoteConfig.__dataclass_fields__:
+            name = f"--{key.replace('_', '-')}" if key in given else f"{args.prompts} vote.{key}"
+            message = message.replace(f"consensus.{key}=", f"{name} ")
+        raise ValueError(message) from None
 
 
 # --- the command ------------------------------------------------------------------------------
@@ -219,6 +175,8 @@ def cmd_segment(args) -> int:
 
     started = time.perf_counter()
     if args.prompts:
+        from sagonline.apps.cli.recorded import apply_recorded_prompts
+
         apply_recorded_prompts(args)
     args.segmenter = args.segmenter or "classical"
     scene = scene_file(args.scene)
@@ -227,7 +185,7 @@ def cmd_segment(args) -> int:
     resolve_backend(args.backend, args.device)
     if args.inbetween < 0 or args.inbetween > 32:
         raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
-    masks = [Path(v.partition(":")[2]) for k, v in args.prompt_items if k == "mask"]
+    masks = [Path(v.partition(":")[2]) for k, v, *_ in args.prompt_items if k == "mask"]
     inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
     if args.preview is not None:
         out = Path(args.out or f"preview-{stem}-{args.preview}.png")
@@ -267,7 +225,7 @@ def cmd_segment(args) -> int:
         "views": views.source,
         "orbit": args.orbit,
         "inbetween": args.inbetween,
-        "prompt": parsed.record(given),
+        "prompt": parsed.record(given, folder=out),
         "inputs": input_digests(scene, args.cameras, masks),
         "segmenter": {"kind": args.segmenter, "options": segmenter_options(args)},
         "vote": asdict(vote),

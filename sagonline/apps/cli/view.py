@@ -26,8 +26,12 @@ def add_parsers(sub) -> None:
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
     )  # fmt: skip
     view.add_argument("--backend", default="auto", choices=BACKENDS)
-    view.add_argument("--host", default="127.0.0.1", help="address to serve on (local only)")
-    view.add_argument("--port", type=int, default=8080)
+    view.add_argument(
+        "--host", default="127.0.0.1",
+        help="address to serve on (default 127.0.0.1: this machine only; another address lets "
+        "anyone who reaches it click and Export, which writes files here)",
+    )  # fmt: skip
+    view.add_argument("--port", type=port_number, default=8080, help="1-65535, free (8080)")
     view.add_argument("--out", help="the Export button's folder (default: segment-<scene>-<time>)")
     view.set_defaults(func=cmd_view)
 
@@ -46,6 +50,52 @@ def segmenter_builder(args):
     return build
 
 
+def port_number(text: str) -> int:
+    """--port: a TCP port in [1, 65535] (viser's server thread died on others and the command
+    waited for it forever)."""
+    import argparse
+
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port number") from None
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{port} is not a port in [1, 65535]")
+    return port
+
+
+def check_port_free(host: str, port: int) -> None:
+    """Refuse a port another program (another viewer) is serving on: viser would silently take
+    the next one, and the printed address would not be the one asked for."""
+    import socket
+
+    with socket.socket(socket.AF_INET6 if ":" in host else socket.AF_INET) as probe:
+        probe.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        try:
+            probe.bind((host, port))
+        except OSError as exc:
+            raise ValueError(
+                f"--port {port}: cannot serve on {host}:{port} ({exc.strerror or exc}); another "
+                "viewer may be running there: pass another --port"
+            ) from None
+
+
+def warn_if_exposed(host: str) -> None:
+    """Say so when the viewer serves beyond this machine: Export writes files here."""
+    import ipaddress
+
+    try:
+        local = ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        local = host == "localhost"
+    if not local:
+        print(
+            f"warning: serving on {host}: anyone who can reach this machine there can click "
+            "and Export (which writes files here); --host 127.0.0.1 keeps it local",
+            file=sys.stderr,
+        )
+
+
 def segmenter_options(args) -> list[str]:
     from sagonline.apps.cli.segment import segmenter_options as options
 
@@ -56,13 +106,19 @@ def cmd_view(args) -> int:
     from sagonline.apps.viewer.app import ViewerApp
     from sagonline.apps.viewer.session import SegmentSession
     from sagonline.core.machine import check_device
+    from sagonline.core.outputs import check_not_input
     from sagonline.core.plugins import SEGMENTERS
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.views import check_trajectory, load_views
 
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
+    out = args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
+    check_not_input(out, [scene, *(camera_input_files(args.cameras) if args.cameras else [])])
+    check_port_free(args.host, args.port)
+    warn_if_exposed(args.host)
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
@@ -84,7 +140,7 @@ def cmd_view(args) -> int:
     }
     app = ViewerApp(
         session, scene=scene, info=info, host=args.host, port=args.port,
-        out=args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}",
+        out=out,
         make_segmenter=build, segmenters=tuple(SEGMENTERS.keys()),
     )  # fmt: skip
     print(

@@ -27,6 +27,7 @@ import numpy as np
 
 from sagonline.apps.viewer.clicks import pick_gaussian, view_for_point
 from sagonline.core.errors import PromptError
+from sagonline.core.provenance import digest_file
 from sagonline.pipeline.segment import (
     Segmentation,
     check_click_on_scene,
@@ -345,6 +346,7 @@ class SegmentSession:
         parsed = self.parsed()
         full = {
             "scene": str(scene) if scene else None,
+            "inputs": {"scene": digest_file(scene)} if scene else {},
             "prompt": parsed.record(self.cameras),
             "segmenter": {"kind": self.segmenter_kind, "options": list(self.segmenter_options)},
             "vote": asdict(self.vote),

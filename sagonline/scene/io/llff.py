@@ -34,10 +34,9 @@ def load_llff(
         images = list_images(scene_dir / image_dir)
         if not images:
             raise CameraFileError(f"{scene_dir / image_dir}: no images to size the cameras by")
-        from PIL import Image
+        from sagonline.scene.io.images import image_size
 
-        with Image.open(images[0]) as im:
-            width, height = im.size
+        width, height = image_size(images[0])
         if names is None:
             names = [p.stem for p in images]
     if names is None:

@@ -51,14 +51,17 @@ def read_mask(
     max_labels: int = MAX_LABELS,
     threshold: float | None = None,
     colour: str = "refuse",
+    max_pixels: int | None = None,
 ) -> MaskFile:
     """Read one mask file (see the module docstring); MaskFileError names the file.
     colour="max" reads a colour image as the maximum of its channels (a dataset whose binary
-    masks are drawn in colour) instead of refusing it."""
+    masks are drawn in colour) instead of refusing it. max_pixels: the most pixels the file may
+    hold, checked on its header before decoding (default `io.images.MAX_IMAGE_PIXELS`; a
+    caller that knows the view's size passes that)."""
     path = Path(path)
     if mode not in MODES:
         raise ValueError(f"mask mode {mode!r} is not one of {MODES}")
-    image, seen = _load(path)
+    image, seen = _load(path, max_pixels)
     if mode == "auto" and seen.startswith("a palette") and len(np.unique(image)) > 2:
         mode = "ids"  # a palette's indices are label ids
     try:
@@ -70,16 +73,18 @@ def read_mask(
     return decide(plane, path, seen, mode, max_labels, threshold)
 
 
-def read_mask_colours(path: str | Path) -> np.ndarray:  # [H, W, 3] uint8 RGB
+def read_mask_colours(
+    path: str | Path, max_pixels: int | None = None
+) -> np.ndarray:  # [H, W, 3] uint8 RGB
     """A mask drawn in colours (a dataset's palette of label colours) as (H, W, 3) RGB, read
     by the same loader as `read_mask` (the same checks): MaskFileError names the file."""
     path = Path(path)
-    image, seen = _load(path)
+    image, seen = _load(path, max_pixels)
     if image.ndim == 2:
         image = image[..., None].repeat(3, axis=2)
     if image.dtype != np.uint8 or image.shape[2] not in (3, 4):
         raise MaskFileError(f"{path}: {seen}; a colour mask is 8-bit RGB (or RGBA)")
-    return np.ascontiguousarray(image[..., 2::-1] if image.shape[2] >= 3 else image)
+    return np.ascontiguousarray(image[..., 2::-1])  # BGR(A) -> RGB
 
 
 def decide(
@@ -115,13 +120,20 @@ def decide(
     return MaskFile(plane.astype(np.int64), "label map", seen)
 
 
-def _load(path: Path) -> tuple[np.ndarray, str]:
-    """The file's pixels as stored (palette PNGs as their indices) and a description."""
+def _load(path: Path, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
+    """The file's pixels as stored (palette PNGs as their indices) and a description; its
+    size is checked on the header first (`io.images.image_size`)."""
+    from sagonline.scene.io.images import ImageFileError, image_size
+
     try:
         with open(path, "rb") as f:
             head = f.read(26)
     except OSError as exc:
         raise MaskFileError(f"{path}: cannot be read ({exc.strerror or exc})") from None
+    try:
+        image_size(path, max_pixels)
+    except ImageFileError as exc:
+        raise MaskFileError(str(exc)) from None
     # A palette PNG (IHDR colour type 3): its indices are the labels. Read with PIL's PNG
     # reader directly (`Image.open` may be patched by other packages to fetch plug-ins).
     if head[:8] == b"\x89PNG\r\n\x1a\n" and len(head) > 25 and head[25] == 3:

@@ -231,7 +231,10 @@ def write_ply(path: str | Path, gaussians: Gaussians) -> Path:
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
-    return (1.0 / (1.0 + np.exp(-x.astype(np.float64)))).astype(np.float32)
+    """1 / (1 + e^-x), exactly 0 or 1 where e^-x overflows (a logit of -1e30 is an opacity of
+    0, said by nothing: it is a valid if extreme value)."""
+    with np.errstate(over="ignore"):
+        return (1.0 / (1.0 + np.exp(-x.astype(np.float64)))).astype(np.float32)
 
 
 def _logit(p: np.ndarray) -> np.ndarray:

@@ -1,0 +1,143 @@
+"""`sagonline segment --prompts labels.json`: a recorded segmentation's prompt, views, segmenter
+and vote read back, every field checked (one line naming the file and the field), its mask
+found where labels.json says and checked to be the file that was recorded."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+from sagonline.core.errors import PromptError
+
+
+def apply_recorded_prompts(args) -> None:
+    """--prompts labels.json: its prompt becomes the prompt items, and its views, segmenter and
+    vote the defaults of whatever the command line left out. Every field is checked (a wrong
+    type or value stops with one line naming the file and the field); a recorded mask is read
+    from where labels.json says, relative to labels.json, and must still be the file that was
+    recorded (its content digest)."""
+    from sagonline.core.files import read_json_object
+    from sagonline.vote.consensus import VoteConfig
+
+    path = Path(args.prompts)
+    if args.prompt_items:
+        raise PromptError(
+            "--prompts replaces --click/--object/--mask/--text: give one or the other"
+        )
+    record = read_json_object(path, PromptError, "not readable JSON", "a labels.json (an object)")
+    field = RecordFields(path, record)
+    prompt = field.get("prompt", dict)
+    view = field.get("prompt.view_name", str, prompt.get("view_name"))
+    texts = field.get("prompt.texts", list, prompt.get("texts", []))
+    items = [("text", field.check(f"prompt.texts[{i}]", t, str), f"{path}: prompt.texts[{i}]")
+             for i, t in enumerate(texts)]  # fmt: skip
+    objects = field.get("prompt.objects", list, prompt.get("objects", []))
+    for i, obj in enumerate(objects):
+        where = f"prompt.objects[{i}]"
+        obj = field.check(where, obj, dict)
+        name = field.check(f"{where}.name", obj.get("name"), str)
+        items.append(("object", name, f"{path}: {where}.name"))
+        for kind in ("clicks", "negatives"):
+            for j, xy in enumerate(field.check(f"{where}.{kind}", obj.get(kind, []), list)):
+                x, y = field.point(f"{where}.{kind}[{j}]", xy)
+                value = f"{view}:{x!r},{y!r}" + (f":neg={name}" if kind == "negatives" else "")
+                items.append(("click", value, f"{path}: {where}.{kind}[{j}]"))
+        if obj.get("mask") is not None:
+            mask = field.mask(where, obj)
+            items.append(("mask", f"{view}:{mask}", f"{path}: {where}.mask ({mask})"))
+    args.prompt_items = items
+    if args.cameras is None and not args.orbit and record.get("cameras"):
+        args.cameras = field.get("cameras", str)
+    if not args.orbit and record.get("orbit"):
+        args.orbit = field.get("orbit", int)
+    if args.width is None and prompt.get("render_size"):
+        size = field.get("prompt.render_size", list, prompt["render_size"])
+        if len(size) != 2:
+            raise PromptError(f"{path}: prompt.render_size must be [width, height]")
+        args.width, args.height = (field.check("prompt.render_size", v, int) for v in size)
+    if not args.inbetween and record.get("inbetween"):
+        args.inbetween = field.get("inbetween", int)
+    segmenter = field.get("segmenter", dict, record.get("segmenter") or {})
+    if args.segmenter is None and segmenter.get("kind"):
+        args.segmenter = field.get("segmenter.kind", str, segmenter["kind"])
+        options = field.get("segmenter.options", list, segmenter.get("options", []))
+        options = [field.check(f"segmenter.options[{i}]", o, str) for i, o in enumerate(options)]
+        args.segmenter_option = [*options, *args.segmenter_option]
+    vote = field.get("vote", dict, record.get("vote") or {})
+    known = VoteConfig.__dataclass_fields__
+    unknown = sorted(set(vote) - set(known))
+    if unknown:
+        raise PromptError(f"{path}: vote settings {unknown} are not VoteConfig's")
+    for key, value in vote.items():  # the types VoteConfig's fields hold
+        default = known[key].default
+        kinds = (int, float) if isinstance(default, float) or key == "delta" else type(default)
+        if not (value is None and key in ("delta", "num_masks")):
+            field.check(f"vote.{key}", value, kinds)
+    args.recorded_vote = vote
+    inputs = field.get("inputs", dict, record.get("inputs") or {})
+    args.recorded_scene = field.check("inputs.scene", inputs.get("scene", ""), str)
+    from sagonline.scene.io import scene_file
+
+    say_if_another_scene(args, scene_file(args.scene))
+
+
+def say_if_another_scene(args, scene: Path) -> None:
+    """A labels.json recorded on another scene (its scene's digest differs): replayed, and
+    said (a scene fitted again from the same capture is a fair reason to replay)."""
+    from sagonline.core.provenance import digest_file
+
+    recorded = getattr(args, "recorded_scene", None)
+    if recorded and recorded != digest_file(scene):
+        print(
+            f"note: --prompts {args.prompts} was recorded on another scene (SHA-256 "
+            f"{str(recorded)[:12]}..., this one {digest_file(scene)[:12]}...): its clicks are "
+            "replayed on this one",
+            file=sys.stderr,
+        )
+
+
+class RecordFields:
+    """The fields of a labels.json, each checked for its type, every refusal one line naming
+    the file and the field (`field` with its path, e.g. prompt.objects[0].clicks[1])."""
+
+    def __init__(self, path: Path, record: dict):
+        self.path, self.record = path, record
+
+    def check(self, field: str, value, kinds):
+        ok = isinstance(value, kinds) and not (isinstance(value, bool) and kinds is not bool)
+        if not ok:
+            names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple) else
+                                                      (kinds,)))  # fmt: skip
+            raise PromptError(
+                f"{self.path}: {field} must be {names}, found {value!r} ({type(value).__name__})"
+            )
+        return value
+
+    def get(self, field: str, kinds, value=None):
+        return self.check(field, self.record.get(field) if value is None else value, kinds)
+
+    def point(self, field: str, xy) -> tuple[float, float]:
+        import math
+
+        if not (isinstance(xy, list) and len(xy) == 2):
+            raise PromptError(f"{self.path}: {field} must be [x, y], found {xy!r}")
+        x, y = (float(self.check(field, v, (int, float))) for v in xy)
+        if not (math.isfinite(x) and math.isfinite(y)):
+            raise PromptError(f"{self.path}: {field} must be finite, found {xy!r}")
+        return x, y
+
+    def mask(self, where: str, obj: dict) -> Path:
+        """The recorded mask: relative to labels.json, the file that was recorded."""
+        from sagonline.core.provenance import digest_file
+
+        given = Path(self.check(f"{where}.mask", obj["mask"], str))
+        mask = given if given.is_absolute() else self.path.parent / given
+        if not mask.is_file():
+            raise PromptError(f"{self.path}: {where}.mask {given} is not there ({mask})")
+        recorded = obj.get("mask_digest")
+        if recorded is not None and digest_file(mask) != recorded:
+            raise PromptError(
+                f"{self.path}: {where}.mask {mask} is not the file that was recorded (its "
+                "content digest differs): restore it, or give the mask with --mask"
+            )
+        return mask
