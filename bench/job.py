@@ -21,10 +21,10 @@ def seed_everything(seed: int) -> None:
 
 
 def quiet(cfg) -> bool:
-    """No progress bars: asked for (progress=false), on CI, or off a terminal (a log file
-    would keep every `\r` redraw; the run's log has a line per stage instead)."""
-    ci = os.environ.get("CI", "").lower() in ("1", "true")
-    return not cfg.progress or ci or not sys.stderr.isatty()
+    """No progress said at all: only when asked for (progress=false). On a terminal progress
+    is a bar; elsewhere (a log file, CI) a plain line at most every 15 s, so no long stage is
+    silent (`sagonline.core.progress`)."""
+    return not cfg.progress
 
 
 def settings_from(cfg) -> PipelineSettings:

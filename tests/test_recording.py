@@ -109,3 +109,23 @@ def test_large_scenes_fall_back_to_points(tmp_path):
     assert "/scenes/s/gaussians/confidence" not in found or not found[
         "/scenes/s/gaussians/confidence"
     ]["instances"].get("Points3D:positions")
+
+
+def test_progress_off_a_terminal_says_a_line_every_so_often():
+    """Long work is never silent off a terminal: a line when it starts, one at most every
+    `every` seconds with the time left, one at the end."""
+    import io
+    import time
+
+    from sagonline.core.progress import Progress
+
+    out = io.StringIO()
+    bar = Progress("fit", 6, every=0.05, out=out, terminal=False)
+    for _ in range(5):
+        time.sleep(0.06)
+        bar.update(detail="loss 0.1")
+    bar.close()
+    lines = out.getvalue().splitlines()
+    assert lines[0] == "fit: 6 to do" and lines[-1].startswith("fit: 5 of 6 done in")
+    middle = lines[1:-1]
+    assert middle and all("left" in ln and "loss 0.1" in ln for ln in middle)

@@ -297,4 +297,5 @@ def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):
     assert _segment(tmp_path, "--click", f"0:{_click_inside(m == 1)}", "--no-record") == 0
     err = capsys.readouterr().err
     assert "\r" not in err
-    assert "segmenting 12 views with classical ..." in err and "label renders: 12 done" in err
+    assert "segmenting 12 views with classical ..." in err
+    assert "segment and vote: 24 to do" in err and "label renders: 12 of 12 done in" in err

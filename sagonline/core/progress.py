@@ -27,12 +27,13 @@ class Progress:
         every: float = 15.0,
         out: TextIO | None = None,
         terminal: bool | None = None,
+        initial: int = 0,
     ):
         self.what, self.total, self.every = what, total, every
         self.out = out or sys.stderr
         self.enabled = enabled and total > 0
         self.terminal = self.out.isatty() if terminal is None else terminal
-        self.done, self.start = 0, time.perf_counter()
+        self.done, self.initial, self.start = initial, initial, time.perf_counter()
         self._last = self.start
         self._bar = None
         if not self.enabled:
@@ -40,28 +41,32 @@ class Progress:
         if self.terminal:
             from tqdm import tqdm
 
-            self._bar = tqdm(total=total, desc=what, leave=False, file=self.out)
+            self._bar = tqdm(total=total, initial=initial, desc=what, leave=False, file=self.out)
         else:
-            self._say(f"{what}: {total} to do")
+            since = f" (from {initial})" if initial else ""
+            self._say(f"{what}: {total - initial} to do{since}")
 
     def _say(self, line: str) -> None:
         print(line, file=self.out, flush=True)
 
-    def update(self, n: int = 1) -> None:
+    def update(self, n: int = 1, detail: str = "") -> None:
+        """`n` more items done; `detail` (a loss, say) is shown beside the count."""
         self.done += n
         if not self.enabled:
             return
         if self._bar is not None:
             self._bar.update(n)
+            if detail:
+                self._bar.set_postfix_str(detail, refresh=False)
             return
         now = time.perf_counter()
         if now - self._last >= self.every and self.done < self.total:
             self._last = now
-            elapsed = now - self.start
-            left = elapsed / self.done * (self.total - self.done) if self.done else float("nan")
+            elapsed, done = now - self.start, self.done - self.initial
+            left = elapsed / done * (self.total - self.done) if done else float("nan")
             self._say(
                 f"{self.what}: {self.done} of {self.total} ({elapsed:.0f} s, about {left:.0f} s "
-                "left)"
+                "left)" + (f"; {detail}" if detail else "")
             )
 
     def close(self) -> None:

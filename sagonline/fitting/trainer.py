@@ -30,10 +30,10 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from tqdm import tqdm
 
 from sagonline.core import store
 from sagonline.core.files import atomic_write_json
+from sagonline.core.progress import Progress
 from sagonline.core.provenance import digest_file
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.losses import (
@@ -280,7 +280,7 @@ class SceneFitter:
         """Train to `cfg.iterations` (or the time budget); returns `evaluate()`'s metrics."""
         cfg = self.cfg
         rng = np.random.default_rng(cfg.seed + self.step)
-        bar = tqdm(total=cfg.iterations, initial=self.step, desc="fit", disable=not progress)
+        bar = Progress("fit", cfg.iterations, enabled=progress, initial=self.step)
         start = time.perf_counter() - self.elapsed
         recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
         while self.step < cfg.iterations:
@@ -304,14 +304,14 @@ class SceneFitter:
             changed = self.strategy.after_step(self.params, self.step)
             if changed is not None:
                 self._set_params(changed)
-            bar.update(1)
+            detail = ""
             if self.step % 10 == 0:
-                bar.set_postfix(
-                    loss=f"{np.mean(self.history[-10:]):.4f}",
-                    psnr=f"{np.mean(recent_psnr):.2f}",
-                    n=len(self),
-                    **{k: f"{v:.2e}" for k, v in terms.items()},
-                )
+                detail = ", ".join(
+                    [f"loss {np.mean(self.history[-10:]):.4f}",
+                     f"PSNR {np.mean(recent_psnr):.2f} dB", f"{len(self)} Gaussians",
+                     *(f"{k} {v:.2e}" for k, v in terms.items())]
+                )  # fmt: skip
+            bar.update(1, detail)
             if checkpoint is not None and self.step % cfg.checkpoint_every == 0:
                 self.elapsed = time.perf_counter() - start
                 self.save(checkpoint)

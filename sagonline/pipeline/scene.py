@@ -15,9 +15,8 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
-from sagonline.core.progress import Progress
+from sagonline.core.progress import Progress, progress
 from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.diagnose import diagnose_scene
@@ -204,8 +203,8 @@ def score_views(
     coarse mode) and time the label render; returns the (H, W) predictions. g: the scene on
     `settings.device`."""
     preds, seconds = [], []
-    for view in tqdm(
-        task.eval_views, desc=f"{task.name}: score", leave=False, disable=not settings.progress
+    for view in progress(
+        task.eval_views, f"{task.name}: score", len(task.eval_views), enabled=settings.progress
     ):
         start = time.perf_counter()
         pred = render_labels(

@@ -216,7 +216,7 @@ def cmd_segment(args) -> int:
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
     seg = segment_scene(
         g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
-        device=args.device, progress=sys.stderr.isatty(),
+        device=args.device, progress=True,
     )  # fmt: skip
     check_objects_were_found(seg)
     info = {
@@ -294,16 +294,10 @@ def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
 
 
 def progress(items: list, what: str):
-    """A bar on a terminal; elsewhere (a log file, CI) one plain line when done."""
-    import sys
+    """A bar on a terminal; elsewhere (a log file, CI) a line every 15 s and one when done."""
+    from sagonline.core.progress import progress as said
 
-    from tqdm import tqdm
-
-    if sys.stderr.isatty():
-        yield from tqdm(items, desc=what, leave=False)
-        return
-    yield from items
-    print(f"{what}: {len(items)} done", file=sys.stderr)
+    yield from said(items, what, len(items))
 
 
 def print_segmentation(seg, out: Path, wall_s: float) -> None:
