@@ -124,6 +124,9 @@ class ScenesConfig:
     """cpu: the compiled kernel; cuda: gsplat; auto: cuda when available."""
     seed: int = 0
     """Seeds the start points, densification noise and held-out split order."""
+    variant: str | None = None
+    """The fit's folder, gaussians-<variant>/ (null: gaussians/ for seed 0, gaussians-seed<k>/
+    for seed k); the evaluation reads it with dataset.adapter.fit=<variant>."""
 
 
 # Plug-in settings of these names follow the run's own (`seed=1` reseeds every plug-in).

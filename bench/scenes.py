@@ -37,7 +37,7 @@ from sagonline.core.files import atomic_write_image, atomic_write_json
 from sagonline.core.machine import cpu_capability
 from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
-from sagonline.datasets.common import SCENES_ROOT
+from sagonline.datasets.common import SCENES_ROOT, fit_folder
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     initial_points,
@@ -49,13 +49,13 @@ from sagonline.scene.io.cameras import load_llff_bounds
 from sagonline.scene.io.images import resize_nearest
 
 
-def output_dir(scene_dir: Path, dataset: str) -> Path:
-    """`<scene>/gaussians/` when the data folder is writable, else the project's overlay.
-    A folder whose owner-write bit is off counts as read-only even for root (who could
-    write anyway), so shared, read-only data is never modified."""
-    own = scene_dir / "gaussians"
+def output_dir(scene_dir: Path, dataset: str, variant: str = "") -> Path:
+    """`<scene>/gaussians/` (`gaussians-<variant>/`) when the data folder is writable, else the
+    project's overlay. A folder whose owner-write bit is off counts as read-only even for root
+    (who could write anyway), so shared, read-only data is never modified."""
+    own = scene_dir / fit_folder(variant)
     if not (scene_dir.stat().st_mode & stat.S_IWUSR):
-        return SCENES_ROOT / dataset / scene_dir.name / "gaussians"
+        return SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
     try:
         own.mkdir(parents=True, exist_ok=True)
         probe = own / ".write_test"
@@ -63,7 +63,15 @@ def output_dir(scene_dir: Path, dataset: str) -> Path:
         probe.unlink()
         return own
     except OSError:
-        return SCENES_ROOT / dataset / scene_dir.name / "gaussians"
+        return SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
+
+
+def variant_of(cfg: ScenesConfig) -> str:
+    """The fit's folder suffix: `variant`, else `seed<k>` for a seed other than 0 (each draw of
+    the recipe in a folder of its own; evaluate one with dataset.adapter.fit=seed<k>)."""
+    if cfg.variant is not None:
+        return cfg.variant
+    return f"seed{cfg.seed}" if cfg.seed else ""
 
 
 def foreign_scene(out: Path) -> Path | None:
@@ -156,7 +164,7 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         raise DatasetError(
             f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
         )
-    out = output_dir(scene_dir, adapter.name)
+    out = output_dir(scene_dir, adapter.name, variant_of(cfg))
     if not may_fit(cfg, out, scene):
         return {"scene": scene, "skipped": True}
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
@@ -203,7 +211,7 @@ def finish_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
     from sagonline.scene.io import read_scene, write_ply
 
     scene_dir, cams, images = adapter.capture(scene)
-    out = output_dir(scene_dir, adapter.name)
+    out = output_dir(scene_dir, adapter.name, variant_of(cfg))
     if not (out / "point_cloud.ply").is_file() or foreign_scene(out) is not None:
         raise DatasetError(f"{out}: no fit of `make scenes` to finish (fit it first)")
     recorded = json.loads((out / "fit_config.json").read_text())

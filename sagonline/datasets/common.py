@@ -31,21 +31,27 @@ SCENES_ROOT = Path(
 )
 
 
-def gaussians_dir(scene_dir: Path, dataset: str | None = None) -> Path:
+def fit_folder(variant: str = "") -> str:
+    """The folder of a scene's fit: `gaussians`, or `gaussians-<variant>` for another draw of
+    the recipe (`seed1`, ...) or another recipe."""
+    return f"gaussians-{variant}" if variant else "gaussians"
+
+
+def gaussians_dir(scene_dir: Path, dataset: str | None = None, variant: str = "") -> Path:
     """Where a scene's trained Gaussians live: `<scene>/gaussians/`, or, for data on a
     read-only disk, `scenes/<dataset>/<scene>/gaussians/` in the project (where `make scenes`
-    writes when the data folder is not writable)."""
-    own = scene_dir / "gaussians"
+    writes when the data folder is not writable); `gaussians-<variant>/` for a variant."""
+    own = scene_dir / fit_folder(variant)
     if own.exists() or dataset is None:
         return own
-    overlay = SCENES_ROOT / dataset / scene_dir.name / "gaussians"
+    overlay = SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
     return overlay if overlay.exists() else own
 
 
-def find_trained_scene(scene_dir: Path, dataset: str | None = None) -> Path:
+def find_trained_scene(scene_dir: Path, dataset: str | None = None, variant: str = "") -> Path:
     """The scene's `point_cloud.ply`: gaussians/point_cloud.ply, or the latest
     gaussians/point_cloud/iteration_*/point_cloud.ply (in `gaussians_dir`)."""
-    base = gaussians_dir(scene_dir, dataset)
+    base = gaussians_dir(scene_dir, dataset, variant)
     direct = base / "point_cloud.ply"
     if direct.is_file():
         return direct
@@ -57,31 +63,32 @@ def find_trained_scene(scene_dir: Path, dataset: str | None = None) -> Path:
         return iterations[-1]
     raise DatasetError(
         f"no trained scene for {scene_dir.name}: expected "
-        f"{scene_dir / 'gaussians' / 'point_cloud.ply'}; "
+        f"{scene_dir / fit_folder(variant) / 'point_cloud.ply'}; "
         + TRAINED_SCENE_HELP.format(dir=scene_dir)
     )
 
 
-def fit_record(scene_dir: Path, dataset: str | None = None) -> dict | None:
+def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -> dict | None:
     """What `make scenes` recorded about the trained scene (iterations, why it stopped, PSNR),
     or None for a scene it did not fit."""
     import json
 
-    path = find_trained_scene(scene_dir, dataset).parent / "fit_metrics.json"
+    path = find_trained_scene(scene_dir, dataset, variant).parent / "fit_metrics.json"
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout")
+    keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout",
+            "psnr_heldout_object", "seed", "scene_digest")  # fmt: skip
     return {k: record[k] for k in keys if k in record} | {"path": str(path)}
 
 
 def load_trained_scene(
-    scene_dir: Path, dataset: str | None = None, drop_nonfinite: bool = False
+    scene_dir: Path, dataset: str | None = None, drop_nonfinite: bool = False, variant: str = ""
 ) -> Gaussians:
     """The scene's trained Gaussians; NaN/Inf (or overflowing) rows fail the scene unless
     `drop_nonfinite` (the adapters' `drop_nonfinite` setting) drops them."""
-    path = find_trained_scene(scene_dir, dataset)
+    path = find_trained_scene(scene_dir, dataset, variant)
     try:
         return read_scene(path, drop_nonfinite=drop_nonfinite)
     except SceneFileError as exc:
@@ -93,6 +100,7 @@ def scene_cameras(
     image_dir: str | None,
     names: list[str] | None = None,
     dataset: str | None = None,
+    variant: str = "",
 ) -> list[Camera]:
     """Cameras of a scene, sorted by name: the trained scene's `gaussians/cameras.json` when
     present (its frame is the scene's), else the capture's own poses (LLFF poses_bounds.npy,
@@ -102,7 +110,7 @@ def scene_cameras(
         images = list_images(scene_dir / image_dir)
         if images:
             size = image_size(images[0])
-    gs_cams = gaussians_dir(scene_dir, dataset) / "cameras.json"
+    gs_cams = gaussians_dir(scene_dir, dataset, variant) / "cameras.json"
     try:
         if gs_cams.is_file():
             cams = load_cameras(gs_cams)

@@ -57,6 +57,9 @@ class PosedMasksConfig:
     """Leave the prompt view out of the scored views."""
     expected_counts: dict[str, int] | None = None
     """Label maps a scene must have (the protocol's counts); None: not checked."""
+    fit: str = ""
+    """Which fit of each scene to evaluate: '' the default (gaussians/), or a variant
+    (gaussians-<fit>/: `seed1`, `seed2`, ..., as `make scenes ARGS=seed=1` writes them)."""
     expected_photos: int | None = None
     """Photographs each scene's image folder must hold (its views' photographed / mask-only
     groups depend on them: a missing photograph would move a view between them); None: not

@@ -74,6 +74,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.exclude_reference, self.seed = cfg.exclude_reference, cfg.seed
         self.expected_counts = cfg.expected_counts or {}
         self.expected_photos = cfg.expected_photos
+        self.fit = cfg.fit
         self.readme = cfg.readme or f"datasets/{name}/README.md"
         self.render_max_side = cfg.render_max_side
         self.order, self.inbetween = cfg.order, int(cfg.inbetween)
@@ -193,7 +194,7 @@ class PosedMasksDataset(DatasetAdapter):
             raise DatasetError(f"{mask_root}: no label maps found")
         names = None
         pb = scene_dir / "poses_bounds.npy"
-        gs_dir = gaussians_dir(scene_dir, self.name)
+        gs_dir = gaussians_dir(scene_dir, self.name, self.fit)
         if pb.is_file() and not (gs_dir / "cameras.json").is_file():
             try:
                 n_poses = len(read_poses_bounds(pb))
@@ -214,7 +215,7 @@ class PosedMasksDataset(DatasetAdapter):
                     f"{pb}: {n_poses} poses, but {image_folder} has {len(images)} images and "
                     f"{mask_root} {len(mask_names)} label maps; cannot tell which pose is whose"
                 )
-        cams = scene_cameras(scene_dir, self.image_dir_for(scene), names, self.name)
+        cams = scene_cameras(scene_dir, self.image_dir_for(scene), names, self.name, self.fit)
         masks = match_by_name(entries, [c.name for c in cams], scene_dir)
         expected = self.expected_counts.get(scene)
         if expected is not None and len(masks) != expected:
@@ -285,8 +286,8 @@ class PosedMasksDataset(DatasetAdapter):
         check_one_mask_size(gts, mask_paths)
         gts, names = self.labels.finish(gts, scene_dir / self.mask_dir)
         num_labels = len(names)
-        gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite)
-        scene_file = find_trained_scene(scene_dir, self.name)
+        gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite, self.fit)
+        scene_file = find_trained_scene(scene_dir, self.name, self.fit)
         for name, gt in gts.items():
             valid = gt if self.ignore is None else gt[gt != self.ignore]
             if valid.size and (valid.min() < 0 or valid.max() >= num_labels):
@@ -321,7 +322,7 @@ class PosedMasksDataset(DatasetAdapter):
                 "reference": reference,
                 "scored_views": len(evals),
                 "root": str(scene_dir),
-                "fit": fit_record(scene_dir, self.name),
+                "fit": fit_record(scene_dir, self.name, self.fit),
                 "scene_file": str(scene_file),
                 "photographs": photographs,
                 "order": self.order,

@@ -457,3 +457,23 @@ def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
         for threads in (1, 2)
     }
     assert digests[1] == digests[2]
+
+
+def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
+    """seed=k (k > 0) fits into gaussians-seed<k>/, and dataset.adapter.fit=seed<k> evaluates
+    it: the draws of one recipe sit side by side, none replaces another."""
+    from bench.scenes import output_dir, variant_of
+    from sagonline.datasets.common import find_trained_scene, gaussians_dir
+    from tests.fixtures import compose_config
+
+    assert variant_of(compose_config("scenes", "dataset=mold_cape")) == ""
+    assert variant_of(compose_config("scenes", "dataset=mold_cape", "seed=2")) == "seed2"
+    assert variant_of(compose_config("scenes", "dataset=mold_cape", "variant=masked")) == "masked"
+    scene = tmp_path / "cap"
+    scene.mkdir()
+    assert output_dir(scene, "cap", "seed2") == scene / "gaussians-seed2"
+    (scene / "gaussians-seed2" / "point_cloud.ply").write_text("")
+    assert gaussians_dir(scene, "cap", "seed2") == scene / "gaussians-seed2"
+    assert find_trained_scene(scene, "cap", "seed2").parent.name == "gaussians-seed2"
+    with pytest.raises(Exception, match="gaussians/point_cloud.ply"):
+        find_trained_scene(scene, "cap")
