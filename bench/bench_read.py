@@ -21,6 +21,9 @@ import numpy as np
 import pandas as pd
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+from bench import OUT_HELP, REPORTS  # noqa: E402
+
 PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 PROPS += [f"f_rest_{i}" for i in range(45)]
 PROPS += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
@@ -62,7 +65,7 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--gigabytes", type=float, default=2.0)
     parser.add_argument("--dir", default="/tmp")
-    parser.add_argument("--out", default=str(ROOT / "reports" / "bench_read.csv"))
+    parser.add_argument("--out", default=str(REPORTS / "bench_read.csv"), help=OUT_HELP)
     parser.add_argument("--quick", action="store_true", help="a 10 MB file")
     args = parser.parse_args()
     if args.quick:

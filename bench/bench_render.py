@@ -28,21 +28,20 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
-
-import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy before torch loads)
 import pandas as pd  # noqa: E402
 import torch  # noqa: E402
 
-from sagonline.scene.io.cameras import load_nerf_transforms  # noqa: E402
-from sagonline.scene.gaussians import Gaussians  # noqa: E402
-from sagonline.scene.io import read_scene  # noqa: E402
+import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy before torch loads)
+from bench import OUT_HELP, REPORTS  # noqa: E402
+from sagonline.core.machine import describe_device  # noqa: E402
 from sagonline.render import RasterStats, render, render_labels, vote_histogram  # noqa: E402
 from sagonline.render.backends import installed  # noqa: E402
 from sagonline.render.native import native_available, vote_simd  # noqa: E402
 from sagonline.render.rule import VoteRule  # noqa: E402
+from sagonline.scene.gaussians import Gaussians  # noqa: E402
 from sagonline.scene.generator import make_scene  # noqa: E402
-from sagonline.core.machine import describe_device  # noqa: E402
-
+from sagonline.scene.io import read_scene  # noqa: E402
+from sagonline.scene.io.cameras import load_nerf_transforms  # noqa: E402
 
 PAPER_MS_PER_MASK = 7.1  # the paper's Table III: RTX 4090, 960x540
 PAPER_AGGREGATE_MS = 1466.0  # 206 masks
@@ -133,7 +132,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--devices", default="cpu,cuda")
     ap.add_argument("--masks", type=int, default=206, help="masks in the aggregation column")
-    ap.add_argument("--out", default=str(ROOT / "reports" / "bench_render.csv"))
+    ap.add_argument("--out", default=str(REPORTS / "bench_render.csv"), help=OUT_HELP)
     ap.add_argument("--quick", action="store_true", help="tiny scenes, 4 masks, one repeat")
     args = ap.parse_args()
     if args.quick:

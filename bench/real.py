@@ -25,6 +25,8 @@ from pathlib import Path
 import pandas as pd
 import yaml
 
+from bench import OUT_HELP, REPORTS
+
 ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {
     "real": ["segmenter=oracle", "consensus.stride=4"],
@@ -88,9 +90,9 @@ def row(capture: str, real: dict | None, classical: dict | None) -> dict:
 
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.real", description=__doc__.split("\n")[0])
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
-    ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
     names = args.captures.split(",") if args.captures else captures()
     rows, commands = [], []

@@ -23,6 +23,7 @@ import numpy as np
 import pandas as pd
 from PIL import Image
 
+from bench import OUT_HELP, REPORTS
 from bench.rundir import read_run_metrics
 from sagonline.core.files import atomic_write_image, atomic_write_text
 from sagonline.datasets.common import SCENES_ROOT
@@ -326,9 +327,9 @@ def write_table(df: pd.DataFrame, out: Path, stem: str, title: str, notes: list[
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.report", description=__doc__.split("\n")[0])
     ap.add_argument("roots", nargs="*", type=Path)
-    ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     ap.add_argument(
         "--views",
         metavar="NAME",

@@ -127,7 +127,7 @@ def recorded_digests(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.score", description=__doc__.split("\n")[0])
     ap.add_argument("folders", type=Path, nargs="+", help="RUN_DIR, or PRED_DIR GT_DIR")
     ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
     ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import pandas as pd
 
+from bench import OUT_HELP, REPORTS
 from bench.report import COARSE, device_text
 from bench.rundir import read_run_metrics
 from sagonline.core.files import atomic_write_text
@@ -352,10 +353,10 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m bench.tables", description=__doc__.split("\n")[0])
     ap.add_argument("name", choices=sorted(BUILDERS))
     ap.add_argument("sweep", nargs="?", type=Path)
-    ap.add_argument("--out", type=Path, default=ROOT / "reports")
+    ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     ap.add_argument("--tag", help="the sweep's and the table's suffix, e.g. mold_cape")
     args = ap.parse_args(argv)
     stem = f"{args.name}_{args.tag}" if args.tag else args.name

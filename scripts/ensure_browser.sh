@@ -5,6 +5,10 @@ set -u
 if command -v chromedriver >/dev/null && { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; }; then
   exit 0
 fi
+if [ -n "${SAGONLINE_NO_BROWSER_INSTALL:-}" ]; then
+  echo "ensure_browser: SAGONLINE_NO_BROWSER_INSTALL is set: nothing installed; the browser test will skip" >&2
+  exit 0
+fi
 if ! command -v apt-get >/dev/null; then
   echo "ensure_browser: no apt-get here; the browser test will skip (install chromium and chromedriver)" >&2
   exit 0
@@ -16,7 +20,8 @@ if [ "$(id -u)" -ne 0 ]; then
     exit 0
   fi
 fi
-echo "ensure_browser: installing chromium and chromium-driver (apt-get) ..." >&2
+echo "ensure_browser: installing Debian's chromium and chromium-driver with apt-get${SUDO:+ (sudo)} for the" >&2
+echo "  viewer's browser test: system packages, about 300 MB (SAGONLINE_NO_BROWSER_INSTALL=1 skips this) ..." >&2
 export DEBIAN_FRONTEND=noninteractive
 $SUDO apt-get update -qq >/dev/null 2>&1
 $SUDO apt-get install -y -qq chromium chromium-driver >/dev/null 2>&1 \

@@ -2,6 +2,7 @@
 
 - `graph`: stages as typed keys over their inputs, and the cache of their outputs;
 - `stages`: the frames, masks, vote and refine stages and their inputs dataclasses;
+- `settings`: `PipelineSettings`, how a scene is run (backends, device, feedback, ...);
 - `stage_one`: `StageOne`, the one engine every front end streams from (render -> masks ->
   vote -> labels, as events), and `compose_stage_one`, the same drained in one call;
 - `scene`: `run_scene`, Stage I on a dataset's scene, scored and recorded;
@@ -15,11 +16,11 @@
 from sagonline.pipeline.graph import Output, Stage, StageCache
 from sagonline.pipeline.scene import input_digests, run_scene
 from sagonline.pipeline.scoring import SceneReport, record_scores, summarize
+from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stage_one import (
     FrameRendered,
     LabelsUpdated,
     MaskReady,
-    PipelineSettings,
     StageOne,
     StageOneConfig,
     StageOneOutput,

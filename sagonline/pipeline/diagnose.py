@@ -14,7 +14,8 @@ import numpy as np
 from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import SceneReport
-from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput, compose_stage_one
+from sagonline.pipeline.settings import PipelineSettings
+from sagonline.pipeline.stage_one import StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.scene.gaussians import Gaussians
 from sagonline.score.diagnosis import GaussianCauses, cause_image, diagnose_view, shares

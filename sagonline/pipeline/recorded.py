@@ -21,7 +21,7 @@ from sagonline.core.errors import DatasetError
 from sagonline.core.files import read_json_object
 from sagonline.core.plugins import DATASETS, PluginError, typed_settings
 from sagonline.datasets.base import DatasetAdapter
-from sagonline.pipeline.stage_one import PipelineSettings
+from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig

@@ -171,6 +171,9 @@ def note_stage_one(
     sec = stage_one.frames.value.seconds_per_frame
     if "feedback" in seg.info:
         report.extra["feedback"] = seg.info["feedback"]
+    described = {k: v for k, v in seg.info.items() if k not in ("order", "feedback")}
+    if described:  # what the segmenter says of itself: its weights' SHA-256, its prompting
+        report.extra["segmenter"] = described
     report.inputs["masks"] = digest_arrays(seg.masks)
     report.add_timings(("frames",), render_ms_per_frame=1000 * sec)
     report.add_timings(("masks",), segment_ms_per_frame=seg.ms_per_frame)

@@ -45,6 +45,7 @@ from sagonline.pipeline.events import (
     ViewVoted,
 )
 from sagonline.pipeline.graph import Output, StageCache, StageRun
+from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stages import (
     FRAMES,
     MASKS,
@@ -62,24 +63,7 @@ from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult
 from sagonline.segment.prompts import Prompt, add_to_prompt
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
-from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs, FeedbackPolicy
-
-
-@dataclass
-class PipelineSettings:
-    """How a scene is run: the image renderer and the vote's implementation, each resolved on
-    its own for the device (`render.backends.plan_backends`), the label render's threshold, the
-    metrics' resize rule, progress bars, the render background, consensus feedback."""
-
-    backend: str = "auto"
-    vote_backend: str = "auto"
-    device: str = "cpu"
-    label_min_weight: float = 0.2
-    resize: str = "pred_to_gt"
-    progress: bool = True
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
-    diagnose: bool = True
+from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs, FeedbackPolicy, FusedRender
 
 
 @dataclass
@@ -284,14 +268,20 @@ class StageOne:
         """The masks' inputs and key, and the vote's key (it digests the masks' key, not
         their values: both are known before anything is segmented)."""
         c, s = self.config, self.config.settings
-        feedback = None
+        feedback = advice = None
         if s.feedback.enabled:
             feedback = FeedbackInputs(
                 s.feedback, c.vote, self.gaussians, list(self.cameras), c.num_labels,
                 s.label_min_weight, self.plan.vote,
             )  # fmt: skip
+        after = c.segmenter.segmenter.wants_advice
+        if after is not None:  # the segmenter reads the fused labels: its masks depend on them
+            advice = FeedbackInputs(
+                FeedbackConfig(min_frames=after), c.vote, self.gaussians, list(self.cameras),
+                c.num_labels, s.label_min_weight, self.plan.vote,
+            )  # fmt: skip
         masks_in = MasksInputs(self._frames_out, self._prompt, c.trajectory_gt, c.segmenter,
-                               feedback)  # fmt: skip
+                               feedback, advice)  # fmt: skip
         masks_key = MASKS.key(masks_in)
         vote_in = VoteInputs(
             Output(masks_key, None), self.gaussians, list(self.cameras), c.num_labels, c.vote,
@@ -311,7 +301,13 @@ class StageOne:
             return ((i, cached.masks[i], cached.seconds[i]) for i in order), None
         segmenter = c.segmenter.segmenter
         if masks_in.feedback is None:
-            return segmenter.stream(self.frames, self._prompt, ground_truth=c.trajectory_gt), None
+            advice = None
+            if masks_in.advice is not None:
+                advice = FusedRender(masks_in.advice, self._acc, masks_in.advice.config.min_frames)
+            stream = segmenter.stream(
+                self.frames, self._prompt, ground_truth=c.trajectory_gt, advice=advice
+            )
+            return stream, advice
         policy = FeedbackPolicy(masks_in.feedback)
         masks = policy.masks(segmenter, self.frames, self._prompt, self._acc, c.trajectory_gt)
         return masks, policy
@@ -347,7 +343,11 @@ class StageOne:
                 self._labels = self._acc.labels().cpu().numpy()
                 yield LabelsUpdated(self._labels, len(self._acc.frames), total)
         name = c.segmenter.segmenter.name
-        info = {"order": order} | ({"feedback": policy.stats} if policy is not None else {})
+        info = {"order": order, **c.segmenter.segmenter.describe()}
+        if isinstance(policy, FeedbackPolicy):
+            info["feedback"] = policy.stats
+        elif isinstance(policy, FusedRender):
+            info["advice"] = {"renders": policy.renders, "render_s": policy.render_s}
         if cached_masks is not None:
             seg = cached_masks
         else:

@@ -22,7 +22,8 @@ import numpy as np
 from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.scene import nearest_frames
 from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
-from sagonline.pipeline.stage_one import PipelineSettings, StageOneOutput
+from sagonline.pipeline.settings import PipelineSettings
+from sagonline.pipeline.stage_one import StageOneOutput
 from sagonline.pipeline.stages import REFINE, RefineInputs, SegmenterRun
 from sagonline.record.recording import Recorder
 from sagonline.refine import RefineConfig, RefinementTrainer

@@ -107,6 +107,7 @@ class MasksInputs:
     trajectory_gt: list[np.ndarray] | None  # read by the oracle only
     segmenter: SegmenterRun
     feedback: FeedbackInputs | None  # None: consensus feedback off
+    advice: FeedbackInputs | None  # what the fused-label advice renders with (None: not asked)
 
 
 def label_count(num_labels: int, masks: list[np.ndarray]) -> int:

@@ -42,6 +42,19 @@ class VideoSegmenter(ABC):
     """The prompts it reads: clicks / boxes / masks, text, ground_truth (the oracle), or none
     (it segments automatically); a command refuses a prompt its segmenter cannot read."""
 
+    wants_advice: int | None = None
+    """Views Stage I votes before it offers this segmenter the fused labels rendered into each
+    next view (`stream(advice=...)`); None: it does not read them."""
+
+    def prepare(self, frames: list[np.ndarray]) -> None:  # noqa: B027 (optional hook)
+        """Do now what every prompt on these frames would do first (a model's image
+        embeddings): a viewer calls it once its views are rendered, so a click costs only
+        what depends on the click."""
+
+    def describe(self) -> dict:
+        """What a run's results name of it besides its settings (its weights' SHA-256, say)."""
+        return {}
+
     @property
     def version(self) -> str:
         """What produced its answers, for the masks' cache key: its package's version and a
@@ -94,11 +107,13 @@ class VideoSegmenter(ABC):
         prompt: Prompt,
         *,
         ground_truth: list[np.ndarray] | None = None,
+        advice=None,
     ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] int64 mask, seconds)
         """The masks one by one as they are made, the prompt frame's first, each with the
         seconds it took (Stage I votes each as it comes). Segmenters that propagate frame by
         frame override `_stream`; the others answer the whole video first. `ground_truth` is
-        read only by the oracle."""
+        read only by the oracle; `advice(t)`, for a segmenter that asks for it
+        (`wants_advice`), is the fused labels rendered into view t, or None."""
         if not frames:
             raise ValueError(f"{self.name}: no frames to segment")
         if not 0 <= prompt.frame < len(frames):
@@ -107,7 +122,9 @@ class VideoSegmenter(ABC):
             )
         seen: set[int] = set()
         start = time.perf_counter()
-        for item in self._stream(frames, prompt, ground_truth):
+        made = (self._stream(frames, prompt, ground_truth) if advice is None
+                else self._stream(frames, prompt, ground_truth, advice))  # fmt: skip
+        for item in made:
             i, mask = item[0], item[1]
             seconds = item[2] if len(item) > 2 else time.perf_counter() - start
             if not 0 <= i < len(frames) or i in seen:
@@ -122,8 +139,9 @@ class VideoSegmenter(ABC):
         if len(seen) != len(frames):
             raise RuntimeError(f"{self.name}: answered {len(seen)} of {len(frames)} frames")
 
-    def _stream(self, frames, prompt, ground_truth) -> Iterator[tuple]:
-        """(frame, mask[, seconds]) in the order made: here, the whole video first."""
+    def _stream(self, frames, prompt, ground_truth, advice=None) -> Iterator[tuple]:
+        """(frame, mask[, seconds]) in the order made: here, the whole video first (`advice`
+        is passed only to a segmenter that asks for it)."""
         start = time.perf_counter()
         masks, seconds = self._segment(frames, prompt, ground_truth)
         if seconds is None:

@@ -180,26 +180,10 @@ class FlowWatershedSegmenter(VideoSegmenter):
         return (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
 
     def click_region(self, colour: np.ndarray, xy: tuple[int, int]) -> np.ndarray:
-        """(H, W) bool: the pixels connected to the click whose colour lies near the click's own
-        (a flood fill from it over `chromaticity_and_brightness`: chromaticity within
-        `click_tolerance`, brightness within a factor `click_brightness_ratio`), within
-        `prior_radius` of the image's shorter side around it."""
-        h, w = colour.shape[:2]
-        x, y = min(max(xy[0], 0), w - 1), min(max(xy[1], 0), h - 1)
-        mask = np.zeros((h + 2, w + 2), np.uint8)
-        tol = (
-            self.click_tolerance,
-            self.click_tolerance,
-            float(np.log(self.click_brightness_ratio)),
-        )
-        flags = 4 | cv2.FLOODFILL_MASK_ONLY | cv2.FLOODFILL_FIXED_RANGE | (1 << 8)
-        cv2.floodFill(colour.copy(), mask, (x, y), 0, tol, tol, flags)
-        region = mask[1:-1, 1:-1] > 0
-        reach = np.zeros((h, w), np.uint8)
-        cv2.circle(reach, (x, y), int(self.prior_radius * min(h, w) * 2), 1, -1)
-        return region & (reach > 0)
+        """(H, W) bool: the pixels of like colour connected to the click (`click_region`)."""
+        return click_region(colour, xy, self.click_tolerance, self.click_brightness_ratio,
+                            self.prior_radius)  # fmt: skip
 
-    # --- propagation --------------------------------------------------------------------------
     def _bin_index(self, frame: np.ndarray) -> np.ndarray:
         q = (frame.astype(np.int64) * self.bins) // 256
         return (q[..., 0] * self.bins + q[..., 1]) * self.bins + q[..., 2]
@@ -294,6 +278,28 @@ class FlowWatershedSegmenter(VideoSegmenter):
             src = t - 1 if t > prompt.frame else t + 1
             masks[t] = self.propagate(frames[src], frames[t], masks[src])
             yield t, masks[t]
+
+
+def click_region(
+    colour: np.ndarray,  # [H, W, 3] `chromaticity_and_brightness` of the frame
+    xy: tuple[int, int],
+    tolerance: float = 0.05,
+    brightness_ratio: float = 2.0,
+    prior_radius: float = 0.25,
+) -> np.ndarray:  # [H, W] bool
+    """The pixels connected to the click whose colour lies near the click's own (a flood fill
+    from it: chromaticity within `tolerance`, brightness within a factor `brightness_ratio`),
+    within `prior_radius` of the image's shorter side (times two) around it."""
+    h, w = colour.shape[:2]
+    x, y = min(max(int(xy[0]), 0), w - 1), min(max(int(xy[1]), 0), h - 1)
+    mask = np.zeros((h + 2, w + 2), np.uint8)
+    tol = (tolerance, tolerance, float(np.log(brightness_ratio)))
+    flags = 4 | cv2.FLOODFILL_MASK_ONLY | cv2.FLOODFILL_FIXED_RANGE | (1 << 8)
+    cv2.floodFill(colour.copy(), mask, (x, y), 0, tol, tol, flags)
+    region = mask[1:-1, 1:-1] > 0
+    reach = np.zeros((h, w), np.uint8)
+    cv2.circle(reach, (x, y), int(prior_radius * min(h, w) * 2), 1, -1)
+    return region & (reach > 0)
 
 
 def chromaticity_and_brightness(frame: np.ndarray) -> np.ndarray:

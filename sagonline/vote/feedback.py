@@ -82,6 +82,33 @@ class FeedbackInputs:
     backend: str
 
 
+class FusedRender:
+    """The advice Stage I gives a segmenter that asks for it (`VideoSegmenter.wants_advice`):
+    the labels fused from the views voted so far, the objects alone, rendered into the view
+    it is about to segment ((H, W) ids, 0 elsewhere), or None before `after` views voted or
+    while no Gaussian is an object."""
+
+    def __init__(self, setup: FeedbackInputs, votes: VoteAccumulator, after: int):
+        self.setup, self.votes, self.after = setup, votes, after
+        self.renders, self.render_s = 0, 0.0
+
+    def __call__(self, t: int) -> np.ndarray | None:
+        if len(self.votes.frames) < self.after:
+            return None
+        start = time.perf_counter()
+        labels = self.votes.labels()
+        objects = torch.where(labels > 0, labels, -1)
+        if not (objects >= 0).any():
+            return None
+        out = render_labels(
+            self.setup.gaussians, self.setup.cameras[t], objects, self.votes.k,
+            min_weight=self.setup.label_min_weight, backend=self.setup.backend,
+        )  # fmt: skip
+        self.renders += 1
+        self.render_s += time.perf_counter() - start
+        return out.cpu().numpy().astype(np.int64)
+
+
 class FeedbackPolicy:
     """Which mask each view votes with, under consensus feedback: a mask policy of Stage I
     (`pipeline.stage_one.StageOne` calls `masks` and votes each mask it yields, if the view is
@@ -171,6 +198,7 @@ __all__ = [
     "FeedbackConfig",
     "FeedbackInputs",
     "FeedbackPolicy",
+    "FusedRender",
     "foreground_iou",
     "mask_prompt",
 ]

@@ -74,7 +74,7 @@ def base_values(task, feedback: bool) -> dict[str, dict]:
         "frames": dict(gaussians=g, cameras=cams, backend="native", kernel="k",
                        background=(0.0, 0.0, 0.0), device="cpu"),
         "masks": dict(prompt=task.prompt, trajectory_gt=task.trajectory_gt,
-                      segmenter=SegmenterRun(OracleSegmenter(), {}), feedback=fb),
+                      segmenter=SegmenterRun(OracleSegmenter(), {}), feedback=fb, advice=fb),
         "vote": dict(gaussians=g, cameras=cams, num_labels=task.num_labels, config=VoteConfig(),
                      rule_version="0.1.0+r", backend="native", kernel="k", device="cpu"),
         "refine": dict(config=RefineConfig(), backend="native", device="cpu"),
@@ -151,8 +151,8 @@ def field_changes(values: dict, feedback_on: dict):
                 continue  # an upstream output: changed through that stage's own fields
             value = values[stage.name][f.name]
             cases = []
-            if value is None and f.name == "feedback":
-                cases.append((f.name, feedback_on["masks"]["feedback"]))
+            if value is None and f.name in ("feedback", "advice"):
+                cases.append((f.name, feedback_on["masks"][f.name]))
             elif dataclasses.is_dataclass(value) and not isinstance(value, WHOLE):
                 for sub in dataclasses.fields(value):
                     new = changed(sub.name, getattr(value, sub.name))

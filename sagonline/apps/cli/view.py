@@ -143,9 +143,11 @@ def cmd_view(args) -> int:
         out=out,
         make_segmenter=build, segmenters=tuple(SEGMENTERS.keys()),
     )  # fmt: skip
+    prepared = (f", {args.segmenter} prepared them in {session.prepare_seconds:.1f} s"
+                if session.prepare_seconds >= 0.05 else "")  # fmt: skip
     print(
         f"viewer at {app.url} ({len(views.cameras)} views rendered in "
-        f"{session.render_seconds:.1f} s); Ctrl+C stops it",
+        f"{session.render_seconds:.1f} s{prepared}); Ctrl+C stops it",
         flush=True,
     )
     try:

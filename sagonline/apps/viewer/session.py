@@ -131,6 +131,9 @@ class SegmentSession:
         self.frames = self.engine.render()
         self.alphas, self.depths = self.engine.alphas, self.engine.depths
         self.render_seconds = time.perf_counter() - start
+        start = time.perf_counter()
+        self.segmenter.prepare(self.frames)  # a model's embeddings: a click costs the rest
+        self.prepare_seconds = time.perf_counter() - start
 
     @property
     def vote(self) -> VoteConfig:
@@ -149,6 +152,7 @@ class SegmentSession:
         self.stop()
         changes = {}
         if segmenter is not None:
+            segmenter.prepare(self.frames)
             self.segmenter, self.segmenter_kind = segmenter, kind or self.segmenter_kind
             if options is not None:  # else the command line's, which built it too
                 self.segmenter_options = list(options)
