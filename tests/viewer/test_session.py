@@ -190,3 +190,53 @@ def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
         assert "min_votes" in app.status.content
     finally:
         app.server.stop()
+
+
+def test_the_first_click_lands_on_the_selected_view_where_it_sees_the_point(donut):
+    """After "Look through this view" on another view, the first click belongs to that view
+    (it went to whichever view looked most nearly along the ray, and later clicks on the
+    selected view were refused)."""
+    g, parts, ring = donut
+    session = SegmentSession(g, ring, backend="native")
+    x, y = icing_pixel(session, parts, view=2)
+    cam = ring[2]
+    ray = cam.cam_to_world[:3, :3] @ torch.linalg.inv(cam.K) @ torch.tensor([x, y, 1.0])
+    click = session.click_from_ray(cam.center.numpy(), ray.numpy(), start=False, prefer=3)
+    assert click.view == 3  # view 3 sees the icing point too: the selected view takes it
+
+
+def test_an_unclicked_new_object_neither_numbers_the_labels_nor_blocks_the_export(donut, tmp_path):
+    g, parts, ring = donut
+    session = SegmentSession(g, ring, backend="native")
+    session.add_click(0, *icing_pixel(session, parts))
+    session.wait(60)
+    session.new_object("second")
+    with pytest.raises(PromptError):  # a click on nothing: "second" stays without a click
+        session.add_click(0, 1, 1)
+    assert session.names == ["background", "object"]
+    out = session.export(tmp_path / "seg", record=False)
+    assert (out / "objects" / "object.ply").is_file()
+    session.new_object("third")  # the unclicked "second" is replaced, not kept
+    assert [o.name for o in session.objects] == ["object", "third"]
+
+
+def test_labelled_splats_get_a_colour_that_contrasts_with_their_own():
+    from sagonline.apps.viewer.app import highlight_colours, label_tint, panel_words
+    from sagonline.record.recording import PALETTE
+
+    pink = np.array([0.95, 0.45, 0.6], np.float32)  # the icing: close to label 1's crimson
+    rgbs = np.tile(pink, (6, 1))
+    labels = np.array([1, 1, 1, 0, 0, -1])
+    colours = highlight_colours(rgbs, labels, 2)
+    crimson = PALETTE[1] / 255.0
+    assert np.linalg.norm(colours[1] - pink) > 2 * np.linalg.norm(crimson - pink)
+    out, visible = label_tint(rgbs, labels, 2)
+    assert np.allclose(out[:3], colours[1]) and np.allclose(out[3:], pink) and visible.all()
+    dimmed, _ = label_tint(rgbs, labels, 2, "dimmed surroundings")
+    assert np.allclose(dimmed[3:], 0.25 * pink) and np.allclose(dimmed[:3], colours[1])
+    _, alone = label_tint(rgbs, labels, 2, "object alone")
+    assert alone.tolist() == [True, True, True, False, False, False]
+    _, nothing_yet = label_tint(rgbs, np.full(6, -1), 2, "object alone")
+    assert nothing_yet.all()  # nothing labelled yet: the scene stays visible
+    said = panel_words("--out seg holds an earlier output; pass --overwrite to replace it")
+    assert "--" not in said and "replace an earlier export" in said

@@ -21,10 +21,12 @@ import numpy as np
 import torch
 
 from sagonline.apps.viewer.session import Progress, SegmentSession
-from sagonline.record.recording import label_colors
+from sagonline.record.recording import PALETTE, label_colors
 from sagonline.scene.gaussians import SH_C0, Gaussians, quat_to_rotmat, rotmat_to_quat
 
-TINT = 0.7  # an object's splats: this much of its label colour over their own
+SHOW = ("everything", "dimmed surroundings", "object alone")  # the panel's "show" choices
+DIM = 0.25  # the surroundings' brightness when dimmed
+SELECTED, OTHER = (255, 200, 0), (120, 120, 120)  # frustum colours: the selected view, the rest
 
 
 def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
@@ -45,12 +47,36 @@ def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
     }
 
 
-def label_tint(rgbs: np.ndarray, labels: np.ndarray, num_labels: int) -> np.ndarray:
-    """(N, 3): objects (labels >= 1) tinted by their label colour; background and unlabelled
-    keep their own colour."""
-    colours = label_colors(max(num_labels, 2)).astype(np.float32) / 255.0
-    tinted = (1 - TINT) * rgbs + TINT * colours[labels.clip(0)]
-    return np.where((labels >= 1)[:, None], tinted, rgbs).astype(np.float32)
+def highlight_colours(rgbs: np.ndarray, labels: np.ndarray, num_labels: int) -> np.ndarray:
+    """(num_labels, 3) in [0, 1]: for each object the palette colour farthest from its splats'
+    own mean colour, each colour used once while the palette lasts (a crimson label on pink
+    icing was barely visible; the highlight must contrast with what it covers)."""
+    palette = label_colors(max(num_labels, 2)).astype(np.float32) / 255.0
+    choices = PALETTE[1:].astype(np.float32) / 255.0  # black (background) is no highlight
+    out, used = palette.copy(), set()
+    for k in range(1, num_labels):
+        members = labels == k
+        if not members.any():
+            continue
+        mean = rgbs[members].mean(axis=0)
+        order = np.argsort(-np.linalg.norm(choices - mean, axis=1))
+        pick = next((int(i) for i in order if int(i) not in used), int(order[0]))
+        used.add(pick)
+        out[k] = choices[pick]
+    return out
+
+
+def label_tint(
+    rgbs: np.ndarray, labels: np.ndarray, num_labels: int, show: str = SHOW[0]
+) -> tuple[np.ndarray, np.ndarray]:
+    """(rgbs (N, 3), visible (N,) bool): objects (labels >= 1) in a solid contrasting colour
+    (`highlight_colours`), the rest in its own colour, dimmed, or hidden, as `show` says."""
+    objects = labels >= 1
+    colours = highlight_colours(rgbs, labels, max(num_labels, 2))
+    rest = rgbs * DIM if show == "dimmed surroundings" and objects.any() else rgbs
+    out = np.where(objects[:, None], colours[labels.clip(0)], rest).astype(np.float32)
+    visible = objects if show == "object alone" and objects.any() else np.ones_like(objects)
+    return out, visible
 
 
 def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
@@ -67,6 +93,14 @@ def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
             p = (int(x), int(y))
             cv2.drawMarker(image, p, (255, 0, 0), cv2.MARKER_TILTED_CROSS, 12, 2, cv2.LINE_AA)
     return image
+
+
+def panel_words(message: str) -> str:
+    """A refusal in the panel's own words where the library speaks of command-line flags."""
+    return message.replace(
+        "pass --overwrite to replace it",
+        "tick 'replace an earlier export' or choose another folder",
+    ).replace("--out ", "the folder ")
 
 
 class ViewerApp:
@@ -127,14 +161,17 @@ class ViewerApp:
         self.server.initial_camera.up = tuple((-first.cam_to_world[:3, 1]).cpu().numpy().tolist())
         rotations = torch.stack([c.cam_to_world[:3, :3].cpu() for c in s.cameras])
         wxyz = rotmat_to_quat(rotations).numpy()
+        self.frustums: list = []
         for i, cam in enumerate(s.cameras):
             fy = float(cam.K[1, 1])
             frustum = self.server.scene.add_camera_frustum(
                 f"/cameras/{i:04d}", fov=2 * np.arctan(cam.height / (2 * fy)),
                 aspect=cam.width / cam.height, scale=0.04 * size, thickness=0.002 * size,
-                wxyz=wxyz[i], position=centres[i], color=(120, 120, 120),
+                wxyz=wxyz[i], position=centres[i], color=OTHER,
             )  # fmt: skip
             frustum.on_click(lambda _event, view=i: self.select_view(view))
+            self.frustums.append(frustum)
+        self.frustums[self.selected].color = SELECTED
 
     # --- the panel ----------------------------------------------------------------------------
 
@@ -158,6 +195,8 @@ class ViewerApp:
                 s.frames[self.selected], label=self.view_label(self.selected)
             )
             gui.add_button("Look through this view").on_click(self.look_through)
+            self.show = gui.add_dropdown("show", SHOW, initial_value=SHOW[0])
+            self.show.on_update(lambda _: self.on_update(s.labels, s.progress))
         with gui.add_folder("Objects"):
             self.object_name = gui.add_text("name", initial_value="object")
             gui.add_button("New object").on_click(lambda _: self.guarded(self.new_object))
@@ -197,7 +236,8 @@ class ViewerApp:
             self.out_text = gui.add_text("folder", initial_value=out)
             self.overwrite = gui.add_checkbox("replace an earlier export", initial_value=False)
             self.export_button = gui.add_button("Export objects, labels, recording")
-            self.export_button.on_click(lambda _: self.guarded(self.export))
+            self.export_status = gui.add_markdown("")  # under the button, where the eye is
+            self.export_button.on_click(lambda _: self.guarded(self.export, self.export_status))
 
     def view_label(self, i: int) -> str:
         return f"{i}: {self.session.cameras[i].name}"
@@ -208,6 +248,8 @@ class ViewerApp:
     def select_view(self, view: int) -> None:
         """Show `view`'s render (with the session's clicks when it is their view)."""
         s = self.session
+        self.frustums[self.selected].color = OTHER
+        self.frustums[view].color = SELECTED  # the selected view, marked in 3D
         self.selected = view
         label = self.view_label(view)
         if self.view_choice.value != label:
@@ -229,12 +271,15 @@ class ViewerApp:
 
     # --- what the buttons and clicks do ----------------------------------------------------
 
-    def guarded(self, action) -> None:
-        """Run a GUI action; a refusal (bad click, name, setting) becomes the status line."""
+    def guarded(self, action, status=None) -> None:
+        """Run a GUI action; a refusal (bad click, name, setting) becomes the status line (or
+        `status`, a line beside the control that was used)."""
+        from sagonline.core.outputs import OutputError
+
         try:
             action()
-        except (ValueError, RuntimeError) as exc:
-            self.status.content = f"**refused:** {exc}"
+        except (ValueError, RuntimeError, OutputError) as exc:
+            (status or self.status).content = f"**refused:** {panel_words(str(exc))}"
 
     def on_scene_click(self, event, positive: bool) -> None:
         if event.ray_origin is None or event.ray_direction is None:
@@ -242,7 +287,8 @@ class ViewerApp:
         self.guarded(lambda: self.click(event.ray_origin, event.ray_direction, positive))
 
     def click(self, origin, direction, positive: bool) -> None:
-        click = self.session.click_from_ray(origin, direction, positive)
+        # the first click lands on the selected view where that view sees the point
+        click = self.session.click_from_ray(origin, direction, positive, prefer=self.selected)
         n = len(self.session.clicks)
         marker = self.server.scene.add_icosphere(
             f"/clicks/{n:03d}", radius=self.click_radius, position=click.point,
@@ -290,11 +336,13 @@ class ViewerApp:
 
     def export(self) -> Path:
         out = Path(self.out_text.value)
-        self.status.content = f"exporting to {out} ..."
+        self.export_status.content = f"exporting to {out} ..."
         written = self.session.export(
             out, scene=self.scene, info=self.info, overwrite=self.overwrite.value
         )
-        self.status.content = f"exported to {written} (labels.json: `sagonline segment --prompts`)"
+        self.export_status.content = (
+            f"exported to {written} (labels.json: `sagonline segment --prompts`)"
+        )
         return written
 
     # --- from the session's worker ----------------------------------------------------------
@@ -303,8 +351,12 @@ class ViewerApp:
         """Recolour the splats by the current labels; move the progress line."""
         with self._draw_lock:
             a = self.arrays
-            rgbs = label_tint(a["rgbs"], labels, len(self.session.names))
+            show = str(self.show.value) if hasattr(self, "show") else SHOW[0]
+            rgbs, visible = label_tint(a["rgbs"], labels, len(self.session.names), show)
             self.splats.rgbs = rgbs
+            if not visible.all() or getattr(self, "_hidden", False):
+                self.splats.opacities = a["opacities"] * visible[:, None]
+                self._hidden = not visible.all()
             self.bar.value = 100.0 * progress.voted / max(len(self.session.cameras), 1)
             counts = ", ".join(
                 f"{name} {int((labels == k).sum())}"

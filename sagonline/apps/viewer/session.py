@@ -17,6 +17,7 @@ are `bench/bench_viewer.py`'s.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections.abc import Callable
@@ -165,7 +166,10 @@ class SegmentSession:
 
     @property
     def names(self) -> list[str]:
-        return ["background", *(o.name for o in self.objects)]
+        """The label names: background, then each object that has a click (an object made by
+        "New object" and not clicked yet has no label, so it neither numbers the labels nor
+        blocks an export)."""
+        return ["background", *(o.name for o in self.objects if o.points)]
 
     def new_object(self, name: str) -> None:
         """Start another object: the next positive clicks are its own."""
@@ -174,10 +178,11 @@ class SegmentSession:
         name = name.strip()
         if not name:
             raise PromptError("an object needs a name")
-        if name in self.names:
+        if name in ("background", *(o.name for o in self.objects)):
             raise PromptError(f"there is already an object named {name!r}")
         object_file_names([*self.names, name])  # a name that cannot have a file: refused now
         with self._lock:
+            self.objects = [o for o in self.objects if o.points]  # an unclicked one is replaced
             self.objects.append(ObjectClicks(name))
             self.current = name
 
@@ -223,13 +228,19 @@ class SegmentSession:
         return next(o for o in self.objects if o.name == self.current)
 
     def click_from_ray(
-        self, origin, direction, positive: bool = True, start: bool = True
+        self, origin, direction, positive: bool = True, start: bool = True, prefer=None
     ) -> ClickPoint:
         """A click in the 3D view (a ray from the viewer's camera) -> a click on a view: the
         front-most opaque Gaussian the ray passes through, projected into the session's view
-        (or, for the first click, into the view that looks at it most nearly along the ray)."""
+        (or, for the first click, into view `prefer` where it sees the point, else the view
+        that looks at it most nearly along the ray)."""
         point = pick_gaussian(self.gaussians, origin, direction)
         views = [self.view] if self.view is not None else range(len(self.cameras))
+        if self.view is None and prefer is not None:
+            # the selected view, where it sees the point; else the best of all views takes it
+            with contextlib.suppress(PromptError):
+                view_for_point(self.cameras, self.depths, point, direction, [prefer])
+                views = [prefer]
         view, x, y = view_for_point(self.cameras, self.depths, point, direction, views)
         return self.add_click(view, x, y, positive, point=point, start=start)
 
