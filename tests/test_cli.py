@@ -77,7 +77,9 @@ def test_one_view_numbering_for_every_command(tmp_path, capsys):
     folder, *_ = own_scene(tmp_path / "scene", views=12)
     ply, cams = str(folder / "point_cloud.ply"), str(folder / "transforms.json")
     assert main(["cameras", cams]) == 0
-    rows = [line.split() for line in capsys.readouterr().out.splitlines()[2:]]
+    listed = capsys.readouterr().out.splitlines()
+    assert "with --orbit N" in listed[-1] and "'r_0'" in listed[-1]  # which numbering holds
+    rows = [line.split() for line in listed[2:-1]]
     assert [r[:2] for r in rows[:5]] == [["0", "r_0"], ["1", "r_1"], ["2", "r_10"],
                                          ["3", "r_11"], ["4", "r_2"]]  # fmt: skip
     for view in ("2", "r_10", "r_2"):
