@@ -20,9 +20,9 @@ from sagonline.scene.trajectory import pseudo_temporal_order
 from sagonline.segment.prompts import ObjectPrompt, Prompt
 
 TRAINED_SCENE_HELP = (
-    "put the trained Gaussian scene at {dir}/gaussians/point_cloud.ply (2DGS or 3DGS layout; "
+    "put the trained Gaussian scene at {dir}/{folder}/point_cloud.ply (2DGS or 3DGS layout; "
     "a 3DGS output folder with point_cloud/iteration_*/point_cloud.ply also works), or fit one "
-    "with `make scenes`"
+    "with `make scenes{fit}`"
 )
 
 
@@ -64,8 +64,17 @@ def find_trained_scene(scene_dir: Path, dataset: str | None = None, variant: str
     raise DatasetError(
         f"no trained scene for {scene_dir.name}: expected "
         f"{scene_dir / fit_folder(variant) / 'point_cloud.ply'}; "
-        + TRAINED_SCENE_HELP.format(dir=scene_dir)
+        + TRAINED_SCENE_HELP.format(
+            dir=scene_dir, folder=fit_folder(variant), fit=fit_args(dataset, variant)
+        )
     )
+
+
+def fit_args(dataset: str | None, variant: str = "") -> str:
+    """What to add to `make scenes` to fit this dataset's scene in `variant`'s folder."""
+    seed = re.fullmatch(r"seed(\d+)", variant or "")
+    args = f"seed={seed.group(1)}" if seed else (f"variant={variant}" if variant else "")
+    return (f" DATASET={dataset}" if dataset else "") + (f" ARGS={args}" if args else "")
 
 
 def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -> dict | None:

@@ -482,6 +482,8 @@ def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
     assert find_trained_scene(scene, "cap", "seed2").parent.name == "gaussians-seed2"
     with pytest.raises(Exception, match="gaussians/point_cloud.ply"):
         find_trained_scene(scene, "cap")
+    with pytest.raises(Exception, match=r"at .*gaussians-seed1/point_cloud.ply .*ARGS=seed=1"):
+        find_trained_scene(scene, "cap", "seed1")  # the message names the draw's folder and fit
 
 
 def test_a_second_fit_into_the_same_folder_is_refused(tmp_path, monkeypatch):

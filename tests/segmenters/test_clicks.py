@@ -71,10 +71,10 @@ def test_more_clicks_keep_the_icing(donut, clicks, negatives):
     assert iou >= 0.9, (clicks, negatives, iou)
 
 
-@pytest.mark.slow
-def test_more_clicks_keep_the_icing_of_the_real_donut():
-    """The captured donut (one camera, orbited): truth is the icing's pink and blue sprinkles by
-    hue in a view 37.5 degrees from the prompt view, between two segmented views."""
+def donut_icing(views: int):
+    """The captured donut orbited by `views` views at 480x270 from its one camera, a view
+    37.5 degrees from the first, and the icing there (its pink and blue sprinkles by hue):
+    (gaussians, ring, unseen camera, truth (H, W) bool)."""
     import cv2
 
     from sagonline.render.api import render, to_uint8
@@ -86,7 +86,7 @@ def test_more_clicks_keep_the_icing_of_the_real_donut():
     g = read_scene(shared_data("donut_3dgs", "point_cloud.ply"))
     cam = load_cameras(shared_data("donut_3dgs", "transforms.json"))[0].scaled(480, 270)
     centre = g.means.median(0).values.numpy()
-    ring = ring_around(cam, centre, 24)
+    ring = ring_around(cam, centre, views)
     unseen = ring_around(ring_around(cam, centre, 48)[5], centre, 1)[0]
     out = render(g, unseen, backend="native")
     hsv = cv2.cvtColor(to_uint8(out.rgb), cv2.COLOR_RGB2HSV)
@@ -94,6 +94,14 @@ def test_more_clicks_keep_the_icing_of_the_real_donut():
     blue = (hsv[..., 0] >= 95) & (hsv[..., 0] <= 130) & (hsv[..., 1] > 60)
     closed = cv2.morphologyEx((pink | blue).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((7, 7)))
     truth = (closed > 0) & (out.alpha.reshape(closed.shape).numpy() > 0.5)
+    return g, ring, unseen, truth
+
+
+@pytest.mark.slow
+def test_more_clicks_keep_the_icing_of_the_real_donut():
+    """The captured donut (one camera, orbited): truth is the icing's pink and blue sprinkles by
+    hue in a view 37.5 degrees from the prompt view, between two segmented views."""
+    g, ring, unseen, truth = donut_icing(24)
     icing, dough = [(150, 60), (330, 50), (240, 40)], [(240, 135)]
     for positive, negative in [(icing[:1], []), (icing, []), (icing, dough)]:
         prompt = clicks_prompt(ring, 0, {"icing": positive}, {"icing": negative})

@@ -89,22 +89,10 @@ def test_the_icing_from_one_click_spreads_through_the_views():
     import torch
 
     from sagonline.pipeline.segment import clicks_prompt, segment_scene
-    from sagonline.render.api import render, render_labels, to_uint8
-    from sagonline.scene.io import read_scene
-    from sagonline.scene.io.cameras import load_cameras
-    from sagonline.scene.trajectory import ring_around
+    from sagonline.render.api import render_labels
+    from tests.segmenters.test_clicks import donut_icing
 
-    g = read_scene(DATA / "donut_3dgs" / "point_cloud.ply")
-    cam = load_cameras(DATA / "donut_3dgs" / "transforms.json")[0].scaled(480, 270)
-    centre = g.means.median(0).values.numpy()
-    ring = ring_around(cam, centre, 12)
-    unseen = ring_around(ring_around(cam, centre, 48)[5], centre, 1)[0]
-    out = render(g, unseen, backend="native")
-    hsv = cv2.cvtColor(to_uint8(out.rgb), cv2.COLOR_RGB2HSV)
-    pink = (hsv[..., 0] >= 135) & (hsv[..., 0] <= 178) & (hsv[..., 1] > 40)
-    blue = (hsv[..., 0] >= 95) & (hsv[..., 0] <= 130) & (hsv[..., 1] > 60)
-    closed = cv2.morphologyEx((pink | blue).astype(np.uint8), cv2.MORPH_CLOSE, np.ones((7, 7)))
-    truth = (closed > 0) & (out.alpha.reshape(closed.shape).numpy() > 0.5)
+    g, ring, unseen, truth = donut_icing(12)
     prompt = clicks_prompt(ring, 0, {"icing": [(150.0, 60.0)]})
     seg = segment_scene(g, ring, prompt, segmenter=segmenter(click_extent="colour"))
     labels = torch.from_numpy(seg.labels)
