@@ -95,7 +95,7 @@ def row(capture: str, real: dict | None, classical: dict | None, minisam: dict |
         "PSNR in mask": None if in_mask is None else round(in_mask, 2),
         "real masks, every 4th": pct((real or {}).get("miou")),
         "classical": pct((classical or {}).get("miou")),
-        "segmenter alone": pct((classical or {}).get("segmenter_miou")),
+        "classical alone": pct((classical or {}).get("segmenter_miou")),
         "minisam": pct((minisam or {}).get("miou")),
         "minisam alone": pct((minisam or {}).get("segmenter_miou")),
         "real: fit / vote / segmenter %": "/".join(str(share(real, g)) for g in
@@ -107,7 +107,7 @@ def row(capture: str, real: dict | None, classical: dict | None, minisam: dict |
 
 
 NUMERIC = ("PSNR held-out", "PSNR in mask", "real masks, every 4th", "classical",
-           "segmenter alone", "minisam", "minisam alone")  # fmt: skip
+           "classical alone", "minisam", "minisam alone")  # fmt: skip
 
 
 def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
@@ -168,7 +168,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "",
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
-        "  weight-free segmenter's masks, all voting; `segmenter alone`: its masks' own mIoU;",
+        "  weight-free segmenter's masks, all voting; `classical alone`: its masks' own mIoU;",
         "  `minisam`: the distilled SAM's (docs/segmenters.md), all voting, prompted from one",
         "  mask of the reference view.",
         "- with several fit seeds: mean over the fits (min-max, n fits); one fit is one draw.",
