@@ -299,3 +299,28 @@ def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):
     assert "\r" not in err
     assert "segmenting 12 views with classical ..." in err
     assert "segment and vote: 24 to do" in err and "label renders: 12 of 12 done in" in err
+
+
+def test_views_that_show_almost_nothing_are_named(monkeypatch):
+    """A camera file of another scene or an orbit framed on outliers renders views of almost
+    only background: they are named in one warning (segment went on without a word)."""
+    import warnings
+
+    from sagonline.apps.cli import main
+    from sagonline.pipeline.segment import sparse_views, warn_sparse_views
+    from sagonline.scene.trajectory import orbit_around
+
+    frames = [np.zeros((40, 50, 3), np.uint8) for _ in range(3)]
+    frames[0][5:35, 5:45] = 200  # 60% drawn
+    frames[1][0:2, 0:10] = 200  # 1% drawn
+    assert sparse_views(frames, (0.0, 0.0, 0.0)) == [1, 2]
+    assert sparse_views([np.full((4, 4, 3), 255, np.uint8)], (1.0, 1.0, 1.0)) == [0]
+    cams, _ = orbit_around(torch.randn(50, 3), 3, 50, 40)
+    with pytest.warns(UserWarning, match=r"2 of 3 views show almost nothing.*1 \('orbit_001'\)"):
+        warn_sparse_views(frames, cams, (0.0, 0.0, 0.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        warn_sparse_views(frames[:1], cams, (0.0, 0.0, 0.0))  # nothing to say: no warning
+    monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)  # restored after
+    main(["plugins", "segmenters", "--keys"])
+    assert warnings.formatwarning("a view", UserWarning, "x.py", 1) == "warning: a view\n"

@@ -19,6 +19,7 @@ settings reuses the frames and masks.
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -202,6 +203,7 @@ def segment_scene(
     steps.close()
     stage_one = engine.result()
     frames, seg, v = stage_one.frames.value, stage_one.masks.value, stage_one.vote.value
+    warn_sparse_views(frames.images, cameras, settings.background)
     k = stage_one.num_labels
     names = list(names or ["background"]) + [f"object_{i}" for i in range(len(names or [1]), k)]
     timings = {
@@ -214,6 +216,36 @@ def segment_scene(
     }
     return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
                         frames.images, seg.masks, timings, prompt.frame)  # fmt: skip
+
+
+SPARSE_VIEW = 0.02  # a view whose render covers less than this share of its pixels
+
+
+def sparse_views(
+    frames: list[np.ndarray],  # [H, W, 3] uint8 renders
+    background: tuple[float, float, float],  # the render background in [0, 1]
+) -> list[int]:
+    """The views whose render differs from the background on less than SPARSE_VIEW of its
+    pixels: they show almost nothing of the scene."""
+    bg = np.round(255 * np.asarray(background, np.float32)).astype(np.int16)
+    return [
+        i for i, f in enumerate(frames)
+        if (np.abs(f.astype(np.int16) - bg).max(axis=-1) > 2).mean() < SPARSE_VIEW
+    ]  # fmt: skip
+
+
+def warn_sparse_views(frames, cameras: list[Camera], background) -> None:
+    """Say which views show almost nothing (a camera file of another scene, an orbit framed on
+    outliers): their masks carry little, and an object segmented from them means little."""
+    sparse = sparse_views(frames, background)
+    if sparse:
+        shown = ", ".join(f"{i} ('{cameras[i].name}')" for i in sparse[:8])
+        more = f" and {len(sparse) - 8} more" if len(sparse) > 8 else ""
+        warnings.warn(
+            f"{len(sparse)} of {len(frames)} views show almost nothing of the scene (under "
+            f"{SPARSE_VIEW:.0%} of their pixels): {shown}{more}; check the cameras or the orbit",
+            stacklevel=3,
+        )
 
 
 def segmenter_run_of(segmenter: VideoSegmenter) -> SegmenterRun:

@@ -56,9 +56,15 @@ def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0: done, 2: a problem with the input, 1: an
     unexpected failure, 130: interrupted). SAGONLINE_DEBUG=1 shows the traceback of an
     unexpected failure."""
+    import warnings
+
     from sagonline.core.errors import DatasetError
     from sagonline.render.kernels import NativeBuildError
 
+    # the library's warnings are said as one line each, not with the source line that raised them
+    warnings.formatwarning = lambda message, category, *_, **__: (
+        f"warning: {message}\n" if issubclass(category, UserWarning) else f"{message}\n"
+    )
     try:
         args = build_parser().parse_args(joined_values(sys.argv[1:] if argv is None else argv))
         return args.func(args)
