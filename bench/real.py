@@ -63,6 +63,21 @@ def command(capture: str, source: str, seed: int = 0) -> list[str]:
             f"hydra.run.dir={folder(capture, source, seed)}"]  # fmt: skip
 
 
+def fitted(capture: str, seed: int) -> bool:
+    """Whether the capture has a fit of this seed where its evaluation looks for it (its data
+    folder, or scenes/<capture>/<capture>/ for data on a read-only disk)."""
+    from sagonline.core.errors import DatasetError
+    from sagonline.datasets.common import find_trained_scene
+
+    config = yaml.safe_load((ROOT / "conf" / "dataset" / f"{capture}.yaml").read_text()) or {}
+    root = ROOT / str(config.get("root", f"../shared/data/{capture}"))
+    try:
+        find_trained_scene(root, capture, f"seed{seed}" if seed else "")
+    except DatasetError:
+        return False
+    return True
+
+
 def run(capture: str, source: str, seed: int = 0) -> dict | None:
     """The evaluation's metrics (run now, or the finished run found in its folder)."""
     args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed)]
@@ -147,6 +162,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     for capture in names:
         per_seed, used = [], []
         for seed in seeds:
+            if seed and not fitted(capture, seed):
+                print(f"{capture}/seed {seed}: no fit (make scenes DATASET={capture} "
+                      f"ARGS=seed={seed}); left out", file=sys.stderr)  # fmt: skip
+                continue
             results = {source: run(capture, source, seed) for source in SOURCES}
             if not any(results.values()):
                 continue

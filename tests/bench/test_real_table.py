@@ -38,3 +38,13 @@ def test_seeds_that_are_not_integers_are_refused(capsys):
     with pytest.raises(SystemExit) as exc:
         real.main(["--seeds", "0,one", "--captures", "none"])
     assert exc.value.code == 2 and "--seeds '0,one'" in capsys.readouterr().err
+
+
+def test_a_seed_without_a_fit_is_left_out_before_anything_runs(tmp_path, monkeypatch):
+    (tmp_path / "conf" / "dataset").mkdir(parents=True)
+    (tmp_path / "conf" / "dataset" / "cap.yaml").write_text("root: data/cap\n")
+    fit = tmp_path / "data" / "cap" / "gaussians-seed3"
+    fit.mkdir(parents=True)
+    (fit / "point_cloud.ply").write_text("")
+    monkeypatch.setattr(real, "ROOT", tmp_path)
+    assert real.fitted("cap", 3) and not real.fitted("cap", 4)
