@@ -128,6 +128,7 @@ class ViewerApp:
         self.host = host
         self.selected = session.view or 0
         self.updates = 0  # recolours sent (the browser test waits on it)
+        self.hidden = False  # whether the splats' opacities hide the surroundings now
         self.click_markers: list = []
         self._draw_lock = threading.Lock()
         self.arrays = splat_arrays(session.gaussians)
@@ -351,12 +352,12 @@ class ViewerApp:
         """Recolour the splats by the current labels; move the progress line."""
         with self._draw_lock:
             a = self.arrays
-            show = str(self.show.value) if hasattr(self, "show") else SHOW[0]
+            show = str(self.show.value)
             rgbs, visible = label_tint(a["rgbs"], labels, len(self.session.names), show)
             self.splats.rgbs = rgbs
-            if not visible.all() or getattr(self, "_hidden", False):
+            if not visible.all() or self.hidden:
                 self.splats.opacities = a["opacities"] * visible[:, None]
-                self._hidden = not visible.all()
+                self.hidden = not visible.all()
             self.bar.value = 100.0 * progress.voted / max(len(self.session.cameras), 1)
             counts = ", ".join(
                 f"{name} {int((labels == k).sum())}"
