@@ -2,7 +2,7 @@
 # One command for a GPU machine: the CUDA tests, the default evaluation, the render/vote
 # benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
 #
-#   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick]
+#   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -14,6 +14,9 @@
 # with the GPU's name) and OUT/gpu_check.md (what ran, how long, pass or fail). --quick: tiny
 # scenes and sweeps (the tests run it on the CPU with --device cpu, so the script cannot rot
 # unseen). Every step runs even when one before it failed; the exit code says whether all passed.
+# --step-timeout S stops a step after S seconds (it is then a failure, exit 124), so a machine
+# lent for minutes still reaches the later steps. The steps run most-wanted first: the CUDA
+# tests, the default evaluation, the mask-count table, the benchmark, the timing table.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -21,12 +24,14 @@ ROOT=$PWD
 DEVICE=cuda
 OUT=reports
 QUICK=0
+STEP_TIMEOUT=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --device) DEVICE=$2; shift 2 ;;
     --out) OUT=$2; shift 2 ;;
     --quick) QUICK=1; shift ;;
-    -h|--help) sed -n '2,17p' "$0"; exit 0 ;;
+    --step-timeout) STEP_TIMEOUT=$2; shift 2 ;;
+    -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -52,11 +57,16 @@ step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fa
   local start end status
   echo "== $name: $*"
   start=$(date +%s)
-  "$@" >"$log" 2>&1
+  if [ "$STEP_TIMEOUT" -gt 0 ]; then timeout "$STEP_TIMEOUT" "$@" >"$log" 2>&1
+  else "$@" >"$log" 2>&1
+  fi
   status=$?
   end=$(date +%s)
   tail -n 25 "$log"
   if [ $status -eq 0 ]; then rows+=("| $name | pass | $((end - start)) s |")
+  elif [ $status -eq 124 ] && [ "$STEP_TIMEOUT" -gt 0 ]; then
+    rows+=("| $name | FAIL (stopped at --step-timeout $STEP_TIMEOUT s; log $log) | $((end - start)) s |")
+    failed=1
   else rows+=("| $name | FAIL (exit $status; log $log) | $((end - start)) s |"); failed=1
   fi
   echo "== $name: exit $status in $((end - start)) s"
@@ -96,7 +106,7 @@ else
   # the paper's Table III votes 206 masks: the 960x540 scene with 206 trajectory views
   MASKS_DATA=(dataset=synthetic_360_hd dataset.adapter.cluttered_360.num_train_views=206)
   MASK_COUNTS=1,3,6,12,25,50,100,206
-  RENDER_ARGS=()
+  RENDER_ARGS=(--no-reference-aggregate)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
@@ -106,16 +116,16 @@ step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[
   -o cache_dir="$WORK/pytest_cache"
 step "eval (make eval)" "$PY" -m bench.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
   cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
+step "table-masks" "$PY" -m bench.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
+  segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
+  hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
+step "table-masks (build)" "$PY" -m bench.tables masks "$WORK/multirun/masks_$TAG/$STAMP" \
+  --out "$OUT" --tag "$TAG"
 step "bench_render" "$PY" bench/bench_render.py --devices "$DEVICE" "${RENDER_ARGS[@]}" \
   --out "$OUT/bench_render_$TAG.csv"
 step "table-timing" "$PY" -m bench.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
   refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
 step "table-timing (build)" "$PY" -m bench.tables timing "$WORK/multirun/timing_$TAG/$STAMP" \
-  --out "$OUT" --tag "$TAG"
-step "table-masks" "$PY" -m bench.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
-  segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
-  hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
-step "table-masks (build)" "$PY" -m bench.tables masks "$WORK/multirun/masks_$TAG/$STAMP" \
   --out "$OUT" --tag "$TAG"
 
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)

@@ -29,14 +29,25 @@ def render(
             f"render(): unknown option(s) {unknown}; the options are {sorted(RENDER_OPTIONS)}"
         )
     chosen = resolve_backend(backend, gaussians.device)
-    if chosen == "native" and options.get("trace") is not None:
+    if chosen in ("native", "triton") and options.get("trace") is not None:
         chosen = "torch"
+    if chosen == "triton" and _needs_grad(gaussians, options.get("features")):
+        chosen = "torch"  # the Triton walk has no backward pass
     fn = _backend_function(chosen)
     accepted = inspect.signature(fn).parameters
     cannot = sorted(k for k, v in options.items() if k not in accepted and v not in (None, False))
     if cannot:
         raise ValueError(f"renderer {chosen} cannot honour {cannot}; use backend='torch'")
     return fn(gaussians, camera, **{k: v for k, v in options.items() if k in accepted})
+
+
+def _needs_grad(gaussians: Gaussians, features: torch.Tensor | None) -> bool:
+    """Whether a render would be differentiated: grad mode on and a parameter requiring it."""
+    if not torch.is_grad_enabled():
+        return False
+    tensors = [gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
+               gaussians.sh, features]  # fmt: skip
+    return any(t is not None and t.requires_grad for t in tensors)
 
 
 def _backend_function(name: str):
@@ -48,6 +59,10 @@ def _backend_function(name: str):
         from sagonline.render.native import rasterize_native
 
         return rasterize_native
+    if name == "triton":
+        from sagonline.render.triton_composite import rasterize_triton
+
+        return rasterize_triton
     return rasterize
 
 
@@ -105,7 +120,7 @@ def _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend):
             gaussians, camera, splat_labels, num_labels, with_weights=mode == "onehot"
         )
     if chosen == "triton":
-        from sagonline.render.triton_vote import label_weights_triton
+        from sagonline.render.triton_composite import label_weights_triton
 
         return label_weights_triton(gaussians, camera, splat_labels, num_labels)
     if mode == "ids":  # gsplat keeps no per-pixel argmax: the tiled PyTorch path

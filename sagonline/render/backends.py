@@ -1,14 +1,17 @@
 """Which implementation renders and which votes, for a backend name and a device.
 
 Image renderers: torch (the readable twin, CPU or CUDA), native (the compiled CPU kernel),
-gsplat (CUDA). The vote and the label renders have one more, triton (the fused walk, CUDA; its
-interpreter runs it on the CPU when asked for by name). 'auto' takes the fastest one the
-device has, for images and for the vote each on its own:
+gsplat (CUDA) and triton (the fused walk's composite, CUDA, no gradients; its interpreter runs
+it on the CPU when asked for by name). The vote and the label renders have the same four.
+'auto' takes the fastest one the device has, for images and for the vote each on its own:
 
-| device | images (auto)            | vote and label renders (auto)     |
-|--------|--------------------------|-----------------------------------|
-| cpu    | native, else torch       | native, else torch                |
-| cuda   | gsplat, else torch       | triton, else gsplat, else torch   |
+| device | images (auto)                     | vote and label renders (auto)     |
+|--------|-----------------------------------|-----------------------------------|
+| cpu    | native, else torch                | native, else torch                |
+| cuda   | gsplat, else triton, else torch   | triton, else gsplat, else torch   |
+
+A render that needs gradients (the fit) never runs on triton: `render.api.render` takes the
+PyTorch twin instead.
 
 What is installed is asked through an `Installed` (`installed()` probes this machine, lazily:
 the compiled kernel is built only when the CPU resolution needs it), so every branch,
@@ -26,7 +29,7 @@ from pathlib import Path
 
 import torch
 
-BACKENDS = ("torch", "native", "gsplat", "auto")
+BACKENDS = ("torch", "native", "gsplat", "triton", "auto")
 VOTE_BACKENDS = ("torch", "native", "triton", "gsplat", "auto")
 DEVICES = ("cpu", "cuda", "cuda:N", "auto")
 
@@ -113,12 +116,15 @@ def resolve_backend(backend: str, device: torch.device | str, have: Installed | 
             f"renderer backend 'native' is the compiled CPU kernel (device {device}); on CUDA "
             "use auto, gsplat or torch"
         )
-    if backend == "gsplat" and not have.has("gsplat"):
-        raise BackendError(f"renderer backend 'gsplat' is not installed: {EXTRA['gsplat']}")
+    if backend in ("gsplat", "triton") and not have.has(backend):
+        raise BackendError(f"renderer backend {backend!r} is not installed: {EXTRA[backend]}")
     if backend != "auto":
         return backend
     if on_cuda:
-        return "gsplat" if have.has("gsplat") else "torch"
+        for fast in ("gsplat", "triton"):
+            if have.has(fast):
+                return fast
+        return "torch"
     return "native" if have.has("native") else "torch"
 
 
@@ -182,9 +188,9 @@ def plan_backends(
 _HERE = Path(__file__).parent
 _SOURCES = {
     "torch": ("_torch_impl.py", "rasterize.py", "projection.py", "sh.py"),
-    "native": ("native.py", "projection.py", "csrc/raster_cpu.cpp", "csrc/vote_cpu.cpp",
-               "csrc/splat_common.h"),
-    "triton": ("triton_vote.py", "projection.py", "rasterize.py"),
+    "native": ("native.py", "projection.py", "rasterize.py", "csrc/raster_cpu.cpp",
+               "csrc/vote_cpu.cpp", "csrc/splat_common.h"),
+    "triton": ("triton_vote.py", "triton_composite.py", "projection.py", "rasterize.py"),
     "gsplat": ("gsplat_backend.py", "_torch_impl.py", "projection.py", "rasterize.py", "sh.py"),
 }  # fmt: skip
 

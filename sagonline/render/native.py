@@ -25,7 +25,7 @@ import torch
 
 from sagonline.render.kernels import NativeBuildError, load_extension
 from sagonline.render.projection import project
-from sagonline.render.rasterize import T_STOP, RenderOutput
+from sagonline.render.rasterize import T_STOP, RenderOutput, image_output
 from sagonline.render.rule import VoteRule
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -132,14 +132,8 @@ def rasterize_native(
         tile_size,
         float(t_stop),
     )
-    bg = torch.zeros(3) if background is None else background.to(feat.dtype)
-    return RenderOutput(
-        rgb=feat[..., :3] + final_T[..., None] * bg,
-        alpha=1.0 - final_T,
-        depth=depth,
-        features=feat[..., 3:] if features is not None else None,
-        ids=_gaussian_ids(best, proj.ids) if return_ids else None,
-    )
+    ids = _gaussian_ids(best, proj.ids) if return_ids else None
+    return image_output(feat, final_T, depth, background, features is not None, ids)
 
 
 def _gaussian_ids(best: torch.Tensor, ids: torch.Tensor) -> torch.Tensor:

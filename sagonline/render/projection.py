@@ -177,6 +177,40 @@ def _project_surfels(g, rot, R, p_cam, K):
     return valid, means2d, bbox, M
 
 
+def reach_boxes(
+    proj: ProjectedSplats,
+) -> torch.Tensor:  # [M, 4] xmin, xmax, ymin, ymax
+    """(M, 4) boxes bounding where each splat's alpha reaches 1/255: the 3-sigma boxes shrunk
+    to the Mahalanobis radius^2 min(9, 2 ln(255 opacity) + 2e-3) (the compiled CPU kernel's
+    boxes; the margin keeps float rounding at the edge inside). A faint splat is then listed
+    only in the tiles it can change: the same images and votes from fewer splat-tile pairs."""
+    r2 = (2.0 * torch.log(proj.opacities / ALPHA_MIN) + 2e-3).clamp(max=SIGMA_CUTOFF**2)
+    if proj.kind == "3dgs":
+        scale = (r2 / SIGMA_CUTOFF**2).sqrt()
+        half_x = 0.5 * (proj.bbox[:, 1] - proj.bbox[:, 0]) * scale
+        half_y = 0.5 * (proj.bbox[:, 3] - proj.bbox[:, 2]) * scale
+        mx, my = proj.means2d[:, 0], proj.means2d[:, 1]
+        return torch.stack([mx - half_x, mx + half_x, my - half_y, my + half_y], dim=1)
+    M = proj.transforms
+    q = torch.stack([r2, r2, -torch.ones_like(r2)], dim=1)
+    D = (M * q[:, None, :]) @ M.transpose(1, 2)
+    d22 = D[:, 2, 2]  # < 0: it was with radius 3, and a smaller disc keeps it so
+    cx, cy = D[:, 0, 2] / d22, D[:, 1, 2] / d22
+    hx = ((D[:, 0, 2] ** 2 - D[:, 0, 0] * d22).clamp_min(0)).sqrt() / d22.abs()
+    hy = ((D[:, 1, 2] ** 2 - D[:, 1, 1] * d22).clamp_min(0)).sqrt() / d22.abs()
+    r_filter = (r2 / SURFEL_FILTER_INV_SQ).sqrt()
+    mx, my = proj.means2d[:, 0], proj.means2d[:, 1]
+    return torch.stack(
+        [
+            torch.minimum(cx - hx, mx - r_filter),
+            torch.maximum(cx + hx, mx + r_filter),
+            torch.minimum(cy - hy, my - r_filter),
+            torch.maximum(cy + hy, my + r_filter),
+        ],
+        dim=1,
+    )
+
+
 def splat_response(
     kind: str,
     params: torch.Tensor,  # [..., B, P] packed splats

@@ -98,6 +98,26 @@ class RenderOutput:
     ids: torch.Tensor | None = None
 
 
+def image_output(
+    feat: torch.Tensor,  # [H, W, 3 + F] composited colour, then features
+    final_T: torch.Tensor,  # [H, W]
+    depth: torch.Tensor,  # [H, W]
+    background: torch.Tensor | None,  # [3]
+    with_features: bool,
+    ids: torch.Tensor | None,  # [H, W]
+) -> RenderOutput:
+    """A compiled walk's buffers as `rasterize` returns them: colour over the background
+    (black by default), alpha = 1 - T, the features after the colour where asked for."""
+    bg = torch.zeros(3, device=feat.device) if background is None else background.to(feat)
+    return RenderOutput(
+        rgb=feat[..., :3] + final_T[..., None] * bg,
+        alpha=1.0 - final_T,
+        depth=depth,
+        features=feat[..., 3:] if with_features else None,
+        ids=ids,
+    )
+
+
 @dataclass
 class RasterStats:
     """Work counters of the last call: splat-tile intersections and Gaussian-pixel evaluations."""

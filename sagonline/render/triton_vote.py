@@ -1,14 +1,17 @@
 """The fused GPU walk in Triton: trace-and-vote, and the label renders, one launch per view.
 
 One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sorted splats once
-(the tile lists of `rasterize.bin_tiles`), keeping T for its 256 pixels, and does one of:
+(the tile lists of `rasterize.bin_tiles`, over the boxes where alpha can reach 1/255:
+`projection.reach_boxes`), keeping T for its 256 pixels, and does one of:
 - the vote: a splat votes at the pixels where T_i > eps, alpha_i > 0 and (with a distance
   rule) its projected centre lies within delta px; the tile's votes are summed per label
-  first, so a splat costs one masked atomic add of K values per tile, not one atomic per pixel.
-  The walk ends once every pixel's T <= eps.
-- the label renders: the one-hot label composite and the most visible Gaussian per pixel, by
-  the compositing rules of `rasterize` (a pixel ends at the splat that would take T under
-  t_stop).
+  first, so a splat costs one masked atomic add of K values per tile, not one atomic per pixel,
+  and none at all when its centre is farther than delta from every pixel of the tile. The walk
+  ends once every pixel's T <= eps.
+- the composite: per-splat feature rows (one-hot labels, or colours) composited by the rules of
+  `rasterize` (a pixel ends at the splat that would take T under t_stop), the most visible
+  Gaussian per pixel and, for images, the depth and the final T: the label renders and the
+  image renderer of a CUDA machine without gsplat (`triton_composite.py`; no gradients).
 
 Alpha is `projection.splat_response`'s (3DGS conics, 2DGS ray-splat intersection). The kernel
 is compiled by `triton.jit` for CUDA tensors at run time (no CUDA toolkit needed) or, in a
@@ -22,6 +25,7 @@ from __future__ import annotations
 import math
 import os
 import sys
+from dataclasses import replace
 
 import torch
 
@@ -33,8 +37,8 @@ if not torch.cuda.is_available() and "triton" not in sys.modules:
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
 
-from sagonline.render.projection import project  # noqa: E402
-from sagonline.render.rasterize import T_STOP, bin_tiles  # noqa: E402
+from sagonline.render.projection import project, reach_boxes  # noqa: E402
+from sagonline.render.rasterize import bin_tiles  # noqa: E402
 from sagonline.render.rule import VoteRule  # noqa: E402
 from sagonline.scene.cameras import Camera  # noqa: E402
 from sagonline.scene.gaussians import Gaussians  # noqa: E402
@@ -61,9 +65,11 @@ def _walk_kernel(
     counts_ptr,
     ids_ptr,
     pixel_labels_ptr,
-    splat_labels_ptr,
+    rows_ptr,
     out_ptr,
     best_ptr,
+    depth_ptr,
+    trans_ptr,
     cast_ptr,
     width,
     height,
@@ -72,34 +78,41 @@ def _walk_kernel(
     eps,
     delta,
     t_stop,
-    LABELS: tl.constexpr,
+    COMPOSITE: tl.constexpr,
+    IMAGE: tl.constexpr,
     SURFEL: tl.constexpr,
     WEIGHTED: tl.constexpr,
     USE_DISTANCE: tl.constexpr,
     TILE: tl.constexpr,
     KP: tl.constexpr,
     NP: tl.constexpr,
+    CHECK_EVERY: tl.constexpr,
 ):
-    """One tile's walk. LABELS=False, the vote: pixel_labels (H*W,) -> out (N, K) float64
-    histogram, and the tile's count of pairs that voted into cast (tiles,). LABELS=True, the
-    label renders: splat_labels (M,) (-1: none) -> out (H*W, KP) one-hot weights, best (H*W,)
-    the most visible Gaussian, each pixel ending at t_stop (the vote ends at eps, and counts
-    within delta px where USE_DISTANCE). Reductions go through tl.reduce with Triton's own
-    combine functions (its interpreter runs them as numpy reductions).
+    """One tile's walk. COMPOSITE=False, the vote: pixel_labels (H*W,) -> out (N, K) float64
+    histogram, and the tile's count of pairs that voted into cast (tiles,). COMPOSITE=True:
+    rows (M, KP) per-splat features -> out (H*W, KP) their composite, best (H*W,) the most
+    visible Gaussian and, with IMAGE, depth (H*W,) the weighted depth and trans (H*W,) the final
+    T, each pixel ending at t_stop (the vote ends at eps, and counts within delta px where
+    USE_DISTANCE). Whether any pixel is still live is asked every CHECK_EVERY splats (a block
+    reduction; dead pixels do no work meanwhile). Reductions go through tl.reduce with Triton's
+    own combine functions (its interpreter runs them as numpy reductions).
 
     Why one function: a Triton kernel's helpers are separate device functions, and both the
     fused walk's speed on a GPU and its interpreter's speed in CI depend on the per-splat body
     (alpha, compositing or vote) being one straight block the compiler sees whole."""
     tile = tl.program_id(0)
     q = tl.arange(0, TILE * TILE)
-    x = (tile % tiles_x) * TILE + q % TILE
-    y = (tile // tiles_x) * TILE + q // TILE
+    x0 = (tile % tiles_x) * TILE
+    y0 = (tile // tiles_x) * TILE
+    x = x0 + q % TILE
+    y = y0 + q // TILE
     inside = (x < width) & (y < height)
     px = x.to(tl.float32) + 0.5
     py = y.to(tl.float32) + 0.5
     kk = tl.arange(0, KP)
-    if LABELS:
+    if COMPOSITE:
         feat = tl.zeros((TILE * TILE, KP), tl.float32)
+        dacc = tl.zeros((TILE * TILE,), tl.float32)
         best_w = tl.zeros((TILE * TILE,), tl.float32)
         best = tl.full((TILE * TILE,), -1, tl.int64)
         live = inside
@@ -147,6 +160,7 @@ def _walk_kernel(
             power = -0.5 * rho
             reach = (rho <= 9.0) & (depth > 1e-2)
         else:  # 3DGS: EWA conic
+            depth = tl.load(base + 3)
             a = tl.load(base + 4)
             b = tl.load(base + 5)
             c = tl.load(base + 6)
@@ -156,11 +170,12 @@ def _walk_kernel(
         alpha = tl.where(reach & (alpha >= 0.00392156862745098), alpha, 0.0)  # ALPHA_MIN, 1/255
         hit = live & (alpha > 0)
         after = T * (1.0 - alpha)
-        if LABELS:  # rasterize's rule: a pixel ends at the splat that would take T under t_stop
+        if COMPOSITE:  # rasterize's rule: a pixel ends at the splat that would take T under t_stop
             kept = hit & (after >= t_stop)
             w = tl.where(kept, alpha * T, 0.0)
-            splat_label = tl.load(splat_labels_ptr + s)
-            feat += w[:, None] * (kk[None, :] == splat_label).to(tl.float32)
+            feat += w[:, None] * tl.load(rows_ptr + s * KP + kk)[None, :]
+            if IMAGE:
+                dacc += w * depth
             better = w > best_w
             best_w = tl.where(better, w, best_w)
             best = tl.where(better, tl.load(ids_ptr + s), best)
@@ -175,40 +190,52 @@ def _walk_kernel(
             else:
                 w = vote.to(tl.float32)
             cast += vote.to(tl.int32)
-            per_label = tl.reduce(w[:, None] * onehot, 0, tl.standard._sum_combine)
-            tl.atomic_add(
-                out_ptr + tl.load(ids_ptr + s) * num_labels + kk,
-                per_label.to(tl.float64),
-                mask=(kk < num_labels) & (per_label > 0),
-            )
+            near = True
+            if USE_DISTANCE:  # no pixel centre of the tile within delta: nothing to add
+                mx = tl.load(base)
+                my = tl.load(base + 1)
+                near = (mx > x0 + 0.5 - delta) & (mx < x0 + TILE - 0.5 + delta)
+                near = near & (my > y0 + 0.5 - delta) & (my < y0 + TILE - 0.5 + delta)
+            if near:
+                per_label = tl.reduce(w[:, None] * onehot, 0, tl.standard._sum_combine)
+                tl.atomic_add(
+                    out_ptr + tl.load(ids_ptr + s) * num_labels + kk,
+                    per_label.to(tl.float64),
+                    mask=(kk < num_labels) & (per_label > 0),
+                )
             T = tl.where(hit, after, T)
             live = live & (eps < T)
-        alive = tl.reduce(live.to(tl.int32), 0, tl.standard._elementwise_max) > 0
         j += 1
-    if LABELS:
+        if j % CHECK_EVERY == 0:
+            alive = tl.reduce(live.to(tl.int32), 0, tl.standard._elementwise_max) > 0
+    if COMPOSITE:
         pixel = y * width + x
         tl.store(out_ptr + pixel[:, None] * KP + kk[None, :], feat, mask=inside[:, None])
         tl.store(best_ptr + pixel, best, mask=inside)
+        if IMAGE:
+            tl.store(depth_ptr + pixel, dacc, mask=inside)
+            tl.store(trans_ptr + pixel, T, mask=inside)
     else:
         tl.store(cast_ptr + tile, tl.reduce(cast.to(tl.int64), 0, tl.standard._sum_combine))
 
 
-def _launch(
-    gaussians: Gaussians,
-    camera: Camera,
-    *,
-    labels_mode: bool,
-    num_labels: int,
-    pixel_labels=None,
-    splat_labels=None,
-    out=None,
-    best=None,
-    rule: VoteRule | None = None,
-    t_stop: float = T_STOP,
-) -> int:
-    """Project, bin 16x16 tiles (torch, on the Gaussians' device) and run the walk; returns
-    the pairs that voted (0 for the label renders)."""
-    device = gaussians.device
+# Splats walked between two checks of whether any pixel of the tile is still live.
+CHECK_EVERY = 8
+
+
+def project_and_bin(gaussians: Gaussians, camera: Camera, near: float, with_colors: bool):
+    """Project (no grad) and bin 16x16 tiles over the boxes where alpha can reach 1/255;
+    (proj, order, offsets, counts, tiles_x, tiles_y), proj None when nothing is on screen."""
+    proj = project(gaussians, camera, near=near, with_colors=with_colors)
+    tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
+    if len(proj) == 0:
+        return None, None, None, None, tiles_x, tiles_y
+    proj = replace(proj, bbox=reach_boxes(proj))
+    _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
+    return proj, order, offsets, counts, tiles_x, tiles_y
+
+
+def check_device(device: torch.device) -> None:
     if (device.type == "cuda") == INTERPRET:
         mode = "Triton's interpreter (CPU tensors)" if INTERPRET else "CUDA (CUDA tensors)"
         raise ValueError(
@@ -216,42 +243,6 @@ def _launch(
             f"{device} tensors (without CUDA, import sagonline.render.triton_vote before "
             f"anything else imports triton, or set TRITON_INTERPRET=1)"
         )
-    with torch.no_grad():
-        proj = project(gaussians, camera, with_colors=False)
-        if len(proj) == 0:
-            return 0
-        tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
-        _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
-        params = proj.params().float().contiguous()
-        unused = proj.ids
-        cast = torch.zeros(tiles_x * tiles_y, dtype=torch.int64, device=device)
-        _walk_kernel[(tiles_x * tiles_y,)](
-            params,
-            order,
-            offsets,
-            counts,
-            proj.ids,
-            unused if pixel_labels is None else pixel_labels.to(torch.int32).contiguous(),
-            unused if splat_labels is None else splat_labels[proj.ids].to(torch.int32),
-            out,
-            unused if best is None else best,
-            cast,
-            camera.width,
-            camera.height,
-            tiles_x,
-            num_labels,
-            float(rule.eps) if rule is not None else 1.0,
-            float(rule.delta) if rule is not None and rule.delta is not None else 0.0,
-            float(t_stop),
-            LABELS=labels_mode,
-            SURFEL=proj.kind == "2dgs",
-            WEIGHTED=rule is not None and rule.weighting == "blend",
-            USE_DISTANCE=rule is not None and rule.delta is not None,
-            TILE=TILE,
-            KP=max(2, triton.next_power_of_2(num_labels)),
-            NP=params.shape[1],
-        )
-        return 0 if labels_mode else int(cast.sum())
 
 
 def vote_into(
@@ -260,43 +251,50 @@ def vote_into(
     labels: torch.Tensor,  # [H, W] long, the view's mask
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
+    *,
+    check_every: int = CHECK_EVERY,
 ) -> int:
     """The op `render.vote.vote_into` as one fused Triton walk: one view's votes under `rule`
     added into hist; returns the pairs that voted."""
-    return _launch(
-        gaussians,
-        camera,
-        labels_mode=False,
-        num_labels=hist.shape[1],
-        pixel_labels=labels,
-        out=hist,
-        rule=rule,
-    )
-
-
-def label_weights_triton(
-    gaussians: Gaussians,
-    camera: Camera,
-    splat_labels: torch.Tensor,  # [N] long, -1 none
-    num_labels: int,
-    *,
-    t_stop: float = T_STOP,
-) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W, K] weights, [H, W] ids
-    """The label renders' walk: (H, W, K) composited one-hot weights of the Gaussians whose
-    label (splat_labels (N,), -1: none) is >= 0, and (H, W) the most visible Gaussian (-1:
-    none)."""
-    H, W = camera.height, camera.width
-    kp = max(2, triton.next_power_of_2(num_labels))
-    weights = torch.zeros(H * W, kp, device=gaussians.device)
-    best = torch.full((H * W,), -1, dtype=torch.int64, device=gaussians.device)
-    _launch(
-        gaussians,
-        camera,
-        labels_mode=True,
-        num_labels=num_labels,
-        splat_labels=splat_labels,
-        out=weights,
-        best=best,
-        t_stop=t_stop,
-    )
-    return weights[:, :num_labels].view(H, W, num_labels), best.view(H, W)
+    check_device(gaussians.device)
+    with torch.no_grad():
+        proj, order, offsets, counts, tiles_x, tiles_y = project_and_bin(
+            gaussians, camera, 0.01, with_colors=False
+        )
+        if proj is None:
+            return 0
+        params = proj.params().float().contiguous()
+        num_labels = hist.shape[1]
+        cast = torch.zeros(tiles_x * tiles_y, dtype=torch.int64, device=params.device)
+        unused = proj.ids
+        _walk_kernel[(tiles_x * tiles_y,)](
+            params,
+            order,
+            offsets,
+            counts,
+            proj.ids,
+            labels.to(torch.int32).contiguous(),
+            params,
+            hist,
+            unused,
+            params,
+            params,
+            cast,
+            camera.width,
+            camera.height,
+            tiles_x,
+            num_labels,
+            float(rule.eps),
+            float(rule.delta) if rule.delta is not None else 0.0,
+            0.0,
+            COMPOSITE=False,
+            IMAGE=False,
+            SURFEL=proj.kind == "2dgs",
+            WEIGHTED=rule.weighting == "blend",
+            USE_DISTANCE=rule.delta is not None,
+            TILE=TILE,
+            KP=max(2, triton.next_power_of_2(num_labels)),
+            NP=params.shape[1],
+            CHECK_EVERY=check_every,
+        )
+        return int(cast.sum())

@@ -38,7 +38,7 @@ def test_bench_render_quick_writes_its_table(tmp_path):
 def test_bench_render_rows_on_cuda_follow_what_is_installed():
     cuda = dict(cuda=True, native=False)
     assert backends("cuda", Installed(**cuda, gsplat=False, triton=True)) == [
-        ("torch", "torch"), ("triton", "torch")
+        ("torch", "torch"), ("triton", "triton")
     ]  # fmt: skip
     assert [b for b, _ in backends("cuda", Installed(**cuda, gsplat=True, triton=True))] == [
         "torch", "gsplat", "triton"

@@ -27,7 +27,8 @@ def have(**changes) -> Installed:
     ("what", "images", "vote"),
     [
         ({}, "gsplat", "triton"),
-        ({"gsplat": False}, "torch", "triton"),  # the H100 without gsplat: the fused kernel votes
+        # the H100 without gsplat: the fused walk votes and renders the images
+        ({"gsplat": False}, "triton", "triton"),
         ({"triton": False}, "gsplat", "gsplat"),
         ({"gsplat": False, "triton": False}, "torch", "torch"),
     ],
@@ -61,7 +62,8 @@ def test_auto_device_picks_the_gpu_only_when_there_is_one():
         (lambda h: resolve_vote_backend("gsplat", "cpu", h), "CUDA only"),
         (lambda h: resolve_vote_backend("native", "cuda:0", h), "CPU kernel"),
         (lambda h: resolve_vote_backend("fast", "cpu", h), "not one of"),
-        (lambda h: resolve_backend("triton", "cuda", h), "not one of"),
+        (lambda h: resolve_backend("triton", "cuda", have(triton=False)), ".[triton]"),
+        (lambda h: resolve_backend("fast", "cuda", h), "not one of"),
     ],
 )
 def test_a_backend_that_cannot_run_is_refused_naming_what_to_do(call, words):

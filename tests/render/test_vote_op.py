@@ -208,6 +208,52 @@ def test_label_walks_match_the_rasterizer(kind, backend):
     assert torch.equal(ids, ref.ids)
 
 
+def _check_image_walk(g, cam) -> None:
+    """The Triton composite as an image renderer against `rasterize`: colour over a
+    background, alpha, weighted depth, features beside colour, the most visible Gaussian."""
+    from sagonline.render.triton_composite import rasterize_triton
+
+    features = torch.rand(len(g), 2, generator=torch.Generator().manual_seed(3)).to(g.device)
+    background = torch.tensor([0.2, 0.5, 0.9], device=g.device)
+    ref = rasterize(g, cam, background=background, features=features, return_ids=True)
+    got = rasterize_triton(g, cam, background=background, features=features, return_ids=True)
+    assert float(ref.alpha.max()) > 0.5  # there was something to match
+    for name in ("rgb", "alpha", "depth", "features"):
+        a, b = getattr(got, name), getattr(ref, name)
+        off = ~torch.isclose(a, b, rtol=1e-4, atol=2e-5)
+        # A compiled walk rounds differently (fused multiply-adds, another exp): a pixel where
+        # a splat sits at a threshold (the 3-sigma cutoff, alpha >= 1/255, the t_stop end) may
+        # take or drop it, which moves that pixel by at most the splat's alpha there: <= 0.99
+        # exp(-4.5) = 0.011 of its colour (the H100 moved 2 of 230,400 values by 1.2e-4). So a
+        # few values may be off, and only by that much; a wrong walk moves most of them.
+        assert off.float().mean() < 1e-3, f"{name}: {int(off.sum())} of {off.numel()} off"
+        scale = 1.0 if name != "depth" else float(b.abs().max())
+        assert float((a - b).abs().max()) <= 0.02 * scale, name
+    assert (got.ids != ref.ids).float().mean() < 1e-3  # ties of equal weight may differ
+
+
+@needs_triton
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_triton_image_walk_matches_the_rasterizer(kind):
+    _check_image_walk(random_gaussians(40, kind, seed=4, spread=0.6), small_camera(20, 15))
+
+
+@needs_triton
+def test_a_render_that_needs_gradients_never_takes_the_triton_walk():
+    from sagonline.render import render
+
+    g = random_gaussians(30, "3dgs", seed=5, spread=0.6)
+    cam = small_camera(12, 9)
+    g.opacities.requires_grad_(True)
+    out = render(g, cam, backend="triton")
+    out.rgb.sum().backward()  # the PyTorch twin rendered it: there is a backward pass
+    assert g.opacities.grad is not None and g.opacities.grad.abs().sum() > 0
+    with torch.no_grad():
+        walked = render(g, cam, backend="triton")
+    assert walked.rgb.grad_fn is None
+    torch.testing.assert_close(walked.rgb, out.rgb.detach(), rtol=1e-4, atol=2e-5)
+
+
 # The inputs the fused kernel is checked on: on CUDA (-m gpu) all of them, in Triton's
 # interpreter on the CPU the small ones (an interpreted walk takes ~20 s a view there).
 KERNEL_CASES = {
@@ -286,3 +332,7 @@ def test_the_blend_bound_takes_another_rounding_and_refuses_a_wrong_walk(monkeyp
 @pytest.mark.parametrize("case", list(KERNEL_CASES))
 def test_triton_on_cuda_matches_the_reference(case):
     _check_kernel_case(case, "cuda", views=3)
+    kind, n, width, height = KERNEL_CASES[case]
+    g, cams = _scene_views(kind, 0, n, width, height)
+    for cam in cams:
+        _check_image_walk(g.to("cuda"), cam.to("cuda"))
