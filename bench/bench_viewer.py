@@ -3,12 +3,17 @@
 embeddings made once the views are rendered), frames already rendered.
 
     python bench/bench_viewer.py [--repeats 3] [--screenshot docs/viewer_donut.png] [--quick]
+                                 [--browser]
 
 Prints, per repeat and as the median: seconds from a click to the first labels on the splats,
 to all 24 views voted, and from a second click on the same object to its first and last
 labels; the machine's load (`uptime`) before and after. --screenshot: the viewer in headless
-Chromium (the browser test's code), after a click, saved as a PNG. --quick: 6 views at 240x135,
-one repeat (what the tests run).
+Chromium (the browser test's code), after a click, saved as a PNG. --browser: the same clicks
+sent through headless Chromium (software WebGL) to the viewer's page, timed on both sides: the
+browser's clock from its pointerdown to the panel's text showing the object's splat count
+(first labels) and to "done"; the server's clock from just before the click to the click's
+arrival and to the first and last recolour sent. --quick: 6 views at 240x135, one repeat (what
+the tests run).
 """
 
 from __future__ import annotations
@@ -21,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
+import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
@@ -43,6 +49,106 @@ def timed_click(session: SegmentSession, xy) -> tuple[float, float]:
     return stamps[0] - start, stamps[-1] - start
 
 
+# Installed once in the page: the browser's own times of the click and of the panel's text
+# first showing a count of labelled splats ("running: ... (object 1234)") and "done".
+WATCH_JS = """
+window.__t = {};
+document.addEventListener('pointerdown', () => {
+  if (window.__t.click === undefined) window.__t.click = performance.now();
+}, true);
+const counted = /(running|done): [^\\n]*\\([^()]* \\d+\\)/;
+new MutationObserver(() => {
+  const t = window.__t;
+  if (t.click === undefined) return;
+  const text = document.body.textContent;
+  if (t.labels === undefined && counted.test(text)) t.labels = performance.now();
+  const done = /done: /.test(text) && counted.test(text);
+  if (t.done === undefined && done) t.done = performance.now();
+}).observe(document.body, {subtree: true, childList: true, characterData: true});
+"""
+
+
+def wait_for_done(chrome, app, timeout: float = 60) -> dict:
+    """The page's recorded times once the panel has said done; the times so far and the
+    panel's text in the error where it does not within `timeout` seconds."""
+    from sagonline.apps.viewer import browser
+
+    def done() -> dict | None:
+        times = chrome.execute_script("return window.__t;")
+        return times if times and "done" in times else None
+
+    try:
+        return browser.wait_for(done, timeout, "the panel to say done")
+    except TimeoutError as exc:
+        times = chrome.execute_script("return window.__t;")
+        raise TimeoutError(
+            f"the panel never said done: times {times}, status {app.status.content!r}"
+        ) from exc
+
+
+def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
+    """The click at `xy` of view 0, sent `repeats` times through headless Chromium to the
+    viewer's page (labels cleared between), timed in the browser and on the server."""
+    import socket
+
+    from sagonline.apps.viewer import browser
+    from sagonline.apps.viewer.app import ViewerApp
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    from sagonline.apps.viewer.clicks import pick_gaussian
+
+    cam = session.cameras[0]  # the 3D point under the click: the ray through pixel xy of view 0
+    pixel = torch.tensor([xy[0], xy[1], 1.0])
+    direction = cam.cam_to_world[:3, :3].cpu() @ (torch.linalg.inv(cam.K.cpu()) @ pixel)
+    centre = cam.center.cpu().numpy()
+    target = pick_gaussian(session.gaussians, centre, direction.numpy())
+    app = ViewerApp(session, port=port)
+    app.clear()
+    server: dict[str, list[float]] = {"click": [], "update": []}
+    recolour, click = app.on_update, app.click
+    session.on_update = lambda *a: (server["update"].append(time.perf_counter()), recolour(*a))
+    app.click = lambda *a: (server["click"].append(time.perf_counter()), click(*a))
+    chrome = browser.open_browser(app.url, 1000, 700)
+    rows = []
+    try:
+        browser.wait_for(lambda: app.server.get_clients(), 60, "the page to connect")
+        browser.wait_for(lambda: browser.canvas(chrome), 60, "the scene's canvas")
+        chrome.execute_script(WATCH_JS)
+        for client in app.server.get_clients().values():  # look at the point from behind view 0
+            client.camera.position = target + 1.5 * (centre - target)
+            client.camera.look_at = target
+        browser.wait_for(
+            lambda: all(np.allclose(c.camera.look_at, target, atol=1e-3)
+                        for c in app.server.get_clients().values()), 30, "the camera to move",
+        )  # fmt: skip
+        time.sleep(2.0)  # let the page settle after the move
+        for repeat in range(repeats):
+            app.clear()
+            session.wait()
+            for times in server.values():
+                times.clear()
+            chrome.execute_script("window.__t = {};")
+            start = time.perf_counter()
+            browser.click_canvas(chrome)
+            browser.wait_for(lambda: session.progress.state == "done" and server["click"], 120,
+                             "all views voted")  # fmt: skip
+            seen = wait_for_done(chrome, app)
+            rows.append({
+                "repeat": repeat,
+                "server: click arrived": server["click"][0] - start,
+                "server: first labels sent": server["update"][0] - start,
+                "server: all views voted": server["update"][-1] - start,
+                "browser: first labels shown": (seen["labels"] - seen["click"]) / 1000,
+                "browser: done shown": (seen["done"] - seen["click"]) / 1000,
+            })  # fmt: skip
+    finally:
+        chrome.quit()
+        app.server.stop()
+    return pd.DataFrame(rows).set_index("repeat")
+
+
 def uptime() -> str:
     return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
 
@@ -54,6 +160,7 @@ def main() -> None:
     parser.add_argument("--screenshot", type=Path)
     parser.add_argument("--quick", action="store_true", help="6 views at 240x135, one repeat")
     parser.add_argument("--segmenter", default="classical", help="a registered segmenter")
+    parser.add_argument("--browser", action="store_true", help="the clicks through Chromium")
     args = parser.parse_args()
     orbit, width, height = (6, 240, 135) if args.quick else (24, 480, 270)
     if args.quick:
@@ -70,6 +177,16 @@ def main() -> None:
     print(f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
           f"{session.render_seconds:.2f} s, prepared by {args.segmenter} in "
           f"{session.prepare_seconds:.2f} s; {total:.2f} s in all")  # fmt: skip
+    if args.browser:
+        scale = width / 480
+        table = browser_clicks(session, args.repeats, [v * scale for v in ICING[0]])
+        print(table.round(2).to_markdown())
+        print("\n| latency (browser) | median s | target s |\n|---|---|---|")
+        for name, value in table.median().items():
+            target = 1.5 if name == "browser: first labels shown" else None
+            print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
+        print(f"after: {uptime()}")
+        return
     rows = []
     for repeat in range(args.repeats):
         session.clear()

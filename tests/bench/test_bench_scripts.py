@@ -65,3 +65,16 @@ def test_bench_read_quick(tmp_path):
 def test_bench_viewer_quick():
     text = _run("bench_viewer.py")
     assert "first labels" in text and "labelled object" in text
+
+
+@pytest.mark.slow
+@pytest.mark.xdist_group("browser")
+@pytest.mark.skipif(not DONUT.exists(), reason=f"{DONUT} not found")
+def test_bench_viewer_times_a_click_in_the_browser():
+    from sagonline.apps.viewer.browser import missing_browser_reason
+
+    reason = missing_browser_reason()
+    if reason:
+        pytest.skip(reason)
+    text = _run("bench_viewer.py", "--browser")
+    assert "browser: first labels shown" in text and "server: click arrived" in text

@@ -41,7 +41,7 @@ def test_incremental_vote_equals_the_batch_vote(donut):
     updates = []
 
     def record(labels, progress):
-        updates.append((progress.voted, labels.copy()))
+        updates.append((progress.voted, labels.copy(), progress.state))
 
     session = SegmentSession(g, ring, backend="native", recolour_every=3, on_update=record)
     xy = icing_pixel(session, parts)
@@ -50,10 +50,11 @@ def test_incremental_vote_equals_the_batch_vote(donut):
     batch = segment_scene(g, ring, clicks_prompt(ring, 0, {"object": [xy]}), backend="native")
     np.testing.assert_array_equal(session.labels, batch.labels)
     assert (session.labels == 1).sum() > 100
-    voted = [v for v, _ in updates]
+    voted = [v for v, _, _ in updates]
     assert voted[0] == 1 and voted[-1] == len(ring) and voted == sorted(voted), voted
     first = (updates[0][1] == 1).sum()  # the labels already visible after one view
     assert first > 0
+    assert updates[-1][2] == "done"  # the panel's last word says the run finished
     # a second click on the same object runs again on the same frames
     frames = session.frames
     session.add_click(0, xy[0] + 2, xy[1])

@@ -29,6 +29,9 @@ DIM = 0.25  # the surroundings' brightness when dimmed
 SELECTED, OTHER = (255, 200, 0), (120, 120, 120)  # frustum colours: the selected view, the rest
 
 
+RECOLOUR_SECONDS = 1.0  # the least time between two recolours sent while a run votes
+
+
 def splat_arrays(g: Gaussians) -> dict[str, np.ndarray]:
     """viser's splat arrays: centers (N, 3), covariances (N, 3, 3), rgbs (N, 3) in [0, 1]
     (the SH's constant term), opacities (N, 1). Surfels get a thin third axis."""
@@ -129,6 +132,8 @@ class ViewerApp:
         self.selected = session.view or 0
         self.updates = 0  # recolours sent (the browser test waits on it)
         self.hidden = False  # whether the splats' opacities hide the surroundings now
+        self.drawn = None  # (labels, show, number of labels) the splats were last coloured by
+        self.last_draw = 0.0  # when (perf_counter) they were
         self.click_markers: list = []
         self._draw_lock = threading.Lock()
         self.arrays = splat_arrays(session.gaussians)
@@ -353,11 +358,23 @@ class ViewerApp:
         with self._draw_lock:
             a = self.arrays
             show = str(self.show.value)
-            rgbs, visible = label_tint(a["rgbs"], labels, len(self.session.names), show)
-            self.splats.rgbs = rgbs
-            if not visible.all() or self.hidden:
-                self.splats.opacities = a["opacities"] * visible[:, None]
-                self.hidden = not visible.all()
+            drawn = (labels.copy(), show, len(self.session.names))
+            changed = self.drawn is None or not (
+                np.array_equal(drawn[0], self.drawn[0]) and drawn[1:] == self.drawn[1:]
+            )
+            # the splats (the whole buffer) go to the browser again only when their colours
+            # change, and while voting at most every RECOLOUR_SECONDS after the first labels:
+            # each send costs a software-WebGL browser a redraw that delays the next click
+            settled = progress.state != "running" or progress.voted <= 1
+            due = time.perf_counter() - self.last_draw >= RECOLOUR_SECONDS
+            if changed and (settled or due):
+                rgbs, visible = label_tint(a["rgbs"], labels, len(self.session.names), show)
+                self.splats.rgbs = rgbs
+                if not visible.all() or self.hidden:
+                    self.splats.opacities = a["opacities"] * visible[:, None]
+                    self.hidden = not visible.all()
+                self.drawn = drawn
+                self.last_draw = time.perf_counter()
             self.bar.value = 100.0 * progress.voted / max(len(self.session.cameras), 1)
             counts = ", ".join(
                 f"{name} {int((labels == k).sum())}"

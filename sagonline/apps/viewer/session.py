@@ -316,6 +316,8 @@ class SegmentSession:
             p.state = "done" if self.engine.done else "stopped"
             if not self.engine.done and p.voted:
                 self._publish(self.engine.vote_so_far().labels.cpu().numpy())
+            elif self.on_update is not None:  # the last word: done (the labels are unchanged)
+                self.on_update(self.labels, p)
         except Exception as exc:  # shown in the GUI, re-raised by wait()
             p.state, p.message = "failed", f"{type(exc).__name__}: {exc}"
             if self.on_update is not None:
