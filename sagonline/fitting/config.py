@@ -99,7 +99,8 @@ class FitConfig:
     device: str = "cpu"
     """cpu (the compiled kernel) or cuda (gsplat)."""
     backend: str = "auto"
-    """auto: gsplat on CUDA, the compiled kernel on the CPU, else PyTorch."""
+    """auto: gsplat on CUDA, the compiled kernel on the CPU, else PyTorch (a fit needs gradients,
+    so on CUDA without gsplat it renders with PyTorch, never the Triton walk)."""
 
     def __post_init__(self) -> None:
         self.background = tuple(self.background)  # Hydra hands lists in

@@ -27,7 +27,8 @@ def add_parsers(sub) -> None:
     rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
     rend.add_argument(
         "--backend", default="auto", choices=BACKENDS,
-        help="auto: the compiled kernel on the CPU, gsplat on CUDA (else torch)",
+        help="auto: the compiled kernel on the CPU; on CUDA gsplat, else the Triton walk, else "
+        "torch",
     )  # fmt: skip
     rend.set_defaults(func=cmd_render)
 
