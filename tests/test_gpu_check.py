@@ -20,7 +20,8 @@ pytestmark = pytest.mark.slow
 def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     proc = subprocess.run(
-        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)],
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path),
+         "--step-timeout", "600"],
         cwd=ROOT, capture_output=True, text=True, timeout=600, env=env,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]

@@ -106,7 +106,7 @@ def image_output(
     with_features: bool,
     ids: torch.Tensor | None,  # [H, W]
 ) -> RenderOutput:
-    """A compiled walk's buffers as `rasterize` returns them: colour over the background
+    """A walk's buffers as every renderer returns them: colour over the background
     (black by default), alpha = 1 - T, the features after the colour where asked for."""
     bg = torch.zeros(3, device=feat.device) if background is None else background.to(feat)
     return RenderOutput(
@@ -268,16 +268,13 @@ def rasterize(
     if trace_only:
         return None
 
-    bg = torch.zeros(3, device=device) if background is None else background.to(device)
-    img = _untile(acc_feat, ntx, nty, ts, H, W)
-    T_img = _untile(final_T[..., None], ntx, nty, ts, H, W)[..., 0]
-    rgb = img[..., :3] + T_img[..., None] * bg
-    return RenderOutput(
-        rgb=rgb,
-        alpha=1.0 - T_img,
-        depth=_untile(acc_depth[..., None], ntx, nty, ts, H, W)[..., 0],
-        features=img[..., 3:] if features is not None else None,
-        ids=_untile(best_id[..., None], ntx, nty, ts, H, W)[..., 0] if return_ids else None,
+    return image_output(
+        _untile(acc_feat, ntx, nty, ts, H, W),
+        _untile(final_T[..., None], ntx, nty, ts, H, W)[..., 0],
+        _untile(acc_depth[..., None], ntx, nty, ts, H, W)[..., 0],
+        background,
+        features is not None,
+        _untile(best_id[..., None], ntx, nty, ts, H, W)[..., 0] if return_ids else None,
     )
 
 

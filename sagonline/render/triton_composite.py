@@ -10,13 +10,7 @@ from __future__ import annotations
 import torch
 
 from sagonline.render.rasterize import T_STOP, RenderOutput, image_output
-from sagonline.render.triton_vote import (
-    CHECK_EVERY,
-    TILE,
-    _walk_kernel,
-    check_device,
-    project_and_bin,
-)
+from sagonline.render.triton_vote import tile_view, walk
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 
@@ -34,56 +28,24 @@ def composite_triton(
     with `image`; `rows` alone otherwise), (H, W) the most visible Gaussian (-1: none), and with
     `image` (H, W) the weighted depth and the final T (None otherwise). No gradients."""
     device = gaussians.device
-    check_device(device)
     H, W = camera.height, camera.width
+    f = (3 if image else 0) + (rows.shape[1] if rows is not None else 0)
+    kp = max(2, 1 << (f - 1).bit_length())  # a power of two, as tl.arange needs
+    out = torch.zeros(H * W, kp, device=device)
+    best = torch.full((H * W,), -1, dtype=torch.int64, device=device)
+    depth = torch.zeros(H * W, device=device)
+    trans = torch.ones(H * W, device=device)
     with torch.no_grad():
-        proj, order, offsets, counts, tiles_x, tiles_y = project_and_bin(
-            gaussians, camera, near, with_colors=image
-        )
-        parts = [proj.colors] if image and proj is not None else []
-        if rows is not None:
-            parts.append(rows[proj.ids] if proj is not None else rows[:0])
-        f = sum(part.shape[1] for part in parts)
-        kp = max(2, 1 << (f - 1).bit_length())  # a power of two, as tl.arange needs
-        out = torch.zeros(H * W, kp, device=device)
-        best = torch.full((H * W,), -1, dtype=torch.int64, device=device)
-        depth = torch.zeros(H * W, device=device)
-        trans = torch.ones(H * W, device=device)
-        if proj is not None:
-            packed = torch.zeros(len(proj), kp, device=device)
-            if parts:
-                packed[:, :f] = torch.cat([p.float() for p in parts], dim=1)
-            params = proj.params().float().contiguous()
-            _walk_kernel[(tiles_x * tiles_y,)](
-                params,
-                order,
-                offsets,
-                counts,
-                proj.ids,
-                proj.ids,
-                packed,
-                out,
-                best,
-                depth,
-                trans,
-                best,
-                W,
-                H,
-                tiles_x,
-                f,
-                1.0,
-                0.0,
-                float(t_stop),
-                COMPOSITE=True,
-                IMAGE=image,
-                SURFEL=proj.kind == "2dgs",
-                WEIGHTED=False,
-                USE_DISTANCE=False,
-                TILE=TILE,
-                KP=kp,
-                NP=params.shape[1],
-                CHECK_EVERY=CHECK_EVERY,
+        view = tile_view(gaussians, camera, near, with_colors=image)
+        if view is not None:
+            parts = ([view.proj.colors] if image else []) + (
+                [rows[view.proj.ids]] if rows is not None else []
             )
+            packed = torch.zeros(len(view.proj), kp, device=device)
+            if parts:
+                packed[:, :f] = torch.cat([part.float() for part in parts], dim=1)
+            walk(view, out, f, rows=packed, best=best, depth=depth, trans=trans,
+                 t_stop=t_stop, image=image)  # fmt: skip
     feats = out[:, :f].view(H, W, f)
     if not image:
         return feats, best.view(H, W), None, None

@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 import os
 import sys
-from dataclasses import replace
+from dataclasses import dataclass, replace
 
 import torch
 
@@ -37,7 +37,7 @@ if not torch.cuda.is_available() and "triton" not in sys.modules:
 import triton  # noqa: E402
 import triton.language as tl  # noqa: E402
 
-from sagonline.render.projection import project, reach_boxes  # noqa: E402
+from sagonline.render.projection import ProjectedSplats, project, reach_boxes  # noqa: E402
 from sagonline.render.rasterize import bin_tiles  # noqa: E402
 from sagonline.render.rule import VoteRule  # noqa: E402
 from sagonline.scene.cameras import Camera  # noqa: E402
@@ -223,26 +223,95 @@ def _walk_kernel(
 CHECK_EVERY = 8
 
 
-def project_and_bin(gaussians: Gaussians, camera: Camera, near: float, with_colors: bool):
-    """Project (no grad) and bin 16x16 tiles over the boxes where alpha can reach 1/255;
-    (proj, order, offsets, counts, tiles_x, tiles_y), proj None when nothing is on screen."""
-    proj = project(gaussians, camera, near=near, with_colors=with_colors)
-    tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
-    if len(proj) == 0:
-        return None, None, None, None, tiles_x, tiles_y
-    proj = replace(proj, bbox=reach_boxes(proj))
-    _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
-    return proj, order, offsets, counts, tiles_x, tiles_y
+@dataclass
+class TiledView:
+    """One view's splats as the walk takes them (no grad): proj, their packed parameters
+    params (M, P) float32, and the 16x16 tile lists order / offsets / counts of `bin_tiles`
+    over the boxes where alpha can reach 1/255 (`projection.reach_boxes`)."""
+
+    proj: ProjectedSplats
+    params: torch.Tensor
+    order: torch.Tensor
+    offsets: torch.Tensor
+    counts: torch.Tensor
+    width: int
+    height: int
+    tiles_x: int
+    tiles_y: int
 
 
-def check_device(device: torch.device) -> None:
-    if (device.type == "cuda") == INTERPRET:
+def tile_view(
+    gaussians: Gaussians, camera: Camera, near: float, with_colors: bool
+) -> TiledView | None:
+    """Project and bin one view for the walk; None when nothing is on screen."""
+    if (gaussians.device.type == "cuda") == INTERPRET:
         mode = "Triton's interpreter (CPU tensors)" if INTERPRET else "CUDA (CUDA tensors)"
         raise ValueError(
             f"the triton kernel was set up for {mode} when triton was first imported; got "
-            f"{device} tensors (without CUDA, import sagonline.render.triton_vote before "
-            f"anything else imports triton, or set TRITON_INTERPRET=1)"
+            f"{gaussians.device} tensors (without CUDA, import sagonline.render.triton_vote "
+            f"before anything else imports triton, or set TRITON_INTERPRET=1)"
         )
+    proj = project(gaussians, camera, near=near, with_colors=with_colors)
+    if len(proj) == 0:
+        return None
+    proj = replace(proj, bbox=reach_boxes(proj))
+    tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
+    _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
+    params = proj.params().float().contiguous()
+    return TiledView(proj, params, order, offsets, counts, camera.width, camera.height,
+                     tiles_x, tiles_y)  # fmt: skip
+
+
+def walk(
+    view: TiledView,
+    out: torch.Tensor,
+    num_labels: int,
+    *,
+    pixel_labels: torch.Tensor | None = None,
+    rows: torch.Tensor | None = None,
+    best: torch.Tensor | None = None,
+    depth: torch.Tensor | None = None,
+    trans: torch.Tensor | None = None,
+    cast: torch.Tensor | None = None,
+    rule: VoteRule | None = None,
+    t_stop: float = 0.0,
+    image: bool = False,
+) -> None:
+    """One launch of `_walk_kernel` over the view's tiles: the vote with `rule` (pixel_labels,
+    out the histogram, cast the pairs per tile), else the composite of `rows` (out, best and,
+    with `image`, depth and trans). Buffers a mode does not use are passed as placeholders."""
+    spare_f, spare_i = view.params, view.proj.ids
+    vote = rule is not None
+    _walk_kernel[(view.tiles_x * view.tiles_y,)](
+        view.params,
+        view.order,
+        view.offsets,
+        view.counts,
+        view.proj.ids,
+        spare_i if pixel_labels is None else pixel_labels,
+        spare_f if rows is None else rows,
+        out,
+        spare_i if best is None else best,
+        spare_f if depth is None else depth,
+        spare_f if trans is None else trans,
+        spare_i if cast is None else cast,
+        view.width,
+        view.height,
+        view.tiles_x,
+        num_labels,
+        float(rule.eps) if vote else 1.0,
+        float(rule.delta) if vote and rule.delta is not None else 0.0,
+        float(t_stop),
+        COMPOSITE=not vote,
+        IMAGE=image,
+        SURFEL=view.proj.kind == "2dgs",
+        WEIGHTED=vote and rule.weighting == "blend",
+        USE_DISTANCE=vote and rule.delta is not None,
+        TILE=TILE,
+        KP=out.shape[1] if not vote else max(2, triton.next_power_of_2(num_labels)),
+        NP=view.params.shape[1],
+        CHECK_EVERY=CHECK_EVERY,
+    )
 
 
 def vote_into(
@@ -251,50 +320,14 @@ def vote_into(
     labels: torch.Tensor,  # [H, W] long, the view's mask
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
-    *,
-    check_every: int = CHECK_EVERY,
 ) -> int:
     """The op `render.vote.vote_into` as one fused Triton walk: one view's votes under `rule`
     added into hist; returns the pairs that voted."""
-    check_device(gaussians.device)
     with torch.no_grad():
-        proj, order, offsets, counts, tiles_x, tiles_y = project_and_bin(
-            gaussians, camera, 0.01, with_colors=False
-        )
-        if proj is None:
+        view = tile_view(gaussians, camera, 0.01, with_colors=False)
+        if view is None:
             return 0
-        params = proj.params().float().contiguous()
-        num_labels = hist.shape[1]
-        cast = torch.zeros(tiles_x * tiles_y, dtype=torch.int64, device=params.device)
-        unused = proj.ids
-        _walk_kernel[(tiles_x * tiles_y,)](
-            params,
-            order,
-            offsets,
-            counts,
-            proj.ids,
-            labels.to(torch.int32).contiguous(),
-            params,
-            hist,
-            unused,
-            params,
-            params,
-            cast,
-            camera.width,
-            camera.height,
-            tiles_x,
-            num_labels,
-            float(rule.eps),
-            float(rule.delta) if rule.delta is not None else 0.0,
-            0.0,
-            COMPOSITE=False,
-            IMAGE=False,
-            SURFEL=proj.kind == "2dgs",
-            WEIGHTED=rule.weighting == "blend",
-            USE_DISTANCE=rule.delta is not None,
-            TILE=TILE,
-            KP=max(2, triton.next_power_of_2(num_labels)),
-            NP=params.shape[1],
-            CHECK_EVERY=check_every,
-        )
+        cast = torch.zeros(view.tiles_x * view.tiles_y, dtype=torch.int64, device=hist.device)
+        walk(view, hist, hist.shape[1], pixel_labels=labels.to(torch.int32).contiguous(),
+             cast=cast, rule=rule)  # fmt: skip
         return int(cast.sum())
