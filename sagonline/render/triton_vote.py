@@ -264,15 +264,15 @@ def tile_view(
 
 def walk(
     view: TiledView,
-    out: torch.Tensor,
+    out: torch.Tensor,  # [N, K] float64 histogram (vote), or [H*W, KP] composite
     num_labels: int,
     *,
-    pixel_labels: torch.Tensor | None = None,
-    rows: torch.Tensor | None = None,
-    best: torch.Tensor | None = None,
-    depth: torch.Tensor | None = None,
-    trans: torch.Tensor | None = None,
-    cast: torch.Tensor | None = None,
+    pixel_labels: torch.Tensor | None = None,  # [H, W] int32, the vote's mask
+    rows: torch.Tensor | None = None,  # [M, KP] per-splat features, the composite's
+    best: torch.Tensor | None = None,  # [H*W] int64, the most visible Gaussian
+    depth: torch.Tensor | None = None,  # [H*W] weighted depth (image)
+    trans: torch.Tensor | None = None,  # [H*W] final T (image)
+    cast: torch.Tensor | None = None,  # [tiles] int64, pairs that voted per tile
     rule: VoteRule | None = None,
     t_stop: float = 0.0,
     image: bool = False,
