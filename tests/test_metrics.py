@@ -53,3 +53,23 @@ def test_labels3d_metrics():
     assert m["accuracy"] == pytest.approx(3 / 4)
     assert m["coverage"] == pytest.approx(4 / 5)
     assert m["per_label_iou"] == {1: pytest.approx(1 / 2), 2: pytest.approx(1 / 2)}
+
+
+@pytest.mark.parametrize("labels", [(0, 3), (0, 300), (-1, 5000)])
+@pytest.mark.parametrize("ignore", [None, 255])
+def test_view_metrics_counts_every_label_exactly(labels, ignore):
+    """The confusion-matrix counts (small labels) and the pairs' counts (negative or large
+    labels, float predictions) equal a count per label by comparison."""
+    rng = np.random.default_rng(labels[1])
+    gt = rng.integers(*labels, (23, 31))
+    gt[rng.random(gt.shape) < 0.2] = 255
+    for pred in (rng.integers(*labels, gt.shape), rng.integers(*labels, gt.shape).astype(float)):
+        m = view_metrics(pred, gt, ignore=ignore)
+        keep = np.ones(gt.shape, bool) if ignore is None else gt != ignore
+        p, g = pred[keep], gt[keep]
+        expected = {}
+        for lb in sorted((set(p.tolist()) | set(g.tolist())) - {0}):
+            tp = np.count_nonzero((p == lb) & (g == lb))
+            expected[int(lb)] = tp / np.count_nonzero((p == lb) | (g == lb))
+        assert m["per_label"] == pytest.approx(expected)
+        assert m["acc"] == pytest.approx(np.count_nonzero(p == g) / p.size)

@@ -27,6 +27,17 @@ class EvalView:
     group: str | None = None
     meta: dict = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        self.gt = read_only(self.gt)
+
+
+def read_only(mask: np.ndarray) -> np.ndarray:
+    """The ground truth as a read-only array: it is never changed in place, so its content
+    digest is computed once per run (`core.provenance.digest_arrays`)."""
+    mask = np.asarray(mask)
+    mask.setflags(write=False)
+    return mask
+
 
 @dataclass
 class SceneTask:
@@ -53,6 +64,10 @@ class SceneTask:
     meta: dict = field(default_factory=dict)
     ignore_label: int | None = None
     view_groups: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        if self.trajectory_gt is not None:
+            self.trajectory_gt = [read_only(m) for m in self.trajectory_gt]
 
 
 class DatasetAdapter:

@@ -67,21 +67,51 @@ def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None
     and "skipped" says why (it never counts as a perfect view).
     """
     p, g = align(pred, gt, resize)
-    valid = np.ones_like(g, dtype=bool) if ignore is None else g != ignore
-    if not valid.any():
+    if ignore is not None:
+        valid = g != ignore
+        if not valid.any():
+            return {"iou": None, "acc": None, "per_label": {}, "skipped": "every pixel is ignored"}
+        if not valid.all():
+            p, g = p[valid], g[valid]
+    if p.size == 0:
         return {"iou": None, "acc": None, "per_label": {}, "skipped": "every pixel is ignored"}
-    p, g = p[valid], g[valid]
-    labels = sorted(set(np.unique(g).tolist()) | set(np.unique(p).tolist()) - {0})
-    labels = [lb for lb in labels if lb != 0]
+    tp, predicted, true, correct = _label_counts(p.reshape(-1), g.reshape(-1))
     per_label = {}
-    for lb in labels:
-        tp = np.count_nonzero((p == lb) & (g == lb))
-        fp = np.count_nonzero((p == lb) & (g != lb))
-        fn = np.count_nonzero((p != lb) & (g == lb))
-        per_label[int(lb)] = tp / (tp + fp + fn)
+    for lb in sorted(set(predicted) | set(true)):
+        if lb != 0:
+            t = tp.get(lb, 0)
+            per_label[int(lb)] = t / (predicted.get(lb, 0) + true.get(lb, 0) - t)
     iou = float(np.mean(list(per_label.values()))) if per_label else 1.0
-    acc = float(np.count_nonzero(p == g) / max(p.size, 1))
+    acc = float(correct / max(p.size, 1))
     return {"iou": iou, "acc": acc, "per_label": per_label}
+
+
+def _label_counts(p: np.ndarray, g: np.ndarray) -> tuple[dict, dict, dict, int]:
+    """Per label: pixels both call it, pixels predicted it, pixels truly it (labels present
+    only), and the pixels that agree. p, g: (P,) labels. One confusion matrix by bincount
+    where both are small non-negative integers, else one `np.unique` of the pairs; exact
+    counts either way."""
+    integers = p.dtype.kind in "biu" and g.dtype.kind in "biu"
+    lo, hi = min(p.min(), g.min()), max(p.max(), g.max())
+    if integers and lo >= 0 and hi < 4096:
+        k = int(hi) + 1
+        pairs = g.astype(np.int64) * k + p.astype(np.int64)
+        confusion = np.bincount(pairs, minlength=k * k).reshape(k, k)  # [truth, predicted]
+        diag, rows, cols = np.diagonal(confusion), confusion.sum(1), confusion.sum(0)
+        tp = {i: int(diag[i]) for i in np.flatnonzero(diag)}
+        return tp, _nonzero(cols), _nonzero(rows), int(diag.sum())
+    pairs, counts = np.unique(np.stack([g, p]), axis=1, return_counts=True)
+    tp, predicted, true = {}, {}, {}
+    for (t, q), c in zip(pairs.T.tolist(), counts.tolist(), strict=True):
+        true[t] = true.get(t, 0) + c
+        predicted[q] = predicted.get(q, 0) + c
+        if t == q:
+            tp[t] = c
+    return tp, predicted, true, sum(tp.values())
+
+
+def _nonzero(counts: np.ndarray) -> dict:
+    return {int(i): int(counts[i]) for i in np.flatnonzero(counts)}
 
 
 def labels3d_metrics(

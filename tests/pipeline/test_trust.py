@@ -513,3 +513,20 @@ def test_a_metrics_json_that_is_no_object_is_named(tmp_path, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "metrics.json: holds a list, not a run's metrics" in err and err.count("\n") == 1
+
+
+def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
+    """Read-only ground truth is hashed once per process, with the digest its bytes give;
+    an array that can be written is hashed every time, so a change is always seen."""
+    from sagonline.core.provenance import digest_arrays
+    from sagonline.datasets.base import read_only
+
+    frozen = [read_only(np.full((600, 600), k, np.int64)) for k in range(2)]
+    copies = [a.copy() for a in frozen]
+    assert digest_arrays(frozen) == digest_arrays(frozen) == digest_arrays(copies)
+    writable = [np.zeros((600, 600), np.int64)]
+    before = digest_arrays(writable)
+    writable[0][0, 0] = 1
+    assert digest_arrays(writable) != before
+    with pytest.raises(ValueError, match="read-only"):
+        frozen[0][0, 0] = 7
