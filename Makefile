@@ -25,7 +25,7 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
         clean-cache \
         gpu-bundle gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real \
-        crossval-captures
+        crossval-captures loo-captures
 
 install: $(STAMP)
 
@@ -201,3 +201,10 @@ tables-real: install weights
 # mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
 crossval-captures: install weights
 	$(BIN)/python -m bench.real --seeds $(SEEDS) --out $(REPORTS) $(ARGS)
+
+# The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
+# capture held out in turn, the candidate of the best mean over the others reported on it
+# (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list.
+CANDIDATES ?= consensus.body=true
+loo-captures: install weights
+	$(BIN)/python -m bench.real --seeds $(SEEDS) --settings "$(CANDIDATES)" --out $(REPORTS) $(ARGS)

@@ -21,7 +21,8 @@ def write_outputs(
     summary: dict,
     extra: dict | None = None,
 ) -> dict:
-    """metrics.json (+ per_view.csv) atomically into the run directory."""
+    """metrics.json, per_view.csv (and gaussians_outside.csv where the diagnosis found labelled
+    Gaussians outside the object's silhouette) atomically into the run directory."""
     from sagonline.score.metrics import RESIZE_RULES
     from sagonline.score.predictions import folder_sha256
 
@@ -36,7 +37,9 @@ def write_outputs(
         "resize_rule": RESIZE_RULES[cfg.metrics.resize],
         "device": describe_device(cfg.device),
         "sha256": digests,  # of the label-map PNGs: re-score with python -m bench.score
-        "scenes": [{k: v for k, v in asdict(r).items() if k != "views"} for r in reports],
+        "scenes": [
+            {k: v for k, v in asdict(r).items() if k not in ("views", "outside")} for r in reports
+        ],
         "config": asdict(cfg),
         **(extra or {}),
     }
@@ -53,6 +56,11 @@ def write_outputs(
     atomic_write_text(
         out_dir / "per_view.csv", pd.DataFrame(rows, columns=columns).to_csv(index=False)
     )
+    outside = [{"scene": r.scene, **row} for r in reports for row in r.outside]
+    if outside:  # the labelled Gaussians shown outside the silhouette (score.diagnosis)
+        atomic_write_text(
+            out_dir / "gaussians_outside.csv", pd.DataFrame(outside).to_csv(index=False)
+        )
     atomic_write_json(out_dir / "metrics.json", metrics)
     return metrics
 

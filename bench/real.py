@@ -53,14 +53,20 @@ def captures() -> list[str]:
     return found
 
 
-def folder(capture: str, source: str, seed: int = 0) -> str:
-    return f"multirun/real/{capture}/{source}" + (f"-seed{seed}" if seed else "")
+def slug(setting: tuple[str, ...]) -> str:
+    """A folder-safe name of a setting (overrides), '' for the baseline."""
+    return "+".join(o.replace("=", "-").replace("/", "_") for o in setting)
 
 
-def command(capture: str, source: str, seed: int = 0) -> list[str]:
+def folder(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> str:
+    name = f"multirun/real/{capture}/{source}" + (f"-seed{seed}" if seed else "")
+    return name + (f"@{slug(setting)}" if setting else "")
+
+
+def command(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> list[str]:
     fit = [f"dataset.adapter.fit=seed{seed}"] if seed else []
-    return [f"dataset={capture}", *SOURCES[source], *fit, *COMMON,
-            f"hydra.run.dir={folder(capture, source, seed)}"]  # fmt: skip
+    return [f"dataset={capture}", *SOURCES[source], *fit, *setting, *COMMON,
+            f"hydra.run.dir={folder(capture, source, seed, setting)}"]  # fmt: skip
 
 
 def fitted(capture: str, seed: int) -> bool:
@@ -78,15 +84,49 @@ def fitted(capture: str, seed: int) -> bool:
     return True
 
 
-def run(capture: str, source: str, seed: int = 0) -> dict | None:
+def run(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> dict | None:
     """The evaluation's metrics (run now, or the finished run found in its folder)."""
-    args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed)]
+    args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed, setting)]
     done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
         print(f"{capture}/{source}/seed {seed}: skipped: {last}", file=sys.stderr)
         return None
-    return json.loads((ROOT / folder(capture, source, seed) / "metrics.json").read_text())
+    return json.loads((ROOT / folder(capture, source, seed, setting) / "metrics.json").read_text())
+
+
+def leave_one_out(scores: dict[str, dict[str, float]], baseline: str) -> list[dict]:
+    """Leave-one-capture-out choice of a setting. scores: capture -> setting -> mIoU (each
+    the mean over the capture's fits). For each capture held out, the setting of the best mean
+    over the other captures is chosen and reported on it, against the baseline. A row per
+    capture: the setting chosen without it, its score there and the change from the baseline."""
+    rows = []
+    for held in scores:
+        others = [c for c in scores if c != held]
+        settings = [s for s in scores[held] if all(s in scores[c] for c in others)]
+        if not others or baseline not in settings:
+            continue
+        mean = {s: sum(scores[c][s] for c in others) / len(others) for s in settings}
+        chosen = max(settings, key=lambda s: (round(mean[s], 6), s == baseline))
+        rows.append({
+            "capture held out": held,
+            "chosen on the others": chosen,
+            "their mean with it": round(mean[chosen], 2),
+            "their mean with the baseline": round(mean[baseline], 2),
+            "held out, baseline": round(scores[held][baseline], 2),
+            "held out, chosen": round(scores[held][chosen], 2),
+            "change": round(scores[held][chosen] - scores[held][baseline], 2),
+        })  # fmt: skip
+    return rows
+
+
+def kept(rows: list[dict], baseline: str) -> str | None:
+    """The setting leave-one-out keeps: chosen in every rotation and no held-out capture
+    losing more than 1 point by it; else None (the baseline stays)."""
+    chosen = {r["chosen on the others"] for r in rows}
+    if len(chosen) != 1 or chosen == {baseline}:
+        return None
+    return chosen.pop() if all(r["change"] >= -1.0 for r in rows) else None
 
 
 def pct(v):
@@ -95,9 +135,14 @@ def pct(v):
 
 def row(capture: str, real: dict | None, classical: dict | None, minisam: dict | None) -> dict:
 
+    def diagnosis(m) -> dict:
+        return ((m or {}).get("scenes") or [{}])[0].get("extra", {}).get("diagnosis") or {}
+
     def share(m, group):
-        d = ((m or {}).get("scenes") or [{}])[0].get("extra", {}).get("diagnosis") or {}
-        return pct(d.get(f"share_{group}"))
+        return pct(diagnosis(m).get(f"share_{group}"))
+
+    outside = diagnosis(real).get("outside") or {}
+    placed = ("in_front", "beside", "behind", "floating", "not_voting")
 
     fit = (((real or classical or {}).get("scenes") or [{}])[0].get("extra") or {}).get("fit") or {}
     fit_file = Path(fit["path"]) if fit.get("path") else None
@@ -117,6 +162,9 @@ def row(capture: str, real: dict | None, classical: dict | None, minisam: dict |
                                                    ("fit", "vote", "segmenter")),
         "classical: fit / vote / segmenter %": "/".join(str(share(classical, g)) for g in
                                                         ("fit", "vote", "segmenter")),
+        "real: extra px by labelled Gaussians %": pct(outside.get("share_of_extra")),
+        "of those: in front / beside / behind / floating / in views not voting %":
+            "/".join(str(pct(outside.get(f"share_{k}"))) for k in placed) if outside else None,
         "protocol": (real or classical or minisam or {}).get("protocol_id"),
     }  # fmt: skip
 
@@ -150,6 +198,13 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         default="0",
         help="comma-separated fit seeds (default 0: the fit in gaussians/); with "
         "several, each number is the mean over the fits that exist, with min-max",
+    )
+    ap.add_argument(
+        "--settings",
+        help="candidate settings to choose leave-one-capture-out, ';'-separated, each a "
+        "space-separated list of overrides (e.g. 'consensus.body=true;consensus.margin=0.5'): "
+        "each capture held out in turn, the setting of the best mean over the others is "
+        "reported on it (real masks and classical; real_captures_loo.md/.csv)",
     )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
@@ -193,6 +248,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "- with several fit seeds: mean over the fits (min-max, n fits); one fit is one draw.",
         "- fit / vote / segmenter: where the missed pixels are lost",
         "  (sagonline/score/diagnosis.py).",
+        "- extra px by labelled Gaussians: the share of the pixels wrongly rendered as the object",
+        "  that show a Gaussian labelled as it, and where those sit against the object's body",
+        "  (gaussians_outside.csv in each run; runs older than the per-Gaussian diagnosis: -).",
         "- built by `make tables-real` (`python -m bench.real`).",
         "",
         df.to_markdown(index=False),
@@ -208,7 +266,66 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     atomic_write_text(args.out / f"{stem}.csv", df.to_csv(index=False))
     print(df.to_string(index=False))
     print(f"\nwrote {args.out}/{stem}.md and .csv")
+    if args.settings:
+        candidates = [tuple(c.split()) for c in args.settings.split(";") if c.strip()]
+        choose(names, seeds, candidates, args.out)
     return df
+
+
+BASELINE = "defaults"
+
+
+def choose(names: list[str], seeds: list[int], candidates: list[tuple[str, ...]], out: Path):
+    """Every capture's fits scored with the defaults and each candidate setting (real masks,
+    classical), then the leave-one-capture-out choice per source (real_captures_loo.md)."""
+    from sagonline.core.files import atomic_write_text
+
+    settings = {BASELINE: (), **{" ".join(c): c for c in candidates}}
+    tables, kept_lines, per_capture = [], [], []
+    for source in ("real", "classical"):
+        scores: dict[str, dict[str, float]] = {}
+        for capture in names:
+            for name, setting in settings.items():
+                values = [
+                    m["miou"] * 100
+                    for seed in seeds
+                    if (not seed or fitted(capture, seed))
+                    and (m := run(capture, source, seed, setting)) is not None
+                ]
+                if values:
+                    mean = sum(values) / len(values)
+                    scores.setdefault(capture, {})[name] = mean
+                    per_capture.append({"source": source, "capture": capture, "setting": name,
+                                        "fits": len(values), "mIoU": round(mean, 2)})  # fmt: skip
+        rows = leave_one_out(scores, BASELINE)
+        tables.append(pd.DataFrame([{"source": source, **r} for r in rows]))
+        keep = kept(rows, BASELINE)
+        kept_lines.append(f"- {source}: " + (f"`{keep}` kept" if keep else "the defaults stay"))
+    df = pd.concat(tables, ignore_index=True)
+    text = [
+        "# Real captures: settings chosen leave-one-capture-out",
+        "",
+        f"- captures {', '.join(names)}; fits of seeds {', '.join(map(str, seeds))} where they "
+        "exist; each score the mean over a capture's fits (mIoU %).",
+        "- each capture held out in turn: the setting with the best mean over the other "
+        "captures is chosen and reported on it; a setting is kept only where every rotation "
+        "chooses it and no held-out capture loses more than 1 point by it.",
+        "- candidates: " + "; ".join(f"`{n}`" for n in settings if n != BASELINE),
+        "- built by `python -m bench.real --seeds ... --settings ...`.",
+        "",
+        *kept_lines,
+        "",
+        df.to_markdown(index=False),
+        "",
+        "Each capture under each setting:",
+        "",
+        pd.DataFrame(per_capture).to_markdown(index=False),
+        "",
+    ]
+    atomic_write_text(out / "real_captures_loo.md", "\n".join(text))
+    atomic_write_text(out / "real_captures_loo.csv", df.to_csv(index=False))
+    print("\n".join(kept_lines))
+    print(f"wrote {out}/real_captures_loo.md and .csv")
 
 
 if __name__ == "__main__":

@@ -120,3 +120,82 @@ def test_fill_is_refused_nowhere_and_off_by_default():
     VoteConfig(method="flashsplat", fill=4)  # every method reads it
     with pytest.raises(ValueError, match="consensus.fill=-1"):
         VoteConfig(fill=-1)
+
+
+def _outside_rows(task, gaussians, labels):
+    """Label renders of `labels` (N,) scored per Gaussian against the task's clean truth."""
+    from sagonline.render.api import render_labels
+    from sagonline.score.diagnosis import GaussianCauses, OutsideTally, diagnose_view
+
+    hist = torch.nn.functional.one_hot(labels, task.num_labels).float() * 5
+    causes = GaussianCauses(labels, labels >= 0, hist.sum(1), labels < -1, None, hist)
+    tally, extra = OutsideTally(), 0
+    for i, view in enumerate(task.eval_views):
+        pred = render_labels(gaussians, view.camera, labels, task.num_labels).numpy()
+        counts, _ = diagnose_view(
+            gaussians, view.camera, view.gt, pred, causes, outside=tally, voted=i == 0
+        )
+        extra += counts["extra_px"]
+    rows = tally.rows(gaussians, causes)
+    assert sum(r["extra_px"] for r in rows) <= extra  # each extra pixel told once
+    return rows
+
+
+def test_floaters_labelled_as_the_object_are_named_per_gaussian(scene):
+    """A sheet of surfels half way between eval camera 0 and the object, labelled as the
+    object: the Gaussians shown outside the silhouette are the sheet's, in front of the
+    object, floating apart from its body, and seen in views that did not vote."""
+    from sagonline.score.diagnosis import outside_summary
+
+    sheet = _sheet(scene, 0, fraction=0.5)
+    g = scene.gaussians
+    fitted = Gaussians(
+        *(torch.cat([getattr(g, f.name), getattr(sheet, f.name)]) for f in
+          dataclasses.fields(Gaussians) if f.name != "normals"),
+    )  # fmt: skip
+    labels = torch.cat([scene.gt_labels3d, torch.ones(len(sheet), dtype=torch.long)])
+    rows = _outside_rows(scene, fitted, labels)
+    assert rows and all(r["gaussian"] >= len(g) for r in rows)  # the sheet's, and only
+    assert [r["extra_px"] for r in rows] == sorted((r["extra_px"] for r in rows), reverse=True)
+    summary = outside_summary(rows, sum(r["extra_px"] for r in rows))
+    assert summary["share_in_front"] > 0.8 and summary["share_floating"] > 0.9
+    assert summary["share_not_voting"] > 0.5 and summary["share_confident"] == 1.0
+
+
+def test_background_beside_the_object_labelled_as_it_is_attached_and_beside(scene):
+    """Background Gaussians touching the object's body, labelled as the object: beside it (at
+    its depths, outside its silhouette) and part of its body, not floating."""
+    from sagonline.score.diagnosis import outside_summary
+
+    g, truth = scene.gaussians, scene.gt_labels3d
+    body = g.means[truth == 1]
+    near = torch.cdist(g.means, body).min(1).values
+    spacing = torch.cdist(body, body).fill_diagonal_(float("inf")).min(1).values.median()
+    rim = (truth == 0) & (near < 2 * spacing)
+    assert rim.sum() > 10
+    rows = _outside_rows(scene, g, torch.where(rim, 1, truth))
+    assert rows and all(bool(rim[r["gaussian"]]) for r in rows)
+    summary = outside_summary(rows, sum(r["extra_px"] for r in rows))
+    assert summary["share_beside"] > 0.5 and summary["share_floating"] < 0.2
+
+
+def test_the_body_rule_unlabels_floaters_and_keeps_the_object(scene):
+    """`consensus.body`: the sheet labelled as the object floats apart from its body and is
+    left unlabelled; every Gaussian of the object keeps its label, and the background too."""
+    from sagonline.vote.body import keep_bodies
+
+    sheet = _sheet(scene, 0, fraction=0.5)
+    g = scene.gaussians
+    means = torch.cat([g.means, sheet.means])
+    labels = torch.cat([scene.gt_labels3d, torch.ones(len(sheet), dtype=torch.long)])
+    kept, dropped = keep_bodies(means, labels)
+    assert bool(dropped[len(g) :].all()) and not bool(dropped[: len(g)].any())
+    assert torch.equal(kept[: len(g)], scene.gt_labels3d) and bool((kept[len(g) :] == -1).all())
+
+
+def test_the_body_rule_is_off_by_default_and_runs_through_the_pipeline(scene):
+    assert VoteConfig().body is False
+    report, out = run_scene(
+        scene, OracleSegmenter(), VoteConfig(body=True), PipelineSettings(progress=False)
+    )
+    assert report.miou is not None and "fraction_off_body" in out.vote.value.stats

@@ -18,6 +18,7 @@ from sagonline.apps.cli import main
 from sagonline.datasets.synthetic import gt_mask
 from sagonline.labels.export import read_labels
 from sagonline.render import render, render_labels
+from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.generator import make_scene
 from sagonline.scene.io import read_scene, write_3dgs_cameras_json, write_ply
 from tests.fixtures import ROOT, cfg_with
@@ -233,7 +234,8 @@ def test_a_scene_without_cameras_gets_an_orbit_said_out_loud(tmp_path, capsys):
             "--click", f"0:{_click_inside(view0)}", "--out", str(out), "--no-record"]  # fmt: skip
     assert main(argv) == 0
     said = capsys.readouterr().err
-    assert "no --cameras given: an orbit of 24 views around the scene (64x48" in said
+    assert "no --cameras given: an orbit of 24 views around the scene (distance" in said
+    assert "a room: --inside) (64x48" in said
     info = json.loads((out / "labels.json").read_text())
     assert info["cameras"] is None and info["views"].startswith("no --cameras given")
     assert info["counts"]["object"] > 0
@@ -324,3 +326,45 @@ def test_views_that_show_almost_nothing_are_named(monkeypatch):
     monkeypatch.setattr(warnings, "formatwarning", warnings.formatwarning)  # restored after
     main(["plugins", "segmenters", "--keys"])
     assert warnings.formatwarning("a view", UserWarning, "x.py", 1) == "warning: a view\n"
+
+
+def _room(count: int = 6000) -> Gaussians:
+    """A closed box of opaque blobs 4 x 3 x 4 (a room seen from within), y up."""
+    rng = np.random.default_rng(0)
+    half = np.array([2.0, 1.5, 2.0])
+    pts = rng.uniform(-1, 1, (count, 3)) * half
+    face = rng.integers(0, 3, count)
+    pts[np.arange(count), face] = np.sign(rng.uniform(-1, 1, count)) * half[face]
+    sh = torch.zeros(count, 1, 3)
+    sh[:, 0] = torch.tensor(rng.uniform(-1, 1, (count, 3)), dtype=torch.float32)
+    return Gaussians(
+        means=torch.tensor(pts, dtype=torch.float32), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(
+            count, 1), scales=torch.full((count, 3), 0.08), opacities=torch.full((count,), 0.95),
+        sh=sh,
+    )  # fmt: skip
+
+
+def test_inside_places_the_views_at_the_centre_of_a_room_looking_out(tmp_path, capsys):
+    """`--inside`: a scene seen from within gets views at its centre, each looking out at a
+    wall that fills it; the orbit without it stands outside the walls; with --cameras it is
+    refused, naming why."""
+    from sagonline.scene.trajectory import orbit_around
+
+    room = _room()
+    inside, line = orbit_around(room.means, 8, 64, 48, inside=True)
+    outside, _ = orbit_around(room.means, 8, 64, 48)
+    centre = room.means.median(0).values
+    for cam in inside:
+        assert torch.allclose(cam.center.float(), centre, atol=1e-4)
+        alpha = render(room, cam, backend="native").alpha
+        assert float((alpha > 0.5).float().mean()) > 0.95  # a wall fills the view
+    assert all(float((c.center.float() - centre).abs().max()) > 2.0 for c in outside)
+    assert "from the scene's centre looking out (--inside)" in line
+    write_ply(tmp_path / "room.ply", room)
+    png = tmp_path / "view.png"
+    argv = ["render", str(tmp_path / "room.ply"), "--inside", "--width", "64", "--height", "48"]
+    assert main([*argv, "--out", str(png)]) == 0 and png.is_file()
+    write_3dgs_cameras_json(tmp_path / "cameras.json", inside)
+    cameras = ["--cameras", str(tmp_path / "cameras.json")]
+    assert main([*argv, "--out", str(png), "--overwrite", *cameras]) == 2
+    assert "--inside places views in a scene without cameras" in capsys.readouterr().err

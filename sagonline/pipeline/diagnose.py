@@ -18,7 +18,14 @@ from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stage_one import StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.scene.gaussians import Gaussians
-from sagonline.score.diagnosis import GaussianCauses, cause_image, diagnose_view, shares
+from sagonline.score.diagnosis import (
+    GaussianCauses,
+    OutsideTally,
+    cause_image,
+    diagnose_view,
+    outside_summary,
+    shares,
+)
 from sagonline.vote.consensus import VoteConfig, VoteResult
 
 
@@ -60,21 +67,26 @@ def diagnose_scene(
     report: SceneReport,
     cache: StageCache,
 ) -> list[np.ndarray]:
-    """Add each eval view's cause counts to its per-view row and the scene's shares to
-    report.extra["diagnosis"]; returns the (H, W, 3) cause images (for the recording)."""
+    """Add each eval view's cause counts to its per-view row, the scene's shares to
+    report.extra["diagnosis"] and the labelled Gaussians shown outside the object's silhouette
+    to report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
+    images (for the recording)."""
     truth = truth_vote(task, gaussians, stage_one, segmenter, vote_cfg, settings, cache)
     causes = GaussianCauses.of(stage_one.vote.value, vote_cfg, truth)
     rows = {(r["view"], r["mode"]): r for r in report.views}
-    counts, images = [], []
+    counts, images, outside = [], [], OutsideTally()
     for view, pred in zip(task.eval_views, preds, strict=True):
+        row = rows[(view.name, "coarse")]
         c, kinds = diagnose_view(
-            gaussians, view.camera, view.gt, pred, causes,
-            ignore=task.ignore_label, backend=settings.backend,
+            gaussians, view.camera, view.gt, pred, causes, ignore=task.ignore_label,
+            backend=settings.backend, outside=outside, voted=bool(row.get("voted")),
         )  # fmt: skip
-        rows[(view.name, "coarse")].update(c)
+        row.update(c)
         counts.append(c)
         images.append(cause_image(kinds))
+    report.outside = outside.rows(gaussians, causes)
     report.extra["diagnosis"] = shares(counts) | {
-        "counterfactual": "truth's masks" if truth is not None else None
+        "counterfactual": "truth's masks" if truth is not None else None,
+        "outside": outside_summary(report.outside, sum(c["extra_px"] for c in counts)),
     }
     return images

@@ -43,6 +43,8 @@ class SceneReport:
     inputs: dict = field(default_factory=dict)  # content digests of what this scene consumed
     stage_keys: dict = field(default_factory=dict)  # stage -> its cache key (`sagonline export`)
     protocol: str | None = None  # the evaluation protocol's id, e.g. nvos/scribbles-skeleton@1
+    outside: list[dict] = field(default_factory=list)  # labelled Gaussians shown outside the
+    # object's silhouette (`score.diagnosis.OutsideTally.rows`): gaussians_outside.csv
 
     def add_timings(self, stages: tuple[str, ...], **times: float) -> None:
         """This run's timings when it computed every one of `stages`, else the cached run's

@@ -26,6 +26,7 @@ import torch.nn.functional as F
 
 from sagonline.core import store
 from sagonline.core.settings import check_settings
+from sagonline.core.tensors import tensor_view
 from sagonline.refine.network import ARCHS, DualBranchRefiner
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
@@ -122,7 +123,7 @@ def coarse_input(
     smoothing: float = 0.1,
 ) -> torch.Tensor:  # [C, H, W] smoothed one-hot
     """(H, W) coarse label map -> (C, H, W) smoothed one-hot, the student's mask input."""
-    lab = torch.as_tensor(np.asarray(labels), dtype=torch.long)
+    lab = tensor_view(labels if isinstance(labels, torch.Tensor) else np.asarray(labels)).long()
     onehot = F.one_hot(lab, num_classes).permute(2, 0, 1).float()
     return onehot * (1 - smoothing) + smoothing / num_classes
 

@@ -188,12 +188,14 @@ def orbit_around(
     width: int = 640,
     height: int = 480,
     fov_deg: float = 60.0,
+    inside: bool = False,
 ) -> tuple[list[Camera], str]:
     """`count` views on a ring around a scene that comes without cameras: centred on the
     median of the Gaussians' centres (N, 3), far enough that 90% of them fit in a
     `fov_deg` view, 25 degrees above the ring's plane; up is the world axis along which the
-    scene is thinnest (most scenes are wider than they are tall). Returns the cameras and a
-    line that says what was chosen."""
+    scene is thinnest (most scenes are wider than they are tall). `inside`: a scene seen from
+    within (a room): the views stand at the centre and turn, looking out at the ring's
+    directions, level. Returns the cameras and a line that says what was chosen."""
     pts = means.detach().double().cpu()
     centre = pts.median(dim=0).values
     spread = (pts.quantile(0.95, dim=0) - pts.quantile(0.05, dim=0)).numpy()
@@ -204,7 +206,7 @@ def orbit_around(
     distance = 1.15 * reach / np.sin(np.deg2rad(fov_deg) / 2)
     focal = 0.5 * width / np.tan(np.deg2rad(fov_deg) / 2)
     K = np.array([[focal, 0, width / 2], [0, focal, height / 2], [0, 0, 1.0]])
-    elevation = np.deg2rad(25.0)
+    elevation = 0.0 if inside else np.deg2rad(25.0)
     radius, lift = distance * np.cos(elevation), distance * np.sin(elevation)
     a, b = (i for i in range(3) if i != axis)
     c = centre.numpy()
@@ -213,16 +215,22 @@ def orbit_around(
     cams = []
     for i in range(count):
         t = 2 * np.pi * i / count
-        eye = c.copy()
-        eye[a] += radius * np.cos(t)
-        eye[b] += radius * np.sin(t)
-        eye[axis] += lift
-        cams.append(make_camera(K, look_at(eye, c, up), width, height, f"orbit_{i:03d}"))
+        ring = c.copy()
+        ring[a] += radius * np.cos(t)
+        ring[b] += radius * np.sin(t)
+        ring[axis] += lift
+        eye, target = (c, ring) if inside else (ring, c)
+        cams.append(make_camera(K, look_at(eye, target, up), width, height, f"orbit_{i:03d}"))
     names = "xyz"
+    where = (
+        "from the scene's centre looking out (--inside)"
+        if inside
+        else f"around the scene (distance {distance:.3g}; a scene seen from within, a room: "
+        "--inside)"
+    )
     line = (
-        f"an orbit of {count} views around the scene ({width}x{height}, {fov_deg:g} degree "
-        f"field of view, centre {', '.join(f'{v:.3g}' for v in c)}, distance {distance:.3g}, "
-        f"up +{names[axis]})"
+        f"an orbit of {count} views {where} ({width}x{height}, {fov_deg:g} degree field of "
+        f"view, centre {', '.join(f'{v:.3g}' for v in c)}, up +{names[axis]})"
     )
     return cams, line
 

@@ -5,7 +5,8 @@ pseudo-temporal order of the harness's trajectories). `sagonline cameras PATH` p
 numbering; `render --view`, `segment --click VIEW:X,Y` and `segment --preview VIEW` all take an
 index in it, or a camera's name; from Python, `load_views` gives the same list. With
 `--orbit N` the views are a ring of N views instead (around the scene from the first camera,
-or, for a scene without cameras, around its bounds), numbered in ring order.
+or, for a scene without cameras, around its bounds; `--inside`: from its centre looking out,
+for a room seen from within), numbered in ring order.
 
 Clicks are pixels of the view **at its render size** (`--width`/`--height`, else the
 camera's own size): x to the right, y down, origin at the top-left corner.
@@ -51,9 +52,11 @@ def load_views(
     orbit: int = 0,
     width: int | None = None,
     height: int | None = None,
+    inside: bool = False,
 ) -> Views:
     """The views: the camera file's, sorted by name (or a ring of `orbit` views from its first
-    camera); without a camera file, a ring around the scene's bounds (`orbit`, default 24).
+    camera); without a camera file, a ring around the scene's bounds (`orbit`, default 24),
+    or, `inside`, a turn from the scene's centre looking out (a room seen from within).
     Rescaled to width x height when given."""
     from sagonline.scene.io.cameras import load_cameras
     from sagonline.scene.trajectory import orbit_around, pseudo_temporal_order, ring_around
@@ -69,8 +72,15 @@ def load_views(
         if gaussians is None:
             raise ViewError("no --cameras given and no scene to place an orbit around")
         count = orbit or DEFAULT_ORBIT
-        cams, line = orbit_around(gaussians.means, count, width or 640, height or 480)
+        cams, line = orbit_around(
+            gaussians.means, count, width or 640, height or 480, inside=inside
+        )
         return Views(cams, f"no --cameras given: {line}")
+    if inside:
+        raise ViewError(
+            "--inside places views in a scene without cameras; with --cameras the views are "
+            "the camera file's (or --orbit N around the scene from its first camera)"
+        )
     cams = pseudo_temporal_order(load_cameras(cameras))
     if not cams:
         raise ViewError(f"{cameras}: holds no cameras (no images in the model?)")

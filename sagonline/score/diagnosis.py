@@ -28,11 +28,20 @@ the Gaussian shown is that object by the run's vote but not by the truth's, `ext
 
 Counts are pixels at the render's resolution (the ground truth resized to it by nearest
 neighbour). The groups: fit (fit_*), vote (vote_*, label_render), segmenter.
+
+Per Gaussian (`OutsideTally`): the labelled Gaussians that render outside the object's
+silhouette, i.e. the Gaussian shown at an extra pixel that carries the predicted label. For
+each: how many extra pixels it shows, in how many views, how many in views that did not vote;
+where the surface shown there sits against the object's body in that view (`in_front`: nearer
+than the body's nearest 2% of depths by more than 5%, `behind`: farther than its farthest 2%,
+`beside`: at the body's depths, outside its silhouette); how it voted (its votes for the label,
+for background, in all); and how far it lies from the object's body (`Body`: the largest
+cluster of the object's Gaussians; 0 for a Gaussian of it), in body radii.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
@@ -40,6 +49,7 @@ import torch
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io.images import resize_nearest
+from sagonline.vote.body import Body
 from sagonline.vote.consensus import VoteConfig, VoteResult
 
 MISSED = (
@@ -86,6 +96,15 @@ class GaussianCauses:
     votes: torch.Tensor  # [N] float, votes cast for it
     ambiguous: torch.Tensor  # [N] bool, voted enough but within the margin (or tied)
     truth: torch.Tensor | None  # [N] long label by the truth's masks (-1 unlabelled), or None
+    histogram: torch.Tensor | None = None  # [N, K] the run's votes per label
+    bodies: dict[int, Body] = field(default_factory=dict, repr=False)
+
+    def body(self, k: int, gaussians: Gaussians) -> Body:
+        """Object k's body (`Body`), found once."""
+        if k not in self.bodies:
+            means = gaussians.means.detach().cpu().numpy()
+            self.bodies[k] = Body.of(means, self.members(k).numpy())
+        return self.bodies[k]
 
     def members(self, k: int) -> torch.Tensor:  # [N] bool
         """The fitted object k: its Gaussians by the truth's vote where known, else the run's."""
@@ -100,7 +119,8 @@ class GaussianCauses:
         labels = run.labels.cpu()
         labelled = labels >= 0
         truth_labels = truth.labels.cpu() if truth is not None else None
-        return cls(labels, labelled, votes, enough & ~labelled, truth_labels)
+        histogram = run.histogram.cpu()
+        return cls(labels, labelled, votes, enough & ~labelled, truth_labels, histogram)
 
 
 def object_depths(
@@ -133,10 +153,13 @@ def diagnose_view(
     *,
     ignore: int | None = None,
     backend: str = "auto",
+    outside: OutsideTally | None = None,
+    voted: bool = False,
 ) -> tuple[dict[str, int], np.ndarray]:
     """Counts of one view's wrong pixels by cause, and an (H, W) uint8 map of the causes
     (index into MISSED + EXTRA, +1; 0: right). gt: the view's ground truth (any resolution of
-    the camera's aspect); pred: the label render at the camera's size."""
+    the camera's aspect); pred: the label render at the camera's size. `outside`: adds this
+    view's extra pixels to it, per labelled Gaussian shown there (`voted`: the view voted)."""
     from sagonline.render.api import render
 
     h, w = camera.height, camera.width
@@ -162,8 +185,10 @@ def diagnose_view(
         kinds[where & (kinds == 0)] = (MISSED + EXTRA).index(name) + 1
 
     mark("fit_empty", missed & ((alpha < 0.5) | ~shown))
-    for k in np.unique(truth[missed | extra]).tolist() + np.unique(pred[extra]).tolist():
-        if k <= 0 or not (missed | extra).any():
+    for k in sorted(
+        set(np.unique(truth[missed | extra]).tolist() + np.unique(pred[extra]).tolist())
+    ):
+        if k <= 0:
             continue
         obj_alpha, obj_depth = object_depths(gaussians, camera, causes.members(k), backend)
         at_k = missed & (truth == k)
@@ -171,6 +196,12 @@ def diagnose_view(
         with np.errstate(invalid="ignore"):
             mark("fit_occluded", at_k & (depth < (1 - OCCLUSION) * obj_depth))
         mark("extra_fit", extra & (pred == k) & (obj_alpha >= 0.5))
+        if outside is not None:
+            culprit = extra & (pred == k) & labelled & (run_label == k)
+            if culprit.any():
+                body = torch.from_numpy(causes.body(k, gaussians).members)
+                body_alpha, body_depth = object_depths(gaussians, camera, body, backend)
+                outside.add(ids[culprit], depth[culprit], body_alpha, body_depth, voted)
     mark("label_render", missed & labelled & (run_label == truth))
     unlabelled = missed & ~labelled
     mark("vote_unseen", unlabelled & (votes == 0))
@@ -186,6 +217,96 @@ def diagnose_view(
     counts["extra_px"] = int(extra.sum())
     counts["object_px"] = int((valid & (truth > 0)).sum())
     return counts, kinds
+
+
+POSITIONS = ("in_front", "beside", "behind")
+
+
+@dataclass
+class OutsideTally:
+    """Over the scored views: per labelled Gaussian shown at an extra pixel, its extra pixels
+    by position (POSITIONS), those in views that did not vote, and the views it showed in."""
+
+    pixels: dict[int, np.ndarray] = field(default_factory=dict)  # id -> [3 positions, held-out]
+    views: dict[int, int] = field(default_factory=dict)
+
+    def add(
+        self,
+        ids: np.ndarray,  # [P] the Gaussian shown at each extra pixel
+        depth: np.ndarray,  # [P] the scene's depth there
+        obj_alpha: np.ndarray,  # [H, W] the object's body alone
+        obj_depth: np.ndarray,  # [H, W] its depth (NaN where it renders nothing)
+        voted: bool,
+    ) -> None:
+        if ids.size == 0:
+            return
+        inside = obj_depth[(obj_alpha >= 0.5) & np.isfinite(obj_depth)]
+        position = np.ones(ids.shape, np.int64)  # beside, unless the object's depths say more
+        if inside.size:
+            near, far = np.percentile(inside, [2, 98])
+            position[depth < (1 - OCCLUSION) * near] = 0
+            position[depth > (1 + OCCLUSION) * far] = 2
+        for g in np.unique(ids).tolist():
+            at = ids == g
+            row = self.pixels.setdefault(g, np.zeros(4, np.int64))
+            row[:3] += np.bincount(position[at], minlength=3)
+            row[3] += 0 if voted else int(at.sum())
+            self.views[g] = self.views.get(g, 0) + 1
+
+    def rows(self, gaussians: Gaussians, causes: GaussianCauses) -> list[dict]:
+        """One row per Gaussian, most extra pixels first: id, label, position (x, y, z), extra
+        pixels (all, by position, in views that did not vote), views, its votes (for its label,
+        for background, all) and its distance from the object's body in object radii (0: part
+        of it; `Body`)."""
+        if not self.pixels:
+            return []
+        ids = np.array(sorted(self.pixels, key=lambda g: -int(self.pixels[g][:3].sum())))
+        means = gaussians.means.detach().cpu().numpy()
+        labels = causes.labels.numpy()
+        hist = causes.histogram.numpy() if causes.histogram is not None else None
+        distance = np.full(len(ids), np.nan)
+        for k in np.unique(labels[ids]).tolist():
+            of_k = labels[ids] == k
+            distance[of_k] = causes.body(k, gaussians).distance(means, ids[of_k])
+        rows = []
+        for g, d in zip(ids.tolist(), distance.tolist(), strict=True):
+            px, k = self.pixels[g], int(labels[g])
+            row = {"gaussian": g, "label": k, "x": means[g, 0], "y": means[g, 1], "z": means[g, 2]}
+            row |= {
+                "extra_px": int(px[:3].sum()),
+                **dict(zip(POSITIONS, px[:3].tolist(), strict=True)),
+            }
+            row |= {"extra_px_not_voting": int(px[3]), "views": self.views[g]}
+            if hist is not None:
+                votes = hist[g]
+                row |= {"votes_label": float(votes[k]), "votes_background": float(votes[0])}
+                row |= {"votes": float(votes.sum())}
+            row["body_distance_radii"] = None if np.isnan(d) else round(d, 4)
+            rows.append(row)
+        return rows
+
+
+def outside_summary(rows: list[dict], extra_px: int) -> dict:
+    """The extra pixels that labelled Gaussians show, summed over `OutsideTally.rows`: how
+    many Gaussians, their share of all the views' `extra_px`, the share by position, in views
+    that did not vote, shown by floating Gaussians (apart from the object's `Body`), and by
+    Gaussians whose own votes were at least 90% for their label."""
+    total = sum(r["extra_px"] for r in rows)
+    out: dict = {"gaussians": len(rows), "extra_px": total}
+    out["share_of_extra"] = total / extra_px if extra_px else None
+    if not total:
+        return out
+
+    def share(pick) -> float:
+        return sum(r["extra_px"] for r in rows if pick(r)) / total
+
+    for name in POSITIONS:
+        out[f"share_{name}"] = sum(r[name] for r in rows) / total
+    out["share_not_voting"] = sum(r["extra_px_not_voting"] for r in rows) / total
+    out["share_floating"] = share(lambda r: (r["body_distance_radii"] or 0) > 0)
+    if "votes" in rows[0]:
+        out["share_confident"] = share(lambda r: r["votes_label"] >= 0.9 * max(r["votes"], 1))
+    return out
 
 
 def shares(rows: list[dict]) -> dict[str, float | None]:
@@ -210,4 +331,14 @@ def cause_image(kinds: np.ndarray) -> np.ndarray:
     return colours[kinds]
 
 
-__all__ = ["CAUSE_GROUPS", "EXTRA", "MISSED", "GaussianCauses", "diagnose_view", "shares"]
+__all__ = [
+    "CAUSE_GROUPS",
+    "EXTRA",
+    "MISSED",
+    "POSITIONS",
+    "GaussianCauses",
+    "OutsideTally",
+    "diagnose_view",
+    "outside_summary",
+    "shares",
+]

@@ -35,11 +35,13 @@ import torch
 from sagonline.core.plugins import VOTE_RULES
 from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
+from sagonline.core.tensors import tensor_view
 from sagonline.render.rasterize import T_STOP
 from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
+from sagonline.vote.body import keep_bodies
 from sagonline.vote.fill import fill_from_neighbours
 
 
@@ -81,6 +83,10 @@ class VoteConfig:
     """Unlabelled Gaussians take the label a strict majority of their `fill` nearest labelled
     neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
     0: off, the paper's protocol (`fill_from_neighbours`)."""
+    body: bool = False
+    """Each object's labels kept on its body, the largest cluster of its Gaussians (linked by
+    gaps under 3x their median spacing); its Gaussians floating apart are left unlabelled.
+    Off: the paper's protocol (`vote.body.keep_bodies`)."""
 
     def __post_init__(self) -> None:
         n = self.num_masks
@@ -119,8 +125,8 @@ class VoteConfig:
         return self.method_rule().rule(self)
 
 
-# The settings every method reads: which masks vote, and the fill after the vote.
-SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill")
+# The settings every method reads: which masks vote, and the fill and body rule after it.
+SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill", "body")
 
 
 @dataclass(frozen=True)
@@ -182,7 +188,7 @@ class VoteAccumulator:
     """The running (N, K) vote histogram of one method: views are added one by one by the vote
     op (`render.vote.vote_into`), labels are read off at any time (`labels`), the result with
     its statistics at the end (`result`). means: (N, 3) the Gaussians' centres, needed only by
-    the fill (`consensus.fill`)."""
+    the fill and the body rule (`consensus.fill`, `consensus.body`)."""
 
     def __init__(
         self,
@@ -197,6 +203,7 @@ class VoteAccumulator:
         self.frames: list[int] = []
         self.pairs = 0  # (pixel, Gaussian) pairs that voted
         self.seconds = 0.0  # spent in the vote op and reading labels off
+        self.dropped: torch.Tensor | None = None  # [N] bool, off their object's body
 
     def grow(self, num_labels: int) -> None:
         """Make room for labels up to num_labels - 1 (a segmenter may name more objects than
@@ -234,10 +241,12 @@ class VoteAccumulator:
         start = time.perf_counter()
         labels = decide(self.hist, self.cfg)
         filled = torch.zeros_like(labels, dtype=torch.bool)
+        if (self.cfg.fill or self.cfg.body) and self.means is None:
+            raise ValueError("consensus.fill and consensus.body need the Gaussians' centres")
         if self.cfg.fill:
-            if self.means is None:
-                raise ValueError("consensus.fill needs the Gaussians' centres (means)")
             labels, filled = fill_from_neighbours(self.means, labels, self.cfg.fill)
+        if self.cfg.body:
+            labels, self.dropped = keep_bodies(self.means, labels)
         self.seconds += time.perf_counter() - start
         return labels, filled
 
@@ -247,13 +256,15 @@ class VoteAccumulator:
         total = self.hist.sum(1)
         voted = total > 0
         labelled = labels >= 0
+        off = self.dropped if self.dropped is not None else torch.zeros_like(labelled)
         n = len(self.frames)
         stats = {
             "fraction_filled": float(filled.float().mean()) if len(labels) else 0.0,
+            "fraction_off_body": float(off.float().mean()) if len(labels) else 0.0,
             "num_masks": n,
             "fraction_labelled": float(labelled.float().mean()) if len(labels) else 0.0,
             "fraction_voted": float(voted.float().mean()) if len(labels) else 0.0,
-            "fraction_ambiguous": float((voted & ~labelled & ~filled).float().mean())
+            "fraction_ambiguous": float((voted & ~labelled & ~filled & ~off).float().mean())
             if len(labels)
             else 0.0,
             "votes_per_gaussian_mean": float(total[voted].mean()) if voted.any() else 0.0,
@@ -357,7 +368,7 @@ def check_mask(
     where: str,
 ) -> torch.Tensor:  # [H * W] long
     """Validate one frame's mask against its view; returns (H*W,) long."""
-    m = torch.as_tensor(np.asarray(mask))
+    m = tensor_view(np.asarray(mask) if not isinstance(mask, torch.Tensor) else mask)
     if m.shape != (camera.height, camera.width):
         raise MaskError(
             f"{where}: mask is {tuple(m.shape)} but its view '{camera.name}' renders "

@@ -48,3 +48,28 @@ def test_a_seed_without_a_fit_is_left_out_before_anything_runs(tmp_path, monkeyp
     (fit / "point_cloud.ply").write_text("")
     monkeypatch.setattr(real, "ROOT", tmp_path)
     assert real.fitted("cap", 3) and not real.fitted("cap", 4)
+
+
+def test_a_candidate_setting_runs_in_a_folder_of_its_own():
+    cmd = real.command("mary_rose", "real", 1, ("consensus.body=true",))
+    assert "consensus.body=true" in cmd
+    assert "hydra.run.dir=multirun/real/mary_rose/real-seed1@consensus.body-true" in cmd
+
+
+def test_leave_one_out_chooses_on_the_others_and_reports_on_the_held_out():
+    """A setting three captures like and the fourth does not: chosen in the fourth's rotation
+    (on the others) and reported there with its loss; not kept, as it loses over 1 point."""
+    scores = {
+        "a": {"defaults": 80.0, "x": 85.0},
+        "b": {"defaults": 90.0, "x": 92.0},
+        "c": {"defaults": 70.0, "x": 71.0},
+        "d": {"defaults": 95.0, "x": 90.0},
+    }
+    rows = {r["capture held out"]: r for r in real.leave_one_out(scores, "defaults")}
+    assert rows["d"]["chosen on the others"] == "x" and rows["d"]["change"] == -5.0
+    assert rows["a"]["chosen on the others"] == "defaults"  # b, c, d: 84.33 with x, 85 without
+    assert rows["a"]["change"] == 0.0
+    assert real.kept(list(rows.values()), "defaults") is None
+    scores["d"]["x"] = 94.5  # loses half a point: within the rule
+    rows = real.leave_one_out(scores, "defaults")
+    assert real.kept(rows, "defaults") == "x"

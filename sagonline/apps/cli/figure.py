@@ -40,8 +40,9 @@ def folder_views(info: dict, scene) -> list:
 
     width, height = info["prompt"]["render_size"]
     views = load_views(
-        info.get("cameras"), scene, orbit=info.get("orbit") or 0, width=width, height=height
-    )
+        info.get("cameras"), scene, orbit=info.get("orbit") or 0, width=width, height=height,
+        inside=bool(info.get("inside")),
+    )  # fmt: skip
     return insert_between(views.cameras, info.get("inbetween") or 0)
 
 

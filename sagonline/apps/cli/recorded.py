@@ -50,6 +50,8 @@ def apply_recorded_prompts(args) -> None:
         args.cameras = field.get("cameras", str)
     if not args.orbit and record.get("orbit"):
         args.orbit = field.get("orbit", int)
+    if not getattr(args, "inside", False) and record.get("inside"):
+        args.inside = field.get("inside", bool)
     if args.width is None and prompt.get("render_size"):
         size = field.get("prompt.render_size", list, prompt["render_size"])
         if len(size) != 2:

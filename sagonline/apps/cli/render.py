@@ -34,8 +34,8 @@ def add_parsers(sub) -> None:
 
 
 def add_view_arguments(parser) -> None:
-    """--cameras, --orbit, --width/--height, --device, --drop-nonfinite: how every command that
-    renders picks its views."""
+    """--cameras, --orbit, --inside, --width/--height, --device, --drop-nonfinite: how every
+    command that renders picks its views."""
     parser.add_argument(
         "--cameras",
         help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder or .npz; without "
@@ -45,6 +45,11 @@ def add_view_arguments(parser) -> None:
         "--orbit", type=int, default=0, metavar="N",
         help="N views on a ring around the scene (from the first camera, or around the "
         "scene's bounds without --cameras)",
+    )  # fmt: skip
+    parser.add_argument(
+        "--inside", action="store_true",
+        help="without --cameras: the views stand at the scene's centre and look out (a room or "
+        "a scene captured from within), instead of an orbit around it",
     )  # fmt: skip
     parser.add_argument("--width", type=int, help="render width (cameras rescaled)")
     parser.add_argument("--height", type=int, help="render height")
@@ -108,7 +113,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    views = load_views(
+        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
+        inside=args.inside,
+    )  # fmt: skip
     index = view_index(args.view, views.cameras)
     cam = views.cameras[index]
     out_img = render(g.to(args.device), cam.to(args.device), background=torch.tensor(background),

@@ -196,7 +196,10 @@ def cmd_segment(args) -> int:
         check_replaceable(out, args.overwrite)
     vote = vote_config(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    views = load_views(
+        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
+        inside=args.inside,
+    )  # fmt: skip
     if args.cameras is None or args.orbit:
         print(f"views: {views.source}", file=sys.stderr)
     given = views.cameras
@@ -224,6 +227,7 @@ def cmd_segment(args) -> int:
         "cameras": str(args.cameras) if args.cameras else None,
         "views": views.source,
         "orbit": args.orbit,
+        "inside": args.inside,
         "inbetween": args.inbetween,
         "prompt": parsed.record(given, folder=out),
         "inputs": input_digests(scene, args.cameras, masks),

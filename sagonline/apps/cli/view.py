@@ -122,7 +122,10 @@ def cmd_view(args) -> int:
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(args.cameras, g, orbit=args.orbit, width=args.width, height=args.height)
+    views = load_views(
+        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
+        inside=args.inside,
+    )  # fmt: skip
     check_trajectory(views.cameras)
     build = segmenter_builder(args)
     segmenter = build(args.segmenter)
@@ -135,6 +138,7 @@ def cmd_view(args) -> int:
         "cameras": str(args.cameras) if args.cameras else None,
         "views": views.source,
         "orbit": args.orbit,
+        "inside": args.inside,
         "render_size": [args.width, args.height] if args.width else None,
         "inbetween": 0,
     }
