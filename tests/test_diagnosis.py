@@ -163,15 +163,14 @@ def test_floaters_labelled_as_the_object_are_named_per_gaussian(scene):
 
 
 def test_background_beside_the_object_labelled_as_it_is_attached_and_beside(scene):
-    """Background Gaussians touching the object's body, labelled as the object: beside it (at
-    its depths, outside its silhouette) and part of its body, not floating."""
+    """Background Gaussians touching the object's body (centres nearer than their extents),
+    labelled as the object: beside it (at its depths, outside its silhouette) and part of its
+    body, not floating."""
     from sagonline.score.diagnosis import outside_summary
 
     g, truth = scene.gaussians, scene.gt_labels3d
-    body = g.means[truth == 1]
-    near = torch.cdist(g.means, body).min(1).values
-    spacing = torch.cdist(body, body).fill_diagonal_(float("inf")).min(1).values.median()
-    rim = (truth == 0) & (near < 2 * spacing)
+    near = torch.cdist(g.means, g.means[truth == 1]).min(1).values
+    rim = (truth == 0) & (near < g.scales.amax(1))  # nearer than its own extent: touching
     assert rim.sum() > 10
     rows = _outside_rows(scene, g, torch.where(rim, 1, truth))
     assert rows and all(bool(rim[r["gaussian"]]) for r in rows)
@@ -187,8 +186,9 @@ def test_the_body_rule_unlabels_floaters_and_keeps_the_object(scene):
     sheet = _sheet(scene, 0, fraction=0.5)
     g = scene.gaussians
     means = torch.cat([g.means, sheet.means])
+    reach = torch.cat([g.scales.amax(1), sheet.scales.amax(1)]).numpy()
     labels = torch.cat([scene.gt_labels3d, torch.ones(len(sheet), dtype=torch.long)])
-    kept, dropped = keep_bodies(means, labels)
+    kept, dropped = keep_bodies(means, reach, labels)
     assert bool(dropped[len(g) :].all()) and not bool(dropped[: len(g)].any())
     assert torch.equal(kept[: len(g)], scene.gt_labels3d) and bool((kept[len(g) :] == -1).all())
 

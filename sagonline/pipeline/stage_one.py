@@ -62,6 +62,7 @@ from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult
 from sagonline.segment.prompts import Prompt, add_to_prompt
+from sagonline.vote.body import extents
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
 from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs, FeedbackPolicy, FusedRender
 
@@ -321,6 +322,7 @@ class StageOne:
         self._acc = VoteAccumulator(
             len(self.gaussians), max(c.num_labels, self._prompt.num_labels), c.vote,
             self.gaussians.device, self.gaussians.means,
+            extents(self.gaussians) if c.vote.body else None,
         )  # fmt: skip
         voting, total = set(self.voting), len(self.voting)
         seconds = [0.0] * len(self.cameras)

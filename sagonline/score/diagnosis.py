@@ -49,7 +49,7 @@ import torch
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io.images import resize_nearest
-from sagonline.vote.body import Body
+from sagonline.vote.body import Body, extents
 from sagonline.vote.consensus import VoteConfig, VoteResult
 
 MISSED = (
@@ -103,7 +103,7 @@ class GaussianCauses:
         """Object k's body (`Body`), found once."""
         if k not in self.bodies:
             means = gaussians.means.detach().cpu().numpy()
-            self.bodies[k] = Body.of(means, self.members(k).numpy())
+            self.bodies[k] = Body.of(means, extents(gaussians), self.members(k).numpy())
         return self.bodies[k]
 
     def members(self, k: int) -> torch.Tensor:  # [N] bool

@@ -41,7 +41,7 @@ from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.vote.body import keep_bodies
+from sagonline.vote.body import extents, keep_bodies
 from sagonline.vote.fill import fill_from_neighbours
 
 
@@ -84,9 +84,9 @@ class VoteConfig:
     neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
     0: off, the paper's protocol (`fill_from_neighbours`)."""
     body: bool = False
-    """Each object's labels kept on its body, the largest cluster of its Gaussians (linked by
-    gaps under 3x their median spacing); its Gaussians floating apart are left unlabelled.
-    Off: the paper's protocol (`vote.body.keep_bodies`)."""
+    """Each object's labels kept on its body, the largest cluster of its touching Gaussians
+    (centres nearer than the sum of their largest scales); those touching nothing of it are
+    left unlabelled. Off: the paper's protocol (`vote.body.keep_bodies`)."""
 
     def __post_init__(self) -> None:
         n = self.num_masks
@@ -188,7 +188,8 @@ class VoteAccumulator:
     """The running (N, K) vote histogram of one method: views are added one by one by the vote
     op (`render.vote.vote_into`), labels are read off at any time (`labels`), the result with
     its statistics at the end (`result`). means: (N, 3) the Gaussians' centres, needed only by
-    the fill and the body rule (`consensus.fill`, `consensus.body`)."""
+    the fill and the body rule (`consensus.fill`, `consensus.body`); extents: (N,) their largest
+    scales, needed by the body rule (`vote.body.extents`)."""
 
     def __init__(
         self,
@@ -197,8 +198,10 @@ class VoteAccumulator:
         cfg: VoteConfig,
         device: torch.device | str = "cpu",
         means: torch.Tensor | None = None,
+        extents: np.ndarray | None = None,
     ):
         self.cfg, self.k, self.rule, self.means = cfg, num_labels, cfg.rule, means
+        self.extents = extents
         self.hist = torch.zeros(num_gaussians, num_labels, dtype=torch.float64, device=device)
         self.frames: list[int] = []
         self.pairs = 0  # (pixel, Gaussian) pairs that voted
@@ -234,19 +237,22 @@ class VoteAccumulator:
         return cast
 
     def labels(self) -> torch.Tensor:  # [N] int64, -1 unlabelled
-        """The labels of the histogram so far: the method's rule, then the config's fill."""
-        return self._decide()[0]
+        """The labels of the histogram so far: the method's rule, then the config's fill (the
+        body rule, `consensus.body`, applies to the final labels, `result`)."""
+        return self._decide(final=False)[0]
 
-    def _decide(self) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] filled
+    def _decide(self, final: bool = True) -> tuple[torch.Tensor, torch.Tensor]:  # [N], [N] filled
         start = time.perf_counter()
         labels = decide(self.hist, self.cfg)
         filled = torch.zeros_like(labels, dtype=torch.bool)
         if (self.cfg.fill or self.cfg.body) and self.means is None:
             raise ValueError("consensus.fill and consensus.body need the Gaussians' centres")
+        if self.cfg.body and self.extents is None:
+            raise ValueError("consensus.body needs the Gaussians' extents (extents=)")
         if self.cfg.fill:
             labels, filled = fill_from_neighbours(self.means, labels, self.cfg.fill)
-        if self.cfg.body:
-            labels, self.dropped = keep_bodies(self.means, labels)
+        if self.cfg.body and final:
+            labels, self.dropped = keep_bodies(self.means, self.extents, labels)
         self.seconds += time.perf_counter() - start
         return labels, filled
 
@@ -403,7 +409,9 @@ def consensus_vote(
     cfg = cfg or VoteConfig()
     if len(cameras) != len(masks):
         raise MaskError(f"{len(cameras)} cameras but {len(masks)} masks")
-    acc = VoteAccumulator(len(gaussians), num_labels, cfg, gaussians.device, gaussians.means)
+    acc = VoteAccumulator(
+        len(gaussians), num_labels, cfg, gaussians.device, gaussians.means, extents(gaussians)
+    )
     for f in select_frames(len(cameras), cfg):
         acc.add_view(gaussians, cameras[f], masks[f], backend, f"mask of frame {f}", frame=f)
     return acc.result()
