@@ -29,9 +29,9 @@ from bench.job import (
 from bench.outputs import print_summary, write_outputs
 from bench.rundir import (
     check_writable,
-    comparable_config,
     config_difference,
     config_fingerprint,
+    finished_config,
     finished_run,
     refuse,
     remove_if_empty,
@@ -230,8 +230,8 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
 def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes) -> dict:
     """A finished run is in `out_dir`: skip if it came from this config and these inputs,
     else refuse naming the difference. Nothing in `out_dir` is written either way."""
-    if previous.get("config_fingerprint") != fingerprint:
-        old_flat = comparable_config(previous.get("config") or {})
+    old_flat = finished_config(previous.get("config") or {})
+    if previous.get("config_fingerprint") != fingerprint and old_flat != flat_cfg:
         refuse(out_dir, ["made with another config:", *config_difference(old_flat, flat_cfg)])
     changed = []
     recorded = {s["scene"]: s.get("inputs") or {} for s in previous.get("scenes", [])}

@@ -31,9 +31,25 @@ class RunExists(SystemExit):
 PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "threads", "diagnose")
 
 
+# Settings added after runs were made, with the value that does what those runs did: a
+# finished run whose config lacks one is compared as if it had that value (a new option left
+# at its default does not make a finished run "another config").
+ADDED_SETTINGS = {"consensus.body": False}
+
+
 def comparable_config(config: dict) -> dict:
     """A resolved config as flat `a.b.c: value` pairs, without PRESENTATION_KEYS."""
     return flatten({k: v for k, v in config.items() if k not in PRESENTATION_KEYS and k != "hydra"})
+
+
+def finished_config(config: dict) -> dict:
+    """A finished run's recorded config made comparable (`comparable_config`), the settings
+    added since at the values that do what it did (ADDED_SETTINGS)."""
+    flat = comparable_config(config)
+    if flat:
+        for key, value in ADDED_SETTINGS.items():
+            flat.setdefault(key, value)
+    return flat
 
 
 def config_fingerprint(cfg) -> tuple[str, dict]:

@@ -530,3 +530,16 @@ def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
     assert digest_arrays(writable) != before
     with pytest.raises(ValueError, match="read-only"):
         frozen[0][0, 0] = 7
+
+
+def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same():
+    """A finished run recorded before consensus.body existed compares equal to this config
+    with the rule off, and differs from it with the rule on."""
+    from bench.rundir import ADDED_SETTINGS, comparable_config, finished_config
+
+    now = {"consensus": {"method": "rgc", "body": False}, "dataset": {"name": "x"}}
+    before = {"consensus": {"method": "rgc"}, "dataset": {"name": "x"}}
+    assert "consensus.body" in ADDED_SETTINGS
+    assert finished_config(before) == comparable_config(now)
+    now["consensus"]["body"] = True
+    assert finished_config(before) != comparable_config(now)
