@@ -1,7 +1,7 @@
 """Errors shared across the library's rooms, low enough that any of them may raise one.
 
 A stored file the harness wrote is `core.store.StoreError`; a mask that does not fit its view is
-`vote.consensus.MaskError`.
+`vote.masks.MaskError`.
 """
 
 from __future__ import annotations

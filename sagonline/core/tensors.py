@@ -8,7 +8,9 @@ import numpy as np
 import torch
 
 
-def tensor_view(array: np.ndarray | torch.Tensor) -> torch.Tensor:
+def tensor_view(
+    array: np.ndarray | torch.Tensor,  # [...] any shape
+) -> torch.Tensor:  # [...] the same shape, sharing the array's memory
     """`torch.as_tensor(array)`, sharing its memory. The ground truth is read-only
     (`datasets.base.read_only`) and is only read through the tensor, so PyTorch's warning
     that it cannot mark a tensor read-only is not shown for it."""

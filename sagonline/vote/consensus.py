@@ -35,7 +35,6 @@ import torch
 from sagonline.core.plugins import VOTE_RULES
 from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
-from sagonline.core.tensors import tensor_view
 from sagonline.render.rasterize import T_STOP
 from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_into
@@ -43,10 +42,7 @@ from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.vote.body import extents, keep_bodies
 from sagonline.vote.fill import fill_from_neighbours
-
-
-class MaskError(ValueError):
-    """A 2D mask does not fit its view (size, dtype or label range)."""
+from sagonline.vote.masks import MaskError, check_mask
 
 
 @dataclass
@@ -365,31 +361,6 @@ for _key, _method, _summary in (
     ),
 ):
     VOTE_RULES.register(_key, NoSettings, lambda cfg, m=_method: m, summary=_summary)
-
-
-def check_mask(
-    mask: np.ndarray | torch.Tensor,  # [H, W] label ids
-    camera: Camera,
-    num_labels: int,
-    where: str,
-) -> torch.Tensor:  # [H * W] long
-    """Validate one frame's mask against its view; returns (H*W,) long."""
-    m = tensor_view(np.asarray(mask) if not isinstance(mask, torch.Tensor) else mask)
-    if m.shape != (camera.height, camera.width):
-        raise MaskError(
-            f"{where}: mask is {tuple(m.shape)} but its view '{camera.name}' renders "
-            f"at {camera.height}x{camera.width} (H x W)"
-        )
-    if m.dtype.is_floating_point or m.dtype == torch.bool:
-        if m.dtype == torch.bool:
-            m = m.long()
-        elif not torch.equal(m, m.round()):
-            raise MaskError(f"{where}: mask holds non-integer values; pass label ids")
-    m = m.long()
-    lo, hi = int(m.min()), int(m.max())
-    if lo < 0 or hi >= num_labels:
-        raise MaskError(f"{where}: label ids must lie in [0, {num_labels}), found [{lo}, {hi}]")
-    return m.flatten()
 
 
 def consensus_vote(

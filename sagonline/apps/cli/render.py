@@ -62,6 +62,14 @@ def add_view_arguments(parser) -> None:
     parser.epilog = f"Views and clicks: {CLICK_HELP}."
 
 
+def views_of(args: argparse.Namespace, scene):
+    """The views the view arguments (`add_view_arguments`) pick for `scene`."""
+    from sagonline.scene.views import load_views
+
+    return load_views(args.cameras, scene, orbit=args.orbit, width=args.width,
+                      height=args.height, inside=args.inside)  # fmt: skip
+
+
 def parse_background(text: str) -> list[float]:
     """'r,g,b' with each value in [0, 1]."""
     try:
@@ -97,7 +105,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
-    from sagonline.scene.views import load_views, view_index
+    from sagonline.scene.views import view_index
 
     scene = scene_file(args.scene)
     out = Path(args.out)
@@ -113,10 +121,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(
-        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
-        inside=args.inside,
-    )  # fmt: skip
+    views = views_of(args, g)
     index = view_index(args.view, views.cameras)
     cam = views.cameras[index]
     out_img = render(g.to(args.device), cam.to(args.device), background=torch.tensor(background),

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.apps.cli.render import add_view_arguments
+from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
 from sagonline.scene.views import CLICK_HELP
 from sagonline.segment.clicks import parse_prompt, to_prompt
@@ -171,7 +171,7 @@ def cmd_segment(args) -> int:
     from sagonline.scene.io import read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.trajectory import insert_between
-    from sagonline.scene.views import check_trajectory, load_views, view_index
+    from sagonline.scene.views import check_trajectory, view_index
 
     started = time.perf_counter()
     if args.prompts:
@@ -196,10 +196,7 @@ def cmd_segment(args) -> int:
         check_replaceable(out, args.overwrite)
     vote = vote_config(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(
-        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
-        inside=args.inside,
-    )  # fmt: skip
+    views = views_of(args, g)
     if args.cameras is None or args.orbit:
         print(f"views: {views.source}", file=sys.stderr)
     given = views.cameras

@@ -7,7 +7,7 @@ from __future__ import annotations
 import sys
 import time
 
-from sagonline.apps.cli.render import add_view_arguments
+from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
 
 
@@ -111,7 +111,7 @@ def cmd_view(args) -> int:
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
-    from sagonline.scene.views import check_trajectory, load_views
+    from sagonline.scene.views import check_trajectory
 
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
@@ -122,10 +122,7 @@ def cmd_view(args) -> int:
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
-    views = load_views(
-        args.cameras, g, orbit=args.orbit, width=args.width, height=args.height,
-        inside=args.inside,
-    )  # fmt: skip
+    views = views_of(args, g)
     check_trajectory(views.cameras)
     build = segmenter_builder(args)
     segmenter = build(args.segmenter)
