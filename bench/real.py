@@ -213,7 +213,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         seeds = sorted({int(s) for s in args.seeds.split(",")})
     except ValueError:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
-    rows, commands = [], []
+    rows, commands, scored = [], [], {}
     for capture in names:
         per_seed, used = [], []
         for seed in seeds:
@@ -222,6 +222,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                       f"ARGS=seed={seed}); left out", file=sys.stderr)  # fmt: skip
                 continue
             results = {source: run(capture, source, seed) for source in SOURCES}
+            scored |= {(capture, source, seed): m for source, m in results.items()}
             if not any(results.values()):
                 continue
             per_seed.append(row(capture, results["real"], results["classical"],
@@ -268,17 +269,31 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     print(f"\nwrote {args.out}/{stem}.md and .csv")
     if args.settings:
         candidates = [tuple(c.split()) for c in args.settings.split(";") if c.strip()]
-        choose(names, seeds, candidates, args.out)
+        choose(names, seeds, candidates, args.out, scored)
     return df
 
 
 BASELINE = "defaults"
 
 
-def choose(names: list[str], seeds: list[int], candidates: list[tuple[str, ...]], out: Path):
+def choose(
+    names: list[str],
+    seeds: list[int],
+    candidates: list[tuple[str, ...]],
+    out: Path,
+    scored: dict | None = None,
+):
     """Every capture's fits scored with the defaults and each candidate setting (real masks,
-    classical), then the leave-one-capture-out choice per source (real_captures_loo.md)."""
+    classical), then the leave-one-capture-out choice per source (real_captures_loo.md).
+    scored: (capture, source, seed) -> the defaults' metrics the table already read."""
     from sagonline.core.files import atomic_write_text
+
+    scored = scored or {}
+
+    def baseline(capture: str, source: str, seed: int) -> dict | None:
+        if (capture, source, seed) in scored:
+            return scored[(capture, source, seed)]
+        return run(capture, source, seed)
 
     settings = {BASELINE: (), **{" ".join(c): c for c in candidates}}
     tables, kept_lines, per_capture = [], [], []
@@ -290,7 +305,12 @@ def choose(names: list[str], seeds: list[int], candidates: list[tuple[str, ...]]
                     m["miou"] * 100
                     for seed in seeds
                     if (not seed or fitted(capture, seed))
-                    and (m := run(capture, source, seed, setting)) is not None
+                    and (
+                        m := baseline(capture, source, seed)
+                        if not setting
+                        else run(capture, source, seed, setting)
+                    )
+                    is not None
                 ]
                 if values:
                     mean = sum(values) / len(values)

@@ -200,7 +200,9 @@ def diagnose_view(
             culprit = extra & (pred == k) & labelled & (run_label == k)
             if culprit.any():
                 body = torch.from_numpy(causes.body(k, gaussians).members)
-                body_alpha, body_depth = object_depths(gaussians, camera, body, backend)
+                body_alpha, body_depth = obj_alpha, obj_depth  # the object is its body, mostly
+                if not torch.equal(body, causes.members(k)):
+                    body_alpha, body_depth = object_depths(gaussians, camera, body, backend)
                 outside.add(ids[culprit], depth[culprit], body_alpha, body_depth, voted)
     mark("label_render", missed & labelled & (run_label == truth))
     unlabelled = missed & ~labelled
@@ -246,11 +248,13 @@ class OutsideTally:
             near, far = np.percentile(inside, [2, 98])
             position[depth < (1 - OCCLUSION) * near] = 0
             position[depth > (1 + OCCLUSION) * far] = 2
-        for g in np.unique(ids).tolist():
-            at = ids == g
+        shown, which = np.unique(ids, return_inverse=True)
+        by_position = np.zeros((len(shown), 3), np.int64)
+        np.add.at(by_position, (which.reshape(-1), position), 1)
+        for g, counts in zip(shown.tolist(), by_position, strict=True):
             row = self.pixels.setdefault(g, np.zeros(4, np.int64))
-            row[:3] += np.bincount(position[at], minlength=3)
-            row[3] += 0 if voted else int(at.sum())
+            row[:3] += counts
+            row[3] += 0 if voted else int(counts.sum())
             self.views[g] = self.views.get(g, 0) + 1
 
     def rows(self, gaussians: Gaussians, causes: GaussianCauses) -> list[dict]:

@@ -73,3 +73,25 @@ def test_leave_one_out_chooses_on_the_others_and_reports_on_the_held_out():
     scores["d"]["x"] = 94.5  # loses half a point: within the rule
     rows = real.leave_one_out(scores, "defaults")
     assert real.kept(rows, "defaults") == "x"
+
+
+def test_choose_scores_every_fit_under_every_setting_and_writes_the_table(tmp_path, monkeypatch):
+    """`--settings` end to end, the evaluations replaced by planted scores: the defaults come
+    from the table's own results where given, the candidate's runs go to their own folders."""
+    asked = []
+    base = {"a": 80.0, "b": 90.0, "c": 70.0}
+
+    def fake_run(capture, source, seed=0, setting=()):
+        asked.append((capture, source, seed, setting))
+        return {"miou": (base[capture] + (1.0 if setting else 0.0) + seed) / 100}
+
+    monkeypatch.setattr(real, "run", fake_run)
+    monkeypatch.setattr(real, "fitted", lambda capture, seed: True)
+    scored = {(c, s, 0): {"miou": base[c] / 100} for c in base for s in ("real", "classical")}
+    real.choose(list(base), [0, 1], [("consensus.body=true",)], tmp_path, scored)
+    assert ("a", "real", 0, ()) not in asked and ("a", "real", 1, ()) in asked
+    assert ("a", "real", 0, ("consensus.body=true",)) in asked
+    text = (tmp_path / "real_captures_loo.md").read_text()
+    assert "- real: `consensus.body=true` kept" in text
+    assert "- classical: `consensus.body=true` kept" in text
+    assert (tmp_path / "real_captures_loo.csv").read_text().count("\n") == 7  # header + 6 rows
