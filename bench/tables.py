@@ -162,6 +162,7 @@ def ablation_rows(runs):
                 "method": c["method"],
                 "eps": c["eps"],
                 "delta": c["delta"],
+                "weighting": c.get("weighting", "count"),
                 "min_votes": c["min_votes"],
                 "margin": c["margin"],
                 "segmenter": m["segmenter"],
@@ -174,7 +175,7 @@ def ablation_rows(runs):
                 "overrides": " ".join(m.get("overrides", [])),
             }
         )
-    keys = ["segmenter", "method", "eps", "delta", "min_votes", "margin"]
+    keys = ["segmenter", "method", "eps", "delta", "weighting", "min_votes", "margin"]
     return pd.DataFrame(rows).sort_values(keys)
 
 

@@ -34,11 +34,11 @@ def streamed(acc, mask, c):
     add_pairs(acc.hist, mask, kept, rule.weighting)
 
 
-def test_rgc_votes_only_visible_aligned_gaussians():
-    acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
-    # gaussian 0: visible and aligned at pixel 0 -> votes 1
-    # gaussian 1: T below eps -> no vote;  gaussian 2: centre 3 px away -> no vote
-    # gaussian 3: votes twice for 2 (pixels 1, 2) and once for 0 (pixel 3)
+def stream_four_gaussians(acc):
+    """Four Gaussians over four pixels of labels [1, 2, 2, 0]:
+    gaussian 0: visible and aligned at pixel 0 (T 1.0, alpha 0.5) -> votes 1
+    gaussian 1: T below eps -> no vote;  gaussian 2: centre 3 px away -> no vote
+    gaussian 3: votes twice for 2 (pixels 1, 2; T 0.5, 0.4) and once for 0 (pixel 3; T 0.3)."""
     streamed(
         acc,
         torch.tensor([1, 2, 2, 0]),
@@ -50,8 +50,33 @@ def test_rgc_votes_only_visible_aligned_gaussians():
             [0.5, 0.5, 3.0, 1.0, 1.9, 0.1],
         ),
     )
+
+
+def test_rgc_votes_only_visible_aligned_gaussians():
+    acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
+    stream_four_gaussians(acc)
     assert acc.hist.tolist() == [[0, 1, 0], [0, 0, 0], [0, 0, 0], [1, 0, 2]]
     assert acc.labels().tolist() == [1, -1, -1, 2]  # -1: unlabelled, the one encoding
+
+
+def test_rgc_blend_weighs_the_same_pairs_by_alpha_times_transmittance():
+    """weighting=blend: the same visible, aligned pairs as the paper's count, each adding its
+    blend weight alpha_i T_i; min_votes is then a total weight (gaussian 0's 0.5 is too little
+    for min_votes=1)."""
+    acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0, weighting="blend"))
+    stream_four_gaussians(acc)
+    expected = [[0, 0.5, 0], [0, 0, 0], [0, 0, 0], [0.15, 0, 0.45]]
+    assert torch.allclose(acc.hist, torch.tensor(expected, dtype=acc.hist.dtype))
+    assert acc.labels().tolist() == [-1, -1, -1, -1]  # no total reaches one vote's weight
+    blend = VoteAccumulator(4, 3, VoteConfig(margin=0.0, weighting="blend", min_votes=1))
+    blend.hist += torch.tensor(
+        [[0, 2.0, 0], [0, 0, 0], [0, 0, 0], [0.9, 0, 1.2]], dtype=blend.hist.dtype
+    )
+    assert blend.labels().tolist() == [1, -1, -1, 2]
+    with pytest.raises(ValueError, match="weighting='votes'"):
+        VoteConfig(weighting="votes")
+    with pytest.raises(ValueError, match="does not read weighting"):
+        VoteConfig(method="flashsplat", weighting="blend")
 
 
 def test_min_votes_margin_and_ties():

@@ -28,6 +28,13 @@ class FitConfig:
     """Random start points when the capture has no points to start from."""
     lambda_dssim: float = 0.2
     """Weight of 1 - SSIM beside L1 in the photometric loss."""
+    robust_trim: float = 0.0
+    """The fraction of each view's pixels of largest residual left out of the photometric loss
+    (`losses.photometric_loss`), from `robust_from` on: content no other photograph agrees
+    with (a background that moved between photo sets, passers-by) stops pulling the fit; 0:
+    off."""
+    robust_from: int = 500
+    """The iteration the trimmed loss starts at (before it, the residuals say little)."""
     lambda_aniso: float = 0.0
     """Weight of the needle penalty (`losses.anisotropy_penalty`); 0: off."""
     max_aspect: float = 10.0
@@ -122,4 +129,5 @@ class FitConfig:
             lambda_dist=(self.lambda_dist >= 0, self.lambda_dist, ">= 0"),
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
             lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
+            robust_trim=(0 <= self.robust_trim < 1, self.robust_trim, "a fraction in [0, 1)"),
         )

@@ -21,8 +21,10 @@ def ssim(
     b: torch.Tensor,  # [H, W, 3] in [0, 1]
     window: int = 11,
     sigma: float = 1.5,
+    weights: torch.Tensor | None = None,  # [H, W] per-pixel weights of the mean
 ) -> torch.Tensor:  # [] mean SSIM
-    """Mean SSIM of two (H, W, 3) images in [0, 1] (Gaussian window, the usual constants)."""
+    """Mean SSIM of two (H, W, 3) images in [0, 1] (Gaussian window, the usual constants),
+    weighted per pixel by `weights` where given."""
     x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
     g = torch.exp(-((torch.arange(window, device=a.device) - window // 2) ** 2) / (2 * sigma**2))
     g = (g / g.sum()).to(a.dtype)
@@ -36,7 +38,10 @@ def ssim(
     sxx, syy, sxy = blur(x * x) - mx**2, blur(y * y) - my**2, blur(x * y) - mx * my
     c1, c2 = 0.01**2, 0.03**2
     s = ((2 * mx * my + c1) * (2 * sxy + c2)) / ((mx**2 + my**2 + c1) * (sxx + syy + c2))
-    return s.mean()
+    if weights is None:
+        return s.mean()
+    per_pixel = s[0].mean(0)
+    return (per_pixel * weights).sum() / weights.sum().clamp_min(1e-12)
 
 
 def psnr_from_mse(mse: float) -> float:
@@ -54,10 +59,33 @@ def photometric_loss(
     rgb: torch.Tensor,  # [H, W, 3] render
     gt: torch.Tensor,  # [H, W, 3] photograph
     lambda_dssim: float,
+    trim: float = 0.0,
 ) -> torch.Tensor:  # []
-    """(1 - lambda) L1 + lambda (1 - SSIM) of two (H, W, 3) images."""
-    l1 = (rgb - gt).abs().mean()
-    return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(rgb, gt))
+    """(1 - lambda) L1 + lambda (1 - SSIM) of two (H, W, 3) images. trim: the fraction of the
+    pixels of largest L1 residual left out of both terms (a trimmed, robust loss: what no other
+    photograph agrees with, a background that moved between photo sets, stops pulling the
+    fit); 0: every pixel."""
+    residual = (rgb - gt).abs().mean(-1)  # [H, W]
+    if not trim:
+        l1 = residual.mean()
+        return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(rgb, gt))
+    keep = trimmed_pixels(residual.detach(), trim)
+    l1 = (residual * keep).sum() / keep.sum().clamp_min(1)
+    agreed = torch.where(keep[..., None] > 0, rgb, gt)  # the trimmed pixels take no gradient
+    return (1 - lambda_dssim) * l1 + lambda_dssim * (1 - ssim(agreed, gt, weights=keep))
+
+
+def trimmed_pixels(
+    residual: torch.Tensor,  # [H, W] per-pixel residual
+    trim: float,
+) -> torch.Tensor:  # [H, W] float 1 kept, 0 left out
+    """1 where a pixel's residual is not among the `trim` fraction of largest ones."""
+    flat = residual.flatten()
+    k = int(round(trim * flat.numel()))
+    if k <= 0:
+        return torch.ones_like(residual)
+    cut = flat.kthvalue(flat.numel() - k).values
+    return (residual <= cut).to(residual.dtype)
 
 
 def anisotropy_penalty(

@@ -250,7 +250,8 @@ class SceneFitter:
         if use_dist or use_normal:
             geometry = splat_geometry(gaussians, cam, *self.near_far)
         out = self.render(gaussians, view, features=geometry)
-        loss = photometric_loss(out.rgb, self.images[view], cfg.lambda_dssim)
+        trim = cfg.robust_trim if self.step >= cfg.robust_from else 0.0
+        loss = photometric_loss(out.rgb, self.images[view], cfg.lambda_dssim, trim)
         terms = {}
         if cfg.lambda_aniso:
             loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()

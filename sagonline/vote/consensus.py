@@ -3,7 +3,8 @@
 `rgc` is the paper's Rasterization-aware Geometric Consensus: for every pixel of every selected
 mask, walk its Gaussians front to back; a Gaussian votes for the pixel's label only while the
 transmittance before it is T_i > eps (the walk stops once T falls to eps) and only if its
-projected centre lies within delta px of the pixel centre. One vote histogram per Gaussian;
+projected centre lies within delta px of the pixel centre (each such pair +1, or its blend weight
+alpha_i T_i with `weighting=blend`, not the paper's). One vote histogram per Gaussian;
 the label is the argmax; too few votes (< min_votes) or an ambiguous winner (top-1 share minus
 top-2 share < margin, or a tie) leaves the Gaussian unlabelled.
 
@@ -36,7 +37,7 @@ from sagonline.core.plugins import VOTE_RULES
 from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
 from sagonline.render.rasterize import T_STOP
-from sagonline.render.rule import VoteRule
+from sagonline.render.rule import WEIGHTINGS, VoteRule
 from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -58,6 +59,10 @@ class VoteConfig:
     delta: float | None = VoteRule.delta
     """rgc: ... and only if its projected centre lies within delta px of the pixel centre;
     null: no distance rule (default: the paper's 2 px, `VoteRule`'s)."""
+    weighting: str = VoteRule.weighting
+    """rgc: what one (pixel, Gaussian) pair adds to its label: count (+1, the paper's) or blend
+    (its blend weight alpha_i T_i, as FlashSplat weighs; then `min_votes` is a total weight:
+    one fully visible pixel is one vote)."""
     min_votes: int = 1
     """Fewer votes leave a Gaussian unlabelled (at least 1: a Gaussian no view saw is never
     labelled)."""
@@ -101,6 +106,7 @@ class VoteConfig:
                 self.delta,
                 "a distance in pixels > 0, or null (no distance rule)",
             ),
+            weighting=(self.weighting in WEIGHTINGS, self.weighting, f"one of {WEIGHTINGS}"),
             min_votes=(self.min_votes >= 1, self.min_votes, ">= 1"),
             margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
             num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
@@ -329,8 +335,9 @@ def decide_weighted_mean(
 
 
 def count_rule(cfg: VoteConfig) -> VoteRule:
-    """rgc's pairs: T_i > eps and the centre within delta px, +1 each."""
-    return VoteRule(cfg.eps, cfg.delta, "count")
+    """rgc's pairs: T_i > eps and the centre within delta px, +1 each (weighting count, the
+    paper's) or alpha_i T_i each (blend)."""
+    return VoteRule(cfg.eps, cfg.delta, cfg.weighting)
 
 
 def blend_rule(cfg: VoteConfig) -> VoteRule:
@@ -346,7 +353,9 @@ class NoSettings:
 for _key, _method, _summary in (
     (
         "rgc",
-        VoteMethod(("eps", "delta", "min_votes", "margin"), count_rule, decide_majority),
+        VoteMethod(
+            ("eps", "delta", "weighting", "min_votes", "margin"), count_rule, decide_majority
+        ),
         "the paper's consensus: visible (T > eps), aligned (delta px) votes, majority, margin",
     ),
     (

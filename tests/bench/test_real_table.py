@@ -69,10 +69,18 @@ def test_leave_one_out_chooses_on_the_others_and_reports_on_the_held_out():
     assert rows["d"]["chosen on the others"] == "x" and rows["d"]["change"] == -5.0
     assert rows["a"]["chosen on the others"] == "defaults"  # b, c, d: 84.33 with x, 85 without
     assert rows["a"]["change"] == 0.0
-    assert real.kept(list(rows.values()), "defaults") is None
+    assert real.kept(list(rows.values()), "defaults", scores) is None  # d loses 5 by it
     scores["d"]["x"] = 94.5  # loses half a point: within the rule
     rows = real.leave_one_out(scores, "defaults")
-    assert real.kept(rows, "defaults") == "x"
+    assert real.kept(rows, "defaults", scores) == "x"
+    scores["a"]["y"], scores["b"]["y"], scores["c"]["y"], scores["d"]["y"] = 86, 91, 71, 94.4
+    rows = {r["capture held out"]: r for r in real.leave_one_out(scores, "defaults")}
+    assert rows["b"]["chosen on the others"] == "y" and rows["a"]["chosen on the others"] == "x"
+    assert real.kept(list(rows.values()), "defaults", scores) == "x"  # best over all four
+    scores["b"]["y"] = 70.0  # b held out: the rotation's choice costs it 20 points
+    scores["b"]["x"], scores["a"]["y"] = 70.0, 90.0
+    rows = real.leave_one_out(scores, "defaults")
+    assert min(r["change"] for r in rows) < -1 and real.kept(rows, "defaults", scores) is None
 
 
 def test_choose_scores_every_fit_under_every_setting_and_writes_the_table(tmp_path, monkeypatch):
@@ -92,6 +100,28 @@ def test_choose_scores_every_fit_under_every_setting_and_writes_the_table(tmp_pa
     assert ("a", "real", 0, ()) not in asked and ("a", "real", 1, ()) in asked
     assert ("a", "real", 0, ("consensus.body=true",)) in asked
     text = (tmp_path / "real_captures_loo.md").read_text()
-    assert "- real: `consensus.body=true` kept" in text
-    assert "- classical: `consensus.body=true` kept" in text
+    assert "- real: `consensus.body=true` kept (3 of 3 rotations chose it)" in text
+    assert "- classical: `consensus.body=true` kept (3 of 3 rotations chose it)" in text
     assert (tmp_path / "real_captures_loo.csv").read_text().count("\n") == 7  # header + 6 rows
+
+
+def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatch):
+    """The settings leave-one-out kept (`CHOSEN`) run in their own folders on every fit and
+    get a column of their own beside the defaults', averaged over the seeds like the rest."""
+    asked = []
+
+    def fake_run(capture, source, seed=0, setting=()):
+        asked.append((source, seed, setting))
+        return {"miou": (80.0 + (3.0 if setting else 0.0) + seed) / 100, "protocol_id": "p"}
+
+    monkeypatch.setattr(real, "run", fake_run)
+    monkeypatch.setattr(real, "fitted", lambda capture, seed: True)
+    monkeypatch.setattr(real, "CHOSEN", {"real": ("consensus.weighting=blend",)})
+    df = real.main(["--captures", "cap", "--seeds", "0,1", "--out", str(tmp_path)])
+    assert ("real", 1, ("consensus.weighting=blend",)) in asked
+    assert ("classical", 1, ("consensus.weighting=blend",)) not in asked
+    assert df.loc[0, "real masks, every 4th"] == "80.50 (80.00-81.00, n=2)"
+    assert df.loc[0, "real masks, every 4th, chosen"] == "83.50 (83.00-84.00, n=2)"
+    text = (tmp_path / "real_captures_seeds.md").read_text()
+    assert "real: `consensus.weighting=blend`" in text
+    assert "hydra.run.dir=multirun/real/cap/real-seed1@consensus.weighting-blend" in text

@@ -52,6 +52,27 @@ def test_ssim_and_split():
     assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
 
 
+def test_the_trimmed_loss_leaves_the_worst_pixels_out_of_both_terms():
+    """robust_trim: a patch no other photograph agrees with (here a painted square, 1/16 of
+    the image) gets no gradient once it is among the trimmed pixels; the rest learns as
+    before, and trim=0 is the plain loss."""
+    from sagonline.fitting.losses import photometric_loss, trimmed_pixels
+
+    gt = torch.rand(32, 32, 3)
+    render = (gt + 0.02 * torch.randn(32, 32, 3)).clamp(0, 1).requires_grad_(True)
+    photo = gt.clone()
+    photo[:8, :8] = 1 - photo[:8, :8]  # what moved between photo sets
+    keep = trimmed_pixels((render - photo).abs().mean(-1).detach(), 0.1)
+    assert int((keep == 0).sum()) == round(0.1 * 32 * 32) and not keep[:8, :8].any()
+    photometric_loss(render, photo, 0.2, trim=0.1).backward()
+    grad = render.grad.abs().sum(-1)
+    assert float(grad[:8, :8].max()) == 0.0 and float(grad[8:, 8:].mean()) > 0
+    plain = photometric_loss(render.detach(), photo, 0.2)
+    assert torch.equal(plain, photometric_loss(render.detach(), photo, 0.2, trim=0.0))
+    with pytest.raises(ValueError, match="robust_trim"):
+        FitConfig(robust_trim=1.0)
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
 def test_loss_falls_and_densify_changes_the_count(views, kind):

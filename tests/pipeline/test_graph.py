@@ -31,6 +31,7 @@ from sagonline.vote.feedback import FeedbackConfig
 # changed by rule: see `changed`).
 OTHER = {
     "method": "flashsplat",
+    "weighting": "blend",
     "selection": "first",
     "encoder": "resnet34",
     "device": "cuda",

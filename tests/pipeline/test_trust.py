@@ -533,13 +533,19 @@ def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
 
 
 def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same():
-    """A finished run recorded before consensus.body existed compares equal to this config
-    with the rule off, and differs from it with the rule on."""
+    """A finished run recorded before consensus.body and consensus.weighting existed compares
+    equal to this config with the rule off and the paper's count, and differs from it with
+    either changed."""
     from bench.rundir import ADDED_SETTINGS, comparable_config, finished_config
 
-    now = {"consensus": {"method": "rgc", "body": False}, "dataset": {"name": "x"}}
+    now = {
+        "consensus": {"method": "rgc", "body": False, "weighting": "count"},
+        "dataset": {"name": "x"},
+    }
     before = {"consensus": {"method": "rgc"}, "dataset": {"name": "x"}}
-    assert "consensus.body" in ADDED_SETTINGS
+    assert {"consensus.body", "consensus.weighting"} <= set(ADDED_SETTINGS)
     assert finished_config(before) == comparable_config(now)
     now["consensus"]["body"] = True
+    assert finished_config(before) != comparable_config(now)
+    now["consensus"].update(body=False, weighting="blend")
     assert finished_config(before) != comparable_config(now)

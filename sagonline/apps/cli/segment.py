@@ -70,6 +70,9 @@ def add_parsers(sub) -> None:
     vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
     vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
     vote.add_argument("--delta", type=float, help="... and its centre is within delta px")
+    vote.add_argument(
+        "--weighting", choices=("count", "blend"), help="rgc: +1 per pair (the paper's) or alpha*T"
+    )
     vote.add_argument("--min-votes", type=int)
     vote.add_argument("--margin", type=float)
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
@@ -141,6 +144,7 @@ def vote_config(args):
         "method": args.method,
         "eps": args.eps,
         "delta": args.delta,
+        "weighting": args.weighting,
         "min_votes": args.min_votes,
         "margin": args.margin,
     }
