@@ -111,3 +111,19 @@ def test_render_defaults_to_the_backend_everything_else_takes():
     for command in (["render", "s.ply", "--out", "x.png"], ["segment", "s.ply"], ["view", "s.ply"]):
         args = parser.parse_args(command)
         assert (args.backend, args.device) == ("auto", "auto"), command
+
+
+def test_segment_takes_every_vote_setting_from_the_command_line():
+    """--weighting reaches the vote's settings like --eps and --delta; a value the vote refuses
+    is named as the flag."""
+    from sagonline.apps.cli import build_parser
+    from sagonline.apps.cli.segment import vote_config
+
+    args = build_parser().parse_args(["segment", "s.ply", "--weighting", "blend", "--delta", "3"])
+    cfg = vote_config(args)
+    assert (cfg.weighting, cfg.delta, cfg.method) == ("blend", 3.0, "rgc")
+    assert cfg.rule.weighting == "blend"
+    args = build_parser().parse_args(["segment", "s.ply", "--weighting", "blend", "--method",
+                                      "flashsplat"])  # fmt: skip
+    with pytest.raises(ValueError, match="--weighting"):
+        vote_config(args)
