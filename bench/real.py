@@ -113,8 +113,7 @@ def leave_one_out(scores: dict[str, dict[str, float]], baseline: str) -> list[di
         settings = [s for s in scores[held] if all(s in scores[c] for c in others)]
         if not others or baseline not in settings:
             continue
-        mean = {s: sum(scores[c][s] for c in others) / len(others) for s in settings}
-        chosen = max(settings, key=lambda s: (round(mean[s], 6), s == baseline))
+        chosen, mean = best_on(scores, others, settings, baseline)
         rows.append({
             "capture held out": held,
             "chosen on the others": chosen,
@@ -127,12 +126,20 @@ def leave_one_out(scores: dict[str, dict[str, float]], baseline: str) -> list[di
     return rows
 
 
+def best_on(
+    scores: dict[str, dict[str, float]], captures: list[str], settings: list[str], baseline: str
+) -> tuple[str, dict[str, float]]:
+    """The setting of the best mean over `captures` (ties: the baseline), and each setting's
+    mean there."""
+    mean = {s: sum(scores[c][s] for c in captures) / len(captures) for s in settings}
+    return max(settings, key=lambda s: (round(mean[s], 6), s == baseline)), mean
+
+
 def chosen_on_all(scores: dict[str, dict[str, float]], baseline: str) -> str:
-    """The setting of the best mean over every capture (ties: the baseline): what a capture
-    none of these is would be run with."""
+    """The setting of the best mean over every capture: what a capture none of these is would
+    be run with."""
     settings = [s for s in scores[next(iter(scores))] if all(s in v for v in scores.values())]
-    mean = {s: sum(v[s] for v in scores.values()) / len(scores) for s in settings}
-    return max(settings, key=lambda s: (round(mean[s], 6), s == baseline))
+    return best_on(scores, list(scores), settings, baseline)[0]
 
 
 def kept(rows: list[dict], baseline: str, scores: dict[str, dict[str, float]]) -> str | None:

@@ -13,6 +13,7 @@ import numpy as np
 
 from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
+from sagonline.render.rule import WEIGHTINGS
 from sagonline.scene.views import CLICK_HELP
 from sagonline.segment.clicks import parse_prompt, to_prompt
 
@@ -71,7 +72,7 @@ def add_parsers(sub) -> None:
     vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
     vote.add_argument("--delta", type=float, help="... and its centre is within delta px")
     vote.add_argument(
-        "--weighting", choices=("count", "blend"), help="rgc: +1 per pair (the paper's) or alpha*T"
+        "--weighting", choices=WEIGHTINGS, help="rgc: +1 per pair (the paper's) or alpha*T"
     )
     vote.add_argument("--min-votes", type=int)
     vote.add_argument("--margin", type=float)
