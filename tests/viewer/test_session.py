@@ -165,7 +165,8 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
 
 def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
     """The viewer's vote panel: delta off is no distance rule (None), delta 0 is refused by the
-    vote's own check and said in the status line (it was taken); min votes 0 likewise."""
+    vote's own check and said in the status line (it was taken); min votes 0 likewise; the
+    weighting and the body rule reach the vote, and a combination the vote refuses is named."""
     import socket
 
     from sagonline.apps.viewer.app import ViewerApp
@@ -189,6 +190,14 @@ def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
         app.vote_inputs["min_votes"].value = 0
         app.guarded(app.change_vote)
         assert "min_votes" in app.status.content
+        app.vote_inputs["min_votes"].value = 1
+        app.vote_inputs["weighting"].value = "blend"
+        app.vote_inputs["body"].value = True
+        app.change_vote()
+        assert (session.vote.weighting, session.vote.body) == ("blend", True)
+        app.method.value = "flashsplat"  # it weights by itself: the blend is refused, named
+        app.guarded(app.change_vote)
+        assert "weighting" in app.status.content and session.vote.method == "rgc"
     finally:
         app.server.stop()
 

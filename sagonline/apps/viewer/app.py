@@ -217,6 +217,7 @@ class ViewerApp:
             self.segmenter_choice.on_update(lambda _: self.guarded(self.change_segmenter))
             defaults = VoteConfig()
             from sagonline.core.plugins import VOTE_RULES
+            from sagonline.render.rule import WEIGHTINGS
 
             self.method = gui.add_dropdown(
                 "vote method", list(VOTE_RULES.keys()), initial_value=s.vote.method
@@ -232,11 +233,18 @@ class ViewerApp:
                 ),  # fmt: skip
                 "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
                 "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=0.99, step=0.05),
+                "weighting": gui.add_dropdown(
+                    "weighting (count: +1; blend: alpha T)",
+                    WEIGHTINGS,
+                    initial_value=s.vote.weighting,
+                ),
+                "body": gui.add_checkbox("keep each object's body", s.vote.body),
             }
             for handle in self.vote_inputs.values():
                 handle.on_update(lambda _: self.guarded(self.change_vote))
             gui.add_markdown(
-                f"defaults: eps {defaults.eps}, delta {defaults.delta} px (off: no distance rule)"
+                f"defaults: eps {defaults.eps}, delta {defaults.delta} px (off: no distance rule), "
+                f"weighting {defaults.weighting}, body off (the paper's protocol)"
             )
         with gui.add_folder("Export"):
             self.out_text = gui.add_text("folder", initial_value=out)
@@ -331,6 +339,8 @@ class ViewerApp:
         values = {k: h.value for k, h in self.vote_inputs.items()}
         values["method"] = str(self.method.value)
         values["min_votes"] = int(values["min_votes"])
+        values["weighting"] = str(values["weighting"])
+        values["body"] = bool(values["body"])
         if not values.pop("distance"):
             values["delta"] = None
         self.session.configure(vote=replace(self.session.vote, **values))
