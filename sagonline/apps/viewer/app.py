@@ -244,7 +244,7 @@ class ViewerApp:
                 handle.on_update(lambda _: self.guarded(self.change_vote))
             gui.add_markdown(
                 f"defaults: eps {defaults.eps}, delta {defaults.delta} px (off: no distance rule), "
-                f"weighting {defaults.weighting}, body off (the paper's protocol)"
+                f"weighting {defaults.weighting}, body {'on' if defaults.body else 'off'}"
             )
         with gui.add_folder("Export"):
             self.out_text = gui.add_text("folder", initial_value=out)
