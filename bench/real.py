@@ -25,6 +25,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -70,31 +71,93 @@ def folder(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = 
     return name + (f"@{slug(setting)}" if setting else "")
 
 
+FIT = "dataset.adapter.fit="
+
+
+def fit_folder_of(setting: tuple[str, ...], seed: int) -> str:
+    """The fit a setting is scored on: a setting may name a fit recipe (`dataset.adapter.fit=V`,
+    fitted with `make scenes ARGS="variant=V ..."`), whose seed-k draw is V-seed<k> as the
+    default recipe's is seed<k>."""
+    variant = next((o.removeprefix(FIT) for o in setting if o.startswith(FIT)), "")
+    return "-".join(filter(None, [variant, f"seed{seed}" if seed else ""]))
+
+
 def command(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> list[str]:
-    fit = [f"dataset.adapter.fit=seed{seed}"] if seed else []
-    return [f"dataset={capture}", *SOURCES[source], *fit, *setting, *COMMON,
+    fit = [FIT + name] if (name := fit_folder_of(setting, seed)) else []
+    rest = [o for o in setting if not o.startswith(FIT)]
+    return [f"dataset={capture}", *SOURCES[source], *fit, *rest, *COMMON,
             f"hydra.run.dir={folder(capture, source, seed, setting)}"]  # fmt: skip
 
 
-def fitted(capture: str, seed: int) -> bool:
-    """Whether the capture has a fit of this seed where its evaluation looks for it (its data
-    folder, or scenes/<capture>/<capture>/ for data on a read-only disk)."""
+def fit_of(capture: str, seed: int, setting: tuple[str, ...] = ()) -> Path | None:
+    """The capture's fit of this seed (and of the setting's fit recipe) where its evaluation
+    looks for it (its data folder, or scenes/<capture>/<capture>/ for data on a read-only
+    disk): its point_cloud.ply, None when there is none."""
     from sagonline.core.errors import DatasetError
     from sagonline.datasets.common import find_trained_scene
 
     config = yaml.safe_load((ROOT / "conf" / "dataset" / f"{capture}.yaml").read_text()) or {}
     root = ROOT / str(config.get("root", f"../shared/data/{capture}"))
     try:
-        find_trained_scene(root, capture, f"seed{seed}" if seed else "")
+        return find_trained_scene(root, capture, fit_folder_of(setting, seed))
     except DatasetError:
-        return False
-    return True
+        return None
+
+
+def fitted(capture: str, seed: int, setting: tuple[str, ...] = ()) -> bool:
+    """Whether the capture has the fit of this seed (and of the setting's fit recipe)."""
+    return fit_of(capture, seed, setting) is not None
+
+
+def same_scene(capture: str, seed: int, setting: tuple[str, ...]) -> tuple[str, ...]:
+    """The setting with its fit recipe left out where that recipe's fit of this seed is the
+    default recipe's, copied (`make scenes` copies a fit the variant would repeat bit for bit,
+    and says so in fit_metrics.json): the same scene under the same vote scores the same, so
+    its run is the default recipe's."""
+    if not any(o.startswith(FIT) for o in setting):
+        return setting
+    rest = tuple(o for o in setting if not o.startswith(FIT))
+    mine, base = fit_of(capture, seed, setting), fit_of(capture, seed, rest)
+    if mine is None or base is None:
+        return setting
+    ours, theirs = (json.loads((p.parent / "fit_metrics.json").read_text()) for p in (mine, base))
+    copied = ours.get("same_fit_as") == base.parent.name
+    return rest if copied and ours.get("scene_digest") == theirs.get("scene_digest") else setting
+
+
+RESULTS: dict[tuple, dict | None] = {}  # (capture, source, seed, setting) -> metrics, this call's
+THREADS: str | None = None  # OMP_NUM_THREADS of the evaluations (None: torch's default)
+
+
+def prefetch(tasks: list[tuple], jobs: int) -> None:
+    """Run (or re-check) the evaluations `tasks` ((capture, source, seed, setting) each) on
+    `jobs` processes at once into RESULTS; `run` then answers from there. A finished run's
+    re-check is mostly the eval's start (imports, reading the masks to digest them): on two
+    cores two at a time halve a table's wall time."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    global THREADS
+    THREADS = "1"  # the jobs share the cores: each evaluation on one thread
+    # one task per run folder: a setting whose fit is the default's copy runs as the default's
+    unique = dict.fromkeys((c, src, seed, same_scene(c, seed, st)) for c, src, seed, st in tasks)
+    with ThreadPoolExecutor(max(1, jobs)) as pool:
+        list(pool.map(lambda task: run(*task), unique))
 
 
 def run(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> dict | None:
     """The evaluation's metrics (run now, or the finished run found in its folder)."""
+    setting = same_scene(capture, seed, setting)
+    key = (capture, source, seed, setting)
+    if key not in RESULTS:
+        RESULTS[key] = evaluate(capture, source, seed, setting)
+    return RESULTS[key]
+
+
+def evaluate(capture: str, source: str, seed: int, setting: tuple[str, ...]) -> dict | None:
+    """`python -m bench.eval` of one run; its metrics, None when it failed (said why)."""
     args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed, setting)]
-    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True)
+    env = os.environ | ({"OMP_NUM_THREADS": THREADS} if THREADS else {})
+    done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, env=env)
     if done.returncode != 0:
         last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
         print(f"{capture}/{source}/seed {seed}: skipped: {last}", file=sys.stderr)
@@ -232,6 +295,25 @@ def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
     return out
 
 
+def tasks(names: list[str], seeds: list[int], candidates: list[tuple[str, ...]]) -> list[tuple]:
+    """Every evaluation the table (and the leave-one-out over `candidates`) reads, as
+    (capture, source, seed, setting), for the fits that exist."""
+    todo = []
+    for capture in names:
+        for seed in seeds:
+            if not fitted(capture, seed):
+                continue
+            todo += [(capture, source, seed, ()) for source in SOURCES]
+            todo += [(capture, source, seed, setting) for source, setting in CHOSEN.items()]
+            todo += [
+                (capture, source, seed, setting)
+                for setting in candidates
+                for source in ("real", "classical")
+                if fitted(capture, seed, setting)
+            ]
+    return todo
+
+
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(prog="python -m bench.real", description=__doc__.split("\n")[0])
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
@@ -249,12 +331,18 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "reported on it (real masks and classical; real_captures_loo.md/.csv)",
     )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
+    ap.add_argument(
+        "--jobs", type=int, default=1, help="evaluations at once (default 1; each one thread)"
+    )
     args = ap.parse_args(argv)
     names = args.captures.split(",") if args.captures else captures()
     try:
         seeds = sorted({int(s) for s in args.seeds.split(",")})
     except ValueError:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
+    candidates = [tuple(c.split()) for c in (args.settings or "").split(";") if c.strip()]
+    if args.jobs > 1:
+        prefetch(tasks(names, seeds, candidates), args.jobs)
     rows, commands, scored = [], [], {}
     for capture in names:
         per_seed, used = [], []
@@ -319,8 +407,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     atomic_write_text(args.out / f"{stem}.csv", df.to_csv(index=False))
     print(df.to_string(index=False))
     print(f"\nwrote {args.out}/{stem}.md and .csv")
-    if args.settings:
-        candidates = [tuple(c.split()) for c in args.settings.split(";") if c.strip()]
+    if candidates:
         choose(names, seeds, candidates, args.out, scored)
     return df
 
@@ -356,7 +443,7 @@ def choose(
                 values = [
                     m["miou"] * 100
                     for seed in seeds
-                    if (not seed or fitted(capture, seed))
+                    if (not (seed or setting) or fitted(capture, seed, setting))
                     and (
                         m := baseline(capture, source, seed)
                         if not setting

@@ -20,6 +20,7 @@ os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
 
 import dataclasses
 import json
+import shutil
 import stat
 import sys
 import time
@@ -33,7 +34,7 @@ from omegaconf import DictConfig
 
 from bench.config import ScenesConfig, check_override_keys, register_schemas_or_exit, to_config
 from bench.job import build_dataset, quiet
-from sagonline.core.files import atomic_write_image, atomic_write_json
+from sagonline.core.files import atomic_write, atomic_write_image, atomic_write_json, to_json
 from sagonline.core.machine import cpu_capability
 from sagonline.core.outputs import RunLock
 from sagonline.core.provenance import digest_file
@@ -41,6 +42,7 @@ from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import SCENES_ROOT, fit_folder
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
+    fit_near_depths,
     initial_points,
     load_images,
     near_depth,
@@ -68,11 +70,11 @@ def output_dir(scene_dir: Path, dataset: str, variant: str = "") -> Path:
 
 
 def variant_of(cfg: ScenesConfig) -> str:
-    """The fit's folder suffix: `variant`, else `seed<k>` for a seed other than 0 (each draw of
-    the recipe in a folder of its own; evaluate one with dataset.adapter.fit=seed<k>)."""
-    if cfg.variant is not None:
-        return cfg.variant
-    return f"seed{cfg.seed}" if cfg.seed else ""
+    """The fit's folder suffix: `seed<k>` for a seed other than 0 (each draw of the recipe in a
+    folder of its own; evaluate one with dataset.adapter.fit=seed<k>), after `variant` where
+    one is named (`<variant>-seed<k>`: the draws of a variant recipe side by side too)."""
+    draw = f"seed{cfg.seed}" if cfg.seed else ""
+    return "-".join(filter(None, [cfg.variant, draw]))
 
 
 def foreign_scene(out: Path) -> Path | None:
@@ -141,7 +143,8 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
         b = load_llff_bounds(scene_dir)
         bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
         near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
-    points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out)
+    seeds_fit = out.with_name(fit_folder(f"seed{cfg.seed}" if cfg.seed else ""))
+    points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out, seeds_fit)
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
         fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)
     fitter = SceneFitter(
@@ -151,7 +154,7 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
         points,
         near_far,
         other_cameras=[c for c in cams if c.name not in images],
-        view_near=view_near_depths(scene_dir, cams, points)
+        view_near=fit_near_depths(scene_dir, cams, points, images, fit_cfg.view_near_quantile)
         if fit_cfg.view_clearance or fit_cfg.pose_view_clearance
         else None,
     )
@@ -172,9 +175,61 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         return fit_locked(cfg, adapter, scene, scene_dir, cams, images, out)
 
 
+def same_fit_as(cfg: ScenesConfig, adapter, scene_dir, cams, images, fitter, out: Path):
+    """The seed's finished fit in its own folder (gaussians/ or gaussians-seed<k>/) when the
+    fit of `fitter` into the variant folder `out` would repeat it: the recipes differ in
+    `fit.view_near_quantile` at most, and both fitters start from the same Gaussians with the
+    same near depth in every view the clearances use (on this capture the quantile then
+    changes nothing). None otherwise, and always without a variant."""
+    base = output_dir(scene_dir, adapter.name, f"seed{cfg.seed}" if cfg.seed else "")
+    if cfg.variant is None or base == out or not (base / "fit_config.json").is_file():
+        return None
+    if not (base / "point_cloud.ply").is_file() or foreign_scene(base) is not None:
+        return None
+    mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
+    today = json.loads(to_json(dataclasses.asdict(FitConfig())))
+    # a fit that predates a setting ran without it: it stands for that setting's default (as
+    # wherever a finished fit is reused), but for the quantile, whose rule before it was 0.02
+    recorded = today | {"view_near_quantile": 0.02}
+    recorded |= json.loads((base / "fit_config.json").read_text())
+    quantile = recorded.pop("view_near_quantile")
+    mine.pop("view_near_quantile")
+    if recorded != mine:
+        return None
+    base_fit = dataclasses.replace(cfg.fit, view_near_quantile=quantile)
+    other, _ = build_fitter(dataclasses.replace(cfg, fit=base_fit), scene_dir, cams, images, base)
+
+    def near(f):
+        return [(c.name, d) for c, d in [*f.strategy.views, *f.strategy.pose_views]]
+
+    same = near(other) == near(fitter) and other.params.keys() == fitter.params.keys()
+    same = same and all(torch.equal(other.params[k], fitter.params[k]) for k in fitter.params)
+    return base if same and other.train_idx == fitter.train_idx else None
+
+
+def copy_fit(base: Path, out: Path, fitter: SceneFitter) -> dict:
+    """The fit in `base` written to `out` as this recipe's (its fit_config.json records this
+    recipe, fit_metrics.json says where the fit ran); returns the metrics."""
+    for path in sorted(base.iterdir()):
+        if path.suffix in (".ply", ".png") or path.name == "cameras.json":
+            atomic_write(out / path.name, lambda tmp, p=path: shutil.copyfile(p, tmp))
+    metrics = json.loads((base / "fit_metrics.json").read_text())
+    metrics["same_fit_as"] = base.name  # a sibling folder of `out`
+    atomic_write_json(out / "fit_config.json", dataclasses.asdict(fitter.cfg))
+    atomic_write_json(out / "fit_metrics.json", metrics)
+    return metrics
+
+
 def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, out: Path) -> dict:
     """`fit_scene` once `out` is locked."""
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
+    base = same_fit_as(cfg, adapter, scene_dir, cams, images, fitter, out)
+    if base is not None:
+        print(
+            f"{scene}: this recipe's fit is the one in {base} (the same start and near depths; "
+            f"only fit.view_near_quantile differs): copied to {out}"
+        )
+        return copy_fit(base, out, fitter)
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
@@ -227,7 +282,7 @@ def finish_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         return {"scene": scene, "skipped": True}
     train_cams, _ = load_images(cams, images, cfg.fit.max_side)
     points, _ = initial_points(cfg.fit, scene_dir, train_cams, images, out)
-    near = view_near_depths(scene_dir, cams, points)
+    near = view_near_depths(scene_dir, cams, points)  # pose-only views: the 2nd percentile
     pose_views = [(c, near.get(c.name, 0.0)) for c in cams if c.name not in images]
     pose_views = [(c, d) for c, d in pose_views if d > 0]
     g = read_scene(out / "point_cloud.ply")

@@ -35,10 +35,19 @@ def load_images(cams, images: dict[str, Path], max_side: int):
     return out_cams, out_imgs
 
 
-def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path], out: Path):
+def initial_points(
+    cfg: FitConfig,
+    scene_dir: Path,
+    cams,
+    images: dict[str, Path],
+    out: Path,
+    shared: Path | None = None,
+):
     """Start points for the fit and what they are: the capture's COLMAP points, else SIFT
-    matches triangulated with the training cameras fixed (cached in `out`), else None (random
-    points in the frusta). Returns ((xyz, rgb) or None, description)."""
+    matches triangulated with the training cameras fixed (cached in `out`; also read from
+    `shared`, the folder of the seed's fit of the default recipe, whose start points a variant
+    recipe of the same seed shares), else None (random points in the frusta). Returns
+    ((xyz, rgb) or None, description)."""
     if cfg.init not in ("auto", "colmap", "triangulate", "random"):
         raise DatasetError(f"fit.init={cfg.init!r}: use auto, colmap, triangulate or random")
     if cfg.init in ("auto", "colmap"):
@@ -53,10 +62,12 @@ def initial_points(cfg: FitConfig, scene_dir: Path, cams, images: dict[str, Path
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.store"
         key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
-        cached = store.load_or_discard(cache, "triangulated start points")
-        if cached is not None and cached["views"] == key:
-            xyz = cached["xyz"]
-            return (xyz, cached["rgb"]), f"triangulated ({len(xyz)}, cached)"
+        for folder in [out] if shared is None else [out, shared]:
+            path = folder / "init_points.store"
+            cached = store.load_or_discard(path, "triangulated start points")
+            if cached is not None and cached["views"] == key:
+                xyz = cached["xyz"]
+                return (xyz, cached["rgb"]), f"triangulated ({len(xyz)}, cached in {folder.name})"
         try:
             xyz, rgb, summary = triangulate_known_poses(train, images, seed=cfg.seed)
         except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
@@ -90,10 +101,11 @@ def near_depth(cams, points, bounds) -> float:
     return float(torch.quantile(z, 0.02)) if z.numel() else 0.0
 
 
-def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
+def view_near_depths(scene_dir: Path, cams, points, quantile: float = 0.02) -> dict[str, float]:
     """Per view name, the nearest depth the capture records for that view: the smaller of the
-    LLFF near bound of the `poses_bounds.npy` row whose camera centre is the view's and the 2nd
-    percentile of the depths of the start points (the capture's own points) inside its image;
+    LLFF near bound of the `poses_bounds.npy` row whose camera centre is the view's and the
+    `quantile` (`FitConfig.view_near_quantile`) of the depths of the start points (the
+    capture's own points) inside its image;
     views with neither are left out. An LLFF bound is computed from some point set of its own
     and may lie beyond a small object in front of the background (mother_child's IMG_0977:
     near 4.65, the statuette at 3.7): the view clearance, which prunes whatever stands nearer
@@ -114,6 +126,18 @@ def view_near_depths(scene_dir: Path, cams, points) -> dict[str, float]:
         for cam in cams:
             inside, z = cam.in_frame(xyz)
             if int(inside.sum()) >= 20:
-                seen = float(torch.quantile(z[inside], 0.02))
+                seen = float(torch.quantile(z[inside], quantile))
                 near[cam.name] = min(near.get(cam.name, seen), seen)
     return near
+
+
+def fit_near_depths(
+    scene_dir: Path, cams, points, photographed, quantile: float
+) -> dict[str, float]:
+    """`view_near_depths` for a fit: the views with a photograph (names in `photographed`)
+    with their points' `quantile` (`FitConfig.view_near_quantile`, the view clearance's), the
+    pose-only views with the 2nd percentile (the pose-view clearance's, chosen with it)."""
+    photos = [c for c in cams if c.name in photographed]
+    return view_near_depths(scene_dir, cams, points) | view_near_depths(
+        scene_dir, photos, points, quantile
+    )

@@ -56,6 +56,52 @@ def test_a_candidate_setting_runs_in_a_folder_of_its_own():
     assert "hydra.run.dir=multirun/real/mary_rose/real-seed1@consensus.body-true" in cmd
 
 
+def test_a_candidate_fit_recipe_is_scored_on_its_own_draw_of_each_seed(tmp_path, monkeypatch):
+    """`dataset.adapter.fit=V` names a fit recipe: seed k reads V-seed<k>, as the default
+    recipe's seed k reads seed<k>, and a seed whose draw of V is missing is left out."""
+    setting = ("dataset.adapter.fit=nearq01", "consensus.body=true")
+    one = real.command("mary_rose", "real", 1, setting)
+    fits = [a for a in one if a.startswith("dataset.adapter.fit=")]
+    assert fits == ["dataset.adapter.fit=nearq01-seed1"] and "consensus.body=true" in one
+    assert "dataset.adapter.fit=nearq01" in real.command("mary_rose", "real", 0, setting)
+    (tmp_path / "conf" / "dataset").mkdir(parents=True)
+    (tmp_path / "conf" / "dataset" / "cap.yaml").write_text("root: data/cap\n")
+    for folder in ("gaussians", "gaussians-nearq01-seed2"):
+        (tmp_path / "data" / "cap" / folder).mkdir(parents=True)
+        (tmp_path / "data" / "cap" / folder / "point_cloud.ply").write_text("")
+    monkeypatch.setattr(real, "ROOT", tmp_path)
+    assert real.fitted("cap", 2, setting) and not real.fitted("cap", 0, setting)
+    assert real.fitted("cap", 0) and not real.fitted("cap", 2)
+
+
+def test_a_fit_recipe_whose_fit_is_the_defaults_copy_scores_with_the_defaults_run(
+    tmp_path, monkeypatch
+):
+    """`make scenes` copies a fit a variant recipe would repeat bit for bit; its runs are the
+    default recipe's (the same scene, the same vote), unless the scenes differ."""
+    import json
+
+    (tmp_path / "conf" / "dataset").mkdir(parents=True)
+    (tmp_path / "conf" / "dataset" / "cap.yaml").write_text("root: data/cap\n")
+    monkeypatch.setattr(real, "ROOT", tmp_path)
+    setting = ("dataset.adapter.fit=q1", "consensus.body=true")
+
+    def fit(folder, **metrics):
+        (tmp_path / "data" / "cap" / folder).mkdir(parents=True, exist_ok=True)
+        (tmp_path / "data" / "cap" / folder / "point_cloud.ply").write_text("")
+        (tmp_path / "data" / "cap" / folder / "fit_metrics.json").write_text(json.dumps(metrics))
+
+    fit("gaussians-seed1", scene_digest="a")
+    fit("gaussians-q1-seed1", scene_digest="a", same_fit_as="gaussians-seed1")
+    assert real.same_scene("cap", 1, setting) == ("consensus.body=true",)
+    fit("gaussians-q1-seed1", scene_digest="b", same_fit_as="gaussians-seed1")
+    assert real.same_scene("cap", 1, setting) == setting  # not the same scene after all
+    fit("gaussians-q1-seed1", scene_digest="a")
+    assert real.same_scene("cap", 1, setting) == setting  # fitted on its own
+    assert real.same_scene("cap", 2, setting) == setting  # no fit of this seed
+    assert real.same_scene("cap", 1, ("consensus.body=true",)) == ("consensus.body=true",)
+
+
 def test_leave_one_out_chooses_on_the_others_and_reports_on_the_held_out():
     """A setting three captures like and the fourth does not: chosen in the fourth's rotation
     (on the others) and reported there with its loss; not kept, as it loses over 1 point."""
@@ -94,7 +140,7 @@ def test_choose_scores_every_fit_under_every_setting_and_writes_the_table(tmp_pa
         return {"miou": (base[capture] + (1.0 if setting else 0.0) + seed) / 100}
 
     monkeypatch.setattr(real, "run", fake_run)
-    monkeypatch.setattr(real, "fitted", lambda capture, seed: True)
+    monkeypatch.setattr(real, "fitted", lambda capture, seed, setting=(): True)
     scored = {(c, s, 0): {"miou": base[c] / 100} for c in base for s in ("real", "classical")}
     real.choose(list(base), [0, 1], [("consensus.body=true",)], tmp_path, scored)
     assert ("a", "real", 0, ()) not in asked and ("a", "real", 1, ()) in asked
@@ -115,7 +161,7 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
         return {"miou": (80.0 + (3.0 if setting else 0.0) + seed) / 100, "protocol_id": "p"}
 
     monkeypatch.setattr(real, "run", fake_run)
-    monkeypatch.setattr(real, "fitted", lambda capture, seed: True)
+    monkeypatch.setattr(real, "fitted", lambda capture, seed, setting=(): True)
     monkeypatch.setattr(real, "CHOSEN", {"real": ("consensus.weighting=blend",)})
     df = real.main(["--captures", "cap", "--seeds", "0,1", "--out", str(tmp_path)])
     assert ("real", 1, ("consensus.weighting=blend",)) in asked
@@ -125,3 +171,35 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
     text = (tmp_path / "real_captures_seeds.md").read_text()
     assert "real: `consensus.weighting=blend`" in text
     assert "hydra.run.dir=multirun/real/cap/real-seed1@consensus.weighting-blend" in text
+
+
+def test_jobs_run_each_evaluation_once_and_the_table_reads_them(monkeypatch):
+    """--jobs N runs the evaluations the table and the leave-one-out read N at a time, each
+    once; `run` answers from those."""
+    calls = []
+
+    def fake(capture, source, seed, setting):
+        calls.append((capture, source, seed, setting))
+        return {"miou": 0.5}
+
+    monkeypatch.setattr(real, "evaluate", fake)
+    monkeypatch.setattr(real, "RESULTS", {})
+    monkeypatch.setattr(real, "fitted", lambda capture, seed, setting=(): seed != 2)
+    monkeypatch.setattr(real, "same_scene", lambda capture, seed, setting: setting)
+    todo = real.tasks(["a", "b"], [0, 1, 2], [("consensus.body=true",)])
+    per_fit = len(real.SOURCES) + len(real.CHOSEN) + 2  # + the candidate, real and classical
+    assert len(todo) == 2 * 2 * per_fit  # seed 2 has no fit
+    real.prefetch(todo + todo[:3], jobs=2)
+    assert sorted(calls) == sorted(set(todo))  # each once
+    assert real.run("a", "real", 1, ("consensus.body=true",)) == {"miou": 0.5}
+    assert len(calls) == len(set(todo))  # answered from the runs already made
+    # a candidate whose fit is the defaults' copy runs as the defaults' setting: one run, once
+    calls.clear()
+    monkeypatch.setattr(real, "RESULTS", {})
+
+    def no_fit(capture, seed, setting):
+        return tuple(o for o in setting if "fit" not in o)
+
+    monkeypatch.setattr(real, "same_scene", no_fit)
+    real.prefetch([("a", "real", 0, ("dataset.adapter.fit=q",)), ("a", "real", 0, ())], jobs=2)
+    assert calls == [("a", "real", 0, ())]

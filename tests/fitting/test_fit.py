@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -259,6 +260,26 @@ def test_the_capture_points_lower_an_llff_bound_that_lies_beyond_the_object(tmp_
     )  # points beyond the bound leave it
 
 
+def test_a_lower_near_quantile_keeps_a_small_object_in_front_of_the_view_clearance(tmp_path):
+    """The object covers 1% of a view's start points, in front of the background: at the 2nd
+    percentile the view's near depth is the background's and the clearance would prune the
+    object; `fit.view_near_quantile=0.005` puts it at the object."""
+    from sagonline.fitting.capture import view_near_depths
+    from sagonline.scene.io.cameras import load_llff
+    from tests.fixtures import llff_scene
+
+    llff_scene(tmp_path / "cap", ["IMG_0000"], with_scene=False)
+    cam = load_llff(tmp_path / "cap", names=["IMG_0000"])[0]
+    (tmp_path / "cap" / "poses_bounds.npy").unlink()  # the points' depths alone
+    depths = torch.cat([torch.full((4,), 2.0), torch.linspace(5.0, 6.0, 396)])
+    xyz = (cam.center + depths[:, None] * cam.rotation[2]).numpy()
+    background = view_near_depths(tmp_path / "cap", [cam], (xyz, None))[cam.name]
+    object_ = view_near_depths(tmp_path / "cap", [cam], (xyz, None), 0.005)[cam.name]
+    assert background > 5.0 and object_ == pytest.approx(2.0, rel=1e-4)
+    with pytest.raises(ValueError, match="view_near_quantile"):
+        FitConfig(view_near_quantile=1.0)
+
+
 def test_needle_penalty_only_acts_beyond_the_aspect_limit(views):
     cams, imgs = views
     f = SceneFitter(tiny(max_aspect=4.0), cams, imgs)
@@ -309,26 +330,26 @@ def test_bad_inputs(views):
 
 
 @pytest.mark.slow
-def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
-
-    from bench.scenes import fit_scene
+def tiny_capture(root: Path, *overrides: str):
+    """A 9-view capture with masks in `root` (images_4/, masks/, poses_bounds.npy), the
+    `make scenes` config of a 12-iteration fit of it, and its adapter."""
     from sagonline.datasets.generic import PosedMasksDataset
     from tests.fixtures import llff_scene, object_mask, write_image
 
     names = [f"IMG_{i:04d}" for i in range(9)]
-    cams, scene = llff_scene(tmp_path / "cap", names, with_scene=False)
-    for cam, n in zip(cams, names, strict=True):
-        img = (rasterize(scene.gaussians, cam).rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)
-        write_image(tmp_path / "cap" / "images_4" / f"{n}.JPG", img[..., ::-1])
-        write_image(
-            tmp_path / "cap" / "masks" / f"{n}.png",
-            (object_mask(scene, cam) > 0).astype(np.uint8) * 255,
-        )
+    if not (root / "images_4").is_dir():
+        cams, scene = llff_scene(root, names, with_scene=False)
+        for cam, n in zip(cams, names, strict=True):
+            img = (rasterize(scene.gaussians, cam).rgb.clamp(0, 1).numpy() * 255).astype(np.uint8)
+            write_image(root / "images_4" / f"{n}.JPG", img[..., ::-1])
+            write_image(
+                root / "masks" / f"{n}.png", (object_mask(scene, cam) > 0).astype(np.uint8) * 255
+            )
     cfg = compose_config(
         "scenes",
         *[
             "dataset=generic",
-            f"dataset.root={tmp_path / 'cap'}",
+            f"dataset.root={root}",
             "progress=false",
             "fit.iterations=12",
             "fit.init_points=500",
@@ -336,9 +357,17 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
             "fit.densify_every=5",
             "fit.densify_until=10",
             "fit.sh_degree=0",
+            *overrides,
         ],
     )
-    adapter = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
+    return cfg, PosedMasksDataset(root, mask_dir="masks")
+
+
+def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
+
+    from bench.scenes import fit_scene
+
+    cfg, adapter = tiny_capture(tmp_path / "cap")
     metrics = fit_scene(cfg, adapter, "cap")
     out = tmp_path / "cap" / "gaussians"
     saved = json.loads((out / "fit_metrics.json").read_text())
@@ -360,6 +389,45 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     assert row["recipe"] == (
         "iterations=12 sh_degree=0 init_points=500 densify_from=5 densify_until=10 densify_every=5"
     )
+
+
+def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, monkeypatch):
+    """`fit.view_near_quantile` into a variant folder: where the near depths of every view the
+    clearances use come out the same, the fit would repeat the seed's bit for bit, so that fit
+    is copied (and says so); where one differs, the variant is fitted."""
+    import bench.scenes
+    from bench.scenes import fit_scene
+
+    cfg, adapter = tiny_capture(tmp_path / "cap")
+    fit_scene(cfg, adapter, "cap")
+    base = tmp_path / "cap" / "gaussians"
+    recorded = json.loads((base / "fit_config.json").read_text())
+    del recorded["robust_from"], recorded["view_near_quantile"]  # a fit older than both
+    (base / "fit_config.json").write_text(json.dumps(recorded))
+    near = bench.scenes.fit_near_depths
+    monkeypatch.setattr(  # this capture's points: the same near depth at both quantiles
+        bench.scenes, "fit_near_depths", lambda d, c, p, i, q: near(d, c, p, i, 0.02)
+    )
+    same, _ = tiny_capture(tmp_path / "cap", "variant=q1", "fit.view_near_quantile=0.01")
+    copied = fit_scene(same, adapter, "cap")
+    out = tmp_path / "cap" / "gaussians-q1"
+    assert copied["same_fit_as"] == "gaussians"
+    assert (out / "point_cloud.ply").read_bytes() == (base / "point_cloud.ply").read_bytes()
+    assert json.loads((out / "fit_config.json").read_text())["view_near_quantile"] == 0.01
+    assert adapter.load_scene("cap") is not None  # the copy is a finished fit of ours
+    assert fit_scene(same, adapter, "cap") == {"scene": "cap", "skipped": True}
+
+    def nearer(d, c, p, i, q):  # the photographed views' near depths move at the new quantile
+        depths = near(d, c, p, i, 0.02)
+        return depths | ({n: depths[n] * 0.5 for n in i if n in depths} if q != 0.02 else {})
+
+    monkeypatch.setattr(bench.scenes, "fit_near_depths", nearer)
+    other, _ = tiny_capture(tmp_path / "cap", "variant=q2", "fit.view_near_quantile=0.01")
+    fitted = fit_scene(other, adapter, "cap")
+    assert "same_fit_as" not in fitted  # fitted, from the seed's start points
+    assert fitted["init"].startswith("random") or "cached in gaussians)" in fitted["init"]
+    other, _ = tiny_capture(tmp_path / "cap", "variant=q3", "fit.iterations=13")
+    assert "same_fit_as" not in fit_scene(other, adapter, "cap")  # another recipe
 
 
 @pytest.mark.slow
@@ -495,6 +563,8 @@ def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
     assert variant_of(compose_config("scenes", "dataset=mold_cape")) == ""
     assert variant_of(compose_config("scenes", "dataset=mold_cape", "seed=2")) == "seed2"
     assert variant_of(compose_config("scenes", "dataset=mold_cape", "variant=masked")) == "masked"
+    masked_draw = compose_config("scenes", "dataset=mold_cape", "variant=masked", "seed=2")
+    assert variant_of(masked_draw) == "masked-seed2"
     scene = tmp_path / "cap"
     scene.mkdir()
     assert output_dir(scene, "cap", "seed2") == scene / "gaussians-seed2"
