@@ -78,8 +78,11 @@ def fit_folder_of(setting: tuple[str, ...], seed: int) -> str:
     """The fit a setting is scored on: a setting may name a fit recipe (`dataset.adapter.fit=V`,
     fitted with `make scenes ARGS="variant=V ..."`), whose seed-k draw is V-seed<k> as the
     default recipe's is seed<k>."""
-    variant = next((o.removeprefix(FIT) for o in setting if o.startswith(FIT)), "")
-    return "-".join(filter(None, [variant, f"seed{seed}" if seed else ""]))
+    from sagonline.datasets.common import fit_variant
+
+    return fit_variant(
+        next((o.removeprefix(FIT) for o in setting if o.startswith(FIT)), None), seed
+    )
 
 
 def command(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> list[str]:

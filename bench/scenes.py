@@ -39,7 +39,7 @@ from sagonline.core.machine import cpu_capability
 from sagonline.core.outputs import RunLock
 from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
-from sagonline.datasets.common import SCENES_ROOT, fit_folder
+from sagonline.datasets.common import SCENES_ROOT, fit_folder, fit_variant
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     fit_near_depths,
@@ -73,8 +73,7 @@ def variant_of(cfg: ScenesConfig) -> str:
     """The fit's folder suffix: `seed<k>` for a seed other than 0 (each draw of the recipe in a
     folder of its own; evaluate one with dataset.adapter.fit=seed<k>), after `variant` where
     one is named (`<variant>-seed<k>`: the draws of a variant recipe side by side too)."""
-    draw = f"seed{cfg.seed}" if cfg.seed else ""
-    return "-".join(filter(None, [cfg.variant, draw]))
+    return fit_variant(cfg.variant, cfg.seed)
 
 
 def foreign_scene(out: Path) -> Path | None:
@@ -143,7 +142,7 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
         b = load_llff_bounds(scene_dir)
         bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
         near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
-    seeds_fit = out.with_name(fit_folder(f"seed{cfg.seed}" if cfg.seed else ""))
+    seeds_fit = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
     points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out, seeds_fit)
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
         fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)
@@ -175,13 +174,13 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         return fit_locked(cfg, adapter, scene, scene_dir, cams, images, out)
 
 
-def same_fit_as(cfg: ScenesConfig, adapter, scene_dir, cams, images, fitter, out: Path):
+def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     """The seed's finished fit in its own folder (gaussians/ or gaussians-seed<k>/) when the
     fit of `fitter` into the variant folder `out` would repeat it: the recipes differ in
     `fit.view_near_quantile` at most, and both fitters start from the same Gaussians with the
     same near depth in every view the clearances use (on this capture the quantile then
     changes nothing). None otherwise, and always without a variant."""
-    base = output_dir(scene_dir, adapter.name, f"seed{cfg.seed}" if cfg.seed else "")
+    base = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
     if cfg.variant is None or base == out or not (base / "fit_config.json").is_file():
         return None
     if not (base / "point_cloud.ply").is_file() or foreign_scene(base) is not None:
@@ -223,7 +222,7 @@ def copy_fit(base: Path, out: Path, fitter: SceneFitter) -> dict:
 def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, out: Path) -> dict:
     """`fit_scene` once `out` is locked."""
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
-    base = same_fit_as(cfg, adapter, scene_dir, cams, images, fitter, out)
+    base = same_fit_as(cfg, scene_dir, cams, images, fitter, out)
     if base is not None:
         print(
             f"{scene}: this recipe's fit is the one in {base} (the same start and near depths; "

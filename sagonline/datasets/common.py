@@ -31,6 +31,13 @@ SCENES_ROOT = Path(
 )
 
 
+def fit_variant(recipe: str | None, seed: int) -> str:
+    """The variant name of one draw of a fit recipe: `seed<k>` for a seed other than 0, after
+    the recipe's own name where it has one (`<recipe>-seed<k>`); '' for the default recipe's
+    seed 0."""
+    return "-".join(filter(None, [recipe, f"seed{seed}" if seed else ""]))
+
+
 def fit_folder(variant: str = "") -> str:
     """The folder of a scene's fit: `gaussians`, or `gaussians-<variant>` for another draw of
     the recipe (`seed1`, ...) or another recipe."""
