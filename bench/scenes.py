@@ -43,6 +43,7 @@ from sagonline.datasets.common import SCENES_ROOT, fit_folder, fit_variant
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     fit_near_depths,
+    fitting_background,
     initial_points,
     load_images,
     near_depth,
@@ -137,6 +138,7 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
     """The fitter of one capture: images at the fitting size, start points, clearances."""
     fit_cfg = dataclasses.replace(cfg.fit)  # this scene's copy (its clearance is set below)
     train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
+    fit_cfg.background = fitting_background(fit_cfg, train_imgs)  # fit_config.json records it
     bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
         b = load_llff_bounds(scene_dir)
@@ -177,9 +179,10 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
 def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     """The seed's finished fit in its own folder (gaussians/ or gaussians-seed<k>/) when the
     fit of `fitter` into the variant folder `out` would repeat it: the recipes differ in
-    `fit.view_near_quantile` at most, and both fitters start from the same Gaussians with the
-    same near depth in every view the clearances use (on this capture the quantile then
-    changes nothing). None otherwise, and always without a variant."""
+    `fit.view_near_quantile` and `fit.backdrop` at most, and both fitters render on the same
+    background and start from the same Gaussians with the same near depth in every view the
+    clearances use (on this capture those settings then change nothing). None otherwise, and
+    always without a variant."""
     base = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
     if cfg.variant is None or base == out or not (base / "fit_config.json").is_file():
         return None
@@ -188,14 +191,16 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
     today = json.loads(to_json(dataclasses.asdict(FitConfig())))
     # a fit that predates a setting ran without it: it stands for that setting's default (as
-    # wherever a finished fit is reused), but for the quantile, whose rule before it was 0.02
-    recorded = today | {"view_near_quantile": 0.02}
+    # wherever a finished fit is reused), but for the settings whose rule before them differed
+    recorded = today | {"view_near_quantile": 0.02, "backdrop": "fixed"}
     recorded |= json.loads((base / "fit_config.json").read_text())
-    quantile = recorded.pop("view_near_quantile")
-    mine.pop("view_near_quantile")
+    free = ("view_near_quantile", "backdrop")  # the background they resolve to is compared
+    theirs = {k: recorded.pop(k) for k in free}
+    for k in free:
+        mine.pop(k)
     if recorded != mine:
         return None
-    base_fit = dataclasses.replace(cfg.fit, view_near_quantile=quantile)
+    base_fit = dataclasses.replace(cfg.fit, **theirs)
     other, _ = build_fitter(dataclasses.replace(cfg, fit=base_fit), scene_dir, cams, images, base)
 
     def near(f):
@@ -226,7 +231,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
     if base is not None:
         print(
             f"{scene}: this recipe's fit is the one in {base} (the same start and near depths; "
-            f"only fit.view_near_quantile differs): copied to {out}"
+            f"fit.view_near_quantile or fit.backdrop change nothing here): copied to {out}"
         )
         return copy_fit(base, out, fitter)
     ckpt = out / "fit_checkpoint.store"

@@ -48,7 +48,9 @@ class SceneTask:
     them); eval_views: where the fused labels are scored; num_labels: label count including
     background; gt_labels3d: (N,) per-Gaussian truth where known (synthetic scenes);
     ignore_label: a ground-truth value that is never scored (e.g. 255 for void pixels);
-    view_groups: the groups the eval views are sorted into (each group's mIoU is reported).
+    view_groups: the groups the eval views are sorted into (each group's mIoU is reported);
+    background: the RGB colour in [0, 1] the scene was fitted on, which its renders use (None:
+    the pipeline's, black).
     """
 
     dataset: str
@@ -64,6 +66,7 @@ class SceneTask:
     meta: dict = field(default_factory=dict)
     ignore_label: int | None = None
     view_groups: list[str] = field(default_factory=list)
+    background: tuple[float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if self.trajectory_gt is not None:

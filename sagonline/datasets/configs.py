@@ -176,7 +176,7 @@ class NeRDS360Config(PosedMasksConfig):
 class CaptureConfig(PosedMasksConfig):
     """A real 360-degree capture in one layout (`dataset=capture dataset.root=PATH`): images_4/
     (the photographs a fit sees), masks_4/ (a binary object mask per view, the ground truth),
-    poses_bounds.npy (LLFF, one row per mask). mold_cape, mother_child and duck_queen are
+    poses_bounds.npy (LLFF, one row per mask). The four shared captures are
     this layout; a capture of one's own is a dataset by configuration alone."""
 
     name: str = "capture"

@@ -30,6 +30,7 @@ from sagonline.datasets.common import (
     check_one_mask_size,
     click_prompt,
     find_trained_scene,
+    fit_background,
     fit_record,
     gaussians_dir,
     list_masks,
@@ -329,6 +330,7 @@ class PosedMasksDataset(DatasetAdapter):
             },
             ignore_label=self.ignore,
             view_groups=view_groups,
+            background=fit_background(scene_dir, self.name, self.fit),
         )
 
     def make_prompt(

@@ -35,6 +35,44 @@ def load_images(cams, images: dict[str, Path], max_side: int):
     return out_cams, out_imgs
 
 
+WHITE = 0.9
+"""A photograph's border is white when its median colour reaches this in every channel."""
+
+
+def white_backdrop(
+    images: list[torch.Tensor],  # each [H, W, 3] in [0, 1]
+    share: float = 0.9,
+    frame: float = 0.05,
+) -> bool:
+    """True when at least `share` of the photographs have a white border:
+    the median colour of their outer `frame` (a fraction of each side) is >= WHITE in every
+    channel. A studio sweep or turntable is; a room is not (mold_cape, mother_child, duck_queen:
+    none of their photographs; mary_rose: all 35)."""
+    if not images:
+        return False
+    white = 0
+    for im in images:
+        h, w = im.shape[:2]
+        dy, dx = max(1, round(frame * h)), max(1, round(frame * w))
+        border = torch.cat(
+            [im[:dy].reshape(-1, 3), im[-dy:].reshape(-1, 3),
+             im[:, :dx].reshape(-1, 3), im[:, -dx:].reshape(-1, 3)]
+        )  # fmt: skip
+        white += bool((border.median(0).values >= WHITE).all())
+    return white >= share * len(images)
+
+
+def fitting_background(
+    cfg: FitConfig,
+    images: list[torch.Tensor],  # each [H, W, 3] in [0, 1]
+) -> tuple[float, float, float]:
+    """The colour the fit renders on: `cfg.background`, or white with `backdrop=detect` where
+    the photographs show a white backdrop (`white_backdrop`)."""
+    if cfg.backdrop == "detect" and white_backdrop(images):
+        return (1.0, 1.0, 1.0)
+    return tuple(cfg.background)
+
+
 def initial_points(
     cfg: FitConfig,
     scene_dir: Path,

@@ -105,7 +105,13 @@ class FitConfig:
     holdout_every: int = 8
     """Every n-th photograph is held out of the fit (its PSNR is the held-out PSNR)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """The render's background colour during the fit."""
+    """The render's background colour during the fit (and the evaluation's renders of it)."""
+    backdrop: str = "detect"
+    """detect: the fit renders on white where the photographs show a white backdrop
+    (`capture.white_backdrop`: a studio sweep or turntable; 3DGS's --white_background), else on
+    `background`; fixed: always on `background`. On white the backdrop needs no surfaces, so a
+    backdrop that moved against the object between photo sets leaves none in front of it
+    (mary_rose, docs/real_captures.md)."""
     checkpoint_every: int = 100
     """Iterations between checkpoints (an interrupted fit resumes from the last)."""
     time_budget_s: float | None = None
@@ -144,4 +150,5 @@ class FitConfig:
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
             lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
             robust_trim=(0 <= self.robust_trim < 1, self.robust_trim, "a fraction in [0, 1)"),
+            backdrop=(self.backdrop in ("fixed", "detect"), self.backdrop, "fixed or detect"),
         )

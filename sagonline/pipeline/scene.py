@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import time
 import warnings
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -74,11 +75,14 @@ def run_scene(
     `predictions_to`: a run folder to write the scored label maps into (PNG, see
     `sagonline.score.predictions`)."""
     recorder = recorder or Recorder(None)
+    settings = task_settings(task, settings)
     if isinstance(segmenter, VideoSegmenter):
         segmenter = SegmenterRun(segmenter)
     report = SceneReport(scene=task.name, inputs=input_digests(task))
     report.extra["empty_ground_truth_views"] = check_ground_truth(task)
     note_fit(task, report)
+    if any(settings.background):
+        report.extra["render_background"] = list(settings.background)
     g = task.gaussians.to(settings.device)
     cache = StageCache(cache_dir)
     engine = StageOne(
@@ -117,6 +121,13 @@ def run_scene(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
     )
     return report, stage_one
+
+
+def task_settings(task: SceneTask, settings: PipelineSettings) -> PipelineSettings:
+    """`settings` for `task`: its scene rendered on the colour it was fitted on, if known."""
+    if task.background is None:
+        return settings
+    return replace(settings, background=task.background)
 
 
 def follow_stage_one(

@@ -174,11 +174,13 @@ def segment_scene(
     device: str = "cpu",
     cache_dir: str | Path | None = None,
     progress: bool = False,
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0),
 ) -> Segmentation:
     """Render `cameras` (in the order given), segment the video from `prompt` with `segmenter`
     (the weight-free classical one by default), vote the masks into one label per Gaussian:
     Stage I's engine (`pipeline.stage_one.StageOne`), drained, with progress said when asked
-    (a bar on a terminal, a line every 15 s elsewhere)."""
+    (a bar on a terminal, a line every 15 s elsewhere). `background`: the render's colour (the
+    one the scene was fitted on)."""
     names = list(prompt.names)
     if segmenter is None:
         from sagonline.segment.classical import FlowWatershedSegmenter
@@ -189,7 +191,7 @@ def segment_scene(
     check_cameras_see_scene(gaussians, cameras)
     run = segmenter if isinstance(segmenter, SegmenterRun) else segmenter_run_of(segmenter)
     settings = PipelineSettings(backend=backend, vote_backend=vote_backend, device=device,
-                                progress=progress)  # fmt: skip
+                                progress=progress, background=tuple(background))  # fmt: skip
     start = time.perf_counter()
     config = StageOneConfig(
         gaussians, list(cameras), run, vote, settings, max(prompt.num_labels, len(names)),

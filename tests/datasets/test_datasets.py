@@ -311,3 +311,48 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     ]
     assert names[task.prompt.frame] == NAMES[4] and task.trajectory_gt is None
     assert [v.name for v in task.eval_views] == NAMES  # only the real views are scored
+
+
+def test_scene_renders_on_the_colour_it_was_fitted_on(tmp_path):
+    """A fit on white (fit.background) is rendered on white for the segmenter; a scene
+    without fit_config.json keeps the pipeline's black."""
+    import json
+
+    from sagonline.pipeline import PipelineSettings, run_scene
+    from sagonline.segment.oracle import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
+
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)
+    ds = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
+    settings = PipelineSettings(progress=False)
+    black = ds.load_scene("cap")
+    assert black.background is None
+    report, out = run_scene(black, OracleSegmenter(), VoteConfig(), settings)
+    assert "render_background" not in report.extra
+    frames_black, key_black = out.frames.value.images, out.frames.key
+    config = tmp_path / "cap" / "gaussians" / "fit_config.json"
+    config.write_text(json.dumps({"background": [1.0, 1.0, 1.0], "seed": 0}))
+    white = ds.load_scene("cap")
+    assert white.background == (1.0, 1.0, 1.0)
+    report, out = run_scene(white, OracleSegmenter(), VoteConfig(), settings)
+    assert report.extra["render_background"] == [1.0, 1.0, 1.0]
+    frames_white = out.frames.value.images
+    empty = frames_black[0].max(-1) == 0  # nothing rendered there on black
+    assert empty.any() and (frames_white[0][empty] == 255).all()
+    assert out.frames.key != key_black and report.views  # another frames stage, scored too
+
+
+def test_fitted_background_reads_the_fit_config_beside_the_scene(tmp_path):
+    """The colour beside a point_cloud.ply (fit_config.json of `make scenes`); None where
+    there is no such file, it is not JSON, or it records no colour."""
+    from sagonline.scene.io import fitted_background
+
+    ply = tmp_path / "point_cloud.ply"
+    assert fitted_background(ply) is None
+    config = tmp_path / "fit_config.json"
+    config.write_text('{"background": [1, 0.5, 0]}')
+    assert fitted_background(ply) == (1.0, 0.5, 0.0)
+    for broken in ("{", "[1, 2, 3]", '{"background": "white"}', '{"seed": 0}'):
+        config.write_text(broken)
+        assert fitted_background(ply) is None, broken

@@ -402,7 +402,8 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     fit_scene(cfg, adapter, "cap")
     base = tmp_path / "cap" / "gaussians"
     recorded = json.loads((base / "fit_config.json").read_text())
-    del recorded["robust_from"], recorded["view_near_quantile"]  # a fit older than both
+    del recorded["robust_from"], recorded["view_near_quantile"]  # a fit older than these
+    del recorded["backdrop"]  # (it ran on black, as fit.backdrop=fixed)
     (base / "fit_config.json").write_text(json.dumps(recorded))
     near = bench.scenes.fit_near_depths
     monkeypatch.setattr(  # this capture's points: the same near depth at both quantiles
@@ -596,3 +597,61 @@ def test_a_second_fit_into_the_same_folder_is_refused(tmp_path, monkeypatch):
     refused = pytest.raises(OutputError, match="gaussians-seed1: another run is writing")
     with RunLock(scene / "gaussians-seed1"), refused:
         fit_scene(cfg, Adapter(), "cap")
+
+
+def test_white_backdrop_is_detected_from_the_photographs_borders():
+    """`capture.white_backdrop`: white when most photographs' borders are white; a room, a
+    black render or too few white photographs are not."""
+    from sagonline.fitting.capture import fitting_background, white_backdrop
+    from sagonline.fitting.config import FitConfig
+
+    def photo(border: float) -> torch.Tensor:
+        im = torch.full((40, 60, 3), border)
+        im[8:32, 10:50] = torch.tensor([0.6, 0.4, 0.2])  # the object, off the border
+        return im
+
+    assert white_backdrop([photo(0.97)] * 10)
+    assert not white_backdrop([photo(0.5)] * 10) and not white_backdrop([photo(0.0)] * 10)
+    assert not white_backdrop([photo(0.97)] * 8 + [photo(0.5)] * 2 + [photo(0.0)])  # 8 of 11
+    assert not white_backdrop([])
+    grey = FitConfig(background=(0.2, 0.2, 0.2), backdrop="fixed")
+    assert fitting_background(grey, [photo(0.97)] * 3) == (0.2, 0.2, 0.2)  # fixed: as set
+    detect = FitConfig(background=(0.2, 0.2, 0.2))  # the default: detect
+    assert fitting_background(detect, [photo(0.97)] * 3) == (1.0, 1.0, 1.0)
+    assert fitting_background(detect, [photo(0.3)] * 3) == (0.2, 0.2, 0.2)
+    with pytest.raises(ValueError, match="backdrop"):
+        FitConfig(backdrop="white")
+
+
+def test_backdrop_detect_fits_on_white_only_where_the_photographs_are(tmp_path):
+    """`fit.backdrop=detect` (the default) on photographs of a dark room renders on black: the
+    recipe with `fit.backdrop=fixed` is its fit (copied); on the same capture photographed
+    against white it fits on white, records it, and the evaluation renders that scene on
+    white."""
+    from bench.scenes import fit_scene
+    from sagonline.scene.io.images import read_rgb
+    from tests.fixtures import write_image
+
+    cfg, adapter = tiny_capture(tmp_path / "cap")
+    fit_scene(cfg, adapter, "cap")
+    fixed, _ = tiny_capture(tmp_path / "cap", "variant=fixed", "fit.backdrop=fixed")
+    copied = fit_scene(fixed, adapter, "cap")
+    assert copied["same_fit_as"] == "gaussians"  # rendered on black: nothing was detected
+    recorded = json.loads((tmp_path / "cap" / "gaussians-fixed" / "fit_config.json").read_text())
+    assert recorded["backdrop"] == "fixed" and recorded["background"] == [0.0, 0.0, 0.0]
+
+    root = tmp_path / "white"
+    tiny_capture(root)  # the same views, their borders made white (a studio's sweep)
+    for path in (root / "images_4").iterdir():
+        img = read_rgb(path).copy()
+        img[:2], img[-2:], img[:, :2], img[:, -2:] = 255, 255, 255, 255
+        write_image(path, img[..., ::-1])
+    white, white_adapter = tiny_capture(root)
+    metrics = fit_scene(white, white_adapter, "white")
+    assert "same_fit_as" not in metrics
+    assert json.loads((root / "gaussians" / "fit_config.json").read_text())["background"] == [
+        1.0,
+        1.0,
+        1.0,
+    ]
+    assert white_adapter.load_scene("white").background == (1.0, 1.0, 1.0)

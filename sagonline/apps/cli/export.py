@@ -27,6 +27,7 @@ def cmd_export(args) -> int:
     from sagonline.labels.export import write_segmentation
     from sagonline.pipeline.graph import StageCache
     from sagonline.pipeline.recorded import read_recorded_run
+    from sagonline.pipeline.scene import task_settings
     from sagonline.pipeline.stage_one import compose_stage_one
 
     run = Path(args.run_dir)
@@ -53,7 +54,8 @@ def cmd_export(args) -> int:
         )
         stage_one = compose_stage_one(
             task.gaussians.to(recorded.settings.device), task.trajectory, task.prompt,
-            recorded.segmenter, recorded.vote, recorded.settings, num_labels=task.num_labels,
+            recorded.segmenter, recorded.vote, task_settings(task, recorded.settings),
+            num_labels=task.num_labels,
             trajectory_gt=task.trajectory_gt, cache=cache,
         )  # fmt: skip
         say_what_was_redone(scene, stage_one, row)

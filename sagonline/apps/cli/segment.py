@@ -173,7 +173,7 @@ def cmd_segment(args) -> int:
         write_segment_folder,
     )
     from sagonline.render.api import resolve_backend
-    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.trajectory import insert_between
     from sagonline.scene.views import check_trajectory, view_index
@@ -221,7 +221,7 @@ def cmd_segment(args) -> int:
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
     seg = segment_scene(
         g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
-        device=args.device, progress=True,
+        device=args.device, progress=True, background=fitted_background(scene) or (0, 0, 0),
     )  # fmt: skip
     check_objects_were_found(seg)
     info = {

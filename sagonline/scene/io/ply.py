@@ -8,6 +8,7 @@ any scene that was read from a file.
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -263,3 +264,16 @@ def _encode(activated: np.ndarray, forward, inverse) -> np.ndarray:
         best[hit] = cand[hit]
         found |= hit
     return best
+
+
+def fitted_background(scene_file: Path) -> tuple[float, float, float] | None:
+    """The `background` the fit_config.json beside `scene_file` records (a fit of `make
+    scenes`), or None where there is none."""
+    try:
+        colour = json.loads((Path(scene_file).parent / "fit_config.json").read_text())
+        colour = colour.get("background") if isinstance(colour, dict) else None
+    except (OSError, ValueError):
+        return None
+    if not (isinstance(colour, list) and len(colour) == 3):
+        return None
+    return (float(colour[0]), float(colour[1]), float(colour[2]))
