@@ -12,7 +12,7 @@ import numpy as np
 from sagonline.datasets.base import DatasetError
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.scene.io import SceneFileError, fitted_background, read_scene
+from sagonline.scene.io import SceneFileError, read_scene
 from sagonline.scene.io.cameras import load_cameras, load_llff
 from sagonline.scene.io.images import IMAGE_SUFFIXES, image_size, list_images
 from sagonline.scene.io.masks import MAX_LABELS, MaskFileError, read_mask
@@ -97,14 +97,6 @@ def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -
     keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout",
             "psnr_heldout_object", "seed", "scene_digest")  # fmt: skip
     return {k: record[k] for k in keys if k in record} | {"path": str(path)}
-
-
-def fit_background(
-    scene_dir: Path, dataset: str | None = None, variant: str = ""
-) -> tuple[float, float, float] | None:
-    """The colour `make scenes` fitted the scene on, or None for a scene it did not fit: the
-    scene's renders use it, as its fit did (`fitted_background`)."""
-    return fitted_background(find_trained_scene(scene_dir, dataset, variant))
 
 
 def load_trained_scene(

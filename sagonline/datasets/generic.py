@@ -30,7 +30,6 @@ from sagonline.datasets.common import (
     check_one_mask_size,
     click_prompt,
     find_trained_scene,
-    fit_background,
     fit_record,
     gaussians_dir,
     list_masks,
@@ -43,6 +42,7 @@ from sagonline.datasets.labels import label_reader
 from sagonline.scene.cameras import Camera
 from sagonline.scene.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.scene.io.images import IMAGE_SUFFIXES, resize_nearest
+from sagonline.scene.io.ply import fitted_background
 from sagonline.scene.trajectory import insert_between, nearest_view, shortest_path_order
 from sagonline.segment.prompts import Prompt
 
@@ -330,7 +330,7 @@ class PosedMasksDataset(DatasetAdapter):
             },
             ignore_label=self.ignore,
             view_groups=view_groups,
-            background=fit_background(scene_dir, self.name, self.fit),
+            background=fitted_background(scene_file),
         )
 
     def make_prompt(
