@@ -368,3 +368,24 @@ def test_inside_places_the_views_at_the_centre_of_a_room_looking_out(tmp_path, c
     cameras = ["--cameras", str(tmp_path / "cameras.json")]
     assert main([*argv, "--out", str(png), "--overwrite", *cameras]) == 2
     assert "--inside places views in a scene without cameras" in capsys.readouterr().err
+
+
+def test_segment_renders_a_scene_on_the_colour_it_was_fitted_on(tmp_path, monkeypatch):
+    """A fit_config.json beside the scene (a fit of `make scenes` on white): the views the
+    segmenter sees are rendered on white."""
+    import json
+
+    import sagonline.pipeline.segment as pipeline_segment
+
+    sc, cams, m = _scene(tmp_path, "forward")
+    (tmp_path / "fit_config.json").write_text(json.dumps({"background": [1.0, 1.0, 1.0]}))
+    seen = {}
+    real = pipeline_segment.segment_scene
+
+    def spy(*args, **kwargs):
+        seen["background"] = kwargs["background"]
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(pipeline_segment, "segment_scene", spy)
+    assert _segment(tmp_path, "--object", "vase", "--click", f"0:{_click_inside(m == 1)}") == 0
+    assert seen["background"] == (1.0, 1.0, 1.0)
