@@ -207,6 +207,7 @@ crossval-captures: install weights
 # The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
 # capture held out in turn, the candidate of the best mean over the others reported on it
 # (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list.
-CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend;consensus=flashsplat;consensus=flashsplat consensus.body=true
+KEPT_VOTE := consensus=flashsplat consensus.body=true
+CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend;consensus=flashsplat;$(KEPT_VOTE);$(KEPT_VOTE) label_render.min_weight=0.5;$(KEPT_VOTE) label_render.min_weight=0.5 label_render.size=truth
 loo-captures: install weights
 	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$(CANDIDATES)" --out $(REPORTS) $(ARGS)

@@ -25,7 +25,9 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from sagonline.core.settings import check_settings
 from sagonline.fitting import FitConfig
+from sagonline.pipeline.settings import LABEL_SIZES
 from sagonline.refine import RefineConfig
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
@@ -54,6 +56,17 @@ class RendererConfig:
 class LabelRenderConfig:
     min_weight: float = 0.2
     """A pixel takes a label where the labelled Gaussians' blend weight reaches this."""
+    size: str = "render"
+    """The scored label renders' size: render (the eval view's camera, e.g. the capture's
+    `render_max_side`; resized to the ground truth by `metrics.resize`) or truth (the eval
+    view's camera rescaled to its ground truth's size: no resize)."""
+
+    def __post_init__(self) -> None:
+        check_settings(
+            "label_render",
+            min_weight=(0 <= self.min_weight <= 1, self.min_weight, "a blend weight in [0, 1]"),
+            size=(self.size in LABEL_SIZES, self.size, f"one of {LABEL_SIZES}"),
+        )
 
 
 @dataclass

@@ -34,6 +34,7 @@ def settings_from(cfg) -> PipelineSettings:
         vote_backend=cfg.renderer.vote_backend,
         device=cfg.device,
         label_min_weight=cfg.label_render.min_weight,
+        label_size=cfg.label_render.size,
         resize=cfg.metrics.resize,
         progress=not quiet(cfg),
         feedback=cfg.feedback,

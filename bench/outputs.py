@@ -34,7 +34,12 @@ def write_outputs(
         "consensus": asdict(cfg.consensus),
         "renderer": cfg.renderer.backend,
         **summary,
-        "resize_rule": RESIZE_RULES[cfg.metrics.resize],
+        "resize_rule": (
+            "label renders at the ground truth's resolution (label_render.size=truth); else "
+            if cfg.label_render.size == "truth"
+            else ""
+        )
+        + RESIZE_RULES[cfg.metrics.resize],
         "device": describe_device(cfg.device),
         "sha256": digests,  # of the label-map PNGs: re-score with python -m bench.score
         "scenes": [

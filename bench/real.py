@@ -44,12 +44,12 @@ SOURCES = {
 COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=false"]
 # The settings leave-one-capture-out kept for each source (`make loo-captures`,
 # reports/real_captures_loo.md), frozen here: the table's "chosen" columns are scored with
-# them beside the paper's defaults. A source not named keeps the defaults: classical since
-# mary_rose's white-backdrop fits (the rotation holding mother_child out chose
-# consensus.delta=null, which lost 1.19 points there; docs/real_captures.md).
-CHOSEN: dict[str, tuple[str, ...]] = {
-    "real": ("consensus=flashsplat", "consensus.body=true"),
-}
+# them beside the paper's defaults. A source not named keeps the defaults. Both sources keep
+# the same four since the label render's candidates (reports/label_render/,
+# docs/real_captures.md "The label render").
+KEPT = ("consensus=flashsplat", "consensus.body=true", "label_render.min_weight=0.5",
+        "label_render.size=truth")  # fmt: skip
+CHOSEN: dict[str, tuple[str, ...]] = {"real": KEPT, "classical": KEPT}
 
 
 def captures() -> list[str]:

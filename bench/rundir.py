@@ -34,7 +34,11 @@ PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "t
 # Settings added after runs were made, with the value that does what those runs did: a
 # finished run whose config lacks one is compared as if it had that value (a new option left
 # at its default does not make a finished run "another config").
-ADDED_SETTINGS = {"consensus.body": False, "consensus.weighting": "count"}
+ADDED_SETTINGS = {
+    "consensus.body": False,
+    "consensus.weighting": "count",
+    "label_render.size": "render",
+}
 
 
 def comparable_config(config: dict) -> dict:

@@ -103,14 +103,19 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
     except (PluginError, ValueError, TypeError) as exc:
         raise RunFileError(f"{path}: {exc}") from None
     renderer = config.get("renderer") or {}
-    settings = PipelineSettings(
-        backend=str(renderer.get("backend", "auto")),
-        device=device or str(config.get("device", "cpu")),
-        label_min_weight=float((config.get("label_render") or {}).get("min_weight", 0.2)),
-        resize=str((config.get("metrics") or {}).get("resize", "pred_to_gt")),
-        progress=False,
-        feedback=feedback,
-    )
+    label_render = config.get("label_render") or {}
+    try:
+        settings = PipelineSettings(
+            backend=str(renderer.get("backend", "auto")),
+            device=device or str(config.get("device", "cpu")),
+            label_min_weight=float(label_render.get("min_weight", 0.2)),
+            label_size=str(label_render.get("size", "render")),
+            resize=str((config.get("metrics") or {}).get("resize", "pred_to_gt")),
+            progress=False,
+            feedback=feedback,
+        )
+    except ValueError as exc:
+        raise RunFileError(f"{path}: config.label_render: {exc}") from None
     scenes = metrics.get("scenes")
     if not isinstance(scenes, list) or not all(isinstance(s, dict) for s in scenes):
         raise RunFileError(f"{path}: 'scenes' is not a list of scene rows")

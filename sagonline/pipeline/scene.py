@@ -213,9 +213,9 @@ def score_views(
     *,
     backend: str = "auto",
 ) -> list[np.ndarray]:
-    """Render the fused labels at every eval view (by `backend`'s label walk), score them (the
-    coarse mode) and time the label render; returns the (H, W) predictions. g: the scene on
-    `settings.device`."""
+    """Render the fused labels at every eval view (by `backend`'s label walk, at the size
+    `settings.label_size` names), score them (the coarse mode) and time the label render;
+    returns the (H, W) predictions. g: the scene on `settings.device`."""
     preds, seconds = [], []
     for view in progress(
         task.eval_views, f"{task.name}: score", len(task.eval_views), enabled=settings.progress
@@ -223,7 +223,7 @@ def score_views(
         start = time.perf_counter()
         pred = render_labels(
             g,
-            view.camera,
+            settings.scored_camera(view),
             vote.labels,
             num_labels,
             min_weight=settings.label_min_weight,

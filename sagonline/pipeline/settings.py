@@ -5,21 +5,41 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from sagonline.scene.cameras import Camera
 from sagonline.vote.feedback import FeedbackConfig
 
 
 @dataclass
 class PipelineSettings:
     """How a scene is run: the image renderer and the vote's implementation, each resolved on
-    its own for the device (`render.backends.plan_backends`), the label render's threshold, the
-    metrics' resize rule, progress bars, the render background, consensus feedback."""
+    its own for the device (`render.backends.plan_backends`), the label render's threshold and
+    size, the metrics' resize rule, progress bars, the render background, consensus feedback."""
 
     backend: str = "auto"
     vote_backend: str = "auto"
     device: str = "cpu"
     label_min_weight: float = 0.2
+    label_size: str = "render"
+    """The scored label renders' size: render (the eval view's camera) or truth (that camera
+    rescaled to the view's ground-truth size)."""
     resize: str = "pred_to_gt"
     progress: bool = True
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
     diagnose: bool = True
+
+    def __post_init__(self) -> None:
+        if self.label_size not in LABEL_SIZES:
+            raise ValueError(
+                f"label_render.size must be one of {LABEL_SIZES}, got {self.label_size!r}"
+            )
+
+    def scored_camera(self, view) -> Camera:
+        """The camera an eval view's labels are rendered with for scoring (`label_size`)."""
+        if self.label_size == "truth":
+            h, w = view.gt.shape[:2]
+            return view.camera.scaled(w, h)
+        return view.camera
+
+
+LABEL_SIZES = ("render", "truth")

@@ -533,19 +533,27 @@ def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
 
 
 def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same():
-    """A finished run recorded before consensus.body and consensus.weighting existed compares
-    equal to this config with the rule off and the paper's count, and differs from it with
-    either changed."""
+    """A finished run recorded before consensus.body, consensus.weighting and label_render.size
+    existed compares equal to this config with the rule off, the paper's count and labels
+    rendered at the view's size, and differs from it with any of them changed."""
     from bench.rundir import ADDED_SETTINGS, comparable_config, finished_config
 
     now = {
         "consensus": {"method": "rgc", "body": False, "weighting": "count"},
+        "label_render": {"min_weight": 0.2, "size": "render"},
         "dataset": {"name": "x"},
     }
-    before = {"consensus": {"method": "rgc"}, "dataset": {"name": "x"}}
-    assert {"consensus.body", "consensus.weighting"} <= set(ADDED_SETTINGS)
+    before = {
+        "consensus": {"method": "rgc"},
+        "label_render": {"min_weight": 0.2},
+        "dataset": {"name": "x"},
+    }
+    assert {"consensus.body", "consensus.weighting", "label_render.size"} <= set(ADDED_SETTINGS)
     assert finished_config(before) == comparable_config(now)
     now["consensus"]["body"] = True
     assert finished_config(before) != comparable_config(now)
     now["consensus"].update(body=False, weighting="blend")
+    assert finished_config(before) != comparable_config(now)
+    now["consensus"]["weighting"] = "count"
+    now["label_render"]["size"] = "truth"
     assert finished_config(before) != comparable_config(now)
