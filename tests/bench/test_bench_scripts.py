@@ -80,3 +80,11 @@ def test_bench_viewer_times_a_click_in_the_browser():
         pytest.skip(reason)
     text = _run("bench_viewer.py", "--browser")
     assert "browser: first labels shown" in text and "server: click arrived" in text
+
+
+def test_bench_label_size_quick(tmp_path):
+    out = tmp_path / "label_size.csv"
+    text = _run("bench_label_size.py", "--out", str(out))
+    table = pd.read_csv(out)
+    assert list(table["size"]) == ["48x36", "96x72"] and (table.ms_per_view > 0).all()
+    assert list(table.pixel_ratio) == [1.0, 4.0] and "wrote" in text
