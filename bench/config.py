@@ -27,7 +27,7 @@ from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
 from sagonline.core.settings import check_settings
 from sagonline.fitting import FitConfig
-from sagonline.pipeline.settings import LABEL_SIZES
+from sagonline.pipeline.settings import PipelineSettings
 from sagonline.refine import RefineConfig
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
@@ -65,8 +65,8 @@ class LabelRenderConfig:
         check_settings(
             "label_render",
             min_weight=(0 <= self.min_weight <= 1, self.min_weight, "a blend weight in [0, 1]"),
-            size=(self.size in LABEL_SIZES, self.size, f"one of {LABEL_SIZES}"),
         )
+        PipelineSettings(label_size=self.size)  # the size's rule is the pipeline's
 
 
 @dataclass

@@ -14,6 +14,18 @@ from sagonline.core.machine import describe_device
 from sagonline.pipeline import SceneReport
 
 
+def resize_rule(cfg) -> str:
+    """How the scored label maps meet the ground truth's size, in words."""
+    from sagonline.score.metrics import RESIZE_RULES
+
+    rule = RESIZE_RULES[cfg.metrics.resize]
+    if cfg.label_render.size == "truth":
+        return (
+            f"label renders at the ground truth's resolution (label_render.size=truth); else {rule}"
+        )
+    return rule
+
+
 def write_outputs(
     out_dir: Path,
     cfg,
@@ -23,7 +35,6 @@ def write_outputs(
 ) -> dict:
     """metrics.json, per_view.csv (and gaussians_outside.csv where the diagnosis found labelled
     Gaussians outside the object's silhouette) atomically into the run directory."""
-    from sagonline.score.metrics import RESIZE_RULES
     from sagonline.score.predictions import folder_sha256
 
     folders = ("predictions", "predictions_refined", "ground_truth")
@@ -34,12 +45,7 @@ def write_outputs(
         "consensus": asdict(cfg.consensus),
         "renderer": cfg.renderer.backend,
         **summary,
-        "resize_rule": (
-            "label renders at the ground truth's resolution (label_render.size=truth); else "
-            if cfg.label_render.size == "truth"
-            else ""
-        )
-        + RESIZE_RULES[cfg.metrics.resize],
+        "resize_rule": resize_rule(cfg),
         "device": describe_device(cfg.device),
         "sha256": digests,  # of the label-map PNGs: re-score with python -m bench.score
         "scenes": [

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+from sagonline.core.settings import check_settings
 from sagonline.scene.cameras import Camera
 from sagonline.vote.feedback import FeedbackConfig
 
@@ -29,10 +30,8 @@ class PipelineSettings:
     diagnose: bool = True
 
     def __post_init__(self) -> None:
-        if self.label_size not in LABEL_SIZES:
-            raise ValueError(
-                f"label_render.size must be one of {LABEL_SIZES}, got {self.label_size!r}"
-            )
+        size = self.label_size
+        check_settings("label_render", size=(size in LABEL_SIZES, size, f"one of {LABEL_SIZES}"))
 
     def scored_camera(self, view) -> Camera:
         """The camera an eval view's labels are rendered with for scoring (`label_size`)."""
