@@ -25,10 +25,10 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
-from sagonline.core.settings import check_settings
 from sagonline.fitting import FitConfig
 from sagonline.pipeline.settings import PipelineSettings
 from sagonline.refine import RefineConfig
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
 from sagonline.vote.feedback import FeedbackConfig
@@ -54,19 +54,15 @@ class RendererConfig:
 
 @dataclass
 class LabelRenderConfig:
-    min_weight: float = 0.2
+    min_weight: float = LABEL_MIN_WEIGHT
     """A pixel takes a label where the labelled Gaussians' blend weight reaches this."""
     size: str = "render"
     """The scored label renders' size: render (the eval view's camera, e.g. the capture's
     `render_max_side`; resized to the ground truth by `metrics.resize`) or truth (the eval
     view's camera rescaled to its ground truth's size: no resize)."""
 
-    def __post_init__(self) -> None:
-        check_settings(
-            "label_render",
-            min_weight=(0 <= self.min_weight <= 1, self.min_weight, "a blend weight in [0, 1]"),
-        )
-        PipelineSettings(label_size=self.size)  # the size's rule is the pipeline's
+    def __post_init__(self) -> None:  # the rules are the pipeline's
+        PipelineSettings(label_min_weight=self.min_weight, label_size=self.size)
 
 
 @dataclass

@@ -127,3 +127,21 @@ def test_segment_takes_every_vote_setting_from_the_command_line():
                                       "flashsplat"])  # fmt: skip
     with pytest.raises(ValueError, match="--weighting"):
         vote_config(args)
+    args = build_parser().parse_args(["segment", "s.ply", "--body"])
+    assert vote_config(args).body is True
+    assert vote_config(build_parser().parse_args(["segment", "s.ply"])).body is False
+
+
+def test_segment_and_view_take_the_label_renders_threshold():
+    """--min-weight (segment and view): the label renders' threshold, the pipeline's default
+    when not given, refused out of [0, 1] naming the flag."""
+    from sagonline.apps.cli import build_parser
+    from sagonline.apps.cli.segment import label_min_weight
+    from sagonline.render.api import LABEL_MIN_WEIGHT
+
+    parser = build_parser()
+    for command in ("segment", "view"):
+        assert label_min_weight(parser.parse_args([command, "s.ply"])) == LABEL_MIN_WEIGHT
+        assert label_min_weight(parser.parse_args([command, "s.ply", "--min-weight", "0.5"])) == 0.5
+        with pytest.raises(ValueError, match=r"--min-weight -0.1: must be a blend weight"):
+            label_min_weight(parser.parse_args([command, "s.ply", "--min-weight", "-0.1"]))

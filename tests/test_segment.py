@@ -293,6 +293,41 @@ def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):
     assert "bad.json: prompt must be dict" in capsys.readouterr().err
 
 
+def test_the_label_render_threshold_and_body_rule_from_the_command_line(clicked, tmp_path, capsys):
+    """--min-weight reaches the label renders and labels.json (label_render.min_weight), --body
+    the vote; --prompts replays both; a threshold out of [0, 1] is named as the flag."""
+    tmp, _ = clicked
+    recorded = tmp / "out" / "labels.json"
+    assert json.loads(recorded.read_text())["label_render"] == {"min_weight": 0.2}
+    strict = tmp_path / "strict"
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--min-weight",
+                 "0.95", "--body", "--out", str(strict), "--no-record"]) == 0  # fmt: skip
+    info = json.loads((strict / "labels.json").read_text())
+    assert info["label_render"] == {"min_weight": 0.95} and info["vote"]["body"] is True
+
+    def object_pixels(folder):
+        return sum(
+            int((np.asarray(Image.open(f)) > 0).sum())
+            for f in sorted((folder / "views").glob("*_labels.png"))
+        )
+
+    # the same labels' renders (--body keeps the vase, one body): the stricter threshold draws
+    # fewer object pixels, on the vase's soft edge
+    loose = object_pixels(tmp / "out")
+    assert 0 < object_pixels(strict) < loose
+    again = tmp_path / "again"
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(strict / "labels.json"),
+                 "--out", str(again), "--no-record"]) == 0  # fmt: skip
+    info = json.loads((again / "labels.json").read_text())
+    assert info["label_render"] == {"min_weight": 0.95} and info["vote"]["body"] is True
+    assert object_pixels(again) == object_pixels(strict)
+    capsys.readouterr()
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--min-weight",
+                 "7", "--out", str(tmp_path / "bad"), "--no-record"]) == 2  # fmt: skip
+    assert "--min-weight 7.0: must be a blend weight in [0, 1]" in capsys.readouterr().err
+    assert not (tmp_path / "bad").exists()
+
+
 def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):
     """Off a terminal (a log file, CI): one plain line per long step, never a `\\r` bar."""
     sc, cams, m = _scene(tmp_path, "forward")

@@ -23,6 +23,7 @@ from sagonline.core.plugins import DATASETS, PluginError, typed_settings
 from sagonline.datasets.base import DatasetAdapter
 from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
 from sagonline.vote.feedback import FeedbackConfig
@@ -108,7 +109,7 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
         settings = PipelineSettings(
             backend=str(renderer.get("backend", "auto")),
             device=device or str(config.get("device", "cpu")),
-            label_min_weight=float(label_render.get("min_weight", 0.2)),
+            label_min_weight=float(label_render.get("min_weight", LABEL_MIN_WEIGHT)),
             label_size=str(label_render.get("size", "render")),
             resize=str((config.get("metrics") or {}).get("resize", "pred_to_gt")),
             progress=False,

@@ -37,6 +37,7 @@ from sagonline.pipeline.stage_one import (
     StageOneConfig,
 )
 from sagonline.pipeline.stages import SegmenterRun
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import VideoSegmenter
@@ -305,10 +306,13 @@ def write_segment_folder(
     overwrite: bool = False,
     inputs=(),
     progress=None,
+    min_weight: float = LABEL_MIN_WEIGHT,
 ) -> Path:
     """The segment folder (`sagonline.labels.export.write_segmentation`): label renders of every
     trajectory view, labels, object PLYs and the recording; what `sagonline segment` and the
-    viewer's Export both write. progress(items, what) wraps the label renders (a bar)."""
+    viewer's Export both write. progress(items, what) wraps the label renders (a bar);
+    min_weight: a pixel of a label render takes a label where that label's Gaussians make up
+    this much of it (`render_labels`; recorded in labels.json as label_render.min_weight)."""
     import torch
 
     from sagonline.labels.export import write_segmentation
@@ -320,7 +324,9 @@ def write_segment_folder(
     pairs = list(zip(seg.cameras, seg.frames, strict=True))
     views = []
     for cam, frame in progress(pairs, "label renders") if progress else pairs:
-        lab = render_labels(g, cam.to(device), labels, len(seg.names), backend=backend)
+        lab = render_labels(
+            g, cam.to(device), labels, len(seg.names), backend=backend, min_weight=min_weight
+        )
         views.append((cam.name, frame, lab.cpu().numpy()))
 
     def write_recording(path: Path) -> None:
@@ -329,6 +335,7 @@ def write_segment_folder(
             [v[2] for v in views], info["prompt"], seg.prompt_frame,
         )  # fmt: skip
 
+    info = info | {"label_render": {"min_weight": float(min_weight)}}
     return write_segmentation(
         out, gaussians, seg.labels, seg.names, source=scene, info=info, views=views,
         record=write_recording if record else None, overwrite=overwrite, inputs=inputs,

@@ -6,6 +6,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sagonline.core.settings import check_settings
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.vote.feedback import FeedbackConfig
 
@@ -19,7 +20,8 @@ class PipelineSettings:
     backend: str = "auto"
     vote_backend: str = "auto"
     device: str = "cpu"
-    label_min_weight: float = 0.2
+    label_min_weight: float = LABEL_MIN_WEIGHT
+    """A label render's pixel takes a label where labelled Gaussians make up this much of it."""
     label_size: str = "render"
     """The scored label renders' size: render (the eval view's camera) or truth (that camera
     rescaled to the view's ground-truth size)."""
@@ -30,8 +32,12 @@ class PipelineSettings:
     diagnose: bool = True
 
     def __post_init__(self) -> None:
-        size = self.label_size
-        check_settings("label_render", size=(size in LABEL_SIZES, size, f"one of {LABEL_SIZES}"))
+        size, weight = self.label_size, self.label_min_weight
+        check_settings(
+            "label_render",
+            min_weight=(0 <= weight <= 1, weight, "a blend weight in [0, 1]"),
+            size=(size in LABEL_SIZES, size, f"one of {LABEL_SIZES}"),
+        )
 
     def scored_camera(self, view) -> Camera:
         """The camera an eval view's labels are rendered with for scoring (`label_size`)."""

@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from sagonline.refine.trainer import RefinementTrainer
-from sagonline.render.api import render, render_labels, to_uint8
+from sagonline.render.api import LABEL_MIN_WEIGHT, render, render_labels, to_uint8
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.novel_view import NovelViewSegmenter
@@ -45,7 +45,7 @@ class OnlineSegmentation:
         segmenter: NovelViewSegmenter | None = None,
         *,
         backend: str = "torch",
-        min_weight: float = 0.2,
+        min_weight: float = LABEL_MIN_WEIGHT,
     ):
         self.g, self.labels = gaussians, labels
         self.num_labels, self.trainer, self.segmenter = num_labels, trainer, segmenter

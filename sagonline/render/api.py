@@ -73,13 +73,18 @@ def to_uint8(
     return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
 
 
+LABEL_MIN_WEIGHT = 0.2
+"""The label render's default: a pixel takes a label where labelled Gaussians make up this much
+of it (the project's choice; the real captures' chosen setting is 0.5, docs/real_captures.md)."""
+
+
 def render_labels(
     gaussians: Gaussians,
     camera: Camera,
     labels: torch.Tensor,  # [N] long in [-1, num_labels): -1 unlabelled, 0 background, 1.. objects
     num_labels: int,
     *,
-    min_weight: float = 0.2,
+    min_weight: float = LABEL_MIN_WEIGHT,
     mode: str = "onehot",
     backend: str = "torch",
 ) -> torch.Tensor:  # [H, W] long in [0, num_labels)

@@ -139,8 +139,9 @@ def test_bad_clicks_are_refused_and_change_nothing(donut):
 
 
 def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_path):
-    """labels.json records the segmenter's options (they were written as []) and `segment
-    --prompts` builds the same segmenter from them: the same labels."""
+    """labels.json records the segmenter's options (they were written as []) and the label
+    renders' threshold, and `segment --prompts` builds the same segmenter from them: the same
+    labels, the same label renders."""
     import json
 
     from sagonline.apps.cli import main
@@ -149,18 +150,33 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
     g, parts, ring = donut
     seg = FlowWatershedSegmenter(band_px=2)
     session = SegmentSession(g, ring, segmenter=seg, segmenter_options=["band_px=2"],
-                             backend="native")  # fmt: skip
+                             backend="native", min_weight=0.6)  # fmt: skip
     session.add_click(0, *icing_pixel(session, parts))
     session.wait(60)
     write_ply(tmp_path / "donut.ply", g)
     out = session.export(tmp_path / "seg", scene=tmp_path / "donut.ply", info={"orbit": 8})
     record = json.loads((out / "labels.json").read_text())
     assert record["segmenter"] == {"kind": "classical", "options": ["band_px=2"]}
+    assert record["label_render"] == {"min_weight": 0.6}
     again = tmp_path / "again"
     assert main(["segment", str(tmp_path / "donut.ply"), "--orbit", "8", "--width", "96",
                  "--height", "72", "--backend", "native", "--prompts", str(out / "labels.json"),
                  "--out", str(again), "--no-record"]) == 0  # fmt: skip
     assert np.array_equal(np.load(again / "labels.npy"), session.labels)
+    assert json.loads((again / "labels.json").read_text())["label_render"] == {"min_weight": 0.6}
+    for render in sorted((out / "views").glob("*_labels.png")):
+        assert (render.read_bytes() == (again / "views" / render.name).read_bytes()), render.name
+
+
+def test_the_views_are_rendered_on_the_colour_the_scene_was_fitted_on(donut):
+    """A scene fitted on white (its fit_config.json says so) is rendered on white in the viewer,
+    as `segment` and the evaluation render it: the segmenter sees what the fit saw."""
+    g, _, ring = donut
+    white = SegmentSession(g, ring, backend="native", background=(1.0, 1.0, 1.0))
+    black = SegmentSession(g, ring, backend="native")
+    corner = (slice(0, 3), slice(0, 3))
+    assert (white.engine.render()[0][corner] == 255).all()
+    assert (black.engine.render()[0][corner] == 0).all()
 
 
 def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):

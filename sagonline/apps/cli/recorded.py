@@ -76,6 +76,10 @@ def apply_recorded_prompts(args) -> None:
         if not (value is None and key in ("delta", "num_masks")):
             field.check(f"vote.{key}", value, kinds)
     args.recorded_vote = vote
+    label_render = field.get("label_render", dict, record.get("label_render") or {})
+    if "min_weight" in label_render:
+        weight = label_render["min_weight"]
+        args.recorded_min_weight = field.check("label_render.min_weight", weight, (int, float))
     inputs = field.get("inputs", dict, record.get("inputs") or {})
     args.recorded_scene = field.check("inputs.scene", inputs.get("scene", ""), str)
     from sagonline.scene.io import scene_file

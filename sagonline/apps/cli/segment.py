@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.apps.cli.render import add_view_arguments, views_of
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.render.backends import BACKENDS
 from sagonline.render.rule import WEIGHTINGS
 from sagonline.scene.views import CLICK_HELP
@@ -76,6 +77,12 @@ def add_parsers(sub) -> None:
     )
     vote.add_argument("--min-votes", type=int)
     vote.add_argument("--margin", type=float)
+    vote.add_argument(
+        "--body", action=argparse.BooleanOptionalAction, default=None,
+        help="keep each object's labels on its body (its largest touching cluster; off by "
+        "default, not the paper's protocol)",
+    )  # fmt: skip
+    add_min_weight_argument(seg)
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
     seg.add_argument("--backend", default="auto", choices=BACKENDS)
     seg.add_argument("--out", help="output folder (default: segment-<scene>-<time>)")
@@ -84,6 +91,16 @@ def add_parsers(sub) -> None:
     )
     seg.add_argument("--no-record", action="store_true", help="skip the rerun recording")
     seg.set_defaults(func=cmd_segment, prompt_items=[])
+
+
+def add_min_weight_argument(parser) -> None:
+    """--min-weight: the label renders' threshold (`segment` and `view`)."""
+    parser.add_argument(
+        "--min-weight", type=float, metavar="W",
+        help="a label render's pixel takes a label where labelled Gaussians make up W of it "
+        f"(default {LABEL_MIN_WEIGHT}; the real captures' chosen setting: 0.5, with "
+        "--method flashsplat --body)",
+    )  # fmt: skip
 
 
 # --- segmenter and vote -----------------------------------------------------------------------
@@ -148,6 +165,7 @@ def vote_config(args):
         "weighting": args.weighting,
         "min_votes": args.min_votes,
         "margin": args.margin,
+        "body": args.body,
     }
     given = {k: v for k, v in given.items() if v is not None}
     try:
@@ -158,6 +176,23 @@ def vote_config(args):
             name = f"--{key.replace('_', '-')}" if key in given else f"{args.prompts} vote.{key}"
             message = message.replace(f"consensus.{key}=", f"{name} ")
         raise ValueError(message) from None
+
+
+def label_min_weight(args) -> float:
+    """The label renders' min_weight: --min-weight, else the --prompts file's, else the
+    default; checked by the pipeline's rule (named as the user gave it)."""
+    from sagonline.pipeline.settings import PipelineSettings
+
+    given = args.min_weight
+    weight = given if given is not None else getattr(args, "recorded_min_weight", None)
+    weight = LABEL_MIN_WEIGHT if weight is None else weight
+    try:
+        PipelineSettings(label_min_weight=weight)
+    except ValueError as exc:
+        recorded = f"{getattr(args, 'prompts', None)} label_render.min_weight="
+        name = "--min-weight " if given is not None else recorded
+        raise ValueError(str(exc).replace("label_render.min_weight=", name)) from None
+    return float(weight)
 
 
 # --- the command ------------------------------------------------------------------------------
@@ -200,6 +235,7 @@ def cmd_segment(args) -> int:
     if args.preview is None:
         check_replaceable(out, args.overwrite)
     vote = vote_config(args)
+    min_weight = label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
     if args.cameras is None or args.orbit:
@@ -240,6 +276,7 @@ def cmd_segment(args) -> int:
     write_segment_folder(
         out, g, seg, scene, info, backend=args.backend, device=args.device,
         record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
+        min_weight=min_weight,
     )  # fmt: skip
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0

@@ -8,6 +8,7 @@ import sys
 import time
 
 from sagonline.apps.cli.render import add_view_arguments, views_of
+from sagonline.apps.cli.segment import add_min_weight_argument, label_min_weight
 from sagonline.render.backends import BACKENDS
 
 
@@ -26,6 +27,7 @@ def add_parsers(sub) -> None:
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
     )  # fmt: skip
     view.add_argument("--backend", default="auto", choices=BACKENDS)
+    add_min_weight_argument(view)
     view.add_argument(
         "--host", default="127.0.0.1",
         help="address to serve on (default 127.0.0.1: this machine only; another address lets "
@@ -109,7 +111,7 @@ def cmd_view(args) -> int:
     from sagonline.core.outputs import check_not_input
     from sagonline.core.plugins import SEGMENTERS
     from sagonline.render.api import resolve_backend
-    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.views import check_trajectory
 
@@ -121,6 +123,7 @@ def cmd_view(args) -> int:
     warn_if_exposed(args.host)
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
+    min_weight = label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
     check_trajectory(views.cameras)
@@ -130,6 +133,7 @@ def cmd_view(args) -> int:
     session = SegmentSession(
         g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter,
         segmenter_options=segmenter_options(args), backend=args.backend, device=args.device,
+        background=fitted_background(scene) or (0.0, 0.0, 0.0), min_weight=min_weight,
     )  # fmt: skip
     info = {
         "cameras": str(args.cameras) if args.cameras else None,

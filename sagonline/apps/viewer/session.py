@@ -44,6 +44,7 @@ from sagonline.pipeline.stage_one import (
     StageOneConfig,
     ViewVoted,
 )
+from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import VideoSegmenter
@@ -81,7 +82,9 @@ class SegmentSession:
     gaussians: the scene; cameras: the views in trajectory order; segmenter: the registry's
     `segmenter_kind` built with `segmenter_options` (the classical one by default);
     on_update(labels, progress) is called from the worker thread after the first voted view,
-    every `recolour_every` voted views, and at the end (labels: (N,) int64)."""
+    every `recolour_every` voted views, and at the end (labels: (N,) int64); background: the
+    renders' colour (the one the scene was fitted on); min_weight: the Export's label renders'
+    threshold (`render_labels`)."""
 
     def __init__(
         self,
@@ -96,6 +99,8 @@ class SegmentSession:
         vote_backend: str = "auto",
         device: str = "cpu",
         recolour_every: int = 4,
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
+        min_weight: float = LABEL_MIN_WEIGHT,
         on_update: Callable[[np.ndarray, Progress], None] | None = None,
     ):
         from sagonline.pipeline.segment import check_cameras_see_scene
@@ -108,8 +113,10 @@ class SegmentSession:
         self.segmenter = segmenter or FlowWatershedSegmenter()
         self.segmenter_kind = segmenter_kind  # its name in the registry (labels.json)
         self.segmenter_options = list(segmenter_options or [])
-        settings = PipelineSettings(backend=backend, vote_backend=vote_backend, device=device,
-                                    progress=False)  # fmt: skip
+        settings = PipelineSettings(
+            backend=backend, vote_backend=vote_backend, device=device, progress=False,
+            background=tuple(background), label_min_weight=min_weight,
+        )  # fmt: skip
         config = StageOneConfig(
             gaussians, list(cameras), segmenter_run_of(self.segmenter), vote or VoteConfig(),
             settings, publish_every=recolour_every, keep_depth=True,
@@ -118,6 +125,7 @@ class SegmentSession:
         self.gaussians, self.cameras = self.engine.gaussians, self.engine.cameras
         check_cameras_see_scene(self.gaussians, self.cameras)
         self.backend, self.device = backend, device
+        self.min_weight = settings.label_min_weight
         self.on_update = on_update
         self.objects: list[ObjectClicks] = []
         self.clicks: list[ClickPoint] = []
@@ -375,4 +383,5 @@ class SegmentSession:
         return write_segment_folder(
             Path(out), self.gaussians, seg, scene, full, backend=self.backend,
             device=self.device, record=record, overwrite=overwrite, inputs=inputs,
+            min_weight=self.min_weight,
         )  # fmt: skip
