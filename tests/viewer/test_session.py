@@ -165,7 +165,7 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
     assert np.array_equal(np.load(again / "labels.npy"), session.labels)
     assert json.loads((again / "labels.json").read_text())["label_render"] == {"min_weight": 0.6}
     for render in sorted((out / "views").glob("*_labels.png")):
-        assert (render.read_bytes() == (again / "views" / render.name).read_bytes()), render.name
+        assert render.read_bytes() == (again / "views" / render.name).read_bytes(), render.name
 
 
 def test_the_views_are_rendered_on_the_colour_the_scene_was_fitted_on(donut):
