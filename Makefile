@@ -27,7 +27,7 @@ SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) re
         clean-cache \
         gpu-bundle gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real \
-        crossval-captures loo-captures
+        crossval-captures loo-captures fits-captures
 
 install: $(STAMP)
 
@@ -199,7 +199,13 @@ tables: table-timing table-masks table-ablation table-robustness
 tables-real: install weights
 	$(BIN)/python -m bench.real --jobs $(JOBS) --out $(REPORTS) $(ARGS)
 
-# The same over the fits of seeds 0, 1, 2 (fit them: `make scenes DATASET=<capture> ARGS=seed=1`):
+# Every capture's fits of SEEDS, JOBS at once (one thread each; finished fits are skipped, so an
+# interrupted batch resumes); a recipe of one's own: ARGS="variant=V fit.X=...", then scored as
+# the candidate `dataset.adapter.fit=V` of loo-captures. Logs in runs/fits/.
+fits-captures: install
+	$(BIN)/python -m bench.fit_captures --jobs $(JOBS) --seeds $(SEEDS) $(ARGS)
+
+# The same over the fits of seeds 0, 1, 2 (fit them: `make fits-captures`):
 # mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
 crossval-captures: install weights
 	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --out $(REPORTS) $(ARGS)

@@ -1,0 +1,52 @@
+"""`make fits-captures` (bench.fit_captures): every capture's fits of several seeds, one
+command, each fit's outcome in a table."""
+
+from __future__ import annotations
+
+import pytest
+
+from bench import fit_captures
+from bench.real import captures
+
+
+def test_the_dry_run_lists_one_fit_per_capture_and_seed(capsys):
+    fit_captures.main(["--dry-run", "--seeds", "2,0", "variant=aniso", "fit.lambda_aniso=1"])
+    lines = capsys.readouterr().out.splitlines()
+    want = [
+        f"python -m bench.scenes dataset={c} seed={k} progress=false variant=aniso "
+        "fit.lambda_aniso=1"
+        for c in captures()
+        for k in (0, 2)
+    ]
+    assert lines == want and len(want) == 2 * len(captures()) >= 8
+    assert fit_captures.variant_of(["variant=a", "fit.x=1", "variant=b"]) == "b"
+    assert fit_captures.variant_of(["fit.x=1"]) is None
+
+
+@pytest.mark.parametrize(
+    ("argv", "said"),
+    [
+        (["--captures", "nope"], "no such capture: nope; the captures: duck_queen"),
+        (["seed=3"], "seed=3: give captures with --captures and seeds with --seeds"),
+        (["--seeds", "1,x"], "--seeds '1,x': comma-separated integers"),
+        (["--jobs", "0"], "--jobs 0: at least 1"),
+    ],
+)
+def test_bad_arguments_are_refused_naming_them(argv, said, capsys):
+    with pytest.raises(SystemExit) as stop:
+        fit_captures.main(argv)
+    assert stop.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_a_fit_that_fails_is_named_with_its_log_and_the_batch_fails(tmp_path, capsys):
+    """A recipe bench.scenes refuses: every fit fails with its own log and its last line."""
+    argv = ["--captures", "duck_queen", "--seeds", "0,1", "--jobs", "2", "--logs", str(tmp_path),
+            "fit.iterations=0"]  # fmt: skip
+    with pytest.raises(SystemExit) as stop:
+        fit_captures.main(argv)
+    assert stop.value.code == 1
+    out = capsys.readouterr().out
+    assert "2 fits, 2 at once" in out and out.count("failed: ") == 2, out
+    for seed in (0, 1):
+        log = (tmp_path / f"duck_queen-seed{seed}.log").read_text()
+        assert "fit.iterations=0" in log, log
