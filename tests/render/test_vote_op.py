@@ -66,13 +66,18 @@ def _scene_views(kind: str, seed: int, n: int, width: int, height: int):
 @pytest.mark.parametrize("seed", [0, 1])
 @pytest.mark.parametrize("rule", list(RULES))
 def test_native_matches_the_reference(kind, seed, rule):
+    """Counts exactly; blend weights within the derived bound: torch's own exp and products
+    round by the machine's vector width (on AVX-512, 2 of 1,200 weights were 3.7e-5 apart,
+    past a plain float32 tolerance), the kernel's do not."""
     g, cams = _scene_views(kind, seed, 300, 37, 29)
     for i, cam in enumerate(cams):
         k = 3 + i  # 3, 4 and 5 labels
         labels = _masks(cam, k, seed + i)
         ref = vote_histogram(g, cam, labels, k, RULES[rule], backend="torch")
         got = vote_histogram(g, cam, labels, k, RULES[rule], backend="native")
-        _same(got, ref, RULES[rule].weighting)
+        blend = RULES[rule].weighting == "blend"
+        bound = partial(blend_bound, g, cam, labels, k, RULES[rule]) if blend else None
+        _same(got, ref, RULES[rule].weighting, bound)
 
 
 @needs_triton

@@ -234,8 +234,7 @@ def cmd_segment(args) -> int:
     check_not_input(out, inputs)
     if args.preview is None:
         check_replaceable(out, args.overwrite)
-    vote = vote_config(args)
-    min_weight = label_min_weight(args)
+    vote, min_weight = vote_config(args), label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
     if args.cameras is None or args.orbit:
@@ -274,9 +273,8 @@ def cmd_segment(args) -> int:
         "timings": seg.timings,
     }
     write_segment_folder(
-        out, g, seg, scene, info, backend=args.backend, device=args.device,
+        out, g, seg, scene, info, backend=args.backend, device=args.device, min_weight=min_weight,
         record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
-        min_weight=min_weight,
     )  # fmt: skip
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
