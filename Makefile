@@ -201,14 +201,17 @@ tables-real: install weights
 
 # Every capture's fits of SEEDS, JOBS at once (one thread each; finished fits are skipped, so an
 # interrupted batch resumes); a recipe of one's own: ARGS="variant=V fit.X=...", then scored as
-# the candidate `dataset.adapter.fit=V` of loo-captures. Logs in runs/fits/.
+# the candidate `dataset.adapter.fit=V` of loo-captures. WIDTH=avx512: the other CPU vector
+# width's draws (variant avx512; `make crossval-captures FIT=avx512` scores them). Logs in runs/fits/.
 fits-captures: install
-	$(BIN)/python -m bench.fit_captures --jobs $(JOBS) --seeds $(SEEDS) $(ARGS)
+	$(BIN)/python -m bench.fit_captures --jobs $(JOBS) --seeds $(SEEDS) \
+	  $(if $(WIDTH),--width $(WIDTH)) $(ARGS)
 
 # The same over the fits of seeds 0, 1, 2 (fit them: `make fits-captures`):
 # mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
 crossval-captures: install weights
-	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) $(if $(FIT),--fit $(FIT)) \
+	  --out $(REPORTS) $(ARGS)
 
 # The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
 # capture held out in turn, the candidate of the best mean over the others reported on it

@@ -14,9 +14,14 @@ from __future__ import annotations
 import os
 
 # A fit pins torch's CPU kernels to AVX2 (read once, when torch loads): AVX-512 kernels round
-# differently, and the same fit then gives another scene. Pinned, the documented scenes come
-# out bit for bit on any x86 machine; fit_metrics.json records the capability a fit ran with.
+# differently, and the same fit then gives another scene. It also pins MKL, torch's BLAS, to
+# its COMPATIBLE branch, which gives the same results on every x86 CPU: unpinned on an Intel
+# CPU with AVX-512, MKL took its own faster branch there (another draw than on an AMD CPU, both
+# AVX2-pinned) and one of five identical 150-iteration fits differed from the others (its
+# branches' results depend on the data's memory alignment); pinned, 2 of 2 came out the same, as
+# fast (docs/fitting.md). fit_metrics.json records both pins.
 os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
+os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 
 import dataclasses
 import json
@@ -189,9 +194,11 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
         return None
     if not (base / "point_cloud.ply").is_file() or foreign_scene(base) is not None:
         return None
-    width = json.loads((base / "fit_metrics.json").read_text()).get("cpu_capability")
-    if width != cpu_capability():
+    recorded_metrics = json.loads((base / "fit_metrics.json").read_text())
+    if recorded_metrics.get("cpu_capability") != cpu_capability():
         return None
+    if recorded_metrics.get("mkl_cbwr") != os.environ.get("MKL_CBWR"):
+        return None  # a fit before the MKL pin, or another branch: another draw
     mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
     today = json.loads(to_json(dataclasses.asdict(FitConfig())))
     # a fit that predates a setting ran without it: it stands for that setting's default (as
@@ -252,6 +259,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
             "init": init,
             "threads": torch.get_num_threads(),  # the fit is the same on any count (recorded)
             "cpu_capability": cpu_capability(),  # pinned to AVX2 above, unless set otherwise
+            "mkl_cbwr": os.environ.get("MKL_CBWR"),  # pinned to COMPATIBLE above, likewise
         }
     )
     with torch.no_grad():

@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +16,7 @@ from sagonline.core import store
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
 from sagonline.render import rasterize
 from sagonline.scene.generator import make_scene
-from tests.fixtures import compose_config
+from tests.fixtures import ROOT, compose_config
 
 
 @pytest.fixture(scope="module")
@@ -398,6 +401,7 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     import bench.scenes
     from bench.scenes import fit_scene
 
+    width = bench.scenes.cpu_capability
     cfg, adapter = tiny_capture(tmp_path / "cap")
     fit_scene(cfg, adapter, "cap")
     base = tmp_path / "cap" / "gaussians"
@@ -434,6 +438,30 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     wider, _ = tiny_capture(tmp_path / "cap", "variant=w", "fit.view_near_quantile=0.01")
     metrics = fit_scene(wider, adapter, "cap")
     assert "same_fit_as" not in metrics and metrics["cpu_capability"] == "AVX512"  # a new draw
+    monkeypatch.setattr(bench.scenes, "cpu_capability", width)  # the seed's fit's width again
+    recorded = json.loads((base / "fit_metrics.json").read_text())
+    assert recorded["mkl_cbwr"] == "COMPATIBLE"
+    del recorded["mkl_cbwr"]  # a fit before the MKL pin: another draw, not repeated
+    (base / "fit_metrics.json").write_text(json.dumps(recorded))
+    older, _ = tiny_capture(tmp_path / "cap", "variant=m", "fit.view_near_quantile=0.01")
+    assert "same_fit_as" not in fit_scene(older, adapter, "cap")
+
+
+def test_a_fit_pins_torchs_cpu_kernels_and_mkl_before_torch_loads():
+    """`python -m bench.scenes` runs torch's kernels at AVX2 and MKL on its COMPATIBLE branch
+    (the same results on every x86 CPU, and run to run); a pin the user set stays."""
+    probe = (
+        "import os, bench.scenes, torch; print(os.environ['ATEN_CPU_CAPABILITY'], "
+        "os.environ['MKL_CBWR'], torch.backends.cpu.get_cpu_capability())"
+    )
+    env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "MKL_CBWR")}
+    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env=env, capture_output=True,
+                          text=True)  # fmt: skip
+    aten, mkl, runs = done.stdout.split()
+    assert (aten, mkl) == ("avx2", "COMPATIBLE") and runs in ("AVX2", "DEFAULT"), done.stdout
+    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True,
+                          env=env | {"MKL_CBWR": "AVX2,STRICT"})  # fmt: skip
+    assert done.stdout.split()[1] == "AVX2,STRICT"
 
 
 @pytest.mark.slow
