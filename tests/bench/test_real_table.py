@@ -225,3 +225,22 @@ def test_another_recipes_fits_are_scored_as_the_table_s_fits(tmp_path, monkeypat
     with pytest.raises(SystemExit) as exc:
         real.main(["--fit", "avx512", "--settings", "consensus.body=true", "--captures", "cap"])
     assert exc.value.code == 2 and "--fit scores one recipe's fits" in capsys.readouterr().err
+
+
+def test_the_table_scores_only_the_sources_asked_for(tmp_path, monkeypatch, capsys):
+    (tmp_path / "conf" / "dataset").mkdir(parents=True)
+    (tmp_path / "conf" / "dataset" / "cap.yaml").write_text("root: data/cap\n")
+    (tmp_path / "data" / "cap" / "gaussians").mkdir(parents=True)
+    (tmp_path / "data" / "cap" / "gaussians" / "point_cloud.ply").write_text("")
+    monkeypatch.setattr(real, "ROOT", tmp_path)
+    todo = real.tasks(["cap"], [0], [], (), ("real", "classical"))
+    assert {source for _, source, _, _ in todo} == {"real", "classical"}
+    assert len(todo) == 2 + len(real.CHOSEN)
+    refused = [
+        (["--sources", "real,sam9"], "--sources 'real,sam9'"),
+        (["--sources", "real", "--settings", "consensus.body=true"], "with --settings"),
+    ]
+    for argv, said in refused:
+        with pytest.raises(SystemExit) as exc:
+            real.main([*argv, "--captures", "cap"])
+        assert exc.value.code == 2 and said in capsys.readouterr().err
