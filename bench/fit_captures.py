@@ -150,7 +150,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     env |= {"OMP_NUM_THREADS": "1"} if args.jobs > 1 else {}
     print(f"{len(todo)} fits, {args.jobs} at once; logs in {args.logs}/", flush=True)
     with ThreadPoolExecutor(args.jobs) as pool:
-        rows = list(pool.map(lambda t: fit_one(*t, overrides, env, args.logs), todo))
+        rows = list(pool.map(lambda t: fit_one(t[0], t[1], overrides, env, args.logs), todo))
     df = pd.DataFrame(rows)
     print(df.to_string(index=False))
     if df["status"].str.startswith("failed").any():
