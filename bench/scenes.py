@@ -17,7 +17,7 @@ import os
 # differently, and the same fit then gives another scene. It also pins MKL, torch's BLAS, to
 # its COMPATIBLE branch, which gives the same results on every x86 CPU: unpinned on an Intel
 # CPU with AVX-512, MKL took its own faster branch there (another draw than on an AMD CPU, both
-# AVX2-pinned) and one of five identical 150-iteration fits differed from the others (its
+# AVX2-pinned) and one of four identical 150-iteration fits differed from the others (its
 # branches' results depend on the data's memory alignment); pinned, 2 of 2 came out the same, as
 # fast (docs/fitting.md). fit_metrics.json records both pins.
 os.environ.setdefault("ATEN_CPU_CAPABILITY", "avx2")
