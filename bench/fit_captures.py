@@ -128,11 +128,12 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
     if args.jobs < 1:
         ap.error(f"--jobs {args.jobs}: at least 1")
-    names = args.captures.split(",") if args.captures else captures()
-    unknown = sorted(set(names) - set(captures()))
+    known = captures()
+    names = args.captures.split(",") if args.captures else known
+    unknown = sorted(set(names) - set(known))
     if unknown:
         ap.error(f"--captures: no such capture: {', '.join(unknown)}; the captures: "
-                 f"{', '.join(captures())}")  # fmt: skip
+                 f"{', '.join(known)}")  # fmt: skip
     for bad in [o for o in args.overrides if o.split("=", 1)[0] in ("dataset", "seed")]:
         ap.error(f"{bad}: give captures with --captures and seeds with --seeds")
     todo = [(capture, seed) for capture in names for seed in seeds]

@@ -181,24 +181,28 @@ def fit_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
         return fit_locked(cfg, adapter, scene, scene_dir, cams, images, out)
 
 
+def fit_pins() -> dict[str, str | None]:
+    """What a fit's rounding depends on besides its recipe (pinned above unless set otherwise):
+    torch's CPU vector width and MKL's branch; fit_metrics.json records them."""
+    return {"cpu_capability": cpu_capability(), "mkl_cbwr": os.environ.get("MKL_CBWR")}
+
+
 def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     """The seed's finished fit in its own folder (gaussians/ or gaussians-seed<k>/) when the
     fit of `fitter` into the variant folder `out` would repeat it: the recipes differ in
     `fit.view_near_quantile` and `fit.backdrop` at most, and both fitters render on the same
     background and start from the same Gaussians with the same near depth in every view the
-    clearances use (on this capture those settings then change nothing), and torch's CPU
-    kernels run at the same vector width (`ATEN_CPU_CAPABILITY`: another width rounds
-    otherwise, another draw of the recipe). None otherwise, and always without a variant."""
+    clearances use (on this capture those settings then change nothing), under the same
+    `fit_pins` (another vector width or MKL branch rounds otherwise: another draw of the
+    recipe). None otherwise, and always without a variant."""
     base = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
     if cfg.variant is None or base == out or not (base / "fit_config.json").is_file():
         return None
     if not (base / "point_cloud.ply").is_file() or foreign_scene(base) is not None:
         return None
     recorded_metrics = json.loads((base / "fit_metrics.json").read_text())
-    if recorded_metrics.get("cpu_capability") != cpu_capability():
-        return None
-    if recorded_metrics.get("mkl_cbwr") != os.environ.get("MKL_CBWR"):
-        return None  # a fit before the MKL pin, or another branch: another draw
+    if any(recorded_metrics.get(k) != v for k, v in fit_pins().items()):
+        return None  # another width or branch, or a fit before a pin: another draw
     mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
     today = json.loads(to_json(dataclasses.asdict(FitConfig())))
     # a fit that predates a setting ran without it: it stands for that setting's default (as
@@ -258,8 +262,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
             "resolution": [first.width, first.height],
             "init": init,
             "threads": torch.get_num_threads(),  # the fit is the same on any count (recorded)
-            "cpu_capability": cpu_capability(),  # pinned to AVX2 above, unless set otherwise
-            "mkl_cbwr": os.environ.get("MKL_CBWR"),  # pinned to COMPATIBLE above, likewise
+            **fit_pins(),
         }
     )
     with torch.no_grad():
