@@ -299,6 +299,12 @@ def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
     return out
 
 
+def scored_settings(sources: tuple[str, ...]) -> list[tuple[str, tuple[str, ...]]]:
+    """The (source, setting) pairs one fit's row reads: each source asked for at the defaults,
+    then at its chosen setting."""
+    return [(s, ()) for s in sources] + [(s, st) for s, st in CHOSEN.items() if s in sources]
+
+
 def tasks(
     names: list[str],
     seeds: list[int],
@@ -314,9 +320,8 @@ def tasks(
         for seed in seeds:
             if not fitted(capture, seed, base):
                 continue
-            todo += [(capture, source, seed, base) for source in sources]
             todo += [(capture, source, seed, base + setting)
-                     for source, setting in CHOSEN.items() if source in sources]  # fmt: skip
+                     for source, setting in scored_settings(sources)]  # fmt: skip
             todo += [
                 (capture, source, seed, setting)
                 for setting in candidates
@@ -392,9 +397,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             per_seed.append(row(capture, results["real"], results["classical"],
                                 results["minisam"], chosen))  # fmt: skip
             used.append(seed)
-            for source, setting in [(s, ()) for s in sources] + [
-                (s, st) for s, st in CHOSEN.items() if s in sources
-            ]:
+            for source, setting in scored_settings(sources):
                 overrides = " ".join(command(capture, source, seed, base + setting))
                 commands.append(f"- {capture}, {source}: `python -m bench.eval {overrides}`")
         if per_seed:
