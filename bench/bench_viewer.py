@@ -173,11 +173,11 @@ def main() -> None:
     start = time.perf_counter()
     segmenter = SEGMENTERS.build(args.segmenter, {})
     session = SegmentSession(g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter)
-    session.wait_prepared()  # the embeddings, made in the background once the views are rendered
+    session.preparation.wait()  # the embeddings, made in the background once the views are rendered
     total = time.perf_counter() - start
     print(f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
           f"{session.render_seconds:.2f} s, prepared by {args.segmenter} in "
-          f"{session.prepare_seconds:.2f} s; {total:.2f} s in all")  # fmt: skip
+          f"{session.preparation.seconds:.2f} s; {total:.2f} s in all")  # fmt: skip
     if args.browser:
         scale = width / 480
         table = browser_clicks(session, args.repeats, [v * scale for v in ICING[0]])

@@ -28,6 +28,47 @@ def apply_recorded_prompts(args) -> None:
     field = RecordFields(path, record)
     prompt = field.get("prompt", dict)
     view = field.get("prompt.view_name", str, prompt.get("view_name"))
+    args.prompt_items = recorded_items(field, prompt, view)
+    if args.cameras is None and not args.orbit and record.get("cameras"):
+        args.cameras = field.get("cameras", str)
+    if not args.orbit and record.get("orbit"):
+        args.orbit = field.get("orbit", int)
+    if not getattr(args, "inside", False) and record.get("inside"):
+        args.inside = field.get("inside", bool)
+    if args.width is None and prompt.get("render_size"):
+        size = field.get("prompt.render_size", list, prompt["render_size"])
+        if len(size) != 2:
+            raise PromptError(f"{path}: prompt.render_size must be [width, height]")
+        args.width, args.height = (field.check("prompt.render_size", v, int) for v in size)
+    if not args.inbetween and record.get("inbetween"):
+        args.inbetween = field.get("inbetween", int)
+    apply_recorded_segmenter(args, field, record)
+    vote = field.get("vote", dict, record.get("vote") or {})
+    known = VoteConfig.__dataclass_fields__
+    unknown = sorted(set(vote) - set(known))
+    if unknown:
+        raise PromptError(f"{path}: vote settings {unknown} are not VoteConfig's")
+    for key, value in vote.items():  # the types VoteConfig's fields hold
+        default = known[key].default
+        kinds = (int, float) if isinstance(default, float) or key == "delta" else type(default)
+        if not (value is None and key in ("delta", "num_masks")):
+            field.check(f"vote.{key}", value, kinds)
+    args.recorded_vote = vote
+    label_render = field.get("label_render", dict, record.get("label_render") or {})
+    if "min_weight" in label_render:
+        weight = label_render["min_weight"]
+        args.recorded_min_weight = field.check("label_render.min_weight", weight, (int, float))
+    inputs = field.get("inputs", dict, record.get("inputs") or {})
+    args.recorded_scene = field.check("inputs.scene", inputs.get("scene", ""), str)
+    from sagonline.scene.io import scene_file
+
+    say_if_another_scene(args, scene_file(args.scene))
+
+
+def recorded_items(field: RecordFields, prompt: dict, view: str) -> list[tuple]:
+    """The recorded texts, objects, clicks and masks as the command line's prompt items (two
+    objects of one name are refused: they would be merged)."""
+    path = field.path
     texts = field.get("prompt.texts", list, prompt.get("texts", []))
     items = [
         ("text", field.check(f"prompt.texts[{i}]", t, str), f"{path}: prompt.texts[{i}]")
@@ -54,20 +95,13 @@ def apply_recorded_prompts(args) -> None:
         if obj.get("mask") is not None:
             mask = field.mask(where, obj)
             items.append(("mask", f"{view}:{mask}", f"{path}: {where}.mask ({mask})"))
-    args.prompt_items = items
-    if args.cameras is None and not args.orbit and record.get("cameras"):
-        args.cameras = field.get("cameras", str)
-    if not args.orbit and record.get("orbit"):
-        args.orbit = field.get("orbit", int)
-    if not getattr(args, "inside", False) and record.get("inside"):
-        args.inside = field.get("inside", bool)
-    if args.width is None and prompt.get("render_size"):
-        size = field.get("prompt.render_size", list, prompt["render_size"])
-        if len(size) != 2:
-            raise PromptError(f"{path}: prompt.render_size must be [width, height]")
-        args.width, args.height = (field.check("prompt.render_size", v, int) for v in size)
-    if not args.inbetween and record.get("inbetween"):
-        args.inbetween = field.get("inbetween", int)
+    return items
+
+
+def apply_recorded_segmenter(args, field: RecordFields, record: dict) -> None:
+    """The recorded segmenter where the command line names none: its kind, the options a
+    replay takes (`replayed_options`), and the weights it ran with (compared once built)."""
+    path = field.path
     segmenter = field.get("segmenter", dict, record.get("segmenter") or {})
     if args.segmenter is None and segmenter.get("kind"):
         args.segmenter = field.get("segmenter.kind", str, segmenter["kind"])
@@ -78,26 +112,6 @@ def apply_recorded_prompts(args) -> None:
         args.recorded_weights = [
             field.weights(f"segmenter.weights[{i}]", w) for i, w in enumerate(weights)
         ]
-    vote = field.get("vote", dict, record.get("vote") or {})
-    known = VoteConfig.__dataclass_fields__
-    unknown = sorted(set(vote) - set(known))
-    if unknown:
-        raise PromptError(f"{path}: vote settings {unknown} are not VoteConfig's")
-    for key, value in vote.items():  # the types VoteConfig's fields hold
-        default = known[key].default
-        kinds = (int, float) if isinstance(default, float) or key == "delta" else type(default)
-        if not (value is None and key in ("delta", "num_masks")):
-            field.check(f"vote.{key}", value, kinds)
-    args.recorded_vote = vote
-    label_render = field.get("label_render", dict, record.get("label_render") or {})
-    if "min_weight" in label_render:
-        weight = label_render["min_weight"]
-        args.recorded_min_weight = field.check("label_render.min_weight", weight, (int, float))
-    inputs = field.get("inputs", dict, record.get("inputs") or {})
-    args.recorded_scene = field.check("inputs.scene", inputs.get("scene", ""), str)
-    from sagonline.scene.io import scene_file
-
-    say_if_another_scene(args, scene_file(args.scene))
 
 
 LOCAL_SETTINGS = frozenset(

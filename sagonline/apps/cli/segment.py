@@ -263,7 +263,19 @@ def cmd_segment(args) -> int:
         device=args.device, progress=True, background=fitted_background(scene) or (0, 0, 0),
     )  # fmt: skip
     check_objects_were_found(seg)
-    info = {
+    info = segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg)
+    write_segment_folder(
+        out, g, seg, scene, info, backend=args.backend, device=args.device, min_weight=min_weight,
+        record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
+    )  # fmt: skip
+    print_segmentation(seg, out, time.perf_counter() - started)
+    return 0
+
+
+def segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg) -> dict:
+    """What labels.json records of a `segment` run: the scene, views, prompt, inputs'
+    digests, the segmenter with its options and weights, the vote and the timings."""
+    return {
         "scene": str(scene),
         "cameras": str(args.cameras) if args.cameras else None,
         "views": views.source,
@@ -280,12 +292,6 @@ def cmd_segment(args) -> int:
         "vote": asdict(vote),
         "timings": seg.timings,
     }
-    write_segment_folder(
-        out, g, seg, scene, info, backend=args.backend, device=args.device, min_weight=min_weight,
-        record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
-    )  # fmt: skip
-    print_segmentation(seg, out, time.perf_counter() - started)
-    return 0
 
 
 def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:

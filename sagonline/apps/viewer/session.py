@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.apps.viewer.clicks import pick_gaussian, view_for_point
+from sagonline.apps.viewer.preparation import Preparation
 from sagonline.core.errors import PromptError
 from sagonline.core.provenance import digest_file
 from sagonline.pipeline.segment import (
@@ -141,49 +142,17 @@ class SegmentSession:
         self.alphas, self.depths = self.engine.alphas, self.engine.depths
         self.render_seconds = time.perf_counter() - start
         self.on_prepare: Callable[[int, int], None] | None = None
-        self.prepared = (0, len(self.frames))  # views whose embeddings are ready, of all
-        self.prepare_seconds: float | None = None  # once every view's are
-        self._prepare_thread: threading.Thread | None = None
-        self._prepare_in_background(self.segmenter)
+        self.preparation = self._prepare(self.segmenter)
 
-    def _prepare_in_background(self, segmenter: VideoSegmenter) -> None:
-        """A model's embeddings of every view, computed in a thread of their own from now on
-        (`prepared` counts them, `on_prepare(done, total)` hears of each), so that a click
-        costs the decoder and the vote only; a click before they are all made waits for
-        the views it needs, not for the rest. A segmenter replaced meanwhile stops its own."""
-        self.prepared, self.prepare_seconds = (0, len(self.frames)), None
+    def _prepare(self, segmenter: VideoSegmenter) -> Preparation:
+        """The segmenter's embeddings of every view, in the background from now on
+        (`preparation.done` counts them; `on_prepare(done, total)` hears of each)."""
 
-        def progress(done: int, total: int) -> bool:
-            if segmenter is not self.segmenter:
-                return False
-            self.prepared = (done, total)
+        def said(done: int, total: int) -> None:
             if self.on_prepare is not None:
                 self.on_prepare(done, total)
-            return True
 
-        def work() -> None:
-            start = time.perf_counter()
-            try:
-                segmenter.prepare(self.frames, progress=progress)
-            except Exception as exc:  # the click's run meets the same failure and shows it
-                self.prepare_error = f"{type(exc).__name__}: {exc}"
-                return
-            if segmenter is self.segmenter:
-                self.prepared = (len(self.frames), len(self.frames))
-                self.prepare_seconds = time.perf_counter() - start
-                if self.on_prepare is not None:
-                    self.on_prepare(len(self.frames), len(self.frames))
-
-        self.prepare_error: str | None = None
-        self._prepare_thread = threading.Thread(target=work, daemon=True)
-        self._prepare_thread.start()
-
-    def wait_prepared(self, timeout: float | None = None) -> bool:
-        """Block until every view's embeddings are made (or `timeout` s); whether they are."""
-        thread = self._prepare_thread
-        if thread is not None:
-            thread.join(timeout)
-        return self.prepare_seconds is not None
+        return Preparation(segmenter, self.frames, lambda: segmenter is self.segmenter, said)
 
     @property
     def vote(self) -> VoteConfig:
@@ -203,7 +172,7 @@ class SegmentSession:
         changes = {}
         if segmenter is not None:
             self.segmenter, self.segmenter_kind = segmenter, kind or self.segmenter_kind
-            self._prepare_in_background(segmenter)
+            self.preparation = self._prepare(segmenter)
             if options is not None:  # else the command line's, which built it too
                 self.segmenter_options = list(options)
             changes["segmenter"] = segmenter_run_of(segmenter)
