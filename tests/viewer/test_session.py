@@ -247,7 +247,7 @@ def test_an_unclicked_new_object_neither_numbers_the_labels_nor_blocks_the_expor
 
 
 def test_labelled_splats_get_a_colour_that_contrasts_with_their_own():
-    from sagonline.apps.viewer.app import panel_words
+    from sagonline.apps.viewer.words import panel_words
     from sagonline.apps.viewer.colours import highlight_colours, label_tint
     from sagonline.record.recording import PALETTE
 
@@ -267,3 +267,44 @@ def test_labelled_splats_get_a_colour_that_contrasts_with_their_own():
     assert nothing_yet.all()  # nothing labelled yet: the scene stays visible
     said = panel_words("--out seg holds an earlier output; pass --overwrite to replace it")
     assert "--" not in said and "replace an earlier export" in said
+
+
+class SlowPreparing(FlowWatershedSegmenter):
+    """The classical segmenter with a `prepare` that takes `seconds` a view (as a model's
+    encoder does) and counts the views it prepared."""
+
+    def __init__(self, seconds: float):
+        super().__init__()
+        self.seconds, self.prepared = seconds, []
+
+    def prepare(self, frames, progress=None):
+        import time
+
+        for i, _ in enumerate(frames):
+            time.sleep(self.seconds)
+            self.prepared.append(i)
+            if progress is not None and progress(i + 1, len(frames)) is False:
+                return
+
+
+def test_the_views_are_prepared_in_the_background_and_a_click_need_not_wait(donut):
+    """The session returns once the views are rendered; the segmenter's preparation goes on
+    in a thread, counted in `preparation`, heard by `on_prepare`; a click runs meanwhile; a
+    segmenter replaced stops its own preparation."""
+    g, parts, ring = donut
+    slow = SlowPreparing(0.2)
+    session = SegmentSession(g, ring, segmenter=slow, backend="native")
+    heard = []
+    session.on_prepare = lambda done, total: heard.append((done, total))
+    assert session.preparation.seconds is None and session.preparation.done < len(ring)
+    session.add_click(0, *icing_pixel(session, parts))
+    assert session.wait(60).state == "done"
+    assert session.preparation.wait(30) and session.preparation.done == len(ring)
+    assert heard and heard[-1] == (len(ring), len(ring))
+    slower = SlowPreparing(0.3)
+    session.configure(segmenter=slower, kind="classical")
+    session.configure(segmenter=FlowWatershedSegmenter(), kind="classical")
+    import time
+
+    time.sleep(1.0)
+    assert len(slower.prepared) <= 2  # stopped after the view in hand

@@ -23,16 +23,20 @@ def add_parsers(sub) -> None:
     view.add_argument("--segmenter", default="classical", choices=SEGMENTERS.keys())
     view.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
     view.add_argument(
-        "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
+        "--segmenter-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
-    )  # fmt: skip
+    )
     view.add_argument("--backend", default="auto", choices=BACKENDS)
     add_min_weight_argument(view)
     view.add_argument(
-        "--host", default="127.0.0.1",
+        "--host",
+        default="127.0.0.1",
         help="address to serve on (default 127.0.0.1: this machine only; another address lets "
         "anyone who reaches it click and Export, which writes files here)",
-    )  # fmt: skip
+    )
     view.add_argument("--port", type=port_number, default=8080, help="1-65535, free (8080)")
     view.add_argument("--out", help="the Export button's folder (default: segment-<scene>-<time>)")
     view.set_defaults(func=cmd_view)
@@ -46,10 +50,20 @@ def segmenter_builder(args):
     from sagonline.apps.cli.segment import build_segmenter
     from sagonline.segment.prompts import Prompt
 
-    def build(kind: str):
-        return build_segmenter(Namespace(**{**vars(args), "segmenter": kind}), Prompt())
+    def build(kind: str, options: tuple[str, ...] = ()):
+        given = [*args.segmenter_option, *options]
+        return build_segmenter(
+            Namespace(**{**vars(args), "segmenter": kind, "segmenter_option": given}), Prompt()
+        )
 
     return build
+
+
+def needs_embeddings(segmenter) -> bool:
+    """Whether the segmenter prepares something per view (a model's embeddings)."""
+    from sagonline.segment.base import VideoSegmenter
+
+    return type(segmenter).prepare is not VideoSegmenter.prepare
 
 
 def port_number(text: str) -> int:
@@ -131,10 +145,16 @@ def cmd_view(args) -> int:
     segmenter = build(args.segmenter)
     print(f"views: {views.source}; rendering {len(views.cameras)} views ...", file=sys.stderr)
     session = SegmentSession(
-        g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter,
-        segmenter_options=segmenter_options(args), backend=args.backend, device=args.device,
-        background=fitted_background(scene) or (0.0, 0.0, 0.0), min_weight=min_weight,
-    )  # fmt: skip
+        g,
+        views.cameras,
+        segmenter=segmenter,
+        segmenter_kind=args.segmenter,
+        segmenter_options=segmenter_options(args),
+        backend=args.backend,
+        device=args.device,
+        background=fitted_background(scene) or (0.0, 0.0, 0.0),
+        min_weight=min_weight,
+    )
     info = {
         "cameras": str(args.cameras) if args.cameras else None,
         "views": views.source,
@@ -144,15 +164,20 @@ def cmd_view(args) -> int:
         "inbetween": 0,
     }
     app = ViewerApp(
-        session, scene=scene, info=info, host=args.host, port=args.port,
+        session,
+        scene=scene,
+        info=info,
+        host=args.host,
+        port=args.port,
         out=out,
-        make_segmenter=build, segmenters=tuple(SEGMENTERS.keys()),
-    )  # fmt: skip
-    prepared = (f", {args.segmenter} prepared them in {session.prepare_seconds:.1f} s"
-                if session.prepare_seconds >= 0.05 else "")  # fmt: skip
+        make_segmenter=build,
+        segmenters=tuple(SEGMENTERS.keys()),
+    )
     print(
         f"viewer at {app.url} ({len(views.cameras)} views rendered in "
-        f"{session.render_seconds:.1f} s{prepared}); Ctrl+C stops it",
+        f"{session.render_seconds:.1f} s; segmenter {args.segmenter}"
+        f"{', its embeddings are made in the background' if needs_embeddings(segmenter) else ''}"
+        "); Ctrl+C stops it",
         flush=True,
     )
     try:

@@ -22,6 +22,12 @@ import torch
 
 from sagonline.apps.viewer.colours import SHOW, label_tint, splat_arrays
 from sagonline.apps.viewer.session import Progress, SegmentSession
+from sagonline.apps.viewer.words import (
+    CLICK_EXTENTS,
+    click_extent_of,
+    panel_words,
+    segmenter_words,
+)
 from sagonline.scene.gaussians import rotmat_to_quat
 
 SELECTED, OTHER = (255, 200, 0), (120, 120, 120)  # frustum colours: the selected view, the rest
@@ -44,14 +50,6 @@ def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
             p = (int(x), int(y))
             cv2.drawMarker(image, p, (255, 0, 0), cv2.MARKER_TILTED_CROSS, 12, 2, cv2.LINE_AA)
     return image
-
-
-def panel_words(message: str) -> str:
-    """A refusal in the panel's own words where the library speaks of command-line flags."""
-    return message.replace(
-        "pass --overwrite to replace it",
-        "tick 'replace an earlier export' or choose another folder",
-    ).replace("--out ", "the folder ")
 
 
 class ViewerApp:
@@ -88,6 +86,7 @@ class ViewerApp:
         self._draw_scene()
         self._build_gui(out, segmenters)
         session.on_update = self.on_update
+        session.on_prepare = self.on_prepare
         self.server.scene.on_click()(lambda event: self.on_scene_click(event, positive=True))
         self.server.scene.on_click(modifier="shift")(
             lambda event: self.on_scene_click(event, positive=False)
@@ -119,10 +118,15 @@ class ViewerApp:
         for i, cam in enumerate(s.cameras):
             fy = float(cam.K[1, 1])
             frustum = self.server.scene.add_camera_frustum(
-                f"/cameras/{i:04d}", fov=2 * np.arctan(cam.height / (2 * fy)),
-                aspect=cam.width / cam.height, scale=0.04 * size, thickness=0.002 * size,
-                wxyz=wxyz[i], position=centres[i], color=OTHER,
-            )  # fmt: skip
+                f"/cameras/{i:04d}",
+                fov=2 * np.arctan(cam.height / (2 * fy)),
+                aspect=cam.width / cam.height,
+                scale=0.04 * size,
+                thickness=0.002 * size,
+                wxyz=wxyz[i],
+                position=centres[i],
+                color=OTHER,
+            )
             frustum.on_click(lambda _event, view=i: self.select_view(view))
             self.frustums.append(frustum)
         self.frustums[self.selected].color = SELECTED
@@ -141,9 +145,10 @@ class ViewerApp:
         self.bar = gui.add_progress_bar(0.0)
         with gui.add_folder("View"):
             self.view_choice = gui.add_dropdown(
-                "view", [self.view_label(i) for i in range(len(s.cameras))],
+                "view",
+                [self.view_label(i) for i in range(len(s.cameras))],
                 initial_value=self.view_label(self.selected),
-            )  # fmt: skip
+            )
             self.view_choice.on_update(lambda _: self.select_view(self.view_choice_index()))
             self.view_image = gui.add_image(
                 s.frames[self.selected], label=self.view_label(self.selected)
@@ -163,6 +168,12 @@ class ViewerApp:
                 "segmenter", list(segmenters), initial_value=s.segmenter_kind
             )
             self.segmenter_choice.on_update(lambda _: self.guarded(self.change_segmenter))
+            self.model_status = gui.add_markdown(segmenter_words(s))
+            self.click_extent = gui.add_dropdown(
+                "a click selects", CLICK_EXTENTS, initial_value=click_extent_of(s.segmenter)
+            )
+            self.click_extent.disabled = not hasattr(s.segmenter, "click_extent")
+            self.click_extent.on_update(lambda _: self.guarded(self.change_segmenter))
             defaults = VoteConfig()
             from sagonline.core.plugins import VOTE_RULES
             from sagonline.render.rule import WEIGHTINGS
@@ -172,13 +183,11 @@ class ViewerApp:
             )
             self.method.on_update(lambda _: self.guarded(self.change_vote))
             self.vote_inputs: dict[str, Any] = {
-                "eps": gui.add_number(
-                    "eps (T > eps)", s.vote.eps, min=0.0, max=0.999, step=0.001
-                ),  # fmt: skip
+                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=0.999, step=0.001),
                 "distance": gui.add_checkbox("distance rule (delta)", s.vote.delta is not None),
                 "delta": gui.add_number(
                     "delta (px)", s.vote.delta or defaults.delta, min=0.1, step=0.5
-                ),  # fmt: skip
+                ),
                 "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
                 "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=0.99, step=0.05),
                 "weighting": gui.add_dropdown(
@@ -253,9 +262,11 @@ class ViewerApp:
         click = self.session.click_from_ray(origin, direction, positive, prefer=self.selected)
         n = len(self.session.clicks)
         marker = self.server.scene.add_icosphere(
-            f"/clicks/{n:03d}", radius=self.click_radius, position=click.point,
+            f"/clicks/{n:03d}",
+            radius=self.click_radius,
+            position=click.point,
             color=(0, 220, 0) if positive else (230, 0, 0),
-        )  # fmt: skip
+        )
         self.click_markers.append(marker)
         self.status.content = (
             f"{'positive' if positive else 'negative'} click on {self.session.current!r}: "
@@ -278,8 +289,24 @@ class ViewerApp:
         kind = str(self.segmenter_choice.value)
         if self.make_segmenter is None:
             raise ValueError("this viewer was started with one segmenter")
-        self.session.configure(segmenter=self.make_segmenter(kind), kind=kind)
+        from dataclasses import fields
+
+        from sagonline.core.plugins import SEGMENTERS
+
+        extent = ()
+        if "click_extent" in {f.name for f in fields(SEGMENTERS[kind].config)}:
+            extent = (f"click_extent={self.click_extent.value}",)
+        segmenter = self.make_segmenter(kind, extent)
+        kept = [o for o in self.session.segmenter_options if not o.startswith("click_extent=")]
+        options = [*kept, *extent] if extent else None
+        self.session.configure(segmenter=segmenter, kind=kind, options=options)
+        self.click_extent.disabled = not hasattr(segmenter, "click_extent")
+        self.model_status.content = segmenter_words(self.session)
         self.restart()
+
+    def on_prepare(self, done: int, total: int) -> None:
+        """A model's embeddings, view by view, in the panel."""
+        self.model_status.content = segmenter_words(self.session)
 
     def change_vote(self) -> None:
         """The panel's vote settings as a VoteConfig (a value out of range is refused by it and
