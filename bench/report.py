@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from dataclasses import asdict
 from pathlib import Path
 
@@ -79,6 +80,7 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
                 "labels3d_acc": sum(l3) / len(l3) if l3 else None,
                 "vote_ms_per_mask": m.get("timings", {}).get("vote_ms_per_mask"),
                 "partial": m.get("partial"),
+                "re-scored": rescore_words(run),
                 "device": device_text(m.get("device", {})),
                 "resize": m.get("resize_rule"),
             }
@@ -244,19 +246,28 @@ def plot_iou_against_angle(per_view: dict[str, pd.DataFrame], path: Path) -> Pat
     import matplotlib.pyplot as plt
 
     names = short_labels(
-        {label: list(v["_overrides"].iloc[0]) if "_overrides" in v and len(v) else []
-         for label, v in per_view.items()}
-    )  # fmt: skip
+        {
+            label: list(v["_overrides"].iloc[0]) if "_overrides" in v and len(v) else []
+            for label, v in per_view.items()
+        }
+    )
     fig, ax = plt.subplots(figsize=(9, 4.2), dpi=120)
     for label, views in per_view.items():
-        ax.scatter(views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7,
-                   label=names[label])  # fmt: skip
+        ax.scatter(
+            views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7, label=names[label]
+        )
     ax.set_xlabel("viewing angle to the nearest photograph (degrees; 0: a photographed view)")
     ax.set_ylabel("IoU (%)")
     ax.set_ylim(0, 101)
     ax.grid(alpha=0.3)
-    ax.legend(fontsize=8, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0,
-              title="run", title_fontsize=8)  # fmt: skip
+    ax.legend(
+        fontsize=8,
+        loc="upper left",
+        bbox_to_anchor=(1.01, 1.0),
+        borderaxespad=0,
+        title="run",
+        title_fontsize=8,
+    )
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     atomic_write_image(path, np.asarray(_figure_rgb(fig)))
@@ -309,12 +320,47 @@ def merge_identical(df: pd.DataFrame) -> pd.DataFrame:
     return merged[["run", "runs", *[c for c in df.columns if c != "run"]]]
 
 
+def cell_text(value):
+    """A table cell as Markdown reads it: `|` escaped, line breaks as spaces (a field of a
+    metrics.json, an override or an error message, must not break the table's rows)."""
+    if not isinstance(value, str):
+        return value
+    return " ".join(value.splitlines()).replace("|", "\\|")
+
+
+def rescore_words(run: Path) -> str:
+    """Whether the run's recorded mIoU / mAcc are what its own label maps give again
+    (`bench.score.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be said."""
+    from bench.score import rescore_run
+    from sagonline.core.errors import DatasetError
+
+    try:
+        again = rescore_run(run)
+    except (DatasetError, OSError, ValueError) as exc:
+        return f"cannot re-score: {exc}"
+    if again is None:
+        return "no label maps"
+    bad = [
+        f"{name} recorded {value!r}, re-scored {100 * rescored:.2f}"
+        for name, (value, rescored, ok) in again["checks"].items()
+        if not ok
+    ]
+    if bad:
+        print(
+            f"warning: {run}/metrics.json is contradicted by its own label maps: " + "; ".join(bad),
+            file=sys.stderr,
+        )
+        return "CONTRADICTED (" + "; ".join(bad) + ")"
+    return "matches" if again["checks"] else "nothing recorded to compare"
+
+
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:
     """A titled Markdown table with its notes (the frame's scores already in percent)."""
     shown = df.copy()
     for c in score_columns(df):
         shown[c] = shown[c].map(lambda v: f"{v:.2f}" if pd.notna(v) else "-")
     shown = shown.astype(object).where(shown.notna(), "-")  # a missing value reads "-", not nan
+    shown = shown.map(cell_text)
     body = shown.to_markdown(index=False, floatfmt=".4g")
     return f"# {title}\n\n" + "".join(f"- {n}\n" for n in notes) + "\n" + body + "\n"
 
@@ -342,6 +388,8 @@ def main(argv: list[str] | None = None) -> None:
         help="also (or, without folders, only) reports/fits.{md,csv} and the held-out renders",
     )
     args = ap.parse_args(argv)
+    if args.out.exists() and not args.out.is_dir():
+        ap.error(f"--out {args.out}: a file, not a folder")
     if args.views:
         table, per_view = view_rows(find_runs(args.roots))
         if table.empty:
@@ -369,6 +417,8 @@ def main(argv: list[str] | None = None) -> None:
         "mIoU / mAcc in percent: mean over views, then over scenes.",
         "Resize rule and device are per row; runs: how many run folders gave this row (identical "
         "settings and results; timings are their median).",
+        "re-scored: whether the recorded mIoU / mAcc are what the run's own label maps give "
+        "again (`python -m bench.score RUN`); CONTRADICTED rows are not results.",
     ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)

@@ -107,14 +107,19 @@ def score_folders(
         except ScoringError as exc:
             raise DatasetError(f"{pred_dir / rel}: {exc}") from None
         rows.append(
-            {"scene": rel.parent.name, "view": rel.stem, "iou": m["iou"], "acc": m["acc"],
-             "skipped": m.get("skipped")}
-        )  # fmt: skip
+            {
+                "scene": rel.parent.name,
+                "view": rel.stem,
+                "iou": m["iou"],
+                "acc": m["acc"],
+                "skipped": m.get("skipped"),
+            }
+        )
     return pd.DataFrame(rows)
 
 
-def recorded_digests(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
-    """The run folder both folders sit in, and the digests its metrics.json recorded."""
+def recorded_metrics(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
+    """The run folder both folders sit in, and its metrics.json."""
     run = gt_dir.resolve().parent
     if pred_dir.resolve().parent != run or not (run / "metrics.json").is_file():
         return None
@@ -122,8 +127,44 @@ def recorded_digests(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
         metrics = json.loads((run / "metrics.json").read_text())
     except (OSError, ValueError):
         return None
-    digests = metrics.get("sha256") if isinstance(metrics, dict) else None
-    return (run, digests) if isinstance(digests, dict) else None
+    return (run, metrics) if isinstance(metrics, dict) else None
+
+
+# The numbers a run records for each predictions folder: (mIoU key, mAcc key) in metrics.json.
+RECORDED_KEYS = {"predictions": ("miou", "macc"), "predictions_refined": ("refined_miou", None)}
+AGREE = 1e-9  # recorded and re-scored numbers come from the same PNGs: equal up to rounding
+
+
+def compare_recorded(pred_dir: Path, metrics: dict, rescored: dict) -> dict[str, tuple]:
+    """What metrics.json recorded for this predictions folder against the re-score: name ->
+    (recorded, re-scored, agree) for mIoU and mAcc (a number not recorded is left out)."""
+    keys = RECORDED_KEYS.get(pred_dir.resolve().name, ())
+    out = {}
+    for name, key in zip(("mIoU", "mAcc"), keys, strict=False):
+        if key is None or key not in metrics:
+            continue
+        value = metrics[key]
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+        ok = ok and abs(float(value) - rescored[name.lower()]) <= AGREE
+        out[name] = (value, rescored[name.lower()], ok)
+    return out
+
+
+def rescore_run(run: Path, predictions: str = "predictions") -> dict | None:
+    """A run folder's predictions scored again by its ground truth's rules, quietly: {miou,
+    macc, checks: compare_recorded(...)}; None where it has no label maps to score."""
+    pred_dir, gt_dir = run / predictions, run / "ground_truth"
+    if not (pred_dir.is_dir() and gt_dir.is_dir()):
+        return None
+    rules = read_rules(gt_dir)
+    views = score_folders(pred_dir, gt_dir, rules.resize, rules.ignore_label)
+    scenes = views[views["iou"].notna()].groupby("scene")[["iou", "acc"]].mean()
+    if scenes.empty:
+        return None
+    rescored = {"miou": float(scenes["iou"].mean()), "macc": float(scenes["acc"].mean())}
+    found = recorded_metrics(pred_dir, gt_dir)
+    checks = compare_recorded(pred_dir, found[1], rescored) if found else {}
+    return rescored | {"checks": checks}
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
@@ -160,6 +201,12 @@ def main(argv: list[str] | None = None) -> dict:
         rules = read_rules(args.gt_dir)
         resize = args.resize or rules.resize
         ignore = args.ignore if args.ignore is not None else rules.ignore_label
+        if args.protocol and rules.protocol_id and args.protocol != rules.protocol_id:
+            raise DatasetError(
+                f"--protocol {args.protocol}: {args.gt_dir / SCORING_FILE} says this ground truth "
+                f"is scored by {rules.protocol_id}; a number is named only by the protocol "
+                "that produced it"
+            )
         protocol = args.protocol or rules.protocol_id or "(unnamed)"
         views = score_folders(args.pred_dir, args.gt_dir, resize, ignore)
     except DatasetError as exc:
@@ -191,25 +238,32 @@ def main(argv: list[str] | None = None) -> dict:
         "sha256": digests,
         "matches_run": None,
     }
-    print(f"protocol {protocol}  resize rule {resize or 'none (sizes must match)'}  "
-          f"ignored label {ignore}")  # fmt: skip
+    print(
+        f"protocol {protocol}  resize rule {resize or 'none (sizes must match)'}  "
+        f"ignored label {ignore}"
+    )
     print(scenes.assign(iou=100 * scenes["iou"], acc=100 * scenes["acc"]).to_string(index=False))
     print(
         f"\noverall mIoU {100 * result['miou']:.2f}  mAcc {100 * result['macc']:.2f}  "
         f"({len(scored)} views, {len(scenes)} scenes)"
     )
     if len(skipped):
-        print(f"skipped {len(skipped)} view(s) whose ground truth is all ignored pixels: "
-              + ", ".join(result["skipped_views"][:5]))  # fmt: skip
+        print(
+            f"skipped {len(skipped)} view(s) whose ground truth is all ignored pixels: "
+            + ", ".join(result["skipped_views"][:5])
+        )
     if unscored:
         more = " ..." if len(unscored) > 5 else ""
-        print(f"warning: {len(unscored)} prediction(s) have no ground truth and were not "
-              f"scored: {', '.join(unscored[:5])}{more}")  # fmt: skip
+        print(
+            f"warning: {len(unscored)} prediction(s) have no ground truth and were not "
+            f"scored: {', '.join(unscored[:5])}{more}"
+        )
     print(f"sha256 predictions {digests['predictions']}")
     print(f"sha256 ground truth {digests['ground_truth']}")
-    run = recorded_digests(args.pred_dir, args.gt_dir)
+    run = recorded_metrics(args.pred_dir, args.gt_dir)
     if run is not None:
-        folder, recorded = run
+        folder, metrics = run
+        recorded = metrics.get("sha256") if isinstance(metrics.get("sha256"), dict) else {}
         pred_key = args.pred_dir.resolve().name
         same = {
             "predictions": recorded.get(pred_key) == digests["predictions"],
@@ -217,8 +271,29 @@ def main(argv: list[str] | None = None) -> dict:
         }
         result["matches_run"] = all(same.values())
         for what, ok in same.items():
-            print(f"{what}: {'match' if ok else 'DO NOT MATCH'} the digest {folder}/metrics.json "
-                  "recorded")  # fmt: skip
+            print(
+                f"{what}: {'match' if ok else 'DO NOT MATCH'} the digest {folder}/metrics.json "
+                "recorded"
+            )
+        checks = compare_recorded(args.pred_dir, metrics, result)
+        result["matches_recorded"] = all(ok for *_, ok in checks.values()) if checks else None
+        for name, (value, again, ok) in checks.items():
+            shown = f"{100 * value:.4f}" if isinstance(value, (int, float)) else repr(value)
+            print(
+                f"recorded {name} {shown}: "
+                + (
+                    "matches the re-score"
+                    if ok
+                    else f"CONTRADICTED by the re-score {100 * again:.4f}"
+                )
+            )
+        if checks and not result["matches_recorded"]:
+            print(
+                f"error: {folder}/metrics.json records numbers its own label maps do not "
+                "give: it was edited, or written by other code",
+                file=sys.stderr,
+            )
+            raise SystemExit(3)
     return result
 
 

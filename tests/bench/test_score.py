@@ -85,3 +85,46 @@ def test_a_table_refuses_to_mix_protocols(tmp_path):
     path.write_text(json.dumps(m))
     with pytest.raises(SystemExit, match="different evaluation protocols"):
         build("ablation", sweep, tmp_path / "reports2")
+
+
+def test_a_recorded_number_the_rescore_contradicts_is_never_shown_as_fine(tmp_path, capsys):
+    """metrics.json's mIoU edited, the label maps untouched: `bench.score RUN` names the
+    contradiction and exits 3; `bench.report` marks the row CONTRADICTED; a `|` or a line
+    break in a recorded field does not break the report's Markdown."""
+    from bench.report import main as report
+
+    run = tmp_path / "runs" / "run"
+    evaluate(cfg_with("record=false", "segmenter=oracle_noisy"), run)
+    assert score([str(run)])["matches_recorded"] is True
+    assert "recorded mIoU" in capsys.readouterr().out
+    saved = json.loads((run / "metrics.json").read_text())
+    saved["miou"] = 0.9999
+    saved["segmenter"] = "oracle|noisy\nsecond line"
+    (run / "metrics.json").write_text(json.dumps(saved))
+    with pytest.raises(SystemExit) as exc:
+        score([str(run)])
+    out = capsys.readouterr()
+    assert exc.value.code == 3 and "CONTRADICTED by the re-score" in out.out
+    report([str(tmp_path / "runs"), "--out", str(tmp_path / "reports")])
+    table = (tmp_path / "reports" / "runs.md").read_text()
+    assert "CONTRADICTED" in table and "oracle\\|noisy second line" in table
+    rows = [line for line in table.splitlines() if line.startswith("|")]
+    assert len({line.count("|") - line.count("\\|") for line in rows}) == 1
+
+
+def test_a_protocol_id_is_never_put_over_another_protocols_numbers(tmp_path):
+    run = tmp_path / "run"
+    evaluate(cfg_with("record=false", "segmenter=oracle"), run)
+    with pytest.raises(SystemExit) as exc:
+        score([str(run), "--protocol", "nvos/scribbles-skeleton@1"])
+    assert exc.value.code == 2
+
+
+def test_report_out_that_is_a_file_is_one_line(tmp_path, capsys):
+    from bench.report import main as report
+
+    target = tmp_path / "file"
+    target.write_text("x")
+    with pytest.raises(SystemExit) as exc:
+        report(["--out", str(target)])
+    assert exc.value.code == 2 and "a file, not a folder" in capsys.readouterr().err
