@@ -33,9 +33,11 @@ from bench.rundir import (
     config_fingerprint,
     finished_config,
     finished_run,
+    recover_interrupted,
     refuse,
     remove_if_empty,
-    replacing,
+    staging_of,
+    swap_in,
     write_hydra_files,
 )
 from bench.runlog import FILE_ONLY, run_log
@@ -83,19 +85,33 @@ def _evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
 
+    recover_interrupted(out_dir)
     previous = finished_run(out_dir)
     if previous is not None and not cfg.overwrite:
         return same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes)
 
     check_writable(out_dir)
-    for folder in ("predictions", "predictions_refined", "ground_truth"):
-        # a run over an unfinished one scores every scene again: label maps of scenes it no
-        # longer has must not stay in the folders metrics.json digests
-        shutil.rmtree(out_dir / folder, ignore_errors=True)
     if previous is None:
+        for folder in ("predictions", "predictions_refined", "ground_truth"):
+            # a run over an unfinished one scores every scene again: label maps of scenes it
+            # no longer has must not stay in the folders metrics.json digests
+            shutil.rmtree(out_dir / folder, ignore_errors=True)
         return _run(cfg, out_dir, adapter, scenes, settings, fingerprint)
-    with replacing(out_dir):  # overwrite=true: the old run is kept aside until this one ends
-        return _run(cfg, out_dir, adapter, scenes, settings, fingerprint)
+    # overwrite=true over a finished run: the new run is written beside it and swapped in once
+    # complete; until then the finished run is whole and in place (killed: see
+    # recover_interrupted)
+    staging = staging_of(out_dir)
+    shutil.rmtree(staging, ignore_errors=True)
+    try:
+        metrics = _run(cfg, staging, adapter, scenes, settings, fingerprint)
+    except BaseException:
+        shutil.rmtree(staging, ignore_errors=True)
+        print(
+            f"the run failed: {out_dir} holds the finished run it was to replace", file=sys.stderr
+        )
+        raise
+    swap_in(out_dir, staging)
+    return metrics
 
 
 def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:

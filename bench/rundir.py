@@ -11,7 +11,6 @@ import json
 import os
 import shutil
 import sys
-from contextlib import contextmanager
 from dataclasses import asdict
 from pathlib import Path
 
@@ -179,51 +178,93 @@ class SweepGuard(Callback):
 # What a run writes into its folder: overwrite=true replaces these and nothing else (its own
 # stage cache, keyed by content, and the lock stay; a file of the user's is never touched).
 RUN_OUTPUTS = (
-    "metrics.json", "per_view.csv", "eval.log", ".hydra", "recording.rrd", "predictions",
-    "predictions_refined", "ground_truth",
-)  # fmt: skip
+    "metrics.json",
+    "per_view.csv",
+    "eval.log",
+    ".hydra",
+    "recording.rrd",
+    "predictions",
+    "predictions_refined",
+    "ground_truth",
+)
 
 
-@contextmanager
-def replacing(out_dir: Path):
-    """overwrite=true over a finished run: the old run's outputs (RUN_OUTPUTS, and folders the
-    harness wrote into it, such as an export: their manifest says so) are moved aside (a hidden
-    sibling folder) before the new run writes, so the folder holds nothing of the old config;
-    they are deleted once the new run has finished, and put back if it fails. Anything else in
-    the folder (a file of the user's) stays where it is, and is named."""
-    aside = out_dir.parent / f".{out_dir.name}.replaced-{os.getpid()}"
-    shutil.rmtree(aside, ignore_errors=True)
-    aside.mkdir()
+def staging_of(out_dir: Path) -> Path:
+    """Where a run that replaces a finished one is written until it is complete."""
+    return out_dir.parent / f".{out_dir.name}.new-{os.getpid()}"
+
+
+def _written_by_us(p: Path) -> bool:
+    """A run's outputs (RUN_OUTPUTS) and folders the harness wrote into it (their manifests)."""
     from sagonline.core.outputs import is_ours
 
-    def written_by_us(p: Path) -> bool:  # the run's outputs, and folders of ours (manifests)
-        if p.name in RUN_OUTPUTS or (p.is_dir() and is_ours(p)):
-            return True
-        entries = list(p.iterdir()) if p.is_dir() else []
-        return bool(entries) and all(e.is_dir() and is_ours(e) for e in entries)
+    if p.name in RUN_OUTPUTS or (p.is_dir() and is_ours(p)):
+        return True
+    entries = list(p.iterdir()) if p.is_dir() else []
+    return bool(entries) and all(e.is_dir() and is_ours(e) for e in entries)
 
-    moved = [p for p in out_dir.iterdir() if written_by_us(p)]
-    kept = sorted(p.name for p in out_dir.iterdir()
-                  if not written_by_us(p) and p.name not in (".lock", "cache"))  # fmt: skip
-    if kept:
-        print(f"note: {out_dir}: kept what the harness did not write: {', '.join(kept)}",
-              file=sys.stderr)  # fmt: skip
+
+def _move_outputs(src: Path, dst: Path, metrics_first: bool) -> None:
+    """Move the run outputs of `src` into `dst`: metrics.json first out of a run, last into
+    one, so a folder holding metrics.json holds a whole run whenever the move is cut short."""
+    dst.mkdir(parents=True, exist_ok=True)
+    moved = sorted(
+        (p for p in src.iterdir() if _written_by_us(p)),
+        key=lambda p: (p.name == "metrics.json") != metrics_first,
+    )
     for p in moved:
-        p.rename(aside / p.name)
-    try:
-        yield
-    except BaseException:
-        for p in out_dir.iterdir():
-            if written_by_us(p):
-                shutil.rmtree(p) if p.is_dir() else p.unlink()
-        for p in aside.iterdir():
-            p.rename(out_dir / p.name)
-        aside.rmdir()
+        target = dst / p.name
+        if target.is_dir() and not target.is_symlink():
+            shutil.rmtree(target)
+        elif target.exists():
+            target.unlink()
+        p.rename(target)
+
+
+def swap_in(out_dir: Path, staging: Path) -> None:
+    """A complete new run in `staging` takes the place of the finished one in `out_dir`: the old
+    outputs go aside, the new ones in, the old ones are deleted. What the harness did not write
+    (a file of the user's) stays where it is, and is named."""
+    kept = sorted(
+        p.name
+        for p in out_dir.iterdir()
+        if not _written_by_us(p) and p.name not in (".lock", "cache")
+    )
+    if kept:
         print(
-            f"the run failed: {out_dir} holds the finished run it was to replace", file=sys.stderr
+            f"note: {out_dir}: kept what the harness did not write: {', '.join(kept)}",
+            file=sys.stderr,
         )
-        raise
+    aside = out_dir.parent / f".{out_dir.name}.replaced-{os.getpid()}"
+    _move_outputs(out_dir, aside, metrics_first=True)
+    _move_outputs(staging, out_dir, metrics_first=False)
     shutil.rmtree(aside, ignore_errors=True)
+    shutil.rmtree(staging, ignore_errors=True)
+
+
+def recover_interrupted(out_dir: Path) -> None:
+    """What a killed replacement left beside `out_dir` (called under the run folder's lock, so
+    no live run owns it): an unfinished new run (`.NAME.new-PID`) is deleted; an old run moved
+    aside (`.NAME.replaced-PID`) goes back where the new one did not arrive whole (no
+    metrics.json in the folder), and is deleted where it did. Each is said."""
+    for staging in out_dir.parent.glob(f".{out_dir.name}.new-*"):
+        shutil.rmtree(staging, ignore_errors=True)
+        print(
+            f"note: removed {staging}, a replacement of {out_dir} that was interrupted",
+            file=sys.stderr,
+        )
+    for aside in out_dir.parent.glob(f".{out_dir.name}.replaced-*"):
+        if not (out_dir / "metrics.json").is_file():
+            for p in list(out_dir.iterdir()) if out_dir.is_dir() else []:
+                if _written_by_us(p):
+                    shutil.rmtree(p) if p.is_dir() else p.unlink()
+            _move_outputs(aside, out_dir, metrics_first=False)
+            print(
+                f"note: {out_dir}: put back the finished run an interrupted replacement had "
+                "moved aside",
+                file=sys.stderr,
+            )
+        shutil.rmtree(aside, ignore_errors=True)
 
 
 def remove_if_empty(out_dir: Path) -> None:

@@ -83,3 +83,54 @@ def test_noisy_oracle_is_repaired_by_the_vote(tmp_path):
     )
     assert m["segmenter_miou"] < 0.95
     assert m["miou"] > m["segmenter_miou"]
+
+
+def test_an_overwrite_that_fails_or_is_killed_never_loses_the_finished_run(tmp_path, monkeypatch):
+    """overwrite=true writes the new run beside the finished one and swaps it in when whole:
+    a failure leaves the old run whole and in place; what a killed replacement left (its
+    unfinished run, or the old run moved aside mid-swap) is cleaned up or put back by the
+    next run into the folder; a file of the user's stays."""
+    import json
+
+    import bench.eval as runner
+    from bench.eval import evaluate
+    from tests.fixtures import cfg_with
+
+    run = tmp_path / "run"
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
+    before = json.loads((run / "metrics.json").read_text())
+    (run / "notes.txt").write_text("mine")
+    pngs = sorted(p.relative_to(run) for p in (run / "predictions").rglob("*.png"))
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("killed mid-run")
+
+    with monkeypatch.context() as m:
+        m.setattr(runner, "run_scenes", boom)
+        with pytest.raises(RuntimeError):
+            evaluate(
+                cfg_with(
+                    "dataset=synthetic_ff", "record=false", "consensus.eps=0.1", "overwrite=true"
+                ),
+                run,
+            )
+    assert json.loads((run / "metrics.json").read_text()) == before
+    assert sorted(p.relative_to(run) for p in (run / "predictions").rglob("*.png")) == pngs
+    assert not list(tmp_path.glob(".run.*"))
+    # a kill -9 during the run: its unfinished run stays beside the folder until the next run
+    dead = tmp_path / ".run.new-999999"
+    (dead / "predictions").mkdir(parents=True)
+    # a kill -9 during the swap: the old run aside, the folder without metrics.json
+    aside = tmp_path / ".run.replaced-999999"
+    aside.mkdir()
+    (run / "metrics.json").rename(aside / "metrics.json")
+    (run / "predictions").rename(aside / "predictions")
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)  # the same run: skipped
+    assert json.loads((run / "metrics.json").read_text()) == before
+    assert sorted(p.relative_to(run) for p in (run / "predictions").rglob("*.png")) == pngs
+    assert not list(tmp_path.glob(".run.*")) and (run / "notes.txt").read_text() == "mine"
+    evaluate(
+        cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1", "overwrite=true"), run
+    )
+    assert json.loads((run / "metrics.json").read_text())["consensus"]["eps"] == 0.1
+    assert (run / "notes.txt").read_text() == "mine" and not list(tmp_path.glob(".run.*"))
