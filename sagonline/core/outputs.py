@@ -165,10 +165,42 @@ def output_folder(
     try:
         yield tmp
         write_manifest(tmp, command, info)
+        carry_user_files(out, tmp)
         swap_into_place(tmp, out)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def carry_user_files(old: Path, new: Path) -> None:
+    """Files a user added inside an earlier output (not in its manifest) go into its
+    replacement too (hard links where the disk allows, so the earlier folder stays whole until
+    the swap), under their own names, or NAME.yours where the new output has that name; they
+    are named. The new manifest does not list them: they are not the harness's."""
+    if not (old.is_dir() and is_ours(old)):
+        return
+    try:
+        listed = set(json.loads((old / MANIFEST).read_text()).get("files") or [])
+    except (OSError, ValueError, AttributeError):
+        return
+    carried = []
+    for path in sorted(p for p in old.rglob("*") if p.is_file() and not p.is_symlink()):
+        rel = path.relative_to(old).as_posix()
+        if rel in listed or rel == MANIFEST:
+            continue
+        target = new / rel
+        if target.exists():
+            target = target.with_name(target.name + ".yours")
+        target.parent.mkdir(parents=True, exist_ok=True)
+        try:
+            os.link(path, target)
+        except OSError:
+            shutil.copy2(path, target)
+        carried.append(target.relative_to(new).as_posix())
+    if carried:
+        import sys
+
+        print(f"note: {old}: kept what you added there: {', '.join(carried)}", file=sys.stderr)
 
 
 def swap_into_place(new: Path, out: Path) -> None:
