@@ -289,6 +289,7 @@ def to_config(cfg: DictConfig, schema: type):
 
             cfg.device = resolve_device("auto")
         typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
+        check_boolean_overrides(typed)
         out = OmegaConf.to_object(typed)
         for group in ("dataset", "segmenter"):
             if hasattr(out, group):
@@ -301,6 +302,25 @@ def to_config(cfg: DictConfig, schema: type):
 
         print(f"error: {one_line(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def check_boolean_overrides(typed) -> None:
+    """A command line's `key=2` on a true/false setting (OmegaConf reads any number as true)
+    stops here, naming the key."""
+    from hydra.core.hydra_config import HydraConfig
+
+    try:
+        overrides = list(HydraConfig.get().overrides.task)
+    except ValueError:  # composed directly (tests): no command line
+        return
+    for arg in overrides:
+        key, sep, value = arg.lstrip("+~").partition("=")
+        if not sep or "," in value:
+            continue
+        if value.strip().lower() not in ("true", "false") and isinstance(
+            OmegaConf.select(typed, key, default=None), bool
+        ):
+            raise ValueError(f"{key}={value}: must be true or false")
 
 
 def check_dataset_name(cfg) -> None:

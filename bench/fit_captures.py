@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.real import FIT, ROOT, captures, fit_of
+from bench.real import FIT, ROOT, captures, check_jobs, fit_of
 
 LOGS = ROOT / "runs" / "fits"
 
@@ -126,8 +126,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         seeds = sorted({int(s) for s in args.seeds.split(",")})
     except ValueError:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
-    if args.jobs < 1:
-        ap.error(f"--jobs {args.jobs}: at least 1")
+    check_jobs(ap, args.jobs)
     known = captures()
     names = args.captures.split(",") if args.captures else known
     unknown = sorted(set(names) - set(known))

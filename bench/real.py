@@ -51,8 +51,12 @@ COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=fa
 # the same four since the label render's candidates (reports/label_render/,
 # docs/real_captures.md "The label render"); the model-backed sources are scored with the same
 # four as they stand (chosen on real masks and classical, never on a model's masks).
-KEPT = ("consensus=flashsplat", "consensus.body=true", "label_render.min_weight=0.5",
-        "label_render.size=truth")  # fmt: skip
+KEPT = (
+    "consensus=flashsplat",
+    "consensus.body=true",
+    "label_render.min_weight=0.5",
+    "label_render.size=truth",
+)
 CHOSEN: dict[str, tuple[str, ...]] = {source: KEPT for source in ("real", "classical", *MODELS)}
 
 
@@ -64,6 +68,13 @@ def captures() -> list[str]:
         if "capture" in [d if isinstance(d, str) else None for d in config.get("defaults", [])]:
             found.append(path.stem)
     return found
+
+
+def check_jobs(ap, jobs: int) -> None:
+    """--jobs: processes at once, each on one thread: 1 to this machine's cores."""
+    cores = os.cpu_count() or 1
+    if not 1 <= jobs <= cores:
+        ap.error(f"--jobs {jobs}: 1 to {cores} (this machine's cores; each job runs one thread)")
 
 
 def slug(setting: tuple[str, ...]) -> str:
@@ -93,8 +104,14 @@ def fit_folder_of(setting: tuple[str, ...], seed: int) -> str:
 def command(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> list[str]:
     fit = [FIT + name] if (name := fit_folder_of(setting, seed)) else []
     rest = [o for o in setting if not o.startswith(FIT)]
-    return [f"dataset={capture}", *SOURCES[source], *fit, *rest, *COMMON,
-            f"hydra.run.dir={folder(capture, source, seed, setting)}"]  # fmt: skip
+    return [
+        f"dataset={capture}",
+        *SOURCES[source],
+        *fit,
+        *rest,
+        *COMMON,
+        f"hydra.run.dir={folder(capture, source, seed, setting)}",
+    ]
 
 
 def fit_of(capture: str, seed: int, setting: tuple[str, ...] = ()) -> Path | None:
@@ -185,15 +202,17 @@ def leave_one_out(scores: dict[str, dict[str, float]], baseline: str) -> list[di
         if not others or baseline not in settings:
             continue
         chosen, mean = best_on(scores, others, settings, baseline)
-        rows.append({
-            "capture held out": held,
-            "chosen on the others": chosen,
-            "their mean with it": round(mean[chosen], 2),
-            "their mean with the baseline": round(mean[baseline], 2),
-            "held out, baseline": round(scores[held][baseline], 2),
-            "held out, chosen": round(scores[held][chosen], 2),
-            "change": round(scores[held][chosen] - scores[held][baseline], 2),
-        })  # fmt: skip
+        rows.append(
+            {
+                "capture held out": held,
+                "chosen on the others": chosen,
+                "their mean with it": round(mean[chosen], 2),
+                "their mean with the baseline": round(mean[baseline], 2),
+                "held out, baseline": round(scores[held][baseline], 2),
+                "held out, chosen": round(scores[held][chosen], 2),
+                "change": round(scores[held][chosen] - scores[held][baseline], 2),
+            }
+        )
     return rows
 
 
@@ -261,25 +280,42 @@ def row(
         "real masks, every 4th": pct((real or {}).get("miou")),
         "classical": pct((classical or {}).get("miou")),
         "classical alone": pct((classical or {}).get("segmenter_miou")),
-        **{column: pct((models.get(source) or {}).get(key)) for source in MODELS
-           for column, key in ((source, "miou"), (f"{source} alone", "segmenter_miou"))},
-        **{f"{CHOSEN_COLUMN[source]}, chosen": pct((m or {}).get("miou"))
-           for source, m in (chosen or {}).items()},
-        "real: fit / vote / segmenter %": "/".join(str(share(real, g)) for g in
-                                                   ("fit", "vote", "segmenter")),
-        "classical: fit / vote / segmenter %": "/".join(str(share(classical, g)) for g in
-                                                        ("fit", "vote", "segmenter")),
+        **{
+            column: pct((models.get(source) or {}).get(key))
+            for source in MODELS
+            for column, key in ((source, "miou"), (f"{source} alone", "segmenter_miou"))
+        },
+        **{
+            f"{CHOSEN_COLUMN[source]}, chosen": pct((m or {}).get("miou"))
+            for source, m in (chosen or {}).items()
+        },
+        "real: fit / vote / segmenter %": "/".join(
+            str(share(real, g)) for g in ("fit", "vote", "segmenter")
+        ),
+        "classical: fit / vote / segmenter %": "/".join(
+            str(share(classical, g)) for g in ("fit", "vote", "segmenter")
+        ),
         "real: extra px by labelled Gaussians %": pct(outside.get("share_of_extra")),
-        "of those: in front / beside / behind / floating / in views not voting %":
-            "/".join(str(pct(outside.get(f"share_{k}"))) for k in placed) if outside else None,
-        "protocol": (real or classical or next((m for m in models.values() if m), None) or
-                     {}).get("protocol_id"),
-    }  # fmt: skip
+        "of those: in front / beside / behind / floating / in views not voting %": "/".join(
+            str(pct(outside.get(f"share_{k}"))) for k in placed
+        )
+        if outside
+        else None,
+        "protocol": (real or classical or next((m for m in models.values() if m), None) or {}).get(
+            "protocol_id"
+        ),
+    }
 
 
 CHOSEN_COLUMN = {"real": "real masks, every 4th", "classical": "classical"} | {m: m for m in MODELS}
-NUMERIC = ("PSNR held-out", "PSNR in mask", "real masks, every 4th", "classical",
-           "classical alone", *(c for m in MODELS for c in (m, f"{m} alone")))  # fmt: skip
+NUMERIC = (
+    "PSNR held-out",
+    "PSNR in mask",
+    "real masks, every 4th",
+    "classical",
+    "classical alone",
+    *(c for m in MODELS for c in (m, f"{m} alone")),
+)
 
 
 def numeric_columns() -> tuple[str, ...]:
@@ -325,8 +361,10 @@ def tasks(
         for seed in seeds:
             if not fitted(capture, seed, base):
                 continue
-            todo += [(capture, source, seed, base + setting)
-                     for source, setting in scored_settings(sources)]  # fmt: skip
+            todo += [
+                (capture, source, seed, base + setting)
+                for source, setting in scored_settings(sources)
+            ]
             todo += [
                 (capture, source, seed, setting)
                 for setting in candidates
@@ -370,7 +408,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "--jobs", type=int, default=1, help="evaluations at once (default 1; each one thread)"
     )
     args = ap.parse_args(argv)
-    names = args.captures.split(",") if args.captures else captures()
+    check_jobs(ap, args.jobs)
     try:
         seeds = sorted({int(s) for s in args.seeds.split(",")})
     except ValueError:
@@ -381,8 +419,19 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     base = (FIT + args.fit,) if args.fit else ()
     sources = tuple(args.sources.split(","))
     if set(sources) - set(SOURCES) or (candidates and not {"real", "classical"} <= set(sources)):
-        ap.error(f"--sources {args.sources!r}: some of {', '.join(SOURCES)} (with --settings: "
-                 "real and classical among them)")  # fmt: skip
+        ap.error(
+            f"--sources {args.sources!r}: some of {', '.join(SOURCES)} (with --settings: "
+            "real and classical among them)"
+        )
+    known = captures()
+    names = args.captures.split(",") if args.captures else known
+    unknown = [n for n in names if n not in known]
+    if unknown or not names:
+        ap.error(
+            f"--captures {args.captures!r}: {', '.join(unknown) or 'none given'}: not a "
+            f"capture here; the captures: {', '.join(known) or 'none'} (conf/dataset/*.yaml "
+            "built on `capture`)"
+        )
     if args.jobs > 1:
         prefetch(tasks(names, seeds, candidates, base, sources), args.jobs)
     rows, commands, scored = [], [], {}
@@ -390,17 +439,29 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         per_seed, used = [], []
         for seed in seeds:
             if (seed or base) and not fitted(capture, seed, base):
-                print(f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''} (make "
-                      f"fits-captures); left out", file=sys.stderr)  # fmt: skip
+                print(
+                    f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''} (make "
+                    f"fits-captures); left out",
+                    file=sys.stderr,
+                )
                 continue
             results = {s: run(capture, s, seed, base) if s in sources else None for s in SOURCES}
             scored |= {(capture, source, seed): m for source, m in results.items()}
             if not any(results.values()):
                 continue
-            chosen = {source: run(capture, source, seed, base + setting) if source in sources
-                      else None for source, setting in CHOSEN.items()}  # fmt: skip
-            per_seed.append(row(capture, results["real"], results["classical"],
-                                {m: results[m] for m in MODELS}, chosen))  # fmt: skip
+            chosen = {
+                source: run(capture, source, seed, base + setting) if source in sources else None
+                for source, setting in CHOSEN.items()
+            }
+            per_seed.append(
+                row(
+                    capture,
+                    results["real"],
+                    results["classical"],
+                    {m: results[m] for m in MODELS},
+                    chosen,
+                )
+            )
             used.append(seed)
             for source, setting in scored_settings(sources):
                 overrides = " ".join(command(capture, source, seed, base + setting))
@@ -422,7 +483,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             ]
             if args.fit
             else []
-        ),  # fmt: skip
+        ),
         "- mIoU in percent on every masked view but the reference; `real masks, every 4th`: the",
         "  capture's own masks voting on every 4th view (the others held out); `classical`: the",
         "  weight-free segmenter's masks, all voting; `classical alone`: its masks' own mIoU;",
@@ -506,17 +567,27 @@ def choose(
                 if values:
                     mean = sum(values) / len(values)
                     scores.setdefault(capture, {})[name] = mean
-                    per_capture.append({"source": source, "capture": capture, "setting": name,
-                                        "fits": len(values), "mIoU": round(mean, 2)})  # fmt: skip
+                    per_capture.append(
+                        {
+                            "source": source,
+                            "capture": capture,
+                            "setting": name,
+                            "fits": len(values),
+                            "mIoU": round(mean, 2),
+                        }
+                    )
         rows = leave_one_out(scores, BASELINE)
         tables.append(pd.DataFrame([{"source": source, **r} for r in rows]))
         keep = kept(rows, BASELINE, scores)
         agree = sum(r["chosen on the others"] == keep for r in rows)
         kept_lines.append(
             f"- {source}: "
-            + (f"`{keep}` kept ({agree} of {len(rows)} rotations chose it)" if keep
-               else "the defaults stay")
-        )  # fmt: skip
+            + (
+                f"`{keep}` kept ({agree} of {len(rows)} rotations chose it)"
+                if keep
+                else "the defaults stay"
+            )
+        )
     df = pd.concat(tables, ignore_index=True)
     text = [
         "# Real captures: settings chosen leave-one-capture-out",

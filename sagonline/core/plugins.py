@@ -218,10 +218,21 @@ def typed_settings(config: type[C], values: Mapping[str, Any], where: str) -> C:
         raise PluginError(f"{where}: settings must be a mapping, got {type(values).__name__}")
     try:
         check_finite(values, where)
+        check_booleans(config, values, where)
         merged = OmegaConf.merge(OmegaConf.structured(config), values)
         return OmegaConf.to_object(merged)
     except (OmegaConfBaseException, ValueError, TypeError) as exc:
         raise PluginError(f"{where}: {one_line(exc)}") from None
+
+
+def check_booleans(config: type, values: Mapping[str, Any], where: str) -> None:
+    """A true/false setting given anything but a boolean (or the words true / false) is refused,
+    naming it: OmegaConf would read 2, or any number, as true."""
+    for f in dataclasses.fields(config):
+        if f.name in values and f.type in (bool, "bool"):
+            value = values[f.name]
+            if not isinstance(value, bool) and str(value).strip().lower() not in ("true", "false"):
+                raise PluginError(f"{where}: {f.name}={value!r}: must be true or false")
 
 
 def check_finite(values: Any, where: str, path: str = "") -> None:

@@ -29,7 +29,7 @@ def test_the_dry_run_lists_one_fit_per_capture_and_seed(capsys):
         (["--captures", "nope"], "no such capture: nope; the captures: duck_queen"),
         (["seed=3"], "seed=3: give captures with --captures and seeds with --seeds"),
         (["--seeds", "1,x"], "--seeds '1,x': comma-separated integers"),
-        (["--jobs", "0"], "--jobs 0: at least 1"),
+        (["--jobs", "0"], "--jobs 0: 1 to"),
     ],
 )
 def test_bad_arguments_are_refused_naming_them(argv, said, capsys):
