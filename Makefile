@@ -218,5 +218,8 @@ crossval-captures: install weights
 # (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list.
 KEPT_VOTE := consensus=flashsplat consensus.body=true
 CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend;consensus=flashsplat;$(KEPT_VOTE);$(KEPT_VOTE) label_render.min_weight=0.5;$(KEPT_VOTE) label_render.min_weight=0.5 label_render.size=truth
+# CANDIDATES reaches the command through the environment, never pasted into the recipe's shell
+# line (a quote in it would end the string and run the rest as a command).
+loo-captures: export CANDIDATES_SETTINGS = $(CANDIDATES)
 loo-captures: install weights
-	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$(CANDIDATES)" --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$$CANDIDATES_SETTINGS" --out $(REPORTS) $(ARGS)

@@ -137,7 +137,21 @@ class ScenesConfig:
     variant: str | None = None
     """The fit's folder, gaussians-<variant>/ for seed 0 and gaussians-<variant>-seed<k>/ for
     seed k (null: gaussians/, gaussians-seed<k>/); the evaluation reads it with
-    dataset.adapter.fit=<variant>[-seed<k>]."""
+    dataset.adapter.fit=<variant>[-seed<k>]. A plain name, never a path."""
+
+    def __post_init__(self) -> None:
+        from sagonline.core.settings import check_settings
+        from sagonline.datasets.common import is_variant_name
+
+        check_settings(
+            "scenes",
+            variant=(
+                self.variant is None or is_variant_name(self.variant),
+                self.variant,
+                "a plain name (letters, digits, - _ .), never a path",
+            ),
+            seed=(0 <= self.seed < 2**31, self.seed, "in [0, 2^31)"),
+        )
 
 
 # Plug-in settings of these names follow the run's own (`seed=1` reseeds every plug-in).

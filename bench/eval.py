@@ -40,7 +40,7 @@ from bench.rundir import (
     swap_in,
     write_hydra_files,
 )
-from bench.runlog import FILE_ONLY, run_log
+from bench.runlog import FILE_ONLY, disk_words, run_log
 from sagonline.core.outputs import OutputError, RunLock
 from sagonline.core.provenance import git_state
 from sagonline.datasets.base import DatasetError
@@ -288,6 +288,9 @@ def main(cfg: DictConfig) -> None:
     except SystemExit:
         remove_if_empty(out_dir)  # a refused run leaves no folder behind
         raise
+    except OSError as exc:  # a full disk, a file size limit, a folder gone read-only
+        print(f"error: {disk_words(exc)}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 if __name__ == "__main__":

@@ -133,7 +133,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if unknown:
         ap.error(f"--captures: no such capture: {', '.join(unknown)}; the captures: "
                  f"{', '.join(known)}")  # fmt: skip
-    for bad in [o for o in args.overrides if o.split("=", 1)[0] in ("dataset", "seed")]:
+    for bad in [
+        o
+        for o in args.overrides
+        if o.lstrip("+~").split("=", 1)[0].split(".")[0] in ("dataset", "seed", "hydra")
+    ]:
         ap.error(f"{bad}: give captures with --captures and seeds with --seeds")
     todo = [(capture, seed) for capture in names for seed in seeds]
     overrides = at_width(args.overrides, args.width)

@@ -118,15 +118,22 @@ def fit_of(capture: str, seed: int, setting: tuple[str, ...] = ()) -> Path | Non
     """The capture's fit of this seed (and of the setting's fit recipe) where its evaluation
     looks for it (its data folder, or scenes/<capture>/<capture>/ for data on a read-only
     disk): its point_cloud.ply, None when there is none."""
+    return fit_and_problem(capture, seed, setting)[0]
+
+
+def fit_and_problem(
+    capture: str, seed: int, setting: tuple[str, ...] = ()
+) -> tuple[Path | None, str | None]:
+    """The capture's fit of this seed and setting, or None and why there is none."""
     from sagonline.core.errors import DatasetError
     from sagonline.datasets.common import find_trained_scene
 
     config = yaml.safe_load((ROOT / "conf" / "dataset" / f"{capture}.yaml").read_text()) or {}
     root = ROOT / str(config.get("root", f"../shared/data/{capture}"))
     try:
-        return find_trained_scene(root, capture, fit_folder_of(setting, seed))
-    except DatasetError:
-        return None
+        return find_trained_scene(root, capture, fit_folder_of(setting, seed)), None
+    except (DatasetError, ValueError) as exc:
+        return None, str(exc)
 
 
 def fitted(capture: str, seed: int, setting: tuple[str, ...] = ()) -> bool:
@@ -414,6 +421,15 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     except ValueError:
         ap.error(f"--seeds {args.seeds!r}: comma-separated integers, say 0,1,2")
     candidates = [tuple(c.split()) for c in (args.settings or "").split(";") if c.strip()]
+    for override in (o for c in candidates for o in c):
+        key = override.lstrip("+~").split("=", 1)[0]
+        if (key.split(".")[0] in ("dataset", "hydra", "seed") and not override.startswith(FIT)) or (
+            "=" not in override
+        ):
+            ap.error(
+                f"--settings: {override!r}: a candidate is vote, render or fit-recipe settings "
+                "(key=value); the capture, seed and run folder are the table's own"
+            )
     if args.fit and candidates:
         ap.error("--fit scores one recipe's fits; choose --settings on the default recipe's")
     base = (FIT + args.fit,) if args.fit else ()
@@ -438,10 +454,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     for capture in names:
         per_seed, used = [], []
         for seed in seeds:
-            if (seed or base) and not fitted(capture, seed, base):
+            fit, problem = fit_and_problem(capture, seed, base)
+            if fit is None:
                 print(
-                    f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''} (make "
-                    f"fits-captures); left out",
+                    f"{capture}/seed {seed}: no fit{f' of {args.fit}' if base else ''}: "
+                    f"{problem} (make fits-captures); left out",
                     file=sys.stderr,
                 )
                 continue

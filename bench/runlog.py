@@ -46,3 +46,19 @@ def run_log(out_dir: Path):
         for h in consoles:
             h.removeFilter(_not_file_only)
         root.setLevel(old_level)
+
+
+def disk_words(exc: OSError) -> str:
+    """An OSError of writing, as one line naming the file or folder and what to do."""
+    import errno
+
+    where = exc.filename or "a file of the run"
+    why = exc.strerror or str(exc)
+    hint = {
+        errno.ENOSPC: "free some space (make clean-cache empties the stage cache) and rerun: "
+        "the finished stages are kept",
+        errno.EFBIG: "a file size limit (ulimit -f) stopped the write; raise it and rerun",
+        errno.EROFS: "the disk is read-only; choose another folder",
+        errno.EACCES: "fix the folder's permissions or choose another",
+    }.get(exc.errno, "")
+    return f"cannot write {where}: {why}" + (f"; {hint}" if hint else "")

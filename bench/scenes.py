@@ -354,6 +354,11 @@ def main(dict_cfg: DictConfig) -> None:
     except SystemExit:
         forget_refused_run(Path(HydraConfig.get().runtime.output_dir))
         raise
+    except OSError as exc:  # a full disk, a file size limit, a folder gone read-only
+        from bench.runlog import disk_words
+
+        print(f"error: {disk_words(exc)}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def forget_refused_run(run: Path) -> None:

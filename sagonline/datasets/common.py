@@ -38,9 +38,20 @@ def fit_variant(recipe: str | None, seed: int) -> str:
     return "-".join(filter(None, [recipe, f"seed{seed}" if seed else ""]))
 
 
+def is_variant_name(name: str) -> bool:
+    """A fit variant names a folder beside `gaussians/`: letters, digits, '-', '_' and '.',
+    never a path ('/', '..', a leading '.')."""
+    return bool(re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)) and ".." not in name
+
+
 def fit_folder(variant: str = "") -> str:
     """The folder of a scene's fit: `gaussians`, or `gaussians-<variant>` for another draw of
-    the recipe (`seed1`, ...) or another recipe."""
+    the recipe (`seed1`, ...) or another recipe. A variant that is not a plain name
+    (`is_variant_name`) is refused: it would read or write outside the scene's folder."""
+    if variant and not is_variant_name(variant):
+        raise ValueError(
+            f"fit variant {variant!r}: a plain name (letters, digits, - _ .), never a path"
+        )
     return f"gaussians-{variant}" if variant else "gaussians"
 
 

@@ -14,6 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sagonline.core.settings import check_settings
+from sagonline.datasets.common import is_variant_name
 from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
 
 PROMPTS = ("mask", "clicks", "text", "none")
@@ -91,6 +92,11 @@ class PosedMasksConfig:
             prompt=(self.prompt in PROMPTS, self.prompt, f"one of {PROMPTS}"),
             order=(self.order in ORDERS, self.order, f"one of {ORDERS}"),
             clicks=(self.clicks >= 1, self.clicks, ">= 1"),
+            fit=(
+                not self.fit or is_variant_name(self.fit),
+                self.fit,
+                "a fit variant's plain name (letters, digits, - _ .), never a path",
+            ),
             inbetween=(self.inbetween >= 0, self.inbetween, ">= 0"),
             mask_threshold=(0 <= self.mask_threshold < 256, self.mask_threshold, "in [0, 256)"),
         )

@@ -168,6 +168,7 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
 
     monkeypatch.setattr(real, "run", fake_run)
     monkeypatch.setattr(real, "fitted", lambda capture, seed, setting=(): True)
+    monkeypatch.setattr(real, "fit_and_problem", lambda c, seed, setting=(): (tmp_path, None))
     monkeypatch.setattr(real, "CHOSEN", {"real": ("consensus.weighting=blend",)})
     monkeypatch.setattr(real, "captures", lambda: ["cap"])
     df = real.main(["--captures", "cap", "--seeds", "0,1", "--out", str(tmp_path)])
