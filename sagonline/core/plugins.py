@@ -133,6 +133,7 @@ class Registry(Generic[C]):
         for module in os.environ.get("SAGONLINE_PLUGINS", "").split(","):
             if module.strip():
                 self._import(module.strip(), "SAGONLINE_PLUGINS names")
+                check_registers_something(module.strip())
 
     def _import(self, module: str, who: str) -> None:
         """Import a module that registers plug-ins; any failure is a PluginError naming it."""
@@ -176,6 +177,19 @@ class Registry(Generic[C]):
         """The plug-in `key` built from `values` (checked against its config first)."""
         plugin = self[key]
         return plugin.build(plugin.settings(values, where=where))
+
+
+def check_registers_something(module: str) -> None:
+    """A module named as a plug-in module must register at least one plug-in (a misspelt
+    decorator or a module of helpers would otherwise be accepted and do nothing)."""
+    for registry in (SEGMENTERS, DATASETS, VOTE_RULES):
+        for plugin in registry._plugins.values():
+            if plugin.module == module or plugin.module.startswith(module + "."):
+                return
+    raise PluginError(
+        f"SAGONLINE_PLUGINS names {module!r}, which registers no plug-in (no "
+        "@SEGMENTERS.register, DATASETS.register or VOTE_RULES.register runs in it)"
+    )
 
 
 @functools.cache

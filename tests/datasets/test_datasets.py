@@ -356,3 +356,19 @@ def test_fitted_background_reads_the_fit_config_beside_the_scene(tmp_path):
     for broken in ("{", "[1, 2, 3]", '{"background": "white"}', '{"seed": 0}'):
         config.write_text(broken)
         assert fitted_background(ply) is None, broken
+
+
+def test_a_photograph_lost_since_the_fit_is_refused_not_regrouped(tmp_path):
+    """A capture of one's own pins no photograph count; its fit records how many it was made
+    from: one fewer now would move a view to the mask-only group without a word."""
+    import json
+
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)
+    ds = PosedMasksDataset(tmp_path / "cap", mask_dir="masks")
+    fit = next((tmp_path / "cap").rglob("point_cloud.ply")).parent
+    (fit / "fit_metrics.json").write_text(json.dumps({"images": len(NAMES)}))
+    assert len(ds.load_scene("cap").meta["photographs"]) == len(NAMES)
+    (tmp_path / "cap" / "images_4" / f"{NAMES[2]}.JPG").unlink()
+    with pytest.raises(DatasetError, match="its fit .* was made from 6: a missing photograph"):
+        ds.load_scene("cap")

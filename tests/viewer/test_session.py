@@ -308,3 +308,19 @@ def test_the_views_are_prepared_in_the_background_and_a_click_need_not_wait(donu
 
     time.sleep(1.0)
     assert len(slower.prepared) <= 2  # stopped after the view in hand
+
+
+def test_a_malformed_browser_message_is_one_line_not_a_traceback():
+    import logging
+
+    from sagonline.apps.viewer.app import OneLineConnectionErrors
+
+    try:
+        raise ValueError("MessagePack data is malformed")
+    except ValueError:
+        import sys
+
+        record = logging.LogRecord("websockets.server", logging.ERROR, __file__, 1,
+                                   "connection handler failed", (), sys.exc_info())  # fmt: skip
+    assert OneLineConnectionErrors().filter(record) and record.exc_info is None
+    assert "malformed message (ValueError: MessagePack data is malformed)" in record.getMessage()

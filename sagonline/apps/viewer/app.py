@@ -11,6 +11,7 @@ draws and forwards.
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import replace
@@ -52,6 +53,21 @@ def draw_clicks(frame: np.ndarray, view: int | None, objects) -> np.ndarray:
     return image
 
 
+class OneLineConnectionErrors(logging.Filter):
+    """A browser connection that sends what is not a viser message (junk on the websocket)
+    fails in the websockets library, which logs a traceback: said as one line instead."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        if record.exc_info and record.exc_info[1] is not None:
+            exc = record.exc_info[1]
+            record.msg = (
+                "viewer: closed a connection that sent a malformed message "
+                f"({type(exc).__name__}: {exc})"
+            )
+            record.args, record.exc_info, record.exc_text = (), None, None
+        return True
+
+
 class ViewerApp:
     """One viser server around one session. scene: the file (labels.json records it); out:
     the default export folder; make_segmenter(kind) -> a segmenter of the registry (the CLI's
@@ -71,6 +87,8 @@ class ViewerApp:
     ):
         import viser
 
+        for name in ("websockets.server", "websockets.asyncio.server"):
+            logging.getLogger(name).addFilter(OneLineConnectionErrors())
         self.session, self.scene, self.info = session, scene, dict(info or {})
         self.make_segmenter = make_segmenter
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
