@@ -34,11 +34,37 @@ def render(
     if chosen == "triton" and _needs_grad(gaussians, options.get("features")):
         chosen = "torch"  # the Triton walk has no backward pass
     fn = _backend_function(chosen)
-    accepted = inspect.signature(fn).parameters
-    cannot = sorted(k for k, v in options.items() if k not in accepted and v not in (None, False))
-    if cannot:
-        raise ValueError(f"renderer {chosen} cannot honour {cannot}; use backend='torch'")
-    return fn(gaussians, camera, **{k: v for k, v in options.items() if k in accepted})
+    if _cannot(fn, options):
+        # what the caller needs (ids, say) decides, not the renderer picked for images: gsplat
+        # draws no ids, so a diagnosis on a GPU with gsplat renders its ids with another backend
+        fn = _backend_function(capable_backend(chosen, options, gaussians.device))
+    return fn(gaussians, camera, **{k: v for k, v in options.items() if k in _accepted(fn)})
+
+
+def _accepted(fn) -> set[str]:
+    return set(inspect.signature(fn).parameters)
+
+
+def _cannot(fn, options: dict) -> list[str]:
+    """The options given (not None or False) that the backend function does not take."""
+    return sorted(
+        k for k, v in options.items() if k not in _accepted(fn) and v not in (None, False)
+    )
+
+
+def capable_backend(chosen: str, options: dict, device) -> str:
+    """`chosen`, or where it cannot honour `options` the fastest backend on the device that can
+    (CUDA: triton, then torch; CPU: native, then torch); ValueError when none can."""
+    from sagonline.render.backends import _device_type, installed
+
+    have = installed()
+    order = ("triton", "torch") if _device_type(device) == "cuda" else ("native", "torch")
+    for name in (chosen, *order):
+        if name in ("triton", "native") and not have.has(name):
+            continue
+        if not _cannot(_backend_function(name), options):
+            return name
+    raise ValueError(f"no renderer here honours {_cannot(_backend_function(chosen), options)}")
 
 
 def _needs_grad(gaussians: Gaussians, features: torch.Tensor | None) -> bool:

