@@ -246,10 +246,10 @@ def test_export_redoes_a_vote_whose_recorded_key_lies(tmp_path, capsys):
     honest = metrics_a["scenes"][0]["stage_keys"]["vote"]
     metrics_a["scenes"][0]["stage_keys"]["vote"] = runs["b"]["scenes"][0]["stage_keys"]["vote"]
     (tmp_path / "a" / "metrics.json").write_text(json.dumps(metrics_a))
-    assert main(["export", str(tmp_path / "a")]) == 0
+    assert main(["export", str(tmp_path / "a"), "--out", str(tmp_path / "a_export")]) == 0
     err = capsys.readouterr().err
     assert "is not the one the run recorded" in err
-    labels, info = read_labels(tmp_path / "a" / "export" / "forward_single")
+    labels, info = read_labels(tmp_path / "a_export" / "forward_single")
     assert info["stage_keys"]["vote"] == honest
     assert main(["export", str(tmp_path / "b"), "--out", str(tmp_path / "b_export")]) == 0
     other, _ = read_labels(tmp_path / "b_export" / "forward_single")
@@ -442,7 +442,7 @@ def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
 
     run = tmp_path / "run"
     evaluate(cfg_with("dataset=synthetic_ff", "record=true"), run)
-    assert main(["export", str(run)]) == 0
+    assert main(["export", str(run), "--out", str(run / "export")]) == 0  # one's own choice
     assert (run / "export").is_dir() and (run / "recording.rrd").is_file()
     evaluate(cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1",
                       "overwrite=true"), run)  # fmt: skip
@@ -668,3 +668,18 @@ def test_overwrite_replaces_only_what_the_harness_wrote(tmp_path, capsys):
                       "overwrite=true"), run)  # fmt: skip
     assert (run / "notes.txt").read_text() == "why this run matters" and (run / "mine").is_dir()
     assert "kept what the harness did not write: mine, notes.txt" in capsys.readouterr().err
+
+
+def test_export_writes_beside_the_run_not_into_it(tmp_path, monkeypatch):
+    """`sagonline export RUN` leaves the finished run's folder as the run wrote it: the default
+    output is export-<parent>-<run> in the current folder."""
+    from bench.eval import evaluate
+    from tests.fixtures import tree_digest
+
+    run = tmp_path / "runs" / "r1"
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
+    before = tree_digest(run)
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", str(run)]) == 0
+    assert tree_digest(run) == before
+    assert (tmp_path / "export-runs-r1" / "forward_single" / "labels.npy").is_file()

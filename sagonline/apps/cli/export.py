@@ -13,12 +13,23 @@ from pathlib import Path
 def add_parsers(sub) -> None:
     exp = sub.add_parser("export", help="a finished eval run's labels as files (per scene)")
     exp.add_argument("run_dir")
-    exp.add_argument("--out", help="output folder (default: <run_dir>/export)")
+    exp.add_argument(
+        "--out",
+        help="output folder (default: export-<run folder's name>-<its parent's name> here; "
+        "never inside the finished run)",
+    )
     exp.add_argument(
         "--overwrite", action="store_true", help="replace earlier exports (and only those)"
     )
     exp.add_argument("--device", help="redo on this device (default: the run's)")
     exp.set_defaults(func=cmd_export)
+
+
+def default_out(run: Path) -> Path:
+    """export-<run>-<its parent> in the current folder: a finished run's folder is left as the
+    run wrote it (its metrics.json digests what is in it)."""
+    resolved = run.resolve()
+    return Path(f"export-{resolved.parent.name}-{resolved.name}")
 
 
 def cmd_export(args) -> int:
@@ -35,7 +46,7 @@ def cmd_export(args) -> int:
     check_device(recorded.settings.device)
     for note in recorded.notes:
         print(f"note: {note}", file=sys.stderr)
-    out_root = Path(args.out) if args.out else run / "export"
+    out_root = Path(args.out) if args.out else default_out(run)
     metrics_file = run / "metrics.json"
     done = 0
     for row in recorded.scenes:
