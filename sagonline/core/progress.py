@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
+from collections import deque
 from collections.abc import Iterable, Iterator
 from typing import TextIO, TypeVar
 
@@ -35,6 +36,7 @@ class Progress:
         self.terminal = self.out.isatty() if terminal is None else terminal
         self.done, self.initial, self.start = initial, initial, time.perf_counter()
         self._last = self.start
+        self._recent: deque[tuple[float, int]] = deque(maxlen=8)  # (time, done) of the last items
         self._bar = None
         if not self.enabled:
             return
@@ -60,14 +62,24 @@ class Progress:
                 self._bar.set_postfix_str(detail, refresh=False)
             return
         now = time.perf_counter()
+        self._recent.append((now, self.done))
         if now - self._last >= self.every and self.done < self.total:
             self._last = now
-            elapsed, done = now - self.start, self.done - self.initial
-            left = elapsed / done * (self.total - self.done) if done else float("nan")
+            elapsed = now - self.start
             self._say(
-                f"{self.what}: {self.done} of {self.total} ({elapsed:.0f} s, about {left:.0f} s "
-                "left)" + (f"; {detail}" if detail else "")
+                f"{self.what}: {self.done} of {self.total} ({elapsed:.0f} s, {self._left(now)})"
+                + (f"; {detail}" if detail else "")
             )
+
+    def _left(self, now: float) -> str:
+        """The time left at the pace of the last items (the first ones of a model's run, or of
+        a stage that found some cached, say nothing of the rest), or 'time left unknown' while
+        fewer than three items are done."""
+        (t0, d0), (t1, d1) = self._recent[0], self._recent[-1]
+        if d1 - self.initial < 3 or d1 <= d0 or t1 <= t0:
+            return "time left unknown"
+        per_item = (t1 - t0) / (d1 - d0)
+        return f"about {per_item * (self.total - self.done):.0f} s left"
 
     def close(self) -> None:
         if not self.enabled:
