@@ -168,3 +168,28 @@ def test_shortest_path_order_follows_the_orbit_from_the_start():
     assert angle.shape == (3,) and angle[0] < angle[1] < angle[2]  # v0 sits next to v11
     assert float(nearest_view(ring[:1], ring[:1])[0][0]) == pytest.approx(0.0, abs=1e-3)
     assert dist.shape == (3,) and (dist > 0).all()
+
+
+def test_inside_view_zero_faces_the_deepest_part_of_the_room():
+    """A room seen from within (`--inside`): the views start where the most of it is seen, not
+    at a near blank wall."""
+    import numpy as np
+    import torch
+
+    from sagonline.scene.trajectory import orbit_around
+
+    rng = np.random.default_rng(0)
+    walls = []
+    for x0, x1, y0, y1, n in (
+        (-1, -1, -2, 2, 3000),
+        (8, 8, -2, 2, 1000),
+        (-1, 2, -2, -2, 3000),
+        (-1, 2, 2, 2, 3000),
+    ):
+        walls.append(np.stack([rng.uniform(x0, x1, n), rng.uniform(y0, y1, n),
+                               rng.uniform(-1, 1, n)], 1))  # fmt: skip
+    means = torch.tensor(np.concatenate(walls), dtype=torch.float32)
+    cams, line = orbit_around(means, 8, 64, 48, inside=True)
+    forward = cams[0].cam_to_world[:3, 2].numpy()
+    assert forward[0] > 0.9, forward  # +x: towards the far wall (the near one is 1.5 away)
+    assert "view 0 faces the deepest part" in line

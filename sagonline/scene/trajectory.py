@@ -212,9 +212,10 @@ def orbit_around(
     c = centre.numpy()
     from sagonline.scene.cameras import look_at
 
+    start = deepest_direction(pts.numpy(), c, a, b, count, fov_deg) if inside else 0
     cams = []
     for i in range(count):
-        t = 2 * np.pi * i / count
+        t = 2 * np.pi * ((i + start) % count) / count
         ring = c.copy()
         ring[a] += radius * np.cos(t)
         ring[b] += radius * np.sin(t)
@@ -223,7 +224,8 @@ def orbit_around(
         cams.append(make_camera(K, look_at(eye, target, up), width, height, f"orbit_{i:03d}"))
     names = "xyz"
     where = (
-        "from the scene's centre looking out (--inside)"
+        "from the scene's centre looking out (--inside; view 0 faces the deepest part of the "
+        "scene)"
         if inside
         else f"around the scene (distance {distance:.3g}; a scene seen from within, a room: "
         "--inside)"
@@ -233,6 +235,28 @@ def orbit_around(
         f"view, centre {', '.join(f'{v:.3g}' for v in c)}, up +{names[axis]})"
     )
     return cams, line
+
+
+def deepest_direction(
+    pts: np.ndarray, centre: np.ndarray, a: int, b: int, count: int, fov_deg: float
+) -> int:
+    """Of `count` directions around `centre` in the plane of axes a, b, the one whose view sees
+    the most of the scene: the largest median distance of the Gaussians (N, 3) inside its
+    horizontal field of view (a near blank wall has a small one)."""
+    offset = pts - centre
+    theta = np.arctan2(offset[:, b], offset[:, a])
+    dist = np.hypot(offset[:, a], offset[:, b])
+    half = np.deg2rad(fov_deg) / 2
+    best, best_depth = 0, -1.0
+    for i in range(count):
+        t = 2 * np.pi * i / count
+        inside = np.abs(np.angle(np.exp(1j * (theta - t)))) < half
+        if inside.sum() < 20:
+            continue
+        depth = float(np.median(dist[inside]))
+        if depth > best_depth:
+            best, best_depth = i, depth
+    return best
 
 
 def cameras_to_tensors(

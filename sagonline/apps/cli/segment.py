@@ -9,8 +9,6 @@ import time
 from dataclasses import asdict, fields
 from pathlib import Path
 
-import numpy as np
-
 from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.render.backends import BACKENDS
@@ -39,35 +37,45 @@ def add_parsers(sub) -> None:
     add_view_arguments(seg)
     prompts = seg.add_argument_group(f"prompts (all on one view; {CLICK_HELP})")
     prompts.add_argument(
-        "--click", action=PromptItems, metavar="VIEW:X,Y[:neg[=NAME]]",
+        "--click",
+        action=PromptItems,
+        metavar="VIEW:X,Y[:neg[=NAME]]",
         help="a positive click on the current object, or a negative one (:neg)",
-    )  # fmt: skip
+    )
     prompts.add_argument(
         "--object", action=PromptItems, metavar="NAME", help="start an object named NAME"
     )
     prompts.add_argument(
-        "--mask", action=PromptItems, metavar="VIEW:PATH",
+        "--mask",
+        action=PromptItems,
+        metavar="VIEW:PATH",
         help="a mask at the view's render size: binary (the current object) or a label map "
         "(one object per id)",
-    )  # fmt: skip
+    )
     prompts.add_argument("--text", action=PromptItems, metavar="TEXT", help="a text prompt (SAM 3)")
     prompts.add_argument(
-        "--prompts", metavar="LABELS_JSON",
+        "--prompts",
+        metavar="LABELS_JSON",
         help="the prompts (and views, segmenter, vote) a segment folder or a viewer export "
         "recorded in its labels.json; what the command line gives wins",
-    )  # fmt: skip
+    )
     seg.add_argument(
-        "--preview", metavar="VIEW",
-        help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit",
-    )  # fmt: skip
+        "--preview",
+        metavar="VIEW",
+        help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit; "
+        "all: every view small in one image, with its index",
+    )
     seg.add_argument(
         "--segmenter", default=None, choices=SEGMENTERS.keys(), help="default: classical"
     )
     seg.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
     seg.add_argument(
-        "--segmenter-option", action="append", default=[], metavar="KEY=VALUE",
+        "--segmenter-option",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
-    )  # fmt: skip
+    )
     vote = seg.add_argument_group("vote (defaults: sagonline.vote.consensus.VoteConfig)")
     vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
     vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
@@ -78,10 +86,12 @@ def add_parsers(sub) -> None:
     vote.add_argument("--min-votes", type=int)
     vote.add_argument("--margin", type=float)
     vote.add_argument(
-        "--body", action=argparse.BooleanOptionalAction, default=None,
+        "--body",
+        action=argparse.BooleanOptionalAction,
+        default=None,
         help="keep each object's labels on its body (its largest touching cluster; off by "
         "default, not the paper's protocol)",
-    )  # fmt: skip
+    )
     add_min_weight_argument(seg)
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
     seg.add_argument("--backend", default="auto", choices=BACKENDS)
@@ -96,11 +106,13 @@ def add_parsers(sub) -> None:
 def add_min_weight_argument(parser) -> None:
     """--min-weight: the label renders' threshold (`segment` and `view`)."""
     parser.add_argument(
-        "--min-weight", type=float, metavar="W",
+        "--min-weight",
+        type=float,
+        metavar="W",
         help="a label render's pixel takes a label where labelled Gaussians make up W of it "
         f"(default {LABEL_MIN_WEIGHT}; the real captures' chosen setting: 0.5, with "
         "--method flashsplat --body)",
-    )  # fmt: skip
+    )
 
 
 # --- segmenter and vote -----------------------------------------------------------------------
@@ -244,7 +256,13 @@ def cmd_segment(args) -> int:
     if args.cameras is None or args.orbit:
         print(f"views: {views.source}", file=sys.stderr)
     given = views.cameras
+    if args.preview == "all":
+        from sagonline.apps.cli.preview import write_contact_sheet
+
+        return write_contact_sheet(g, given, out, args)
     if args.preview is not None:
+        from sagonline.apps.cli.preview import write_preview
+
         return write_preview(g, given, view_index(args.preview, given), out, args)
     traj = insert_between(given, args.inbetween)
     check_trajectory(traj)
@@ -259,15 +277,32 @@ def cmd_segment(args) -> int:
     check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
     seg = segment_scene(
-        g, traj, prompt, segmenter=segmenter, vote=vote, backend=args.backend,
-        device=args.device, progress=True, background=fitted_background(scene) or (0, 0, 0),
-    )  # fmt: skip
+        g,
+        traj,
+        prompt,
+        segmenter=segmenter,
+        vote=vote,
+        backend=args.backend,
+        device=args.device,
+        progress=True,
+        background=fitted_background(scene) or (0, 0, 0),
+    )
     check_objects_were_found(seg)
     info = segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg)
     write_segment_folder(
-        out, g, seg, scene, info, backend=args.backend, device=args.device, min_weight=min_weight,
-        record=not args.no_record, overwrite=args.overwrite, inputs=inputs, progress=progress,
-    )  # fmt: skip
+        out,
+        g,
+        seg,
+        scene,
+        info,
+        backend=args.backend,
+        device=args.device,
+        min_weight=min_weight,
+        record=not args.no_record,
+        overwrite=args.overwrite,
+        inputs=inputs,
+        progress=progress,
+    )
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
 
@@ -288,7 +323,7 @@ def segment_record(args, scene, views, parsed, given, out, masks, segmenter, vot
             "kind": args.segmenter,
             "options": segmenter_options(args),
             "weights": segmenter.weights_record(),
-        },  # fmt: skip
+        },
         "vote": asdict(vote),
         "timings": seg.timings,
     }
@@ -304,38 +339,6 @@ def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:
     for obj in parsed.objects:
         for x, y in obj.points:
             check_click_on_scene(alpha, cam, parsed.view, x, y, obj.name, hint="`--preview`")
-
-
-def write_preview(g, cams, index: int, out: Path, args) -> int:
-    """The view at its render size with a light pixel grid (every 50 px, labelled every 100)."""
-    import cv2
-
-    from sagonline.core.files import atomic_write_image
-    from sagonline.render.api import render, to_uint8
-
-    if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
-        raise ValueError(f"--out {out}: a preview is a .png or .jpg file")
-    if out.exists() and not args.overwrite:
-        raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
-    cam = cams[index]
-    rgb = to_uint8(render(g.to(args.device), cam.to(args.device), backend=args.backend).rgb)
-    image = np.ascontiguousarray(rgb)
-    grid = image.copy()
-    for x in range(0, cam.width, 50):
-        cv2.line(grid, (x, 0), (x, cam.height - 1), (255, 255, 255), 1)
-    for y in range(0, cam.height, 50):
-        cv2.line(grid, (0, y), (cam.width - 1, y), (255, 255, 255), 1)
-    image = cv2.addWeighted(image, 0.7, grid, 0.3, 0)
-    for x in range(0, cam.width, 100):
-        for y in range(0, cam.height, 100):
-            cv2.putText(image, f"{x},{y}", (x + 2, y + 11), cv2.FONT_HERSHEY_PLAIN, 0.8,
-                        (255, 255, 0), 1, cv2.LINE_AA)  # fmt: skip
-    atomic_write_image(out, image)
-    print(
-        f"wrote {out}: view {index} '{cam.name}' at {cam.width}x{cam.height} (its render size: "
-        f"click with --click {index}:X,Y in these pixels)"
-    )
-    return 0
 
 
 def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
