@@ -37,20 +37,30 @@ class Embedding:
     size: tuple[int, int]
     cover: tuple[int, int]
     extras: dict[str, np.ndarray] = field(default_factory=dict)
+    _derived: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def grid_mask(self, mask: np.ndarray) -> np.ndarray:  # [64, 64] bool
         """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside)."""
         ch, cw = self.cover
+        if (ch, cw) == (SIZE, SIZE):  # the image fills the frame: each cell's share, directly
+            small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
+            return small > 0.5
         big = np.zeros((SIZE, SIZE), np.float32)
         big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
         return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
 
     def valid(self) -> np.ndarray:  # [64, 64] bool, the cells the image covers
-        return self.grid_mask(np.ones(self.size, np.float32))
+        if "valid" not in self._derived:
+            self._derived["valid"] = self.grid_mask(np.ones(self.size, np.float32))
+        return self._derived["valid"]
 
-    def normalized(self) -> np.ndarray:  # [64, 64, 256]
-        f = self.features.transpose(1, 2, 0)
-        return f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)
+    def normalized(self) -> np.ndarray:  # [64, 64, 256], computed once
+        if "normalized" not in self._derived:
+            f = self.features.transpose(1, 2, 0)
+            self._derived["normalized"] = f / np.maximum(
+                np.linalg.norm(f, axis=2, keepdims=True), 1e-6
+            )
+        return self._derived["normalized"]
 
     def mean_feature(self, mask: np.ndarray) -> np.ndarray | None:  # [256] unit, or None
         cells = self.grid_mask(mask)
