@@ -65,9 +65,11 @@ class RecordedRun:
 def read_metrics(run: Path) -> dict:
     """The run's metrics.json as a JSON object; RunFileError naming the file otherwise."""
     return read_json_object(
-        Path(run) / "metrics.json", RunFileError, "not a finished eval run's metrics",
+        Path(run) / "metrics.json",
+        RunFileError,
+        "not a finished eval run's metrics",
         "a JSON object",
-    )  # fmt: skip
+    )
 
 
 def _group(config: dict, key: str, path: Path) -> dict:
@@ -122,7 +124,25 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
         raise RunFileError(f"{path}: 'scenes' is not a list of scene rows")
     recorded = metrics.get("cache_root")
     cache_root = Path(recorded) if isinstance(recorded, str) and recorded else None
+    notes += other_weights(metrics.get("segmenter_weights"), segmenter.weights)
     return RecordedRun(run, adapter, segmenter, vote, settings, scenes, cache_root, notes)
+
+
+def other_weights(recorded, here: dict[str, str]) -> list[str]:
+    """A note where the weights the run recorded (file -> digest) are not the files this
+    machine reads for the same setting (another file, or the same name with other bytes): its
+    masks, where computed again, come from these."""
+    if not isinstance(recorded, dict) or not recorded:
+        return []
+    theirs = {Path(str(k)).name: v for k, v in recorded.items()}
+    ours = {Path(k).name: v for k, v in here.items()}
+    differ = sorted(n for n in theirs if ours.get(n) != theirs[n])
+    if not differ:
+        return []
+    return [
+        f"the run's segmenter read other weights than this machine's ({', '.join(differ)} "
+        "differ or are absent here): masks computed again come from this machine's"
+    ]
 
 
 def _dataset(node: dict) -> DatasetAdapter:
