@@ -429,8 +429,11 @@ def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
     assert "predictions: match" in capsys.readouterr().out
     some = next((run / "predictions").rglob("*.png"))
     cv2.imwrite(str(some), np.zeros_like(cv2.imread(str(some), cv2.IMREAD_UNCHANGED)))
-    assert _score(run)["matches_run"] is False
-    assert "predictions: DO NOT MATCH" in capsys.readouterr().out
+    with pytest.raises(SystemExit) as exc:  # and the numbers it records no longer hold
+        _score(run)
+    out = capsys.readouterr().out
+    assert exc.value.code == 3 and "predictions: DO NOT MATCH" in out
+    assert "CONTRADICTED by the re-score" in out
 
 
 # --- run folders ------------------------------------------------------------------------------

@@ -8,10 +8,16 @@ from pathlib import Path
 import numpy as np
 
 
-def write_preview(g, cams, index: int, out: Path, args) -> int:
-    """The view at its render size with a light pixel grid (every 50 px, labelled every 100)."""
+def write_preview(g, cams, view: str, out: Path, args) -> int:
+    """VIEW at its render size with a light pixel grid (every 50 px, labelled every 100); `all`:
+    the contact sheet of every view."""
     import cv2
 
+    from sagonline.scene.views import view_index
+
+    if view == "all":
+        return write_contact_sheet(g, cams, out, args)
+    index = view_index(view, cams)
     from sagonline.core.files import atomic_write_image
     from sagonline.render.api import render, to_uint8
 

@@ -227,7 +227,7 @@ def cmd_segment(args) -> int:
     from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.trajectory import insert_between
-    from sagonline.scene.views import check_trajectory, view_index
+    from sagonline.scene.views import check_trajectory
 
     started = time.perf_counter()
     if args.prompts:
@@ -256,14 +256,10 @@ def cmd_segment(args) -> int:
     if args.cameras is None or args.orbit:
         print(f"views: {views.source}", file=sys.stderr)
     given = views.cameras
-    if args.preview == "all":
-        from sagonline.apps.cli.preview import write_contact_sheet
-
-        return write_contact_sheet(g, given, out, args)
     if args.preview is not None:
         from sagonline.apps.cli.preview import write_preview
 
-        return write_preview(g, given, view_index(args.preview, given), out, args)
+        return write_preview(g, given, args.preview, out, args)
     traj = insert_between(given, args.inbetween)
     check_trajectory(traj)
     parsed = parse_prompt(args.prompt_items, given)
@@ -276,33 +272,15 @@ def cmd_segment(args) -> int:
     check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
     check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
-    seg = segment_scene(
-        g,
-        traj,
-        prompt,
-        segmenter=segmenter,
-        vote=vote,
-        backend=args.backend,
-        device=args.device,
-        progress=True,
-        background=fitted_background(scene) or (0, 0, 0),
-    )
+    where = {"backend": args.backend, "device": args.device}
+    background = fitted_background(scene) or (0, 0, 0)
+    seg = segment_scene(g, traj, prompt, segmenter=segmenter, vote=vote, progress=True,
+                        background=background, **where)  # fmt: skip
     check_objects_were_found(seg)
     info = segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg)
-    write_segment_folder(
-        out,
-        g,
-        seg,
-        scene,
-        info,
-        backend=args.backend,
-        device=args.device,
-        min_weight=min_weight,
-        record=not args.no_record,
-        overwrite=args.overwrite,
-        inputs=inputs,
-        progress=progress,
-    )
+    write_segment_folder(out, g, seg, scene, info, min_weight=min_weight, inputs=inputs,
+                         record=not args.no_record, overwrite=args.overwrite, progress=progress,
+                         **where)  # fmt: skip
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
 
