@@ -133,6 +133,19 @@ class SamPair:
             kinds += [2.0, 3.0]
         return np.asarray(coords, np.float32).reshape(-1, 2), np.asarray(kinds, np.float32)
 
+    @staticmethod
+    def prompt_feeds(emb: Embedding, coords, kinds, logits) -> dict[str, np.ndarray]:
+        """The decoder inputs both formats share: the points in the 1024 frame, their labels,
+        and a previous answer's logits (or none)."""
+        has_mask = logits is not None
+        mask = logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32)
+        return {
+            "point_coords": emb.to_frame(coords)[None],
+            "point_labels": kinds[None],
+            "mask_input": mask[None, None].astype(np.float32),
+            "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
+        }
+
     def embed(self, image: np.ndarray) -> Embedding:
         """The encoder's outputs for an RGB uint8 (H, W, 3) image, from memory, the disk cache
         or the encoder (then kept in both). One frame at a time (a viewer embeds its views in
@@ -208,15 +221,9 @@ class Sam1Pair(SamPair):
         if box is None:  # SAM's export expects a padding point where no box is given
             coords = np.concatenate([coords, np.zeros((1, 2), np.float32)])
             kinds = np.concatenate([kinds, [-1.0]]).astype(np.float32)
-        has_mask = logits is not None
         feeds = {
             "image_embeddings": emb.features[None],
-            "point_coords": emb.to_frame(coords)[None],
-            "point_labels": kinds[None],
-            "mask_input": (logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32))[
-                None, None
-            ].astype(np.float32),
-            "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
+            **self.prompt_feeds(emb, coords, kinds, logits),
             "orig_im_size": np.array(emb.size, np.float32),
         }
         masks, iou, low_res = self.decoder.run(None, feeds)
@@ -240,16 +247,10 @@ class Sam2Pair(SamPair):
 
     def decode(self, emb, points=None, labels=None, box=None, logits=None):
         coords, kinds = self.prompt_arrays(points, labels, box)
-        has_mask = logits is not None
         feeds = {
             "image_embed": emb.features[None],
             **{k: v[None].astype(np.float32) for k, v in emb.extras.items()},
-            "point_coords": emb.to_frame(coords)[None],
-            "point_labels": kinds[None],
-            "mask_input": (logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32))[
-                None, None
-            ].astype(np.float32),
-            "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
+            **self.prompt_feeds(emb, coords, kinds, logits),
         }
         masks, iou = self.decoder.run(None, feeds)
         h, w = emb.size
