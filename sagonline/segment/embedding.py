@@ -28,7 +28,8 @@ class Embedding:
     """One frame's encoder output.
 
     features: (256, 64, 64) float32, the image embedding (what prompts are matched against);
-    extras: the other arrays the decoder reads (SAM 2's high-resolution features), by name;
+    extras: the other arrays the decoder reads, by name, as it reads them (SAM 2's
+    high-resolution features, (1, C, H, W) float32);
     scale: (sx, sy), image pixels to the 1024 frame; size: the image's (height, width);
     cover: the (height, width) of the 1024 frame the image fills (the rest is padding)."""
 

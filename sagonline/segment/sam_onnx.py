@@ -242,14 +242,15 @@ class Sam2Pair(SamPair):
         return (SIZE / w, SIZE / h), (SIZE, SIZE)
 
     def embedding(self, arrays, scale, size, cover):
-        extras = {k: v for k, v in arrays.items() if k != "image_embed"}
+        # float32 once here (kept float16 on disk), not at each of the view's decoder calls
+        extras = {k: v.astype(np.float32)[None] for k, v in arrays.items() if k != "image_embed"}
         return Embedding(arrays["image_embed"].astype(np.float32), scale, size, cover, extras)
 
     def decode(self, emb, points=None, labels=None, box=None, logits=None):
         coords, kinds = self.prompt_arrays(points, labels, box)
         feeds = {
             "image_embed": emb.features[None],
-            **{k: v[None].astype(np.float32) for k, v in emb.extras.items()},
+            **emb.extras,
             **self.prompt_feeds(emb, coords, kinds, logits),
         }
         masks, iou = self.decoder.run(None, feeds)
