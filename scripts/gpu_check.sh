@@ -3,6 +3,7 @@
 # benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
+#                        [--skip-gsplat-build]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -25,12 +26,14 @@ DEVICE=cuda
 OUT=reports
 QUICK=0
 STEP_TIMEOUT=0
+SKIP_GSPLAT=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --device) DEVICE=$2; shift 2 ;;
     --out) OUT=$2; shift 2 ;;
     --quick) QUICK=1; shift ;;
     --step-timeout) STEP_TIMEOUT=$2; shift 2 ;;
+    --skip-gsplat-build) SKIP_GSPLAT=1; shift ;;
     -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
@@ -110,12 +113,27 @@ else
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
+# gsplat, where its wheel or source travels in .gpu-bundle/ and it is not installed: built into
+# an ignored folder of its own (its CUDA sources compile on first use, MAX_JOBS on all cores);
+# --skip-gsplat-build leaves it out.
+GSPLAT_PKG=$(ls .gpu-bundle/gsplat-*.whl .gpu-bundle/gsplat-*.tar.gz 2>/dev/null | head -n 1)
+if [ "$SKIP_GSPLAT" = 0 ] && [ -n "$GSPLAT_PKG" ] && ! "$PY" -c "import gsplat" 2>/dev/null; then
+  export MAX_JOBS=$(nproc)
+  step "gsplat build" "$PY" -m pip install --no-deps --no-build-isolation --no-index \
+    --target "$ROOT/.gpu-bundle/gsplat-site" "$GSPLAT_PKG"
+  export PYTHONPATH="$ROOT/.gpu-bundle/gsplat-site:$PYTHONPATH"
+fi
+
 # only the files that mark GPU tests are collected (collecting all of tests/ took 10 s)
 mapfile -t GPU_TESTS < <(grep -rl --include='*.py' 'mark\.gpu' tests)
 step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
   -o cache_dir="$WORK/pytest_cache"
 step "eval (make eval)" "$PY" -m bench.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
   cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
+# the same evaluation as a machine without gsplat runs it (images by the Triton walk): both
+# setups are what GPU users have, and one of them crashed once while the other passed
+step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.eval "${EVAL_DATA[@]}" \
+  "${COMMON[@]}" cache_dir="$WORK/cache_nogsplat" hydra.run.dir="$WORK/eval_nogsplat"
 step "table-masks" "$PY" -m bench.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
   segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
   hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"

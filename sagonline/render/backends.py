@@ -24,6 +24,7 @@ from __future__ import annotations
 import contextlib
 import functools
 import importlib.util
+import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -46,7 +47,10 @@ class BackendError(ValueError):
 
 
 def _has_module(name: str) -> bool:
-    return importlib.util.find_spec(name) is not None
+    """Whether `name` can be imported; SAGONLINE_WITHOUT=gsplat,triton hides installed ones (a
+    run as on a machine without them, beside one with them: scripts/gpu_check.sh)."""
+    hidden = {n.strip() for n in os.environ.get("SAGONLINE_WITHOUT", "").split(",")}
+    return name not in hidden and importlib.util.find_spec(name) is not None
 
 
 def _native_builds() -> bool:

@@ -189,3 +189,15 @@ def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
     on = "cuda" if _device_type(g.means.device) == "cuda" else "cpu"
     assert api.capable_backend("gsplat", {"return_ids": True}, on) in ("native", "torch")
     assert api.capable_backend("gsplat", {"return_ids": True}, "cuda") in ("triton", "torch")
+
+
+def test_an_installed_backend_can_be_hidden_for_a_run(monkeypatch):
+    """SAGONLINE_WITHOUT=gsplat runs as a machine without gsplat does (gpu_check.sh evaluates
+    both ways on one machine)."""
+    monkeypatch.setenv("SAGONLINE_WITHOUT", "gsplat,triton")
+    fresh = Installed()
+    assert not fresh.has("gsplat") and not fresh.has("triton")
+    monkeypatch.setenv("SAGONLINE_WITHOUT", "")
+    assert Installed().has("triton") == (
+        __import__("importlib").util.find_spec("triton") is not None
+    )
