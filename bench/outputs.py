@@ -81,12 +81,17 @@ def folder_bytes(path: Path) -> int:
     return sum(p.stat().st_size for p in path.rglob("*") if p.is_file()) if path.exists() else 0
 
 
-def disk_line(out_dir: Path, cache: Path | None) -> str:
-    """What the run takes on disk: its folder, and the stage cache it wrote into."""
+def disk_line(out_dir: Path, cache: Path | None, home: Path | None = None) -> str:
+    """What the run takes on disk: its folder, and the stage cache it wrote into (`home`: the
+    run folder, where `out_dir` is a replacement staged beside it and the cache is home's)."""
+    home = home or out_dir
     run = folder_bytes(out_dir)
+    staged_cache = home != out_dir and cache is not None and cache.exists()
+    if staged_cache and cache.resolve().is_relative_to(home.resolve()):
+        run += folder_bytes(cache)
     line = f"disk: run folder {run / 1e6:.2f} MB"
     if cache is not None and cache.exists():
-        inside = cache.resolve().is_relative_to(out_dir.resolve())
+        inside = cache.resolve().is_relative_to(home.resolve())
         line += (
             f" (its cache {folder_bytes(cache) / 1e6:.1f} MB)"
             if inside
@@ -107,9 +112,14 @@ def fmt(x, pct: bool = True) -> str:
 
 
 def print_summary(
-    out_dir: Path, metrics: dict, reports: list[SceneReport], cache: Path | None = None
+    out_dir: Path,
+    metrics: dict,
+    reports: list[SceneReport],
+    cache: Path | None = None,
+    shown_as: Path | None = None,
 ) -> None:
-    """One screen: per-scene rows, overall numbers, where the outputs are."""
+    """One screen: per-scene rows, overall numbers, where the outputs are (`shown_as`: the
+    folder they will be in, where `out_dir` is a replacement staged beside it)."""
     plan = metrics.get("backends") or {}
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
@@ -153,14 +163,14 @@ def print_summary(
         + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
         + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
         f"resize rule: {metrics['resize_rule']}",
-        f"outputs: {out_dir}/metrics.json, per_view.csv"
+        f"outputs: {shown_as or out_dir}/metrics.json, per_view.csv"
         + (", predictions/ (python -m bench.score)" if (out_dir / "predictions").is_dir() else "")
         + (
             ", recording.rrd (open with: rerun recording.rrd)"
             if (out_dir / "recording.rrd").exists()
             else ""
         ),
-        disk_line(out_dir, cache),
+        disk_line(out_dir, cache, shown_as),
     ]
     text = "\n".join(lines)
     print(text)

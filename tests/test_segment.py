@@ -259,18 +259,20 @@ def test_export_gives_the_runs_vote(tmp_path):
     metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
     done = subprocess.run(
         [sys.executable, "-m", "sagonline", "export", str(run)],
-        cwd=ROOT, capture_output=True, text=True,
+        cwd=tmp_path, capture_output=True, text=True,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
+    exported = tmp_path / f"export-{tmp_path.name}-run"  # the default: beside, not inside, the run
+    assert not (run / "export").exists()
     for scene in metrics["scenes"]:
         key = scene["stage_keys"]["vote"]
         entry = store.load(run / "cache" / scene["scene"] / f"vote-{key}.store")
         assert (entry["stage"], entry["key"]) == ("vote", key)  # the entry says what it is
         vote = entry["value"]
         want = vote.labels.numpy()
-        labels, info = read_labels(run / "export" / scene["scene"])
+        labels, info = read_labels(exported / scene["scene"])
         assert np.array_equal(labels, want) and info["stage_keys"]["vote"] == key
-    assert json.loads((run / "export" / "forward_single" / "labels.json").read_text())["names"]
+    assert json.loads((exported / "forward_single" / "labels.json").read_text())["names"]
 
 
 def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):

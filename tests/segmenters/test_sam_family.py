@@ -91,11 +91,12 @@ def test_one_click_selects_the_whole_object_with_object_and_a_part_with_part():
     from sagonline.segment.prompts import ObjectPrompt
 
     obj = ObjectPrompt(label=1, points=click_on)
+    model = segmenter("sam2_tiny").model()
+    emb = model.embed(image)
     scores = {}
     for extent in ("object", "part", "sam"):
         seg = segmenter("sam2_tiny", click_extent=extent)
-        model = seg.model()
-        scores[extent] = iou(seg.answer_prompt(model, model.embed(image), obj, image), truth)
+        scores[extent] = iou(seg.answer_prompt(model, emb, obj, image), truth)
     assert scores["object"] > 0.95
     assert scores["part"] < 0.6 and scores["sam"] < 0.6
 

@@ -15,7 +15,7 @@ def add_parsers(sub) -> None:
     exp.add_argument("run_dir")
     exp.add_argument(
         "--out",
-        help="output folder (default: export-<run folder's name>-<its parent's name> here; "
+        help="output folder (default: export-<its parent's name>-<run folder's name> here; "
         "never inside the finished run)",
     )
     exp.add_argument(
@@ -26,7 +26,7 @@ def add_parsers(sub) -> None:
 
 
 def default_out(run: Path) -> Path:
-    """export-<run>-<its parent> in the current folder: a finished run's folder is left as the
+    """export-<its parent>-<run> in the current folder: a finished run's folder is left as the
     run wrote it (its metrics.json digests what is in it)."""
     resolved = run.resolve()
     return Path(f"export-{resolved.parent.name}-{resolved.name}")
