@@ -328,6 +328,12 @@ def cell_text(value):
     return " ".join(value.splitlines()).replace("|", "\\|")
 
 
+def percent_words(value) -> str:
+    """A recorded fraction (metrics.json's 0-1) in percent as the tables show it; what is not a
+    number, as it was written."""
+    return f"{100 * value:.2f}" if isinstance(value, int | float) else repr(value)
+
+
 def rescore_words(run: Path) -> str:
     """Whether the run's recorded mIoU / mAcc are what its own label maps give again
     (`bench.score.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be said."""
@@ -341,7 +347,7 @@ def rescore_words(run: Path) -> str:
     if again is None:
         return "no label maps"
     bad = [
-        f"{name} recorded {value!r}, re-scored {100 * rescored:.2f}"
+        f"{name} recorded {percent_words(value)}, re-scored {100 * rescored:.2f}"
         for name, (value, rescored, ok) in again["checks"].items()
         if not ok
     ]
