@@ -1,4 +1,5 @@
-"""Hydra entry points (eval, ablations, timing) and report building. Thin by design."""
+"""The harness around the library: runners (eval, scenes, fits, the cross-capture table),
+table and report builders, and speed benchmarks (bench_*.py)."""
 
 from pathlib import Path
 

@@ -277,7 +277,7 @@ NOTES = {
         "rendered and answered by the student. `alone`: each mode answering the eval views "
         "after the student finished; `while training`: the three answering in turn while it "
         "trained in the same process (refined then waits for the training step in flight).",
-        "- coarse_mIoU is the run's mIoU (per_view.csv's `initial` rows); initial_mIoU scores "
+        "- coarse_mIoU is the run's mIoU (per_view.csv's `coarse` rows); initial_mIoU scores "
         "the 2D segmenter's answers on the same views.",
     ],
 }
