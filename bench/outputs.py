@@ -58,7 +58,7 @@ def write_outputs(
     columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
     from sagonline.score.diagnosis import EXTRA, MISSED
 
-    diagnosis = ("object_px", "missed_px", *MISSED, "extra_px", *EXTRA)
+    diagnosis = ("object_px", "hidden_px", "missed_px", *MISSED, "extra_px", *EXTRA)
     columns += [
         k
         for k in ("photographed", "photo_angle_deg", "photo_distance", *diagnosis)
@@ -150,6 +150,12 @@ def print_summary(
                 f"    missed pixels {d['missed_px']}: fit {fmt(d['share_fit'])}%, vote "
                 f"{fmt(d['share_vote'])}%, segmenter {fmt(d['share_segmenter'])}% "
                 "(per view: per_view.csv; the causes: sagonline/score/diagnosis.py)"
+            )
+        if d.get("hidden"):
+            lines.append(
+                f"    the fit hides {fmt(d['hidden'])}% of the object's pixels behind nearer "
+                f"surfaces ({d.get('hidden_views', 0)} views more than a tenth: per_view.csv "
+                "hidden_px / object_px)"
             )
         groups = r.extra.get("by_view_group") or {}
         for key, value in groups.items():  # e.g. photographed / mask-only views of a capture

@@ -284,6 +284,7 @@ def row(
         "capture": capture,
         "PSNR held-out": None if fit.get("psnr_heldout") is None else round(fit["psnr_heldout"], 2),
         "PSNR in mask": None if in_mask is None else round(in_mask, 2),
+        HIDDEN: pct(diagnosis(real).get("hidden")),
         "real masks, every 4th": pct((real or {}).get("miou")),
         "classical": pct((classical or {}).get("miou")),
         "classical alone": pct((classical or {}).get("segmenter_miou")),
@@ -315,9 +316,13 @@ def row(
 
 
 CHOSEN_COLUMN = {"real": "real masks, every 4th", "classical": "classical"} | {m: m for m in MODELS}
+# The share of the objects' pixels (every scored view) where the fit draws a nearer surface in
+# front of the object: what no segmenter can see in the renders (score.diagnosis `hidden`)
+HIDDEN = "object hidden by the fit %"
 NUMERIC = (
     "PSNR held-out",
     "PSNR in mask",
+    HIDDEN,
     "real masks, every 4th",
     "classical",
     "classical alone",
@@ -515,6 +520,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         )
         + ".",
         "- with several fit seeds: mean over the fits (min-max, n fits); one fit is one draw.",
+        "- object hidden by the fit: the share of the object's pixels (every scored view, its",
+        "  ground truth) where the fit renders a surface nearer than the object's own, whatever",
+        "  the labels: what a segmenter cannot see in the renders (per view: per_view.csv",
+        "  hidden_px / object_px of the real-masks run; runs older than the measure: -).",
         "- fit / vote / segmenter: where the missed pixels are lost",
         "  (sagonline/score/diagnosis.py).",
         "- extra px by labelled Gaussians: the share of the pixels wrongly rendered as the object",

@@ -76,6 +76,18 @@ def test_a_sheet_in_front_of_the_object_is_the_fits_fault(scene):
     assert _group_share(report, view, "fit") > 0.8
     row = next(r for r in report.views if r["view"] == view)
     assert row["fit_occluded"] > row["missed_px"] / 2
+    # what the segmenter could not see, whatever the labels: the sheet hides a part of the
+    # object in view 0 only, and nothing of it in the clean fit
+    assert row["hidden_px"] >= row["fit_occluded"] > 0
+    others = [r for r in report.views if r["view"] != view and r["mode"] == "coarse"]
+    assert all(r["hidden_px"] < 0.02 * r["object_px"] for r in others)
+    assert all(r["hidden_px"] < 0.02 * r["object_px"] for r in clean.views if r["mode"] == "coarse")
+    d = report.extra["diagnosis"]
+    assert d["hidden_views"] == 1
+    total = sum(r["object_px"] for r in report.views if r["mode"] == "coarse")
+    assert d["hidden"] == pytest.approx(
+        sum(r["hidden_px"] for r in report.views if r["mode"] == "coarse") / total
+    )
 
 
 def test_flickering_masks_are_the_segmenters_and_the_votes_fault(scene):

@@ -224,8 +224,7 @@ def orbit_around(
         cams.append(make_camera(K, look_at(eye, target, up), width, height, f"orbit_{i:03d}"))
     names = "xyz"
     where = (
-        "from the scene's centre looking out (--inside; view 0 faces the deepest part of the "
-        "scene)"
+        "from the scene's centre looking out (--inside; view 0 faces the deepest part of the scene)"
         if inside
         else f"around the scene (distance {distance:.3g}; a scene seen from within, a room: "
         "--inside)"

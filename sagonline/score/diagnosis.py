@@ -26,6 +26,11 @@ extra (ground truth background, predicted an object): `extra_fit` where the fitt
 renders there (its surface reaches beyond the object's silhouette), `extra_segmenter` where
 the Gaussian shown is that object by the run's vote but not by the truth's, `extra_other`.
 
+Whatever the labels, `hidden_px` counts the object's pixels (its ground truth) where the fit
+covers the fitted object with a nearer surface (the rule of `fit_occluded`): what a segmenter
+looking at the render cannot see. A fit that draws surfaces in front of the object between its
+photographs shows here before any label is wrong.
+
 Counts are pixels at the render's resolution (the ground truth resized to it by nearest
 neighbour). The groups: fit (fit_*), vote (vote_*, label_render), segmenter.
 
@@ -185,16 +190,18 @@ def diagnose_view(
         kinds[where & (kinds == 0)] = (MISSED + EXTRA).index(name) + 1
 
     mark("fit_empty", missed & ((alpha < 0.5) | ~shown))
-    for k in sorted(
-        set(np.unique(truth[missed | extra]).tolist() + np.unique(pred[extra]).tolist())
-    ):
+    hidden = np.zeros((h, w), bool)  # the object's pixels where a nearer surface covers it
+    objects = np.unique(truth[valid & (truth > 0)]).tolist() + np.unique(pred[extra]).tolist()
+    for k in sorted(set(objects)):
         if k <= 0:
             continue
         obj_alpha, obj_depth = object_depths(gaussians, camera, causes.members(k), backend)
+        with np.errstate(invalid="ignore"):
+            covered = depth < (1 - OCCLUSION) * obj_depth  # False where the object renders nothing
+        hidden |= valid & (truth == k) & covered
         at_k = missed & (truth == k)
         mark("fit_missing", at_k & (obj_alpha < 0.5))
-        with np.errstate(invalid="ignore"):
-            mark("fit_occluded", at_k & (depth < (1 - OCCLUSION) * obj_depth))
+        mark("fit_occluded", at_k & covered)
         mark("extra_fit", extra & (pred == k) & (obj_alpha >= 0.5))
         if outside is not None:
             culprit = extra & (pred == k) & labelled & (run_label == k)
@@ -218,6 +225,7 @@ def diagnose_view(
     counts["missed_px"] = int(missed.sum())
     counts["extra_px"] = int(extra.sum())
     counts["object_px"] = int((valid & (truth > 0)).sum())
+    counts["hidden_px"] = int(hidden.sum())
     return counts, kinds
 
 
@@ -315,9 +323,16 @@ def outside_summary(rows: list[dict], extra_px: int) -> dict:
 
 def shares(rows: list[dict]) -> dict[str, float | None]:
     """Over several views' counts: each cause group's share of the missed pixels (fit, vote,
-    segmenter) and each cause's; None where nothing was missed."""
+    segmenter) and each cause's (None where nothing was missed); `hidden`: the share of the
+    objects' pixels that the fit covers with a nearer surface, whatever the labels (None
+    without object pixels), and `hidden_views`: the views where it covers more than a tenth."""
     missed = sum(r.get("missed_px", 0) for r in rows)
+    objects = sum(r.get("object_px", 0) for r in rows)
     out: dict[str, float | None] = {"missed_px": missed}
+    out["hidden"] = sum(r.get("hidden_px", 0) for r in rows) / objects if objects else None
+    out["hidden_views"] = sum(
+        1 for r in rows if r.get("object_px") and r.get("hidden_px", 0) > 0.1 * r["object_px"]
+    )
     for group, names in CAUSE_GROUPS.items():
         n = sum(r.get(name, 0) for r in rows for name in names)
         out[f"share_{group}"] = n / missed if missed else None
