@@ -88,6 +88,7 @@ def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
         browser.click_button(chrome, "Export objects, labels, recording")
         out = tmp_path / "export"
         browser.wait_for(lambda: (out / "objects" / "object.ply").is_file(), 60, "the export")
+        assert browser.console_errors(chrome) == []  # the page logged no error of ours
     finally:
         chrome.quit()
     written = PlyData.read(str(out / "objects" / "object.ply")).elements[0]

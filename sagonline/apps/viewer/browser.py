@@ -50,9 +50,27 @@ def open_browser(url: str, width: int = 1000, height: int = 700):
         f"--window-size={width},{height}",
     ):  # fmt: skip
         options.add_argument(flag)
+    options.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # for console_errors
     chrome = webdriver.Chrome(service=Service(driver), options=options)
     chrome.get(url)
     return chrome
+
+
+# viser's own splat mesh (viser/client/src/Splatting/GaussianSplatsHelpers.ts) gives its quad a
+# two-component "position" attribute; three.js reads three for a bounding sphere and logs this on
+# every page that draws splats, whatever they are (random finite splats in a bare viser server
+# give it too). It is not an error in the data sent; with a NaN sphere the frustum test never
+# culls the mesh (every comparison with NaN is false), so the splats always draw.
+VISER_OWN = ("computeBoundingSphere(): Computed radius is NaN",)
+
+
+def console_errors(chrome) -> list[str]:
+    """The page's console errors (SEVERE) since the last call, but viser's own (VISER_OWN)."""
+    return [
+        e["message"]
+        for e in chrome.get_log("browser")
+        if e["level"] == "SEVERE" and not any(known in e["message"] for known in VISER_OWN)
+    ]
 
 
 def wait_for(condition, timeout: float, what: str, step: float = 0.1):
