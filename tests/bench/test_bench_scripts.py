@@ -80,6 +80,8 @@ def test_bench_viewer_times_a_click_in_the_browser():
         pytest.skip(reason)
     text = _run("bench_viewer.py", "--browser")
     assert "browser: first labels shown" in text and "server: click arrived" in text
+    drawn = next(line for line in text.splitlines() if line.startswith("| canvas: first labels"))
+    assert float(drawn.split("|")[2]) > 0  # the labels were seen on the canvas itself
 
 
 def test_bench_label_size_quick(tmp_path):
