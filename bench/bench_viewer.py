@@ -108,7 +108,16 @@ CHANGED = 0.005
 def canvas_times(chrome, seen: dict) -> dict:
     """From the page's frame log: seconds from the click to the labels first drawn on the
     canvas (NaN where they never were), and the longest gap between drawn frames from the
-    click to the panel's "done"."""
+    click to the panel's "done". Waits up to 60 s for the labels to be drawn."""
+    from sagonline.apps.viewer import browser
+
+    try:
+        browser.wait_for(
+            lambda: chrome.execute_script("return window.__c.labels !== undefined;"), 60,
+            "the labels on the canvas",
+        )  # fmt: skip
+    except TimeoutError:
+        pass  # never drawn: NaN below
     c = chrome.execute_script("return {frames: window.__c.frames, labels: window.__c.labels};")
     frames = [f for f in c["frames"] if f <= seen["done"]]
     gaps = np.diff(frames) if len(frames) > 1 else np.array([np.nan])
