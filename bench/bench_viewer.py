@@ -20,6 +20,7 @@ views at 240x135, one repeat (what the tests run).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import subprocess
 import sys
 import time
@@ -111,13 +112,11 @@ def canvas_times(chrome, seen: dict) -> dict:
     click to the panel's "done". Waits up to 60 s for the labels to be drawn."""
     from sagonline.apps.viewer import browser
 
-    try:
+    with contextlib.suppress(TimeoutError):  # never drawn: NaN below
         browser.wait_for(
             lambda: chrome.execute_script("return window.__c.labels !== undefined;"), 60,
             "the labels on the canvas",
         )  # fmt: skip
-    except TimeoutError:
-        pass  # never drawn: NaN below
     c = chrome.execute_script("return {frames: window.__c.frames, labels: window.__c.labels};")
     frames = [f for f in c["frames"] if f <= seen["done"]]
     gaps = np.diff(frames) if len(frames) > 1 else np.array([np.nan])
