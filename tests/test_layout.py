@@ -210,3 +210,35 @@ def test_every_link_in_the_docs_leads_somewhere():
             if path and not (page.parent / path).exists():
                 broken.append(f"{page.relative_to(ROOT)}: {target}")
     assert not broken, broken
+
+
+# Folders of the repository a backticked path in the docs may start with.
+TRACKED_TOPS = ("sagonline/", "bench/", "docs/", "scripts/", "tests/", "conf/", "reports/", ".ci/")
+
+
+def test_every_backticked_repository_path_in_the_docs_exists():
+    """A path in backticks in README.md or docs/*.md that starts with one of the repository's
+    folders names a file or folder that is there, a module's attribute (`pkg/mod.attr`), or a
+    file one of the project's tools writes (its name in scripts/, bench/ or the Makefile):
+    pages that named a renamed test or a moved module were found this way. Paths with
+    placeholders (`<name>`, `NAME`, `*`) are patterns, not files."""
+    import re
+
+    tools = "\n".join(
+        p.read_text()
+        for p in [ROOT / "Makefile", *(ROOT / "scripts").glob("*"), *(ROOT / "bench").rglob("*.py")]
+        if p.is_file()
+    )
+    stale = []
+    for page in [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]:
+        for token in re.findall(r"`([^`\s]+)`", page.read_text()):
+            path = token.rstrip(".,:;").split("::")[0].split(":")[0]
+            if not path.startswith(TRACKED_TOPS) or re.search(r"[<>*{}$]|NAME", path):
+                continue
+            module = path.rsplit(".", 1)[0] + ".py"  # sagonline/fitting/capture.white_backdrop
+            if (ROOT / path).exists() or (ROOT / module).exists():
+                continue
+            if path.rsplit("/", 1)[-1] in tools:  # written by a tool, e.g. reports/gpu_check.md
+                continue
+            stale.append(f"{page.relative_to(ROOT)}: {token}")
+    assert not stale, stale
