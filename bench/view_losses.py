@@ -18,9 +18,7 @@ import argparse
 import pandas as pd
 
 from bench.real import CHOSEN, ROOT, captures, folder
-
-MISSED = ("fit_empty", "fit_missing", "fit_occluded")
-EXTRA = ("extra_fit", "extra_segmenter", "extra_other")
+from sagonline.score.diagnosis import CAUSE_GROUPS
 
 
 def views(capture: str, source: str, seed: int, chosen: bool) -> pd.DataFrame | None:
@@ -71,6 +69,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if rows.empty:
         raise SystemExit(f"no capture has finished {args.source} and {args.against} runs")
     rows["loss"] = 100 * (rows["iou_against"] - rows["iou"])
+    for group, causes in CAUSE_GROUPS.items():  # the missed pixels by where they were lost
+        rows[f"missed_by_{group}"] = rows[[c for c in causes if c in rows]].sum(axis=1)
     shown = []
     for capture, part in rows.groupby("capture", sort=False):
         per_view = part.groupby("view").agg(
@@ -80,8 +80,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             photographed=("photographed", "first"),
             seeds=("seed", "nunique"),
             missed_px=("missed_px", "sum"),
-            missed_by_fit=("fit_missing", "sum"),
-            missed_by_segmenter=("segmenter", "sum"),
+            missed_by_fit=("missed_by_fit", "sum"),
+            missed_by_vote=("missed_by_vote", "sum"),
+            missed_by_segmenter=("missed_by_segmenter", "sum"),
             extra_px=("extra_px", "sum"),
             extra_by_fit=("extra_fit", "sum"),
             extra_by_segmenter=("extra_segmenter", "sum"),

@@ -252,3 +252,31 @@ def test_the_table_scores_only_the_sources_asked_for(tmp_path, monkeypatch, caps
         with pytest.raises(SystemExit) as exc:
             real.main([*argv, "--captures", "cap"])
         assert exc.value.code == 2 and said in capsys.readouterr().err
+
+
+def test_view_losses_ranks_views_by_loss_and_splits_the_misses_by_cause(tmp_path, monkeypatch):
+    """bench.view_losses over two finished runs of one fit: each view's loss against the other
+    source, worst first, and the missed pixels summed by cause group (the fit: empty, missing
+    and occluded together)."""
+    import pandas as pd
+
+    import bench.view_losses as view_losses
+    from bench.real import CHOSEN, folder
+
+    monkeypatch.setattr(view_losses, "ROOT", tmp_path)
+    base = {"mode": "coarse", "photographed": False, "missed_px": 10, "extra_px": 0}
+    causes = {"fit_empty": 1, "fit_missing": 2, "fit_occluded": 3, "vote_few": 4, "segmenter": 0}
+    extra = {"extra_fit": 0, "extra_segmenter": 0}
+    for source, ious in (("sam2_tiny", (0.8, 0.9)), ("real", (0.9, 0.9))):
+        run = tmp_path / folder("duck_queen", source, 0, CHOSEN[source])
+        run.mkdir(parents=True)
+        rows = [
+            {"view": v, "iou": iou, **base, **causes, **extra}
+            for v, iou in zip(("a", "b"), ious, strict=True)
+        ]
+        pd.DataFrame(rows).to_csv(run / "per_view.csv", index=False)
+    worst = view_losses.main(["--captures", "duck_queen", "--seeds", "0", "--worst", "2"])
+    assert list(worst.index) == ["a", "b"] and worst.loc["a", "loss"] == pytest.approx(10.0)
+    assert worst.loc["a", "missed_by_fit"] == 6 and worst.loc["a", "missed_by_vote"] == 4
+    with pytest.raises(SystemExit):  # no finished pair of runs
+        view_losses.main(["--captures", "mary_rose", "--seeds", "0"])
