@@ -87,7 +87,7 @@ def photo_table(models: list[str], count: int) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def video_table(models: list[str], side: int = 456) -> pd.DataFrame:
+def video_table(models: list[str], side: int = 456, captures=CAPTURES) -> pd.DataFrame:
     """Each capture's photographs as a video (longer side `side`): the first one's ground
     truth prompts (a mask), every later one's mask scored against its truth (`match`: the
     embeddings alone, no 3D consensus in a video of photographs)."""
@@ -96,7 +96,7 @@ def video_table(models: list[str], side: int = 456) -> pd.DataFrame:
     rows = []
     for kind in models:
         seg = segmenter(kind, prompts="match")
-        for capture in CAPTURES:
+        for capture in captures:
             shots = photos(capture, 1000)
             frames, truths = [], []
             for _, image, truth in shots:

@@ -114,9 +114,10 @@ def canvas_times(chrome, seen: dict) -> dict:
 
     with contextlib.suppress(TimeoutError):  # never drawn: NaN below
         browser.wait_for(
-            lambda: chrome.execute_script("return window.__c.labels !== undefined;"), 60,
+            lambda: chrome.execute_script("return window.__c.labels !== undefined;"),
+            60,
             "the labels on the canvas",
-        )  # fmt: skip
+        )
     c = chrome.execute_script("return {frames: window.__c.frames, labels: window.__c.labels};")
     frames = [f for f in c["frames"] if f <= seen["done"]]
     gaps = np.diff(frames) if len(frames) > 1 else np.array([np.nan])
@@ -181,9 +182,13 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
             client.camera.position = target + 1.5 * (centre - target)
             client.camera.look_at = target
         browser.wait_for(
-            lambda: all(np.allclose(c.camera.look_at, target, atol=1e-3)
-                        for c in app.server.get_clients().values()), 30, "the camera to move",
-        )  # fmt: skip
+            lambda: all(
+                np.allclose(c.camera.look_at, target, atol=1e-3)
+                for c in app.server.get_clients().values()
+            ),
+            30,
+            "the camera to move",
+        )
         time.sleep(2.0)  # let the page settle after the move
         for repeat in range(repeats):
             app.clear()
@@ -249,8 +254,11 @@ def main() -> None:
         print(table.round(2).to_markdown())
         print("\n| latency (browser) | median s | target s |\n|---|---|---|")
         for name, value in table.median().items():
-            target = {"browser: first labels shown": 1.5, "canvas: first labels drawn": 2.0,
-                      "canvas: longest frame gap": 1.0}.get(name)  # fmt: skip
+            target = {
+                "browser: first labels shown": 1.5,
+                "canvas: first labels drawn": 2.0,
+                "canvas: longest frame gap": 1.0,
+            }.get(name)
             print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
         print(f"after: {uptime()}")
         return

@@ -85,22 +85,18 @@ def disk_line(out_dir: Path, cache: Path | None, home: Path | None = None) -> st
     """What the run takes on disk: its folder, and the stage cache it wrote into (`home`: the
     run folder, where `out_dir` is a replacement staged beside it and the cache is home's)."""
     home = home or out_dir
+    cached = folder_bytes(cache) if cache is not None and cache.exists() else None
+    inside = cached is not None and cache.resolve().is_relative_to(home.resolve())
     run = folder_bytes(out_dir)
-    staged_cache = home != out_dir and cache is not None and cache.exists()
-    if staged_cache and cache.resolve().is_relative_to(home.resolve()):
-        run += folder_bytes(cache)
+    if inside and home != out_dir:  # a staged replacement: its cache is the run folder's
+        run += cached
     line = f"disk: run folder {run / 1e6:.2f} MB"
-    if cache is not None and cache.exists():
-        inside = cache.resolve().is_relative_to(home.resolve())
+    if inside:
+        line += f" (its cache {cached / 1e6:.1f} MB)"
+    elif cached is not None:
         line += (
-            f" (its cache {folder_bytes(cache) / 1e6:.1f} MB)"
-            if inside
-            else (f", shared stage cache {cache} {folder_bytes(cache) / 1e6:.1f} MB")
-        )
-        line += (
-            " (keyed by content: safe to delete; make clean-cache empties .cache/stages)"
-            if not inside
-            else ""
+            f", shared stage cache {cache} {cached / 1e6:.1f} MB (keyed by content: safe to "
+            "delete; make clean-cache empties .cache/stages)"
         )
     return line
 

@@ -163,8 +163,10 @@ def test_a_mask_prompt_labels_several_objects(tmp_path):
     on = labels >= 0
     assert (labels[on] == sc.instance.numpy()[on]).mean() > 0.95
     assert sorted(p.name for p in (tmp_path / "out" / "objects").iterdir()) == [
-        "object_1.ply", "object_2.ply", "object_3.ply",
-    ]  # fmt: skip
+        "object_1.ply",
+        "object_2.ply",
+        "object_3.ply",
+    ]
 
 
 @pytest.mark.parametrize(
@@ -231,8 +233,19 @@ def test_a_scene_without_cameras_gets_an_orbit_said_out_loud(tmp_path, capsys):
     ring, _ = orbit_around(scan.means, 24, 64, 48)
     view0 = render(scan, ring[0], backend="native").alpha.reshape(48, 64).numpy() > 0.5
     out = tmp_path / "out"
-    argv = ["segment", str(tmp_path / "scene.ply"), "--width", "64", "--height", "48",
-            "--click", f"0:{_click_inside(view0)}", "--out", str(out), "--no-record"]  # fmt: skip
+    argv = [
+        "segment",
+        str(tmp_path / "scene.ply"),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--click",
+        f"0:{_click_inside(view0)}",
+        "--out",
+        str(out),
+        "--no-record",
+    ]
     assert main(argv) == 0
     said = capsys.readouterr().err
     assert "no --cameras given: an orbit of 24 views around the scene (distance" in said
@@ -259,8 +272,10 @@ def test_export_gives_the_runs_vote(tmp_path):
     metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
     done = subprocess.run(
         [sys.executable, "-m", "sagonline", "export", str(run)],
-        cwd=tmp_path, capture_output=True, text=True,
-    )  # fmt: skip
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 0, done.stderr
     exported = tmp_path / f"export-{tmp_path.name}-run"  # the default: beside, not inside, the run
     assert not (run / "export").exists()
@@ -281,14 +296,40 @@ def test_prompts_file_reproduces_a_segmentation(clicked, tmp_path, capsys):
     tmp, _ = clicked
     recorded = tmp / "out" / "labels.json"
     again = tmp_path / "again"
-    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--out",
-                 str(again), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp / "scene.ply"),
+                "--prompts",
+                str(recorded),
+                "--out",
+                str(again),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     np.testing.assert_array_equal(read_labels(again)[0], read_labels(tmp / "out")[0])
     info = json.loads((again / "labels.json").read_text())
     assert info["prompt"]["objects"] == json.loads(recorded.read_text())["prompt"]["objects"]
     wider = tmp_path / "wider"
-    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--delta",
-                 "3", "--out", str(wider), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp / "scene.ply"),
+                "--prompts",
+                str(recorded),
+                "--delta",
+                "3",
+                "--out",
+                str(wider),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     assert json.loads((wider / "labels.json").read_text())["vote"]["delta"] == 3
     bad = tmp_path / "bad.json"
     bad.write_text('{"names": []}')
@@ -303,8 +344,23 @@ def test_the_label_render_threshold_and_body_rule_from_the_command_line(clicked,
     recorded = tmp / "out" / "labels.json"
     assert json.loads(recorded.read_text())["label_render"] == {"min_weight": 0.2}
     strict = tmp_path / "strict"
-    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--min-weight",
-                 "0.95", "--body", "--out", str(strict), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp / "scene.ply"),
+                "--prompts",
+                str(recorded),
+                "--min-weight",
+                "0.95",
+                "--body",
+                "--out",
+                str(strict),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     info = json.loads((strict / "labels.json").read_text())
     assert info["label_render"] == {"min_weight": 0.95} and info["vote"]["body"] is True
 
@@ -319,14 +375,40 @@ def test_the_label_render_threshold_and_body_rule_from_the_command_line(clicked,
     loose = object_pixels(tmp / "out")
     assert 0 < object_pixels(strict) < loose
     again = tmp_path / "again"
-    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(strict / "labels.json"),
-                 "--out", str(again), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp / "scene.ply"),
+                "--prompts",
+                str(strict / "labels.json"),
+                "--out",
+                str(again),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     info = json.loads((again / "labels.json").read_text())
     assert info["label_render"] == {"min_weight": 0.95} and info["vote"]["body"] is True
     assert object_pixels(again) == object_pixels(strict)
     capsys.readouterr()
-    assert main(["segment", str(tmp / "scene.ply"), "--prompts", str(recorded), "--min-weight",
-                 "7", "--out", str(tmp_path / "bad"), "--no-record"]) == 2  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp / "scene.ply"),
+                "--prompts",
+                str(recorded),
+                "--min-weight",
+                "7",
+                "--out",
+                str(tmp_path / "bad"),
+                "--no-record",
+            ]
+        )
+        == 2
+    )
     assert "--min-weight 7.0: must be a blend weight in [0, 1]" in capsys.readouterr().err
     assert not (tmp_path / "bad").exists()
 
@@ -376,10 +458,12 @@ def _room(count: int = 6000) -> Gaussians:
     sh = torch.zeros(count, 1, 3)
     sh[:, 0] = torch.tensor(rng.uniform(-1, 1, (count, 3)), dtype=torch.float32)
     return Gaussians(
-        means=torch.tensor(pts, dtype=torch.float32), quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(
-            count, 1), scales=torch.full((count, 3), 0.08), opacities=torch.full((count,), 0.95),
+        means=torch.tensor(pts, dtype=torch.float32),
+        quats=torch.tensor([[1.0, 0, 0, 0]]).repeat(count, 1),
+        scales=torch.full((count, 3), 0.08),
+        opacities=torch.full((count,), 0.95),
         sh=sh,
-    )  # fmt: skip
+    )
 
 
 def test_inside_places_the_views_at_the_centre_of_a_room_looking_out(tmp_path, capsys):

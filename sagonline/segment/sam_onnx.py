@@ -76,6 +76,7 @@ class SamPair:
     """An encoder and a decoder of one SAM format; `embed` caches by content."""
 
     format = ""
+    levels = 1  # masks the decoder answers per prompt (SAM 2: whole object, part, sub-part)
     stored_dtype = np.float32  # what the encoder's outputs are rounded to, fresh or cached
     normalise_mean: np.ndarray
     normalise_std: np.ndarray
@@ -234,6 +235,7 @@ class Sam2Pair(SamPair):
     """SAM 2's image encoder and prompt decoder (three masks an answer)."""
 
     format = "sam2"
+    levels = 3
     stored_dtype = np.float16  # 8 MB a frame on disk instead of 17; rounded fresh or cached
     normalise_mean = np.array([0.485, 0.456, 0.406], np.float32) * 255
     normalise_std = np.array([0.229, 0.224, 0.225], np.float32) * 255

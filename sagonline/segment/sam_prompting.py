@@ -291,10 +291,10 @@ class SamFamilySegmenter(VideoSegmenter):
             part = self.part_of(model, emb, sim, click, a.mask)
             if part is not None:
                 candidates.append(at_level(part).mask)
-            # the similarity blob's box with the best click (B): SAM only; SAM 2's own levels
-            # already hold what it adds (on the shared captures' photographs it changed the
-            # masks by -0.03 to +0.41 IoU points, one decoder call a view)
-            blob = self.blob(sim, best, emb) if model.format == "sam" else None
+            # the similarity blob's box with the best click (B): a decoder of one level only;
+            # SAM 2's levels already hold what it adds (on the shared captures' photographs it
+            # changed the masks by -0.03 to +0.41 IoU points, one decoder call a view)
+            blob = self.blob(sim, best, emb) if model.levels == 1 else None
             if blob is not None:
                 candidates.append(
                     at_level(model.decode(emb, click[None], np.array([1]), blob)).mask

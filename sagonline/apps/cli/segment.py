@@ -216,7 +216,6 @@ def label_min_weight(args) -> float:
 
 def cmd_segment(args) -> int:
     from sagonline.core.machine import check_device
-    from sagonline.core.outputs import check_not_input, check_replaceable
     from sagonline.pipeline.segment import (
         check_cameras_see_scene,
         check_objects_were_found,
@@ -236,20 +235,13 @@ def cmd_segment(args) -> int:
         apply_recorded_prompts(args)
     args.segmenter = args.segmenter or "classical"
     scene = scene_file(args.scene)
-    stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     if args.inbetween < 0 or args.inbetween > 32:
         raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
     masks = [Path(v.partition(":")[2]) for k, v, *_ in args.prompt_items if k == "mask"]
     inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
-    if args.preview is not None:
-        out = Path(args.out or f"preview-{stem}-{args.preview}.png")
-    else:
-        out = Path(args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
-    check_not_input(out, inputs)
-    if args.preview is None:
-        check_replaceable(out, args.overwrite)
+    out = output_of(args, scene, inputs)
     vote, min_weight = vote_config(args), label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
@@ -272,17 +264,52 @@ def cmd_segment(args) -> int:
     check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
     check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
-    where = {"backend": args.backend, "device": args.device}
-    background = fitted_background(scene) or (0, 0, 0)
-    seg = segment_scene(g, traj, prompt, segmenter=segmenter, vote=vote, progress=True,
-                        background=background, **where)  # fmt: skip
+    seg = segment_scene(
+        g,
+        traj,
+        prompt,
+        segmenter=segmenter,
+        vote=vote,
+        backend=args.backend,
+        device=args.device,
+        progress=True,
+        background=fitted_background(scene) or (0, 0, 0),
+    )
     check_objects_were_found(seg)
     info = segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg)
-    write_segment_folder(out, g, seg, scene, info, min_weight=min_weight, inputs=inputs,
-                         record=not args.no_record, overwrite=args.overwrite, progress=progress,
-                         **where)  # fmt: skip
+    write_segment_folder(
+        out,
+        g,
+        seg,
+        scene,
+        info,
+        backend=args.backend,
+        device=args.device,
+        min_weight=min_weight,
+        record=not args.no_record,
+        overwrite=args.overwrite,
+        inputs=inputs,
+        progress=progress,
+    )
     print_segmentation(seg, out, time.perf_counter() - started)
     return 0
+
+
+def output_of(args, scene: Path, inputs: list[Path]) -> Path:
+    """Where `segment` writes: the preview's image, or the segmentation's folder (named after
+    the scene and the time), never one of its inputs nor, without --overwrite, a finished
+    folder."""
+    from sagonline.core.outputs import check_not_input, check_replaceable
+
+    stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
+    if args.preview is not None:
+        out = Path(args.out or f"preview-{stem}-{args.preview}.png")
+    else:
+        out = Path(args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}")
+    check_not_input(out, inputs)
+    if args.preview is None:
+        check_replaceable(out, args.overwrite)
+    return out
 
 
 def segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg) -> dict:
