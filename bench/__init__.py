@@ -1,5 +1,7 @@
-"""The harness around the library: runners (eval, scenes, fits, the cross-capture table),
-table and report builders, and speed benchmarks (bench_*.py)."""
+"""The harness around the library, in three kinds: `runners/` make runs (eval, scenes, fits, the
+cross-capture table), `tables/` read them back (the paper's tables, reports, re-scoring) and
+`speed/` holds the speed benchmarks. Every module runs as `python -m bench.<kind>.<name>` from
+the checkout's root."""
 
 from pathlib import Path
 

@@ -128,22 +128,22 @@ fi
 mapfile -t GPU_TESTS < <(grep -rl --include='*.py' 'mark\.gpu' tests)
 step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
   -o cache_dir="$WORK/pytest_cache"
-step "eval (make eval)" "$PY" -m bench.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
+step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
   cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
 # the same evaluation as a machine without gsplat runs it (images by the Triton walk): both
 # setups are what GPU users have, and one of them crashed once while the other passed
-step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.eval "${EVAL_DATA[@]}" \
+step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" \
   "${COMMON[@]}" cache_dir="$WORK/cache_nogsplat" hydra.run.dir="$WORK/eval_nogsplat"
-step "table-masks" "$PY" -m bench.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
+step "table-masks" "$PY" -m bench.runners.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
   segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
   hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
-step "table-masks (build)" "$PY" -m bench.tables masks "$WORK/multirun/masks_$TAG/$STAMP" \
+step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/masks_$TAG/$STAMP" \
   --out "$OUT" --tag "$TAG"
-step "bench_render" "$PY" bench/bench_render.py --devices "$DEVICE" "${RENDER_ARGS[@]}" \
+step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
   --out "$OUT/bench_render_$TAG.csv"
-step "table-timing" "$PY" -m bench.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
+step "table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
   refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
-step "table-timing (build)" "$PY" -m bench.tables timing "$WORK/multirun/timing_$TAG/$STAMP" \
+step "table-timing (build)" "$PY" -m bench.tables.paper timing "$WORK/multirun/timing_$TAG/$STAMP" \
   --out "$OUT" --tag "$TAG"
 
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)

@@ -35,7 +35,7 @@ def compose_config(name: str, *overrides: str, typed: bool = True):
     point would run with, or (typed=False) the DictConfig Hydra composed."""
     from hydra import compose, initialize_config_dir
 
-    from bench.config import EvalConfig, ScenesConfig, register_schemas, to_config
+    from bench.runners.config import EvalConfig, ScenesConfig, register_schemas, to_config
 
     register_schemas()
     if name == "eval":  # each test run caches in its own folder unless it says otherwise

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.eval import evaluate
+from bench.runners.eval import evaluate
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.common import load_mask
 from sagonline.pipeline import PipelineSettings, run_scene
@@ -194,7 +194,7 @@ def _scenes_cfg(*overrides):
 
 
 def test_interrupted_overwrite_keeps_the_users_scene(tmp_path, capsys):
-    from bench.scenes import fit_scene
+    from bench.runners.scenes import fit_scene
     from sagonline.core import store
     from sagonline.datasets.generic import PosedMasksDataset
 
@@ -326,7 +326,7 @@ def test_settings_out_of_bounds_stop_before_any_work(tmp_path, capsys, override,
 
 
 def test_report_skips_a_bad_metrics_file_and_names_it(tmp_path, capsys):
-    from bench.report import main
+    from bench.tables.report import main
 
     evaluate(cfg_with("dataset=synthetic_ff", "record=false"), tmp_path / "runs" / "good")
     for name, text in (("truncated", '{"dataset": "x", "sce'), ("empty", "{}")):

@@ -1,5 +1,5 @@
 """Property-based test of the command line: argument lists for `render`, `segment`, `export`
-and `bench.score`, drawn from valid and invalid values (hypothesis, derandomized so CI draws
+and `bench.tables.score`, drawn from valid and invalid values (hypothesis, derandomized so CI draws
 the same ones). Whatever is drawn: exit 0 with its outputs under `--out`, or a one-line error
 and a non-zero exit; never a traceback; never a file changed outside `--out` (the inputs' tree
 is hashed before and after)."""
@@ -29,7 +29,7 @@ pytestmark = pytest.mark.slow
 def world(tmp_path_factory):
     """Everything the commands may read, under one root: a user's scene folder, masks, a
     finished run, and folders of label maps; outputs go to a separate folder."""
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     root = tmp_path_factory.mktemp("inputs")
     folder, scene, cams, gt = own_scene(root / "scene", views=5, width=40, height=30)
@@ -48,7 +48,7 @@ def _run(argv: list[str]) -> tuple[int, str]:
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         if argv[0] == "score":
-            from bench.score import main as score
+            from bench.tables.score import main as score
 
             try:
                 score(argv[1:])

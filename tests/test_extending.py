@@ -76,7 +76,7 @@ def test_a_new_segmenter_in_one_file(example, tmp_path, capsys):
 
 
 def test_a_new_dataset_adapter(example, tmp_path):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     example("folder_dataset.py")
     root = tmp_path / "folder"

@@ -72,8 +72,8 @@ def run(argv: list[str]) -> tuple[int, str]:
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            if argv[0] == "bench.score":
-                from bench.score import main as score
+            if argv[0] == "bench.tables.score":
+                from bench.tables.score import main as score
 
                 score(argv[1:])
                 code = 0
@@ -164,7 +164,7 @@ def test_predictions_given_to_the_scorer(world, quiet_cwd, edits, cut):
     _fuzzed_copy(base / "p.png", pred / "v.png", edits, cut)
     (base / "p.png").unlink()
     before, here = tree_digest(base / "pred"), tree_digest(quiet_cwd)
-    code, err = run(["bench.score", str(base / "pred"), str(base / "gt")])
+    code, err = run(["bench.tables.score", str(base / "pred"), str(base / "gt")])
     check(code, err, "v.png", base / "pred", before, here)
 
 
@@ -246,8 +246,9 @@ def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits
     target.write_bytes(mutate(target.read_bytes(), edits, cut))
     before = tree_digest(root / "data")
     proc = subprocess.run(
-        [sys.executable, "-m", "bench.eval", "dataset=generic", f"dataset.root={root / 'data'}",
-         f"hydra.run.dir={root / 'run'}", "record=false", "progress=false", "cache_dir=null"],
+        [sys.executable, "-m", "bench.runners.eval", "dataset=generic",
+         f"dataset.root={root / 'data'}", f"hydra.run.dir={root / 'run'}", "record=false",
+         "progress=false", "cache_dir=null"],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     err = proc.stderr
@@ -264,13 +265,13 @@ def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits
 def test_a_plugin_name(name):
     """A segmenter or dataset option, and a SAGONLINE_PLUGINS module, of any text: one line
     naming it, before Hydra composes anything (it printed its own several lines, exit 1)."""
-    from bench.config import EvalConfig, check_override_keys
+    from bench.runners.config import EvalConfig, check_override_keys
 
     for override in (f"segmenter={name}", f"dataset={name}"):
         err = io.StringIO()
         with contextlib.redirect_stderr(err):
             try:
-                check_override_keys(EvalConfig, [override], "bench.eval")
+                check_override_keys(EvalConfig, [override], "bench.runners.eval")
                 code = 0
             except SystemExit as exc:
                 code = exc.code
@@ -356,7 +357,7 @@ TOOL_ARGS = st.lists(
 
 @settings(max_examples=30, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
-@given(tool=st.sampled_from(["bench.real", "bench.fit_captures"]), argv=TOOL_ARGS)
+@given(tool=st.sampled_from(["bench.runners.real", "bench.runners.fit_captures"]), argv=TOOL_ARGS)
 def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
     """Any mix of the cross-capture tools' arguments: refused with exit 2 before anything runs,
     or (where it would start evaluations or fits) stopped at the point where it would; never a
@@ -372,7 +373,7 @@ def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            module.main([*argv, "--out", str(tmp_path / "o")] if tool == "bench.real" else
+            module.main([*argv, "--out", str(tmp_path / "o")] if tool == "bench.runners.real" else
                         [*argv, "--dry-run"])  # fmt: skip
         except SystemExit as exc:
             assert exc.code in (0, 1, 2) or isinstance(exc.code, str), exc.code

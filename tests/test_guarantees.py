@@ -1,6 +1,7 @@
-"""The guarantees of `segment`, `export`, `render` and `bench.score` (the surfaces an adversarial
-new user found holes in): a run folder runs no code, nothing outside --out is touched, a cache
-entry knows what it is, masks are read as what they are, and the scorer cannot be fooled.
+"""The guarantees of `segment`, `export`, `render` and `bench.tables.score` (the surfaces an
+adversarial new user found holes in): a run folder runs no code, nothing outside --out is
+touched, a cache entry knows what it is, masks are read as what they are, and the scorer cannot
+be fooled.
 One test per hole found; each failed on the code before the fix."""
 
 from __future__ import annotations
@@ -233,7 +234,7 @@ def test_an_unusable_cache_folder_warns_once_and_the_run_goes_on(
 def test_export_redoes_a_vote_whose_recorded_key_lies(tmp_path, capsys):
     """metrics.json's vote key, pointed at another config's cached vote: export keys the vote
     again from the run's settings and exports the labels that belong to them."""
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from sagonline.labels.export import read_labels
 
     cache = tmp_path / "cache"
@@ -363,7 +364,7 @@ def _label_maps(folder, scene="s", views=None, **files):
 
 
 def _score(*args):
-    from bench.score import main as score
+    from bench.tables.score import main as score
 
     return score([str(a) for a in args])
 
@@ -420,7 +421,7 @@ def test_scoring_rules_are_checked_against_their_schema(tmp_path, rules, message
 
 
 def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     run = tmp_path / "run"
     metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
@@ -441,7 +442,7 @@ def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
 
 @pytest.mark.slow
 def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     run = tmp_path / "run"
     evaluate(cfg_with("dataset=synthetic_ff", "record=true"), run)
@@ -455,7 +456,7 @@ def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
 
 
 def test_a_second_run_into_a_locked_folder_is_refused(tmp_path, capsys):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from sagonline.core.outputs import RunLock
 
     run = tmp_path / "run"
@@ -482,7 +483,7 @@ def test_a_refused_run_leaves_no_folder(tmp_path):
 
     run = tmp_path / "run"
     done = subprocess.run(
-        [sys.executable, "-m", "bench.eval", "consensus.eps=2", f"hydra.run.dir={run}"],
+        [sys.executable, "-m", "bench.runners.eval", "consensus.eps=2", f"hydra.run.dir={run}"],
         cwd=ROOT, capture_output=True, text=True,
     )  # fmt: skip
     assert done.returncode == 2 and "consensus.eps=2.0" in done.stderr
@@ -645,7 +646,7 @@ def test_a_camera_file_beyond_the_ceiling_is_refused_quickly(tmp_path):
 
 @pytest.mark.parametrize("kind", ["file", "loop"])
 def test_an_eval_with_an_unusable_cache_dir_finishes(tmp_path, kind):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     cache = tmp_path / "cache"
     if kind == "file":
@@ -661,7 +662,7 @@ def test_an_eval_with_an_unusable_cache_dir_finishes(tmp_path, kind):
 def test_overwrite_replaces_only_what_the_harness_wrote(tmp_path, capsys):
     """A file of the user's in a finished run folder survives overwrite=true, and is named
     (it was moved aside and deleted with the old run)."""
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     run = tmp_path / "run"
     evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
@@ -676,7 +677,7 @@ def test_overwrite_replaces_only_what_the_harness_wrote(tmp_path, capsys):
 def test_export_writes_beside_the_run_not_into_it(tmp_path, monkeypatch):
     """`sagonline export RUN` leaves the finished run's folder as the run wrote it: the default
     output is export-<parent>-<run> in the current folder."""
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from tests.fixtures import tree_digest
 
     run = tmp_path / "runs" / "r1"

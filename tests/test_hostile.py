@@ -83,7 +83,7 @@ def test_a_png_bomb_is_refused_from_its_header_at_little_memory(tmp_path):
     cv2.imwrite(str(gt / "v.png"), np.zeros((30, 40), np.uint8))
     bomb_png(pred / "v.png", 32000, 24000)
     assert (pred / "v.png").stat().st_size < 200_000
-    code, err, peak = run_python("bench.score", str(tmp_path / "pred"), str(tmp_path / "gt"))
+    code, err, peak = run_python("bench.tables.score", str(tmp_path / "pred"), str(tmp_path / "gt"))
     assert code == 2, err
     one_error_line(err, "v.png", "exceeds the ceiling", "refused before decoding")
     assert 0 < peak < 1500, peak  # torch and the libraries alone are about 500 MB
@@ -218,7 +218,7 @@ def test_a_recorded_click_outside_its_view_is_named_by_its_field(masked_segmenta
     one_error_line(capsys.readouterr().err, "far.json: prompt.objects[0].clicks[0]", "outside")
 
 
-# --- 6. bench.score -------------------------------------------------------------------------------
+# --- 6. bench.tables.score ------------------------------------------------------------------------
 
 
 def _label_folders(tmp_path: Path) -> tuple[Path, Path]:
@@ -233,7 +233,7 @@ def score(*argv: str) -> tuple[int, str, str]:
     import contextlib
     import io
 
-    from bench.score import main as score_main
+    from bench.tables.score import main as score_main
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
@@ -323,7 +323,7 @@ def test_figure_refuses_another_scene_and_a_label_png_of_another_size(segment_fo
 def test_a_plugin_that_raises_at_import_is_named(tmp_path):
     (tmp_path / "broken_plugin.py").write_text("raise RuntimeError('the plug-in is broken')\n")
     env = {**os.environ, "PYTHONPATH": str(tmp_path), "SAGONLINE_PLUGINS": "broken_plugin"}
-    for command in (["sagonline", "plugins"], ["bench.eval", "record=false"]):
+    for command in (["sagonline", "plugins"], ["bench.runners.eval", "record=false"]):
         code, err, _ = run_python(*command, env=env)
         assert code == 2, (command, err)
         one_error_line(err, "'broken_plugin'", "RuntimeError: the plug-in is broken")
@@ -350,7 +350,7 @@ def test_a_plugin_taking_a_registered_name_is_named_with_its_module(tmp_path):
 
 
 def test_a_dataset_name_that_is_a_path_is_refused(tmp_path):
-    code, err, _ = run_python("bench.eval", "dataset.name=../../../x",
+    code, err, _ = run_python("bench.runners.eval", "dataset.name=../../../x",
                               f"hydra.run.dir={tmp_path}/run")  # fmt: skip
     assert code == 2
     one_error_line(err, "dataset.name='../../../x'", "not a path")
@@ -373,7 +373,7 @@ def _capture(root: Path) -> Path:
 
 
 def _eval_capture(root: Path, *extra: str):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     cfg = compose_config("eval", "dataset=mold_cape", f"dataset.root={root}",
                          "dataset.name=cap", "record=false", "progress=false", *extra)  # fmt: skip
@@ -462,12 +462,14 @@ def test_a_view_that_shows_nothing_and_an_extreme_opacity(tmp_path, capsys):
 
 def test_a_dataset_root_that_is_a_file_and_a_setting_of_another_command(tmp_path):
     (tmp_path / "f").write_text("")
-    code, err, _ = run_python("bench.eval", "dataset=generic", f"dataset.root={tmp_path / 'f'}",
-                              f"hydra.run.dir={tmp_path}/run", "record=false")  # fmt: skip
+    code, err, _ = run_python(
+        "bench.runners.eval", "dataset=generic", f"dataset.root={tmp_path / 'f'}",
+        f"hydra.run.dir={tmp_path}/run", "record=false",
+    )  # fmt: skip
     assert code == 2 and "is a file; it names the folder that holds the scenes" in err
-    code, err, _ = run_python("bench.eval", "finish=true")
+    code, err, _ = run_python("bench.runners.eval", "finish=true")
     assert code == 2
-    one_error_line(err, "no setting 'finish'", "bench.scenes")
+    one_error_line(err, "no setting 'finish'", "bench.runners.scenes")
     env = {**os.environ, "SAGONLINE_KERNEL_DIR": str(tmp_path / "f")}
     code, err, _ = run_python("sagonline", "render", "nothing.ply", "--out", "x.png",
                               "--backend", "native", env=env)  # fmt: skip

@@ -7,7 +7,7 @@ from collections import defaultdict
 import numpy as np
 import pytest
 
-from bench.eval import evaluate
+from bench.runners.eval import evaluate
 from sagonline.record.recording import ELLIPSOID_LIMIT
 from tests.fixtures import cfg_with
 

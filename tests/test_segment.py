@@ -265,7 +265,7 @@ def test_existing_output_is_kept_without_overwrite(clicked, capsys):
 
 @pytest.mark.slow
 def test_export_gives_the_runs_vote(tmp_path):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from sagonline.core import store
 
     run = tmp_path / "run"

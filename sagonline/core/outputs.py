@@ -1,7 +1,7 @@
 """One guard for everything a command writes: nothing already on disk is lost.
 
-Every command (`render`, `segment`, `export`, `bench.eval`, `bench.scenes`) asks here before
-it writes:
+Every command (`render`, `segment`, `export`, `bench.runners.eval`, `bench.runners.scenes`) asks
+here before it writes:
 - an output may not equal, contain or sit inside any of the command's inputs: by path, by
   resolved path, or by hard link (`check_not_input`);
 - `--overwrite` replaces only what the harness itself wrote, recognised by the manifest

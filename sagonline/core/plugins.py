@@ -6,7 +6,7 @@ field) and a function that builds it from them:
     @SEGMENTERS.register("threshold", ThresholdConfig)
     class ThresholdSegmenter(VideoSegmenter): ...
 
-The command line's choices, Hydra's config groups (`bench.config.register_schemas`) and the
+The command line's choices, Hydra's config groups (`bench.runners.config.register_schemas`) and the
 Makefile's lists (`python -m sagonline plugins`) are read from these registries. A file that a
 run, a cache or another user wrote (metrics.json, a cache entry) names a registry key and
 settings; the class always comes from here, never from a name read out of the file.

@@ -89,7 +89,7 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
     metrics = read_metrics(run)
     config = metrics.get("config")
     if not isinstance(config, dict):
-        raise RunFileError(f"{path}: no 'config' object (not a run of bench.eval)")
+        raise RunFileError(f"{path}: no 'config' object (not a run of bench.runners.eval)")
     notes: list[str] = []
     try:
         adapter = _dataset(_group(config, "dataset", path))

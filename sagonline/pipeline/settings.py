@@ -1,5 +1,6 @@
 """How a scene is run, whichever front end runs it (`stage_one.StageOne`, Stage II, the
-diagnosis): one dataclass, filled from the evaluation's config by `bench.job.settings_from`."""
+diagnosis): one dataclass, filled from the evaluation's config by
+`bench.runners.job.settings_from`."""
 
 from __future__ import annotations
 

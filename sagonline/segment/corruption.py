@@ -130,7 +130,8 @@ def _move_boundaries(mask, objects, k, grow):
 
 
 class CorruptedSegmenter(VideoSegmenter):
-    """Any segmenter whose answers pass through a `MaskCorruption` (`corrupt.*` in bench.eval)."""
+    """Any segmenter whose answers pass through a `MaskCorruption` (`corrupt.*` in
+    bench.runners.eval)."""
 
     def __init__(self, inner: VideoSegmenter, corruption: MaskCorruption):
         self.inner, self.corruption = inner, corruption

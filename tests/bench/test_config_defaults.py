@@ -12,7 +12,7 @@ from dataclasses import asdict
 import pytest
 from hydra.errors import ConfigCompositionException
 
-from bench.config import EvalConfig, ScenesConfig
+from bench.runners.config import EvalConfig, ScenesConfig
 from sagonline.fitting import FitConfig
 from sagonline.refine import RefineConfig
 from sagonline.vote.consensus import VoteConfig
@@ -57,7 +57,7 @@ def test_refine_composes_to_the_dataclass_defaults():
 
 
 def test_pipeline_settings_defaults_are_the_eval_config_defaults():
-    from bench.job import settings_from
+    from bench.runners.job import settings_from
     from sagonline.pipeline import PipelineSettings
 
     composed = asdict(settings_from(compose_config("eval")))

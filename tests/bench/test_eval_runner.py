@@ -7,8 +7,8 @@ import json
 import pandas as pd
 import pytest
 
-from bench.eval import evaluate
-from bench.rundir import RunExists
+from bench.runners.eval import evaluate
+from bench.runners.rundir import RunExists
 from tests.fixtures import cfg_with
 
 
@@ -92,8 +92,8 @@ def test_an_overwrite_that_fails_or_is_killed_never_loses_the_finished_run(tmp_p
     next run into the folder; a file of the user's stays."""
     import json
 
-    import bench.eval as runner
-    from bench.eval import evaluate
+    import bench.runners.eval as runner
+    from bench.runners.eval import evaluate
     from tests.fixtures import cfg_with
 
     run = tmp_path / "run"
@@ -139,7 +139,7 @@ def test_an_overwrite_that_fails_or_is_killed_never_loses_the_finished_run(tmp_p
 def test_the_disk_line_counts_a_staged_replacements_cache_as_the_run_folders(tmp_path):
     """The summary's disk line: a cache inside the run folder is its own; a shared one is named
     as such; while a replacement is staged beside the run, the run folder's cache counts."""
-    from bench.outputs import disk_line
+    from bench.runners.outputs import disk_line
 
     run, staged, shared = tmp_path / "run", tmp_path / ".run.new-1", tmp_path / "shared"
     for folder, size in ((run / "cache", 3_000_000), (staged, 1_000_000), (shared, 2_000_000)):

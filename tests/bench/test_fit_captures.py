@@ -1,19 +1,19 @@
-"""`make fits-captures` (bench.fit_captures): every capture's fits of several seeds, one
+"""`make fits-captures` (bench.runners.fit_captures): every capture's fits of several seeds, one
 command, each fit's outcome in a table."""
 
 from __future__ import annotations
 
 import pytest
 
-from bench import fit_captures
-from bench.real import captures
+from bench.runners import fit_captures
+from bench.runners.real import captures
 
 
 def test_the_dry_run_lists_one_fit_per_capture_and_seed(capsys):
     fit_captures.main(["--dry-run", "--seeds", "2,0", "variant=aniso", "fit.lambda_aniso=1"])
     lines = capsys.readouterr().out.splitlines()
     want = [
-        f"python -m bench.scenes dataset={c} seed={k} progress=false variant=aniso "
+        f"python -m bench.runners.scenes dataset={c} seed={k} progress=false variant=aniso "
         "fit.lambda_aniso=1"
         for c in captures()
         for k in (0, 2)
@@ -39,7 +39,7 @@ def test_bad_arguments_are_refused_naming_them(argv, said, capsys):
 
 
 def test_a_fit_that_fails_is_named_with_its_log_and_the_batch_fails(tmp_path, capsys):
-    """A recipe bench.scenes refuses: every fit fails with its own log and its last line."""
+    """A recipe bench.runners.scenes refuses: every fit fails with its own log and its last line."""
     argv = ["--captures", "duck_queen", "--seeds", "0,1", "--jobs", "2", "--logs", str(tmp_path),
             "fit.iterations=0"]  # fmt: skip
     with pytest.raises(SystemExit) as stop:
@@ -65,7 +65,7 @@ def test_the_other_vector_width_is_a_variant_of_its_own_and_said_in_the_commands
         ["--dry-run", "--seeds", "1", "--captures", "duck_queen", "--width", "avx512"]
     )
     assert capsys.readouterr().out.strip() == (
-        "ATEN_CPU_CAPABILITY=avx512 python -m bench.scenes dataset=duck_queen seed=1 "
+        "ATEN_CPU_CAPABILITY=avx512 python -m bench.runners.scenes dataset=duck_queen seed=1 "
         "progress=false variant=avx512"
     )
 

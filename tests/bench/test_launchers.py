@@ -19,7 +19,7 @@ from tests.fixtures import (
 
 def sweep(launcher: str, folder: Path) -> dict[str, dict]:
     cmd = [
-        sys.executable, "-m", "bench.eval", "--multirun", f"hydra/launcher={launcher}",
+        sys.executable, "-m", "bench.runners.eval", "--multirun", f"hydra/launcher={launcher}",
         "consensus.eps=0.01,0.1", "dataset=synthetic_ff", "record=false", "progress=false",
         f"hydra.sweep.dir={folder}", *TINY,
     ]  # fmt: skip

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import pytest
 
-from bench import real
+from bench.runners import real
 
 
 def test_each_seed_reads_its_own_fit_into_its_own_folder():
@@ -255,13 +255,13 @@ def test_the_table_scores_only_the_sources_asked_for(tmp_path, monkeypatch, caps
 
 
 def test_view_losses_ranks_views_by_loss_and_splits_the_misses_by_cause(tmp_path, monkeypatch):
-    """bench.view_losses over two finished runs of one fit: each view's loss against the other
-    source, worst first, and the missed pixels summed by cause group (the fit: empty, missing
+    """bench.tables.view_losses over two finished runs of one fit: each view's loss against the
+    other source, worst first, and the missed pixels summed by cause group (the fit: empty, missing
     and occluded together)."""
     import pandas as pd
 
-    import bench.view_losses as view_losses
-    from bench.real import CHOSEN, folder
+    import bench.tables.view_losses as view_losses
+    from bench.runners.real import CHOSEN, folder
 
     monkeypatch.setattr(view_losses, "ROOT", tmp_path)
     base = {"mode": "coarse", "photographed": False, "missed_px": 10, "extra_px": 0}

@@ -1,5 +1,6 @@
-"""Predictions anyone can re-score: a run's label-map PNGs and digests, `bench.score` against a
-scorer written here, protocol ids in every output, and tables that refuse to mix protocols."""
+"""Predictions anyone can re-score: a run's label-map PNGs and digests, `bench.tables.score`
+against a scorer written here, protocol ids in every output, and tables that refuse to mix
+protocols."""
 
 from __future__ import annotations
 
@@ -9,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from bench.eval import evaluate
-from bench.score import main as score
-from bench.tables import build
+from bench.runners.eval import evaluate
+from bench.tables.paper import build
+from bench.tables.score import main as score
 from sagonline.score.predictions import folder_sha256, read_label_map, write_label_map
 from tests.fixtures import cfg_with
 
@@ -88,10 +89,10 @@ def test_a_table_refuses_to_mix_protocols(tmp_path):
 
 
 def test_a_recorded_number_the_rescore_contradicts_is_never_shown_as_fine(tmp_path, capsys):
-    """metrics.json's mIoU edited, the label maps untouched: `bench.score RUN` names the
-    contradiction and exits 3; `bench.report` marks the row CONTRADICTED; a `|` or a line
+    """metrics.json's mIoU edited, the label maps untouched: `bench.tables.score RUN` names the
+    contradiction and exits 3; `bench.tables.report` marks the row CONTRADICTED; a `|` or a line
     break in a recorded field does not break the report's Markdown."""
-    from bench.report import main as report
+    from bench.tables.report import main as report
 
     run = tmp_path / "runs" / "run"
     evaluate(cfg_with("record=false", "segmenter=oracle_noisy"), run)
@@ -121,7 +122,7 @@ def test_a_protocol_id_is_never_put_over_another_protocols_numbers(tmp_path):
 
 
 def test_report_out_that_is_a_file_is_one_line(tmp_path, capsys):
-    from bench.report import main as report
+    from bench.tables.report import main as report
 
     target = tmp_path / "file"
     target.write_text("x")

@@ -16,7 +16,8 @@ pytestmark = pytest.mark.skipif(shutil.which("make") is None, reason="needs make
 
 
 def planned_jobs(*make_args: str) -> list[tuple[list[str], str]]:
-    """(overrides, output folder) of every bench.eval job `make -n` prints, sweeps expanded."""
+    """(overrides, output folder) of every bench.runners.eval job `make -n` prints, sweeps
+    expanded."""
     out = subprocess.run(
         ["make", "-n", "-o", ".venv/.installed", "-o", ".venv/.extras", *make_args],
         cwd=ROOT,
@@ -27,9 +28,9 @@ def planned_jobs(*make_args: str) -> list[tuple[list[str], str]]:
     jobs = []
     for command in (c for line in out.splitlines() for c in line.split("&&")):
         words = shlex.split(command)
-        if "bench.eval" not in words:
+        if "bench.runners.eval" not in words:
             continue
-        args = words[words.index("bench.eval") + 1 :]
+        args = words[words.index("bench.runners.eval") + 1 :]
         folder = next(a.split("=", 1)[1] for a in args if a.startswith("hydra."))
         args = [a for a in args if a != "--multirun" and not a.startswith("hydra")]
         choices = [[f"{a.split('=')[0]}={v}" for v in a.split("=", 1)[1].split(",")] for a in args]

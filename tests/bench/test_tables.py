@@ -5,8 +5,8 @@ from __future__ import annotations
 import pandas as pd
 import pytest
 
-from bench.eval import evaluate
-from bench.tables import build
+from bench.runners.eval import evaluate
+from bench.tables.paper import build
 from tests.fixtures import cfg_with
 
 
@@ -54,7 +54,7 @@ def test_corrupt_degrades_any_segmenter_as_the_oracle_does(tmp_path):
 
 
 def test_timing_rows_name_the_modes_of_old_and_new_runs():
-    from bench.tables import mode_times
+    from bench.tables.paper import mode_times
 
     new = {
         f"{m}_ms_per_frame{s}": 1.0
@@ -84,7 +84,7 @@ def test_views_report_splits_photographed_and_mask_only(tmp_path):
 
     from PIL import Image
 
-    from bench.report import main
+    from bench.tables.report import main
 
     run = tmp_path / "run"
     run.mkdir()
@@ -125,7 +125,7 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
     import json
     import shutil
 
-    from bench.report import main
+    from bench.tables.report import main
 
     runs = tmp_path / "runs"
     first = runs / "a"
@@ -169,7 +169,7 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
 
 
 def test_plot_legend_names_only_what_differs():
-    from bench.report import short_labels
+    from bench.tables.report import short_labels
 
     shared = ["dataset=m", "dataset.adapter.exclude_reference=true"]
     names = short_labels({
@@ -190,7 +190,7 @@ def test_progress_is_silenced_only_when_asked(monkeypatch):
     import io
     import types
 
-    from bench.job import quiet
+    from bench.runners.job import quiet
 
     monkeypatch.setenv("CI", "true")
     monkeypatch.setattr("sys.stderr", io.StringIO())

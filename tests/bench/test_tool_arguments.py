@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from bench import fit_captures, real
+from bench.runners import fit_captures, real
 from sagonline.core.plugins import SEGMENTERS, PluginError
 from tests.fixtures import ROOT
 
@@ -24,7 +24,10 @@ def run(*args: str, **kw) -> subprocess.CompletedProcess:
 
 def test_a_number_for_a_true_false_setting_is_refused(tmp_path):
     done = run(
-        "bench.eval", "dataset=synthetic_ff", "consensus.body=2", f"hydra.run.dir={tmp_path / 'r'}"
+        "bench.runners.eval",
+        "dataset=synthetic_ff",
+        "consensus.body=2",
+        f"hydra.run.dir={tmp_path / 'r'}",
     )
     assert done.returncode == 2 and "consensus.body=2: must be true or false" in done.stderr
     assert not (tmp_path / "r" / "metrics.json").exists()
@@ -34,14 +37,14 @@ def test_a_number_for_a_true_false_setting_is_refused(tmp_path):
 
 def test_a_fit_variant_is_a_plain_name_never_a_path(tmp_path):
     done = run(
-        "bench.scenes",
+        "bench.runners.scenes",
         "dataset=mold_cape",
         "variant=x/../../../escape",
         f"hydra.run.dir={tmp_path / 's'}",
     )
     assert done.returncode == 2 and "scenes.variant='x/../../../escape'" in done.stderr
     done = run(
-        "bench.eval",
+        "bench.runners.eval",
         "dataset=mold_cape",
         "dataset.adapter.fit=x/../..",
         f"hydra.run.dir={tmp_path / 'e'}",
@@ -113,7 +116,7 @@ def test_a_full_disk_is_one_line_naming_the_file(tmp_path):
         [
             "bash",
             "-c",
-            f"ulimit -f 1; exec {sys.executable} -m bench.eval dataset=synthetic_ff "
+            f"ulimit -f 1; exec {sys.executable} -m bench.runners.eval dataset=synthetic_ff "
             f"record=false cache_dir=null hydra.run.dir={tmp_path / 'r'}",
         ],
         cwd=ROOT,

@@ -250,7 +250,7 @@ def test_palette_and_per_object_formats(tmp_path):
 
 def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
 
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
 
     root = tmp_path / "data"
     for scene, with_scene in (("good", True), ("broken", False)):
@@ -269,7 +269,7 @@ def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
     # the same partial run again: skipped; once the broken scene loads, refused until overwrite
     assert evaluate(cfg, tmp_path / "run")["miou"] == m["miou"]
     llff_scene(root / "broken", NAMES[:4])
-    from bench.rundir import RunExists
+    from bench.runners.rundir import RunExists
 
     with pytest.raises(RunExists):
         evaluate(cfg, tmp_path / "run")

@@ -368,7 +368,7 @@ def tiny_capture(root: Path, *overrides: str):
 
 def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
 
-    from bench.scenes import fit_scene
+    from bench.runners.scenes import fit_scene
 
     cfg, adapter = tiny_capture(tmp_path / "cap")
     metrics = fit_scene(cfg, adapter, "cap")
@@ -385,7 +385,7 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     assert task.gaussians.kind == "2dgs" and len(task.trajectory) == 9
     again = fit_scene(cfg, adapter, "cap")
     assert again == {"scene": "cap", "skipped": True}
-    from bench.report import fit_rows
+    from bench.tables.report import fit_rows
 
     (row,) = fit_rows([tmp_path]).to_dict("records")  # `make report`'s fits table
     assert row["psnr_heldout"] == saved["psnr_heldout"] and row["iterations"] == 12
@@ -398,10 +398,10 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     """`fit.view_near_quantile` into a variant folder: where the near depths of every view the
     clearances use come out the same, the fit would repeat the seed's bit for bit, so that fit
     is copied (and says so); where one differs, the variant is fitted."""
-    import bench.scenes
-    from bench.scenes import fit_scene
+    import bench.runners.scenes
+    from bench.runners.scenes import fit_scene
 
-    width = bench.scenes.cpu_capability
+    width = bench.runners.scenes.cpu_capability
     cfg, adapter = tiny_capture(tmp_path / "cap")
     fit_scene(cfg, adapter, "cap")
     base = tmp_path / "cap" / "gaussians"
@@ -409,9 +409,9 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
     del recorded["robust_from"], recorded["view_near_quantile"]  # a fit older than these
     del recorded["backdrop"]  # (it ran on black, as fit.backdrop=fixed)
     (base / "fit_config.json").write_text(json.dumps(recorded))
-    near = bench.scenes.fit_near_depths
+    near = bench.runners.scenes.fit_near_depths
     monkeypatch.setattr(  # this capture's points: the same near depth at both quantiles
-        bench.scenes, "fit_near_depths", lambda d, c, p, i, q: near(d, c, p, i, 0.02)
+        bench.runners.scenes, "fit_near_depths", lambda d, c, p, i, q: near(d, c, p, i, 0.02)
     )
     same, _ = tiny_capture(tmp_path / "cap", "variant=q1", "fit.view_near_quantile=0.01")
     copied = fit_scene(same, adapter, "cap")
@@ -426,21 +426,27 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
         depths = near(d, c, p, i, 0.02)
         return depths | ({n: depths[n] * 0.5 for n in i if n in depths} if q != 0.02 else {})
 
-    monkeypatch.setattr(bench.scenes, "fit_near_depths", nearer)
+    monkeypatch.setattr(bench.runners.scenes, "fit_near_depths", nearer)
     other, _ = tiny_capture(tmp_path / "cap", "variant=q2", "fit.view_near_quantile=0.01")
     fitted = fit_scene(other, adapter, "cap")
     assert "same_fit_as" not in fitted  # fitted, from the seed's start points
     assert fitted["init"].startswith("random") or "cached in gaussians)" in fitted["init"]
     other, _ = tiny_capture(tmp_path / "cap", "variant=q3", "fit.iterations=13")
     assert "same_fit_as" not in fit_scene(other, adapter, "cap")  # another recipe
-    monkeypatch.setattr(bench.scenes, "fit_near_depths", near)  # as for q1, which was copied
+    monkeypatch.setattr(
+        bench.runners.scenes, "fit_near_depths", near
+    )  # as for q1, which was copied
     seeds_width = json.loads((base / "fit_metrics.json").read_text())["cpu_capability"]
     other_width = "AVX2" if seeds_width == "AVX512" else "AVX512"  # what torch loaded with here
-    monkeypatch.setattr(bench.scenes, "cpu_capability", lambda: other_width)  # another width
+    monkeypatch.setattr(
+        bench.runners.scenes, "cpu_capability", lambda: other_width
+    )  # another width
     wider, _ = tiny_capture(tmp_path / "cap", "variant=w", "fit.view_near_quantile=0.01")
     metrics = fit_scene(wider, adapter, "cap")
     assert "same_fit_as" not in metrics and metrics["cpu_capability"] == other_width  # new draw
-    monkeypatch.setattr(bench.scenes, "cpu_capability", width)  # the seed's fit's width again
+    monkeypatch.setattr(
+        bench.runners.scenes, "cpu_capability", width
+    )  # the seed's fit's width again
     recorded = json.loads((base / "fit_metrics.json").read_text())
     assert recorded["mkl_cbwr"] == "COMPATIBLE"
     del recorded["mkl_cbwr"]  # a fit before the MKL pin: another draw, not repeated
@@ -450,10 +456,10 @@ def test_a_quantile_that_changes_no_near_depth_reuses_the_seeds_fit(tmp_path, mo
 
 
 def test_a_fit_pins_torchs_cpu_kernels_and_mkl_before_torch_loads():
-    """`python -m bench.scenes` runs torch's kernels at AVX2 and MKL on its COMPATIBLE branch
-    (the same results on every x86 CPU, and run to run); a pin the user set stays."""
+    """`python -m bench.runners.scenes` runs torch's kernels at AVX2 and MKL on its COMPATIBLE
+    branch (the same results on every x86 CPU, and run to run); a pin the user set stays."""
     probe = (
-        "import os, bench.scenes, torch; print(os.environ['ATEN_CPU_CAPABILITY'], "
+        "import os, bench.runners.scenes, torch; print(os.environ['ATEN_CPU_CAPABILITY'], "
         "os.environ['MKL_CBWR'], torch.backends.cpu.get_cpu_capability())"
     )
     env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "MKL_CBWR")}
@@ -473,7 +479,7 @@ def test_scenes_cli_errors(tmp_path):
 
     run = tmp_path / "run"
     res = subprocess.run(
-        [sys.executable, "-m", "bench.scenes", "dataset=synthetic", f"hydra.run.dir={run}"],
+        [sys.executable, "-m", "bench.runners.scenes", "dataset=synthetic", f"hydra.run.dir={run}"],
         capture_output=True,
         text=True,
     )
@@ -485,7 +491,7 @@ def test_scenes_cli_errors(tmp_path):
         [
             sys.executable,
             "-m",
-            "bench.scenes",
+            "bench.runners.scenes",
             "dataset=generic",
             f"dataset.root={tmp_path}",
             f"hydra.run.dir={run}",
@@ -497,14 +503,14 @@ def test_scenes_cli_errors(tmp_path):
 
 
 def test_read_only_data_is_never_written(tmp_path, monkeypatch):
-    import bench.scenes
+    import bench.runners.scenes
     import sagonline.datasets.common as common
-    from bench.scenes import output_dir
+    from bench.runners.scenes import output_dir
 
     writable = tmp_path / "rw" / "cap"
     writable.mkdir(parents=True)
     overlay = tmp_path / "overlay"
-    monkeypatch.setattr(bench.scenes, "SCENES_ROOT", overlay)
+    monkeypatch.setattr(bench.runners.scenes, "SCENES_ROOT", overlay)
     monkeypatch.setattr(common, "SCENES_ROOT", overlay)
     assert output_dir(writable, "generic") == writable / "gaussians"
     data = tmp_path / "ro" / "cap"
@@ -524,7 +530,7 @@ def test_read_only_data_is_never_written(tmp_path, monkeypatch):
 def test_fit_recipe_names_changed_and_missing_settings():
     from dataclasses import asdict
 
-    from bench.report import fit_recipe
+    from bench.tables.report import fit_recipe
     from sagonline.fitting import FitConfig
 
     cfg = asdict(FitConfig(seed=1, lambda_dist=1.0, device="cuda", camera_clearance=0.3))
@@ -592,7 +598,7 @@ def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
 def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
     """seed=k (k > 0) fits into gaussians-seed<k>/, and dataset.adapter.fit=seed<k> evaluates
     it: the draws of one recipe sit side by side, none replaces another."""
-    from bench.scenes import output_dir, variant_of
+    from bench.runners.scenes import output_dir, variant_of
     from sagonline.datasets.common import find_trained_scene, gaussians_dir
     from tests.fixtures import compose_config
 
@@ -616,7 +622,7 @@ def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
 def test_a_second_fit_into_the_same_folder_is_refused(tmp_path, monkeypatch):
     """Two `make scenes` of one scene and seed at once would interleave their checkpoints and
     files: the second is refused while the first holds the folder."""
-    from bench.scenes import fit_scene
+    from bench.runners.scenes import fit_scene
     from sagonline.core.outputs import OutputError, RunLock
 
     scene = tmp_path / "cap"
@@ -663,7 +669,7 @@ def test_backdrop_detect_fits_on_white_only_where_the_photographs_are(tmp_path):
     recipe with `fit.backdrop=fixed` is its fit (copied); on the same capture photographed
     against white it fits on white, records it, and the evaluation renders that scene on
     white."""
-    from bench.scenes import fit_scene
+    from bench.runners.scenes import fit_scene
     from sagonline.scene.io.images import read_rgb
     from tests.fixtures import write_image
 

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.eval import evaluate
+from bench.runners.eval import evaluate
 from sagonline.pipeline import PipelineSettings
 from sagonline.render.api import render_labels
 from tests.fixtures import compose_config, llff_scene, object_mask, write_image

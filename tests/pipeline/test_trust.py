@@ -20,8 +20,8 @@ import pandas as pd
 import pytest
 import torch
 
-from bench.eval import evaluate
-from bench.rundir import RunExists
+from bench.runners.eval import evaluate
+from bench.runners.rundir import RunExists
 from sagonline.datasets.base import DatasetError
 from sagonline.pipeline import (
     PipelineSettings,
@@ -175,7 +175,7 @@ def test_changed_view_count_with_a_shared_cache(tmp_path):
 
 
 def _bench_eval(*args, cwd=ROOT, **kw):
-    cmd = [sys.executable, "-m", "bench.eval", *args, "progress=false", *TINY]
+    cmd = [sys.executable, "-m", "bench.runners.eval", *args, "progress=false", *TINY]
     return subprocess.Popen(
         cmd, cwd=cwd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, **kw
     )
@@ -221,7 +221,7 @@ def test_killed_sweep_resumes_and_finished_jobs_stay_byte_identical(tmp_path):
     assert {j: _snapshot(sweep / j) for j in ("0", "1")} == before
     assert (sweep / "multirun.yaml").read_bytes() == sweep_file
 
-    from bench.tables import build
+    from bench.tables.paper import build
 
     df = build("ablation", sweep, tmp_path / "reports")
     labels = dict(zip(df["eps"], df["overrides"], strict=True))
@@ -253,7 +253,7 @@ def test_refused_rerun_leaves_the_finished_run_untouched(tmp_path):
 
 
 def test_interrupt_keeps_a_recording_of_what_was_done(tmp_path, monkeypatch):
-    import bench.eval
+    import bench.runners.eval
     from sagonline.vote.consensus import VoteAccumulator
 
     add_view, votes = VoteAccumulator.add_view, []
@@ -266,7 +266,7 @@ def test_interrupt_keeps_a_recording_of_what_was_done(tmp_path, monkeypatch):
 
     monkeypatch.setattr(VoteAccumulator, "add_view", stop)
     with pytest.raises(KeyboardInterrupt):
-        bench.eval.evaluate(cfg_with("dataset=synthetic_ff"), tmp_path)
+        bench.runners.eval.evaluate(cfg_with("dataset=synthetic_ff"), tmp_path)
     assert not (tmp_path / "metrics.json").exists()
     # the frames and masks rendered before the interrupt are in the recording
     assert (tmp_path / "recording.rrd").stat().st_size > 20_000
@@ -321,7 +321,7 @@ def test_zero_one_masks_read_as_binary_are_refused(tmp_path):
 
 
 def test_make_scenes_leaves_a_users_scene_alone(tmp_path, capsys):
-    from bench.scenes import fit_scene
+    from bench.runners.scenes import fit_scene
     from sagonline.datasets.generic import PosedMasksDataset
 
     cams, sc = llff_scene(tmp_path / "cap", NAMES)  # the user's own trained scene
@@ -536,7 +536,7 @@ def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same
     """A finished run recorded before consensus.body, consensus.weighting and label_render.size
     existed compares equal to this config with the rule off, the paper's count and labels
     rendered at the view's size, and differs from it with any of them changed."""
-    from bench.rundir import ADDED_SETTINGS, comparable_config, finished_config
+    from bench.runners.rundir import ADDED_SETTINGS, comparable_config, finished_config
 
     now = {
         "consensus": {"method": "rgc", "body": False, "weighting": "count"},

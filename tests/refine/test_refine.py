@@ -141,7 +141,7 @@ def test_teacher_label_out_of_range():
 def test_eval_with_refinement_reports_both_modes(tmp_path):
     import pandas as pd
 
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from tests.fixtures import cfg_with
 
     m = evaluate(
@@ -191,7 +191,7 @@ def test_a_step_budget_gives_the_same_weights_twice(tmp_path):
 
 @pytest.mark.slow
 def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):
-    from bench.eval import evaluate
+    from bench.runners.eval import evaluate
     from tests.fixtures import cfg_with
 
     cfg = cfg_with(

@@ -144,7 +144,7 @@ def test_without_weights_the_option_and_the_target_are_named(kind, tmp_path):
         [
             sys.executable,
             "-m",
-            "bench.eval",
+            "bench.runners.eval",
             f"segmenter={kind}",
             f"segmenter.decoder={tmp_path / 'nope.onnx'}",
             f"hydra.run.dir={tmp_path / 'run'}",

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.job import build_segmenter
+from bench.runners.job import build_segmenter
 from sagonline.score.metrics import match_labels, relabel, view_metrics
 from sagonline.segment import ObjectPrompt, Prompt
 from sagonline.segment.classical import FlowWatershedSegmenter

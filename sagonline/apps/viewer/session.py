@@ -12,7 +12,7 @@ A click restarts the engine's stream on the same frames with the prompt grown by
 `stop` keeps the labels made so far and `resume` carries on from the next view. When every view
 has voted, the labels are those of `segment_scene` on the same prompt: it is the same engine
 (`pipeline.stage_one.StageOne`). The browser side is `sagonline.apps.viewer.app`; the timings
-are `bench/bench_viewer.py`'s.
+are `bench/speed/viewer.py`'s.
 """
 
 from __future__ import annotations

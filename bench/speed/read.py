@@ -1,6 +1,6 @@
 """Peak memory of reading a large scene file, against the file's size.
 
-    python bench/bench_read.py [--gigabytes 2] [--dir /tmp] [--out reports/bench_read.csv] [--quick]
+    python -m bench.speed.read [--gigabytes 2] [--dir /tmp] [--out reports/bench_read.csv] [--quick]
 
 Writes a 3DGS `point_cloud.ply` of the full 62-property layout (SH degree 3, normals) of about
 `--gigabytes` GB, streamed row block by row block so that writing it needs little memory, then
@@ -20,9 +20,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from bench import OUT_HELP, REPORTS  # noqa: E402
+from bench import OUT_HELP, REPORTS, ROOT
 
 PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 PROPS += [f"f_rest_{i}" for i in range(45)]

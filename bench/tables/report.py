@@ -1,8 +1,8 @@
 """Gather run directories into `reports/`: Markdown and CSV tables, scores in percent.
 
-    python -m bench.report [RUN_DIR_OR_ROOT ...] [--out reports]     # runs.*, scenes.*
-    python -m bench.report --fits                                    # fits.*, fit_*_heldout.jpg
-    python -m bench.report --views NAME RUN ...                      # NAME.*, NAME_iou_vs_angle.png
+    python -m bench.tables.report [RUN_DIR_OR_ROOT ...] [--out reports]  # runs.*, scenes.*
+    python -m bench.tables.report --fits  # fits.*, fit_*_heldout.jpg
+    python -m bench.tables.report --views NAME RUN ...  # NAME.*, NAME_iou_vs_angle.png
 
 Every `metrics.json` below the given folders (default: runs/ and multirun/) becomes one row of
 `reports/runs.{md,csv}` and one row per scene of `reports/scenes.{md,csv}`; runs whose results
@@ -25,12 +25,12 @@ import pandas as pd
 from PIL import Image
 
 from bench import OUT_HELP, REPORTS
-from bench.rundir import read_run_metrics
+from bench.runners.rundir import read_run_metrics
 from sagonline.core.files import atomic_write_image, atomic_write_text
 from sagonline.datasets.common import SCENES_ROOT
 from sagonline.fitting import FitConfig
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 # per_view.csv's rows of the fused labels rendered ("coarse"; runs before the name was given
 # one meaning called them "initial", which is Table II's 2D segmenter on a novel view)
 COARSE = ("coarse", "initial")
@@ -336,8 +336,9 @@ def percent_words(value) -> str:
 
 def rescore_words(run: Path) -> str:
     """Whether the run's recorded mIoU / mAcc are what its own label maps give again
-    (`bench.score.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be said."""
-    from bench.score import rescore_run
+    (`bench.tables.score.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be
+    said."""
+    from bench.tables.score import rescore_run
     from sagonline.core.errors import DatasetError
 
     try:
@@ -379,7 +380,9 @@ def write_table(df: pd.DataFrame, out: Path, stem: str, title: str, notes: list[
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m bench.report", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.tables.report", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("roots", nargs="*", type=Path)
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     ap.add_argument(
@@ -424,7 +427,7 @@ def main(argv: list[str] | None = None) -> None:
         "Resize rule and device are per row; runs: how many run folders gave this row (identical "
         "settings and results; timings are their median).",
         "re-scored: whether the recorded mIoU / mAcc are what the run's own label maps give "
-        "again (`python -m bench.score RUN`); CONTRADICTED rows are not results.",
+        "again (`python -m bench.tables.score RUN`); CONTRADICTED rows are not results.",
     ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)

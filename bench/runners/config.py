@@ -1,5 +1,6 @@
-"""The typed root configs: `EvalConfig` (`python -m bench.eval`) and `ScenesConfig`
-(`python -m bench.scenes`), registered as Hydra schemas, and the config groups of the plug-ins.
+"""The typed root configs: `EvalConfig` (`python -m bench.runners.eval`) and
+`ScenesConfig` (`python -m bench.runners.scenes`), registered as Hydra schemas, and the config
+groups of the plug-ins.
 
 conf/eval.yaml and conf/scenes.yaml, and the groups they pick from, only select and override:
 each default is stated once, on its field below or in the library's own settings dataclasses
@@ -175,9 +176,9 @@ def check_override_keys(schema: type, argv: list[str], command: str) -> None:
                 raise SystemExit(2)
         if top not in known:
             other = (
-                "ScenesConfig's (python -m bench.scenes)"
+                "ScenesConfig's (python -m bench.runners.scenes)"
                 if schema is EvalConfig
-                else ("EvalConfig's (python -m bench.eval)")
+                else ("EvalConfig's (python -m bench.runners.eval)")
             )
             hint = f"; it is {other}" if top in _fields_of_other(schema) else ""
             print(f"error: {command}: no setting {top!r} (in {arg!r}){hint}", file=sys.stderr)
@@ -192,7 +193,7 @@ def group_options(group: str) -> set[str]:
     from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
 
     registry = {"segmenter": SEGMENTERS, "dataset": DATASETS, "consensus": VOTE_RULES}.get(group)
-    files = {p.stem for p in (Path(__file__).parents[1] / "conf" / group).glob("*.yaml")}
+    files = {p.stem for p in (Path(__file__).parents[2] / "conf" / group).glob("*.yaml")}
     return files | set(registry.keys() if registry is not None else [])
 
 

@@ -1,4 +1,4 @@
-"""Build the paper's tables from sweep directories: `python -m bench.tables NAME [SWEEP_DIR]`.
+"""Build the paper's tables from sweep directories: `python -m bench.tables.paper NAME [SWEEP_DIR]`.
 
 NAME is one of:
 - timing: time-to-first-mask, setup (vote + refinement) time, and the paper's answer modes
@@ -23,11 +23,11 @@ from pathlib import Path
 import pandas as pd
 
 from bench import OUT_HELP, REPORTS
-from bench.report import COARSE, device_text
-from bench.rundir import read_run_metrics
+from bench.runners.rundir import read_run_metrics
+from bench.tables.report import COARSE, device_text
 from sagonline.core.files import atomic_write_text
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 PAPER_MASK_MS = {1: 111, 3: 114, 6: 140, 12: 162, 25: 224, 50: 384, 100: 571, 206: 1466}
 
 
@@ -354,7 +354,9 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
 
 
 def main(argv: list[str] | None = None) -> None:
-    ap = argparse.ArgumentParser(prog="python -m bench.tables", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.tables.paper", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("name", choices=sorted(BUILDERS))
     ap.add_argument("sweep", nargs="?", type=Path)
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)

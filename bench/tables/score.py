@@ -1,7 +1,7 @@
 """Score predicted label maps against ground truth, by this harness's rules, strictly.
 
-    python -m bench.score RUN_DIR [--predictions predictions_refined]
-    python -m bench.score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--ignore LABEL]
+    python -m bench.tables.score RUN_DIR [--predictions predictions_refined]
+    python -m bench.tables.score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--ignore LABEL]
 
 Both folders hold `<scene>/<view>.png` single-channel label maps (0 = background), as a run
 writes them (`predictions/`, `ground_truth/`; see sagonline/score/predictions.py): so a peer's
@@ -25,17 +25,13 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
+import numpy as np
+import pandas as pd
 
-import numpy as np  # noqa: E402
-import pandas as pd  # noqa: E402
-
-from sagonline.core.errors import DatasetError  # noqa: E402
-from sagonline.core.files import read_json_object  # noqa: E402
-from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics  # noqa: E402
-from sagonline.score.predictions import (  # noqa: E402
+from sagonline.core.errors import DatasetError
+from sagonline.core.files import read_json_object
+from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics
+from sagonline.score.predictions import (
     SCORING_FILE,
     folder_sha256,
     label_maps,
@@ -168,7 +164,9 @@ def rescore_run(run: Path, predictions: str = "predictions") -> dict | None:
 
 
 def parse(argv: list[str] | None) -> argparse.Namespace:
-    ap = argparse.ArgumentParser(prog="python -m bench.score", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.tables.score", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("folders", type=Path, nargs="+", help="RUN_DIR, or PRED_DIR GT_DIR")
     ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
     ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")

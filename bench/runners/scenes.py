@@ -37,8 +37,13 @@ import torch
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from bench.config import ScenesConfig, check_override_keys, register_schemas_or_exit, to_config
-from bench.job import build_dataset, quiet
+from bench.runners.config import (
+    ScenesConfig,
+    check_override_keys,
+    register_schemas_or_exit,
+    to_config,
+)
+from bench.runners.job import build_dataset, quiet
 from sagonline.core.files import atomic_write, atomic_write_image, atomic_write_json, to_json
 from sagonline.core.machine import cpu_capability
 from sagonline.core.outputs import RunLock
@@ -347,7 +352,7 @@ def print_fit(scene: str, fit_cfg: FitConfig, metrics: dict, out: Path) -> None:
     )
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="scenes")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="scenes")
 def main(dict_cfg: DictConfig) -> None:
     try:
         fit_all(dict_cfg)
@@ -355,7 +360,7 @@ def main(dict_cfg: DictConfig) -> None:
         forget_refused_run(Path(HydraConfig.get().runtime.output_dir))
         raise
     except OSError as exc:  # a full disk, a file size limit, a folder gone read-only
-        from bench.runlog import disk_words
+        from bench.runners.runlog import disk_words
 
         print(f"error: {disk_words(exc)}", file=sys.stderr)
         raise SystemExit(2) from None
@@ -400,6 +405,6 @@ def fit_all(dict_cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
-    check_override_keys(ScenesConfig, sys.argv[1:], "bench.scenes")
+    check_override_keys(ScenesConfig, sys.argv[1:], "bench.runners.scenes")
     register_schemas_or_exit()
     main()

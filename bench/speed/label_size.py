@@ -1,7 +1,7 @@
 """The scored label render's cost at the render's size and at the ground truth's
 (`label_render.size`), in one process: ms per view and the ratio to the first size.
 
-    python bench/bench_label_size.py [--scene PLY] [--cameras DIR] [--sizes 228x171,1296x972]
+    python -m bench.speed.label_size [--scene PLY] [--cameras DIR] [--sizes 228x171,1296x972]
                                      [--views 10] [--repeats 3] [--out reports/bench_label_size.csv]
 
 Defaults: duck_queen's seed-0 fit (`make scenes DATASET=duck_queen`) with its LLFF cameras from
@@ -15,24 +15,20 @@ from __future__ import annotations
 
 import argparse
 import statistics
-import sys
 from functools import partial
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-import pandas as pd  # noqa: E402
-import torch  # noqa: E402
+import pandas as pd
+import torch
 
-import sagonline  # noqa: E402, F401, I001 (first: sets the OpenMP wait policy before torch loads)
-from bench import OUT_HELP, REPORTS  # noqa: E402
-from bench.bench_render import timed  # noqa: E402
-from sagonline.core.machine import describe_device  # noqa: E402
-from sagonline.render import render_labels  # noqa: E402
-from sagonline.render.backends import resolve_vote_backend  # noqa: E402
-from sagonline.scene.generator import make_scene  # noqa: E402
-from sagonline.scene.io import read_scene  # noqa: E402
-from sagonline.scene.views import load_views  # noqa: E402
+from bench import OUT_HELP, REPORTS, ROOT
+from bench.speed.render import timed
+from sagonline.core.machine import describe_device
+from sagonline.render import render_labels
+from sagonline.render.backends import resolve_vote_backend
+from sagonline.scene.generator import make_scene
+from sagonline.scene.io import read_scene
+from sagonline.scene.views import load_views
 
 DUCK = ROOT / "scenes" / "duck_queen" / "duck_queen" / "gaussians" / "point_cloud.ply"
 DUCK_CAMERAS = ROOT.parent / "shared" / "data" / "duck_queen"

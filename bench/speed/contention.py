@@ -1,6 +1,6 @@
 """Two votes at once on shared cores: each one's ms per mask against the same vote alone.
 
-    python bench/bench_contention.py [--masks 5] [--out reports/bench_contention.csv] [--quick]
+    python -m bench.speed.contention [--masks 5] [--out reports/bench_contention.csv] [--quick]
 
 Parallel sweeps (`LAUNCHER=local`), Stage II training beside the initial mode and shared cluster
 nodes all run a vote beside other work. For each backend (torch: the tiled PyTorch trace reduced
@@ -9,7 +9,7 @@ vote pass on the donut at 960x540 (the generated 200k-surfel scene when the donu
 timed alone in this process, then in two processes started together; "slowdown" is the median
 per-mask time together over alone. Numbers depend on what else the machine runs: the table's
 header says how many cores there are and the load before it started. --quick: the small
-scenes of `bench_render --quick`, 2 masks, one thread count (what the tests run).
+scenes of `bench.speed.render --quick`, 2 masks, one thread count (what the tests run).
 """
 
 from __future__ import annotations
@@ -18,20 +18,17 @@ import argparse
 import multiprocessing as mp
 import os
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import pandas as pd
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-from bench import OUT_HELP, REPORTS  # noqa: E402
+from bench import OUT_HELP, REPORTS
 
 
 def scene(quick: bool = False):
     """The first scene `make bench` times: the donut, else the generated 200k-surfel scene."""
-    from bench.bench_render import scenes
+    from bench.speed.render import scenes
 
     return next(scenes(quick))
 

@@ -1,4 +1,5 @@
-"""Stage I evaluation: `python -m bench.eval dataset=synthetic segmenter=oracle consensus=rgc`.
+"""Stage I evaluation:
+`python -m bench.runners.eval dataset=synthetic segmenter=oracle consensus=rgc`.
 
 Writes metrics.json, per_view.csv, eval.log, .hydra/ and recording.rrd into the Hydra run
 directory. A finished run is never rewritten without overwrite=true: rerunning the same config
@@ -17,8 +18,13 @@ import hydra
 from hydra.core.hydra_config import HydraConfig
 from omegaconf import DictConfig
 
-from bench.config import EvalConfig, check_override_keys, register_schemas_or_exit, to_config
-from bench.job import (
+from bench.runners.config import (
+    EvalConfig,
+    check_override_keys,
+    register_schemas_or_exit,
+    to_config,
+)
+from bench.runners.job import (
     build_dataset,
     check_device,
     refine_config_from,
@@ -26,8 +32,8 @@ from bench.job import (
     set_threads,
     settings_from,
 )
-from bench.outputs import print_summary, write_outputs
-from bench.rundir import (
+from bench.runners.outputs import print_summary, write_outputs
+from bench.runners.rundir import (
     check_writable,
     config_difference,
     config_fingerprint,
@@ -40,7 +46,7 @@ from bench.rundir import (
     swap_in,
     write_hydra_files,
 )
-from bench.runlog import FILE_ONLY, disk_words, run_log
+from bench.runners.runlog import FILE_ONLY, disk_words, run_log
 from sagonline.core.outputs import OutputError, RunLock
 from sagonline.core.provenance import git_state
 from sagonline.datasets.base import DatasetError
@@ -155,7 +161,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
             "cache_root": str(cache_root(cfg, home)) if cfg.cache else None,
         }
         scored = [r for r in reports if "sha256" in r.extra]
-        if scored:  # how bench.score re-scores the ground truth folder
+        if scored:  # how bench.tables.score re-scores the ground truth folder
             write_scoring_rules(
                 out_dir / "ground_truth",
                 adapter.protocol,
@@ -278,7 +284,7 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
     return previous
 
 
-@hydra.main(version_base="1.3", config_path="../conf", config_name="eval")
+@hydra.main(version_base="1.3", config_path="../../conf", config_name="eval")
 def main(cfg: DictConfig) -> None:
     out_dir = Path(HydraConfig.get().runtime.output_dir)
     try:
@@ -299,6 +305,6 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
-    check_override_keys(EvalConfig, sys.argv[1:], "bench.eval")
+    check_override_keys(EvalConfig, sys.argv[1:], "bench.runners.eval")
     register_schemas_or_exit()
     main()

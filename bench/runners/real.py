@@ -1,6 +1,6 @@
 """The cross-capture table: every real capture present, the same recipe and vote on each.
 
-    python -m bench.real [--captures mold_cape,duck_queen] [--seeds 0,1,2] [--out reports]
+    python -m bench.runners.real [--captures mold_cape,duck_queen] [--seeds 0,1,2] [--out reports]
                                                     (make tables-real; make crossval-captures)
 
 A capture is any dataset whose config in conf/dataset/ builds on `capture` (`defaults:
@@ -36,7 +36,7 @@ import yaml
 
 from bench import OUT_HELP, REPORTS
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SOURCES = {
     "real": ["segmenter=oracle", "consensus.stride=4"],
     "classical": ["segmenter=classical"],
@@ -186,8 +186,8 @@ def run(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ())
 
 
 def evaluate(capture: str, source: str, seed: int, setting: tuple[str, ...]) -> dict | None:
-    """`python -m bench.eval` of one run; its metrics, None when it failed (said why)."""
-    args = [sys.executable, "-m", "bench.eval", *command(capture, source, seed, setting)]
+    """`python -m bench.runners.eval` of one run; its metrics, None when it failed (said why)."""
+    args = [sys.executable, "-m", "bench.runners.eval", *command(capture, source, seed, setting)]
     env = os.environ | ({"OMP_NUM_THREADS": THREADS} if THREADS else {})
     done = subprocess.run(args, cwd=ROOT, capture_output=True, text=True, env=env)
     if done.returncode != 0:
@@ -387,7 +387,9 @@ def tasks(
 
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
-    ap = argparse.ArgumentParser(prog="python -m bench.real", description=__doc__.split("\n")[0])
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.runners.real", description=__doc__.split("\n")[0]
+    )
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
     ap.add_argument(
         "--seeds",
@@ -412,8 +414,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "--fit",
         metavar="VARIANT",
         help="score the fits of this recipe instead of the default's (dataset.adapter.fit=V; "
-        "e.g. avx512: `python -m bench.fit_captures --width avx512`); the table is written as "
-        "real_captures[_seeds]_<VARIANT>.md",
+        "e.g. avx512: `python -m bench.runners.fit_captures --width avx512`); the table is "
+        "written as real_captures[_seeds]_<VARIANT>.md",
     )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     ap.add_argument(
@@ -487,7 +489,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             used.append(seed)
             for source, setting in scored_settings(sources):
                 overrides = " ".join(command(capture, source, seed, base + setting))
-                commands.append(f"- {capture}, {source}: `python -m bench.eval {overrides}`")
+                commands.append(
+                    f"- {capture}, {source}: `python -m bench.runners.eval {overrides}`"
+                )
         if per_seed:
             rows.append(spread(capture, per_seed, used) if len(seeds) > 1 else per_seed[0])
     if not rows:
@@ -501,7 +505,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         *(
             [
                 f"- the fits: the recipe `{args.fit}` (`dataset.adapter.fit={args.fit}`, fitted by "
-                "`python -m bench.fit_captures`), not the default's."
+                "`python -m bench.runners.fit_captures`), not the default's."
             ]
             if args.fit
             else []
@@ -513,7 +517,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "  all voting, prompted from one mask of the reference view; `... alone`: its masks' own.",
         "- `..., chosen`: the same runs with the settings leave-one-capture-out kept for that",
         "  source (`make loo-captures`, reports/real_captures_loo.md), frozen in",
-        "  `bench.real.CHOSEN`: "
+        "  `bench.runners.real.CHOSEN`: "
         + (
             "; ".join(f"{s}: `{' '.join(v)}`" for s, v in CHOSEN.items())
             or "none kept, the defaults stay"
@@ -529,7 +533,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "- extra px by labelled Gaussians: the share of the pixels wrongly rendered as the object",
         "  that show a Gaussian labelled as it, and where those sit against the object's body",
         "  (gaussians_outside.csv in each run; runs older than the per-Gaussian diagnosis: -).",
-        "- built by `make tables-real` (`python -m bench.real`).",
+        "- built by `make tables-real` (`python -m bench.runners.real`).",
         "",
         df.to_markdown(index=False),
         "",
@@ -625,7 +629,7 @@ def choose(
         "the setting of the best mean over all of them is kept unless some held-out capture "
         "lost more than 1 point by its rotation's choice.",
         "- candidates: " + "; ".join(f"`{n}`" for n in settings if n != BASELINE),
-        "- built by `python -m bench.real --seeds ... --settings ...`.",
+        "- built by `python -m bench.runners.real --seeds ... --settings ...`.",
         "",
         *kept_lines,
         "",

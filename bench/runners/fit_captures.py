@@ -1,20 +1,20 @@
 """Every real capture's fits of several seeds in one command: the draws the cross-capture table
 and the leave-one-capture-out choice read.
 
-    python -m bench.fit_captures [--captures a,b] [--seeds 0,1,2] [--jobs 2] [OVERRIDES ...]
+    python -m bench.runners.fit_captures [--captures a,b] [--seeds 0,1,2] [--jobs 2] [OVERRIDES ...]
                                                                       (make fits-captures)
 
-Each (capture, seed) runs `python -m bench.scenes dataset=<capture> seed=<k> progress=false
+Each (capture, seed) runs `python -m bench.runners.scenes dataset=<capture> seed=<k> progress=false
 OVERRIDES` (a fit recipe of one's own: `variant=V fit.X=...`; its fits are then scored as the
 candidate `dataset.adapter.fit=V` of `make loo-captures`). `--jobs` fits run at once, each on
-one thread (a CPU fit gives the same scene on any thread count). bench.scenes skips a finished
-fit, so an interrupted batch resumes where it stopped. Each fit's log goes to
+one thread (a CPU fit gives the same scene on any thread count). bench.runners.scenes skips a
+finished fit, so an interrupted batch resumes where it stopped. Each fit's log goes to
 runs/fits/<capture>[-<variant>]-seed<k>.log; a table says what each fit did.
 
 `--width avx512` runs torch's CPU kernels at the other vector width (`ATEN_CPU_CAPABILITY`; every
 fit is pinned to AVX2 otherwise): the same recipe rounds otherwise there, another draw of it
 (two such draws of one capture scored 53 and 67). Those fits go to the variant `avx512` (or
-`<variant>-avx512`); `python -m bench.real --fit avx512` scores them as its table's fits.
+`<variant>-avx512`); `python -m bench.runners.real --fit avx512` scores them as its table's fits.
 """
 
 from __future__ import annotations
@@ -30,7 +30,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.real import FIT, ROOT, captures, check_jobs, fit_of
+from bench.runners.real import FIT, ROOT, captures, check_jobs, fit_of
 
 LOGS = ROOT / "runs" / "fits"
 
@@ -67,7 +67,7 @@ def check_width(width: str) -> None:
 
 
 def fit_command(capture: str, seed: int, overrides: list[str]) -> list[str]:
-    """`python -m bench.scenes`'s arguments for one capture's fit of one seed."""
+    """`python -m bench.runners.scenes`'s arguments for one capture's fit of one seed."""
     return [f"dataset={capture}", f"seed={seed}", "progress=false", *overrides]
 
 
@@ -76,7 +76,7 @@ def log_path(logs: Path, capture: str, seed: int, variant: str | None) -> Path:
 
 
 def fit_one(capture: str, seed: int, overrides: list[str], env: dict[str, str], logs: Path) -> dict:
-    """Run one fit (bench.scenes skips a finished one); what it did, from its log and its
+    """Run one fit (bench.runners.scenes skips a finished one); what it did, from its log and its
     fit_metrics.json."""
     variant = variant_of(overrides)
     log = log_path(logs, capture, seed, variant)
@@ -84,7 +84,7 @@ def fit_one(capture: str, seed: int, overrides: list[str], env: dict[str, str], 
     start = time.perf_counter()
     with log.open("w") as out:
         done = subprocess.run(
-            [sys.executable, "-m", "bench.scenes", *fit_command(capture, seed, overrides)],
+            [sys.executable, "-m", "bench.runners.scenes", *fit_command(capture, seed, overrides)],
             cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env=os.environ | env,
         )  # fmt: skip
     said = log.read_text().strip().splitlines() or ["(no output)"]
@@ -108,7 +108,7 @@ def fit_one(capture: str, seed: int, overrides: list[str], env: dict[str, str], 
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(
-        prog="python -m bench.fit_captures", description=__doc__.split("\n")[0]
+        prog="python -m bench.runners.fit_captures", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--captures", help="comma-separated (default: every capture in conf/dataset)")
     ap.add_argument("--seeds", default="0,1,2", help="comma-separated fit seeds (default 0,1,2)")
@@ -120,7 +120,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     )  # fmt: skip
     ap.add_argument("--logs", type=Path, default=LOGS, help="the fits' logs (default runs/fits)")
     ap.add_argument("--dry-run", action="store_true", help="print the fits' commands and stop")
-    ap.add_argument("overrides", nargs="*", help="bench.scenes overrides: variant=V fit.X=...")
+    ap.add_argument(
+        "overrides", nargs="*", help="bench.runners.scenes overrides: variant=V fit.X=..."
+    )
     args = ap.parse_args(argv)
     try:
         seeds = sorted({int(s) for s in args.seeds.split(",")})
@@ -146,7 +148,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         for capture, seed in todo:
             prefix = "".join(f"{k}={v} " for k, v in env.items())
             print(
-                f"{prefix}python -m bench.scenes " + " ".join(fit_command(capture, seed, overrides))
+                f"{prefix}python -m bench.runners.scenes "
+                + " ".join(fit_command(capture, seed, overrides))
             )
         return pd.DataFrame()
     if env:

@@ -1,7 +1,7 @@
-"""Where a mask source loses, view by view: the cross-capture table's runs (`bench.real`) read
-back, each view's IoU under one source against another's on the same fit.
+"""Where a mask source loses, view by view: the cross-capture table's runs (`bench.runners.real`)
+read back, each view's IoU under one source against another's on the same fit.
 
-    python -m bench.view_losses [--captures a,b] [--seeds 0,1,2] [--source sam2_tiny]
+    python -m bench.tables.view_losses [--captures a,b] [--seeds 0,1,2] [--source sam2_tiny]
                                 [--against real] [--setting chosen|defaults] [--worst 5]
 
 For every capture and seed whose two runs are finished, each scored view's IoU under --source
@@ -17,7 +17,7 @@ import argparse
 
 import pandas as pd
 
-from bench.real import CHOSEN, ROOT, captures, folder
+from bench.runners.real import CHOSEN, ROOT, captures, folder
 from sagonline.score.diagnosis import CAUSE_GROUPS
 
 
@@ -46,7 +46,7 @@ def losses(names, seeds, source, against, chosen) -> pd.DataFrame:
 
 def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(
-        prog="python -m bench.view_losses", description=__doc__.split("\n")[0]
+        prog="python -m bench.tables.view_losses", description=__doc__.split("\n")[0]
     )
     ap.add_argument("--captures", help="comma-separated (default: every capture)")
     ap.add_argument("--seeds", default="0,1,2")
