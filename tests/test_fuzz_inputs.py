@@ -72,13 +72,7 @@ def run(argv: list[str]) -> tuple[int, str]:
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            if argv[0] == "bench.tables.score":
-                from bench.tables.score import main as score
-
-                score(argv[1:])
-                code = 0
-            else:
-                code = main(argv)
+            code = main(argv)
         except SystemExit as exc:
             code = int(exc.code or 0)
     return code, err.getvalue()
@@ -164,7 +158,7 @@ def test_predictions_given_to_the_scorer(world, quiet_cwd, edits, cut):
     _fuzzed_copy(base / "p.png", pred / "v.png", edits, cut)
     (base / "p.png").unlink()
     before, here = tree_digest(base / "pred"), tree_digest(quiet_cwd)
-    code, err = run(["bench.tables.score", str(base / "pred"), str(base / "gt")])
+    code, err = run(["score", str(base / "pred"), str(base / "gt")])
     check(code, err, "v.png", base / "pred", before, here)
 
 
@@ -265,7 +259,8 @@ def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits
 def test_a_plugin_name(name):
     """A segmenter or dataset option, and a SAGONLINE_PLUGINS module, of any text: one line
     naming it, before Hydra composes anything (it printed its own several lines, exit 1)."""
-    from bench.runners.config import EvalConfig, check_override_keys
+    from bench.runners.config import EvalConfig
+    from bench.runners.overrides import check_override_keys
 
     for override in (f"segmenter={name}", f"dataset={name}"):
         err = io.StringIO()

@@ -1,4 +1,4 @@
-"""The guarantees of `segment`, `export`, `render` and `bench.tables.score` (the surfaces an
+"""The guarantees of `segment`, `export`, `render` and `sagonline score` (the surfaces an
 adversarial new user found holes in): a run folder runs no code, nothing outside --out is
 touched, a cache entry knows what it is, masks are read as what they are, and the scorer cannot
 be fooled.
@@ -364,7 +364,7 @@ def _label_maps(folder, scene="s", views=None, **files):
 
 
 def _score(*args):
-    from bench.tables.score import main as score
+    from sagonline.apps.cli.score import main as score
 
     return score([str(a) for a in args])
 

@@ -83,7 +83,7 @@ def test_a_png_bomb_is_refused_from_its_header_at_little_memory(tmp_path):
     cv2.imwrite(str(gt / "v.png"), np.zeros((30, 40), np.uint8))
     bomb_png(pred / "v.png", 32000, 24000)
     assert (pred / "v.png").stat().st_size < 200_000
-    code, err, peak = run_python("bench.tables.score", str(tmp_path / "pred"), str(tmp_path / "gt"))
+    code, err, peak = run_python("sagonline", "score", str(tmp_path / "pred"), str(tmp_path / "gt"))
     assert code == 2, err
     one_error_line(err, "v.png", "exceeds the ceiling", "refused before decoding")
     assert 0 < peak < 1500, peak  # torch and the libraries alone are about 500 MB
@@ -218,7 +218,7 @@ def test_a_recorded_click_outside_its_view_is_named_by_its_field(masked_segmenta
     one_error_line(capsys.readouterr().err, "far.json: prompt.objects[0].clicks[0]", "outside")
 
 
-# --- 6. bench.tables.score ------------------------------------------------------------------------
+# --- 6. sagonline score ------------------------------------------------------------------------
 
 
 def _label_folders(tmp_path: Path) -> tuple[Path, Path]:
@@ -233,7 +233,7 @@ def score(*argv: str) -> tuple[int, str, str]:
     import contextlib
     import io
 
-    from bench.tables.score import main as score_main
+    from sagonline.apps.cli.score import main as score_main
 
     out, err = io.StringIO(), io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):

@@ -16,9 +16,10 @@ PACKAGE = ROOT / "sagonline"
 
 
 def test_no_module_over_400_lines():
+    """The library and the harness around it (bench/) alike."""
     long = {
         str(p.relative_to(ROOT)): n
-        for p in PACKAGE.rglob("*.py")
+        for p in [*PACKAGE.rglob("*.py"), *(ROOT / "bench").rglob("*.py")]
         if (n := p.read_text().count("\n")) > 400
     }
     assert not long, long
@@ -242,3 +243,124 @@ def test_every_backticked_repository_path_in_the_docs_exists():
                 continue
             stale.append(f"{page.relative_to(ROOT)}: {token}")
     assert not stale, stale
+
+
+DOC_PAGES = (ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md")))
+# Flags of other tools that the docs quote: Hydra's, rerun's, 3DGS's training script's
+OTHER_TOOLS_FLAGS = {"--multirun", "--serve-web", "--white_background"}
+
+
+def backticked(pages=DOC_PAGES) -> list[tuple[str, str]]:
+    """(page, text) of every span in backticks of the pages."""
+    import re
+
+    return [(p.name, span) for p in pages for span in re.findall(r"`([^`]+)`", p.read_text())]
+
+
+def unknown_flags(spans) -> list[str]:
+    """The `--flags` quoted in `spans` that no command of the project defines (a quoted
+    "--flag" in sagonline/, bench/, the Makefile or scripts/) and no other tool owns."""
+    import re
+
+    sources = [*ROOT.glob("sagonline/**/*.py"), *ROOT.glob("bench/**/*.py"), ROOT / "Makefile"]
+    text = "\n".join(p.read_text() for p in [*sources, *(ROOT / "scripts").glob("*")])
+    defined = set(re.findall(r'"(--[a-z][a-z0-9_-]*)"', text)) | OTHER_TOOLS_FLAGS
+    return [
+        f"{page}: {flag}"
+        for page, span in spans
+        for flag in re.findall(r"(?<![\w-])(--[a-z][a-z0-9_-]*)", span)
+        if flag not in defined
+    ]
+
+
+def unknown_modules(spans) -> list[str]:
+    """The `python -m MODULE` commands and dotted `bench.` / `sagonline.` names quoted in
+    `spans` that name no module (or no attribute of one)."""
+    import importlib
+    import importlib.util
+    import re
+
+    def exists(name: str) -> bool:
+        try:
+            if importlib.util.find_spec(name) is not None:
+                return True
+        except ModuleNotFoundError:
+            pass
+        module, _, attribute = name.rpartition(".")
+        try:
+            return bool(module) and hasattr(importlib.import_module(module), attribute)
+        except ModuleNotFoundError:
+            return False
+
+    names = [
+        (page, name)
+        for page, span in spans
+        for name in re.findall(r"python -m ([a-z_][\w.]*)", span)
+        + re.findall(r"^((?:bench|sagonline)\.[\w.]*\w)$", span)
+    ]
+    return [f"{page}: {name}" for page, name in names if not exists(name)]
+
+
+def unknown_settings(spans) -> list[str]:
+    """The `key.sub=value` settings quoted in `spans` that no composed config has: each key
+    looked up in the evaluation's config (the scenes' for fit.*) with every option of its
+    group tried (a segmenter's key exists only when that segmenter is picked); keys with
+    capitals (`fit.X=...`) are placeholders."""
+    import functools
+    import re
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from bench.runners.config import register_schemas
+    from bench.runners.overrides import GROUPS, group_options
+
+    keys = {
+        m.group(1): page
+        for page, span in spans
+        for token in span.split()
+        if (m := re.match(r"^[+~]?([a-z_]+(?:\.[a-z_0-9]+)+)=", token))
+        and not token.startswith("hydra.")
+    }
+    register_schemas()
+    absent = object()
+    with initialize_config_dir(config_dir=str(ROOT / "conf"), version_base="1.3"):
+
+        @functools.cache
+        def composed(schema: str, group: str, option: str | None):
+            try:
+                return compose(schema, overrides=[f"{group}={option}"] if option else [])
+            except Exception:  # an option that does not compose on its own: not this key's
+                return None
+
+        def known(key: str) -> bool:
+            top = key.split(".")[0]
+            schema = "scenes" if top == "fit" else "eval"
+            options = [None, *sorted(group_options(top))] if top in GROUPS else [None]
+            return any(
+                (cfg := composed(schema, top, option)) is not None
+                and OmegaConf.select(cfg, key, default=absent) is not absent
+                for option in options
+            )
+
+        return [f"{page}: {key}" for key, page in sorted(keys.items()) if not known(key)]
+
+
+def test_every_option_command_and_setting_the_docs_quote_exists():
+    """What README.md and docs/*.md quote in backticks is what the commands take: each
+    `--flag` is defined by one of the project's commands (or is another tool's, named in
+    OTHER_TOOLS_FLAGS), each `python -m MODULE` and dotted `bench.`/`sagonline.` name imports,
+    and each `key.sub=value` setting is a key of a composed config. A made-up one of each is
+    caught, so the check can fail."""
+    spans = backticked()
+    planted = [("planted", "--no-such-flag"), ("planted", "python -m bench.no_such")]
+    planted += [("planted", "consensus.no_such=1"), ("planted", "bench.runners.real.NO_SUCH")]
+    assert unknown_flags(spans) == [] and unknown_flags(planted) == ["planted: --no-such-flag"]
+    assert unknown_modules(spans) == []
+    assert unknown_modules(planted) == [
+        "planted: bench.no_such",
+        "planted: bench.runners.real.NO_SUCH",
+    ]
+    assert unknown_settings(spans) == [] and unknown_settings(planted) == [
+        "planted: consensus.no_such"
+    ]

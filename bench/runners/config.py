@@ -21,7 +21,6 @@ import re
 import sys
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
@@ -142,7 +141,7 @@ class ScenesConfig:
 
     def __post_init__(self) -> None:
         from sagonline.core.settings import check_settings
-        from sagonline.datasets.common import is_variant_name
+        from sagonline.datasets.fits import is_variant_name
 
         check_settings(
             "scenes",
@@ -157,49 +156,6 @@ class ScenesConfig:
 
 # Plug-in settings of these names follow the run's own (`seed=1` reseeds every plug-in).
 ROOT_SETTINGS = {"seed": "${seed}", "device": "${device}"}
-
-
-def check_override_keys(schema: type, argv: list[str], command: str) -> None:
-    """A command line's `key=value` overrides whose first part is no setting of `schema` stop
-    here, in one line naming the key (Hydra's own refusal is several lines and exit 1)."""
-    known = {f.name for f in dataclasses.fields(schema)} | {"hydra"}
-    for arg in argv:
-        if arg.startswith(("-", "+", "~")) or "=" not in arg:
-            continue
-        key, value = arg.split("=", 1)
-        top = re.split(r"[./@]", key, maxsplit=1)[0]  # hydra/launcher=joblib: a Hydra group
-        if "." not in key and top in GROUPS and "," not in value:
-            options = group_options(top)
-            if value not in options | {"schema"}:
-                print(f"error: {command}: {arg}: no such {top} option; the options: "
-                      f"{', '.join(sorted(options))}", file=sys.stderr)  # fmt: skip
-                raise SystemExit(2)
-        if top not in known:
-            other = (
-                "ScenesConfig's (python -m bench.runners.scenes)"
-                if schema is EvalConfig
-                else ("EvalConfig's (python -m bench.runners.eval)")
-            )
-            hint = f"; it is {other}" if top in _fields_of_other(schema) else ""
-            print(f"error: {command}: no setting {top!r} (in {arg!r}){hint}", file=sys.stderr)
-            raise SystemExit(2)
-
-
-# Config groups whose options are the registries' keys and the YAML files of conf/<group>/.
-GROUPS = ("segmenter", "dataset", "consensus", "renderer", "refine", "feedback", "fit")
-
-
-def group_options(group: str) -> set[str]:
-    from sagonline.core.plugins import DATASETS, SEGMENTERS, VOTE_RULES
-
-    registry = {"segmenter": SEGMENTERS, "dataset": DATASETS, "consensus": VOTE_RULES}.get(group)
-    files = {p.stem for p in (Path(__file__).parents[2] / "conf" / group).glob("*.yaml")}
-    return files | set(registry.keys() if registry is not None else [])
-
-
-def _fields_of_other(schema: type) -> set[str]:
-    other = ScenesConfig if schema is EvalConfig else EvalConfig
-    return {f.name for f in dataclasses.fields(other)}
 
 
 def register_schemas_or_exit() -> None:
@@ -341,7 +297,6 @@ def check_boolean_overrides(typed) -> None:
 def check_dataset_name(cfg) -> None:
     """dataset.name names the run's folder (runs/<name>/...) and its protocol id: a plain name,
     never a path (`../../x` wrote the run outside runs/)."""
-    import re
 
     name = (getattr(cfg, "dataset", None) or {}).get("name")
     if name is None:

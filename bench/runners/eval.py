@@ -20,7 +20,6 @@ from omegaconf import DictConfig
 
 from bench.runners.config import (
     EvalConfig,
-    check_override_keys,
     register_schemas_or_exit,
     to_config,
 )
@@ -33,6 +32,7 @@ from bench.runners.job import (
     settings_from,
 )
 from bench.runners.outputs import print_summary, write_outputs
+from bench.runners.overrides import check_override_keys
 from bench.runners.rundir import (
     check_writable,
     config_difference,
@@ -46,21 +46,17 @@ from bench.runners.rundir import (
     swap_in,
     write_hydra_files,
 )
-from bench.runners.runlog import FILE_ONLY, disk_words, run_log
+from bench.runners.runlog import disk_words, run_log
 from sagonline.core.outputs import OutputError, RunLock
 from sagonline.core.provenance import git_state
 from sagonline.datasets.base import DatasetError
 from sagonline.pipeline import (
     STAGE_VERSIONS,
-    SceneReport,
     SegmenterRun,
     input_digests,
-    run_scene,
-    run_stage_two,
-    student_checkpoint,
     summarize,
 )
-from sagonline.record.recording import Recorder
+from sagonline.pipeline.evaluate import FILE_ONLY, evaluate_scenes
 from sagonline.render.backends import plan_backends
 from sagonline.score.predictions import write_scoring_rules
 from sagonline.segment.corruption import MaskCorruption
@@ -133,12 +129,21 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-    vote_cfg, weights = cfg.consensus, run.weights
+    weights = run.weights
     overrides = write_hydra_files(out_dir, cfg)
     with run_log(out_dir):
         try:
-            reports = run_scenes(
-                cfg, out_dir, adapter, scenes, run, vote_cfg, settings, refine_cfg, home
+            reports = evaluate_scenes(
+                adapter,
+                scenes,
+                run,
+                cfg.consensus,
+                settings,
+                refine=refine_cfg,
+                cache_root=cache_root(cfg, home),
+                recording=out_dir / "recording.rrd" if cfg.record else None,
+                predictions_to=out_dir,
+                warn=warn,
             )
         except KeyboardInterrupt:
             log.warning("interrupted; finished stages are cached", extra=FILE_ONLY)
@@ -161,7 +166,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
             "cache_root": str(cache_root(cfg, home)) if cfg.cache else None,
         }
         scored = [r for r in reports if "sha256" in r.extra]
-        if scored:  # how bench.tables.score re-scores the ground truth folder
+        if scored:  # how sagonline score re-scores the ground truth folder
             write_scoring_rules(
                 out_dir / "ground_truth",
                 adapter.protocol,
@@ -179,6 +184,12 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
             )
             raise SystemExit(1)
     return metrics
+
+
+def warn(words: str) -> None:
+    """A scene's failure said on the console and in the run's log."""
+    log.warning(words)
+    print(f"warning: {words}", file=sys.stderr)
 
 
 def cache_root(cfg: EvalConfig, out_dir: Path) -> Path | None:
@@ -200,58 +211,6 @@ def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> Segm
     except (PluginError, ValueError, RuntimeError, OSError) as exc:
         print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
-
-
-def run_scenes(cfg, out_dir, adapter, scenes, segmenter, vote_cfg, settings, refine_cfg, home):
-    """Stage I (and Stage II when enabled) on every scene; a scene that cannot load or be
-    scored is reported as failed and the others go on."""
-    recorder = Recorder(
-        out_dir / "recording.rrd" if cfg.record else None,
-        scenes=list(scenes),
-        refined=refine_cfg is not None,
-    )
-    root = cache_root(cfg, home)
-    reports: list[SceneReport] = []
-    try:
-        for scene in scenes:
-            cache = root / scene if root is not None else None
-            try:
-                task = adapter.load_scene(scene)
-                report, stage_one = run_scene(
-                    task,
-                    segmenter,
-                    vote_cfg,
-                    settings,
-                    cache_dir=cache,
-                    recorder=recorder,
-                    predictions_to=out_dir,
-                )
-            except DatasetError as exc:
-                log.warning("scene %s skipped: %s", scene, exc)
-                print(f"warning: scene {scene} skipped: {exc}", file=sys.stderr)
-                failed = SceneReport(scene, status="failed", error=str(exc))
-                failed.protocol = adapter.protocol
-                reports.append(failed)
-                continue
-            report.protocol = adapter.protocol
-            if refine_cfg is not None:
-                checkpoint = student_checkpoint(cache, stage_one, refine_cfg, settings)
-                run_stage_two(
-                    task,
-                    stage_one,
-                    refine_cfg,
-                    settings,
-                    report,
-                    recorder,
-                    checkpoint,
-                    out_dir,
-                    segmenter,
-                )
-            log.info("scene %s: stages %s", scene, report.stages, extra=FILE_ONLY)
-            reports.append(report)
-    finally:
-        recorder.close()
-    return reports
 
 
 def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes) -> dict:

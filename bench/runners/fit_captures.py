@@ -30,7 +30,9 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.runners.real import FIT, ROOT, captures, check_jobs, fit_of
+from bench import ROOT
+from bench.runners.captures import FIT, captures, fit_of
+from bench.runners.job import check_jobs
 
 LOGS = ROOT / "runs" / "fits"
 

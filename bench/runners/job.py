@@ -130,3 +130,10 @@ def build_segmenter(node: dict):
     except (PluginError, ValueError, RuntimeError, OSError) as exc:
         print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
         raise SystemExit(2) from None
+
+
+def check_jobs(ap, jobs: int) -> None:
+    """--jobs: processes at once, each on one thread: 1 to this machine's cores."""
+    cores = os.cpu_count() or 1
+    if not 1 <= jobs <= cores:
+        ap.error(f"--jobs {jobs}: 1 to {cores} (this machine's cores; each job runs one thread)")

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench.runners.runlog import FILE_ONLY
 from sagonline.core.files import atomic_write_json, atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.pipeline import SceneReport
+from sagonline.pipeline.evaluate import FILE_ONLY
 
 
 def resize_rule(cfg) -> str:
@@ -47,7 +47,7 @@ def write_outputs(
         **summary,
         "resize_rule": resize_rule(cfg),
         "device": describe_device(cfg.device),
-        "sha256": digests,  # of the label-map PNGs: re-score with python -m bench.tables.score
+        "sha256": digests,  # of the label-map PNGs: re-score with sagonline score
         "scenes": [
             {k: v for k, v in asdict(r).items() if k not in ("views", "outside")} for r in reports
         ],
@@ -166,11 +166,7 @@ def print_summary(
         + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
         f"resize rule: {metrics['resize_rule']}",
         f"outputs: {shown_as or out_dir}/metrics.json, per_view.csv"
-        + (
-            ", predictions/ (python -m bench.tables.score)"
-            if (out_dir / "predictions").is_dir()
-            else ""
-        )
+        + (", predictions/ (sagonline score)" if (out_dir / "predictions").is_dir() else "")
         + (
             ", recording.rrd (open with: rerun recording.rrd)"
             if (out_dir / "recording.rrd").exists()

@@ -7,8 +7,6 @@ import sys
 from contextlib import contextmanager
 from pathlib import Path
 
-FILE_ONLY = {"file_only": True}  # `extra=` of records that are for eval.log, not the console
-
 
 def _not_file_only(record: logging.LogRecord) -> bool:
     return not getattr(record, "file_only", False)

@@ -26,7 +26,6 @@ os.environ.setdefault("MKL_CBWR", "COMPATIBLE")
 import dataclasses
 import json
 import shutil
-import stat
 import sys
 import time
 from pathlib import Path
@@ -39,17 +38,17 @@ from omegaconf import DictConfig
 
 from bench.runners.config import (
     ScenesConfig,
-    check_override_keys,
     register_schemas_or_exit,
     to_config,
 )
 from bench.runners.job import build_dataset, quiet
-from sagonline.core.files import atomic_write, atomic_write_image, atomic_write_json, to_json
+from bench.runners.overrides import check_override_keys
+from sagonline.core.files import atomic_write_image, atomic_write_json, to_json
 from sagonline.core.machine import cpu_capability
 from sagonline.core.outputs import RunLock
 from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
-from sagonline.datasets.common import SCENES_ROOT, fit_folder, fit_variant
+from sagonline.datasets.fits import copy_fit, fit_folder, fit_variant, foreign_scene, output_dir
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     fit_near_depths,
@@ -63,42 +62,11 @@ from sagonline.scene.io.cameras import load_llff_bounds
 from sagonline.scene.io.images import resize_nearest
 
 
-def output_dir(scene_dir: Path, dataset: str, variant: str = "") -> Path:
-    """`<scene>/gaussians/` (`gaussians-<variant>/`) when the data folder is writable, else the
-    project's overlay. A folder whose owner-write bit is off counts as read-only even for root
-    (who could write anyway), so shared, read-only data is never modified."""
-    own = scene_dir / fit_folder(variant)
-    if not (scene_dir.stat().st_mode & stat.S_IWUSR):
-        return SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
-    try:
-        own.mkdir(parents=True, exist_ok=True)
-        probe = own / ".write_test"
-        probe.write_text("")
-        probe.unlink()
-        return own
-    except OSError:
-        return SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
-
-
 def variant_of(cfg: ScenesConfig) -> str:
     """The fit's folder suffix: `seed<k>` for a seed other than 0 (each draw of the recipe in a
     folder of its own; evaluate one with dataset.adapter.fit=seed<k>), after `variant` where
     one is named (`<variant>-seed<k>`: the draws of a variant recipe side by side too)."""
     return fit_variant(cfg.variant, cfg.seed)
-
-
-def foreign_scene(out: Path) -> Path | None:
-    """A point_cloud.ply in `out` that is not the one a fit of ours wrote there: ours are the
-    files whose digest the fit_metrics.json beside them records. Anything else (the user's
-    own scene, also with an interrupted fit's checkpoint beside it) is never replaced silently."""
-    scene = out / "point_cloud.ply"
-    if not scene.is_file():
-        return None
-    try:
-        recorded = json.loads((out / "fit_metrics.json").read_text()).get("scene_digest")
-    except (OSError, ValueError, AttributeError):
-        recorded = None
-    return None if recorded == digest_file(scene) else scene
 
 
 def object_psnr(adapter, scene: str, fitter: SceneFitter, renders: dict) -> float | None:
@@ -231,19 +199,6 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     return base if same and other.train_idx == fitter.train_idx else None
 
 
-def copy_fit(base: Path, out: Path, fitter: SceneFitter) -> dict:
-    """The fit in `base` written to `out` as this recipe's (its fit_config.json records this
-    recipe, fit_metrics.json says where the fit ran); returns the metrics."""
-    for path in sorted(base.iterdir()):
-        if path.suffix in (".ply", ".png") or path.name == "cameras.json":
-            atomic_write(out / path.name, lambda tmp, p=path: shutil.copyfile(p, tmp))
-    metrics = json.loads((base / "fit_metrics.json").read_text())
-    metrics["same_fit_as"] = base.name  # a sibling folder of `out`
-    atomic_write_json(out / "fit_config.json", dataclasses.asdict(fitter.cfg))
-    atomic_write_json(out / "fit_metrics.json", metrics)
-    return metrics
-
-
 def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, out: Path) -> dict:
     """`fit_scene` once `out` is locked."""
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
@@ -253,7 +208,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
             f"{scene}: this recipe's fit is the one in {base} (the same start and near depths; "
             f"fit.view_near_quantile or fit.backdrop change nothing here): copied to {out}"
         )
-        return copy_fit(base, out, fitter)
+        return copy_fit(base, out, dataclasses.asdict(fitter.cfg))
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
@@ -369,7 +324,6 @@ def main(dict_cfg: DictConfig) -> None:
 def forget_refused_run(run: Path) -> None:
     """A command refused before any fit leaves no folder behind (only Hydra's record and the
     log were in it)."""
-    import shutil
 
     if run.is_dir() and {p.name for p in run.iterdir()} <= {".hydra", "scenes.log"}:
         shutil.rmtree(run, ignore_errors=True)

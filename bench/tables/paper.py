@@ -24,7 +24,8 @@ import pandas as pd
 
 from bench import OUT_HELP, REPORTS
 from bench.runners.rundir import read_run_metrics
-from bench.tables.report import COARSE, device_text
+from bench.tables.report import device_text
+from bench.tables.views import COARSE
 from sagonline.core.files import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -17,23 +17,17 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from dataclasses import asdict
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
-from PIL import Image
 
 from bench import OUT_HELP, REPORTS
 from bench.runners.rundir import read_run_metrics
-from sagonline.core.files import atomic_write_image, atomic_write_text
-from sagonline.datasets.common import SCENES_ROOT
-from sagonline.fitting import FitConfig
+from bench.tables.fits import write_fits
+from bench.tables.views import plot_iou_against_angle, view_rows
+from sagonline.core.files import atomic_write_text
 
 ROOT = Path(__file__).resolve().parents[2]
-# per_view.csv's rows of the fused labels rendered ("coarse"; runs before the name was given
-# one meaning called them "initial", which is Table II's 2D segmenter on a novel view)
-COARSE = ("coarse", "initial")
 
 
 def find_runs(roots: list[Path]) -> list[Path]:
@@ -104,182 +98,6 @@ def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
     return pd.DataFrame(runs_rows), pd.DataFrame(scene_rows)
 
 
-FIT_COLUMNS = [
-    "dataset",
-    "scene",
-    "kind",
-    "recipe",
-    "init",
-    "resolution",
-    "images",
-    "iterations",
-    "gaussians",
-    "fit_seconds",
-    "psnr_train",
-    "psnr_heldout",
-    "psnr_heldout_object",
-    "heldout_views",
-    "folder",
-]
-
-
-def fit_recipe(cfg: dict) -> str:
-    """The fit settings that differ from today's defaults ("default" if none), the automatic
-    camera clearance and the device left out; settings newer than the fit are named after
-    "predates:" (the fit ran without them)."""
-    defaults = {
-        k: v for k, v in asdict(FitConfig()).items() if k not in ("camera_clearance", "device")
-    }
-    changed = [
-        f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}"
-        for k, v in cfg.items()
-        if k in defaults
-        and v != defaults[k]
-        and not (isinstance(v, list) and tuple(v) == defaults[k])
-    ]
-    missing = [k for k in defaults if k not in cfg]
-    if missing:
-        changed.append("predates: " + " ".join(missing))
-    return " ".join(changed) or "default"
-
-
-def fit_rows(roots: list[Path]) -> pd.DataFrame:
-    """One row per fitted scene: its fit_metrics.json, and the kind and recipe from
-    fit_config.json."""
-    rows = []
-    for path in sorted({p for r in roots if r.exists() for p in r.rglob("fit_metrics.json")}):
-        m = json.loads(path.read_text())
-        cfg_path = path.with_name("fit_config.json")
-        cfg = json.loads(cfg_path.read_text()) if cfg_path.is_file() else {}
-        folder = path.parent
-        rows.append(
-            {
-                **{k: m.get(k) for k in FIT_COLUMNS},
-                "scene": folder.parent.name,  # the folder holding gaussians/ (copies rename it)
-                "kind": cfg.get("kind"),
-                "recipe": fit_recipe(cfg),
-                "resolution": "x".join(map(str, m.get("resolution", []))),
-                "heldout_views": " ".join(m.get("heldout_views", [])),
-                "folder": str(folder.relative_to(ROOT))
-                if folder.is_relative_to(ROOT)
-                else str(folder),
-            }
-        )
-    return pd.DataFrame(rows, columns=FIT_COLUMNS)
-
-
-def stack_heldout_renders(folder: Path, out: Path) -> Path | None:
-    """The held-out render | photo pairs `make scenes` wrote, stacked into one JPEG in `out`."""
-    pairs = sorted(folder.glob("heldout_*.png"))
-    if not pairs:
-        return None
-    rows = [np.asarray(Image.open(p).convert("RGB")) for p in pairs]
-    width = min(r.shape[1] for r in rows)
-    metrics = json.loads((folder / "fit_metrics.json").read_text())
-    name = f"fit_{metrics.get('dataset', 'scene')}_{folder.parent.name}"
-    return atomic_write_image(
-        out / f"{name}_heldout.jpg", np.concatenate([r[:, :width] for r in rows])
-    )
-
-
-ANGLE_BINS = [-0.5, 0.5, 10, 20, 30, 180]  # degrees to the nearest photograph
-ANGLE_LABELS = ["photographed", "0-10", "10-20", "20-30", ">30"]
-
-
-def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
-    """Per run (of a capture with photographs for some views): mIoU over the photographed views
-    and over the mask-only ones, over the views whose masks did not vote, and by viewing angle
-    to the nearest photograph; plus each run's per-view rows keyed by its label."""
-    rows, per_view = [], {}
-    for run in runs:
-        views = pd.read_csv(run / "per_view.csv")
-        views = views[views["mode"].isin(COARSE)]
-        if "photo_angle_deg" not in views:
-            continue
-        m = load(run)
-        label = " ".join([m.get("segmenter", "?"), *m.get("overrides", [])])
-        per_view[label] = views.assign(_overrides=[m.get("overrides", [])] * len(views))
-        photo = views["photographed"].astype(bool)
-        by_angle = pd.cut(views["photo_angle_deg"], ANGLE_BINS, labels=ANGLE_LABELS)
-        row = {
-            "run": label,
-            "views": len(views),
-            "mIoU": views["iou"].mean(),
-            "photographed_mIoU": views.loc[photo, "iou"].mean(),
-            "photographed_views": int(photo.sum()),
-            "mask_only_mIoU": views.loc[~photo, "iou"].mean(),
-            "mask_only_views": int((~photo).sum()),
-            "not_voted_mIoU": views.loc[~views["voted"].astype(bool), "iou"].mean(),
-        }
-        for name, group in views.groupby(by_angle, observed=False)["iou"]:
-            key = f"{name} deg" if name != "photographed" else "at photo"
-            row[f"{key} mIoU"], row[f"{key} views"] = group.mean(), len(group)
-        rows.append(row)
-    return pd.DataFrame(rows), per_view
-
-
-def short_labels(overrides: dict[str, list[str]]) -> dict[str, str]:
-    """A legend entry per run: only the overrides that differ between the runs shown, each key
-    by its last part (`dataset.adapter.exclude_reference=true` -> `exclude_reference=true`);
-    the full label where two would read the same."""
-    shared = set.intersection(*(set(o) for o in overrides.values())) if overrides else set()
-    short = {}
-    for label, items in overrides.items():
-        parts = [label.split(" ")[0]]  # the segmenter
-        for item in items:
-            if item in shared or item.startswith(("hydra.", "progress=", "record=")):
-                continue
-            key, sep, value = item.partition("=")
-            parts.append(f"{key.rsplit('.', 1)[-1]}{sep}{value}")
-        short[label] = " ".join(parts)
-    if len(set(short.values())) < len(short):
-        return {label: label for label in overrides}
-    return short
-
-
-def plot_iou_against_angle(per_view: dict[str, pd.DataFrame], path: Path) -> Path:
-    """Scatter of per-view IoU (%) against the angle to the nearest photograph, one colour per
-    run, the legend (short labels) beside the plot."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    names = short_labels(
-        {
-            label: list(v["_overrides"].iloc[0]) if "_overrides" in v and len(v) else []
-            for label, v in per_view.items()
-        }
-    )
-    fig, ax = plt.subplots(figsize=(9, 4.2), dpi=120)
-    for label, views in per_view.items():
-        ax.scatter(
-            views["photo_angle_deg"], 100 * views["iou"], s=12, alpha=0.7, label=names[label]
-        )
-    ax.set_xlabel("viewing angle to the nearest photograph (degrees; 0: a photographed view)")
-    ax.set_ylabel("IoU (%)")
-    ax.set_ylim(0, 101)
-    ax.grid(alpha=0.3)
-    ax.legend(
-        fontsize=8,
-        loc="upper left",
-        bbox_to_anchor=(1.01, 1.0),
-        borderaxespad=0,
-        title="run",
-        title_fontsize=8,
-    )
-    fig.tight_layout()
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_image(path, np.asarray(_figure_rgb(fig)))
-    plt.close(fig)
-    return path
-
-
-def _figure_rgb(fig) -> np.ndarray:
-    fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[..., :3]
-
-
 def score_columns(df: pd.DataFrame) -> list[str]:
     """The columns that hold scores (fractions in metrics.json and per_view.csv)."""
     return [c for c in df.columns if c.endswith(("mIoU", "mAcc", "_acc", "_coverage"))]
@@ -336,10 +154,10 @@ def percent_words(value) -> str:
 
 def rescore_words(run: Path) -> str:
     """Whether the run's recorded mIoU / mAcc are what its own label maps give again
-    (`bench.tables.score.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be
+    (`sagonline.score.rescore.rescore_run`): `matches`, `CONTRADICTED (...)`, or why it cannot be
     said."""
-    from bench.tables.score import rescore_run
     from sagonline.core.errors import DatasetError
+    from sagonline.score.rescore import rescore_run
 
     try:
         again = rescore_run(run)
@@ -427,7 +245,7 @@ def main(argv: list[str] | None = None) -> None:
         "Resize rule and device are per row; runs: how many run folders gave this row (identical "
         "settings and results; timings are their median).",
         "re-scored: whether the recorded mIoU / mAcc are what the run's own label maps give "
-        "again (`python -m bench.tables.score RUN`); CONTRADICTED rows are not results.",
+        "again (`sagonline score RUN`); CONTRADICTED rows are not results.",
     ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)
@@ -437,27 +255,6 @@ def main(argv: list[str] | None = None) -> None:
         f"\n{len(runs)} runs ({len(runs_df)} rows) -> {args.out}/runs.md, runs.csv, scenes.md, "
         "scenes.csv"
     )
-
-
-def write_fits(out: Path) -> None:
-    """reports/fits.{md,csv} and each fit's held-out renders (`--fits`)."""
-    fits = fit_rows([SCENES_ROOT, ROOT / "datasets"])
-    if fits.empty:
-        print(f"no fitted scenes under {SCENES_ROOT} or datasets/: run `make scenes` first")
-        return
-    atomic_write_text(out / "fits.csv", fits.to_csv(index=False))
-    atomic_write_text(
-        out / "fits.md",
-        "# Fitted scenes (`make scenes`)\n\n- PSNR in dB on the training views, the held-out "
-        "views (every 8th by name) and, where the dataset has object masks, inside them.\n"
-        "- recipe: the fit's settings that differ from today's defaults "
-        "(`sagonline.fitting.FitConfig`); `predates:` names settings the fit ran without.\n\n"
-        + fits.to_markdown(index=False, floatfmt=".4g")
-        + "\n",
-    )
-    for folder in fits["folder"]:
-        stack_heldout_renders(ROOT / folder, out)
-    print(f"{len(fits)} fitted scenes -> {out}/fits.md, fits.csv")
 
 
 if __name__ == "__main__":

@@ -17,7 +17,8 @@ import argparse
 
 import pandas as pd
 
-from bench.runners.real import CHOSEN, ROOT, captures, folder
+from bench import ROOT
+from bench.runners.captures import CHOSEN, captures, folder
 from sagonline.score.diagnosis import CAUSE_GROUPS
 
 

@@ -1,8 +1,8 @@
-"""Pieces every real-dataset adapter shares: trained scenes, cameras, masks, prompts."""
+"""Pieces every real-dataset adapter shares: cameras, masks, prompts (trained scenes:
+`fits.py`)."""
 
 from __future__ import annotations
 
-import os
 import re
 from pathlib import Path
 
@@ -10,116 +10,13 @@ import cv2
 import numpy as np
 
 from sagonline.datasets.base import DatasetError
+from sagonline.datasets.fits import gaussians_dir
 from sagonline.scene.cameras import Camera
-from sagonline.scene.gaussians import Gaussians
-from sagonline.scene.io import SceneFileError, read_scene
 from sagonline.scene.io.cameras import load_cameras, load_llff
 from sagonline.scene.io.images import IMAGE_SUFFIXES, image_size, list_images
 from sagonline.scene.io.masks import MAX_LABELS, MaskFileError, read_mask
 from sagonline.scene.trajectory import pseudo_temporal_order
 from sagonline.segment.prompts import ObjectPrompt, Prompt
-
-TRAINED_SCENE_HELP = (
-    "put the trained Gaussian scene at {dir}/{folder}/point_cloud.ply (2DGS or 3DGS layout; "
-    "a 3DGS output folder with point_cloud/iteration_*/point_cloud.ply also works), or fit one "
-    "with `make scenes{fit}`"
-)
-
-
-SCENES_ROOT = Path(
-    os.environ.get("SAGONLINE_SCENES", Path(__file__).resolve().parents[2] / "scenes")
-)
-
-
-def fit_variant(recipe: str | None, seed: int) -> str:
-    """The variant name of one draw of a fit recipe: `seed<k>` for a seed other than 0, after
-    the recipe's own name where it has one (`<recipe>-seed<k>`); '' for the default recipe's
-    seed 0."""
-    return "-".join(filter(None, [recipe, f"seed{seed}" if seed else ""]))
-
-
-def is_variant_name(name: str) -> bool:
-    """A fit variant names a folder beside `gaussians/`: letters, digits, '-', '_' and '.',
-    never a path ('/', '..', a leading '.')."""
-    return bool(re.fullmatch(r"[A-Za-z0-9_][A-Za-z0-9_.-]*", name)) and ".." not in name
-
-
-def fit_folder(variant: str = "") -> str:
-    """The folder of a scene's fit: `gaussians`, or `gaussians-<variant>` for another draw of
-    the recipe (`seed1`, ...) or another recipe. A variant that is not a plain name
-    (`is_variant_name`) is refused: it would read or write outside the scene's folder."""
-    if variant and not is_variant_name(variant):
-        raise ValueError(
-            f"fit variant {variant!r}: a plain name (letters, digits, - _ .), never a path"
-        )
-    return f"gaussians-{variant}" if variant else "gaussians"
-
-
-def gaussians_dir(scene_dir: Path, dataset: str | None = None, variant: str = "") -> Path:
-    """Where a scene's trained Gaussians live: `<scene>/gaussians/`, or, for data on a
-    read-only disk, `scenes/<dataset>/<scene>/gaussians/` in the project (where `make scenes`
-    writes when the data folder is not writable); `gaussians-<variant>/` for a variant."""
-    own = scene_dir / fit_folder(variant)
-    if own.exists() or dataset is None:
-        return own
-    overlay = SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
-    return overlay if overlay.exists() else own
-
-
-def find_trained_scene(scene_dir: Path, dataset: str | None = None, variant: str = "") -> Path:
-    """The scene's `point_cloud.ply`: gaussians/point_cloud.ply, or the latest
-    gaussians/point_cloud/iteration_*/point_cloud.ply (in `gaussians_dir`)."""
-    base = gaussians_dir(scene_dir, dataset, variant)
-    direct = base / "point_cloud.ply"
-    if direct.is_file():
-        return direct
-    iterations = sorted(
-        base.glob("point_cloud/iteration_*/point_cloud.ply"),
-        key=lambda p: int(re.sub(r"\D", "", p.parent.name) or 0),
-    )
-    if iterations:
-        return iterations[-1]
-    raise DatasetError(
-        f"no trained scene for {scene_dir.name}: expected "
-        f"{scene_dir / fit_folder(variant) / 'point_cloud.ply'}; "
-        + TRAINED_SCENE_HELP.format(
-            dir=scene_dir, folder=fit_folder(variant), fit=fit_args(dataset, variant)
-        )
-    )
-
-
-def fit_args(dataset: str | None, variant: str = "") -> str:
-    """What to add to `make scenes` to fit this dataset's scene in `variant`'s folder."""
-    seed = re.fullmatch(r"seed(\d+)", variant or "")
-    args = f"seed={seed.group(1)}" if seed else (f"variant={variant}" if variant else "")
-    return (f" DATASET={dataset}" if dataset else "") + (f" ARGS={args}" if args else "")
-
-
-def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -> dict | None:
-    """What `make scenes` recorded about the trained scene (iterations, why it stopped, PSNR),
-    or None for a scene it did not fit."""
-    import json
-
-    path = find_trained_scene(scene_dir, dataset, variant).parent / "fit_metrics.json"
-    try:
-        record = json.loads(path.read_text())
-    except (OSError, ValueError):
-        return None
-    keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout",
-            "psnr_heldout_object", "seed", "scene_digest")  # fmt: skip
-    return {k: record[k] for k in keys if k in record} | {"path": str(path)}
-
-
-def load_trained_scene(
-    scene_dir: Path, dataset: str | None = None, drop_nonfinite: bool = False, variant: str = ""
-) -> Gaussians:
-    """The scene's trained Gaussians; NaN/Inf (or overflowing) rows fail the scene unless
-    `drop_nonfinite` (the adapters' `drop_nonfinite` setting) drops them."""
-    path = find_trained_scene(scene_dir, dataset, variant)
-    try:
-        return read_scene(path, drop_nonfinite=drop_nonfinite)
-    except SceneFileError as exc:
-        raise DatasetError(str(exc)) from exc
 
 
 def scene_cameras(

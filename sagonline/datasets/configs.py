@@ -14,7 +14,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from sagonline.core.settings import check_settings
-from sagonline.datasets.common import is_variant_name
+from sagonline.datasets.fits import is_variant_name
 from sagonline.datasets.labels import KITTI360_VEHICLES, LABEL_FORMATS
 
 PROMPTS = ("mask", "clicks", "text", "none")

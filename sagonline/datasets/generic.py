@@ -8,14 +8,12 @@ One scene per folder (or the root itself when it holds cameras):
       <mask_dir>/            one label map per view, matched to views by file name
       gaussians/point_cloud.ply [+ cameras.json]       the trained scene
 
-Label maps are read by `label_format` (`datasets.labels`: binary, ids, palette, per_object,
-kitti360).
+Label maps are read by `label_format`, one of `sagonline.datasets.labels.LABEL_FORMATS`.
 
-The trajectory is every camera in pseudo-temporal (name) order; the scored views are those
-with a label map (optionally without the reference view). The prompt is seeded random clicks
-on the reference view's ground truth with that view's mask offered beside them
-(`prompt: mask`; a segmenter reads either), the clicks alone (`prompt: clicks`), the classes as text
-(`prompt: text`), or nothing for automatic segmenters (`prompt: none`).
+The trajectory is every camera in pseudo-temporal (name) order; the scored views are those with a
+label map (optionally without the reference view). The prompt: seeded random clicks on the
+reference view's ground truth with its mask beside them (`prompt: mask`; a segmenter reads
+either), the clicks alone (`clicks`), the classes as text (`text`) or nothing (`none`).
 """
 
 from __future__ import annotations
@@ -30,15 +28,17 @@ from sagonline.datasets.common import (
     check_mask_size,
     check_one_mask_size,
     click_prompt,
-    find_trained_scene,
-    fit_record,
-    gaussians_dir,
     list_masks,
-    load_trained_scene,
     match_by_name,
     scene_cameras,
 )
 from sagonline.datasets.configs import PosedMasksConfig
+from sagonline.datasets.fits import (
+    find_trained_scene,
+    fit_record,
+    gaussians_dir,
+    load_trained_scene,
+)
 from sagonline.datasets.labels import label_reader
 from sagonline.scene.cameras import Camera
 from sagonline.scene.io.cameras import CameraFileError, read_poses_bounds

@@ -34,15 +34,8 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
-from sagonline.datasets.common import (
-    check_mask_size,
-    click_prompt,
-    find_trained_scene,
-    fit_record,
-    load_mask,
-    load_trained_scene,
-    scene_cameras,
-)
+from sagonline.datasets.common import check_mask_size, click_prompt, load_mask, scene_cameras
+from sagonline.datasets.fits import find_trained_scene, fit_record, load_trained_scene
 from sagonline.datasets.nvos_prompts import (
     check_inside,
     read_points_file,

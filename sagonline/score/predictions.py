@@ -8,7 +8,7 @@ A run writes, beside metrics.json:
     ground_truth/scoring.json                protocol id, resize rule, ignored label
 
 Label maps are single-channel PNGs of label ids (8-bit, or 16-bit where an id exceeds 255), 0 =
-background, at the resolution they were scored at. `python -m bench.tables.score PRED GT` scores any
+background, at the resolution they were scored at. `sagonline score PRED GT` scores any
 such pair of folders by this harness's rules; `folder_sha256` is the digest metrics.json holds.
 """
 
@@ -68,6 +68,6 @@ def folder_sha256(folder: Path, pattern: str = "*/*.png") -> str:
 
 
 def write_scoring_rules(folder: Path, protocol: str | None, resize: str, ignore: int | None):
-    """The rules a ground-truth folder is scored by, for `bench.tables.score`."""
+    """The rules a ground-truth folder is scored by, for `sagonline score`."""
     rules = {"protocol_id": protocol, "resize": resize, "ignore_label": ignore}
     atomic_write_json(folder / SCORING_FILE, rules)

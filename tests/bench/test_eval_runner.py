@@ -106,7 +106,7 @@ def test_an_overwrite_that_fails_or_is_killed_never_loses_the_finished_run(tmp_p
         raise RuntimeError("killed mid-run")
 
     with monkeypatch.context() as m:
-        m.setattr(runner, "run_scenes", boom)
+        m.setattr(runner, "evaluate_scenes", boom)
         with pytest.raises(RuntimeError):
             evaluate(
                 cfg_with(

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 
 from bench.runners import fit_captures
-from bench.runners.real import captures
+from bench.runners.captures import captures
 
 
 def test_the_dry_run_lists_one_fit_per_capture_and_seed(capsys):

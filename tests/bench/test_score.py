@@ -1,4 +1,4 @@
-"""Predictions anyone can re-score: a run's label-map PNGs and digests, `bench.tables.score`
+"""Predictions anyone can re-score: a run's label-map PNGs and digests, `sagonline score`
 against a scorer written here, protocol ids in every output, and tables that refuse to mix
 protocols."""
 
@@ -12,7 +12,7 @@ import pytest
 
 from bench.runners.eval import evaluate
 from bench.tables.paper import build
-from bench.tables.score import main as score
+from sagonline.apps.cli.score import main as score
 from sagonline.score.predictions import folder_sha256, read_label_map, write_label_map
 from tests.fixtures import cfg_with
 
@@ -89,7 +89,7 @@ def test_a_table_refuses_to_mix_protocols(tmp_path):
 
 
 def test_a_recorded_number_the_rescore_contradicts_is_never_shown_as_fine(tmp_path, capsys):
-    """metrics.json's mIoU edited, the label maps untouched: `bench.tables.score RUN` names the
+    """metrics.json's mIoU edited, the label maps untouched: `sagonline score RUN` names the
     contradiction and exits 3; `bench.tables.report` marks the row CONTRADICTED; a `|` or a line
     break in a recorded field does not break the report's Markdown."""
     from bench.tables.report import main as report

@@ -169,7 +169,7 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
 
 
 def test_plot_legend_names_only_what_differs():
-    from bench.tables.report import short_labels
+    from bench.tables.views import short_labels
 
     shared = ["dataset=m", "dataset.adapter.exclude_reference=true"]
     names = short_labels({

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 
-from bench.runners import fit_captures, real
+from bench.runners import captures, fit_captures, real
 from sagonline.core.plugins import SEGMENTERS, PluginError
 from tests.fixtures import ROOT
 
@@ -73,7 +73,9 @@ def test_the_cross_capture_tools_keep_the_capture_and_seed_their_own(capsys):
 
 
 def test_a_missing_fit_is_said_with_its_cause(monkeypatch, capsys):
-    monkeypatch.setattr(real, "fit_and_problem", lambda c, s, st=(): (None, "no trained scene X"))
+    monkeypatch.setattr(
+        captures, "fit_and_problem", lambda c, s, st=(): (None, "no trained scene X")
+    )
     with pytest.raises(SystemExit):
         real.main(["--captures", "mold_cape", "--seeds", "0", "--sources", "real"])
     assert "mold_cape/seed 0: no fit: no trained scene X" in capsys.readouterr().err

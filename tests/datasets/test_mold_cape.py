@@ -121,9 +121,9 @@ def test_poses_agree_with_masks(cape):
 
 @pytest.mark.slow
 def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
-    import sagonline.datasets.common as common
+    import sagonline.datasets.fits as fits
 
-    monkeypatch.setattr(common, "SCENES_ROOT", tmp_path)  # ignore a scene fitted locally
+    monkeypatch.setattr(fits, "SCENES_ROOT", tmp_path)  # ignore a scene fitted locally
     root, ds, cams, masks = cape
     with pytest.raises(DatasetError, match="mold_cape/gaussians/point_cloud.ply"):
         ds.load_scene("mold_cape")

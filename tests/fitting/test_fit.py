@@ -385,7 +385,7 @@ def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
     assert task.gaussians.kind == "2dgs" and len(task.trajectory) == 9
     again = fit_scene(cfg, adapter, "cap")
     assert again == {"scene": "cap", "skipped": True}
-    from bench.tables.report import fit_rows
+    from bench.tables.fits import fit_rows
 
     (row,) = fit_rows([tmp_path]).to_dict("records")  # `make report`'s fits table
     assert row["psnr_heldout"] == saved["psnr_heldout"] and row["iterations"] == 12
@@ -503,15 +503,13 @@ def test_scenes_cli_errors(tmp_path):
 
 
 def test_read_only_data_is_never_written(tmp_path, monkeypatch):
-    import bench.runners.scenes
-    import sagonline.datasets.common as common
-    from bench.runners.scenes import output_dir
+    import sagonline.datasets.fits as fits
+    from sagonline.datasets.fits import output_dir
 
     writable = tmp_path / "rw" / "cap"
     writable.mkdir(parents=True)
     overlay = tmp_path / "overlay"
-    monkeypatch.setattr(bench.runners.scenes, "SCENES_ROOT", overlay)
-    monkeypatch.setattr(common, "SCENES_ROOT", overlay)
+    monkeypatch.setattr(fits, "SCENES_ROOT", overlay)
     assert output_dir(writable, "generic") == writable / "gaussians"
     data = tmp_path / "ro" / "cap"
     data.mkdir(parents=True)
@@ -522,7 +520,7 @@ def test_read_only_data_is_never_written(tmp_path, monkeypatch):
         assert not (data / "gaussians").exists()
         out.mkdir(parents=True)
         (out / "point_cloud.ply").write_text("x")
-        assert common.gaussians_dir(data, "generic") == out  # the adapter finds it there
+        assert fits.gaussians_dir(data, "generic") == out  # the adapter finds it there
     finally:
         data.chmod(0o755)
 
@@ -530,7 +528,7 @@ def test_read_only_data_is_never_written(tmp_path, monkeypatch):
 def test_fit_recipe_names_changed_and_missing_settings():
     from dataclasses import asdict
 
-    from bench.tables.report import fit_recipe
+    from bench.tables.fits import fit_recipe
     from sagonline.fitting import FitConfig
 
     cfg = asdict(FitConfig(seed=1, lambda_dist=1.0, device="cuda", camera_clearance=0.3))
@@ -598,8 +596,8 @@ def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
 def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
     """seed=k (k > 0) fits into gaussians-seed<k>/, and dataset.adapter.fit=seed<k> evaluates
     it: the draws of one recipe sit side by side, none replaces another."""
-    from bench.runners.scenes import output_dir, variant_of
-    from sagonline.datasets.common import find_trained_scene, gaussians_dir
+    from bench.runners.scenes import variant_of
+    from sagonline.datasets.fits import find_trained_scene, gaussians_dir, output_dir
     from tests.fixtures import compose_config
 
     assert variant_of(compose_config("scenes", "dataset=mold_cape")) == ""

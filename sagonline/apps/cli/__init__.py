@@ -1,4 +1,5 @@
-"""Command line: `sagonline info | cameras | render | segment | view | figure | export | plugins`.
+"""Command line: `sagonline info | cameras | render | segment | view | figure | export | score |
+plugins`.
 
     sagonline info SCENE                      format, Gaussian count, SH degree, bounds
     sagonline cameras CAMERAS                 every view's index, name and size
@@ -8,6 +9,7 @@
     sagonline view SCENE [--cameras C]        click in the browser, watch the labels form, export
     sagonline figure SEGMENT_DIR --out x.png  render | labels | each object alone, titled
     sagonline export RUN_DIR                  a finished eval run's labels, per scene
+    sagonline score RUN_DIR | PRED_DIR GT_DIR  label maps re-scored by the harness's rules
     sagonline plugins [segmenters|datasets|vote-rules]
 
 Every problem with an input ends in one line that names the file, flag or setting, and a
@@ -22,14 +24,14 @@ import sys
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from sagonline.apps.cli import export, figure, inspect, render, segment, view
+    from sagonline.apps.cli import export, figure, inspect, render, score, segment, view
 
     parser = argparse.ArgumentParser(
         prog="sagonline",
         description="Segment any Gaussians online: inspect, render, segment and export scenes.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (inspect, render, segment, view, figure, export):
+    for module in (inspect, render, segment, view, figure, export, score):
         module.add_parsers(sub)
     return parser
 

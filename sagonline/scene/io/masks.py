@@ -1,5 +1,5 @@
 """One reader for every mask the harness is given: `segment --mask`, datasets' ground truth,
-and the label maps `bench.tables.score` compares.
+and the label maps `sagonline score` compares.
 
 A mask file is read as what it is, or refused with what was seen (channels, bit depth and the
 number of distinct values):
