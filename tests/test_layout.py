@@ -107,7 +107,7 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 # The rooms of sagonline/ in the order the data flows through them (docs/architecture.md): a
 # module imports only from its own room and the rooms before it, never one after it.
 ROOMS = (
-    "core", "scene", "render", "segment", "vote", "record", "labels", "score", "refine",
+    "core", "scene", "render", "segment", "vote", "labels", "record", "score", "refine",
     "fitting", "datasets", "pipeline", "apps",
 )  # fmt: skip
 

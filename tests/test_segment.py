@@ -116,7 +116,7 @@ def test_figure_shows_the_folder_from_its_own_record(clicked, capsys):
     assert image.shape == (22 + 2 * 72, 4 * 96, 3)
     assert (image[:22] > 200).mean() > 0.8  # the title strip
     labels = np.asarray(Image.open(tmp / "out" / "views" / "0005_train_0005_labels.png"))
-    from sagonline.record.recording import label_colors
+    from sagonline.labels.colours import label_colors
 
     assert np.array_equal(image[22 + 72 :, 96:192], label_colors(2)[labels].astype(np.uint8))
     assert main(["figure", str(tmp / "out"), "--out", str(out)]) == 2  # exists: kept

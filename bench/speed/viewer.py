@@ -108,7 +108,7 @@ def canvas_times(chrome, seen: dict) -> dict:
     """From the page's frame log: seconds from the click to the labels first drawn on the
     canvas (NaN where they never were), and the longest gap between drawn frames from the
     click to the panel's "done". Waits up to 60 s for the labels to be drawn."""
-    from sagonline.apps.viewer import browser
+    from bench.speed import browser
 
     with contextlib.suppress(TimeoutError):  # never drawn: NaN below
         browser.wait_for(
@@ -130,7 +130,7 @@ def canvas_times(chrome, seen: dict) -> dict:
 def wait_for_done(chrome, app, timeout: float = 60) -> dict:
     """The page's recorded times once the panel has said done; the times so far and the
     panel's text in the error where it does not within `timeout` seconds."""
-    from sagonline.apps.viewer import browser
+    from bench.speed import browser
 
     def done() -> dict | None:
         times = chrome.execute_script("return window.__t;")
@@ -150,7 +150,7 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
     viewer's page (labels cleared between), timed in the browser and on the server."""
     import socket
 
-    from sagonline.apps.viewer import browser
+    from bench.speed import browser
     from sagonline.apps.viewer.app import ViewerApp
 
     with socket.socket() as sock:
@@ -285,7 +285,7 @@ def main() -> None:
 
 def shoot(session: SegmentSession, path: Path) -> None:
     """The viewer after the clicks above, in headless Chromium, looking from behind view 0."""
-    from sagonline.apps.viewer import browser
+    from bench.speed import browser
     from sagonline.apps.viewer.app import ViewerApp
 
     app = ViewerApp(session, port=8091)

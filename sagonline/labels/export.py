@@ -31,7 +31,7 @@ from plyfile import PlyData, PlyElement
 
 from sagonline.core.files import atomic_write_image, atomic_write_json, atomic_write_npy
 from sagonline.core.outputs import OutputError, output_folder
-from sagonline.record.recording import label_colors
+from sagonline.labels.colours import label_colors
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io import write_ply
 

@@ -23,35 +23,9 @@ from pathlib import Path
 
 import numpy as np
 
+from sagonline.labels.colours import BACKGROUND_3D, label_colors
+
 ELLIPSOID_LIMIT = 50_000  # larger scenes are drawn as points: ellipsoids would drown the viewer
-BACKGROUND_3D = (190, 180, 160)  # Gaussians labelled background, in the 3D view
-
-PALETTE = np.array(
-    [
-        [0, 0, 0],
-        [230, 25, 75],
-        [60, 180, 75],
-        [255, 225, 25],
-        [0, 130, 200],
-        [245, 130, 48],
-        [145, 30, 180],
-        [70, 240, 240],
-        [240, 50, 230],
-        [210, 245, 60],
-        [250, 190, 212],
-        [0, 128, 128],
-        [220, 190, 255],
-        [170, 110, 40],
-        [255, 250, 200],
-        [128, 0, 0],
-    ],
-    dtype=np.uint8,
-)
-
-
-def label_colors(num_labels: int) -> np.ndarray:
-    reps = int(np.ceil(num_labels / len(PALETTE)))
-    return np.tile(PALETTE, (reps, 1))[:num_labels]
 
 
 class Recorder:

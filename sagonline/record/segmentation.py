@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.record.recording import BACKGROUND_3D, label_colors
+from sagonline.labels.colours import BACKGROUND_3D, label_colors
 
 UNLABELLED = (140, 140, 140)
 

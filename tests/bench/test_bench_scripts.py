@@ -72,7 +72,7 @@ def test_bench_viewer_quick():
 @pytest.mark.xdist_group("browser")
 @pytest.mark.skipif(not DONUT.exists(), reason=f"{DONUT} not found")
 def test_bench_viewer_times_a_click_in_the_browser():
-    from sagonline.apps.viewer.browser import missing_browser_reason
+    from bench.speed.browser import missing_browser_reason
 
     reason = missing_browser_reason()
     if reason:

@@ -9,7 +9,7 @@ import socket
 import numpy as np
 import pytest
 
-from sagonline.apps.viewer.browser import missing_browser_reason
+from bench.speed.browser import missing_browser_reason
 
 pytestmark = pytest.mark.skipif(
     missing_browser_reason() is not None, reason=str(missing_browser_reason())
@@ -55,7 +55,7 @@ def viewer(tmp_path):
 def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
     from plyfile import PlyData
 
-    from sagonline.apps.viewer import browser
+    from bench.speed import browser
 
     app, session, ply, parts = viewer
     chrome = browser.open_browser(app.url, 900, 600)

@@ -249,7 +249,7 @@ def test_an_unclicked_new_object_neither_numbers_the_labels_nor_blocks_the_expor
 def test_labelled_splats_get_a_colour_that_contrasts_with_their_own():
     from sagonline.apps.viewer.colours import highlight_colours, label_tint
     from sagonline.apps.viewer.words import panel_words
-    from sagonline.record.recording import PALETTE
+    from sagonline.labels.colours import PALETTE
 
     pink = np.array([0.95, 0.45, 0.6], np.float32)  # the icing: close to label 1's crimson
     rgbs = np.tile(pink, (6, 1))

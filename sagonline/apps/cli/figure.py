@@ -114,7 +114,7 @@ def check_same_scene(folder: Path, info: dict, scene) -> None:
 def cmd_figure(args) -> int:
     from sagonline.core.files import atomic_write_image
     from sagonline.core.outputs import OutputError, check_not_input
-    from sagonline.record.recording import label_colors
+    from sagonline.labels.colours import label_colors
     from sagonline.render.api import render, to_uint8
     from sagonline.scene.io import read_scene
     from sagonline.scene.io.masks import read_mask

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sagonline.record.recording import PALETTE, label_colors
+from sagonline.labels.colours import PALETTE, label_colors
 from sagonline.scene.gaussians import SH_C0, Gaussians, quat_to_rotmat
 
 SHOW = ("everything", "dimmed surroundings", "object alone")  # the panel's "show" choices
