@@ -113,25 +113,6 @@ def build_dataset(node: dict):
         raise SystemExit(2) from None
 
 
-def segmenter_settings(node: dict) -> dict:
-    """A segmenter node's own settings (without `kind` and `name`)."""
-    from sagonline.core.plugins import NODE_KEYS
-
-    return {k: v for k, v in node.items() if k not in NODE_KEYS}
-
-
-def build_segmenter(node: dict):
-    """The segmenter, built from the registry by `node['kind']`; a problem with its settings
-    (a missing checkpoint, a value out of range) stops with one line naming the setting."""
-    from sagonline.core.plugins import SEGMENTERS, PluginError
-
-    try:
-        return SEGMENTERS.build(node.get("kind"), segmenter_settings(node), where="segmenter")
-    except (PluginError, ValueError, RuntimeError, OSError) as exc:
-        print(f"error: segmenter {node.get('name', '')}: {exc}", file=sys.stderr)
-        raise SystemExit(2) from None
-
-
 def check_jobs(ap, jobs: int) -> None:
     """--jobs: processes at once, each on one thread: 1 to this machine's cores."""
     cores = os.cpu_count() or 1

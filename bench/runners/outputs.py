@@ -12,6 +12,7 @@ from sagonline.core.files import atomic_write_json, atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.pipeline import SceneReport
 from sagonline.pipeline.evaluate import FILE_ONLY
+from sagonline.score.run_metrics import METRICS_VERSION, RunMetrics
 
 
 def resize_rule(cfg) -> str:
@@ -39,7 +40,7 @@ def write_outputs(
 
     folders = ("predictions", "predictions_refined", "ground_truth")
     digests = {f: folder_sha256(out_dir / f) for f in folders if (out_dir / f).is_dir()}
-    metrics = {
+    record = {
         "dataset": cfg.dataset["name"],
         "segmenter": cfg.segmenter.get("name", "segmenter"),
         "consensus": asdict(cfg.consensus),
@@ -53,7 +54,9 @@ def write_outputs(
         ],
         "config": asdict(cfg),
         **(extra or {}),
+        "version": METRICS_VERSION,
     }
+    metrics = RunMetrics.from_json(record).to_json()  # the schema's fields, checked
     rows = [{**v, "protocol": r.protocol} for r in reports for v in r.views]
     columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
     from sagonline.score.diagnosis import EXTRA, MISSED

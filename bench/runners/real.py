@@ -26,7 +26,6 @@ draw of the recipe, and two draws of one capture have scored 53 and 67.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 import subprocess
 import sys
@@ -38,6 +37,7 @@ from bench import OUT_HELP, REPORTS, ROOT
 from bench.runners import captures
 from bench.runners.job import check_jobs
 from bench.tables import loo, real_table
+from sagonline.score.run_metrics import RunMetrics
 
 
 class Evaluations:
@@ -45,7 +45,7 @@ class Evaluations:
     (capture, source, seed, setting) -> its metrics, None where it failed (said why)."""
 
     def __init__(self) -> None:
-        self.results: dict[tuple, dict | None] = {}
+        self.results: dict[tuple, RunMetrics | None] = {}
         self.threads: str | None = None  # OMP_NUM_THREADS of the evaluations (None: torch's)
 
     def prefetch(self, tasks: list[tuple], jobs: int) -> None:
@@ -65,8 +65,8 @@ class Evaluations:
 
     def run(
         self, capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()
-    ) -> dict | None:
-        """The evaluation's metrics (run now, or the finished run found in its folder)."""
+    ) -> RunMetrics | None:
+        """The evaluation's record (run now, or the finished run found in its folder)."""
         setting = captures.same_scene(capture, seed, setting)
         key = (capture, source, seed, setting)
         if key not in self.results:
@@ -75,8 +75,8 @@ class Evaluations:
 
     def evaluate(
         self, capture: str, source: str, seed: int, setting: tuple[str, ...]
-    ) -> dict | None:
-        """`python -m bench.runners.eval` of one run; its metrics, None when it failed."""
+    ) -> RunMetrics | None:
+        """`python -m bench.runners.eval` of one run; its record, None when it failed."""
         command = captures.command(capture, source, seed, setting)
         args = [sys.executable, "-m", "bench.runners.eval", *command]
         env = os.environ | ({"OMP_NUM_THREADS": self.threads} if self.threads else {})
@@ -85,8 +85,7 @@ class Evaluations:
             last = (done.stderr.strip().splitlines() or ["(no message)"])[-1]
             print(f"{capture}/{source}/seed {seed}: skipped: {last}", file=sys.stderr)
             return None
-        folder = ROOT / captures.folder(capture, source, seed, setting)
-        return json.loads((folder / "metrics.json").read_text())
+        return RunMetrics.of_run(ROOT / captures.folder(capture, source, seed, setting))
 
 
 def scored_settings(sources: tuple[str, ...]) -> list[tuple[str, tuple[str, ...]]]:
@@ -280,7 +279,7 @@ def choose(
 
     scored = scored or {}
 
-    def baseline(capture: str, source: str, seed: int) -> dict | None:
+    def baseline(capture: str, source: str, seed: int) -> RunMetrics | None:
         if (capture, source, seed) in scored:
             return scored[(capture, source, seed)]
         return evaluations.run(capture, source, seed)
@@ -292,7 +291,7 @@ def choose(
         for capture in names:
             for name, setting in settings.items():
                 values = [
-                    m["miou"] * 100
+                    m.miou * 100
                     for seed in seeds
                     if (not (seed or setting) or captures.fitted(capture, seed, setting))
                     and (

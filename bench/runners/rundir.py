@@ -7,7 +7,6 @@ changed inputs are refused naming the difference, and nothing in the folder chan
 
 from __future__ import annotations
 
-import json
 import os
 import shutil
 import sys
@@ -19,6 +18,7 @@ from omegaconf import DictConfig, OmegaConf
 
 from sagonline.core.files import atomic_write_text, read_json_object
 from sagonline.core.provenance import digest_json
+from sagonline.score.run_metrics import MetricsFileError, RunMetrics
 
 
 class RunExists(SystemExit):
@@ -73,26 +73,15 @@ def flatten(d: dict, prefix: str = "") -> dict:
     return out
 
 
-REQUIRED_METRICS = ("dataset", "scenes", "miou")
-
-
-def read_run_metrics(path: Path) -> dict | None:
+def read_run_metrics(path: Path) -> RunMetrics | None:
     """A run's metrics.json for reports and tables, or None (with a warning naming the file and
-    the problem) when it is unreadable, truncated, or lacks what a row needs: one bad run never
-    aborts a report, nor becomes a silent row of blanks."""
+    the problem) when it is unreadable, truncated, or not a run's record (`RunMetrics`): one
+    bad run never aborts a report, nor becomes a silent row of blanks."""
     try:
-        metrics = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        problem = f"unreadable ({type(exc).__name__}: {exc})"
-    else:
-        missing = (
-            [k for k in REQUIRED_METRICS if k not in metrics] if isinstance(metrics, dict) else []
-        )
-        if isinstance(metrics, dict) and not missing:
-            return metrics
-        problem = f"lacks {missing}" if missing else "is not a JSON object"
-    print(f"warning: skipped {path}: {problem}", file=sys.stderr)
-    return None
+        return RunMetrics.read(path)
+    except MetricsFileError as exc:
+        print(f"warning: skipped {exc}", file=sys.stderr)
+        return None
 
 
 def finished_run(out_dir: Path) -> dict | None:

@@ -18,6 +18,7 @@ sit side by side, never averaged.
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from pathlib import Path
 
 import pandas as pd
@@ -27,6 +28,7 @@ from bench.runners.rundir import read_run_metrics
 from bench.tables.report import device_text
 from bench.tables.views import COARSE
 from sagonline.core.files import atomic_write_text
+from sagonline.score.run_metrics import RunMetrics
 
 ROOT = Path(__file__).resolve().parents[2]
 PAPER_MASK_MS = {1: 111, 3: 114, 6: 140, 12: 162, 25: 224, 50: 384, 100: 571, 206: 1466}
@@ -41,19 +43,27 @@ def newest(name: str) -> Path:
     raise SystemExit(f"no sweep found under multirun/{name}/: run `make table-{name}` first")
 
 
-def load_runs(sweep: Path) -> list[dict]:
+@dataclass
+class SweepRun:
+    """A finished job of a sweep: its record, its folder and its held-out views' mIoU."""
+
+    m: RunMetrics
+    folder: str
+    heldout: dict[str, float | None]
+
+
+def load_runs(sweep: Path) -> list[SweepRun]:
     runs = []
     for path in sorted(sweep.rglob("metrics.json")):
         m = read_run_metrics(path)
-        if m is None or m.get("status") == "failed":
+        if m is None or m.status == "failed":
             continue
         # Labels come from what the run recorded beside its numbers, never from .hydra/,
         # which is a separate file.
-        if "overrides" not in m:
-            m["overrides"] = ["(overrides not recorded: run made before provenance)"]
-        m["_dir"] = str(path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else path.parent)
-        m["_heldout"] = heldout_miou(path.parent / "per_view.csv")
-        runs.append(m)
+        if not m.recorded("overrides"):
+            m.overrides = ["(overrides not recorded: run made before provenance)"]
+        folder = path.parent.relative_to(ROOT) if path.is_relative_to(ROOT) else path.parent
+        runs.append(SweepRun(m, str(folder), heldout_miou(path.parent / "per_view.csv")))
     if not runs:
         raise SystemExit(f"{sweep}: no finished jobs (metrics.json) yet")
     return runs
@@ -73,8 +83,8 @@ def heldout_miou(per_view: Path) -> dict[str, float | None]:
     return out
 
 
-def _heldout_mean(m: dict) -> float | None:
-    vals = [v for v in m.get("_heldout", {}).values() if v is not None]
+def _heldout_mean(run: SweepRun) -> float | None:
+    vals = [v for v in run.heldout.values() if v is not None]
     return sum(vals) / len(vals) if vals else None
 
 
@@ -86,12 +96,13 @@ def timing_rows(runs):
     """Table II: the three answer modes (coarse label render; initial: render + 2D segmenter;
     refined: render + student), each alone and while the student trains."""
     rows = []
-    for m in runs:
-        for s in m["scenes"]:
+    for run in runs:
+        m = run.m
+        for s in m.scenes:
             t = s.get("timings", {})
             row = {
                 "scene": s["scene"],
-                "segmenter": m["segmenter"],
+                "segmenter": m.segmenter,
                 "time_to_first_mask_s": t.get("time_to_first_mask_s"),
                 "vote_s": t.get("vote_s"),
                 "refine_train_s": t.get("refine_train_s"),
@@ -104,7 +115,7 @@ def timing_rows(runs):
                     "coarse_mIoU": pct(s.get("miou")),
                     "initial_mIoU": pct((s.get("extra") or {}).get("initial_mode_miou")),
                     "refined_mIoU": pct(s.get("refined_miou")),
-                    "overrides": " ".join(m.get("overrides", [])),
+                    "overrides": " ".join(m.overrides),
                 }
             )
             rows.append(row)
@@ -130,25 +141,26 @@ def mode_times(t: dict) -> dict:
 
 def masks_rows(runs):
     rows = []
-    for m in runs:
-        for s in m["scenes"]:
+    for run in runs:
+        m = run.m
+        for s in m.scenes:
             n = s["vote"]["num_masks"]
             timed_here = "vote_s" in s["timings"]  # else the vote came from the stage cache
             t = s["timings"] if timed_here else s.get("cached_timings", {})
             rows.append(
                 {
                     "scene": s["scene"],
-                    "segmenter": m["segmenter"],
+                    "segmenter": m.segmenter,
                     "num_masks": n,
                     "aggregation_ms": 1000 * t["vote_s"] if "vote_s" in t else None,
                     "ms_per_mask": t.get("vote_ms_per_mask"),
                     "vote_timed_by": "this job" if timed_here else "an earlier job (cached)",
                     "mIoU": pct(s.get("miou")),
-                    "heldout_mIoU": pct(m["_heldout"].get(str(s["scene"]))),
+                    "heldout_mIoU": pct(run.heldout.get(str(s["scene"]))),
                     "labels3d_acc": pct((s.get("labels3d") or {}).get("accuracy")),
                     "coverage": pct((s.get("labels3d") or {}).get("coverage")),
                     "paper_ms (RTX 4090)": PAPER_MASK_MS.get(n),
-                    "overrides": " ".join(m.get("overrides", [])),
+                    "overrides": " ".join(m.overrides),
                 }
             )
     return pd.DataFrame(rows).sort_values(["scene", "segmenter", "num_masks"])
@@ -156,8 +168,9 @@ def masks_rows(runs):
 
 def ablation_rows(runs):
     rows = []
-    for m in runs:
-        c = m["consensus"]
+    for run in runs:
+        m = run.m
+        c = m.consensus
         rows.append(
             {
                 "method": c["method"],
@@ -166,14 +179,14 @@ def ablation_rows(runs):
                 "weighting": c.get("weighting", "count"),
                 "min_votes": c["min_votes"],
                 "margin": c["margin"],
-                "segmenter": m["segmenter"],
-                "segmenter_mIoU": pct(m.get("segmenter_miou")),
-                "mIoU": pct(m.get("miou")),
-                "heldout_mIoU": pct(_heldout_mean(m)),
-                "mAcc": pct(m.get("macc")),
+                "segmenter": m.segmenter,
+                "segmenter_mIoU": pct(m.segmenter_miou),
+                "mIoU": pct(m.miou),
+                "heldout_mIoU": pct(_heldout_mean(run)),
+                "mAcc": pct(m.macc),
                 "labels3d_acc": pct(_mean3d(m, "accuracy")),
                 "coverage": pct(_mean3d(m, "coverage")),
-                "overrides": " ".join(m.get("overrides", [])),
+                "overrides": " ".join(m.overrides),
             }
         )
     keys = ["segmenter", "method", "eps", "delta", "weighting", "min_votes", "margin"]
@@ -182,21 +195,22 @@ def ablation_rows(runs):
 
 def robustness_rows(runs):
     rows = []
-    for m in runs:
-        seg = corruption_of(m["config"])
+    for run in runs:
+        m = run.m
+        seg = corruption_of(m.config)
         rows.append(
             {
-                "segmenter": m["segmenter"],
+                "segmenter": m.segmenter,
                 "boundary_px": seg.get("boundary_px"),
                 "flicker": seg.get("flicker"),
                 "swap": seg.get("swap"),
                 "blob_rate": seg.get("blob_rate"),
-                "segmenter_mIoU": pct(m.get("segmenter_miou")),
-                "fused_mIoU": pct(m["miou"]),
-                "heldout_mIoU": pct(_heldout_mean(m)),
-                "gain": round(100 * (m["miou"] - m["segmenter_miou"]), 2),
+                "segmenter_mIoU": pct(m.segmenter_miou),
+                "fused_mIoU": pct(m.miou),
+                "heldout_mIoU": pct(_heldout_mean(run)),
+                "gain": round(100 * (m.miou - m.segmenter_miou), 2),
                 "labels3d_acc": pct(_mean3d(m, "accuracy")),
-                "overrides": " ".join(m.get("overrides", [])),
+                "overrides": " ".join(m.overrides),
             }
         )
     return pd.DataFrame(rows).sort_values(["segmenter", "boundary_px", "flicker"])
@@ -210,8 +224,8 @@ def corruption_of(config: dict) -> dict:
     return {k: corrupt.get(k) or segmenter.get(k) or 0 for k in keys}
 
 
-def _mean3d(m, key):
-    vals = [s["labels3d"][key] for s in m["scenes"] if s.get("labels3d")]
+def _mean3d(m: RunMetrics, key: str):
+    vals = [s["labels3d"][key] for s in m.scenes if s.get("labels3d")]
     return sum(vals) / len(vals) if vals else None
 
 
@@ -284,34 +298,34 @@ NOTES = {
 }
 
 
-def protocol_of(run: dict) -> str:
+def protocol_of(m: RunMetrics) -> str:
     """A run's protocol id (runs recorded before ids existed: `<dataset>/unversioned`)."""
-    return run.get("protocol_id") or f"{run['dataset']}/unversioned"
+    return m.protocol_id or f"{m.dataset}/unversioned"
 
 
-def load_text(runs: list[dict]) -> str:
+def load_text(runs: list[RunMetrics]) -> str:
     """The 1-minute load averages recorded at the end of the jobs, against their threads."""
-    loads = [m["device"].get("load_average_1m") for m in runs]
+    loads = [m.device.get("load_average_1m") for m in runs]
     loads = [v for v in loads if v is not None]
     if not loads:
         return "not recorded"
-    threads = sorted({m["device"].get("torch_threads") for m in runs} - {None})
+    threads = sorted({m.device.get("torch_threads") for m in runs} - {None})
     return (
         f"{min(loads):.2f}-{max(loads):.2f} (1 min, at the end of each job; the jobs' own "
         f"threads: {', '.join(map(str, threads)) or '?'}; above that, something else ran)"
     )
 
 
-def renderer_text(runs: list[dict]) -> str:
+def renderer_text(runs: list[RunMetrics]) -> str:
     """The renderer asked for, and what each stage ran on (`render.backends.plan_backends`;
     older runs recorded the image renderer alone)."""
-    asked = sorted({str(m.get("renderer")) for m in runs})
+    asked = sorted({str(m.renderer) for m in runs})
 
-    def used(m: dict) -> str:
-        plan = m.get("backends")
+    def used(m: RunMetrics) -> str:
+        plan = m.backends
         if plan:
             return f"images {plan['images']}, vote {plan['vote']}, labels {plan['labels']}"
-        return str(m.get("renderer_resolved", m.get("renderer")))
+        return str(m.unknown.get("renderer_resolved", m.renderer))
 
     resolved = sorted({used(m) for m in runs})
     return ", ".join(asked) + ("" if resolved == asked else f" ({'; '.join(resolved)})")
@@ -319,24 +333,25 @@ def renderer_text(runs: list[dict]) -> str:
 
 def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataFrame:
     runs = load_runs(sweep)
-    protocols = sorted({protocol_of(m) for m in runs})
+    records = [run.m for run in runs]
+    protocols = sorted({protocol_of(m) for m in records})
     if len(protocols) > 1:  # rows of one table are compared and averaged: one protocol only
         raise SystemExit(
             f"{sweep}: its jobs ran different evaluation protocols ({', '.join(protocols)}); "
             "a table holds one protocol: build one table per sweep of a single protocol"
         )
     df = BUILDERS[name](runs)
-    devices = sorted({device_text(m["device"]) for m in runs})
-    first = runs[0]
+    devices = sorted({device_text(m.device) for m in records})
+    first = records[0]
     header = [
         f"# {TITLES[name]}",
         "",
         f"- sweep: `{sweep.relative_to(ROOT) if sweep.is_relative_to(ROOT) else sweep}`"
         f" ({len(runs)} jobs)",
         f"- device: {'; '.join(devices)}",
-        f"- load average: {load_text(runs)}",
-        f"- dataset: {first['dataset']}, protocol: `{protocols[0]}`, "
-        f"renderer: {renderer_text(runs)}, resize rule: {first['resize_rule']}",
+        f"- load average: {load_text(records)}",
+        f"- dataset: {first.dataset}, protocol: `{protocols[0]}`, "
+        f"renderer: {renderer_text(records)}, resize rule: {first.resize_rule}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
         "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
         *NOTES.get(name, []),

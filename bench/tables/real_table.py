@@ -10,6 +10,7 @@ from pathlib import Path
 import pandas as pd
 
 from bench.runners import captures
+from sagonline.score.run_metrics import RunMetrics
 
 
 def pct(v):
@@ -18,16 +19,19 @@ def pct(v):
 
 def row(
     capture: str,
-    real: dict | None,
-    classical: dict | None,
-    models: dict[str, dict | None],
-    chosen: dict[str, dict | None] | None = None,
+    real: RunMetrics | None,
+    classical: RunMetrics | None,
+    models: dict[str, RunMetrics | None],
+    chosen: dict[str, RunMetrics | None] | None = None,
 ) -> dict:
     """One capture's row for one fit: each source under the defaults, and under the settings
     leave-one-out chose (`chosen`: source -> its metrics; `captures.CHOSEN`)."""
 
-    def diagnosis(m) -> dict:
-        return ((m or {}).get("scenes") or [{}])[0].get("extra", {}).get("diagnosis") or {}
+    def diagnosis(m: RunMetrics | None) -> dict:
+        return m.scene_extra("diagnosis") if m else {}
+
+    def score(m: RunMetrics | None, key: str = "miou"):
+        return pct(getattr(m, key)) if m else None
 
     def share(m, group):
         return pct(diagnosis(m).get(f"share_{group}"))
@@ -35,7 +39,8 @@ def row(
     outside = diagnosis(real).get("outside") or {}
     placed = ("in_front", "beside", "behind", "floating", "not_voting")
 
-    fit = (((real or classical or {}).get("scenes") or [{}])[0].get("extra") or {}).get("fit") or {}
+    fitted = real or classical
+    fit = fitted.scene_extra("fit") if fitted else {}
     fit_file = Path(fit["path"]) if fit.get("path") else None
     in_mask = None
     if fit_file is not None and fit_file.is_file():
@@ -45,18 +50,15 @@ def row(
         "PSNR held-out": None if fit.get("psnr_heldout") is None else round(fit["psnr_heldout"], 2),
         "PSNR in mask": None if in_mask is None else round(in_mask, 2),
         HIDDEN: pct(diagnosis(real).get("hidden")),
-        "real masks, every 4th": pct((real or {}).get("miou")),
-        "classical": pct((classical or {}).get("miou")),
-        "classical alone": pct((classical or {}).get("segmenter_miou")),
+        "real masks, every 4th": score(real),
+        "classical": score(classical),
+        "classical alone": score(classical, "segmenter_miou"),
         **{
-            column: pct((models.get(source) or {}).get(key))
+            column: score(models.get(source), key)
             for source in captures.MODELS
             for column, key in ((source, "miou"), (f"{source} alone", "segmenter_miou"))
         },
-        **{
-            f"{CHOSEN_COLUMN[source]}, chosen": pct((m or {}).get("miou"))
-            for source, m in (chosen or {}).items()
-        },
+        **{f"{CHOSEN_COLUMN[source]}, chosen": score(m) for source, m in (chosen or {}).items()},
         "real: fit / vote / segmenter %": "/".join(
             str(share(real, g)) for g in ("fit", "vote", "segmenter")
         ),
@@ -69,8 +71,8 @@ def row(
         )
         if outside
         else None,
-        "protocol": (real or classical or next((m for m in models.values() if m), None) or {}).get(
-            "protocol_id"
+        "protocol": getattr(
+            real or classical or next((m for m in models.values() if m), None), "protocol_id", None
         ),
     }
 

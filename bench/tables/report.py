@@ -15,7 +15,6 @@ written unless asked: `--fits` tabulates every `fit_metrics.json` written by `ma
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from bench.runners.rundir import read_run_metrics
 from bench.tables.fits import write_fits
 from bench.tables.views import plot_iou_against_angle, view_rows
 from sagonline.core.files import atomic_write_text
+from sagonline.score.run_metrics import RunMetrics
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -36,10 +36,6 @@ def find_runs(roots: list[Path]) -> list[Path]:
     return [run for run in found if read_run_metrics(run / "metrics.json") is not None]
 
 
-def load(run: Path) -> dict:
-    return json.loads((run / "metrics.json").read_text())
-
-
 def device_text(dev: dict) -> str:
     hw = dev.get("gpu") or f"{dev.get('cpu', '?')} x{dev.get('cpu_cores', '?')}"
     return f"{hw}, torch {dev.get('torch', '?')}"
@@ -48,38 +44,38 @@ def device_text(dev: dict) -> str:
 def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
     runs_rows, scene_rows = [], []
     for run in runs:
-        m = load(run)
-        c = m.get("consensus", {})
+        m = RunMetrics.of_run(run)
+        c = m.consensus
         base = {
             "run": str(run.relative_to(ROOT)) if run.is_relative_to(ROOT) else str(run),
-            "dataset": m.get("dataset"),
-            "protocol": m.get("protocol_id") or f"{m.get('dataset')}/unversioned",
-            "segmenter": m.get("segmenter"),
+            "dataset": m.dataset,
+            "protocol": m.protocol_id or f"{m.dataset}/unversioned",
+            "segmenter": m.segmenter,
             "method": c.get("method"),
             "eps": c.get("eps"),
             "delta": c.get("delta"),
             "min_votes": c.get("min_votes"),
             "margin": c.get("margin"),
             "num_masks": c.get("num_masks"),
-            "overrides": " ".join(m.get("overrides", [])),
+            "overrides": " ".join(m.overrides),
         }
-        l3 = [s["labels3d"]["accuracy"] for s in m.get("scenes", []) if s.get("labels3d")]
+        l3 = [s["labels3d"]["accuracy"] for s in m.scenes if s.get("labels3d")]
         runs_rows.append(
             {
                 **base,
-                "mIoU": m.get("miou"),
-                "mAcc": m.get("macc"),
-                "segmenter_mIoU": m.get("segmenter_miou"),
-                "refined_mIoU": m.get("refined_miou"),
+                "mIoU": m.miou,
+                "mAcc": m.macc,
+                "segmenter_mIoU": m.segmenter_miou,
+                "refined_mIoU": m.refined_miou,
                 "labels3d_acc": sum(l3) / len(l3) if l3 else None,
-                "vote_ms_per_mask": m.get("timings", {}).get("vote_ms_per_mask"),
-                "partial": m.get("partial"),
+                "vote_ms_per_mask": m.timings.get("vote_ms_per_mask"),
+                "partial": m.partial,
                 "re-scored": rescore_words(run),
-                "device": device_text(m.get("device", {})),
-                "resize": m.get("resize_rule"),
+                "device": device_text(m.device),
+                "resize": m.resize_rule,
             }
         )
-        for s in m.get("scenes", []):
+        for s in m.scenes:
             l3s = s.get("labels3d") or {}
             scene_rows.append(
                 {

@@ -4,13 +4,13 @@ IoU against that angle."""
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
 from sagonline.core.files import atomic_write_image
+from sagonline.score.run_metrics import RunMetrics
 
 # per_view.csv's rows of the fused labels rendered ("coarse"; runs before the name was given
 # one meaning called them "initial", which is Table II's 2D segmenter on a novel view)
@@ -30,9 +30,9 @@ def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
         views = views[views["mode"].isin(COARSE)]
         if "photo_angle_deg" not in views:
             continue
-        m = json.loads((run / "metrics.json").read_text())
-        label = " ".join([m.get("segmenter", "?"), *m.get("overrides", [])])
-        per_view[label] = views.assign(_overrides=[m.get("overrides", [])] * len(views))
+        m = RunMetrics.of_run(run)
+        label = " ".join([m.segmenter, *m.overrides])
+        per_view[label] = views.assign(_overrides=[m.overrides] * len(views))
         photo = views["photographed"].astype(bool)
         by_angle = pd.cut(views["photo_angle_deg"], ANGLE_BINS, labels=ANGLE_LABELS)
         row = {

@@ -18,12 +18,12 @@ from pathlib import Path
 from typing import Any
 
 from sagonline.core.errors import DatasetError
-from sagonline.core.files import read_json_object
 from sagonline.core.plugins import DATASETS, PluginError, typed_settings
 from sagonline.datasets.base import DatasetAdapter
 from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.render.api import LABEL_MIN_WEIGHT
+from sagonline.score.run_metrics import MetricsFileError, RunMetrics
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
 from sagonline.vote.feedback import FeedbackConfig
@@ -62,14 +62,12 @@ class RecordedRun:
     notes: list[str] = field(default_factory=list)
 
 
-def read_metrics(run: Path) -> dict:
-    """The run's metrics.json as a JSON object; RunFileError naming the file otherwise."""
-    return read_json_object(
-        Path(run) / "metrics.json",
-        RunFileError,
-        "not a finished eval run's metrics",
-        "a JSON object",
-    )
+def read_metrics(run: Path) -> RunMetrics:
+    """The run's record (its metrics.json); RunFileError naming the file otherwise."""
+    try:
+        return RunMetrics.of_run(Path(run))
+    except MetricsFileError as exc:
+        raise RunFileError(str(exc)) from None
 
 
 def _group(config: dict, key: str, path: Path) -> dict:
@@ -87,8 +85,8 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
         raise RunFileError(f"{run}: a file; export takes a finished evaluation's run folder")
     path = run / "metrics.json"
     metrics = read_metrics(run)
-    config = metrics.get("config")
-    if not isinstance(config, dict):
+    config = metrics.config
+    if not metrics.recorded("config") or not config:
         raise RunFileError(f"{path}: no 'config' object (not a run of bench.runners.eval)")
     notes: list[str] = []
     try:
@@ -119,12 +117,12 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
         )
     except ValueError as exc:
         raise RunFileError(f"{path}: config.label_render: {exc}") from None
-    scenes = metrics.get("scenes")
-    if not isinstance(scenes, list) or not all(isinstance(s, dict) for s in scenes):
+    scenes = metrics.scenes
+    if not all(isinstance(s, dict) for s in scenes):
         raise RunFileError(f"{path}: 'scenes' is not a list of scene rows")
-    recorded = metrics.get("cache_root")
+    recorded = metrics.cache_root
     cache_root = Path(recorded) if isinstance(recorded, str) and recorded else None
-    notes += other_weights(metrics.get("segmenter_weights"), segmenter.weights)
+    notes += other_weights(metrics.segmenter_weights, segmenter.weights)
     return RecordedRun(run, adapter, segmenter, vote, settings, scenes, cache_root, notes)
 
 

@@ -4,7 +4,6 @@ numbers checked against its own label maps (`sagonline score` says the result)."
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -14,6 +13,7 @@ from sagonline.core.errors import DatasetError
 from sagonline.core.files import read_json_object
 from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics
 from sagonline.score.predictions import SCORING_FILE, label_maps, read_label_map
+from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
 
 # A prediction may hold at most this many times its ground truth's pixels (a 4x larger side,
 # for `gt_to_pred`); a larger file is refused from its header, before it is decoded.
@@ -91,16 +91,16 @@ def score_folders(
     return pd.DataFrame(rows)
 
 
-def recorded_metrics(pred_dir: Path, gt_dir: Path) -> tuple[Path, dict] | None:
-    """The run folder both folders sit in, and its metrics.json."""
+def recorded_metrics(pred_dir: Path, gt_dir: Path) -> tuple[Path, RunMetrics] | None:
+    """The run folder both folders sit in, and its record (None where there is none, or it
+    is not a run's record)."""
     run = gt_dir.resolve().parent
-    if pred_dir.resolve().parent != run or not (run / "metrics.json").is_file():
+    if pred_dir.resolve().parent != run or not (run / METRICS_FILE).is_file():
         return None
     try:
-        metrics = json.loads((run / "metrics.json").read_text())
-    except (OSError, ValueError):
+        return run, RunMetrics.of_run(run)
+    except MetricsFileError:
         return None
-    return (run, metrics) if isinstance(metrics, dict) else None
 
 
 # The numbers a run records for each predictions folder: (mIoU key, mAcc key) in metrics.json.
@@ -108,15 +108,15 @@ RECORDED_KEYS = {"predictions": ("miou", "macc"), "predictions_refined": ("refin
 AGREE = 1e-9  # recorded and re-scored numbers come from the same PNGs: equal up to rounding
 
 
-def compare_recorded(pred_dir: Path, metrics: dict, rescored: dict) -> dict[str, tuple]:
+def compare_recorded(pred_dir: Path, metrics: RunMetrics, rescored: dict) -> dict[str, tuple]:
     """What metrics.json recorded for this predictions folder against the re-score: name ->
     (recorded, re-scored, agree) for mIoU and mAcc (a number not recorded is left out)."""
     keys = RECORDED_KEYS.get(pred_dir.resolve().name, ())
     out = {}
     for name, key in zip(("mIoU", "mAcc"), keys, strict=False):
-        if key is None or key not in metrics:
+        if key is None or not metrics.recorded(key):
             continue
-        value = metrics[key]
+        value = getattr(metrics, key)
         ok = isinstance(value, (int, float)) and not isinstance(value, bool)
         ok = ok and abs(float(value) - rescored[name.lower()]) <= AGREE
         out[name] = (value, rescored[name.lower()], ok)

@@ -7,6 +7,12 @@ import pytest
 
 from bench.runners import captures, real
 from bench.tables import loo, real_table
+from sagonline.score.run_metrics import RunMetrics
+
+
+def record(**scores) -> RunMetrics:
+    """A run's record with the given scores (what an evaluation of the table returns)."""
+    return RunMetrics(dataset="cap", segmenter="s", **scores)
 
 
 def test_each_seed_reads_its_own_fit_into_its_own_folder():
@@ -138,11 +144,11 @@ def test_choose_scores_every_fit_under_every_setting_and_writes_the_table(tmp_pa
 
     def fake_run(capture, source, seed=0, setting=()):
         asked.append((capture, source, seed, setting))
-        return {"miou": (base[capture] + (1.0 if setting else 0.0) + seed) / 100}
+        return record(miou=(base[capture] + (1.0 if setting else 0.0) + seed) / 100)
 
     monkeypatch.setattr(real.Evaluations, "run", lambda self, *a: fake_run(*a))
     monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
-    scored = {(c, s, 0): {"miou": base[c] / 100} for c in base for s in ("real", "classical")}
+    scored = {(c, s, 0): record(miou=base[c] / 100) for c in base for s in ("real", "classical")}
     real.choose(
         list(base), [0, 1], [("consensus.body=true",)], tmp_path, real.Evaluations(), scored
     )
@@ -161,7 +167,7 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
 
     def fake_run(capture, source, seed=0, setting=()):
         asked.append((source, seed, setting))
-        return {"miou": (80.0 + (3.0 if setting else 0.0) + seed) / 100, "protocol_id": "p"}
+        return record(miou=(80.0 + (3.0 if setting else 0.0) + seed) / 100, protocol_id="p")
 
     monkeypatch.setattr(real.Evaluations, "run", lambda self, *a: fake_run(*a))
     monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
@@ -185,7 +191,7 @@ def test_jobs_run_each_evaluation_once_and_the_table_reads_them(monkeypatch):
 
     def fake(self, capture, source, seed, setting):
         calls.append((capture, source, seed, setting))
-        return {"miou": 0.5}
+        return record(miou=0.5)
 
     monkeypatch.setattr(real.Evaluations, "evaluate", fake)
     evaluations = real.Evaluations()
@@ -198,7 +204,7 @@ def test_jobs_run_each_evaluation_once_and_the_table_reads_them(monkeypatch):
     assert len(todo) == 2 * 2 * per_fit  # seed 2 has no fit
     evaluations.prefetch(todo + todo[:3], jobs=2)
     assert sorted(calls) == sorted(set(todo))  # each once
-    assert evaluations.run("a", "real", 1, ("consensus.body=true",)) == {"miou": 0.5}
+    assert evaluations.run("a", "real", 1, ("consensus.body=true",)) == record(miou=0.5)
     assert len(calls) == len(set(todo))  # answered from the runs already made
     # a candidate whose fit is the defaults' copy runs as the defaults' setting: one run, once
     calls.clear()
@@ -288,7 +294,7 @@ def test_make_loo_captures_chooses_among_the_candidates_written_once(tmp_path, m
     monkeypatch.setattr(
         real, "choose", lambda names, seeds, candidates, *rest: asked.append(candidates)
     )
-    monkeypatch.setattr(real.Evaluations, "run", lambda self, *a: {"miou": 0.5, "protocol_id": "p"})
+    monkeypatch.setattr(real.Evaluations, "run", lambda self, *a: record(miou=0.5, protocol_id="p"))
     monkeypatch.setattr(captures, "fit_and_problem", lambda c, s, st=(): (tmp_path, None))
     monkeypatch.setattr(captures, "captures", lambda: ["cap"])
     real.main(["--captures", "cap", "--settings", "candidates", "--out", str(tmp_path)])

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from bench.runners.job import build_segmenter
+from bench.runners.eval import prepare_segmenter
 from sagonline.score.metrics import match_labels, relabel, view_metrics
 from sagonline.segment import ObjectPrompt, Prompt
 from sagonline.segment.classical import FlowWatershedSegmenter
@@ -20,7 +20,7 @@ from tests.fixtures import (
 
 def segmenter_from(name: str, *overrides):
     cfg = compose_config("eval", *[f"segmenter={name}", *overrides])
-    return build_segmenter(cfg.segmenter)
+    return prepare_segmenter(cfg.segmenter).segmenter
 
 
 def rendered(task) -> list[np.ndarray]:
@@ -122,11 +122,11 @@ def test_match_labels_for_automatic_ids():
 def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
     cfg = compose_config("eval", *[f"segmenter={name}"])
     with pytest.raises(SystemExit):
-        build_segmenter(cfg.segmenter)
+        prepare_segmenter(cfg.segmenter)
     assert option in capsys.readouterr().err
     cfg = compose_config("eval", *[f"segmenter={name}", f"{option}=/nope.pt"])
     with pytest.raises(SystemExit):
-        build_segmenter(cfg.segmenter)
+        prepare_segmenter(cfg.segmenter)
     assert f"{option}=/nope.pt: no such file" in capsys.readouterr().err
 
 

@@ -153,7 +153,7 @@ def check_against_run(args, digests: dict, result: dict) -> None:
     run = recorded_metrics(args.pred_dir, args.gt_dir)
     if run is not None:
         folder, metrics = run
-        recorded = metrics.get("sha256") if isinstance(metrics.get("sha256"), dict) else {}
+        recorded = metrics.sha256
         pred_key = args.pred_dir.resolve().name
         same = {
             "predictions": recorded.get(pred_key) == digests["predictions"],
