@@ -28,8 +28,12 @@ def pytest_configure(config) -> None:
     import tempfile
 
     home = Path(tempfile.mkdtemp(prefix="sagonline-tests-home-"))
-    for var, sub in (("SAGONLINE_DIGEST_CACHE", "digests.json"), ("XDG_CACHE_HOME", "cache"),
-                     ("MPLCONFIGDIR", "matplotlib"), ("YOLO_CONFIG_DIR", "yolo")):  # fmt: skip
+    for var, sub in (
+        ("SAGONLINE_DIGEST_CACHE", "digests.json"),
+        ("XDG_CACHE_HOME", "cache"),
+        ("MPLCONFIGDIR", "matplotlib"),
+        ("YOLO_CONFIG_DIR", "yolo"),
+    ):
         os.environ[var] = str(home / sub)
     os.environ["HOME"] = str(home)
     from hypothesis import settings  # its example database too (it defaults to ./.hypothesis)

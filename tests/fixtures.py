@@ -199,9 +199,14 @@ def own_scene(folder: Path, views: int = 8, width: int = 48, height: int = 36, s
     from sagonline.datasets.synthetic import gt_mask
 
     scene = make_scene(
-        layout="forward", num_gaussians=2000, width=width, height=height,
-        num_train_views=views, num_eval_views=1, seed=seed,
-    )  # fmt: skip
+        layout="forward",
+        num_gaussians=2000,
+        width=width,
+        height=height,
+        num_train_views=views,
+        num_eval_views=1,
+        seed=seed,
+    )
     folder.mkdir(parents=True, exist_ok=True)
     write_ply(folder / "point_cloud.ply", scene.gaussians)
     names = [f"r_{i}" for i in range(views)]

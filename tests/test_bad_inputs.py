@@ -238,8 +238,9 @@ def test_render_never_writes_over_the_camera_file_of_a_folder(tmp_path, scene_fi
     cams, _ = llff_scene(tmp_path / "llff", NAMES, with_scene=False)
     target = tmp_path / "llff" / "poses_bounds.npy"
     before = target.read_bytes()
-    r = _cli("render", str(ply), "--cameras", str(target.parent), "--out", str(target),
-             "--overwrite")  # fmt: skip
+    r = _cli(
+        "render", str(ply), "--cameras", str(target.parent), "--out", str(target), "--overwrite"
+    )
     assert r.returncode != 0 and "one of the inputs" in r.stderr, r.stderr
     assert target.read_bytes() == before
 
@@ -280,9 +281,15 @@ def _generic_capture(root: Path) -> Path:
 def _eval_generic(root: Path, run: Path, *overrides):
     cfg = compose_config(
         "eval",
-        *["dataset=generic", f"dataset.root={root}", "progress=false",
-                   "record=false", "dataset.adapter.image_dir=null", *overrides],
-    )  # fmt: skip
+        *[
+            "dataset=generic",
+            f"dataset.root={root}",
+            "progress=false",
+            "record=false",
+            "dataset.adapter.image_dir=null",
+            *overrides,
+        ],
+    )
     return evaluate(cfg, run)
 
 

@@ -186,8 +186,9 @@ def test_inside_view_zero_faces_the_deepest_part_of_the_room():
         (-1, 2, -2, -2, 3000),
         (-1, 2, 2, 2, 3000),
     ):
-        walls.append(np.stack([rng.uniform(x0, x1, n), rng.uniform(y0, y1, n),
-                               rng.uniform(-1, 1, n)], 1))  # fmt: skip
+        walls.append(
+            np.stack([rng.uniform(x0, x1, n), rng.uniform(y0, y1, n), rng.uniform(-1, 1, n)], 1)
+        )
     means = torch.tensor(np.concatenate(walls), dtype=torch.float32)
     cams, line = orbit_around(means, 8, 64, 48, inside=True)
     forward = cams[0].cam_to_world[:3, 2].numpy()

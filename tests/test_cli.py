@@ -80,24 +80,69 @@ def test_one_view_numbering_for_every_command(tmp_path, capsys):
     listed = capsys.readouterr().out.splitlines()
     assert "with --orbit N" in listed[-1] and "'r_0'" in listed[-1]  # which numbering holds
     rows = [line.split() for line in listed[2:-1]]
-    assert [r[:2] for r in rows[:5]] == [["0", "r_0"], ["1", "r_1"], ["2", "r_10"],
-                                         ["3", "r_11"], ["4", "r_2"]]  # fmt: skip
+    assert [r[:2] for r in rows[:5]] == [
+        ["0", "r_0"],
+        ["1", "r_1"],
+        ["2", "r_10"],
+        ["3", "r_11"],
+        ["4", "r_2"],
+    ]
     for view in ("2", "r_10", "r_2"):
-        assert main(["render", ply, "--cameras", cams, "--view", view,
-                     "--out", str(tmp_path / f"{view}.png")]) == 0  # fmt: skip
+        assert (
+            main(
+                [
+                    "render",
+                    ply,
+                    "--cameras",
+                    cams,
+                    "--view",
+                    view,
+                    "--out",
+                    str(tmp_path / f"{view}.png"),
+                ]
+            )
+            == 0
+        )
     by_index, by_name = (np.asarray(Image.open(tmp_path / f"{v}.png")) for v in ("2", "r_10"))
     assert np.array_equal(by_index, by_name)
     assert not np.array_equal(by_index, np.asarray(Image.open(tmp_path / "r_2.png")))
-    assert main(["segment", ply, "--cameras", cams, "--preview", "2",
-                 "--out", str(tmp_path / "preview.png")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                ply,
+                "--cameras",
+                cams,
+                "--preview",
+                "2",
+                "--out",
+                str(tmp_path / "preview.png"),
+            ]
+        )
+        == 0
+    )
     assert "view 2 'r_10' at 48x36" in capsys.readouterr().out
     preview = np.asarray(Image.open(tmp_path / "preview.png").convert("RGB")).astype(int)
     other = np.asarray(Image.open(tmp_path / "r_2.png")).astype(int)
     same = (np.abs(preview - by_index).max(-1) <= 2).mean()  # the same view under a light grid
     assert same > 0.8 and same > (np.abs(preview - other).max(-1) <= 2).mean() + 0.3, same
     out = tmp_path / "seg"
-    assert main(["segment", ply, "--cameras", cams, "--click", "2:24,18", "--out", str(out),
-                 "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                ply,
+                "--cameras",
+                cams,
+                "--click",
+                "2:24,18",
+                "--out",
+                str(out),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     prompt = json.loads((out / "labels.json").read_text())["prompt"]
     assert (prompt["view"], prompt["view_name"], prompt["render_size"]) == (2, "r_10", [48, 36])
 
@@ -123,8 +168,9 @@ def test_segment_takes_every_vote_setting_from_the_command_line():
     cfg = vote_config(args)
     assert (cfg.weighting, cfg.delta, cfg.method) == ("blend", 3.0, "rgc")
     assert cfg.rule.weighting == "blend"
-    args = build_parser().parse_args(["segment", "s.ply", "--weighting", "blend", "--method",
-                                      "flashsplat"])  # fmt: skip
+    args = build_parser().parse_args(
+        ["segment", "s.ply", "--weighting", "blend", "--method", "flashsplat"]
+    )
     with pytest.raises(ValueError, match="--weighting"):
         vote_config(args)
     args = build_parser().parse_args(["segment", "s.ply", "--body"])
@@ -136,7 +182,7 @@ def test_segment_and_view_take_the_label_renders_threshold():
     """--min-weight (segment and view): the label renders' threshold, the pipeline's default
     when not given, refused out of [0, 1] naming the flag."""
     from sagonline.apps.cli import build_parser
-    from sagonline.apps.cli.segment import label_min_weight
+    from sagonline.apps.cli.options import label_min_weight
     from sagonline.render.api import LABEL_MIN_WEIGHT
 
     parser = build_parser()

@@ -102,9 +102,12 @@ def _outs(world, *names):
 # Each draw is a seed (hypothesis, derandomized: CI draws the same ones); the seed picks every
 # value from weighted lists, valid values repeated so that a fair share of draws run to the end.
 SETTINGS = settings(
-    max_examples=30, deadline=None, derandomize=True, database=None,
+    max_examples=30,
+    deadline=None,
+    derandomize=True,
+    database=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-)  # fmt: skip
+)
 SEEDS = st.integers(0, 2**32 - 1)
 
 
@@ -129,16 +132,26 @@ DEVICES = ["cpu", "cuda", "bogus"]
 @given(seed=SEEDS)
 def test_render_never_misbehaves(world, seed):
     root, _, _ = world
-    pick = Draw(seed, ("out", "scene", "cameras", "view", "backend", "device", "size", "orbit",
-                       "overwrite"))  # fmt: skip
-    out = pick("out", _outs(world, "new_png", "new_npy", "new_txt", "scene_ply", "cameras",
-                            "scene_dir"))()  # fmt: skip
+    pick = Draw(
+        seed, ("out", "scene", "cameras", "view", "backend", "device", "size", "orbit", "overwrite")
+    )
+    out = pick(
+        "out", _outs(world, "new_png", "new_npy", "new_txt", "scene_ply", "cameras", "scene_dir")
+    )()
     scene = pick("scene", ["scene/point_cloud.ply", "scene", "nothing.ply", "mask.png"])
     cameras = pick("cameras", ["scene/transforms.json", None, "missing.json", "scene/notes.txt"])
-    argv = ["render", str(root / scene), "--out", str(out),
-            "--view", pick("view", ["0", "4", "r_2", "99", "-1", "x"]),
-            "--backend", pick("backend", ["native", "torch", "gsplat"]),
-            "--device", pick("device", DEVICES)]  # fmt: skip
+    argv = [
+        "render",
+        str(root / scene),
+        "--out",
+        str(out),
+        "--view",
+        pick("view", ["0", "4", "r_2", "99", "-1", "x"]),
+        "--backend",
+        pick("backend", ["native", "torch", "gsplat"]),
+        "--device",
+        pick("device", DEVICES),
+    ]
     argv += ["--cameras", str(root / cameras)] if cameras else []
     size = pick("size", SIZES)
     argv += ["--width", size[0], "--height", size[1]] if size else []
@@ -149,10 +162,19 @@ def test_render_never_misbehaves(world, seed):
 
 
 PROMPTS = (
-    ["click"] * 3 + ["mask", "click_neg", "object_chair"]
-    + ["click_far", "object_bang", "object_background", "object_empty", "mask_colour",
-       "mask_small", "text", "click_view2"]
-)  # fmt: skip
+    ["click"] * 3
+    + ["mask", "click_neg", "object_chair"]
+    + [
+        "click_far",
+        "object_bang",
+        "object_background",
+        "object_empty",
+        "mask_colour",
+        "mask_small",
+        "text",
+        "click_view2",
+    ]
+)
 
 
 def _prompt_args(world, items: list[str]) -> list[str]:
@@ -178,22 +200,40 @@ def _prompt_args(world, items: list[str]) -> list[str]:
 @given(seed=SEEDS)
 def test_segment_never_misbehaves(world, seed):
     root, _, _ = world
-    pick = Draw(seed, ("out", "segmenter", "device", "cameras", "prompts", "vote", "size",
-                       "orbit", "overwrite"))  # fmt: skip
+    pick = Draw(
+        seed,
+        ("out", "segmenter", "device", "cameras", "prompts", "vote", "size", "orbit", "overwrite"),
+    )
     rng = pick.rng
-    out = pick("out", _outs(world, "new_dir", "scene_dir", "scene_ply", "root",
-                            "inside_scene"))()  # fmt: skip
-    argv = ["segment", str(root / "scene" / "point_cloud.ply"), "--out", str(out),
-            "--segmenter", pick("segmenter", ["classical", "oracle", "sam2"]),
-            "--device", pick("device", DEVICES), "--no-record"]  # fmt: skip
+    out = pick("out", _outs(world, "new_dir", "scene_dir", "scene_ply", "root", "inside_scene"))()
+    argv = [
+        "segment",
+        str(root / "scene" / "point_cloud.ply"),
+        "--out",
+        str(out),
+        "--segmenter",
+        pick("segmenter", ["classical", "oracle", "sam2"]),
+        "--device",
+        pick("device", DEVICES),
+        "--no-record",
+    ]
     cameras = pick("cameras", ["scene/transforms.json", None, "missing.json"])
     argv += ["--cameras", str(root / cameras)] if cameras else []
     prompts = pick("prompts", [["click"], None])
     if prompts is None:
         prompts = [rng.choice(PROMPTS) for _ in range(rng.randint(0, 3))]
     argv += _prompt_args(world, prompts)
-    argv += pick("vote", [[], ["--eps", "0.05"], ["--delta", "inf"], ["--eps", "nan"],
-                          ["--margin", "2"], ["--method", "flashsplat"]])  # fmt: skip
+    argv += pick(
+        "vote",
+        [
+            [],
+            ["--eps", "0.05"],
+            ["--delta", "inf"],
+            ["--eps", "nan"],
+            ["--margin", "2"],
+            ["--method", "flashsplat"],
+        ],
+    )
     size = pick("size", SIZES)
     argv += ["--width", size[0], "--height", size[1]] if size else []
     orbit = pick("orbit", [None, "3", "1"])
@@ -208,8 +248,12 @@ def test_export_never_misbehaves(world, seed):
     root, _, _ = world
     pick = Draw(seed, ("out", "run", "overwrite", "device"))
     out = pick("out", _outs(world, "new_dir", "scene_dir", "run", "scene_ply"))()
-    argv = ["export", str(root / pick("run", ["run", "scene", "missing", "run/predictions"])),
-            "--out", str(out)]  # fmt: skip
+    argv = [
+        "export",
+        str(root / pick("run", ["run", "scene", "missing", "run/predictions"])),
+        "--out",
+        str(out),
+    ]
     argv += ["--overwrite"] if pick("overwrite", [False, True]) else []
     device = pick("device", [None, "cpu", "cuda"])
     argv += ["--device", device] if device else []
@@ -221,9 +265,17 @@ def test_export_never_misbehaves(world, seed):
 def test_score_never_misbehaves(world, seed):
     root, _, _ = world
     pick = Draw(seed, ("folders", "resize", "ignore"))
-    folders = pick("folders", [["run"], ["run/predictions", "run/ground_truth"],
-                               ["run/ground_truth", "run/predictions"], ["missing"],
-                               ["scene", "run/ground_truth"], ["run", "run", "run"]])  # fmt: skip
+    folders = pick(
+        "folders",
+        [
+            ["run"],
+            ["run/predictions", "run/ground_truth"],
+            ["run/ground_truth", "run/predictions"],
+            ["missing"],
+            ["scene", "run/ground_truth"],
+            ["run", "run", "run"],
+        ],
+    )
     argv = ["score", *(str(root / f) for f in folders)]
     resize = pick("resize", [None, "pred_to_gt", "gt_to_pred", "stretch"])
     argv += ["--resize", resize] if resize else []
@@ -235,11 +287,35 @@ def test_score_never_misbehaves(world, seed):
 def test_the_world_is_what_the_properties_assume(world):
     """The valid paths do work (so the properties are not passing on refusals alone)."""
     root, click, outputs = world
-    assert _run(["render", str(root / "scene"), "--cameras", str(root / "scene/transforms.json"),
-                 "--out", str(outputs / "ok.png")])[0] == 0  # fmt: skip
-    assert _run(["segment", str(root / "scene"), "--cameras",
-                 str(root / "scene/transforms.json"), "--click", f"0:{click}", "--out",
-                 str(outputs / "ok_seg"), "--no-record"])[0] == 0  # fmt: skip
+    assert (
+        _run(
+            [
+                "render",
+                str(root / "scene"),
+                "--cameras",
+                str(root / "scene/transforms.json"),
+                "--out",
+                str(outputs / "ok.png"),
+            ]
+        )[0]
+        == 0
+    )
+    assert (
+        _run(
+            [
+                "segment",
+                str(root / "scene"),
+                "--cameras",
+                str(root / "scene/transforms.json"),
+                "--click",
+                f"0:{click}",
+                "--out",
+                str(outputs / "ok_seg"),
+                "--no-record",
+            ]
+        )[0]
+        == 0
+    )
     assert _run(["export", str(root / "run"), "--out", str(outputs / "ok_export")])[0] == 0
     assert _run(["score", str(root / "run")])[0] == 0
     assert json.loads((outputs / "ok_seg" / "labels.json").read_text())["names"]

@@ -186,8 +186,9 @@ def test_every_rule_counts_the_pairs_that_voted(tiny_task, method):
     """votes_cast is the (pixel, Gaussian) pairs that voted, for every rule (it was None for the
     weighted ones); for rgc it equals the histogram's sum."""
     t = tiny_task
-    res = consensus_vote(t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels,
-                         VoteConfig(method=method))  # fmt: skip
+    res = consensus_vote(
+        t.gaussians, t.trajectory, t.trajectory_gt, t.num_labels, VoteConfig(method=method)
+    )
     assert isinstance(res.stats["votes_cast"], int) and res.stats["votes_cast"] > 0
     if method == "rgc":
         assert res.stats["votes_cast"] == int(res.histogram.sum())

@@ -22,9 +22,14 @@ def scene():
     from sagonline.datasets.synthetic import load_synthetic
 
     return load_synthetic(
-        preset="forward_single", layout="forward", num_gaussians=4000, width=64, height=48,
-        num_train_views=10, num_eval_views=3,
-    )[0]  # fmt: skip
+        preset="forward_single",
+        layout="forward",
+        num_gaussians=4000,
+        width=64,
+        height=48,
+        num_train_views=10,
+        num_eval_views=3,
+    )[0]
 
 
 def _group_share(report, view: str, group: str) -> float:
@@ -50,9 +55,12 @@ def _sheet(task, view: int, fraction: float = 0.25, count: int = 400) -> Gaussia
     q = torch.tensor([[1.0, 0, 0, 0]]).repeat(count, 1)
     sh = torch.zeros(count, task.gaussians.sh.shape[1], 3)
     return Gaussians(
-        means=means, quats=q, scales=torch.full((count, 2), r / 6), opacities=torch.full(
-            (count,), 0.95), sh=sh,
-    )  # fmt: skip
+        means=means,
+        quats=q,
+        scales=torch.full((count, 2), r / 6),
+        opacities=torch.full((count,), 0.95),
+        sh=sh,
+    )
 
 
 def test_a_sheet_in_front_of_the_object_is_the_fits_fault(scene):
@@ -61,9 +69,12 @@ def test_a_sheet_in_front_of_the_object_is_the_fits_fault(scene):
     sheet = _sheet(scene, 0)
     g = scene.gaussians
     fitted = Gaussians(
-        *(torch.cat([getattr(g, f.name), getattr(sheet, f.name)]) for f in
-          dataclasses.fields(Gaussians) if f.name != "normals"),
-    )  # fmt: skip
+        *(
+            torch.cat([getattr(g, f.name), getattr(sheet, f.name)])
+            for f in dataclasses.fields(Gaussians)
+            if f.name != "normals"
+        ),
+    )
     planted = dataclasses.replace(scene, gaussians=fitted)
     planted.gt_labels3d = None
     clean, _ = run_scene(scene, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False))
@@ -120,8 +131,14 @@ def test_the_fill_rule_labels_unlabelled_interior_gaussians(scene):
 
     sparse = VoteConfig(stride=5)  # 2 of 10 views vote: many Gaussians go unseen
     off = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2, sparse, backend="native")
-    on = consensus_vote(g, scene.trajectory, scene.trajectory_gt, 2,
-                        dataclasses.replace(sparse, fill=8), backend="native")  # fmt: skip
+    on = consensus_vote(
+        g,
+        scene.trajectory,
+        scene.trajectory_gt,
+        2,
+        dataclasses.replace(sparse, fill=8),
+        backend="native",
+    )
     kept = off.labels >= 0
     assert on.stats["fraction_filled"] > 0 and (on.labels >= 0).sum() > kept.sum()
     assert torch.equal(on.labels[kept], off.labels[kept])  # votes kept
@@ -162,9 +179,12 @@ def test_floaters_labelled_as_the_object_are_named_per_gaussian(scene):
     sheet = _sheet(scene, 0, fraction=0.5)
     g = scene.gaussians
     fitted = Gaussians(
-        *(torch.cat([getattr(g, f.name), getattr(sheet, f.name)]) for f in
-          dataclasses.fields(Gaussians) if f.name != "normals"),
-    )  # fmt: skip
+        *(
+            torch.cat([getattr(g, f.name), getattr(sheet, f.name)])
+            for f in dataclasses.fields(Gaussians)
+            if f.name != "normals"
+        ),
+    )
     labels = torch.cat([scene.gt_labels3d, torch.ones(len(sheet), dtype=torch.long)])
     rows = _outside_rows(scene, fitted, labels)
     assert rows and all(r["gaussian"] >= len(g) for r in rows)  # the sheet's, and only

@@ -62,9 +62,23 @@ def test_a_new_segmenter_in_one_file(example, tmp_path, capsys):
     ys, xs = np.nonzero(gt)
     click = f"0:{xs[len(xs) // 2] + 0.5},{ys[len(xs) // 2] + 0.5}"
     out = tmp_path / "out"
-    code = main(["segment", str(folder), "--cameras", str(folder / "transforms.json"),
-                 "--segmenter", "colour", "--click", click, "--out", str(out), "--no-record",
-                 "--segmenter-option", "tolerance=30"])  # fmt: skip
+    code = main(
+        [
+            "segment",
+            str(folder),
+            "--cameras",
+            str(folder / "transforms.json"),
+            "--segmenter",
+            "colour",
+            "--click",
+            click,
+            "--out",
+            str(out),
+            "--no-record",
+            "--segmenter-option",
+            "tolerance=30",
+        ]
+    )
     assert code == 0, capsys.readouterr().err
     assert json.loads((out / "labels.json").read_text())["counts"]["object"] > 0
     cfg = compose_config("eval", "segmenter=colour", "segmenter.tolerance=25")
@@ -87,8 +101,14 @@ def test_a_new_dataset_adapter(example, tmp_path):
     from sagonline.scene.io import write_ply
 
     write_ply(root / "point_cloud.ply", scene.gaussians)
-    cfg = compose_config("eval", "dataset=folder", f"dataset.root={root}", "segmenter=oracle",
-                         "progress=false", "record=false")  # fmt: skip
+    cfg = compose_config(
+        "eval",
+        "dataset=folder",
+        f"dataset.root={root}",
+        "segmenter=oracle",
+        "progress=false",
+        "record=false",
+    )
     metrics = evaluate(cfg, tmp_path / "run")
     assert metrics["protocol_id"] == "folder/first-view-clicks3@1"
     assert metrics["miou"] > 0.9 and metrics["scenes"][0]["scene"] == "folder"
@@ -121,14 +141,20 @@ def test_plugins_named_in_the_environment_are_loaded(tmp_path):
     env = {"SAGONLINE_PLUGINS": "colour_segmenter", "PYTHONPATH": str(tmp_path)}
     done = subprocess.run(
         [sys.executable, "-m", "sagonline", "plugins", "segmenters", "--keys"],
-        cwd=ROOT, capture_output=True, text=True, env={**__import__("os").environ, **env},
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, **env},
+    )
     assert done.returncode == 0 and "colour" in done.stdout.split(","), done.stderr
     env["SAGONLINE_PLUGINS"] = "no_such_module"
     done = subprocess.run(
         [sys.executable, "-m", "sagonline", "plugins"],
-        cwd=ROOT, capture_output=True, text=True, env={**__import__("os").environ, **env},
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, **env},
+    )
     assert done.returncode == 2 and "SAGONLINE_PLUGINS names 'no_such_module'" in done.stderr
 
 
@@ -137,6 +163,9 @@ def test_a_plugin_module_that_registers_nothing_is_refused(tmp_path):
     env = {"SAGONLINE_PLUGINS": "helpers_only", "PYTHONPATH": str(tmp_path)}
     done = subprocess.run(
         [sys.executable, "-m", "sagonline", "plugins"],
-        cwd=ROOT, capture_output=True, text=True, env={**__import__("os").environ, **env},
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env={**__import__("os").environ, **env},
+    )
     assert done.returncode == 2 and "registers no plug-in" in done.stderr, done.stderr

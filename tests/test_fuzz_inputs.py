@@ -33,9 +33,12 @@ pytestmark = pytest.mark.slow
 
 MEMORY_BUDGET_MB = 6 * 1024  # the test process, torch and every library included
 FUZZ = settings(
-    max_examples=20, deadline=None, derandomize=True, database=None,
+    max_examples=20,
+    deadline=None,
+    derandomize=True,
+    database=None,
     suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
-)  # fmt: skip
+)
 
 
 @pytest.fixture(scope="module")
@@ -47,9 +50,22 @@ def world(tmp_path_factory):
     ys, xs = np.nonzero(gt)
     click = f"0:{xs[len(xs) // 2] + 0.5},{ys[len(xs) // 2] + 0.5}"
     seg = root / "seg"
-    assert main(["segment", str(folder / "point_cloud.ply"), "--cameras",
-                 str(folder / "transforms.json"), "--click", click, "--out", str(seg),
-                 "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(folder / "point_cloud.ply"),
+                "--cameras",
+                str(folder / "transforms.json"),
+                "--click",
+                click,
+                "--out",
+                str(seg),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     return root, folder, seg
 
 
@@ -140,9 +156,19 @@ def test_a_mask_given_to_segment(world, quiet_cwd, edits, cut, width):
     raw.unlink()
     before, here = tree_digest(mask.parent), tree_digest(quiet_cwd)
     out = base / "out"
-    code, err = run(["segment", str(folder / "point_cloud.ply"), "--cameras",
-                     str(folder / "transforms.json"), "--mask", f"0:{mask}", "--out", str(out),
-                     "--no-record"])  # fmt: skip
+    code, err = run(
+        [
+            "segment",
+            str(folder / "point_cloud.ply"),
+            "--cameras",
+            str(folder / "transforms.json"),
+            "--mask",
+            f"0:{mask}",
+            "--out",
+            str(out),
+            "--no-record",
+        ]
+    )
     shutil.rmtree(out, ignore_errors=True)
     check(code, err, "m.png", mask.parent, before, here)
 
@@ -166,14 +192,27 @@ JSON = st.recursive(
     st.none() | st.booleans() | st.integers(-(2**40), 2**40) | st.floats() | st.text(max_size=8),
     lambda inner: (
         st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner, max_size=3)
-    ),  # fmt: skip
+    ),
     max_leaves=6,
 )
-FIELDS = st.sampled_from([
-    ("prompt",), ("prompt", "view_name"), ("prompt", "objects"), ("prompt", "texts"),
-    ("prompt", "render_size"), ("vote",), ("vote", "eps"), ("vote", "delta"), ("orbit",),
-    ("cameras",), ("segmenter",), ("segmenter", "options"), ("inbetween",), ("inputs",),
-])  # fmt: skip
+FIELDS = st.sampled_from(
+    [
+        ("prompt",),
+        ("prompt", "view_name"),
+        ("prompt", "objects"),
+        ("prompt", "texts"),
+        ("prompt", "render_size"),
+        ("vote",),
+        ("vote", "eps"),
+        ("vote", "delta"),
+        ("orbit",),
+        ("cameras",),
+        ("segmenter",),
+        ("segmenter", "options"),
+        ("inbetween",),
+        ("inputs",),
+    ]
+)
 
 
 @FUZZ
@@ -192,8 +231,17 @@ def test_a_labels_json_given_to_prompts(world, quiet_cwd, field, value):
     given_file.write_text(json.dumps(record))
     before, here = tree_digest(given_file.parent), tree_digest(quiet_cwd)
     out = base / "out"
-    code, err = run(["segment", str(folder / "point_cloud.ply"), "--prompts", str(given_file),
-                     "--out", str(out), "--no-record"])  # fmt: skip
+    code, err = run(
+        [
+            "segment",
+            str(folder / "point_cloud.ply"),
+            "--prompts",
+            str(given_file),
+            "--out",
+            str(out),
+            "--no-record",
+        ]
+    )
     shutil.rmtree(out, ignore_errors=True)
     if code == 2:  # a refusal names the file, or the value it read out of it
         named = "labels.json" in err or "--" in err
@@ -222,8 +270,13 @@ def test_a_run_folder_given_to_export(world, quiet_cwd, field, value):
     check(code, err, "metrics.json", run_dir, before, here)
 
 
-@settings(max_examples=4, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@settings(
+    max_examples=4,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(edits=EDITS, cut=CUTS, which=st.sampled_from(["poses_bounds.npy", "masks/IMG_0001.png"]))
 def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits, cut, which):
     """A capture of one's own (dataset=generic) with one file damaged: the run refuses it in
@@ -234,17 +287,30 @@ def test_a_capture_folder_given_to_the_evaluation(world, tmp_path_factory, edits
     names = [f"IMG_{i:04d}" for i in range(4)]
     cams, scene = llff_scene(root / "data" / "cap", names)
     for cam in cams:
-        write_image(root / "data" / "cap" / "masks" / f"{cam.name}.png",
-                    (object_mask(scene, cam) > 0).astype(np.uint8) * 255)  # fmt: skip
+        write_image(
+            root / "data" / "cap" / "masks" / f"{cam.name}.png",
+            (object_mask(scene, cam) > 0).astype(np.uint8) * 255,
+        )
     target = root / "data" / "cap" / which
     target.write_bytes(mutate(target.read_bytes(), edits, cut))
     before = tree_digest(root / "data")
     proc = subprocess.run(
-        [sys.executable, "-m", "bench.runners.eval", "dataset=generic",
-         f"dataset.root={root / 'data'}", f"hydra.run.dir={root / 'run'}", "record=false",
-         "progress=false", "cache_dir=null"],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "bench.runners.eval",
+            "dataset=generic",
+            f"dataset.root={root / 'data'}",
+            f"hydra.run.dir={root / 'run'}",
+            "record=false",
+            "progress=false",
+            "cache_dir=null",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     err = proc.stderr
     assert "Traceback" not in err and "a bug" not in err, err
     assert proc.returncode in (0, 1, 2), err  # 1: the run was made, its one scene failed
@@ -274,8 +340,14 @@ def test_a_plugin_name(name):
             assert code == 2 and err.getvalue().count("\n") == 1, err.getvalue()
             assert "no such" in err.getvalue()
     env = {**os.environ, "SAGONLINE_PLUGINS": name}
-    proc = subprocess.run([sys.executable, "-m", "sagonline", "plugins"], cwd=ROOT, env=env,
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-m", "sagonline", "plugins"],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode in (0, 2) and "Traceback" not in proc.stderr, proc.stderr
     if proc.returncode == 2:
         assert proc.stderr.startswith("error: SAGONLINE_PLUGINS names"), proc.stderr
@@ -292,10 +364,22 @@ OPTION_VALUES = (
 @settings(max_examples=40, deadline=None, derandomize=True, database=None)
 @given(
     kind=st.sampled_from(["minisam", "sam2_tiny"]),
-    key=st.sampled_from(["threads", "device", "min_similarity", "advise_after", "prompts",
-                         "click_extent", "embedding_cache", "encoder", "decoder", "unknown"]),
+    key=st.sampled_from(
+        [
+            "threads",
+            "device",
+            "min_similarity",
+            "advise_after",
+            "prompts",
+            "click_extent",
+            "embedding_cache",
+            "encoder",
+            "decoder",
+            "unknown",
+        ]
+    ),
     value=OPTION_VALUES,
-)  # fmt: skip
+)
 def test_a_segmenter_option(kind, key, value):
     """A SAM-family segmenter's option of any text is built or refused with a ValueError naming
     the option, never started with a value out of range (a thread count, a device, a
@@ -318,8 +402,9 @@ def test_a_segmenter_option(kind, key, value):
     )
 
 
-LOCAL = st.sampled_from(["embedding_cache", "encoder", "decoder", "threads", "device",
-                         "checkpoint", "weights"])  # fmt: skip
+LOCAL = st.sampled_from(
+    ["embedding_cache", "encoder", "decoder", "threads", "device", "checkpoint", "weights"]
+)
 
 
 @FUZZ
@@ -335,23 +420,56 @@ def test_a_replayed_labels_json_takes_no_machine_setting(world, quiet_cwd, key, 
     given_file.parent.mkdir()
     given_file.write_text(json.dumps(record))
     before, here = tree_digest(given_file.parent), tree_digest(quiet_cwd)
-    code, err = run(["segment", str(folder / "point_cloud.ply"), "--prompts", str(given_file),
-                     "--out", str(base / "out"), "--no-record"])  # fmt: skip
+    code, err = run(
+        [
+            "segment",
+            str(folder / "point_cloud.ply"),
+            "--prompts",
+            str(given_file),
+            "--out",
+            str(base / "out"),
+            "--no-record",
+        ]
+    )
     assert code == 0 and f"{key}={value}" in err and "this machine's own are used" in err, err
     shutil.rmtree(base / "out", ignore_errors=True)
     check(code, err, "", given_file.parent, before, here)
 
 
 TOOL_ARGS = st.lists(
-    st.sampled_from(["--jobs", "--seeds", "--captures", "--sources", "--settings", "--fit",
-                     "--out", "1000", "-1", "0,x", "nope", "dataset=x", "a;b", "x/../..",
-                     "real,sam9", "variant=../../e", "dataset.root=/tmp", "hydra.run.dir=/"]),
+    st.sampled_from(
+        [
+            "--jobs",
+            "--seeds",
+            "--captures",
+            "--sources",
+            "--settings",
+            "--fit",
+            "--out",
+            "1000",
+            "-1",
+            "0,x",
+            "nope",
+            "dataset=x",
+            "a;b",
+            "x/../..",
+            "real,sam9",
+            "variant=../../e",
+            "dataset.root=/tmp",
+            "hydra.run.dir=/",
+        ]
+    ),
     max_size=6,
-)  # fmt: skip
+)
 
 
-@settings(max_examples=30, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@settings(
+    max_examples=30,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(tool=st.sampled_from(["bench.runners.real", "bench.runners.fit_captures"]), argv=TOOL_ARGS)
 def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
     """Any mix of the cross-capture tools' arguments: refused with exit 2 before anything runs,
@@ -361,15 +479,21 @@ def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
 
     module = importlib.import_module(tool)
     started = []
-    monkeypatch.setattr(subprocess, "run", lambda *a, **k: started.append(a) or (_ for _ in
-                        ()).throw(RuntimeError("would run")))  # fmt: skip
+    monkeypatch.setattr(
+        subprocess,
+        "run",
+        lambda *a, **k: started.append(a) or (_ for _ in ()).throw(RuntimeError("would run")),
+    )
     monkeypatch.chdir(tmp_path)
     before = tree_digest(ROOT / "conf")
     err = io.StringIO()
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
-            module.main([*argv, "--out", str(tmp_path / "o")] if tool == "bench.runners.real" else
-                        [*argv, "--dry-run"])  # fmt: skip
+            module.main(
+                [*argv, "--out", str(tmp_path / "o")]
+                if tool == "bench.runners.real"
+                else [*argv, "--dry-run"]
+            )
         except SystemExit as exc:
             assert exc.code in (0, 1, 2) or isinstance(exc.code, str), exc.code
         except RuntimeError as exc:
@@ -378,8 +502,13 @@ def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
     assert tree_digest(ROOT / "conf") == before
 
 
-@settings(max_examples=15, deadline=None, derandomize=True, database=None,
-          suppress_health_check=[HealthCheck.function_scoped_fixture])  # fmt: skip
+@settings(
+    max_examples=15,
+    deadline=None,
+    derandomize=True,
+    database=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
 @given(
     argv=st.lists(
         st.sampled_from(
@@ -402,13 +531,26 @@ def test_the_cross_capture_tools_arguments(tool, argv, tmp_path, monkeypatch):
 def test_the_weights_fetchs_arguments(argv, tmp_path):
     """fetch_weights.py's arguments in any mix, with the registry out of reach: exit 0, 1 or 2
     with one line, never a traceback, never a file but under its --out."""
-    env = {**os.environ, "PATH": "/nonexistent", "https_proxy": "http://127.0.0.1:9",
-           "HTTPS_PROXY": "http://127.0.0.1:9"}  # fmt: skip
+    env = {
+        **os.environ,
+        "PATH": "/nonexistent",
+        "https_proxy": "http://127.0.0.1:9",
+        "HTTPS_PROXY": "http://127.0.0.1:9",
+    }
     proc = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "fetch_weights.py"), "--out",
-         str(tmp_path / "w"), *argv],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120, env=env,
-    )  # fmt: skip
+        [
+            sys.executable,
+            str(ROOT / "scripts" / "fetch_weights.py"),
+            "--out",
+            str(tmp_path / "w"),
+            *argv,
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
     assert "Traceback" not in proc.stderr, proc.stderr
     assert proc.returncode in (0, 1, 2), proc.stderr
     if proc.returncode:

@@ -20,14 +20,33 @@ pytestmark = pytest.mark.slow
 def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     proc = subprocess.run(
-        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path),
-         "--step-timeout", "600"],
-        cwd=ROOT, capture_output=True, text=True, timeout=600, env=env,
-    )  # fmt: skip
+        [
+            "bash",
+            "scripts/gpu_check.sh",
+            "--quick",
+            "--device",
+            "cpu",
+            "--out",
+            str(tmp_path),
+            "--step-timeout",
+            "600",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
     summary = (tmp_path / "gpu_check.md").read_text()
-    for step in ("environment", "pytest -m gpu", "eval", "bench_render", "table-timing",
-                 "table-masks"):  # fmt: skip
+    for step in (
+        "environment",
+        "pytest -m gpu",
+        "eval",
+        "bench_render",
+        "table-timing",
+        "table-masks",
+    ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary
     for table in ("bench_render", "timing", "masks"):
@@ -36,6 +55,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
 
 
 def test_an_unknown_option_is_refused():
-    proc = subprocess.run(["bash", "scripts/gpu_check.sh", "--fast"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=60)  # fmt: skip
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", "--fast"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
     assert proc.returncode == 2 and "unknown option --fast" in proc.stderr

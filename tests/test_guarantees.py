@@ -31,8 +31,16 @@ def user_scene(tmp_path_factory):
 
 
 def _segment(folder, *args):
-    return main(["segment", str(folder / "point_cloud.ply"), "--cameras",
-                 str(folder / "transforms.json"), "--no-record", *args])  # fmt: skip
+    return main(
+        [
+            "segment",
+            str(folder / "point_cloud.ply"),
+            "--cameras",
+            str(folder / "transforms.json"),
+            "--no-record",
+            *args,
+        ]
+    )
 
 
 def _one_line_error(capsys, *words) -> str:
@@ -58,8 +66,10 @@ def test_export_builds_nothing_named_by_the_run_folder(tmp_path, capsys):
         "_args_": [str(target), "import os; os.system('touch /tmp/owned')"],
     }
     for node in ({"adapter": planted}, {"kind": "generic", "adapter": planted}, planted):
-        metrics = {"config": {"dataset": node, "segmenter": {"kind": "oracle"},
-                              "consensus": {}}, "scenes": []}  # fmt: skip
+        metrics = {
+            "config": {"dataset": node, "segmenter": {"kind": "oracle"}, "consensus": {}},
+            "scenes": [],
+        }
         (run / "metrics.json").write_text(json.dumps(metrics))
         assert main(["export", str(run)]) == 2
         _one_line_error(capsys)
@@ -223,9 +233,12 @@ def test_an_unusable_cache_folder_warns_once_and_the_run_goes_on(
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         report, _ = run_scene(
-            tiny_task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False),
+            tiny_task,
+            OracleSegmenter(),
+            VoteConfig(),
+            PipelineSettings(progress=False),
             cache_dir=cache,
-        )  # fmt: skip
+        )
     assert report.miou is not None and report.miou > 0.5
     unusable = [w for w in caught if "is unusable" in str(w.message)]
     assert len(unusable) == 1, [str(w.message) for w in caught]
@@ -240,8 +253,12 @@ def test_export_redoes_a_vote_whose_recorded_key_lies(tmp_path, capsys):
     cache = tmp_path / "cache"
     runs = {}
     for name, margin in (("a", 0.2), ("b", 0.9)):
-        cfg = cfg_with("dataset=synthetic_ff", "record=false", f"consensus.margin={margin}",
-                       f"cache_dir={cache}")  # fmt: skip
+        cfg = cfg_with(
+            "dataset=synthetic_ff",
+            "record=false",
+            f"consensus.margin={margin}",
+            f"cache_dir={cache}",
+        )
         runs[name] = evaluate(cfg, tmp_path / name)
     metrics_a = json.loads((tmp_path / "a" / "metrics.json").read_text())
     honest = metrics_a["scenes"][0]["stage_keys"]["vote"]
@@ -306,7 +323,7 @@ def test_masks_are_read_as_what_they_are(tmp_path, make, kind, objects):
                 ]
             ),
             "4 channels",
-        ),  # fmt: skip
+        ),
         (np.arange(1200, dtype=np.uint16).reshape(30, 40), "1200 distinct values"),
     ],
 )
@@ -334,8 +351,22 @@ def test_prompts_after_a_mask_are_kept(user_scene, tmp_path):
     assert mask.any()
     Image.fromarray(mask).save(tmp_path / "m.png")
     out = tmp_path / "o"
-    assert _segment(folder, "--object", "wall", "--mask", f"0:{tmp_path / 'm.png'}",
-                    "--object", "vase", "--click", click, "--out", str(out)) == 0  # fmt: skip
+    assert (
+        _segment(
+            folder,
+            "--object",
+            "wall",
+            "--mask",
+            f"0:{tmp_path / 'm.png'}",
+            "--object",
+            "vase",
+            "--click",
+            click,
+            "--out",
+            str(out),
+        )
+        == 0
+    )
     info = json.loads((out / "labels.json").read_text())
     assert info["names"] == ["background", "wall", "vase"]
     assert [o["name"] for o in info["prompt"]["objects"]] == ["wall", "vase"]
@@ -448,8 +479,9 @@ def test_an_overwritten_run_folder_keeps_nothing_of_the_old_config(tmp_path):
     evaluate(cfg_with("dataset=synthetic_ff", "record=true"), run)
     assert main(["export", str(run), "--out", str(run / "export")]) == 0  # one's own choice
     assert (run / "export").is_dir() and (run / "recording.rrd").is_file()
-    evaluate(cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1",
-                      "overwrite=true"), run)  # fmt: skip
+    evaluate(
+        cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1", "overwrite=true"), run
+    )
     assert not (run / "export").exists() and not (run / "recording.rrd").exists()
     assert json.loads((run / "metrics.json").read_text())["consensus"]["eps"] == 0.1
     assert not list(tmp_path.glob(".run.replaced-*"))
@@ -484,8 +516,10 @@ def test_a_refused_run_leaves_no_folder(tmp_path):
     run = tmp_path / "run"
     done = subprocess.run(
         [sys.executable, "-m", "bench.runners.eval", "consensus.eps=2", f"hydra.run.dir={run}"],
-        cwd=ROOT, capture_output=True, text=True,
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
     assert done.returncode == 2 and "consensus.eps=2.0" in done.stderr
     assert not run.exists()
 
@@ -496,28 +530,62 @@ def test_a_refused_run_leaves_no_folder(tmp_path):
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}/v.png", "--device", "cuda"],
-         "CUDA is not available"),
-        (["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}/v.png", "--backend", "gsplat"],
-         "runs on CUDA only"),
+        (
+            ["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}/v.png", "--device", "cuda"],
+            "CUDA is not available",
+        ),
+        (
+            [
+                "render",
+                "{ply}",
+                "--cameras",
+                "{cams}",
+                "--out",
+                "{tmp}/v.png",
+                "--backend",
+                "gsplat",
+            ],
+            "runs on CUDA only",
+        ),
         (["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}"], "is a folder"),
-        (["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}/v.png", "--view", "99"],
-         "view 99 is out of range"),
+        (
+            ["render", "{ply}", "--cameras", "{cams}", "--out", "{tmp}/v.png", "--view", "99"],
+            "view 99 is out of range",
+        ),
         (["render", "{ply}", "--orbit", "100000", "--out", "{tmp}/v.png"], "takes 2 to 720"),
-        (["segment", "{ply}", "--cameras", "{cams}", "--object", "chair"],
-         "has no positive click and no mask"),
+        (
+            ["segment", "{ply}", "--cameras", "{cams}", "--object", "chair"],
+            "has no positive click and no mask",
+        ),
         (["segment", "{ply}", "--cameras", "{cams}", "--text", "a vase"], "does not read text"),
-        (["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--device", "cuda"],
-         "CUDA is not available"),
-        (["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--orbit", "100000"],
-         "takes 2 to 720"),
-        (["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--delta", "inf"],
-         "--delta inf: must be a finite number"),  # the flag the user typed
-        (["segment", "{ply}", "--cameras", "{cams}", "--segmenter", "oracle", "--click", "0:5,5"],
-         "reads the views' ground truth"),
+        (
+            ["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--device", "cuda"],
+            "CUDA is not available",
+        ),
+        (
+            ["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--orbit", "100000"],
+            "takes 2 to 720",
+        ),
+        (
+            ["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--delta", "inf"],
+            "--delta inf: must be a finite number",
+        ),  # the flag the user typed
+        (
+            [
+                "segment",
+                "{ply}",
+                "--cameras",
+                "{cams}",
+                "--segmenter",
+                "oracle",
+                "--click",
+                "0:5,5",
+            ],
+            "reads the views' ground truth",
+        ),
         (["export", "{tmp}"], "not a finished eval run"),
     ],
-)  # fmt: skip
+)
 def test_command_line_mistakes_end_in_one_line(user_scene, tmp_path, args, message, capsys):
     folder, _ = user_scene
     subs = {"ply": folder / "point_cloud.ply", "cams": folder / "transforms.json", "tmp": tmp_path}
@@ -653,8 +721,9 @@ def test_an_eval_with_an_unusable_cache_dir_finishes(tmp_path, kind):
         cache.write_text("not a folder")
     else:
         os.symlink(cache, cache)
-    metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false",
-                                f"cache_dir={cache}"), tmp_path / "run")  # fmt: skip
+    metrics = evaluate(
+        cfg_with("dataset=synthetic_ff", "record=false", f"cache_dir={cache}"), tmp_path / "run"
+    )
     assert metrics["status"] == "complete" and metrics["miou"] > 0.9
     assert "is unusable" in (tmp_path / "run" / "eval.log").read_text()  # warned, in the log
 
@@ -668,8 +737,9 @@ def test_overwrite_replaces_only_what_the_harness_wrote(tmp_path, capsys):
     evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
     (run / "notes.txt").write_text("why this run matters")
     (run / "mine").mkdir()
-    evaluate(cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1",
-                      "overwrite=true"), run)  # fmt: skip
+    evaluate(
+        cfg_with("dataset=synthetic_ff", "record=false", "consensus.eps=0.1", "overwrite=true"), run
+    )
     assert (run / "notes.txt").read_text() == "why this run matters" and (run / "mine").is_dir()
     assert "kept what the harness did not write: mine, notes.txt" in capsys.readouterr().err
 

@@ -31,8 +31,12 @@ def bomb_png(path: Path, width: int, height: int) -> Path:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", crc)
 
     header = struct.pack(">IIBBBBB", width, height, 1, 0, 0, 0, 0)
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header)
-                     + chunk(b"IDAT", zlib.compress(rows, 9)) + chunk(b"IEND", b""))  # fmt: skip
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n"
+        + chunk(b"IHDR", header)
+        + chunk(b"IDAT", zlib.compress(rows, 9))
+        + chunk(b"IEND", b"")
+    )
     return path
 
 
@@ -64,8 +68,9 @@ def run_python(*args: str, cwd=ROOT, env=None) -> tuple[int, str, int]:
         "    peak = int(hwm[0].split()[1]) // 1024 if hwm else -1\n"
         "    print(f'PEAK_MB {peak}', file=sys.stderr)\n"
     )
-    proc = subprocess.run([sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True,
-                          timeout=300, env=env)  # fmt: skip
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=cwd, capture_output=True, text=True, timeout=300, env=env
+    )
     lines = proc.stderr.strip().splitlines()
     peak = int(lines[-1].split()[1]) if lines and lines[-1].startswith("PEAK_MB") else -1
     return proc.returncode, "\n".join(lines[:-1]), peak
@@ -92,8 +97,18 @@ def test_a_png_bomb_is_refused_from_its_header_at_little_memory(tmp_path):
 def test_a_mask_bomb_given_to_segment_is_refused_at_the_view_size(tmp_path, capsys):
     folder, scene, cams, _ = user_scene(tmp_path / "scene", 4, 40, 30)
     bomb = bomb_png(tmp_path / "mask.png", 20000, 20000)
-    code = main(["segment", str(scene), "--cameras", str(folder / "transforms.json"),
-                 "--mask", f"0:{bomb}", "--out", str(tmp_path / "out")])  # fmt: skip
+    code = main(
+        [
+            "segment",
+            str(scene),
+            "--cameras",
+            str(folder / "transforms.json"),
+            "--mask",
+            f"0:{bomb}",
+            "--out",
+            str(tmp_path / "out"),
+        ]
+    )
     assert code == 2
     one_error_line(capsys.readouterr().err, "mask.png", "exceeds the ceiling of 1,200 for")
     assert not (tmp_path / "out").exists()
@@ -139,14 +154,24 @@ def masked_segmentation(tmp_path, monkeypatch):
     work.mkdir()
     cv2.imwrite(str(work / "obj.png"), (gt > 0).astype(np.uint8) * 255)
     monkeypatch.chdir(work)
-    argv = ["segment", str(scene), "--cameras", str(folder / "transforms.json"), "--mask",
-            "0:obj.png", "--out", str(tmp_path / "seg"), "--no-record"]  # fmt: skip
+    argv = [
+        "segment",
+        str(scene),
+        "--cameras",
+        str(folder / "transforms.json"),
+        "--mask",
+        "0:obj.png",
+        "--out",
+        str(tmp_path / "seg"),
+        "--no-record",
+    ]
     assert main(argv) == 0
     return tmp_path, scene, folder
 
 
-def test_a_recorded_mask_is_found_from_labels_json_and_checked(masked_segmentation, monkeypatch,
-                                                               capsys):  # fmt: skip
+def test_a_recorded_mask_is_found_from_labels_json_and_checked(
+    masked_segmentation, monkeypatch, capsys
+):
     """The mask path is recorded relative to labels.json with its SHA-256: a replay from
     another folder that holds another obj.png uses the recorded file (it used the other one),
     and a changed file is refused."""
@@ -158,17 +183,44 @@ def test_a_recorded_mask_is_found_from_labels_json_and_checked(masked_segmentati
     elsewhere.mkdir()
     cv2.imwrite(str(elsewhere / "obj.png"), np.zeros((30, 40), np.uint8))
     monkeypatch.chdir(elsewhere)
-    assert main(["segment", str(scene), "--prompts", str(tmp / "seg" / "labels.json"),
-                 "--out", str(tmp / "again"), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(scene),
+                "--prompts",
+                str(tmp / "seg" / "labels.json"),
+                "--out",
+                str(tmp / "again"),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     assert np.array_equal(
         np.load(tmp / "again" / "labels.npy"), np.load(tmp / "seg" / "labels.npy")
     )
     capsys.readouterr()
     cv2.imwrite(str(tmp / "work" / "obj.png"), np.zeros((30, 40), np.uint8))  # changed
-    assert main(["segment", str(scene), "--prompts", str(tmp / "seg" / "labels.json"),
-                 "--out", str(tmp / "third")]) == 2  # fmt: skip
-    one_error_line(capsys.readouterr().err, "labels.json", "prompt.objects[0].mask",
-                   "not the file that was recorded")  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(scene),
+                "--prompts",
+                str(tmp / "seg" / "labels.json"),
+                "--out",
+                str(tmp / "third"),
+            ]
+        )
+        == 2
+    )
+    one_error_line(
+        capsys.readouterr().err,
+        "labels.json",
+        "prompt.objects[0].mask",
+        "not the file that was recorded",
+    )
 
 
 def test_a_labels_json_of_another_scene_is_said(masked_segmentation, capsys):
@@ -177,8 +229,20 @@ def test_a_labels_json_of_another_scene_is_said(masked_segmentation, capsys):
     data = bytearray(scene.read_bytes())
     data[-1] ^= 1  # another scene (one value's last bit)
     other.write_bytes(bytes(data))
-    assert main(["segment", str(other), "--prompts", str(tmp / "seg" / "labels.json"),
-                 "--out", str(tmp / "on_other"), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(other),
+                "--prompts",
+                str(tmp / "seg" / "labels.json"),
+                "--out",
+                str(tmp / "on_other"),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     assert "was recorded on another scene" in capsys.readouterr().err
 
 
@@ -279,8 +343,22 @@ def segment_folder(tmp_path):
     folder, scene, cams, gt = user_scene(tmp_path / "scene", 4, 40, 30)
     ys, xs = np.nonzero(gt)
     click = f"0:{xs[len(xs) // 2] + 0.5},{ys[len(xs) // 2] + 0.5}"
-    assert main(["segment", str(scene), "--cameras", str(folder / "transforms.json"),
-                 "--click", click, "--out", str(tmp_path / "seg"), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(scene),
+                "--cameras",
+                str(folder / "transforms.json"),
+                "--click",
+                click,
+                "--out",
+                str(tmp_path / "seg"),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     return tmp_path, tmp_path / "seg", scene
 
 
@@ -350,8 +428,9 @@ def test_a_plugin_taking_a_registered_name_is_named_with_its_module(tmp_path):
 
 
 def test_a_dataset_name_that_is_a_path_is_refused(tmp_path):
-    code, err, _ = run_python("bench.runners.eval", "dataset.name=../../../x",
-                              f"hydra.run.dir={tmp_path}/run")  # fmt: skip
+    code, err, _ = run_python(
+        "bench.runners.eval", "dataset.name=../../../x", f"hydra.run.dir={tmp_path}/run"
+    )
     assert code == 2
     one_error_line(err, "dataset.name='../../../x'", "not a path")
     assert not (tmp_path / "run").exists()
@@ -367,16 +446,25 @@ def _capture(root: Path) -> Path:
 
     cams, scene = llff_scene(root / "cap", NAMES)
     for cam in cams:
-        write_image(root / "cap" / "masks_4" / f"{cam.name}.png",
-                    (object_mask(scene, cam) > 0).astype(np.uint8) * 255)  # fmt: skip
+        write_image(
+            root / "cap" / "masks_4" / f"{cam.name}.png",
+            (object_mask(scene, cam) > 0).astype(np.uint8) * 255,
+        )
     return root / "cap"
 
 
 def _eval_capture(root: Path, *extra: str):
     from bench.runners.eval import evaluate
 
-    cfg = compose_config("eval", "dataset=mold_cape", f"dataset.root={root}",
-                         "dataset.name=cap", "record=false", "progress=false", *extra)  # fmt: skip
+    cfg = compose_config(
+        "eval",
+        "dataset=mold_cape",
+        f"dataset.root={root}",
+        "dataset.name=cap",
+        "record=false",
+        "progress=false",
+        *extra,
+    )
     return evaluate(cfg, root.parent / "run")
 
 
@@ -422,8 +510,14 @@ def test_a_truncated_photograph_is_refused_by_the_fit(tmp_path):
 
 def test_the_small_refusals_say_what_to_do(tmp_path, capsys):
     folder, scene, cams, gt = user_scene(tmp_path / "scene", 4, 40, 30)
-    base = ["segment", str(scene), "--cameras", str(folder / "transforms.json"), "--out",
-            str(tmp_path / "o")]  # fmt: skip
+    base = [
+        "segment",
+        str(scene),
+        "--cameras",
+        str(folder / "transforms.json"),
+        "--out",
+        str(tmp_path / "o"),
+    ]
     assert main([*base, "--click", "0:20,12:neg"]) == 2
     one_error_line(capsys.readouterr().err, "a negative click says what an object is not")
     assert main([*base, "--click", "-1:10,10"]) == 2
@@ -455,24 +549,39 @@ def test_a_view_that_shows_nothing_and_an_extreme_opacity(tmp_path, capsys):
     for frame in behind["frames"]:
         frame["transform_matrix"][0][3] += 1e4  # every camera far away, looking at nothing
     (tmp_path / "away.json").write_text(json.dumps(behind))
-    assert main(["render", str(scene), "--cameras", str(tmp_path / "away.json"), "--out",
-                 str(tmp_path / "v.png")]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "render",
+                str(scene),
+                "--cameras",
+                str(tmp_path / "away.json"),
+                "--out",
+                str(tmp_path / "v.png"),
+            ]
+        )
+        == 0
+    )
     assert "shows almost nothing of the scene" in capsys.readouterr().err
 
 
 def test_a_dataset_root_that_is_a_file_and_a_setting_of_another_command(tmp_path):
     (tmp_path / "f").write_text("")
     code, err, _ = run_python(
-        "bench.runners.eval", "dataset=generic", f"dataset.root={tmp_path / 'f'}",
-        f"hydra.run.dir={tmp_path}/run", "record=false",
-    )  # fmt: skip
+        "bench.runners.eval",
+        "dataset=generic",
+        f"dataset.root={tmp_path / 'f'}",
+        f"hydra.run.dir={tmp_path}/run",
+        "record=false",
+    )
     assert code == 2 and "is a file; it names the folder that holds the scenes" in err
     code, err, _ = run_python("bench.runners.eval", "finish=true")
     assert code == 2
     one_error_line(err, "no setting 'finish'", "bench.runners.scenes")
     env = {**os.environ, "SAGONLINE_KERNEL_DIR": str(tmp_path / "f")}
-    code, err, _ = run_python("sagonline", "render", "nothing.ply", "--out", "x.png",
-                              "--backend", "native", env=env)  # fmt: skip
+    code, err, _ = run_python(
+        "sagonline", "render", "nothing.ply", "--out", "x.png", "--backend", "native", env=env
+    )
     assert code == 2 and "a bug" not in err
 
 

@@ -107,9 +107,20 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 # The rooms of sagonline/ in the order the data flows through them (docs/architecture.md): a
 # module imports only from its own room and the rooms before it, never one after it.
 ROOMS = (
-    "core", "scene", "render", "segment", "vote", "labels", "record", "score", "refine",
-    "fitting", "datasets", "pipeline", "apps",
-)  # fmt: skip
+    "core",
+    "scene",
+    "render",
+    "segment",
+    "vote",
+    "labels",
+    "record",
+    "score",
+    "refine",
+    "fitting",
+    "datasets",
+    "pipeline",
+    "apps",
+)
 
 
 def room_of(module: str) -> str:
@@ -364,3 +375,19 @@ def test_every_option_command_and_setting_the_docs_quote_exists():
     assert unknown_settings(spans) == [] and unknown_settings(planted) == [
         "planted: consensus.no_such"
     ]
+
+
+def test_the_formatter_runs_everywhere():
+    """No `fmt: skip` / `fmt: off` markers: the formatter lays out every line of the library,
+    the harness and the tests (a layout it would change is changed, not fenced off)."""
+    fenced = [
+        f"{p.relative_to(ROOT)}:{i}"
+        for p in [
+            *PACKAGE.rglob("*.py"),
+            *(ROOT / "bench").rglob("*.py"),
+            *(ROOT / "tests").rglob("*.py"),
+        ]
+        for i, line in enumerate(p.read_text().splitlines(), 1)
+        if "# fmt: " + "skip" in line or "# fmt: " + "off" in line
+    ]
+    assert not fenced, fenced

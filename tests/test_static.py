@@ -27,8 +27,11 @@ def test_no_undefined_names_or_wrong_calls(mypy_cache):
     pytest.importorskip("mypy", reason="mypy is in the dev extras: pip install -e '.[dev]'")
     proc = subprocess.run(
         [sys.executable, "-m", "mypy", "--cache-dir", str(mypy_cache)],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
 
 
@@ -44,9 +47,20 @@ def test_the_check_catches_what_crashed_the_gpu_run(tmp_path, mypy_cache):
         "    return triton_available\n"
     )
     proc = subprocess.run(
-        [sys.executable, "-m", "mypy", "--cache-dir", str(mypy_cache),
-         "--config-file", str(ROOT / "pyproject.toml"), str(probe)],
-        cwd=ROOT, capture_output=True, text=True, timeout=600,
-    )  # fmt: skip
+        [
+            sys.executable,
+            "-m",
+            "mypy",
+            "--cache-dir",
+            str(mypy_cache),
+            "--config-file",
+            str(ROOT / "pyproject.toml"),
+            str(probe),
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 1
     assert "[attr-defined]" in proc.stdout and 'Missing positional argument "rule"' in proc.stdout

@@ -344,8 +344,10 @@ def check_plugin_nodes(cfg) -> None:
         if group == "dataset":
             unknown = sorted(set(node) - set(DATASET_NODE_KEYS))
             if unknown:
-                raise KeyError(f"dataset.{unknown[0]}: no such setting (dataset.adapter.* holds "
-                               "the dataset's settings)")  # fmt: skip
+                raise KeyError(
+                    f"dataset.{unknown[0]}: no such setting (dataset.adapter.* holds "
+                    "the dataset's settings)"
+                )
         from sagonline.core.plugins import NODE_KEYS
 
         values = (

@@ -64,8 +64,10 @@ def check_width(width: str) -> None:
     done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=env)
     runs = done.stdout.strip()
     if runs.lower() != width:
-        raise SystemExit(f"error: --width {width}: torch's CPU kernels run at {runs or '?'} on "
-                         f"this machine, not {width.upper()}")  # fmt: skip
+        raise SystemExit(
+            f"error: --width {width}: torch's CPU kernels run at {runs or '?'} on "
+            f"this machine, not {width.upper()}"
+        )
 
 
 def fit_command(capture: str, seed: int, overrides: list[str]) -> list[str]:
@@ -87,12 +89,20 @@ def fit_one(capture: str, seed: int, overrides: list[str], env: dict[str, str], 
     with log.open("w") as out:
         done = subprocess.run(
             [sys.executable, "-m", "bench.runners.scenes", *fit_command(capture, seed, overrides)],
-            cwd=ROOT, stdout=out, stderr=subprocess.STDOUT, env=os.environ | env,
-        )  # fmt: skip
+            cwd=ROOT,
+            stdout=out,
+            stderr=subprocess.STDOUT,
+            env=os.environ | env,
+        )
     said = log.read_text().strip().splitlines() or ["(no output)"]
     seconds = round(time.perf_counter() - start, 1)
-    row = {"capture": capture, "seed": seed, "variant": variant or "-", "seconds": seconds,
-           "log": str(log)}  # fmt: skip
+    row = {
+        "capture": capture,
+        "seed": seed,
+        "variant": variant or "-",
+        "seconds": seconds,
+        "log": str(log),
+    }
     if done.returncode != 0:
         return row | {"status": f"failed: {said[-1]}"}
     skipped = any("already fitted" in line for line in said)
@@ -116,10 +126,12 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap.add_argument("--seeds", default="0,1,2", help="comma-separated fit seeds (default 0,1,2)")
     ap.add_argument("--jobs", type=int, default=1, help="fits at once (default 1; each one thread)")
     ap.add_argument(
-        "--width", choices=WIDTHS, default="avx2",
+        "--width",
+        choices=WIDTHS,
+        default="avx2",
         help="torch's CPU vector width (default avx2, as every fit; avx512: another draw, into "
         "the variant avx512)",
-    )  # fmt: skip
+    )
     ap.add_argument("--logs", type=Path, default=LOGS, help="the fits' logs (default runs/fits)")
     ap.add_argument("--dry-run", action="store_true", help="print the fits' commands and stop")
     ap.add_argument(
@@ -135,8 +147,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     names = args.captures.split(",") if args.captures else known
     unknown = sorted(set(names) - set(known))
     if unknown:
-        ap.error(f"--captures: no such capture: {', '.join(unknown)}; the captures: "
-                 f"{', '.join(known)}")  # fmt: skip
+        ap.error(
+            f"--captures: no such capture: {', '.join(unknown)}; the captures: {', '.join(known)}"
+        )
     for bad in [
         o
         for o in args.overrides

@@ -23,8 +23,11 @@ def check_override_keys(schema: type, argv: list[str], command: str) -> None:
         if "." not in key and top in GROUPS and "," not in value:
             options = group_options(top)
             if value not in options | {"schema"}:
-                print(f"error: {command}: {arg}: no such {top} option; the options: "
-                      f"{', '.join(sorted(options))}", file=sys.stderr)  # fmt: skip
+                print(
+                    f"error: {command}: {arg}: no such {top} option; the options: "
+                    f"{', '.join(sorted(options))}",
+                    file=sys.stderr,
+                )
                 raise SystemExit(2)
         if top not in known:
             other = (

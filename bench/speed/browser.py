@@ -45,10 +45,15 @@ def open_browser(url: str, width: int = 1000, height: int = 700):
     options = webdriver.ChromeOptions()
     options.binary_location = browser
     for flag in (
-        "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--use-gl=angle",
-        "--use-angle=swiftshader", "--enable-unsafe-swiftshader", "--ignore-gpu-blocklist",
+        "--headless=new",
+        "--no-sandbox",
+        "--disable-dev-shm-usage",
+        "--use-gl=angle",
+        "--use-angle=swiftshader",
+        "--enable-unsafe-swiftshader",
+        "--ignore-gpu-blocklist",
         f"--window-size={width},{height}",
-    ):  # fmt: skip
+    ):
         options.add_argument(flag)
     options.set_capability("goog:loggingPrefs", {"browser": "ALL"})  # for console_errors
     chrome = webdriver.Chrome(service=Service(driver), options=options)

@@ -78,21 +78,36 @@ def main() -> None:
     for width, height in wanted:
         per_view = [
             timed(
-                partial(render_labels, g, c.scaled(width, height), labels, 2, min_weight=0.5,
-                        backend=backend),
+                partial(
+                    render_labels,
+                    g,
+                    c.scaled(width, height),
+                    labels,
+                    2,
+                    min_weight=0.5,
+                    backend=backend,
+                ),
                 args.repeats,
                 args.device,
             )
             for c in cams
-        ]  # fmt: skip
-        rows.append({"scene": name, "size": f"{width}x{height}", "views": len(cams),
-                     "ms_per_view": 1000 * statistics.median(per_view)})  # fmt: skip
+        ]
+        rows.append(
+            {
+                "scene": name,
+                "size": f"{width}x{height}",
+                "views": len(cams),
+                "ms_per_view": 1000 * statistics.median(per_view),
+            }
+        )
     table = pd.DataFrame(rows)
     table["ratio"] = table.ms_per_view / table.ms_per_view.iloc[0]
     table["pixel_ratio"] = [w * h / (wanted[0][0] * wanted[0][1]) for w, h in wanted]
     machine = describe_device(args.device)
-    print(f"label render by size: {backend} on {machine.get('gpu') or machine.get('cpu')}, "
-          f"{torch.get_num_threads()} threads, load {machine.get('load_average_1m')}")  # fmt: skip
+    print(
+        f"label render by size: {backend} on {machine.get('gpu') or machine.get('cpu')}, "
+        f"{torch.get_num_threads()} threads, load {machine.get('load_average_1m')}"
+    )
     print(table.to_markdown(index=False, floatfmt=".1f"))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(args.out, index=False)

@@ -199,18 +199,21 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
             )
             start = time.perf_counter()
             browser.click_canvas(chrome)
-            browser.wait_for(lambda: session.progress.state == "done" and server["click"], 120,
-                             "all views voted")  # fmt: skip
+            browser.wait_for(
+                lambda: session.progress.state == "done" and server["click"], 120, "all views voted"
+            )
             seen = wait_for_done(chrome, app)
-            rows.append({
-                "repeat": repeat,
-                "server: click arrived": server["click"][0] - start,
-                "server: first labels sent": server["update"][0] - start,
-                "server: all views voted": server["update"][-1] - start,
-                "browser: first labels shown": (seen["labels"] - seen["click"]) / 1000,
-                "browser: done shown": (seen["done"] - seen["click"]) / 1000,
-                **canvas_times(chrome, seen),
-            })  # fmt: skip
+            rows.append(
+                {
+                    "repeat": repeat,
+                    "server: click arrived": server["click"][0] - start,
+                    "server: first labels sent": server["update"][0] - start,
+                    "server: all views voted": server["update"][-1] - start,
+                    "browser: first labels shown": (seen["labels"] - seen["click"]) / 1000,
+                    "browser: done shown": (seen["done"] - seen["click"]) / 1000,
+                    **canvas_times(chrome, seen),
+                }
+            )
     finally:
         chrome.quit()
         app.server.stop()
@@ -243,9 +246,11 @@ def main() -> None:
     session = SegmentSession(g, views.cameras, segmenter=segmenter, segmenter_kind=args.segmenter)
     session.preparation.wait()  # the embeddings, made in the background once the views are rendered
     total = time.perf_counter() - start
-    print(f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
-          f"{session.render_seconds:.2f} s, prepared by {args.segmenter} in "
-          f"{session.preparation.seconds:.2f} s; {total:.2f} s in all")  # fmt: skip
+    print(
+        f"{len(g)} Gaussians, {len(views.cameras)} views rendered once in "
+        f"{session.render_seconds:.2f} s, prepared by {args.segmenter} in "
+        f"{session.preparation.seconds:.2f} s; {total:.2f} s in all"
+    )
     if args.browser:
         scale = width / 480
         table = browser_clicks(session, args.repeats, [v * scale for v in ICING[0]])
@@ -266,10 +271,15 @@ def main() -> None:
         scale = width / 480  # the clicks are given at 480x270
         first, last = timed_click(session, [v * scale for v in ICING[0]])
         second_first, second_last = timed_click(session, [v * scale for v in ICING[1]])
-        rows.append({
-            "repeat": repeat, "first labels": first, "all views voted": last,
-            "second click, first labels": second_first, "second click, all voted": second_last,
-        })  # fmt: skip
+        rows.append(
+            {
+                "repeat": repeat,
+                "first labels": first,
+                "all views voted": last,
+                "second click, first labels": second_first,
+                "second click, all voted": second_last,
+            }
+        )
     table = pd.DataFrame(rows).set_index("repeat")
     median = table.median()
     print(table.round(2).to_markdown())

@@ -129,7 +129,7 @@ class UDDConfig(PosedMasksConfig):
             "107,142,35": 3,
             "0,0,142": 4,
             "70,70,70": 5,
-        }  # fmt: skip
+        }
     )
     label_names: list[str] | None = field(
         default_factory=lambda: ["other", "facade", "road", "vegetation", "vehicle", "roof"]
@@ -278,12 +278,18 @@ class SyntheticPreset:
             num_gaussians=(100 <= self.num_gaussians <= n, self.num_gaussians, f"in [100, {n}]"),
             width=(16 <= self.width <= 4096, self.width, "in [16, 4096] pixels"),
             height=(16 <= self.height <= 4096, self.height, "in [16, 4096] pixels"),
-            num_train_views=(2 <= self.num_train_views <= views, self.num_train_views,
-                             f"in [2, {views}]"),
-            num_eval_views=(1 <= self.num_eval_views <= views, self.num_eval_views,
-                            f"in [1, {views}]"),
+            num_train_views=(
+                2 <= self.num_train_views <= views,
+                self.num_train_views,
+                f"in [2, {views}]",
+            ),
+            num_eval_views=(
+                1 <= self.num_eval_views <= views,
+                self.num_eval_views,
+                f"in [1, {views}]",
+            ),
             clicks=(1 <= self.clicks <= 100, self.clicks, "in [1, 100]"),
-        )  # fmt: skip
+        )
 
 
 @dataclass

@@ -102,8 +102,16 @@ def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -
         record = json.loads(path.read_text())
     except (OSError, ValueError):
         return None
-    keys = ("iterations", "iterations_planned", "stopped", "psnr_train", "psnr_heldout",
-            "psnr_heldout_object", "seed", "scene_digest")  # fmt: skip
+    keys = (
+        "iterations",
+        "iterations_planned",
+        "stopped",
+        "psnr_train",
+        "psnr_heldout",
+        "psnr_heldout_object",
+        "seed",
+        "scene_digest",
+    )
     return {k: record[k] for k in keys if k in record} | {"path": str(path)}
 
 

@@ -55,9 +55,13 @@ def white_backdrop(
         h, w = im.shape[:2]
         dy, dx = max(1, round(frame * h)), max(1, round(frame * w))
         border = torch.cat(
-            [im[:dy].reshape(-1, 3), im[-dy:].reshape(-1, 3),
-             im[:, :dx].reshape(-1, 3), im[:, -dx:].reshape(-1, 3)]
-        )  # fmt: skip
+            [
+                im[:dy].reshape(-1, 3),
+                im[-dy:].reshape(-1, 3),
+                im[:, :dx].reshape(-1, 3),
+                im[:, -dx:].reshape(-1, 3),
+            ]
+        )
         white += bool((border.median(0).values >= WHITE).all())
     return white >= share * len(images)
 

@@ -173,9 +173,11 @@ class DensifyStrategy:
     def prune_pose_views(self, params: Params) -> tuple[Params | None, int]:
         """After the fit: drop Gaussians reaching into a pose-only view (`clear_of_pose_views`)."""
         keep = clear_of_pose_views(
-            params["means"].detach(), params["log_scales"].detach(), self.pose_views,
+            params["means"].detach(),
+            params["log_scales"].detach(),
+            self.pose_views,
             self.cfg.pose_view_clearance,
-        )  # fmt: skip
+        )
         return keep_only(params, keep)
 
 

@@ -308,10 +308,13 @@ class SceneFitter:
             detail = ""
             if self.step % 10 == 0:
                 detail = ", ".join(
-                    [f"loss {np.mean(self.history[-10:]):.4f}",
-                     f"PSNR {np.mean(recent_psnr):.2f} dB", f"{len(self)} Gaussians",
-                     *(f"{k} {v:.2e}" for k, v in terms.items())]
-                )  # fmt: skip
+                    [
+                        f"loss {np.mean(self.history[-10:]):.4f}",
+                        f"PSNR {np.mean(recent_psnr):.2f} dB",
+                        f"{len(self)} Gaussians",
+                        *(f"{k} {v:.2e}" for k, v in terms.items()),
+                    ]
+                )
             bar.update(1, detail)
             if checkpoint is not None and self.step % cfg.checkpoint_every == 0:
                 self.elapsed = time.perf_counter() - start

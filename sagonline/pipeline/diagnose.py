@@ -34,7 +34,7 @@ def truth_vote(
     gaussians: Gaussians,
     stage_one: StageOneOutput,
     segmenter: SegmenterRun,
-    vote_cfg: VoteConfig,
+    vote: VoteConfig,
     settings: PipelineSettings,
     cache: StageCache,
 ) -> VoteResult | None:
@@ -50,9 +50,16 @@ def truth_vote(
     oracle = segmenter_run({"kind": "oracle"}, check=False)
     quiet = PipelineSettings(**{**settings.__dict__, "progress": False})
     truth = compose_stage_one(
-        gaussians, task.trajectory, task.prompt, oracle, vote_cfg, quiet,
-        num_labels=task.num_labels, trajectory_gt=task.trajectory_gt, cache=cache,
-    )  # fmt: skip
+        gaussians,
+        task.trajectory,
+        task.prompt,
+        oracle,
+        vote,
+        quiet,
+        num_labels=task.num_labels,
+        trajectory_gt=task.trajectory_gt,
+        cache=cache,
+    )
     return truth.vote.value
 
 
@@ -62,7 +69,7 @@ def diagnose_scene(
     stage_one: StageOneOutput,
     preds: list[np.ndarray],
     segmenter: SegmenterRun,
-    vote_cfg: VoteConfig,
+    vote: VoteConfig,
     settings: PipelineSettings,
     report: SceneReport,
     cache: StageCache,
@@ -71,16 +78,23 @@ def diagnose_scene(
     report.extra["diagnosis"] and the labelled Gaussians shown outside the object's silhouette
     to report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
     images (for the recording)."""
-    truth = truth_vote(task, gaussians, stage_one, segmenter, vote_cfg, settings, cache)
-    causes = GaussianCauses.of(stage_one.vote.value, vote_cfg, truth)
+    truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
+    causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
     rows = {(r["view"], r["mode"]): r for r in report.views}
     counts, images, outside = [], [], OutsideTally()
     for view, pred in zip(task.eval_views, preds, strict=True):
         row = rows[(view.name, "coarse")]
         c, kinds = diagnose_view(
-            gaussians, view.camera, view.gt, pred, causes, ignore=task.ignore_label,
-            backend=settings.backend, outside=outside, voted=bool(row.get("voted")),
-        )  # fmt: skip
+            gaussians,
+            view.camera,
+            view.gt,
+            pred,
+            causes,
+            ignore=task.ignore_label,
+            backend=settings.backend,
+            outside=outside,
+            voted=bool(row.get("voted")),
+        )
         row.update(c)
         counts.append(c)
         images.append(cause_image(kinds))

@@ -64,7 +64,7 @@ def input_digests(task: SceneTask) -> dict:
 def run_scene(
     task: SceneTask,
     segmenter: SegmenterRun | VideoSegmenter,
-    vote_cfg: VoteConfig,
+    vote: VoteConfig,
     settings: PipelineSettings,
     *,
     cache_dir: str | Path | None = None,
@@ -90,12 +90,12 @@ def run_scene(
             g,
             task.trajectory,
             segmenter,
-            vote_cfg,
+            vote,
             settings,
             task.num_labels,
             task.trajectory_gt,
             cache,
-        ),  # fmt: skip
+        ),
         task.prompt,
     )
     stage_one = follow_stage_one(task, engine, recorder, settings.progress)
@@ -106,16 +106,21 @@ def run_scene(
     num_labels, result = stage_one.num_labels, stage_one.vote.value
     note_stage_one(task, report, stage_one, settings.resize)
     preds = score_views(
-        task, g, result, num_labels, settings, report, stage_one.voted, predictions_to,
+        task,
+        g,
+        result,
+        num_labels,
+        settings,
+        report,
+        stage_one.voted,
+        predictions_to,
         backend=plan.labels,
-    )  # fmt: skip
+    )
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(result.labels, task.gt_labels3d, num_labels)
     causes = None
     if settings.diagnose and not is_automatic(task):
-        causes = diagnose_scene(
-            task, g, stage_one, preds, segmenter, vote_cfg, settings, report, cache
-        )
+        causes = diagnose_scene(task, g, stage_one, preds, segmenter, vote, settings, report, cache)
     record_eval_views(task, recorder, preds, report, g, plan.images, causes)
     recorder.gaussians(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
@@ -148,8 +153,13 @@ def follow_stage_one(
                 frames_bar.close()
                 masks_bar = Progress(f"{task.name}: segment and vote", n, enabled=show)
             masks_bar.update()
-            recorder.trajectory_frame(task.name, event.index, engine.frames[event.index],
-                                      event.mask, camera=task.trajectory[event.index])  # fmt: skip
+            recorder.trajectory_frame(
+                task.name,
+                event.index,
+                engine.frames[event.index],
+                event.mask,
+                camera=task.trajectory[event.index],
+            )
     frames_bar.close()
     if masks_bar is not None:
         masks_bar.close()
@@ -246,9 +256,16 @@ def record_eval_views(task, recorder, preds, report, gaussians, backend, causes=
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
         rgb = to_uint8(render(gaussians, view.camera, backend=backend).rgb)
         recorder.eval_view(
-            task.name, i, rgb, pred, view.gt, camera=view.camera, iou=ious[i], frame=frames[i],
+            task.name,
+            i,
+            rgb,
+            pred,
+            view.gt,
+            camera=view.camera,
+            iou=ious[i],
+            frame=frames[i],
             diagnosis=None if causes is None else causes[i],
-        )  # fmt: skip
+        )
 
 
 def nearest_frames(task: SceneTask) -> list[int]:

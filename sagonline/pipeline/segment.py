@@ -191,13 +191,23 @@ def segment_scene(
     check_view(cameras, prompt.frame)
     check_cameras_see_scene(gaussians, cameras)
     run = segmenter if isinstance(segmenter, SegmenterRun) else segmenter_run_of(segmenter)
-    settings = PipelineSettings(backend=backend, vote_backend=vote_backend, device=device,
-                                progress=progress, background=tuple(background))  # fmt: skip
+    settings = PipelineSettings(
+        backend=backend,
+        vote_backend=vote_backend,
+        device=device,
+        progress=progress,
+        background=tuple(background),
+    )
     start = time.perf_counter()
     config = StageOneConfig(
-        gaussians, list(cameras), run, vote, settings, max(prompt.num_labels, len(names)),
+        gaussians,
+        list(cameras),
+        run,
+        vote,
+        settings,
+        max(prompt.num_labels, len(names)),
         cache=StageCache(cache_dir),
-    )  # fmt: skip
+    )
     engine = StageOne(config, prompt)
     steps = Progress("segment and vote", 2 * len(cameras), enabled=progress)
     for event in engine.stream():
@@ -217,8 +227,16 @@ def segment_scene(
         "vote_ms_per_mask": v.stats["ms_per_mask"],
         "total_s": time.perf_counter() - start,
     }
-    return Segmentation(stage_one.labels.astype(np.int64), names, v, list(cameras),
-                        frames.images, seg.masks, timings, prompt.frame)  # fmt: skip
+    return Segmentation(
+        stage_one.labels.astype(np.int64),
+        names,
+        v,
+        list(cameras),
+        frames.images,
+        seg.masks,
+        timings,
+        prompt.frame,
+    )
 
 
 SPARSE_VIEW = 0.02  # a view whose render covers less than this share of its pixels
@@ -232,9 +250,10 @@ def sparse_views(
     pixels: they show almost nothing of the scene."""
     bg = np.round(255 * np.asarray(background, np.float32)).astype(np.int16)
     return [
-        i for i, f in enumerate(frames)
+        i
+        for i, f in enumerate(frames)
         if (np.abs(f.astype(np.int16) - bg).max(axis=-1) > 2).mean() < SPARSE_VIEW
-    ]  # fmt: skip
+    ]
 
 
 def warn_sparse_views(frames, cameras: list[Camera], background) -> None:
@@ -331,13 +350,29 @@ def write_segment_folder(
 
     def write_recording(path: Path) -> None:
         record_segmentation(
-            path, gaussians, seg.labels, seg.names, seg.cameras, seg.frames, seg.masks,
-            [v[2] for v in views], info["prompt"], seg.prompt_frame,
-        )  # fmt: skip
+            path,
+            gaussians,
+            seg.labels,
+            seg.names,
+            seg.cameras,
+            seg.frames,
+            seg.masks,
+            [v[2] for v in views],
+            info["prompt"],
+            seg.prompt_frame,
+        )
 
     info = info | {"label_render": {"min_weight": float(min_weight)}}
     return write_segmentation(
-        out, gaussians, seg.labels, seg.names, source=scene, info=info, views=views,
-        record=write_recording if record else None, overwrite=overwrite, inputs=inputs,
+        out,
+        gaussians,
+        seg.labels,
+        seg.names,
+        source=scene,
+        info=info,
+        views=views,
+        record=write_recording if record else None,
+        overwrite=overwrite,
+        inputs=inputs,
         command="segment",
-    )  # fmt: skip
+    )

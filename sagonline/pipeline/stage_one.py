@@ -35,7 +35,6 @@ import numpy as np
 import torch
 
 from sagonline.core.errors import PromptError
-from sagonline.core.plugins import VOTE_RULES
 from sagonline.pipeline.events import (
     Event,
     FrameRendered,
@@ -54,7 +53,7 @@ from sagonline.pipeline.stages import (
     FramesInputs,
     MasksInputs,
     SegmenterRun,
-    VoteInputs,
+    stage_keys,
 )
 from sagonline.render.api import render, to_uint8
 from sagonline.render.backends import implementation_digest, plan_backends
@@ -64,7 +63,7 @@ from sagonline.segment.base import SegmentationResult
 from sagonline.segment.prompts import Prompt, add_to_prompt
 from sagonline.vote.body import extents
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
-from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs, FeedbackPolicy, FusedRender
+from sagonline.vote.feedback import FeedbackPolicy, FusedRender
 
 
 @dataclass
@@ -150,9 +149,16 @@ class StageOne:
         if not 0 <= frame < len(self.cameras):
             raise PromptError(f"view {frame} is out of range: there are {len(self.cameras)} views")
         prompt, label = add_to_prompt(
-            self._prompt, frame, points=points, point_labels=point_labels, box=box, mask=mask,
-            text=text, obj_id=obj_id, name=name,
-        )  # fmt: skip
+            self._prompt,
+            frame,
+            points=points,
+            point_labels=point_labels,
+            box=box,
+            mask=mask,
+            text=text,
+            obj_id=obj_id,
+            name=name,
+        )
         self.set_prompt(prompt)
         return label
 
@@ -238,9 +244,13 @@ class StageOne:
             return
         c = self.config
         inputs = FramesInputs(
-            self.gaussians, list(self.cameras), self.plan.images,
-            implementation_digest(self.plan.images), tuple(c.settings.background), self.device,
-        )  # fmt: skip
+            self.gaussians,
+            list(self.cameras),
+            self.plan.images,
+            implementation_digest(self.plan.images),
+            tuple(c.settings.background),
+            self.device,
+        )
         key, start = FRAMES.key(inputs), time.perf_counter()
         cached = None if c.keep_depth else self.cache.load(FRAMES, key)
         if cached is not None:
@@ -264,32 +274,6 @@ class StageOne:
         self.frames, self._frames_out = frames.images, Output(key, frames)
         status = "cached" if cached is not None else "computed"
         self.runs["frames"] = StageRun(status, time.perf_counter() - start)
-
-    def _keys(self) -> tuple[MasksInputs, str, str]:
-        """The masks' inputs and key, and the vote's key (it digests the masks' key, not
-        their values: both are known before anything is segmented)."""
-        c, s = self.config, self.config.settings
-        feedback = advice = None
-        if s.feedback.enabled:
-            feedback = FeedbackInputs(
-                s.feedback, c.vote, self.gaussians, list(self.cameras), c.num_labels,
-                s.label_min_weight, self.plan.vote,
-            )  # fmt: skip
-        after = c.segmenter.segmenter.wants_advice
-        if after is not None:  # the segmenter reads the fused labels: its masks depend on them
-            advice = FeedbackInputs(
-                FeedbackConfig(min_frames=after), c.vote, self.gaussians, list(self.cameras),
-                c.num_labels, s.label_min_weight, self.plan.vote,
-            )  # fmt: skip
-        masks_in = MasksInputs(self._frames_out, self._prompt, c.trajectory_gt, c.segmenter,
-                               feedback, advice)  # fmt: skip
-        masks_key = MASKS.key(masks_in)
-        vote_in = VoteInputs(
-            Output(masks_key, None), self.gaussians, list(self.cameras), c.num_labels, c.vote,
-            VOTE_RULES[c.vote.method].version, self.plan.vote,
-            implementation_digest(self.plan.vote), self.device,
-        )  # fmt: skip
-        return masks_in, masks_key, VOTE.key(vote_in)
 
     def _mask_source(self, masks_in: MasksInputs, cached: SegmentationResult | None):
         """(frame, mask, seconds) in the order the masks are made (or were, when cached)."""
@@ -315,15 +299,26 @@ class StageOne:
 
     def _mask_and_vote_events(self) -> Iterator[MaskReady | ViewVoted | LabelsUpdated]:
         c = self.config
-        masks_in, masks_key, vote_key = self._keys()
+        masks_in, masks_key, vote_key = stage_keys(
+            self.config,
+            self.gaussians,
+            self.cameras,
+            self.plan,
+            self._frames_out,
+            self._prompt,
+            self.device,
+        )
         start = time.perf_counter()
         cached_masks = self.cache.load(MASKS, masks_key)
         cached_vote = self.cache.load(VOTE, vote_key)
         self._acc = VoteAccumulator(
-            len(self.gaussians), max(c.num_labels, self._prompt.num_labels), c.vote,
-            self.gaussians.device, self.gaussians.means,
+            len(self.gaussians),
+            max(c.num_labels, self._prompt.num_labels),
+            c.vote,
+            self.gaussians.device,
+            self.gaussians.means,
             extents(self.gaussians) if c.vote.body else None,
-        )  # fmt: skip
+        )
         voting, total = set(self.voting), len(self.voting)
         seconds = [0.0] * len(self.cameras)
         order: list[int] = []
@@ -353,8 +348,9 @@ class StageOne:
         if cached_masks is not None:
             seg = cached_masks
         else:
-            seg = SegmentationResult([np.asarray(m, np.int64) for m in self.masks], seconds,
-                                     name, info)  # fmt: skip
+            seg = SegmentationResult(
+                [np.asarray(m, np.int64) for m in self.masks], seconds, name, info
+            )
             self.cache.save(MASKS, masks_key, seg)
         vote = cached_vote if cached_vote is not None else self._acc.result()
         if cached_vote is None:
@@ -366,9 +362,14 @@ class StageOne:
         num_labels = max(c.num_labels, self._acc.k, vote.histogram.shape[1])
         voted = {self.cameras[i].name for i in vote.frames}
         self._out = StageOneOutput(
-            self._frames_out, Output(masks_key, seg), Output(vote_key, vote), num_labels,
-            voted, dict(self.runs), self.plan,
-        )  # fmt: skip
+            self._frames_out,
+            Output(masks_key, seg),
+            Output(vote_key, vote),
+            num_labels,
+            voted,
+            dict(self.runs),
+            self.plan,
+        )
         self._labels = vote.labels.cpu().numpy()
         yield LabelsUpdated(self._labels, len(vote.frames), total, final=True)
 
@@ -387,6 +388,7 @@ def compose_stage_one(
 ) -> StageOneOutput:
     """Stage I drained in one call (`StageOne(...).run()`), for callers that want its outputs
     and no events."""
-    config = StageOneConfig(gaussians, list(trajectory), segmenter, vote, settings,
-                            num_labels, trajectory_gt, cache)  # fmt: skip
+    config = StageOneConfig(
+        gaussians, list(trajectory), segmenter, vote, settings, num_labels, trajectory_gt, cache
+    )
     return StageOne(config, prompt).run()

@@ -21,16 +21,18 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sagonline.core.plugins import VOTE_RULES
 from sagonline.core.provenance import digest_json
 from sagonline.core.store import stored
 from sagonline.pipeline.graph import Output, Stage
 from sagonline.refine import RefineConfig
+from sagonline.render.backends import implementation_digest
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult, VideoSegmenter
 from sagonline.segment.prompts import Prompt
 from sagonline.vote.consensus import VoteConfig, VoteResult
-from sagonline.vote.feedback import FeedbackInputs
+from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs
 
 
 @stored
@@ -144,3 +146,48 @@ VOTE = Stage("vote", 4, VoteInputs)  # 4: labels -1 for unlabelled, no `labelled
 REFINE = Stage("refine", 3, RefineInputs)  # trained in the background: stage_two
 STAGES = (FRAMES, MASKS, VOTE, REFINE)  # in graph order: each reads only those before it
 STAGE_VERSIONS = {s.name: s.version for s in STAGES}
+
+
+def stage_keys(
+    config, gaussians: Gaussians, cameras, plan, frames_out: Output, prompt: Prompt, device
+) -> tuple[MasksInputs, str, str]:
+    """Stage I's masks' inputs and key, and the vote's key, for a `StageOneConfig`, its
+    backend `plan` and the frames' output (the vote's key digests the masks' key, not their
+    values: both are known before anything is segmented)."""
+    c, s = config, config.settings
+    feedback = advice = None
+    if s.feedback.enabled:
+        feedback = FeedbackInputs(
+            s.feedback,
+            c.vote,
+            gaussians,
+            list(cameras),
+            c.num_labels,
+            s.label_min_weight,
+            plan.vote,
+        )
+    after = c.segmenter.segmenter.wants_advice
+    if after is not None:  # the segmenter reads the fused labels: its masks depend on them
+        advice = FeedbackInputs(
+            FeedbackConfig(min_frames=after),
+            c.vote,
+            gaussians,
+            list(cameras),
+            c.num_labels,
+            s.label_min_weight,
+            plan.vote,
+        )
+    masks_in = MasksInputs(frames_out, prompt, c.trajectory_gt, c.segmenter, feedback, advice)
+    masks_key = MASKS.key(masks_in)
+    vote_in = VoteInputs(
+        Output(masks_key, None),
+        gaussians,
+        list(cameras),
+        c.num_labels,
+        c.vote,
+        VOTE_RULES[c.vote.method].version,
+        plan.vote,
+        implementation_digest(plan.vote),
+        device,
+    )
+    return masks_in, masks_key, VOTE.key(vote_in)

@@ -53,12 +53,18 @@ def record_segmentation(
         w2c = cam.world_to_cam.detach().double().cpu().numpy()
         rec.log(
             base,
-            rr.Transform3D(translation=w2c[:3, 3], mat3x3=w2c[:3, :3],
-                           relation=rr.TransformRelation.ChildFromParent),
-            rr.Pinhole(image_from_camera=cam.K.detach().double().cpu().numpy(),
-                       resolution=[cam.width, cam.height], camera_xyz=rr.ViewCoordinates.RDF,
-                       image_plane_distance=0.2),
-        )  # fmt: skip
+            rr.Transform3D(
+                translation=w2c[:3, 3],
+                mat3x3=w2c[:3, :3],
+                relation=rr.TransformRelation.ChildFromParent,
+            ),
+            rr.Pinhole(
+                image_from_camera=cam.K.detach().double().cpu().numpy(),
+                resolution=[cam.width, cam.height],
+                camera_xyz=rr.ViewCoordinates.RDF,
+                image_plane_distance=0.2,
+            ),
+        )
         rec.log(f"{base}/rgb", rr.Image(np.ascontiguousarray(frame)).compress(jpeg_quality=90))
         rec.log(f"{base}/segmenter", rr.SegmentationImage(np.asarray(mask).astype(np.uint16)))
         rec.log(f"{base}/labels", rr.SegmentationImage(np.asarray(lab).astype(np.uint16)))
@@ -82,8 +88,9 @@ def clicks(prompt: dict):
             xy.append((x, y)), col.append((40, 220, 60)), text.append(obj["name"])
         for x, y in obj.get("negatives", []):
             xy.append((x, y)), col.append((230, 40, 40)), text.append(f"not {obj['name']}")
-    return rr.Points2D(np.asarray(xy, np.float32).reshape(-1, 2), colors=col, labels=text,
-                       radii=4.0)  # fmt: skip
+    return rr.Points2D(
+        np.asarray(xy, np.float32).reshape(-1, 2), colors=col, labels=text, radii=4.0
+    )
 
 
 def splats(rec, gaussians, labels: np.ndarray, colors: np.ndarray) -> None:
@@ -120,10 +127,14 @@ def legend(rec, gaussians, labels: np.ndarray, names: list[str]) -> None:
     centres = np.asarray([means[labels == k].mean(0) for k in ids], np.float32).reshape(-1, 3)
     rec.log(
         "segment/scene/legend",
-        rr.Points3D(centres, class_ids=np.asarray(ids, np.uint16), labels=[names[k] for k in ids],
-                    radii=0.01),
+        rr.Points3D(
+            centres,
+            class_ids=np.asarray(ids, np.uint16),
+            labels=[names[k] for k in ids],
+            radii=0.01,
+        ),
         static=True,
-    )  # fmt: skip
+    )
 
 
 def blueprint():
@@ -134,18 +145,26 @@ def blueprint():
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
-                rrb.Spatial2DView(name="render + clicks", origin=cam,
-                                  contents=["$origin/rgb", "$origin/clicks"]),
+                rrb.Spatial2DView(
+                    name="render + clicks", origin=cam, contents=["$origin/rgb", "$origin/clicks"]
+                ),
                 rrb.Horizontal(
-                    rrb.Spatial2DView(name="2D segmenter", origin=cam,
-                                      contents=["$origin/rgb", "$origin/segmenter"]),
-                    rrb.Spatial2DView(name="fused labels", origin=cam,
-                                      contents=["$origin/rgb", "$origin/labels"]),
+                    rrb.Spatial2DView(
+                        name="2D segmenter",
+                        origin=cam,
+                        contents=["$origin/rgb", "$origin/segmenter"],
+                    ),
+                    rrb.Spatial2DView(
+                        name="fused labels", origin=cam, contents=["$origin/rgb", "$origin/labels"]
+                    ),
                 ),
             ),
-            rrb.Spatial3DView(name="scene by label", origin="/segment",
-                              contents=["/segment/scene/**", "/segment/view/camera"]),
+            rrb.Spatial3DView(
+                name="scene by label",
+                origin="/segment",
+                contents=["/segment/scene/**", "/segment/view/camera"],
+            ),
             column_shares=[3, 2],
         ),
         collapse_panels=True,
-    )  # fmt: skip
+    )

@@ -71,8 +71,14 @@ def _needs_grad(gaussians: Gaussians, features: torch.Tensor | None) -> bool:
     """Whether a render would be differentiated: grad mode on and a parameter requiring it."""
     if not torch.is_grad_enabled():
         return False
-    tensors = [gaussians.means, gaussians.quats, gaussians.scales, gaussians.opacities,
-               gaussians.sh, features]  # fmt: skip
+    tensors = [
+        gaussians.means,
+        gaussians.quats,
+        gaussians.scales,
+        gaussians.opacities,
+        gaussians.sh,
+        features,
+    ]
     return any(t is not None and t.requires_grad for t in tensors)
 
 

@@ -173,8 +173,12 @@ class BackendPlan:
     labels: str
 
     def describe(self) -> dict[str, str]:
-        return {"device": self.device, "images": self.images, "vote": self.vote,
-                "labels": self.labels}  # fmt: skip
+        return {
+            "device": self.device,
+            "images": self.images,
+            "vote": self.vote,
+            "labels": self.labels,
+        }
 
 
 def plan_backends(
@@ -192,11 +196,17 @@ def plan_backends(
 _HERE = Path(__file__).parent
 _SOURCES = {
     "torch": ("_torch_impl.py", "rasterize.py", "projection.py", "sh.py"),
-    "native": ("native.py", "projection.py", "rasterize.py", "csrc/raster_cpu.cpp",
-               "csrc/vote_cpu.cpp", "csrc/splat_common.h"),
+    "native": (
+        "native.py",
+        "projection.py",
+        "rasterize.py",
+        "csrc/raster_cpu.cpp",
+        "csrc/vote_cpu.cpp",
+        "csrc/splat_common.h",
+    ),
     "triton": ("triton_vote.py", "triton_composite.py", "projection.py", "rasterize.py"),
     "gsplat": ("gsplat_backend.py", "_torch_impl.py", "projection.py", "rasterize.py", "sh.py"),
-}  # fmt: skip
+}
 
 
 @functools.cache

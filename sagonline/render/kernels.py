@@ -102,8 +102,10 @@ def check_library(build_dir: Path, name: str, say) -> None:
     if expected is not None and library_digest(library) == expected:
         return
     why = "no digest was recorded" if expected is None else "its bytes changed"
-    say(f"the compiled CPU kernels in {build_dir} are not the build that finished ({why}): "
-        "building them again")  # fmt: skip
+    say(
+        f"the compiled CPU kernels in {build_dir} are not the build that finished ({why}): "
+        "building them again"
+    )
     for entry in build_dir.iterdir():
         if entry.is_file():
             entry.unlink(missing_ok=True)

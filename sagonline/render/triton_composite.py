@@ -44,8 +44,17 @@ def composite_triton(
             packed = torch.zeros(len(view.proj), kp, device=device)
             if parts:
                 packed[:, :f] = torch.cat([part.float() for part in parts], dim=1)
-            walk(view, out, f, rows=packed, best=best, depth=depth, trans=trans,
-                 t_stop=t_stop, image=image)  # fmt: skip
+            walk(
+                view,
+                out,
+                f,
+                rows=packed,
+                best=best,
+                depth=depth,
+                trans=trans,
+                t_stop=t_stop,
+                image=image,
+            )
     feats = out[:, :f].view(H, W, f)
     if not image:
         return feats, best.view(H, W), None, None

@@ -258,8 +258,9 @@ def tile_view(
     tiles_x, tiles_y = math.ceil(camera.width / TILE), math.ceil(camera.height / TILE)
     _, order, offsets, counts = bin_tiles(proj, tiles_x, tiles_y, TILE)
     params = proj.params().float().contiguous()
-    return TiledView(proj, params, order, offsets, counts, camera.width, camera.height,
-                     tiles_x, tiles_y)  # fmt: skip
+    return TiledView(
+        proj, params, order, offsets, counts, camera.width, camera.height, tiles_x, tiles_y
+    )
 
 
 def walk(
@@ -328,6 +329,12 @@ def vote_into(
         if view is None:
             return 0
         cast = torch.zeros(view.tiles_x * view.tiles_y, dtype=torch.int64, device=hist.device)
-        walk(view, hist, hist.shape[1], pixel_labels=labels.to(torch.int32).contiguous(),
-             cast=cast, rule=rule)  # fmt: skip
+        walk(
+            view,
+            hist,
+            hist.shape[1],
+            pixel_labels=labels.to(torch.int32).contiguous(),
+            cast=cast,
+            rule=rule,
+        )
         return int(cast.sum())

@@ -75,8 +75,11 @@ class VideoSegmenter(ABC):
         labels.json records, and a replay compares)."""
         from sagonline.core.provenance import sha256_file
 
-        return [{"path": str(Path(f).resolve()), "sha256": sha256_file(Path(f))}
-                for f in self.weight_files() if Path(f).is_file()]  # fmt: skip
+        return [
+            {"path": str(Path(f).resolve()), "sha256": sha256_file(Path(f))}
+            for f in self.weight_files()
+            if Path(f).is_file()
+        ]
 
     def check(self) -> None:  # noqa: B027 (optional hook: most segmenters have nothing to check)
         """Fail fast, before anything is rendered: open and validate weights and settings.
@@ -132,8 +135,11 @@ class VideoSegmenter(ABC):
             )
         seen: set[int] = set()
         start = time.perf_counter()
-        made = (self._stream(frames, prompt, ground_truth) if advice is None
-                else self._stream(frames, prompt, ground_truth, advice))  # fmt: skip
+        made = (
+            self._stream(frames, prompt, ground_truth)
+            if advice is None
+            else self._stream(frames, prompt, ground_truth, advice)
+        )
         for item in made:
             i, mask = item[0], item[1]
             seconds = item[2] if len(item) > 2 else time.perf_counter() - start

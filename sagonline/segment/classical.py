@@ -163,8 +163,9 @@ class FlowWatershedSegmenter(VideoSegmenter):
             if v <= 0:
                 gc[self.click_region(colour, (int(x), int(y)))] = cv2.GC_BGD
         for (x, y), v in zip(pts, lab, strict=True):
-            cv2.circle(gc, (int(x), int(y)), self.click_radius,
-                       cv2.GC_FGD if v > 0 else cv2.GC_BGD, -1)  # fmt: skip
+            cv2.circle(
+                gc, (int(x), int(y)), self.click_radius, cv2.GC_FGD if v > 0 else cv2.GC_BGD, -1
+            )
         if obj.box is None:
             border = max(2, min(h, w) // 40)
             for sl in (np.s_[:border], np.s_[-border:]):  # what no click's region reaches
@@ -181,8 +182,9 @@ class FlowWatershedSegmenter(VideoSegmenter):
 
     def click_region(self, colour: np.ndarray, xy: tuple[int, int]) -> np.ndarray:
         """(H, W) bool: the pixels of like colour connected to the click (`click_region`)."""
-        return click_region(colour, xy, self.click_tolerance, self.click_brightness_ratio,
-                            self.prior_radius)  # fmt: skip
+        return click_region(
+            colour, xy, self.click_tolerance, self.click_brightness_ratio, self.prior_radius
+        )
 
     def _bin_index(self, frame: np.ndarray) -> np.ndarray:
         q = (frame.astype(np.int64) * self.bins) // 256

@@ -58,7 +58,7 @@ class ParsedPrompt:
             "objects": [
                 {"name": o.name, "clicks": o.points, "negatives": o.negatives, **mask(o)}
                 for o in self.objects
-            ],  # fmt: skip
+            ],
             "texts": self.texts,
         }
 

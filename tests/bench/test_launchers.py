@@ -19,10 +19,18 @@ from tests.fixtures import (
 
 def sweep(launcher: str, folder: Path) -> dict[str, dict]:
     cmd = [
-        sys.executable, "-m", "bench.runners.eval", "--multirun", f"hydra/launcher={launcher}",
-        "consensus.eps=0.01,0.1", "dataset=synthetic_ff", "record=false", "progress=false",
-        f"hydra.sweep.dir={folder}", *TINY,
-    ]  # fmt: skip
+        sys.executable,
+        "-m",
+        "bench.runners.eval",
+        "--multirun",
+        f"hydra/launcher={launcher}",
+        "consensus.eps=0.01,0.1",
+        "dataset=synthetic_ff",
+        "record=false",
+        "progress=false",
+        f"hydra.sweep.dir={folder}",
+        *TINY,
+    ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
     out = {}

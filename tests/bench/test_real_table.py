@@ -29,13 +29,13 @@ def test_each_seed_reads_its_own_fit_into_its_own_folder():
 
 def test_the_spread_is_the_mean_with_min_and_max_of_the_numbers_present():
     rows = [
-        dict.fromkeys(real_table.NUMERIC) | {"classical": 53.0, "real masks, every 4th": 90.0,
-                                       "protocol": "p"},
-        dict.fromkeys(real_table.NUMERIC) | {"classical": 67.0, "real masks, every 4th": None,
-                                       "protocol": "p"},
-        dict.fromkeys(real_table.NUMERIC) | {"classical": 62.0, "real masks, every 4th": None,
-                                       "protocol": "p"},
-    ]  # fmt: skip
+        dict.fromkeys(real_table.NUMERIC)
+        | {"classical": 53.0, "real masks, every 4th": 90.0, "protocol": "p"},
+        dict.fromkeys(real_table.NUMERIC)
+        | {"classical": 67.0, "real masks, every 4th": None, "protocol": "p"},
+        dict.fromkeys(real_table.NUMERIC)
+        | {"classical": 62.0, "real masks, every 4th": None, "protocol": "p"},
+    ]
     out = real_table.spread("cap", rows, [0, 1, 2])
     assert out["classical"] == "60.67 (53.00-67.00, n=3)"
     assert out["real masks, every 4th"] == "90.00"  # one seed: no spread to claim

@@ -132,14 +132,21 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
     first.mkdir(parents=True)
     metrics = {
         "dataset": "d",
-        "scenes": [{"scene": "s", "status": "ok", "miou": 0.8125, "macc": 0.9,
-                    "timings": {"vote_ms_per_mask": 3.0}}],
+        "scenes": [
+            {
+                "scene": "s",
+                "status": "ok",
+                "miou": 0.8125,
+                "macc": 0.9,
+                "timings": {"vote_ms_per_mask": 3.0},
+            }
+        ],
         "miou": 0.8125,
         "macc": 0.9,
         "segmenter": "oracle",
         "overrides": ["dataset=d"],
         "timings": {"vote_ms_per_mask": 3.0},
-    }  # fmt: skip
+    }
     (first / "metrics.json").write_text(json.dumps(metrics))
     shutil.copytree(first, runs / "b")
     metrics["timings"] = {}  # the same run scored again, without timings
@@ -154,8 +161,12 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
     (out / "fits.md").write_text("kept\n")
     main([str(runs), "--out", str(out)])
     assert sorted(p.name for p in out.iterdir()) == [
-        "fits.md", "runs.csv", "runs.md", "scenes.csv", "scenes.md",
-    ]  # fmt: skip
+        "fits.md",
+        "runs.csv",
+        "runs.md",
+        "scenes.csv",
+        "scenes.md",
+    ]
     assert (out / "fits.md").read_text() == "kept\n"
     table = pd.read_csv(out / "runs.csv")
     assert sorted(table["runs"]) == [1, 3] and len(table) == 2
@@ -172,11 +183,13 @@ def test_plot_legend_names_only_what_differs():
     from bench.tables.views import short_labels
 
     shared = ["dataset=m", "dataset.adapter.exclude_reference=true"]
-    names = short_labels({
-        "oracle a b=1": [*shared, "consensus.stride=4"],
-        "oracle a b=2": [*shared, "consensus.stride=8"],
-        "classical a": [*shared, "record=false"],
-    })  # fmt: skip
+    names = short_labels(
+        {
+            "oracle a b=1": [*shared, "consensus.stride=4"],
+            "oracle a b=2": [*shared, "consensus.stride=8"],
+            "classical a": [*shared, "record=false"],
+        }
+    )
     assert names == {
         "oracle a b=1": "oracle stride=4",
         "oracle a b=2": "oracle stride=8",

@@ -206,8 +206,13 @@ def test_pose_view_clearance_prunes_only_in_front_of_pose_only_views(views):
     assert keep.tolist() == [False, True]
     assert clear_of_pose_views(means, log_scales, [(pose, 2.0)], fraction=0.0).all()
     # the fitter runs it once, after its last iteration, on the pose-only cameras alone
-    f = SceneFitter(tiny(iterations=2, densify_from=10_000, view_clearance=0.0), cams[:-1],
-                    imgs[:-1], other_cameras=[pose], view_near={pose.name: 2.0})  # fmt: skip
+    f = SceneFitter(
+        tiny(iterations=2, densify_from=10_000, view_clearance=0.0),
+        cams[:-1],
+        imgs[:-1],
+        other_cameras=[pose],
+        view_near={pose.name: 2.0},
+    )
     with torch.no_grad():
         f.params["means"][:1] = pose.center + axis * 0.6
         f.params["log_scales"][:1] = -6.0
@@ -463,12 +468,18 @@ def test_a_fit_pins_torchs_cpu_kernels_and_mkl_before_torch_loads():
         "os.environ['MKL_CBWR'], torch.backends.cpu.get_cpu_capability())"
     )
     env = {k: v for k, v in os.environ.items() if k not in ("ATEN_CPU_CAPABILITY", "MKL_CBWR")}
-    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, env=env, capture_output=True,
-                          text=True)  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", probe], cwd=ROOT, env=env, capture_output=True, text=True
+    )
     aten, mkl, runs = done.stdout.split()
     assert (aten, mkl) == ("avx2", "COMPATIBLE") and runs in ("AVX2", "DEFAULT"), done.stdout
-    done = subprocess.run([sys.executable, "-c", probe], cwd=ROOT, capture_output=True, text=True,
-                          env=env | {"MKL_CBWR": "AVX2,STRICT"})  # fmt: skip
+    done = subprocess.run(
+        [sys.executable, "-c", probe],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        env=env | {"MKL_CBWR": "AVX2,STRICT"},
+    )
     assert done.stdout.split()[1] == "AVX2,STRICT"
 
 
@@ -495,7 +506,7 @@ def test_scenes_cli_errors(tmp_path):
             "dataset=generic",
             f"dataset.root={tmp_path}",
             f"hydra.run.dir={run}",
-        ],  # fmt: skip
+        ],
         capture_output=True,
         text=True,
     )
@@ -582,7 +593,7 @@ def test_the_same_seed_gives_the_same_scene_on_one_and_two_threads(kind, size):
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             text=True,
-        )  # fmt: skip
+        )
         for threads in (1, 2)
     }
     digests = {}

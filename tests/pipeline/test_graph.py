@@ -72,14 +72,33 @@ def base_values(task, feedback: bool) -> dict[str, dict]:
         else None
     )
     return {
-        "frames": dict(gaussians=g, cameras=cams, backend="native", kernel="k",
-                       background=(0.0, 0.0, 0.0), device="cpu"),
-        "masks": dict(prompt=task.prompt, trajectory_gt=task.trajectory_gt,
-                      segmenter=SegmenterRun(OracleSegmenter(), {}), feedback=fb, advice=fb),
-        "vote": dict(gaussians=g, cameras=cams, num_labels=task.num_labels, config=VoteConfig(),
-                     rule_version="0.1.0+r", backend="native", kernel="k", device="cpu"),
+        "frames": dict(
+            gaussians=g,
+            cameras=cams,
+            backend="native",
+            kernel="k",
+            background=(0.0, 0.0, 0.0),
+            device="cpu",
+        ),
+        "masks": dict(
+            prompt=task.prompt,
+            trajectory_gt=task.trajectory_gt,
+            segmenter=SegmenterRun(OracleSegmenter(), {}),
+            feedback=fb,
+            advice=fb,
+        ),
+        "vote": dict(
+            gaussians=g,
+            cameras=cams,
+            num_labels=task.num_labels,
+            config=VoteConfig(),
+            rule_version="0.1.0+r",
+            backend="native",
+            kernel="k",
+            device="cpu",
+        ),
         "refine": dict(config=RefineConfig(), backend="native", device="cpu"),
-    }  # fmt: skip
+    }
 
 
 def keys(values: dict[str, dict]) -> dict[str, str]:
@@ -158,9 +177,11 @@ def field_changes(values: dict, feedback_on: dict):
                 for sub in dataclasses.fields(value):
                     new = changed(sub.name, getattr(value, sub.name))
                     cases.append(
-                        (f"{f.name}.{sub.name}", None if new is None else
-                         replaced(value, sub.name, new))
-                    )  # fmt: skip
+                        (
+                            f"{f.name}.{sub.name}",
+                            None if new is None else replaced(value, sub.name, new),
+                        )
+                    )
             else:
                 cases.append((f.name, changed(f.name, value)))
             for what, new in cases:

@@ -32,10 +32,16 @@ def engine_for(
     """An engine on `task`, prompted with the task's prompt (prompt=False: none yet)."""
     run = segmenter_run_of(segmenter or OracleSegmenter())
     config = StageOneConfig(
-        task.gaussians, task.trajectory, run, vote or VoteConfig(),
-        PipelineSettings(progress=False, **settings), task.num_labels, task.trajectory_gt,
-        cache, publish_every,
-    )  # fmt: skip
+        task.gaussians,
+        task.trajectory,
+        run,
+        vote or VoteConfig(),
+        PipelineSettings(progress=False, **settings),
+        task.num_labels,
+        task.trajectory_gt,
+        cache,
+        publish_every,
+    )
     return StageOne(config, task.prompt if prompt else None)
 
 
@@ -59,8 +65,9 @@ def test_events_come_in_the_data_flow_order(tiny_task):
 
 def test_the_engine_votes_as_the_one_call_vote_does(tiny_task):
     out = engine_for(tiny_task).run()
-    ref = consensus_vote(tiny_task.gaussians, tiny_task.trajectory, tiny_task.trajectory_gt,
-                         tiny_task.num_labels)  # fmt: skip
+    ref = consensus_vote(
+        tiny_task.gaussians, tiny_task.trajectory, tiny_task.trajectory_gt, tiny_task.num_labels
+    )
     assert np.array_equal(out.labels, ref.labels.numpy())
     assert out.vote.value.stats["votes_cast"] == ref.stats["votes_cast"] > 0
 
@@ -141,8 +148,7 @@ def test_feedback_votes_only_the_selected_frames(tiny_task):
     the views between never vote (the old loop voted them all)."""
     vote = VoteConfig(stride=3)
     feedback = FeedbackConfig(enabled=True, every=2, min_frames=1)
-    engine = engine_for(tiny_task, segmenter=FlowWatershedSegmenter(), vote=vote,
-                        feedback=feedback)  # fmt: skip
+    engine = engine_for(tiny_task, segmenter=FlowWatershedSegmenter(), vote=vote, feedback=feedback)
     out = engine.run()
     selected = set(range(0, len(tiny_task.trajectory), 3))
     assert set(out.vote.value.frames) == selected

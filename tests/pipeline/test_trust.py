@@ -117,9 +117,12 @@ def test_corrupt_cache_entry_is_named_and_recomputed(tiny_task, tmp_path):
 
 def test_cached_stages_report_no_timing_of_their_own(tiny_task, tmp_path):
     run = lambda: run_scene(  # noqa: E731
-        tiny_task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False),
+        tiny_task,
+        OracleSegmenter(),
+        VoteConfig(),
+        PipelineSettings(progress=False),
         cache_dir=tmp_path,
-    )[0]  # fmt: skip
+    )[0]
     first, second = run(), run()
     assert {"render_ms_per_frame", "vote_ms_per_mask", "time_to_first_mask_s"} <= set(first.timings)
     assert second.stages == dict.fromkeys(ALL, "cached")

@@ -216,8 +216,9 @@ def test_a_lucky_first_batch_does_not_end_training():
     rng = np.random.default_rng(0)
     losses = [0.30] + list(0.50 - 0.002 * np.arange(300) + rng.normal(0, 0.02, 300))
     plateau = Plateau(patience=60, min_delta=1e-3, warmup=60)
-    stop = next((i for i, loss in enumerate(losses) if (plateau.add(loss), plateau.converged)[1]),
-                None)  # fmt: skip
+    stop = next(
+        (i for i, loss in enumerate(losses) if (plateau.add(loss), plateau.converged)[1]), None
+    )
     assert stop is None or stop > 200  # the trend still falls: no "convergence" at step 61
     flat = Plateau(patience=60, min_delta=1e-3, warmup=60)
     for i in range(200):

@@ -170,9 +170,11 @@ def blend_bound(
             continue
         cx, cy, box = xs.double() + 0.5, ys.double() + 0.5, proj.bbox.double()
         inside = (
-            (cx[None] >= box[:, :1]) & (cx[None] <= box[:, 1:2])
-            & (cy[None] >= box[:, 2:3]) & (cy[None] <= box[:, 3:4])
-        )  # fmt: skip
+            (cx[None] >= box[:, :1])
+            & (cx[None] <= box[:, 1:2])
+            & (cy[None] >= box[:, 2:3])
+            & (cy[None] <= box[:, 3:4])
+        )
         lin = ys * width + xs
         if behind_only:
             inside &= proj.depths.double()[:, None] >= last_depth[lin][None]

@@ -188,8 +188,9 @@ def test_the_op_rejects_bad_inputs():
     with pytest.raises(ValueError, match=r"\[0, 2\)"):
         vote_histogram(g, cam, torch.full((6, 8), 2), 2, VoteRule())
     with pytest.raises(ValueError, match="float64"):
-        vote_histogram(g, cam, torch.zeros(6, 8, dtype=torch.long), 2, VoteRule(),
-                       out=torch.zeros(10, 2))  # fmt: skip
+        vote_histogram(
+            g, cam, torch.zeros(6, 8, dtype=torch.long), 2, VoteRule(), out=torch.zeros(10, 2)
+        )
     with pytest.raises(ValueError, match="weighting"):
         VoteRule(weighting="mean")
 

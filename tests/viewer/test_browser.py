@@ -63,9 +63,10 @@ def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
         browser.wait_for(lambda: app.server.get_clients(), 30, "the page to connect")
         browser.wait_for(lambda: browser.canvas(chrome), 30, "the scene's canvas")
         shot = browser.wait_for(
-            lambda: colours(browser.screenshot(chrome, tmp_path / "page.png")) > 1, 30,
+            lambda: colours(browser.screenshot(chrome, tmp_path / "page.png")) > 1,
+            30,
             "the canvas to draw",
-        )  # fmt: skip
+        )
         assert shot
         # aim the browser's camera from behind view 0 at an icing Gaussian, click the centre
         means = session.gaussians.means
@@ -76,9 +77,13 @@ def test_click_in_the_browser_labels_and_exports(viewer, tmp_path):
             client.camera.position = target + 1.5 * (cam.center.numpy() - target)
             client.camera.look_at = target
         browser.wait_for(
-            lambda: all(np.allclose(c.camera.look_at, target, atol=1e-3)
-                        for c in app.server.get_clients().values()), 10, "the camera to move",
-        )  # fmt: skip
+            lambda: all(
+                np.allclose(c.camera.look_at, target, atol=1e-3)
+                for c in app.server.get_clients().values()
+            ),
+            10,
+            "the camera to move",
+        )
         browser.click_canvas(chrome)
         browser.wait_for(lambda: session.progress.state == "done", 60, "the labels")
         labelled = session.labels == 1

@@ -43,7 +43,7 @@ def test_incremental_vote_equals_the_batch_vote(donut):
     def record(labels, progress):
         updates.append((progress.voted, labels.copy(), progress.state))
 
-    session = SegmentSession(g, ring, backend="native", recolour_every=3, on_update=record)
+    session = SegmentSession(g, ring, backend="native", publish_every=3, on_update=record)
     xy = icing_pixel(session, parts)
     session.add_click(0, *xy)
     assert session.wait(30).state == "done"
@@ -118,12 +118,14 @@ def test_bad_clicks_are_refused_and_change_nothing(donut):
     cases = [
         (lambda: session.add_click(0, 500, 10), "outside view 0"),
         (lambda: session.add_click(0, 1, 1), "no Gaussian is drawn"),  # the black corner
-        (lambda: session.add_click(0, *icing_pixel(session, parts), positive=False),
-         "negative click"),
+        (
+            lambda: session.add_click(0, *icing_pixel(session, parts), positive=False),
+            "negative click",
+        ),
         (lambda: session.click_from_ray([0, 0, 10], [0, 0, 1]), "hits no Gaussian"),
         (lambda: session.click_from_ray([0, 0, 10], [0, 0, -1]), "outside every view"),
         (lambda: session.new_object("  "), "needs a name"),
-    ]  # fmt: skip
+    ]
     for action, message in cases[:4] + cases[5:]:
         with pytest.raises(PromptError, match=message):
             action()
@@ -149,8 +151,9 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
 
     g, parts, ring = donut
     seg = FlowWatershedSegmenter(band_px=2)
-    session = SegmentSession(g, ring, segmenter=seg, segmenter_options=["band_px=2"],
-                             backend="native", min_weight=0.6)  # fmt: skip
+    session = SegmentSession(
+        g, ring, segmenter=seg, segmenter_options=["band_px=2"], backend="native", min_weight=0.6
+    )
     session.add_click(0, *icing_pixel(session, parts))
     session.wait(60)
     write_ply(tmp_path / "donut.ply", g)
@@ -159,9 +162,28 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
     assert record["segmenter"] == {"kind": "classical", "options": ["band_px=2"], "weights": []}
     assert record["label_render"] == {"min_weight": 0.6}
     again = tmp_path / "again"
-    assert main(["segment", str(tmp_path / "donut.ply"), "--orbit", "8", "--width", "96",
-                 "--height", "72", "--backend", "native", "--prompts", str(out / "labels.json"),
-                 "--out", str(again), "--no-record"]) == 0  # fmt: skip
+    assert (
+        main(
+            [
+                "segment",
+                str(tmp_path / "donut.ply"),
+                "--orbit",
+                "8",
+                "--width",
+                "96",
+                "--height",
+                "72",
+                "--backend",
+                "native",
+                "--prompts",
+                str(out / "labels.json"),
+                "--out",
+                str(again),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
     assert np.array_equal(np.load(again / "labels.npy"), session.labels)
     assert json.loads((again / "labels.json").read_text())["label_render"] == {"min_weight": 0.6}
     for render in sorted((out / "views").glob("*_labels.png")):
@@ -320,7 +342,14 @@ def test_a_malformed_browser_message_is_one_line_not_a_traceback():
     except ValueError:
         import sys
 
-        record = logging.LogRecord("websockets.server", logging.ERROR, __file__, 1,
-                                   "connection handler failed", (), sys.exc_info())  # fmt: skip
+        record = logging.LogRecord(
+            "websockets.server",
+            logging.ERROR,
+            __file__,
+            1,
+            "connection handler failed",
+            (),
+            sys.exc_info(),
+        )
     assert OneLineConnectionErrors().filter(record) and record.exc_info is None
     assert "malformed message (ValueError: MessagePack data is malformed)" in record.getMessage()

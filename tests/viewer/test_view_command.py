@@ -23,8 +23,20 @@ def test_view_serves_prints_its_url_and_stops_on_ctrl_c(tmp_path, capsys, monkey
         raise KeyboardInterrupt
 
     monkeypatch.setattr("sagonline.apps.cli.view.time.sleep", interrupt)
-    argv = ["view", str(tmp_path / "donut.ply"), "--orbit", "6", "--width", "64", "--height",
-            "48", "--port", str(port), "--backend", "native"]  # fmt: skip
+    argv = [
+        "view",
+        str(tmp_path / "donut.ply"),
+        "--orbit",
+        "6",
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--port",
+        str(port),
+        "--backend",
+        "native",
+    ]
     assert main(argv) == 130
     out = capsys.readouterr()
     assert f"viewer at http://127.0.0.1:{port} (6 views rendered in" in out.out

@@ -64,11 +64,16 @@ def cmd_export(args) -> int:
             recorded.cache_root / scene if recorded.cache_root else None, writable=False
         )
         stage_one = compose_stage_one(
-            task.gaussians.to(recorded.settings.device), task.trajectory, task.prompt,
-            recorded.segmenter, recorded.vote, task_settings(task, recorded.settings),
+            task.gaussians.to(recorded.settings.device),
+            task.trajectory,
+            task.prompt,
+            recorded.segmenter,
+            recorded.vote,
+            task_settings(task, recorded.settings),
             num_labels=task.num_labels,
-            trajectory_gt=task.trajectory_gt, cache=cache,
-        )  # fmt: skip
+            trajectory_gt=task.trajectory_gt,
+            cache=cache,
+        )
         say_what_was_redone(scene, stage_one, row)
         labels = stage_one.labels
         names = list(task.label_names or ["background"])
@@ -81,10 +86,17 @@ def cmd_export(args) -> int:
             "protocol": recorded.adapter.protocol,
         }
         write_segmentation(
-            out, task.gaussians, labels, names[: stage_one.num_labels],
-            source=Path(source) if source else None, info=info, overwrite=args.overwrite,
-            inputs=inputs, command="export", on_clash="suffix",
-        )  # fmt: skip
+            out,
+            task.gaussians,
+            labels,
+            names[: stage_one.num_labels],
+            source=Path(source) if source else None,
+            info=info,
+            overwrite=args.overwrite,
+            inputs=inputs,
+            command="export",
+            on_clash="suffix",
+        )
         done += 1
         print(f"{scene}: {int((labels >= 0).sum())} of {len(labels)} Gaussians labelled -> {out}")
     if not done:
@@ -97,8 +109,10 @@ def say_what_was_redone(scene: str, stage_one, row: dict) -> None:
     from the one the run recorded (its inputs or the code changed since)."""
     redone = [name for name, r in stage_one.runs.items() if r.status == "computed"]
     if redone:
-        print(f"note: {scene}: computed again (not in the run's cache): {', '.join(redone)}",
-              file=sys.stderr)  # fmt: skip
+        print(
+            f"note: {scene}: computed again (not in the run's cache): {', '.join(redone)}",
+            file=sys.stderr,
+        )
     recorded = (row.get("stage_keys") or {}).get("vote") if isinstance(row, dict) else None
     if recorded is not None and recorded != stage_one.vote.key:
         print(

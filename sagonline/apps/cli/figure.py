@@ -40,9 +40,13 @@ def folder_views(info: dict, scene) -> list:
 
     width, height = info["prompt"]["render_size"]
     views = load_views(
-        info.get("cameras"), scene, orbit=info.get("orbit") or 0, width=width, height=height,
+        info.get("cameras"),
+        scene,
+        orbit=info.get("orbit") or 0,
+        width=width,
+        height=height,
         inside=bool(info.get("inside")),
-    )  # fmt: skip
+    )
     return insert_between(views.cameras, info.get("inbetween") or 0)
 
 
@@ -79,10 +83,16 @@ def read_folder_record(folder: Path) -> dict:
         raise PromptError(f"{path}: scene must name the scene file, found {info.get('scene')!r}")
     if not (isinstance(names, list) and names and all(isinstance(n, str) for n in names)):
         raise PromptError(f"{path}: names must be a list of label names, found {names!r}")
-    size = (info.get("prompt") or {}).get("render_size") if isinstance(info.get("prompt"),
-                                                                       dict) else None  # fmt: skip
-    if not (isinstance(size, list) and len(size) == 2 and all(isinstance(v, int) and v > 0
-                                                              for v in size)):  # fmt: skip
+    size = (
+        (info.get("prompt") or {}).get("render_size")
+        if isinstance(info.get("prompt"), dict)
+        else None
+    )
+    if not (
+        isinstance(size, list)
+        and len(size) == 2
+        and all(isinstance(v, int) and v > 0 for v in size)
+    ):
         raise PromptError(f"{path}: prompt.render_size must be [width, height], found {size!r}")
     return info
 
@@ -94,8 +104,9 @@ def check_same_scene(folder: Path, info: dict, scene) -> None:
 
     from sagonline.core.provenance import digest_file
 
-    recorded = (info.get("inputs") or {}).get("scene") if isinstance(info.get("inputs"),
-                                                                      dict) else None  # fmt: skip
+    recorded = (
+        (info.get("inputs") or {}).get("scene") if isinstance(info.get("inputs"), dict) else None
+    )
     if recorded and recorded != digest_file(info["scene"]):
         raise ValueError(
             f"{folder}/labels.json: its scene {info['scene']} is not the file the labels were "
@@ -152,8 +163,9 @@ def cmd_figure(args) -> int:
         label_png = next((folder / "views").glob(f"{v:04d}_*_labels.png"), None)
         if label_png is None:
             raise ValueError(f"{folder}/views: no label render of view {v}")
-        labels = read_mask(label_png, "ids", max_labels=len(info["names"]),
-                           max_pixels=cam.width * cam.height).labels  # fmt: skip
+        labels = read_mask(
+            label_png, "ids", max_labels=len(info["names"]), max_pixels=cam.width * cam.height
+        ).labels
         if labels.shape != (cam.height, cam.width):
             raise ValueError(
                 f"{label_png}: {labels.shape[1]}x{labels.shape[0]}, but view {v} renders at "

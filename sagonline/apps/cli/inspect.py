@@ -54,9 +54,11 @@ def cmd_cameras(args: argparse.Namespace) -> int:
     print(f"{'index':>5}  {'name':<32} size")
     for i, cam in enumerate(views.cameras):
         print(f"{i:>5}  {cam.name:<32} {cam.width}x{cam.height}")
-    print(f"# this numbering holds without --orbit; with --orbit N, render, segment and view "
-          f"number a ring of N views instead (orbit_000.., starting at index 0's camera "
-          f"'{views.cameras[0].name}'), at their --width/--height")  # fmt: skip
+    print(
+        f"# this numbering holds without --orbit; with --orbit N, render, segment and view "
+        f"number a ring of N views instead (orbit_000.., starting at index 0's camera "
+        f"'{views.cameras[0].name}'), at their --width/--height"
+    )
     return 0
 
 

@@ -26,10 +26,12 @@ def add_parsers(sub) -> None:
     )
     rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
     rend.add_argument(
-        "--backend", default="auto", choices=BACKENDS,
+        "--backend",
+        default="auto",
+        choices=BACKENDS,
         help="auto: the compiled kernel on the CPU; on CUDA gsplat, else the Triton walk, else "
         "torch",
-    )  # fmt: skip
+    )
     rend.set_defaults(func=cmd_render)
 
 
@@ -42,15 +44,19 @@ def add_view_arguments(parser) -> None:
         "it, an orbit around the scene's bounds",
     )
     parser.add_argument(
-        "--orbit", type=int, default=0, metavar="N",
+        "--orbit",
+        type=int,
+        default=0,
+        metavar="N",
         help="N views on a ring around the scene (from the first camera, or around the "
         "scene's bounds without --cameras)",
-    )  # fmt: skip
+    )
     parser.add_argument(
-        "--inside", action="store_true",
+        "--inside",
+        action="store_true",
         help="without --cameras: the views stand at the scene's centre and look out (a room or "
         "a scene captured from within), instead of an orbit around it",
-    )  # fmt: skip
+    )
     parser.add_argument("--width", type=int, help="render width (cameras rescaled)")
     parser.add_argument("--height", type=int, help="render height")
     parser.add_argument(
@@ -66,8 +72,14 @@ def views_of(args: argparse.Namespace, scene):
     """The views the view arguments (`add_view_arguments`) pick for `scene`."""
     from sagonline.scene.views import load_views
 
-    return load_views(args.cameras, scene, orbit=args.orbit, width=args.width,
-                      height=args.height, inside=args.inside)  # fmt: skip
+    return load_views(
+        args.cameras,
+        scene,
+        orbit=args.orbit,
+        width=args.width,
+        height=args.height,
+        inside=args.inside,
+    )
 
 
 def parse_background(text: str) -> list[float]:
@@ -124,8 +136,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     views = views_of(args, g)
     index = view_index(args.view, views.cameras)
     cam = views.cameras[index]
-    out_img = render(g.to(args.device), cam.to(args.device), background=torch.tensor(background),
-                     backend=args.backend)  # fmt: skip
+    out_img = render(
+        g.to(args.device),
+        cam.to(args.device),
+        background=torch.tensor(background),
+        backend=args.backend,
+    )
     rgb = out_img.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
     warn_if_empty(out_img.alpha, index, cam)
     if out.suffix.lower() == ".npy":

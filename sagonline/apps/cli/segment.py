@@ -6,11 +6,17 @@ from __future__ import annotations
 import argparse
 import sys
 import time
-from dataclasses import asdict, fields
+from dataclasses import asdict
 from pathlib import Path
 
+from sagonline.apps.cli.options import (
+    add_min_weight_argument,
+    add_segmenter_arguments,
+    build_segmenter,
+    label_min_weight,
+    segmenter_options,
+)
 from sagonline.apps.cli.render import add_view_arguments, views_of
-from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.render.backends import BACKENDS
 from sagonline.render.rule import WEIGHTINGS
 from sagonline.scene.views import CLICK_HELP
@@ -27,7 +33,7 @@ class PromptItems(argparse.Action):
 
 
 def add_parsers(sub) -> None:
-    from sagonline.core.plugins import SEGMENTERS, VOTE_RULES
+    from sagonline.core.plugins import VOTE_RULES
 
     seg = sub.add_parser(
         "segment",
@@ -65,17 +71,7 @@ def add_parsers(sub) -> None:
         help="write VIEW at the render size with a pixel grid (to pick clicks on), and exit; "
         "all: every view small in one image, with its index",
     )
-    seg.add_argument(
-        "--segmenter", default=None, choices=SEGMENTERS.keys(), help="default: classical"
-    )
-    seg.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
-    seg.add_argument(
-        "--segmenter-option",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
-    )
+    add_segmenter_arguments(seg, default=None)
     vote = seg.add_argument_group("vote (defaults: sagonline.vote.consensus.VoteConfig)")
     vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
     vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
@@ -103,69 +99,7 @@ def add_parsers(sub) -> None:
     seg.set_defaults(func=cmd_segment, prompt_items=[])
 
 
-def add_min_weight_argument(parser) -> None:
-    """--min-weight: the label renders' threshold (`segment` and `view`)."""
-    parser.add_argument(
-        "--min-weight",
-        type=float,
-        metavar="W",
-        help="a label render's pixel takes a label where labelled Gaussians make up W of it "
-        f"(default {LABEL_MIN_WEIGHT}; the real captures' chosen setting: 0.5, with "
-        "--method flashsplat --body)",
-    )
-
-
 # --- segmenter and vote -----------------------------------------------------------------------
-
-
-def segmenter_options(args) -> list[str]:
-    """The segmenter's settings the command line gave, as KEY=VALUE items (--checkpoint as the
-    plug-in's own key): what labels.json records, so that a replay builds the same segmenter."""
-    from sagonline.core.plugins import SEGMENTERS
-
-    names = {f.name for f in fields(SEGMENTERS[args.segmenter].config)}
-    items = []
-    for option in args.segmenter_option:
-        key, sep, value = option.partition("=")
-        if not sep:
-            raise ValueError(f"--segmenter-option {option!r}: expected KEY=VALUE")
-        items.append(f"{key.strip()}={value}")
-    if args.checkpoint:
-        key = next((k for k in ("checkpoint", "weights") if k in names), None)
-        if key is None:
-            raise ValueError(f"--checkpoint: segmenter {args.segmenter} takes no checkpoint")
-        items.append(f"{key}={args.checkpoint}")
-    return items
-
-
-def build_segmenter(args, prompt):
-    """The chosen segmenter from the registry, its checkpoint and options applied; refused when
-    it cannot read the prompt given (text to a click segmenter, clicks to a text one)."""
-    from sagonline.core.plugins import SEGMENTERS
-
-    plugin = SEGMENTERS[args.segmenter]
-    names = {f.name for f in fields(plugin.config)}
-    values: dict = dict(item.split("=", 1) for item in segmenter_options(args))
-    if "device" in names:
-        values.setdefault("device", args.device)
-    segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
-    wants = set(getattr(segmenter, "reads", ()))
-    given = {"text"} if prompt.texts else {"clicks"}
-    if "ground_truth" in wants:
-        raise ValueError(
-            f"--segmenter {args.segmenter} reads the views' ground truth, which a scene of "
-            "one's own does not have"
-        )
-    if not wants & given:
-        what = "text (--text)" if prompt.texts else "clicks and masks"
-        reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
-        raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
-    segmenter.check()
-    if getattr(args, "recorded_weights", None) is not None:
-        from sagonline.apps.cli.recorded import say_if_other_weights
-
-        say_if_other_weights(args, segmenter)
-    return segmenter
 
 
 def vote_config(args):
@@ -192,23 +126,6 @@ def vote_config(args):
             name = f"--{key.replace('_', '-')}" if key in given else f"{args.prompts} vote.{key}"
             message = message.replace(f"consensus.{key}=", f"{name} ")
         raise ValueError(message) from None
-
-
-def label_min_weight(args) -> float:
-    """The label renders' min_weight: --min-weight, else the --prompts file's, else the
-    default; checked by the pipeline's rule (named as the user gave it)."""
-    from sagonline.pipeline.settings import PipelineSettings
-
-    given = args.min_weight
-    weight = given if given is not None else getattr(args, "recorded_min_weight", None)
-    weight = LABEL_MIN_WEIGHT if weight is None else weight
-    try:
-        PipelineSettings(label_min_weight=weight)
-    except ValueError as exc:
-        recorded = f"{getattr(args, 'prompts', None)} label_render.min_weight="
-        name = "--min-weight " if given is not None else recorded
-        raise ValueError(str(exc).replace("label_render.min_weight=", name)) from None
-    return float(weight)
 
 
 # --- the command ------------------------------------------------------------------------------

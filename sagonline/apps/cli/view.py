@@ -7,28 +7,24 @@ from __future__ import annotations
 import sys
 import time
 
+from sagonline.apps.cli.options import (
+    add_min_weight_argument,
+    add_segmenter_arguments,
+    label_min_weight,
+    segmenter_options,
+)
 from sagonline.apps.cli.render import add_view_arguments, views_of
-from sagonline.apps.cli.segment import add_min_weight_argument, label_min_weight
 from sagonline.render.backends import BACKENDS
 
 
 def add_parsers(sub) -> None:
-    from sagonline.core.plugins import SEGMENTERS
 
     view = sub.add_parser(
         "view", help="segment a scene in the browser: click, watch the labels form, export"
     )
     view.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     add_view_arguments(view)
-    view.add_argument("--segmenter", default="classical", choices=SEGMENTERS.keys())
-    view.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
-    view.add_argument(
-        "--segmenter-option",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
-    )
+    add_segmenter_arguments(view)
     view.add_argument("--backend", default="auto", choices=BACKENDS)
     add_min_weight_argument(view)
     view.add_argument(
@@ -47,7 +43,7 @@ def segmenter_builder(args):
     (the checks of `sagonline segment`, for a click prompt)."""
     from argparse import Namespace
 
-    from sagonline.apps.cli.segment import build_segmenter
+    from sagonline.apps.cli.options import build_segmenter
     from sagonline.segment.prompts import Prompt
 
     def build(kind: str, options: tuple[str, ...] = ()):
@@ -110,12 +106,6 @@ def warn_if_exposed(host: str) -> None:
             "and Export (which writes files here); --host 127.0.0.1 keeps it local",
             file=sys.stderr,
         )
-
-
-def segmenter_options(args) -> list[str]:
-    from sagonline.apps.cli.segment import segmenter_options as options
-
-    return options(args)
 
 
 def cmd_view(args) -> int:

@@ -21,21 +21,19 @@ import contextlib
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from sagonline.apps.viewer.clicks import pick_gaussian, view_for_point
+from sagonline.apps.viewer.exporting import export_session, segmentation_of
 from sagonline.apps.viewer.preparation import Preparation
 from sagonline.core.errors import PromptError
-from sagonline.core.provenance import digest_file
 from sagonline.pipeline.segment import (
     Segmentation,
     check_click_on_scene,
-    check_objects_were_found,
     segmenter_run_of,
-    write_segment_folder,
 )
 from sagonline.pipeline.stage_one import (
     LabelsUpdated,
@@ -83,7 +81,7 @@ class SegmentSession:
     gaussians: the scene; cameras: the views in trajectory order; segmenter: the registry's
     `segmenter_kind` built with `segmenter_options` (the classical one by default);
     on_update(labels, progress) is called from the worker thread after the first voted view,
-    every `recolour_every` voted views, and at the end (labels: (N,) int64); background: the
+    every `publish_every` voted views, and at the end (labels: (N,) int64); background: the
     renders' colour (the one the scene was fitted on); min_weight: the Export's label renders'
     threshold (`render_labels`)."""
 
@@ -99,7 +97,7 @@ class SegmentSession:
         backend: str = "auto",
         vote_backend: str = "auto",
         device: str = "cpu",
-        recolour_every: int = 4,
+        publish_every: int = 4,
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_weight: float = LABEL_MIN_WEIGHT,
         on_update: Callable[[np.ndarray, Progress], None] | None = None,
@@ -109,19 +107,28 @@ class SegmentSession:
 
         if not cameras:
             raise PromptError("no views to segment")
-        if recolour_every < 1:
-            raise ValueError(f"recolour_every {recolour_every}: must be at least 1")
+        if publish_every < 1:
+            raise ValueError(f"publish_every {publish_every}: must be at least 1")
         self.segmenter = segmenter or FlowWatershedSegmenter()
         self.segmenter_kind = segmenter_kind  # its name in the registry (labels.json)
         self.segmenter_options = list(segmenter_options or [])
         settings = PipelineSettings(
-            backend=backend, vote_backend=vote_backend, device=device, progress=False,
-            background=tuple(background), label_min_weight=min_weight,
-        )  # fmt: skip
+            backend=backend,
+            vote_backend=vote_backend,
+            device=device,
+            progress=False,
+            background=tuple(background),
+            label_min_weight=min_weight,
+        )
         config = StageOneConfig(
-            gaussians, list(cameras), segmenter_run_of(self.segmenter), vote or VoteConfig(),
-            settings, publish_every=recolour_every, keep_depth=True,
-        )  # fmt: skip
+            gaussians,
+            list(cameras),
+            segmenter_run_of(self.segmenter),
+            vote or VoteConfig(),
+            settings,
+            publish_every=publish_every,
+            keep_depth=True,
+        )
         self.engine = StageOne(config)
         self.gaussians, self.cameras = self.engine.gaussians, self.engine.cameras
         check_cameras_see_scene(self.gaussians, self.cameras)
@@ -353,46 +360,10 @@ class SegmentSession:
     # --- take it with you --------------------------------------------------------------------
 
     def segmentation(self) -> Segmentation:
-        """What the session holds as `segment_scene` gives it (views without a mask yet, after
-        a Stop, carry an empty one)."""
-        if self.progress.voted == 0:
-            raise PromptError("nothing to export yet: click on the object and let a view vote")
-        masks = [m if m is not None else np.zeros(f.shape[:2], np.int64)
-                 for m, f in zip(self.engine.masks, self.frames, strict=True)]  # fmt: skip
-        return Segmentation(
-            self.labels.copy(), self.names, self.engine.vote_so_far(), list(self.cameras),
-            self.frames, masks, {"render_s": self.render_seconds}, self.view or 0,
-        )  # fmt: skip
+        """What the session holds as `segment_scene` gives it (`exporting.segmentation_of`)."""
+        return segmentation_of(self)
 
-    def export(
-        self,
-        out: str | Path,
-        *,
-        scene: Path | None = None,
-        info: dict | None = None,
-        overwrite: bool = False,
-        record: bool = True,
-    ) -> Path:
-        """The folder `sagonline segment` writes (objects/<name>.ply, scene_without_<name>.ply,
-        labels.npy, labels.json with this session's prompt, the recording): `sagonline segment
-        --prompts OUT/labels.json` reproduces it without the browser."""
-        seg = self.segmentation()
-        check_objects_were_found(seg)
-        parsed = self.parsed()
-        full = {
-            "scene": str(scene) if scene else None,
-            "inputs": {"scene": digest_file(scene)} if scene else {},
-            "prompt": parsed.record(self.cameras),
-            "segmenter": {"kind": self.segmenter_kind, "options": list(self.segmenter_options),
-                          "weights": self.segmenter.weights_record()},
-            "vote": asdict(self.vote),
-            "viewer": {"views_voted": self.progress.voted, "views": len(self.cameras),
-                       "state": self.progress.state},
-            **(info or {}),
-        }  # fmt: skip
-        inputs = [scene] if scene else []
-        return write_segment_folder(
-            Path(out), self.gaussians, seg, scene, full, backend=self.backend,
-            device=self.device, record=record, overwrite=overwrite, inputs=inputs,
-            min_weight=self.min_weight,
-        )  # fmt: skip
+    def export(self, out: str | Path, **options) -> Path:
+        """The folder `sagonline segment` writes (`exporting.export_session`: scene, info,
+        overwrite, record)."""
+        return export_session(self, Path(out), **options)
