@@ -33,6 +33,7 @@ from bench import ROOT
 from sagonline.apps.viewer.session import SegmentSession
 from sagonline.scene.io import read_scene
 from sagonline.scene.views import load_views
+from sagonline.segment.base import DEFAULT_SEGMENTER
 
 DATA = ROOT.parent / "shared" / "data" / "donut_3dgs"
 ICING = [(150.0, 60.0), (330.0, 50.0)]  # two clicks on the icing of view 0 at 480x270
@@ -230,7 +231,7 @@ def main() -> None:
     parser.add_argument("--data", type=Path, default=DATA)
     parser.add_argument("--screenshot", type=Path)
     parser.add_argument("--quick", action="store_true", help="6 views at 240x135, one repeat")
-    parser.add_argument("--segmenter", default="classical", help="a registered segmenter")
+    parser.add_argument("--segmenter", default=DEFAULT_SEGMENTER, help="a registered segmenter")
     parser.add_argument("--browser", action="store_true", help="the clicks through Chromium")
     args = parser.parse_args()
     orbit, width, height = (6, 240, 135) if args.quick else (24, 480, 270)

@@ -184,9 +184,9 @@ def segment_scene(
     one the scene was fitted on)."""
     names = list(prompt.names)
     if segmenter is None:
-        from sagonline.segment.classical import FlowWatershedSegmenter
+        from sagonline.segment.base import default_segmenter
 
-        segmenter = FlowWatershedSegmenter()
+        segmenter = default_segmenter()
     vote = vote or VoteConfig()
     check_view(cameras, prompt.frame)
     check_cameras_see_scene(gaussians, cameras)

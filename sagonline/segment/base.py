@@ -18,6 +18,10 @@ import numpy as np
 from sagonline.core.store import stored
 from sagonline.segment.prompts import Prompt
 
+# The segmenter of a scene of one's own when none is named (`sagonline segment`, `sagonline view`,
+# `segment_scene`, the viewer's session): the weight-free classical one.
+DEFAULT_SEGMENTER = "classical"
+
 
 @stored
 @dataclass
@@ -172,3 +176,10 @@ class VideoSegmenter(ABC):
     def _segment(
         self, frames, prompt, ground_truth
     ) -> tuple[list[np.ndarray], list[float] | None]: ...
+
+
+def default_segmenter() -> VideoSegmenter:
+    """`DEFAULT_SEGMENTER` built from the registry with its defaults."""
+    from sagonline.core.plugins import SEGMENTERS
+
+    return SEGMENTERS.build(DEFAULT_SEGMENTER, {})

@@ -7,9 +7,10 @@ from __future__ import annotations
 from dataclasses import fields
 
 from sagonline.render.api import LABEL_MIN_WEIGHT
+from sagonline.segment.base import DEFAULT_SEGMENTER
 
 
-def add_segmenter_arguments(parser, default: str | None = "classical") -> None:
+def add_segmenter_arguments(parser, default: str | None = DEFAULT_SEGMENTER) -> None:
     """--segmenter (a registered one; `default`, or None where a --prompts file may name it),
     --checkpoint and --segmenter-option KEY=VALUE."""
     from sagonline.core.plugins import SEGMENTERS
@@ -18,7 +19,7 @@ def add_segmenter_arguments(parser, default: str | None = "classical") -> None:
         "--segmenter",
         default=default,
         choices=SEGMENTERS.keys(),
-        help=None if default else "default: classical",
+        help=None if default else f"default: {DEFAULT_SEGMENTER}",
     )
     parser.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
     parser.add_argument(

@@ -20,6 +20,7 @@ from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
 from sagonline.render.rule import WEIGHTINGS
 from sagonline.scene.views import CLICK_HELP
+from sagonline.segment.base import DEFAULT_SEGMENTER
 from sagonline.segment.clicks import parse_prompt, to_prompt
 
 
@@ -150,7 +151,7 @@ def cmd_segment(args) -> int:
         from sagonline.apps.cli.recorded import apply_recorded_prompts
 
         apply_recorded_prompts(args)
-    args.segmenter = args.segmenter or "classical"
+    args.segmenter = args.segmenter or DEFAULT_SEGMENTER
     scene = scene_file(args.scene)
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)

@@ -30,6 +30,7 @@ from sagonline.apps.viewer.words import (
     segmenter_words,
 )
 from sagonline.scene.gaussians import rotmat_to_quat
+from sagonline.segment.base import DEFAULT_SEGMENTER
 
 SELECTED, OTHER = (255, 200, 0), (120, 120, 120)  # frustum colours: the selected view, the rest
 
@@ -83,7 +84,7 @@ class ViewerApp:
         host: str = "127.0.0.1",
         port: int = 8080,
         make_segmenter=None,
-        segmenters: tuple[str, ...] = ("classical",),
+        segmenters: tuple[str, ...] = (DEFAULT_SEGMENTER,),
     ):
         import viser
 

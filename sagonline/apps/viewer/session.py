@@ -46,7 +46,7 @@ from sagonline.pipeline.stage_one import (
 from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.segment.base import VideoSegmenter
+from sagonline.segment.base import DEFAULT_SEGMENTER, VideoSegmenter, default_segmenter
 from sagonline.segment.clicks import ObjectClicks, ParsedPrompt, to_prompt
 from sagonline.vote.consensus import VoteConfig
 
@@ -91,7 +91,7 @@ class SegmentSession:
         cameras: list[Camera],
         *,
         segmenter: VideoSegmenter | None = None,
-        segmenter_kind: str = "classical",
+        segmenter_kind: str = DEFAULT_SEGMENTER,
         segmenter_options: list[str] | None = None,
         vote: VoteConfig | None = None,
         backend: str = "auto",
@@ -103,13 +103,12 @@ class SegmentSession:
         on_update: Callable[[np.ndarray, Progress], None] | None = None,
     ):
         from sagonline.pipeline.segment import check_cameras_see_scene
-        from sagonline.segment.classical import FlowWatershedSegmenter
 
         if not cameras:
             raise PromptError("no views to segment")
         if publish_every < 1:
             raise ValueError(f"publish_every {publish_every}: must be at least 1")
-        self.segmenter = segmenter or FlowWatershedSegmenter()
+        self.segmenter = segmenter or default_segmenter()
         self.segmenter_kind = segmenter_kind  # its name in the registry (labels.json)
         self.segmenter_options = list(segmenter_options or [])
         settings = PipelineSettings(
