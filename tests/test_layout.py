@@ -357,6 +357,7 @@ def unknown_settings(spans) -> list[str]:
         return [f"{page}: {key}" for key, page in sorted(keys.items()) if not known(key)]
 
 
+@pytest.mark.slow
 def test_every_option_command_and_setting_the_docs_quote_exists():
     """What README.md and docs/*.md quote in backticks is what the commands take: each
     `--flag` is defined by one of the project's commands (or is another tool's, named in

@@ -30,10 +30,12 @@ from sagonline.score.run_metrics import RunMetrics
 ROOT = Path(__file__).resolve().parents[2]
 
 
-def find_runs(roots: list[Path]) -> list[Path]:
-    """Run folders whose metrics.json reads (a bad one is named on stderr and skipped)."""
+def find_runs(roots: list[Path]) -> dict[Path, RunMetrics]:
+    """Run folder -> its record, for the folders whose metrics.json reads (a bad one is named on
+    stderr and skipped), sorted by folder."""
     found = sorted({p.parent for r in roots if r.exists() for p in r.rglob("metrics.json")})
-    return [run for run in found if read_run_metrics(run / "metrics.json") is not None]
+    records = {run: read_run_metrics(run / "metrics.json") for run in found}
+    return {run: m for run, m in records.items() if m is not None}
 
 
 def device_text(dev: dict) -> str:
@@ -41,10 +43,9 @@ def device_text(dev: dict) -> str:
     return f"{hw}, torch {dev.get('torch', '?')}"
 
 
-def run_rows(runs: list[Path]) -> tuple[pd.DataFrame, pd.DataFrame]:
+def run_rows(runs: dict[Path, RunMetrics]) -> tuple[pd.DataFrame, pd.DataFrame]:
     runs_rows, scene_rows = [], []
-    for run in runs:
-        m = RunMetrics.of_run(run)
+    for run, m in runs.items():
         c = m.consensus
         base = {
             "run": str(run.relative_to(ROOT)) if run.is_relative_to(ROOT) else str(run),

@@ -20,17 +20,16 @@ ANGLE_BINS = [-0.5, 0.5, 10, 20, 30, 180]  # degrees to the nearest photograph
 ANGLE_LABELS = ["photographed", "0-10", "10-20", "20-30", ">30"]
 
 
-def view_rows(runs: list[Path]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
+def view_rows(runs: dict[Path, RunMetrics]) -> tuple[pd.DataFrame, dict[str, pd.DataFrame]]:
     """Per run (of a capture with photographs for some views): mIoU over the photographed views
     and over the mask-only ones, over the views whose masks did not vote, and by viewing angle
     to the nearest photograph; plus each run's per-view rows keyed by its label."""
     rows, per_view = [], {}
-    for run in runs:
+    for run, m in runs.items():
         views = pd.read_csv(run / "per_view.csv")
         views = views[views["mode"].isin(COARSE)]
         if "photo_angle_deg" not in views:
             continue
-        m = RunMetrics.of_run(run)
         label = " ".join([m.segmenter, *m.overrides])
         per_view[label] = views.assign(_overrides=[m.overrides] * len(views))
         photo = views["photographed"].astype(bool)

@@ -303,6 +303,7 @@ def test_make_loo_captures_chooses_among_the_candidates_written_once(tmp_path, m
     assert "CANDIDATES ?= candidates" in makefile and "label_render.size=truth" not in makefile
 
 
+@pytest.mark.slow
 def test_the_captures_are_the_presets_the_registry_builds_as_captures():
     """Every preset of conf/dataset/ whose registered kind is `capture`, with its data folder;
     the synthetic presets are not captures."""

@@ -362,7 +362,16 @@ class SegmentSession:
         """What the session holds as `segment_scene` gives it (`exporting.segmentation_of`)."""
         return segmentation_of(self)
 
-    def export(self, out: str | Path, **options) -> Path:
-        """The folder `sagonline segment` writes (`exporting.export_session`: scene, info,
-        overwrite, record)."""
-        return export_session(self, Path(out), **options)
+    def export(
+        self,
+        out: str | Path,
+        *,
+        scene: Path | None = None,
+        info: dict | None = None,
+        overwrite: bool = False,
+        record: bool = True,
+    ) -> Path:
+        """The folder `sagonline segment` writes (`exporting.export_session`)."""
+        return export_session(
+            self, Path(out), scene=scene, info=info, overwrite=overwrite, record=record
+        )
