@@ -162,7 +162,7 @@ def test_segment_takes_every_vote_setting_from_the_command_line():
     """--weighting reaches the vote's settings like --eps and --delta; a value the vote refuses
     is named as the flag."""
     from sagonline.apps.cli import build_parser
-    from sagonline.apps.cli.segment import vote_config
+    from sagonline.apps.cli.options import vote_config
 
     args = build_parser().parse_args(["segment", "s.ply", "--weighting", "blend", "--delta", "3"])
     cfg = vote_config(args)
@@ -176,6 +176,34 @@ def test_segment_takes_every_vote_setting_from_the_command_line():
     args = build_parser().parse_args(["segment", "s.ply", "--body"])
     assert vote_config(args).body is True
     assert vote_config(build_parser().parse_args(["segment", "s.ply"])).body is False
+
+
+def test_every_vote_methods_setting_is_a_flag_generated_from_its_dataclass():
+    """Each registered method's settings are flags (typed from their fields); --delta none turns
+    the distance rule off; a method's setting given to another method is refused, named."""
+    from dataclasses import fields
+
+    from sagonline.apps.cli import build_parser
+    from sagonline.apps.cli.options import vote_config
+    from sagonline.core.plugins import VOTE_RULES
+
+    parser = build_parser()
+    for plugin in VOTE_RULES:
+        for f in fields(plugin.config):
+            value = {"weighting": "blend", "delta": "none"}.get(f.name, "0.5")
+            if f.name == "min_votes":
+                value = "3"
+            flag = f"--{f.name.replace('_', '-')}"
+            args = parser.parse_args(["segment", "s.ply", "--method", plugin.key, flag, value])
+            cfg = vote_config(args)
+            expected = None if value == "none" else f.type != "str" and float(value) or value
+            assert getattr(cfg, f.name) == expected, (plugin.key, f.name)
+            assert getattr(cfg.settings(), f.name) == expected
+    args = parser.parse_args(["segment", "s.ply", "--method", "rgc", "--threshold", "0.5"])
+    with pytest.raises(ValueError, match="--threshold 0.5: the method rgc does not read"):
+        vote_config(args)
+    with pytest.raises(SystemExit):
+        parser.parse_args(["segment", "s.ply", "--min-votes", "two"])
 
 
 def test_segment_and_view_take_the_label_renders_threshold():

@@ -287,6 +287,6 @@ DATASETS: Registry = Registry(
     "sagonline.datasets",
     ("sagonline.datasets.registry",),
 )
-VOTE_RULES: Registry = Registry("vote rule", "sagonline.vote_rules", ("sagonline.vote.consensus",))
+VOTE_RULES: Registry = Registry("vote rule", "sagonline.vote_rules", ("sagonline.vote.methods",))
 
 __all__ = ["DATASETS", "SEGMENTERS", "VOTE_RULES", "Plugin", "PluginError", "Registry"]

@@ -1,34 +1,22 @@
 """Lift 2D label masks to one discrete label per Gaussian.
 
-`rgc` is the paper's Rasterization-aware Geometric Consensus: for every pixel of every selected
-mask, walk its Gaussians front to back; a Gaussian votes for the pixel's label only while the
-transmittance before it is T_i > eps (the walk stops once T falls to eps) and only if its
-projected centre lies within delta px of the pixel centre (each such pair +1, or its blend weight
-alpha_i T_i with `weighting=blend`, not the paper's). One vote histogram per Gaussian;
-the label is the argmax; too few votes (< min_votes) or an ambiguous winner (top-1 share minus
-top-2 share < margin, or a tie) leaves the Gaussian unlabelled.
-
-Two baselines share the interface:
-- `flashsplat`: every traced contribution adds its blend weight alpha_i T_i to its label;
-  normalised per Gaussian, a background slack is added to label 0, argmax.
-- `weighted_mean` (GaussianCut / LUDVIG): the alpha_i T_i-weighted mean of each label's
-  indicator; a Gaussian takes the best non-background label if its mean reaches `threshold`
-  (0.9), else background.
+The vote walks, for every pixel of every selected mask, its Gaussians front to back and adds
+the pairs its method's rule lets vote to one histogram per Gaussian (`render.vote.vote_into`);
+the method then turns the histogram into labels. The methods (`vote.methods`: rgc, the paper's
+Rasterization-aware Geometric Consensus, and the flashsplat and weighted_mean baselines) are
+plug-ins of `plugins.VOTE_RULES`, each with its own typed settings; `VoteConfig` holds them
+under flat names (`consensus.eps`, ...) and refuses a setting its method does not read when it
+is built (`consensus=flashsplat consensus.delta=1.5` stops, naming delta).
 
 Labels: (N,) int64, -1 unlabelled, 0 background, 1.. the objects, from the vote to every
 output (`VoteResult.labels`).
-
-Each method is a vote rule registered in `plugins.VOTE_RULES` under its name: the pairs its
-kernels count (`VoteConfig.rule`, a `render.rule.VoteRule`) and how a histogram becomes labels
-(its `decide`). A setting a method does not read is refused when the config is built
-(`consensus=flashsplat consensus.delta=1.5` stops, naming delta).
 """
 
 from __future__ import annotations
 
 import time
-from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field, fields
+from collections.abc import Sequence
+from dataclasses import MISSING, dataclass, field, fields, replace
 
 import numpy as np
 import torch
@@ -36,38 +24,47 @@ import torch
 from sagonline.core.plugins import VOTE_RULES
 from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
-from sagonline.render.rasterize import T_STOP
-from sagonline.render.rule import WEIGHTINGS, VoteRule
+from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.vote.body import extents, keep_bodies
 from sagonline.vote.fill import fill_from_neighbours
 from sagonline.vote.masks import MaskError, check_mask
+from sagonline.vote.methods import (
+    FlashSplatSettings,
+    RgcSettings,
+    SettingSpec,
+    VoteMethod,
+    WeightedMeanSettings,
+    method_specs,
+)
 
 
 @dataclass
 class VoteConfig:
-    """Settings of the vote. `num_masks`/`stride`/`selection` choose which frames vote."""
+    """Settings of the vote: its method and every method's settings under one flat name each
+    (`consensus.*`; each method's own dataclass in `vote.methods` holds their defaults, rules
+    and documentation), then which frames vote (`num_masks`/`stride`/`selection`) and the fill
+    and body rules after it."""
 
     method: str = "rgc"
     """A registered vote rule: rgc (the paper's), flashsplat or weighted_mean
     (`python -m sagonline plugins vote-rules`)."""
-    eps: float = VoteRule.eps
-    """rgc: a Gaussian votes only while T_i > eps; a pixel's walk stops when T falls to eps
-    (the default, the paper's 0.01, is `render.rule.VoteRule`'s)."""
-    delta: float | None = VoteRule.delta
-    """rgc: ... and only if its projected centre lies within delta px of the pixel centre;
-    null: no distance rule (default: the paper's 2 px, `VoteRule`'s)."""
-    weighting: str = VoteRule.weighting
-    """rgc: what one (pixel, Gaussian) pair adds to its label: count (+1, the paper's) or blend
-    (its blend weight alpha_i T_i, as FlashSplat weighs; then `min_votes` is a total weight:
-    one fully visible pixel is one vote)."""
-    min_votes: int = 1
-    """Fewer votes leave a Gaussian unlabelled (at least 1: a Gaussian no view saw is never
-    labelled)."""
-    margin: float = 0.2
-    """A top-1 minus top-2 vote share below this (or a tie) leaves it unlabelled."""
+    eps: float = RgcSettings.eps
+    """rgc: `vote.methods.RgcSettings.eps`."""
+    delta: float | None = RgcSettings.delta
+    """rgc: `vote.methods.RgcSettings.delta` (null: no distance rule)."""
+    weighting: str = RgcSettings.weighting
+    """rgc: `vote.methods.RgcSettings.weighting`."""
+    min_votes: int = RgcSettings.min_votes
+    """rgc: `vote.methods.RgcSettings.min_votes`."""
+    margin: float = RgcSettings.margin
+    """rgc: `vote.methods.RgcSettings.margin`."""
+    background_slack: float = FlashSplatSettings.background_slack
+    """flashsplat: `vote.methods.FlashSplatSettings.background_slack`."""
+    threshold: float = WeightedMeanSettings.threshold
+    """weighted_mean: `vote.methods.WeightedMeanSettings.threshold`."""
     num_masks: int | None = None
     """How many masks vote (None: all of those `stride` picks)."""
     stride: int = 1
@@ -76,10 +73,6 @@ class VoteConfig:
     """Which num_masks of the candidates: uniform (evenly spaced), first, or random (seeded)."""
     seed: int = 0
     """Seeds `selection=random`."""
-    background_slack: float = 0.0
-    """flashsplat: added to the background's normalised weight."""
-    threshold: float = 0.9
-    """weighted_mean: the weighted mean a foreground label must reach."""
     fill: int = 0
     """Unlabelled Gaussians take the label a strict majority of their `fill` nearest labelled
     neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
@@ -100,59 +93,80 @@ class VoteConfig:
                 self.selection,
                 "uniform, first or random",
             ),
-            eps=(0 <= self.eps < 1, self.eps, "a transmittance in [0, 1)"),
-            delta=(
-                self.delta is None or self.delta > 0,
-                self.delta,
-                "a distance in pixels > 0, or null (no distance rule)",
-            ),
-            weighting=(self.weighting in WEIGHTINGS, self.weighting, f"one of {WEIGHTINGS}"),
-            min_votes=(self.min_votes >= 1, self.min_votes, ">= 1"),
-            margin=(0 <= self.margin < 1, self.margin, "a share gap in [0, 1)"),
             num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
             stride=(self.stride >= 1, self.stride, ">= 1"),
-            background_slack=(self.background_slack >= 0, self.background_slack, ">= 0"),
-            threshold=(0 <= self.threshold <= 1, self.threshold, "in [0, 1]"),
             fill=(0 <= self.fill <= 64, self.fill, "in [0, 64] neighbours (0: off)"),
         )
-        self.method_rule().check_reads(self)
+        self.check_reads()
+        self.settings()  # the method's own rules
+
+    def reads(self) -> tuple[str, ...]:
+        """The settings its method reads (its settings dataclass's fields)."""
+        return tuple(f.name for f in fields(VOTE_RULES[self.method].config))
+
+    def check_reads(self) -> None:
+        """Refuse a setting the method does not read that differs from its default (it would be
+        ignored without a word), and a method setting that is not a `consensus.*` setting."""
+        reads, defaults = self.reads(), VoteConfig.__dataclass_fields__
+        missing = [name for name in reads if name not in defaults]
+        if missing:
+            raise ValueError(
+                f"consensus.method={self.method!r}: its settings {missing} are not consensus "
+                "settings (a vote rule reads settings VoteConfig holds)"
+            )
+        plugin = VOTE_RULES[self.method]
+        for f in fields(plugin.config):
+            if f.default is not MISSING and f.default != defaults[f.name].default:
+                raise ValueError(
+                    f"consensus.method={self.method!r}: its setting {f.name} defaults to "
+                    f"{f.default!r}, consensus.{f.name} to {defaults[f.name].default!r} "
+                    "(one default per setting: give it VoteConfig's)"
+                )
+        for f in fields(self):
+            if f.name in SELECTION or f.name in reads:
+                continue
+            if getattr(self, f.name) != defaults[f.name].default:
+                raise ValueError(
+                    f"consensus.{f.name}={getattr(self, f.name)!r}: the method {self.method} "
+                    f"does not read {f.name} (it reads {', '.join(reads) or 'nothing'})"
+                )
+
+    def settings(self):
+        """Its method's typed settings (`vote.methods`), filled from these."""
+        plugin = VOTE_RULES[self.method]
+        return plugin.config(**{name: getattr(self, name) for name in self.reads()})
 
     def method_rule(self) -> VoteMethod:
         """The registered method this config names."""
-        return VOTE_RULES.build(self.method, {})
+        plugin = VOTE_RULES[self.method]
+        return plugin.build(self.settings())
 
     @property
     def rule(self) -> VoteRule:
         """The rule the kernels apply, built once from these settings by the method."""
-        return self.method_rule().rule(self)
+        return self.method_rule().rule(self.settings())
 
 
 # The settings every method reads: which masks vote, and the fill and body rule after it.
 SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill", "body")
 
 
-@dataclass(frozen=True)
-class VoteMethod:
-    """A registered vote rule: the VoteConfig settings it reads (besides SELECTION), the kernel
-    rule it builds from them, and how an (N, K) histogram becomes labels (N,) and labelled
-    (N,)."""
-
-    reads: tuple[str, ...]
-    rule: Callable[[VoteConfig], VoteRule]
-    decide: Callable[[torch.Tensor, VoteConfig], tuple[torch.Tensor, torch.Tensor]]
-
-    def check_reads(self, cfg: VoteConfig) -> None:
-        """Refuse a setting this method does not read that differs from its default: it would
-        be ignored without a word."""
-        defaults = VoteConfig.__dataclass_fields__
-        for f in fields(cfg):
-            if f.name in SELECTION or f.name in self.reads:
-                continue
-            if getattr(cfg, f.name) != defaults[f.name].default:
-                raise ValueError(
-                    f"consensus.{f.name}={getattr(cfg, f.name)!r}: the method {cfg.method} "
-                    f"does not read {f.name} (it reads {', '.join(self.reads) or 'nothing'})"
-                )
+def vote_setting_specs() -> list[SettingSpec]:
+    """Every registered method's settings as one list of controls (the command line's vote
+    flags, the viewer's vote panel), in VoteConfig's order, each once, its documentation led
+    by the methods that read it (`readers`)."""
+    readers: dict[str, list[str]] = {}
+    specs: dict[str, SettingSpec] = {}
+    for method, method_settings in method_specs().items():
+        for spec in method_settings:
+            specs.setdefault(spec.name, spec)
+            readers.setdefault(spec.name, []).append(method)
+    order = [f for f in VoteConfig.__dataclass_fields__ if f in specs]
+    order += [name for name in specs if name not in order]
+    return [
+        replace(specs[n], doc=f"{', '.join(readers[n])}: {specs[n].doc}", readers=tuple(readers[n]))
+        for n in order
+    ]
 
 
 @stored
@@ -289,88 +303,10 @@ def decide(
     hist: torch.Tensor,  # [N, K] votes or blend weights
     cfg: VoteConfig,
 ) -> torch.Tensor:  # [N] int64, -1 unlabelled
-    """Histogram -> labels by the method's rule (see the module docstring): -1 where it leaves
-    a Gaussian unlabelled."""
-    labels, labelled = cfg.method_rule().decide(hist, cfg)
+    """Histogram -> labels by the method's rule (`vote.methods`): -1 where it leaves a Gaussian
+    unlabelled."""
+    labels, labelled = cfg.method_rule().decide(hist, cfg.settings())
     return torch.where(labelled, labels.long(), torch.full_like(labels.long(), -1))
-
-
-def decide_majority(
-    hist: torch.Tensor,  # [N, K] votes
-    cfg: VoteConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
-    """rgc: the label of most votes, unless fewer than min_votes, a tie, or a top-1 minus top-2
-    share below margin."""
-    k = hist.shape[1]
-    total = hist.sum(1)
-    top2 = hist.topk(min(2, k), dim=1)
-    labels = top2.indices[:, 0]
-    second = top2.values[:, 1] if k > 1 else torch.zeros_like(total)
-    share_gap = (top2.values[:, 0] - second) / total.clamp_min(1e-12)
-    labelled = (total >= cfg.min_votes) & (top2.values[:, 0] > second)
-    return labels, labelled & (share_gap >= cfg.margin)
-
-
-def decide_flashsplat(
-    hist: torch.Tensor,  # [N, K] blend weights
-    cfg: VoteConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
-    """flashsplat: normalised weights, background slack added to label 0, argmax."""
-    total = hist.sum(1)
-    norm = hist / total.clamp_min(1e-12)[:, None]
-    norm[:, 0] += cfg.background_slack
-    return norm.argmax(1), total > 0
-
-
-def decide_weighted_mean(
-    hist: torch.Tensor,  # [N, K] blend weights
-    cfg: VoteConfig,
-) -> tuple[torch.Tensor, torch.Tensor]:  # [N] labels, [N] labelled
-    """weighted_mean: the best foreground label whose weighted mean reaches threshold, else
-    background."""
-    total = hist.sum(1)
-    mean = hist / total.clamp_min(1e-12)[:, None]
-    best_val, best = mean[:, 1:].max(1)
-    labels = torch.where(best_val >= cfg.threshold, best + 1, torch.zeros_like(best))
-    return labels, total > 0
-
-
-def count_rule(cfg: VoteConfig) -> VoteRule:
-    """rgc's pairs: T_i > eps and the centre within delta px, +1 each (weighting count, the
-    paper's) or alpha_i T_i each (blend)."""
-    return VoteRule(cfg.eps, cfg.delta, cfg.weighting)
-
-
-def blend_rule(cfg: VoteConfig) -> VoteRule:
-    """The weighted methods' pairs: every composited one (T_i > T_STOP), alpha_i T_i each."""
-    return VoteRule(T_STOP, None, "blend")
-
-
-@dataclass
-class NoSettings:
-    """A vote rule's settings live on VoteConfig (`consensus.*`): it names those it reads."""
-
-
-for _key, _method, _summary in (
-    (
-        "rgc",
-        VoteMethod(
-            ("eps", "delta", "weighting", "min_votes", "margin"), count_rule, decide_majority
-        ),
-        "the paper's consensus: visible (T > eps), aligned (delta px) votes, majority, margin",
-    ),
-    (
-        "flashsplat",
-        VoteMethod(("background_slack",), blend_rule, decide_flashsplat),
-        "FlashSplat: alpha*T weights per label, normalised, background slack, argmax",
-    ),
-    (
-        "weighted_mean",
-        VoteMethod(("threshold",), blend_rule, decide_weighted_mean),
-        "GaussianCut / LUDVIG: the alpha*T-weighted mean of each label, threshold",
-    ),
-):
-    VOTE_RULES.register(_key, NoSettings, lambda cfg, m=_method: m, summary=_summary)
 
 
 def consensus_vote(

@@ -158,7 +158,7 @@ def replaced(value, name: str, new):
             raise
         from sagonline.core.plugins import VOTE_RULES
 
-        method = next(p.key for p in VOTE_RULES if name in p.build(p.config()).reads)
+        method = next(p.key for p in VOTE_RULES if name in VoteConfig(method=p.key).reads())
         return dataclasses.replace(value, method=method, **{name: new})
 
 

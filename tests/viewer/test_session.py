@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 
 import numpy as np
@@ -202,12 +203,14 @@ def test_the_views_are_rendered_on_the_colour_the_scene_was_fitted_on(donut):
 
 
 def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
-    """The viewer's vote panel: delta off is no distance rule (None), delta 0 is refused by the
-    vote's own check and said in the status line (it was taken); min votes 0 likewise; the
-    weighting and the body rule reach the vote, and a combination the vote refuses is named."""
+    """The viewer's vote panel, generated from the methods' settings: delta off is no distance
+    rule (None), delta 0 is refused by the vote's own check and said in the status line (it
+    was taken); min votes 0 likewise; the weighting and the body rule reach the vote; another
+    method enables its own settings only, and the other method's stay at their defaults."""
     import socket
 
     from sagonline.apps.viewer.app import ViewerApp
+    from sagonline.core.plugins import VOTE_RULES
 
     g, _, ring = donut
     session = SegmentSession(g, ring, backend="native")
@@ -215,27 +218,39 @@ def test_the_panel_turns_the_distance_rule_off_and_refuses_delta_0(donut):
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
     app = ViewerApp(session, port=port)
+    panel = app.vote_panel
+    every = {f.name for plugin in VOTE_RULES for f in dataclasses.fields(plugin.config)}
+    assert every | {"body"} == set(panel.inputs)  # one control per setting of every method
     try:
-        app.vote_inputs["distance"].value = False
+        panel.off["delta"].value = False
         app.change_vote()
         assert session.vote.delta is None
-        app.vote_inputs["distance"].value = True
-        app.vote_inputs["delta"].value = 0.0
+        panel.off["delta"].value = True
+        panel.inputs["delta"].value = 0.0
         app.guarded(app.change_vote)
         assert "refused" in app.status.content and "delta" in app.status.content
-        assert session.vote.delta == 2.0  # the last accepted setting stays
-        app.vote_inputs["delta"].value = 2.0
-        app.vote_inputs["min_votes"].value = 0
+        assert session.vote.delta == 2.0  # the last accepted setting stays (box on: 2 px)
+        panel.inputs["delta"].value = 2.0
+        panel.inputs["min_votes"].value = 0
         app.guarded(app.change_vote)
         assert "min_votes" in app.status.content
-        app.vote_inputs["min_votes"].value = 1
-        app.vote_inputs["weighting"].value = "blend"
-        app.vote_inputs["body"].value = True
+        panel.inputs["min_votes"].value = 1
+        panel.inputs["weighting"].value = "blend"
+        panel.inputs["body"].value = True
         app.change_vote()
-        assert (session.vote.weighting, session.vote.body) == ("blend", True)
-        app.method.value = "flashsplat"  # it weights by itself: the blend is refused, named
-        app.guarded(app.change_vote)
-        assert "weighting" in app.status.content and session.vote.method == "rgc"
+        assert (session.vote.weighting, session.vote.delta, session.vote.body) == (
+            "blend",
+            2.0,
+            True,
+        )
+        panel.method.value = "flashsplat"  # rgc's settings disabled and left at their defaults
+        panel.inputs["background_slack"].value = 0.25
+        app.change_vote()
+        assert (session.vote.method, session.vote.background_slack) == ("flashsplat", 0.25)
+        assert (session.vote.weighting, session.vote.body) == ("count", True)
+        assert panel.inputs["weighting"].disabled and panel.inputs["eps"].disabled
+        assert not panel.inputs["background_slack"].disabled
+        assert panel.inputs["threshold"].disabled
     finally:
         app.server.stop()
 

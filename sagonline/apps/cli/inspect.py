@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 
@@ -74,6 +75,9 @@ def cmd_plugins(args: argparse.Namespace) -> int:
             continue
         print(f"{kind}:")
         for plugin in registry:
-            where = "consensus.*" if kind == "vote-rules" else plugin.config.__name__
+            where = plugin.config.__name__
+            if kind == "vote-rules":
+                names = [f"consensus.{f.name}" for f in dataclasses.fields(plugin.config)]
+                where = f"{where}: {', '.join(names) or 'no settings'}"
             print(f"  {plugin.key:<14} {plugin.summary} ({where})")
     return 0

@@ -1,9 +1,12 @@
 """The options `sagonline segment` and `sagonline view` share, declared once: the segmenter
-(--segmenter, --checkpoint, --segmenter-option) and the label renders' --min-weight, and what
-each builds from them."""
+(--segmenter, --checkpoint, --segmenter-option), the vote (--method and each method's settings,
+generated from their dataclasses in `vote.methods`) and the label renders' --min-weight, and
+what each builds from them. A `--prompts` replay's settings come in as a typed
+`recorded.Replay`, never as attributes of the parsed arguments."""
 
 from __future__ import annotations
 
+import argparse
 from dataclasses import fields
 
 from sagonline.render.api import LABEL_MIN_WEIGHT
@@ -29,6 +32,63 @@ def add_segmenter_arguments(parser, default: str | None = DEFAULT_SEGMENTER) -> 
         metavar="KEY=VALUE",
         help="any setting of the segmenter's config (`sagonline plugins segmenters`)",
     )
+
+
+def add_vote_arguments(parser) -> None:
+    """--method, one flag per method setting (its type, choices and help from its field;
+    'none' for a setting that can be off), and --body."""
+    from sagonline.core.plugins import VOTE_RULES
+    from sagonline.vote.consensus import vote_setting_specs
+
+    group = parser.add_argument_group("vote (defaults: each method's settings, vote/methods.py)")
+    group.add_argument("--method", choices=VOTE_RULES.keys() or None)
+    for spec in vote_setting_specs():
+        kind = optional_number(spec.kind) if spec.optional else spec.kind
+        flag = f"--{spec.name.replace('_', '-')}"
+        off = "; none: off" if spec.optional else ""
+        doc = f"{spec.doc} (default {spec.default}{off})".replace("%", "%%")
+        group.add_argument(flag, type=kind, choices=spec.choices, help=doc)
+    group.add_argument(
+        "--body",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="keep each object's labels on its body (its largest touching cluster; off by "
+        "default, not the paper's protocol)",
+    )
+
+
+OFF = "none"
+"""What a flag of a setting that may be off is given to turn it off (the setting's null)."""
+
+
+def optional_number(kind: type):
+    """A flag's type for a setting that may be off: a number, or 'none' (OFF)."""
+
+    def parse(text: str):
+        return OFF if text.strip().lower() in ("none", "null", "off") else kind(text)
+
+    parse.__name__ = kind.__name__  # argparse names the type in its refusals
+    return parse
+
+
+def vote_config(args, replay=None):
+    """The vote's settings: the method's defaults (or the --prompts file's), with what the
+    command line gave; a refusal names the flag or the labels.json field."""
+    from sagonline.vote.consensus import VoteConfig, vote_setting_specs
+
+    recorded = dict(replay.vote) if replay is not None else {}
+    names = ["method", "body", *(spec.name for spec in vote_setting_specs())]
+    given = {name: getattr(args, name) for name in names}
+    given = {k: None if v is OFF else v for k, v in given.items() if v is not None}
+    try:
+        return VoteConfig(**(recorded | given))
+    except ValueError as exc:  # named as the user gave it: a flag, or the labels.json field
+        message = str(exc)
+        for key in VoteConfig.__dataclass_fields__:
+            where = replay.path if replay is not None else "labels.json"
+            name = f"--{key.replace('_', '-')}" if key in given else f"{where} vote.{key}"
+            message = message.replace(f"consensus.{key}=", f"{name} ")
+        raise ValueError(message) from None
 
 
 def add_min_weight_argument(parser) -> None:
@@ -63,7 +123,7 @@ def segmenter_options(args) -> list[str]:
     return items
 
 
-def build_segmenter(args, prompt):
+def build_segmenter(args, prompt, replay=None):
     """The chosen segmenter from the registry, its checkpoint and options applied; refused when
     it cannot read the prompt given (text to a click segmenter, clicks to a text one)."""
     from sagonline.core.plugins import SEGMENTERS
@@ -86,25 +146,25 @@ def build_segmenter(args, prompt):
         reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
         raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
     segmenter.check()
-    if getattr(args, "recorded_weights", None) is not None:
+    if replay is not None and replay.weights is not None:
         from sagonline.apps.cli.recorded import say_if_other_weights
 
-        say_if_other_weights(args, segmenter)
+        say_if_other_weights(replay, segmenter)
     return segmenter
 
 
-def label_min_weight(args) -> float:
+def label_min_weight(args, replay=None) -> float:
     """The label renders' min_weight: --min-weight, else the --prompts file's, else the
     default; checked by the pipeline's rule (named as the user gave it)."""
     from sagonline.pipeline.settings import PipelineSettings
 
     given = args.min_weight
-    weight = given if given is not None else getattr(args, "recorded_min_weight", None)
+    weight = given if given is not None else (replay.min_weight if replay else None)
     weight = LABEL_MIN_WEIGHT if weight is None else weight
     try:
         PipelineSettings(label_min_weight=weight)
     except ValueError as exc:
-        recorded = f"{getattr(args, 'prompts', None)} label_render.min_weight="
+        recorded = f"{replay.path if replay else 'labels.json'} label_render.min_weight="
         name = "--min-weight " if given is not None else recorded
         raise ValueError(str(exc).replace("label_render.min_weight=", name)) from None
     return float(weight)

@@ -5,17 +5,32 @@ found where labels.json says and checked to be the file that was recorded."""
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from sagonline.core.errors import PromptError
 
 
-def apply_recorded_prompts(args) -> None:
-    """--prompts labels.json: its prompt becomes the prompt items, and its views, segmenter and
-    vote the defaults of whatever the command line left out. Every field is checked (a wrong
-    type or value stops with one line naming the file and the field); a recorded mask is read
-    from where labels.json says, relative to labels.json, and must still be the file that was
-    recorded (its content digest)."""
+@dataclass(frozen=True)
+class Replay:
+    """What a --prompts labels.json gives besides the command line's own options: the vote's
+    recorded settings (VoteConfig's names; what the command line gives wins), the label
+    renders' min_weight, the scene's digest and the weights the segmenter ran with (compared
+    with this machine's, and said)."""
+
+    path: Path
+    vote: dict = field(default_factory=dict)
+    min_weight: float | None = None
+    scene: str = ""
+    weights: list[dict] | None = None
+
+
+def apply_recorded_prompts(args) -> Replay:
+    """--prompts labels.json: its prompt becomes the prompt items, and its views and segmenter
+    the defaults of whatever the command line left out; the rest is returned as a `Replay`.
+    Every field is checked (a wrong type or value stops with one line naming the file and the
+    field); a recorded mask is read from where labels.json says, relative to labels.json, and
+    must still be the file that was recorded (its content digest)."""
     from sagonline.core.files import read_json_object
     from sagonline.vote.consensus import VoteConfig
 
@@ -42,7 +57,7 @@ def apply_recorded_prompts(args) -> None:
         args.width, args.height = (field.check("prompt.render_size", v, int) for v in size)
     if not args.inbetween and record.get("inbetween"):
         args.inbetween = field.get("inbetween", int)
-    apply_recorded_segmenter(args, field, record)
+    weights = apply_recorded_segmenter(args, field, record)
     vote = field.get("vote", dict, record.get("vote") or {})
     known = VoteConfig.__dataclass_fields__
     unknown = sorted(set(vote) - set(known))
@@ -53,16 +68,18 @@ def apply_recorded_prompts(args) -> None:
         kinds = (int, float) if isinstance(default, float) or key == "delta" else type(default)
         if not (value is None and key in ("delta", "num_masks")):
             field.check(f"vote.{key}", value, kinds)
-    args.recorded_vote = vote
     label_render = field.get("label_render", dict, record.get("label_render") or {})
+    weight = None
     if "min_weight" in label_render:
         weight = label_render["min_weight"]
-        args.recorded_min_weight = field.check("label_render.min_weight", weight, (int, float))
+        weight = field.check("label_render.min_weight", weight, (int, float))
     inputs = field.get("inputs", dict, record.get("inputs") or {})
-    args.recorded_scene = field.check("inputs.scene", inputs.get("scene", ""), str)
+    scene = field.check("inputs.scene", inputs.get("scene", ""), str)
+    replay = Replay(path, vote, weight, scene, weights)
     from sagonline.scene.io import scene_file
 
-    say_if_another_scene(args, scene_file(args.scene))
+    say_if_another_scene(replay, scene_file(args.scene))
+    return replay
 
 
 def recorded_items(field: RecordFields, prompt: dict, view: str) -> list[tuple]:
@@ -98,9 +115,10 @@ def recorded_items(field: RecordFields, prompt: dict, view: str) -> list[tuple]:
     return items
 
 
-def apply_recorded_segmenter(args, field: RecordFields, record: dict) -> None:
-    """The recorded segmenter where the command line names none: its kind, the options a
-    replay takes (`replayed_options`), and the weights it ran with (compared once built)."""
+def apply_recorded_segmenter(args, field: RecordFields, record: dict) -> list[dict] | None:
+    """The recorded segmenter where the command line names none: its kind and the options a
+    replay takes (`replayed_options`); returns the weights it ran with (compared once built;
+    None where the command line names its own segmenter)."""
     path = field.path
     segmenter = field.get("segmenter", dict, record.get("segmenter") or {})
     if args.segmenter is None and segmenter.get("kind"):
@@ -109,9 +127,8 @@ def apply_recorded_segmenter(args, field: RecordFields, record: dict) -> None:
         options = [field.check(f"segmenter.options[{i}]", o, str) for i, o in enumerate(options)]
         args.segmenter_option = [*replayed_options(path, options), *args.segmenter_option]
         weights = field.get("segmenter.weights", list, segmenter.get("weights") or [])
-        args.recorded_weights = [
-            field.weights(f"segmenter.weights[{i}]", w) for i, w in enumerate(weights)
-        ]
+        return [field.weights(f"segmenter.weights[{i}]", w) for i, w in enumerate(weights)]
+    return None
 
 
 LOCAL_SETTINGS = frozenset(
@@ -155,10 +172,10 @@ def replayed_options(path: Path, options: list[str]) -> list[str]:
     return kept
 
 
-def say_if_other_weights(args, segmenter) -> None:
+def say_if_other_weights(replay: Replay, segmenter) -> None:
     """A labels.json recorded with other weights (another sha256 for a file of the same role):
     replayed with this machine's, and said."""
-    recorded = {Path(w["path"]).name: w["sha256"] for w in args.recorded_weights}
+    recorded = {Path(w["path"]).name: w["sha256"] for w in replay.weights or []}
     here = {Path(w["path"]).name: w["sha256"] for w in segmenter.weights_record()}
     other = sorted(name for name in recorded.keys() & here.keys() if recorded[name] != here[name])
     gone = sorted(set(recorded) - set(here))
@@ -166,21 +183,21 @@ def say_if_other_weights(args, segmenter) -> None:
         said = [f"{n} (recorded {recorded[n][:12]}..., here {here[n][:12]}...)" for n in other]
         said += [f"{n} (recorded, not used here)" for n in gone]
         print(
-            f"note: --prompts {args.prompts} was recorded with other weights: "
+            f"note: --prompts {replay.path} was recorded with other weights: "
             f"{'; '.join(said)}; its masks may differ from the recorded run's",
             file=sys.stderr,
         )
 
 
-def say_if_another_scene(args, scene: Path) -> None:
+def say_if_another_scene(replay: Replay, scene: Path) -> None:
     """A labels.json recorded on another scene (its scene's digest differs): replayed, and
     said (a scene fitted again from the same capture is a fair reason to replay)."""
     from sagonline.core.provenance import digest_file
 
-    recorded = getattr(args, "recorded_scene", None)
+    recorded = replay.scene
     if recorded and recorded != digest_file(scene):
         print(
-            f"note: --prompts {args.prompts} was recorded on another scene (SHA-256 "
+            f"note: --prompts {replay.path} was recorded on another scene (SHA-256 "
             f"{str(recorded)[:12]}..., this one {digest_file(scene)[:12]}...): its clicks are "
             "replayed on this one",
             file=sys.stderr,

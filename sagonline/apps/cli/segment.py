@@ -12,13 +12,14 @@ from pathlib import Path
 from sagonline.apps.cli.options import (
     add_min_weight_argument,
     add_segmenter_arguments,
+    add_vote_arguments,
     build_segmenter,
     label_min_weight,
     segmenter_options,
+    vote_config,
 )
 from sagonline.apps.cli.render import add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
-from sagonline.render.rule import WEIGHTINGS
 from sagonline.scene.views import CLICK_HELP
 from sagonline.segment.base import DEFAULT_SEGMENTER
 from sagonline.segment.clicks import parse_prompt, to_prompt
@@ -34,8 +35,6 @@ class PromptItems(argparse.Action):
 
 
 def add_parsers(sub) -> None:
-    from sagonline.core.plugins import VOTE_RULES
-
     seg = sub.add_parser(
         "segment",
         help="segment a scene from clicks, masks or text; write labels, object PLYs, renders",
@@ -73,22 +72,7 @@ def add_parsers(sub) -> None:
         "all: every view small in one image, with its index",
     )
     add_segmenter_arguments(seg, default=None)
-    vote = seg.add_argument_group("vote (defaults: sagonline.vote.consensus.VoteConfig)")
-    vote.add_argument("--method", choices=VOTE_RULES.keys() or None)
-    vote.add_argument("--eps", type=float, help="a Gaussian votes only while T > eps")
-    vote.add_argument("--delta", type=float, help="... and its centre is within delta px")
-    vote.add_argument(
-        "--weighting", choices=WEIGHTINGS, help="rgc: +1 per pair (the paper's) or alpha*T"
-    )
-    vote.add_argument("--min-votes", type=int)
-    vote.add_argument("--margin", type=float)
-    vote.add_argument(
-        "--body",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="keep each object's labels on its body (its largest touching cluster; off by "
-        "default, not the paper's protocol)",
-    )
+    add_vote_arguments(seg)
     add_min_weight_argument(seg)
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
     seg.add_argument("--backend", default="auto", choices=BACKENDS)
@@ -101,32 +85,6 @@ def add_parsers(sub) -> None:
 
 
 # --- segmenter and vote -----------------------------------------------------------------------
-
-
-def vote_config(args):
-    """The vote's settings: VoteConfig's defaults (or the --prompts file's), with what the
-    command line gave."""
-    from sagonline.vote.consensus import VoteConfig
-
-    recorded = getattr(args, "recorded_vote", None) or {}
-    given = {
-        "method": args.method,
-        "eps": args.eps,
-        "delta": args.delta,
-        "weighting": args.weighting,
-        "min_votes": args.min_votes,
-        "margin": args.margin,
-        "body": args.body,
-    }
-    given = {k: v for k, v in given.items() if v is not None}
-    try:
-        return VoteConfig(**(recorded | given))
-    except ValueError as exc:  # named as the user gave it: a flag, or the labels.json field
-        message = str(exc)
-        for key in VoteConfig.__dataclass_fields__:
-            name = f"--{key.replace('_', '-')}" if key in given else f"{args.prompts} vote.{key}"
-            message = message.replace(f"consensus.{key}=", f"{name} ")
-        raise ValueError(message) from None
 
 
 # --- the command ------------------------------------------------------------------------------
@@ -147,10 +105,11 @@ def cmd_segment(args) -> int:
     from sagonline.scene.views import check_trajectory
 
     started = time.perf_counter()
+    replay = None
     if args.prompts:
         from sagonline.apps.cli.recorded import apply_recorded_prompts
 
-        apply_recorded_prompts(args)
+        replay = apply_recorded_prompts(args)
     args.segmenter = args.segmenter or DEFAULT_SEGMENTER
     scene = scene_file(args.scene)
     args.device = check_device(args.device)
@@ -160,7 +119,7 @@ def cmd_segment(args) -> int:
     masks = [Path(v.partition(":")[2]) for k, v, *_ in args.prompt_items if k == "mask"]
     inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
     out = output_of(args, scene, inputs)
-    vote, min_weight = vote_config(args), label_min_weight(args)
+    vote, min_weight = vote_config(args, replay), label_min_weight(args, replay)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
     if args.cameras is None or args.orbit:
@@ -178,7 +137,7 @@ def cmd_segment(args) -> int:
     from sagonline.labels.export import object_file_names
 
     object_file_names(prompt.names)  # names that cannot each have a file: refused now
-    segmenter = build_segmenter(args, prompt)
+    segmenter = build_segmenter(args, prompt, replay)
     check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
     check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
     print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)

@@ -14,15 +14,14 @@ from __future__ import annotations
 import logging
 import threading
 import time
-from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
 
 from sagonline.apps.viewer.colours import SHOW, label_tint, splat_arrays
 from sagonline.apps.viewer.session import Progress, SegmentSession
+from sagonline.apps.viewer.vote_panel import VotePanel
 from sagonline.apps.viewer.words import (
     CLICK_EXTENTS,
     click_extent_of,
@@ -153,8 +152,6 @@ class ViewerApp:
     # --- the panel ----------------------------------------------------------------------------
 
     def _build_gui(self, out: str, segmenters: tuple[str, ...]) -> None:
-        from sagonline.vote.consensus import VoteConfig
-
         gui, s = self.server.gui, self.session
         gui.add_markdown(
             "**Click** the object in the 3D view: a positive click. **Shift+click**: a negative "
@@ -193,35 +190,7 @@ class ViewerApp:
             )
             self.click_extent.disabled = not hasattr(s.segmenter, "click_extent")
             self.click_extent.on_update(lambda _: self.guarded(self.change_segmenter))
-            defaults = VoteConfig()
-            from sagonline.core.plugins import VOTE_RULES
-            from sagonline.render.rule import WEIGHTINGS
-
-            self.method = gui.add_dropdown(
-                "vote method", list(VOTE_RULES.keys()), initial_value=s.vote.method
-            )
-            self.method.on_update(lambda _: self.guarded(self.change_vote))
-            self.vote_inputs: dict[str, Any] = {
-                "eps": gui.add_number("eps (T > eps)", s.vote.eps, min=0.0, max=0.999, step=0.001),
-                "distance": gui.add_checkbox("distance rule (delta)", s.vote.delta is not None),
-                "delta": gui.add_number(
-                    "delta (px)", s.vote.delta or defaults.delta, min=0.1, step=0.5
-                ),
-                "min_votes": gui.add_number("min votes", s.vote.min_votes, min=1, step=1),
-                "margin": gui.add_number("margin", s.vote.margin, min=0.0, max=0.99, step=0.05),
-                "weighting": gui.add_dropdown(
-                    "weighting (count: +1; blend: alpha T)",
-                    WEIGHTINGS,
-                    initial_value=s.vote.weighting,
-                ),
-                "body": gui.add_checkbox("keep each object's body", s.vote.body),
-            }
-            for handle in self.vote_inputs.values():
-                handle.on_update(lambda _: self.guarded(self.change_vote))
-            gui.add_markdown(
-                f"defaults: eps {defaults.eps}, delta {defaults.delta} px (off: no distance rule), "
-                f"weighting {defaults.weighting}, body {'on' if defaults.body else 'off'}"
-            )
+            self.vote_panel = VotePanel(gui, s.vote, lambda: self.guarded(self.change_vote))
         with gui.add_folder("Export"):
             self.out_text = gui.add_text("folder", initial_value=out)
             self.overwrite = gui.add_checkbox("replace an earlier export", initial_value=False)
@@ -328,16 +297,9 @@ class ViewerApp:
         self.model_status.content = segmenter_words(self.session)
 
     def change_vote(self) -> None:
-        """The panel's vote settings as a VoteConfig (a value out of range is refused by it and
-        shown); delta off is no distance rule (None)."""
-        values = {k: h.value for k, h in self.vote_inputs.items()}
-        values["method"] = str(self.method.value)
-        values["min_votes"] = int(values["min_votes"])
-        values["weighting"] = str(values["weighting"])
-        values["body"] = bool(values["body"])
-        if not values.pop("distance"):
-            values["delta"] = None
-        self.session.configure(vote=replace(self.session.vote, **values))
+        """The panel's vote settings (`VotePanel.config`; a value out of range is refused by
+        VoteConfig and shown), then a new run where there are clicks."""
+        self.session.configure(vote=self.vote_panel.config())
         self.restart()
 
     def restart(self) -> None:
