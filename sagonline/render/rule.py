@@ -21,9 +21,10 @@ class VoteRule:
     of the pixel centre (None: no distance rule, the one way to say so); weighting: count (+1
     per pair, the paper's RGC) or blend (alpha_i T_i, FlashSplat and the weighted mean).
 
-    The paper's eps and delta are defined here and nowhere else: `vote.consensus.VoteConfig`
-    (the `consensus.*` settings) takes its defaults from these. How a histogram becomes labels
-    (min_votes, margin) is the vote's business, not the kernels': `VoteConfig` alone holds it."""
+    The paper's eps and delta are defined here and nowhere else: rgc's settings
+    (`vote.methods.RgcSettings`, and through them the `consensus.*` settings) take their
+    defaults from these. How a histogram becomes labels (min_votes, margin) is the vote
+    method's business, not the kernels'."""
 
     eps: float = 0.01
     delta: float | None = 2.0
