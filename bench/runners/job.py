@@ -28,14 +28,12 @@ def quiet(cfg) -> bool:
 
 
 def settings_from(cfg) -> PipelineSettings:
-    """What the pipeline takes from an EvalConfig."""
+    """What the pipeline takes from an EvalConfig (its groups are the pipeline's own)."""
     return PipelineSettings(
-        backend=cfg.renderer.backend,
-        vote_backend=cfg.renderer.vote_backend,
+        cfg.renderer,
+        cfg.label_render,
+        cfg.metrics,
         device=cfg.device,
-        label_min_weight=cfg.label_render.min_weight,
-        label_size=cfg.label_render.size,
-        resize=cfg.metrics.resize,
         progress=not quiet(cfg),
         feedback=cfg.feedback,
         diagnose=cfg.diagnose,

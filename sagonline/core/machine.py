@@ -27,13 +27,28 @@ def describe_device(device: str = "cpu") -> dict:
     return info
 
 
+DEVICE_DEFAULT = "auto"
+"""Every front end's device when none is given: `device=` (Hydra), `--device` (the commands),
+`PipelineSettings.device`."""
+DEVICE_HELP = "auto (cuda when available, else cpu), cpu, cuda or cuda:N"
+
+
+def resolve_device(device) -> str:
+    """'auto' -> 'cuda' when CUDA is available, else 'cpu'; any other name as given (a
+    torch.device as its name). The one place 'auto' is resolved."""
+    if str(device) == DEVICE_DEFAULT:
+        import torch
+
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    return str(device)
+
+
 def check_device(device: str) -> str:
-    """`device` if it exists here ('auto': cuda when CUDA is available, else cpu); ValueError
-    naming it otherwise (no CUDA, no such index, a name torch does not know)."""
+    """`device` resolved (`resolve_device`) if it exists here; ValueError naming it otherwise
+    (no CUDA, no such index, a name torch does not know)."""
     import torch
 
-    if device == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
+    device = resolve_device(device)
     try:
         dev = torch.device(device)
     except (RuntimeError, TypeError) as exc:

@@ -9,6 +9,8 @@ own vote)."""
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from sagonline.datasets.base import SceneTask
@@ -48,7 +50,7 @@ def truth_vote(
     if type(own) is OracleSegmenter and not own.corruption.active:  # the run's masks are the truth
         return stage_one.vote.value
     oracle = segmenter_run({"kind": "oracle"}, check=False)
-    quiet = PipelineSettings(**{**settings.__dict__, "progress": False})
+    quiet = replace(settings, progress=False)
     truth = compose_stage_one(
         gaussians,
         task.trajectory,
@@ -91,7 +93,7 @@ def diagnose_scene(
             pred,
             causes,
             ignore=task.ignore_label,
-            backend=settings.backend,
+            backend=settings.renderer.backend,
             outside=outside,
             voted=bool(row.get("voted")),
         )

@@ -18,11 +18,16 @@ from pathlib import Path
 from typing import Any
 
 from sagonline.core.errors import DatasetError
+from sagonline.core.machine import DEVICE_DEFAULT
 from sagonline.core.plugins import DATASETS, PluginError, typed_settings
 from sagonline.datasets.base import DatasetAdapter
-from sagonline.pipeline.settings import PipelineSettings
+from sagonline.pipeline.settings import (
+    LabelRenderSettings,
+    MetricsSettings,
+    PipelineSettings,
+    RendererSettings,
+)
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
-from sagonline.render.api import LABEL_MIN_WEIGHT
 from sagonline.score.run_metrics import MetricsFileError, RunMetrics
 from sagonline.segment.corruption import MaskCorruption
 from sagonline.vote.consensus import VoteConfig
@@ -103,20 +108,19 @@ def read_recorded_run(run: str | Path, device: str | None = None) -> RecordedRun
         feedback = typed_settings(FeedbackConfig, config.get("feedback") or {}, "config.feedback")
     except (PluginError, ValueError, TypeError) as exc:
         raise RunFileError(f"{path}: {exc}") from None
-    renderer = config.get("renderer") or {}
-    label_render = config.get("label_render") or {}
     try:
         settings = PipelineSettings(
-            backend=str(renderer.get("backend", "auto")),
-            device=device or str(config.get("device", "cpu")),
-            label_min_weight=float(label_render.get("min_weight", LABEL_MIN_WEIGHT)),
-            label_size=str(label_render.get("size", "render")),
-            resize=str((config.get("metrics") or {}).get("resize", "pred_to_gt")),
+            typed_settings(RendererSettings, config.get("renderer") or {}, "config.renderer"),
+            typed_settings(
+                LabelRenderSettings, config.get("label_render") or {}, "config.label_render"
+            ),
+            typed_settings(MetricsSettings, config.get("metrics") or {}, "config.metrics"),
+            device=device or str(config.get("device") or DEVICE_DEFAULT),
             progress=False,
             feedback=feedback,
         )
-    except ValueError as exc:
-        raise RunFileError(f"{path}: config.label_render: {exc}") from None
+    except (PluginError, ValueError, TypeError) as exc:
+        raise RunFileError(f"{path}: {exc}") from None
     scenes = metrics.scenes
     if not all(isinstance(s, dict) for s in scenes):
         raise RunFileError(f"{path}: 'scenes' is not a list of scene rows")

@@ -104,7 +104,7 @@ def run_scene(
     report.extra["backends"] = plan.describe()
     report.stage_keys = stage_one.keys
     num_labels, result = stage_one.num_labels, stage_one.vote.value
-    note_stage_one(task, report, stage_one, settings.resize)
+    note_stage_one(task, report, stage_one, settings.metrics.resize)
     preds = score_views(
         task,
         g,
@@ -224,7 +224,7 @@ def score_views(
     backend: str = "auto",
 ) -> list[np.ndarray]:
     """Render the fused labels at every eval view (by `backend`'s label walk, at the size
-    `settings.label_size` names), score them (the coarse mode) and time the label render;
+    `settings.label_render.size` names), score them (the coarse mode) and time the label render;
     returns the (H, W) predictions. g: the scene on `settings.device`."""
     preds, seconds = [], []
     for view in progress(
@@ -236,12 +236,12 @@ def score_views(
             settings.scored_camera(view),
             vote.labels,
             num_labels,
-            min_weight=settings.label_min_weight,
+            min_weight=settings.label_render.min_weight,
             backend=backend,
         )
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)
-    record_scores(task, preds, settings.resize, report, "coarse", voted, save_to)
+    record_scores(task, preds, settings.metrics.resize, report, "coarse", voted, save_to)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
     return preds
 

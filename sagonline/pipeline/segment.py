@@ -26,9 +26,11 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.core.errors import PromptError
+from sagonline.core.machine import DEVICE_DEFAULT, resolve_device
 from sagonline.core.progress import Progress
 from sagonline.core.provenance import digest_file
 from sagonline.pipeline.graph import StageCache
+from sagonline.pipeline.settings import RendererSettings
 from sagonline.pipeline.stage_one import (
     FrameRendered,
     MaskReady,
@@ -172,7 +174,7 @@ def segment_scene(
     vote: VoteConfig | None = None,
     backend: str = "auto",
     vote_backend: str = "auto",
-    device: str = "cpu",
+    device: str = DEVICE_DEFAULT,
     cache_dir: str | Path | None = None,
     progress: bool = False,
     background: tuple[float, float, float] = (0.0, 0.0, 0.0),
@@ -192,8 +194,7 @@ def segment_scene(
     check_cameras_see_scene(gaussians, cameras)
     run = segmenter if isinstance(segmenter, SegmenterRun) else segmenter_run_of(segmenter)
     settings = PipelineSettings(
-        backend=backend,
-        vote_backend=vote_backend,
+        RendererSettings(backend, vote_backend),
         device=device,
         progress=progress,
         background=tuple(background),
@@ -320,7 +321,7 @@ def write_segment_folder(
     info: dict,
     *,
     backend: str = "auto",
-    device: str = "cpu",
+    device: str = DEVICE_DEFAULT,
     record: bool = True,
     overwrite: bool = False,
     inputs=(),
@@ -339,6 +340,7 @@ def write_segment_folder(
     from sagonline.render.api import render_labels
 
     labels = torch.from_numpy(seg.labels)
+    device = resolve_device(device)
     g = gaussians.to(device)
     pairs = list(zip(seg.cameras, seg.frames, strict=True))
     views = []

@@ -100,7 +100,9 @@ class StageOne:
             raise PromptError("no views to segment")
         if c.publish_every is not None and c.publish_every < 1:
             raise ValueError(f"publish_every {c.publish_every}: must be at least 1, or None")
-        self.plan = plan_backends(c.settings.backend, c.settings.vote_backend, c.settings.device)
+        self.plan = plan_backends(
+            c.settings.renderer.backend, c.settings.renderer.vote_backend, c.settings.device
+        )
         self.device = torch.device(self.plan.device).type
         self.gaussians = c.gaussians.to(self.plan.device)
         self.cameras = [cam.to(self.plan.device) for cam in c.cameras]

@@ -38,7 +38,7 @@ def student_checkpoint(
     """Where the student's checkpoint for these inputs lives (None: no cache)."""
     if cache_dir is None:
         return None
-    backend = resolve_backend(settings.backend, settings.device)
+    backend = resolve_backend(settings.renderer.backend, settings.device)
     inputs = RefineInputs(
         stage_one.frames, stage_one.masks, stage_one.vote, cfg, backend, str(settings.device)
     )
@@ -122,8 +122,8 @@ def run_stage_two(
         vote.labels,
         stage_one.num_labels,
         segmenter=novel,
-        backend=settings.backend,
-        min_weight=settings.label_min_weight,
+        backend=settings.renderer.backend,
+        min_weight=settings.label_render.min_weight,
     )
     modes = ["coarse", "initial", "refined"] if novel is not None else ["coarse", "refined"]
     coarse = [service.coarse(c) for c in task.trajectory]
@@ -146,7 +146,7 @@ def run_stage_two(
     alone = {mode: answer_alone(service, task.eval_views, mode) for mode in modes}
     preds = [a.mask for a in alone["refined"]]
     report.refined_miou, report.refined_macc = record_scores(
-        task, preds, settings.resize, report, "refined", stage_one.voted, predictions_to
+        task, preds, settings.metrics.resize, report, "refined", stage_one.voted, predictions_to
     )
     for mode in modes:
         report.timings[f"{mode}_ms_per_frame"] = float(np.mean([a.ms for a in alone[mode]]))
@@ -165,7 +165,7 @@ def run_stage_two(
     if novel is not None:
         initial = [a.mask for a in alone["initial"]]
         truths = [v.gt for v in task.eval_views]
-        report.extra["initial_mode_miou"] = mean_iou(task, initial, truths, settings.resize)
+        report.extra["initial_mode_miou"] = mean_iou(task, initial, truths, settings.metrics.resize)
     if recorder.enabled:
         ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
         frames = nearest_frames(task)

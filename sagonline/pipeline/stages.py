@@ -163,7 +163,7 @@ def stage_keys(
             gaussians,
             list(cameras),
             c.num_labels,
-            s.label_min_weight,
+            s.label_render.min_weight,
             plan.vote,
         )
     after = c.segmenter.segmenter.wants_advice
@@ -174,7 +174,7 @@ def stage_keys(
             gaussians,
             list(cameras),
             c.num_labels,
-            s.label_min_weight,
+            s.label_render.min_weight,
             plan.vote,
         )
     masks_in = MasksInputs(frames_out, prompt, c.trajectory_gt, c.segmenter, feedback, advice)

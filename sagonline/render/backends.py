@@ -30,6 +30,8 @@ from pathlib import Path
 
 import torch
 
+from sagonline.core.machine import resolve_device
+
 BACKENDS = ("torch", "native", "gsplat", "triton", "auto")
 VOTE_BACKENDS = ("torch", "native", "triton", "gsplat", "auto")
 DEVICES = ("cpu", "cuda", "cuda:N", "auto")
@@ -90,13 +92,6 @@ class Installed:
 def installed() -> Installed:
     """This machine's `Installed`, probed lazily and once per process."""
     return Installed()
-
-
-def resolve_device(device: str | torch.device) -> str:
-    """'auto' -> 'cuda' when CUDA is available, else 'cpu'; any other name as given."""
-    if str(device) == "auto":
-        return "cuda" if torch.cuda.is_available() else "cpu"
-    return str(device)
 
 
 def _device_type(device: torch.device | str) -> str:

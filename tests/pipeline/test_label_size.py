@@ -12,6 +12,7 @@ import pytest
 
 from bench.runners.eval import evaluate
 from sagonline.pipeline import PipelineSettings
+from sagonline.pipeline.settings import LabelRenderSettings
 from sagonline.render.api import render_labels
 from tests.fixtures import compose_config, llff_scene, object_mask, write_image
 
@@ -22,7 +23,7 @@ def test_the_scored_camera_is_the_views_or_rescaled_to_its_truth(tiny_task):
     view = tiny_task.eval_views[0]
     assert PipelineSettings().scored_camera(view) is view.camera
     view = type(view)(view.camera, np.zeros((60, 80), np.uint8), view.name)
-    cam = PipelineSettings(label_size="truth").scored_camera(view)
+    cam = PipelineSettings(label_render=LabelRenderSettings(size="truth")).scored_camera(view)
     assert (cam.width, cam.height) == (80, 60)
     assert cam.K[0, 0] == pytest.approx(2 * float(view.camera.K[0, 0]))
     assert cam.K[1, 2] == pytest.approx(2 * float(view.camera.K[1, 2]))
@@ -36,7 +37,7 @@ def test_the_scored_camera_is_the_views_or_rescaled_to_its_truth(tiny_task):
 
 def test_a_size_that_is_not_one_is_refused():
     with pytest.raises(ValueError, match="label_render.size"):
-        PipelineSettings(label_size="full")
+        LabelRenderSettings(size="full")
 
 
 def _capture(root: Path) -> None:

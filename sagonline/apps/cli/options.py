@@ -156,13 +156,13 @@ def build_segmenter(args, prompt, replay=None):
 def label_min_weight(args, replay=None) -> float:
     """The label renders' min_weight: --min-weight, else the --prompts file's, else the
     default; checked by the pipeline's rule (named as the user gave it)."""
-    from sagonline.pipeline.settings import PipelineSettings
+    from sagonline.pipeline.settings import LabelRenderSettings
 
     given = args.min_weight
     weight = given if given is not None else (replay.min_weight if replay else None)
     weight = LABEL_MIN_WEIGHT if weight is None else weight
     try:
-        PipelineSettings(label_min_weight=weight)
+        LabelRenderSettings(min_weight=weight)
     except ValueError as exc:
         recorded = f"{replay.path if replay else 'labels.json'} label_render.min_weight="
         name = "--min-weight " if given is not None else recorded

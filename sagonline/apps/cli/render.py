@@ -7,6 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sagonline.core.machine import DEVICE_DEFAULT, DEVICE_HELP
 from sagonline.render.backends import BACKENDS
 from sagonline.scene.views import CLICK_HELP
 
@@ -59,9 +60,7 @@ def add_view_arguments(parser) -> None:
     )
     parser.add_argument("--width", type=int, help="render width (cameras rescaled)")
     parser.add_argument("--height", type=int, help="render height")
-    parser.add_argument(
-        "--device", default="auto", help="auto (cuda when available, else cpu), cpu or cuda[:N]"
-    )
+    parser.add_argument("--device", default=DEVICE_DEFAULT, help=DEVICE_HELP)
     parser.add_argument(
         "--drop-nonfinite", action="store_true", help="drop Gaussians with NaN/Inf values"
     )

@@ -30,11 +30,13 @@ from sagonline.apps.viewer.clicks import pick_gaussian, view_for_point
 from sagonline.apps.viewer.exporting import export_session, segmentation_of
 from sagonline.apps.viewer.preparation import Preparation
 from sagonline.core.errors import PromptError
+from sagonline.core.machine import DEVICE_DEFAULT
 from sagonline.pipeline.segment import (
     Segmentation,
     check_click_on_scene,
     segmenter_run_of,
 )
+from sagonline.pipeline.settings import LabelRenderSettings, RendererSettings
 from sagonline.pipeline.stage_one import (
     LabelsUpdated,
     MaskReady,
@@ -96,7 +98,7 @@ class SegmentSession:
         vote: VoteConfig | None = None,
         backend: str = "auto",
         vote_backend: str = "auto",
-        device: str = "cpu",
+        device: str = DEVICE_DEFAULT,
         publish_every: int = 4,
         background: tuple[float, float, float] = (0.0, 0.0, 0.0),
         min_weight: float = LABEL_MIN_WEIGHT,
@@ -112,12 +114,11 @@ class SegmentSession:
         self.segmenter_kind = segmenter_kind  # its name in the registry (labels.json)
         self.segmenter_options = list(segmenter_options or [])
         settings = PipelineSettings(
-            backend=backend,
-            vote_backend=vote_backend,
+            RendererSettings(backend, vote_backend),
+            LabelRenderSettings(min_weight),
             device=device,
             progress=False,
             background=tuple(background),
-            label_min_weight=min_weight,
         )
         config = StageOneConfig(
             gaussians,
@@ -131,8 +132,8 @@ class SegmentSession:
         self.engine = StageOne(config)
         self.gaussians, self.cameras = self.engine.gaussians, self.engine.cameras
         check_cameras_see_scene(self.gaussians, self.cameras)
-        self.backend, self.device = backend, device
-        self.min_weight = settings.label_min_weight
+        self.backend, self.device = backend, settings.device
+        self.min_weight = settings.label_render.min_weight
         self.on_update = on_update
         self.objects: list[ObjectClicks] = []
         self.clicks: list[ClickPoint] = []
