@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Chromium and chromedriver for the viewer's browser test (tests/viewer/test_browser.py):
+# Chromium and chromedriver for the viewer's browser test (tests/apps/viewer/test_browser.py):
 # installed with apt-get when missing and this user may; otherwise the test skips and says why.
 set -u
 if command -v chromedriver >/dev/null && { command -v chromium >/dev/null || command -v chromium-browser >/dev/null; }; then

@@ -406,3 +406,32 @@ def test_the_own_scene_segmenters_default_is_written_once():
         and ('"classical"' in p.read_text() or "FlowWatershedSegmenter()" in p.read_text())
     ]
     assert not stated, stated
+
+
+TOP_LEVEL_TESTS = {  # checks of the whole project, not of one room
+    "test_layout.py",
+    "test_static.py",
+    "test_extending.py",
+    "test_fuzz_inputs.py",
+    "test_gpu_check.py",
+}
+
+
+def test_the_tests_are_sorted_by_the_room_they_test():
+    """tests/<room>/ for each room of the package (tests/apps/<app>/ for the front ends) and
+    tests/bench/ for the harness; only project-wide checks sit at the top."""
+    package = ROOT / "sagonline"
+    rooms = {p.name for p in package.iterdir() if (p / "__init__.py").exists()}
+    apps = {p.name for p in (package / "apps").iterdir() if p.is_dir() and p.name[0] != "_"}
+    misplaced = []
+    for path in sorted((ROOT / "tests").rglob("test_*.py")):
+        parts = path.relative_to(ROOT / "tests").parts
+        if len(parts) == 1:
+            ok = parts[0] in TOP_LEVEL_TESTS
+        elif parts[0] == "apps":
+            ok = len(parts) == 3 and parts[1] in apps
+        else:
+            ok = parts[0] in rooms | {"bench"}
+        if not ok:
+            misplaced.append("/".join(parts))
+    assert not misplaced, f"tests outside a room's folder: {misplaced}"

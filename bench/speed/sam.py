@@ -122,7 +122,7 @@ def icing_table(models: list[str]) -> pd.DataFrame:
 
     from sagonline.pipeline.segment import clicks_prompt, segment_scene
     from sagonline.render.api import render_labels
-    from tests.segmenters.test_clicks import donut_icing
+    from tests.segment.test_clicks import donut_icing
 
     g, ring, unseen, truth = donut_icing(12)
     prompt = clicks_prompt(ring, 0, {"icing": [(150.0, 60.0)]})

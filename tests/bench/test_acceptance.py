@@ -10,7 +10,6 @@ pytestmark = pytest.mark.slow
 
 
 def _run(tmp_path, *overrides):
-
     from bench.runners.eval import evaluate
 
     cfg = compose_config("eval", *["progress=false", "record=false", *overrides])

@@ -199,7 +199,7 @@ def test_plot_legend_names_only_what_differs():
 
 def test_progress_is_silenced_only_when_asked(monkeypatch):
     """Off a terminal (a log file, CI) the runs say plain progress lines, not bars (tested in
-    tests/test_recording.py); only progress=false silences them."""
+    tests/record/test_recording.py); only progress=false silences them."""
     import io
     import types
 

@@ -249,7 +249,6 @@ def test_palette_and_per_object_formats(tmp_path):
 
 
 def test_run_over_many_scenes_reports_the_broken_one(tmp_path):
-
     from bench.runners.eval import evaluate
 
     root = tmp_path / "data"

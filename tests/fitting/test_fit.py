@@ -372,7 +372,6 @@ def tiny_capture(root: Path, *overrides: str):
 
 
 def test_make_scenes_writes_where_the_adapter_looks(tmp_path, monkeypatch):
-
     from bench.runners.scenes import fit_scene
 
     cfg, adapter = tiny_capture(tmp_path / "cap")

@@ -32,7 +32,7 @@ def viewer(tmp_path):
     from sagonline.apps.viewer.session import SegmentSession
     from sagonline.scene.io import read_scene, write_ply
     from sagonline.scene.trajectory import orbit_around
-    from tests.segmenters.test_clicks import iced_donut
+    from tests.segment.test_clicks import iced_donut
 
     g, parts = iced_donut(60, 28)
     ply = write_ply(tmp_path / "donut.ply", g)

@@ -9,7 +9,7 @@ import pytest
 
 from sagonline.apps.cli import main
 from sagonline.scene.io import write_ply
-from tests.segmenters.test_clicks import iced_donut
+from tests.segment.test_clicks import iced_donut
 
 
 def test_view_serves_prints_its_url_and_stops_on_ctrl_c(tmp_path, capsys, monkeypatch):

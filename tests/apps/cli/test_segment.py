@@ -79,7 +79,7 @@ def test_clicks_label_the_scene(clicked):
 def test_the_recording_has_its_own_layout_and_no_empty_panel(clicked):
     """RGB with the clicks on the prompt frame, the segmenter's mask, the fused labels, the scene
     as splats coloured by label and a legend; nothing of the evaluation layout."""
-    from tests.test_recording import read_back
+    from tests.record.test_recording import read_back
 
     tmp, sc = clicked
     found, _ = read_back(tmp / "out" / "recording.rrd")

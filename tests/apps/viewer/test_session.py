@@ -14,7 +14,7 @@ from sagonline.apps.viewer.session import SegmentSession
 from sagonline.pipeline.segment import PromptError, clicks_prompt, segment_scene
 from sagonline.scene.trajectory import orbit_around
 from sagonline.segment.classical import FlowWatershedSegmenter
-from tests.segmenters.test_clicks import iced_donut
+from tests.segment.test_clicks import iced_donut
 
 
 @pytest.fixture(scope="module")

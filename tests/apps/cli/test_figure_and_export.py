@@ -1,0 +1,91 @@
+"""`sagonline figure` and `sagonline export`: untrusted labels.json refused, another scene or size
+refused, export beside the run."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+from sagonline.apps.cli import main
+from tests.fixtures import (
+    cfg_with,
+    tree_digest,
+)
+from tests.refusals import (
+    one_error_line,
+    user_scene_files,
+)
+
+
+@pytest.fixture
+def segment_folder(tmp_path):
+    folder, scene, cams, gt = user_scene_files(tmp_path / "scene", 4, 40, 30)
+    ys, xs = np.nonzero(gt)
+    click = f"0:{xs[len(xs) // 2] + 0.5},{ys[len(xs) // 2] + 0.5}"
+    assert (
+        main(
+            [
+                "segment",
+                str(scene),
+                "--cameras",
+                str(folder / "transforms.json"),
+                "--click",
+                click,
+                "--out",
+                str(tmp_path / "seg"),
+                "--no-record",
+            ]
+        )
+        == 0
+    )
+    return tmp_path, tmp_path / "seg", scene
+
+
+@pytest.mark.parametrize(
+    ("edit", "words"),
+    [
+        (lambda r: [1, 2], ["holds a list"]),
+        (lambda r: {k: v for k, v in r.items() if k != "scene"}, ["scene must name"]),
+        (lambda r: {**r, "names": ["background"]}, ["ids must lie in [0, 1)"]),
+    ],
+)
+def test_figure_refuses_a_labels_json_it_cannot_trust(segment_folder, capsys, edit, words):
+    tmp, seg, _ = segment_folder
+    path = seg / "labels.json"
+    path.write_text(json.dumps(edit(json.loads(path.read_text()))))
+    assert main(["figure", str(seg), "--out", str(tmp / "f.png")]) == 2
+    one_error_line(capsys.readouterr().err, *words)
+
+
+def test_figure_refuses_another_scene_and_a_label_png_of_another_size(segment_folder, capsys):
+    tmp, seg, scene = segment_folder
+    record = json.loads((seg / "labels.json").read_text())
+    from sagonline.scene.io import read_scene, write_ply
+
+    other = tmp / "other.ply"
+    write_ply(other, read_scene(scene).subset(np.arange(100)))
+    (seg / "labels.json").write_text(json.dumps({**record, "scene": str(other)}))
+    assert main(["figure", str(seg), "--out", str(tmp / "f.png")]) == 2
+    one_error_line(capsys.readouterr().err, "not the file the labels were made on")
+    (seg / "labels.json").write_text(json.dumps(record))
+    png = next((seg / "views").glob("0000_*_labels.png"))
+    cv2.imwrite(str(png), np.zeros((1, 1), np.uint8))
+    assert main(["figure", str(seg), "--out", str(tmp / "f.png")]) == 2
+    one_error_line(capsys.readouterr().err, "1x1, but view 0 renders at 40x30")
+
+
+def test_export_writes_beside_the_run_not_into_it(tmp_path, monkeypatch):
+    """`sagonline export RUN` leaves the finished run's folder as the run wrote it: the default
+    output is export-<parent>-<run> in the current folder."""
+    from bench.runners.eval import evaluate
+
+    run = tmp_path / "runs" / "r1"
+    evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
+    before = tree_digest(run)
+    monkeypatch.chdir(tmp_path)
+    assert main(["export", str(run)]) == 0
+    assert tree_digest(run) == before
+    assert (tmp_path / "export-runs-r1" / "forward_single" / "labels.npy").is_file()

@@ -1,0 +1,50 @@
+"""File digests: memoised across processes, remembered only while nothing can change the file."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+def _digest_many(args) -> None:
+    from sagonline.core.provenance import digest_file
+
+    folder, start = args
+    for i in range(start, start + 20):
+        digest_file(Path(folder) / f"f{i}.bin")
+
+
+@pytest.mark.slow
+def test_the_digest_memo_keeps_every_process_entries(tmp_path, monkeypatch):
+    """Two processes digesting at once: the memo file holds the entries of both (it was
+    rewritten without a lock, one process's entries lost)."""
+    import multiprocessing as mp
+
+    memo = tmp_path / "memo.json"
+    monkeypatch.setenv("SAGONLINE_DIGEST_CACHE", str(memo))
+    for i in range(40):
+        (tmp_path / f"f{i}.bin").write_bytes(os.urandom(64))
+    with mp.get_context("spawn").Pool(2) as pool:
+        pool.map(_digest_many, [(str(tmp_path), 0), (str(tmp_path), 20)])
+    assert len(json.loads(memo.read_text())) == 40
+
+
+def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
+    """Read-only ground truth is hashed once per process, with the digest its bytes give;
+    an array that can be written is hashed every time, so a change is always seen."""
+    from sagonline.core.provenance import digest_arrays
+    from sagonline.datasets.base import read_only
+
+    frozen = [read_only(np.full((600, 600), k, np.int64)) for k in range(2)]
+    copies = [a.copy() for a in frozen]
+    assert digest_arrays(frozen) == digest_arrays(frozen) == digest_arrays(copies)
+    writable = [np.zeros((600, 600), np.int64)]
+    before = digest_arrays(writable)
+    writable[0][0, 0] = 1
+    assert digest_arrays(writable) != before
+    with pytest.raises(ValueError, match="read-only"):
+        frozen[0][0, 0] = 7
