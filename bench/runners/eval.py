@@ -216,11 +216,11 @@ def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> Segm
 def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes) -> dict:
     """A finished run is in `out_dir`: skip if it came from this config and these inputs,
     else refuse naming the difference. Nothing in `out_dir` is written either way."""
-    old_flat = finished_config(previous.get("config") or {})
-    if previous.get("config_fingerprint") != fingerprint and old_flat != flat_cfg:
+    old_flat = finished_config(previous.config)
+    if previous.config_fingerprint != fingerprint and old_flat != flat_cfg:
         refuse(out_dir, ["made with another config:", *config_difference(old_flat, flat_cfg)])
     changed = []
-    recorded = {s["scene"]: s.get("inputs") or {} for s in previous.get("scenes", [])}
+    recorded = {s["scene"]: s.get("inputs") or {} for s in previous.scenes}
     for scene in scenes:
         before = recorded.get(scene, {})
         try:
@@ -240,7 +240,7 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
     if changed:
         refuse(out_dir, ["made from other inputs (same config):", *changed])
     print(f"skipped: {out_dir} already holds this run (same config and inputs)")
-    return previous
+    return previous.to_json()
 
 
 @hydra.main(version_base="1.3", config_path="../../conf", config_name="eval")

@@ -16,9 +16,9 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from sagonline.core.files import atomic_write_text, read_json_object
+from sagonline.core.files import atomic_write_text
 from sagonline.core.provenance import digest_json
-from sagonline.score.run_metrics import MetricsFileError, RunMetrics
+from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
 
 
 class RunExists(SystemExit):
@@ -84,18 +84,19 @@ def read_run_metrics(path: Path) -> RunMetrics | None:
         return None
 
 
-def finished_run(out_dir: Path) -> dict | None:
-    """The metrics of a finished run in `out_dir` (one that scored at least one scene), else
-    None: no run, an interrupted one, or one whose every scene failed (rerun freely)."""
-    path = out_dir / "metrics.json"
+def finished_run(out_dir: Path) -> RunMetrics | None:
+    """The record of a finished run in `out_dir` (one that scored at least one scene), else
+    None: no run, an interrupted one, or one whose every scene failed (rerun freely). A record
+    that cannot be read stops, naming it."""
+    path = out_dir / METRICS_FILE
     if not path.is_file():
         return None
     try:
-        metrics = read_json_object(path, RunExists, "unreadable", "a run's metrics (an object)")
-    except RunExists as exc:
+        metrics = RunMetrics.read(path)
+    except MetricsFileError as exc:
         print(f"error: {exc}; move it away or pass overwrite=true", file=sys.stderr)
         raise RunExists(2) from None
-    return None if metrics.get("status") == "failed" else metrics
+    return None if metrics.status == "failed" else metrics
 
 
 def config_difference(old: dict, new: dict, limit: int = 8) -> list[str]:

@@ -220,4 +220,4 @@ def test_a_metrics_json_that_is_no_object_is_named(tmp_path, capsys):
         evaluate(cfg_with("dataset=synthetic_ff"), run)
     assert exc.value.code == 2
     err = capsys.readouterr().err
-    assert "metrics.json: holds a list, not a run's metrics" in err and err.count("\n") == 1
+    assert "metrics.json: holds a list, not a JSON object" in err and err.count("\n") == 1
