@@ -196,6 +196,7 @@ _SOURCES = {
         "projection.py",
         "rasterize.py",
         "csrc/raster_cpu.cpp",
+        "csrc/prepare_view.cpp",
         "csrc/vote_cpu.cpp",
         "csrc/splat_common.h",
     ),

@@ -16,7 +16,7 @@ import time
 from pathlib import Path
 
 CSRC = Path(__file__).parent / "csrc"
-SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "vote_cpu.cpp")
+SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "prepare_view.cpp", CSRC / "vote_cpu.cpp")
 HEADERS = (CSRC / "splat_common.h",)
 
 

@@ -8,7 +8,7 @@ tensors. This is what makes CPU scene fitting practical. The extension is compil
 use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
 most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
 `render.vote_histogram`) and the label renders (`label_weights_native`) walk a view prepared in
-C++ (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/vote_cpu.cpp); a
+C++ (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/prepare_view.cpp); a
 streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
 kernels their own thread count while torch's ops run on one (fits use it).
 """
@@ -195,8 +195,9 @@ def vote_into(
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
 ) -> int:
-    """The op `render.vote.vote_into` in C++ (csrc/vote_cpu.cpp): the pairs of its PyTorch
-    reference under `rule`, added into hist; returns how many pairs voted."""
+    """The op `render.vote.vote_into` in C++ (csrc/prepare_view.cpp, csrc/vote_cpu.cpp): the
+    pairs of its PyTorch reference under `rule`, added into hist; returns how many pairs
+    voted."""
     view = prepare_view(gaussians, camera)
     return load_extension().vote(
         view.surfel,

@@ -13,8 +13,8 @@ the same name and signature per implementation, `vote_into(gaussians, camera, la
 rule) -> pairs voted` (as gsplat pairs `_wrapper.py` with `_torch_impl.py`):
 - torch (`_torch_impl.py`): the readable reference, `rasterize`'s tiled walk streaming its
   (pixel, Gaussian) pairs into a scatter-add (CPU or CUDA);
-- native (`native.py`): the compiled CPU pass (csrc/vote_cpu.cpp: projection, tile lists and an
-  8-pixel-wide walk in C++, AVX2 chosen at run time);
+- native (`native.py`): the compiled CPU pass (csrc/prepare_view.cpp: projection and tile
+  lists; csrc/vote_cpu.cpp: an 8-pixel-wide walk in C++, AVX2 chosen at run time);
 - triton (`triton_vote.py`): the fused trace-and-vote kernel, one launch per view, on CUDA; the
   tests run the same kernel on the CPU through Triton's interpreter;
 - gsplat (`_torch_impl.py`, `via="gsplat"`): gsplat's per-pixel ids walked in depth batches
