@@ -100,7 +100,7 @@ def initial_points(
         if cfg.init == "colmap":
             raise DatasetError(f"{scene_dir}: fit.init=colmap but there is no sparse/ model")
     if cfg.init in ("auto", "triangulate"):
-        train_idx, _ = split_views(cams, cfg.holdout_every)  # held-out views stay unseen
+        train_idx, _ = split_views(cams, cfg.holdout_every, cfg.train_every)  # the fit's own
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.store"
         key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"

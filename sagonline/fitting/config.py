@@ -104,6 +104,10 @@ class FitConfig:
     """Gaussians below this opacity are pruned."""
     holdout_every: int = 8
     """Every n-th photograph is held out of the fit (its PSNR is the held-out PSNR)."""
+    train_every: int = 1
+    """Fit from every n-th of the photographs not held out (in name order); the others are
+    neither fitted nor held out. 1: all of them; 2: the sparse-photograph protocol (half the
+    photographs, the same held-out ones: `docs/fitting.md`)."""
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """The render's background colour during the fit (and the evaluation's renders of it)."""
     backdrop: str = "detect"
@@ -134,6 +138,7 @@ class FitConfig:
             max_side=(self.max_side >= 8, self.max_side, ">= 8 pixels"),
             sh_degree=(0 <= self.sh_degree <= 3, self.sh_degree, "0, 1, 2 or 3"),
             max_gaussians=(self.max_gaussians >= 1, self.max_gaussians, ">= 1"),
+            train_every=(self.train_every >= 1, self.train_every, ">= 1"),
             time_budget_s=(budget is None or budget >= 0, budget, ">= 0 seconds, or null"),
             view_clearance=(self.view_clearance >= 0, self.view_clearance, ">= 0"),
             view_near_quantile=(

@@ -11,11 +11,14 @@ import torch
 from sagonline.scene.cameras import Camera
 
 
-def split_views(cameras: list[Camera], every: int) -> tuple[list[int], list[int]]:
-    """Indices of training and held-out views: every `every`-th (sorted by name) is held out."""
+def split_views(
+    cameras: list[Camera], every: int, train_every: int = 1
+) -> tuple[list[int], list[int]]:
+    """Indices of training and held-out views: every `every`-th (sorted by name) is held out;
+    of the rest, every `train_every`-th trains (the others are left out of both)."""
     order = sorted(range(len(cameras)), key=lambda i: cameras[i].name)
     held = [i for k, i in enumerate(order) if every and k % every == 0]
-    return [i for i in order if i not in held], held
+    return [i for i in order if i not in held][::train_every], held
 
 
 def init_from_views(

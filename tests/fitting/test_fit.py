@@ -54,6 +54,8 @@ def test_ssim_and_split():
 
     train, held = split_views(orbit_cameras(17), 8)
     assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
+    sparse, same_held = split_views(orbit_cameras(17), 8, train_every=2)  # the sparse protocol
+    assert same_held == held and sparse == train[::2] and len(sparse) == 7
 
 
 def test_the_trimmed_loss_leaves_the_worst_pixels_out_of_both_terms():
