@@ -94,6 +94,18 @@ def fit_args(dataset: str | None, variant: str = "") -> str:
     return (f" DATASET={dataset}" if dataset else "") + (f" ARGS={args}" if args else "")
 
 
+def photographs_fitted(scene_dir: Path, dataset: str | None = None, variant: str = "") -> int:
+    """Every how many of its training photographs the scene's fit was made from: its
+    fit_config.json's `train_every` (2: the sparse-photograph protocol); 1 where the fit used
+    them all, or records no such setting (a fit of another tool, an older fit)."""
+    try:
+        path = find_trained_scene(scene_dir, dataset, variant).parent / "fit_config.json"
+        every = json.loads(path.read_text()).get("train_every", 1)
+    except (DatasetError, OSError, ValueError, AttributeError):
+        return 1
+    return every if isinstance(every, int) and every >= 1 else 1
+
+
 def fit_record(scene_dir: Path, dataset: str | None = None, variant: str = "") -> dict | None:
     """What `make scenes` recorded about the trained scene (iterations, why it stopped, PSNR),
     or None for a scene it did not fit."""

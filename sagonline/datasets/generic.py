@@ -38,6 +38,7 @@ from sagonline.datasets.fits import (
     fit_record,
     gaussians_dir,
     load_trained_scene,
+    photographs_fitted,
 )
 from sagonline.datasets.labels import label_reader
 from sagonline.scene.cameras import Camera
@@ -138,7 +139,8 @@ class PosedMasksDataset(DatasetAdapter):
         """What is scored and what the segmenter is offered, e.g. `mold_cape/exclude-reference@1`
         (the default: the reference view's mask with 3 clicks in it, on the first view with a
         mask), `...-clicks1@1` (one click, no mask), `...-mask-clicks1@1`, `...-ref-IMG_5961@1`
-        (another reference view)."""
+        (another reference view); `...-photos1of2@1` where the fits were made from every second
+        training photograph (`fit.train_every=2`, the sparse-photograph protocol)."""
         views = "exclude-reference" if self.exclude_reference else "all-views"
         prompt = "" if self.prompt_kind == "mask" else f"-{self.prompt_kind}"
         if self.prompt_kind == "clicks":
@@ -146,7 +148,16 @@ class PosedMasksDataset(DatasetAdapter):
         elif self.prompt_kind == "mask" and self.clicks != 3:
             prompt += f"-clicks{self.clicks}"
         ref = f"-ref-{self.reference}" if self.reference else ""
-        return f"{self.name}/{views}{prompt}{ref}@1"
+        every = {photographs_fitted(d, self.name, self.fit) for d in self._fitted_dirs()}
+        sparse = f"-photos1of{max(every)}" if max(every, default=1) > 1 else ""
+        return f"{self.name}/{views}{prompt}{ref}{sparse}@1"
+
+    def _fitted_dirs(self) -> list[Path]:
+        """The scenes' folders, where they can be listed (none: the protocol names no fit)."""
+        try:
+            return list(self.scene_dirs().values())
+        except DatasetError:
+            return []
 
     def check_segmenter(self, reads: tuple[str, ...]) -> None:
         """Refuse a protocol that says something other than what the segmenter will receive:
