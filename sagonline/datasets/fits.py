@@ -182,3 +182,25 @@ def copy_fit(base: Path, out: Path, fit_config: dict) -> dict:
     atomic_write_json(out / "fit_config.json", fit_config)
     atomic_write_json(out / "fit_metrics.json", metrics)
     return metrics
+
+
+def check_photographs_of_the_fit(
+    scene_file: Path, scene_dir: Path, photographs: list[str], expected: int | None
+) -> None:
+    """Where the protocol does not pin the number of photographs (a capture of one's own), the
+    fit does: it records how many it was made from (fit_metrics.json `images`). Fewer here (a
+    photograph lost since) would move views from the photographed group to the mask-only one
+    without a word; more are fine (a fit of some of them)."""
+    if expected is not None:
+        return
+    record = scene_file.parent / "fit_metrics.json"
+    try:
+        fitted = json.loads(record.read_text()).get("images")
+    except (OSError, ValueError, AttributeError):
+        return
+    if isinstance(fitted, int) and fitted > len(photographs):
+        raise DatasetError(
+            f"{scene_dir}: {len(photographs)} photographs of the scene's views, its fit "
+            f"({record}) was made from {fitted}: a missing photograph moves its view to the "
+            "mask-only group; restore it, or fit again"
+        )

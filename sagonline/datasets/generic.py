@@ -18,7 +18,6 @@ either), the clicks alone (`clicks`), the classes as text (`text`) or nothing (`
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
@@ -34,6 +33,7 @@ from sagonline.datasets.common import (
 )
 from sagonline.datasets.configs import PosedMasksConfig
 from sagonline.datasets.fits import (
+    check_photographs_of_the_fit,
     find_trained_scene,
     fit_record,
     gaussians_dir,
@@ -387,25 +387,3 @@ def group_by_photographs(
 def _fit_within(width: int, height: int, max_side: int) -> tuple[int, int]:
     scale = min(1.0, max_side / max(width, height))
     return max(1, round(width * scale)), max(1, round(height * scale))
-
-
-def check_photographs_of_the_fit(
-    scene_file: Path, scene_dir: Path, photographs: list[str], expected: int | None
-) -> None:
-    """Where the protocol does not pin the number of photographs (a capture of one's own), the
-    fit does: it records how many it was made from (fit_metrics.json `images`). Fewer here (a
-    photograph lost since) would move views from the photographed group to the mask-only one
-    without a word; more are fine (a fit of some of them)."""
-    if expected is not None:
-        return
-    record = scene_file.parent / "fit_metrics.json"
-    try:
-        fitted = json.loads(record.read_text()).get("images")
-    except (OSError, ValueError, AttributeError):
-        return
-    if isinstance(fitted, int) and fitted > len(photographs):
-        raise DatasetError(
-            f"{scene_dir}: {len(photographs)} photographs of the scene's views, its fit "
-            f"({record}) was made from {fitted}: a missing photograph moves its view to the "
-            "mask-only group; restore it, or fit again"
-        )
