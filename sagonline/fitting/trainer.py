@@ -353,6 +353,7 @@ class SceneFitter:
             "pruned_pose_views": getattr(self, "pruned_pose_views", 0),
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
+            "train_views": len(self.train_idx),  # fewer than the rest with fit.train_every > 1
             "final_loss": float(np.mean(self.history[-20:])) if self.history else None,
             "final_regularisers": self.last_terms,
         }
