@@ -18,7 +18,13 @@ def split_views(
     of the rest, every `train_every`-th trains (the others are left out of both)."""
     order = sorted(range(len(cameras)), key=lambda i: cameras[i].name)
     held = [i for k, i in enumerate(order) if every and k % every == 0]
-    return [i for i in order if i not in held][::train_every], held
+    train = [i for i in order if i not in held][::train_every]
+    if train_every > 1 and len(train) < 2:
+        raise ValueError(
+            f"fit.train_every={train_every}: leaves {len(train)} training photograph(s) of "
+            f"{len(cameras)}; a fit needs at least 2"
+        )
+    return train, held
 
 
 def init_from_views(

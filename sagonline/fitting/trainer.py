@@ -102,11 +102,6 @@ class SceneFitter:
         self.cfg, self.images = cfg, [i.to(cfg.device) for i in images]
         self.cams = [c.to(cfg.device) for c in cameras]
         self.train_idx, self.held_idx = split_views(cameras, cfg.holdout_every, cfg.train_every)
-        if len(self.train_idx) < 2:
-            raise ValueError(
-                f"fit.train_every={cfg.train_every}: leaves {len(self.train_idx)} training "
-                f"photograph(s) of {len(cameras)}; a fit needs at least 2"
-            )
         rng = np.random.default_rng(cfg.seed)
         centers = torch.stack([c.center for c in cameras]).double()
         self.extent = float((centers - centers.mean(0)).norm(dim=1).max()) * 1.1 or 1.0

@@ -56,6 +56,9 @@ def test_ssim_and_split():
     assert len(held) == 3 and set(train).isdisjoint(held) and len(train) == 14
     sparse, same_held = split_views(orbit_cameras(17), 8, train_every=2)  # the sparse protocol
     assert same_held == held and sparse == train[::2] and len(sparse) == 7
+    assert len(split_views(orbit_cameras(17), 8, train_every=9)[0]) == 2  # the fewest a fit takes
+    with pytest.raises(ValueError, match="fit.train_every=14: leaves 1 training"):
+        split_views(orbit_cameras(17), 8, train_every=14)
 
 
 def test_the_trimmed_loss_leaves_the_worst_pixels_out_of_both_terms():
