@@ -102,6 +102,11 @@ class FitConfig:
     """Iterations between opacity resets (3DGS's trick against floaters)."""
     prune_opacity: float = 0.005
     """Gaussians below this opacity are pruned."""
+    opacity_decay: float = 1.0
+    """Every opacity is multiplied by this after each step of the densification phase (until
+    `densify_until`), so a Gaussian stays only while the photographs keep pulling it up; the
+    ones no photograph needs fade below `prune_opacity` and are pruned (the opacity decay of
+    sparse-view Gaussian splatting, Han et al. 2024). 1: off."""
     holdout_every: int = 8
     """Every n-th photograph is held out of the fit (its PSNR is the held-out PSNR)."""
     train_every: int = 1
@@ -139,6 +144,7 @@ class FitConfig:
             sh_degree=(0 <= self.sh_degree <= 3, self.sh_degree, "0, 1, 2 or 3"),
             max_gaussians=(self.max_gaussians >= 1, self.max_gaussians, ">= 1"),
             train_every=(self.train_every >= 1, self.train_every, ">= 1"),
+            opacity_decay=(0 < self.opacity_decay <= 1, self.opacity_decay, "in (0, 1]"),
             time_budget_s=(budget is None or budget >= 0, budget, ">= 0 seconds, or null"),
             view_clearance=(self.view_clearance >= 0, self.view_clearance, ">= 0"),
             view_near_quantile=(

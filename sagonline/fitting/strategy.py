@@ -111,6 +111,9 @@ class DensifyStrategy:
         ):
             p = params["opacity_logit"]
             p.copy_(torch.minimum(p, torch.full_like(p, math.log(0.01 / 0.99))))
+        if cfg.opacity_decay < 1 and step <= cfg.densify_until:
+            p = params["opacity_logit"]
+            p.copy_(torch.logit(torch.sigmoid(p) * cfg.opacity_decay))
         return new
 
     @torch.no_grad()
