@@ -86,6 +86,13 @@ class FitConfig:
     depths are the start points', not the photographs' own: at 0.85 in every view the object's
     own surfels went (duck_queen 88.8 -> 82.6 mIoU); at 0.5 the floaters in front of
     mask-only views go and the object stays (docs/real_captures.md: all three captures)."""
+    lambda_warp: float = 0.0
+    """Weight of the neighbour consistency (`losses.neighbour_consistency`): each pixel moved
+    to its rendered depth must show the colour the two nearest training photographs show
+    there, so surfaces drawn in front of what the photographs agree on are pulled back; 0:
+    off."""
+    warp_from: int = 500
+    """The iteration the neighbour consistency starts at (the depth means little before)."""
     densify_from: int = 200
     """The iteration densification starts at."""
     densify_until: int = 1500
@@ -159,6 +166,7 @@ class FitConfig:
             ),
             lambda_dist=(self.lambda_dist >= 0, self.lambda_dist, ">= 0"),
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
+            lambda_warp=(self.lambda_warp >= 0, self.lambda_warp, ">= 0"),
             lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
             robust_trim=(0 <= self.robust_trim < 1, self.robust_trim, "a fraction in [0, 1)"),
             backdrop=(self.backdrop in ("fixed", "detect"), self.backdrop, "fixed or detect"),

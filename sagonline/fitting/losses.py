@@ -174,3 +174,64 @@ def normal_consistency(
     their depths describe. Both sides take the gradient, as in 2DGS; alpha weights without it."""
     surface = depth_normals(depth, alpha, camera) * alpha.detach()[..., None]
     return (1 - (rendered_normal * surface).sum(-1)).mean()
+
+
+def nearest_views(
+    cameras: list[Camera],
+    k: int = 2,
+) -> list[list[int]]:  # per camera: the indices of its k nearest others
+    """For each camera, the `k` other cameras nearest by centre (fewer when there are fewer)."""
+    centers = torch.stack([c.center for c in cameras]).double()
+    dist = torch.cdist(centers, centers)
+    dist.fill_diagonal_(math.inf)
+    k = min(k, len(cameras) - 1)
+    return [row.topk(k, largest=False).indices.tolist() for row in dist]
+
+
+def neighbour_consistency(
+    depth: torch.Tensor,  # [H, W] alpha-weighted depth
+    alpha: torch.Tensor,  # [H, W]
+    image: torch.Tensor,  # [H, W, 3] this view's photograph
+    camera: Camera,
+    neighbours: list[tuple[Camera, torch.Tensor]],  # (camera, [h, w, 3] photograph)
+    min_alpha: float = 0.5,
+) -> torch.Tensor:  # []
+    """Photometric consistency of the rendered depth with neighbouring photographs: each pixel
+    of this view (where alpha > `min_alpha`) is moved to its rendered surface point, projected
+    into each neighbour and compared there (L1 of the colours); the smallest error over the
+    neighbours counts (a pixel the surface hides in one neighbour shows in the other), mean over
+    the pixels that land in some neighbour's frame. A surface drawn nearer or farther than the
+    photographs agree on fetches the wrong colour: its gradient moves the depth, so floaters in
+    front of the object are pulled onto the surfaces behind them. 0 without such pixels."""
+    H, W = depth.shape
+    z = depth / alpha.clamp_min(1e-6)
+    K = camera.K.to(depth)
+    ys, xs = torch.meshgrid(
+        torch.arange(H, dtype=depth.dtype, device=depth.device) + 0.5,
+        torch.arange(W, dtype=depth.dtype, device=depth.device) + 0.5,
+        indexing="ij",
+    )
+    rays = torch.stack(
+        [(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1
+    )
+    in_camera = (rays * z[..., None]).reshape(-1, 3)
+    R, t = camera.rotation.to(depth), camera.translation.to(depth)
+    world = (in_camera - t) @ R  # R^T (x - t), row-wise
+    errors = []
+    for other, photo in neighbours:
+        uv, zo = other.project(world)
+        grid = torch.stack([2 * uv[:, 0] / other.width - 1, 2 * uv[:, 1] / other.height - 1], -1)
+        fetched = F.grid_sample(
+            photo.permute(2, 0, 1)[None].to(depth),
+            grid.view(1, H, W, 2),
+            align_corners=False,
+            padding_mode="border",
+        )[0].permute(1, 2, 0)
+        inside = (zo.view(H, W) > 0) & (grid.view(H, W, 2).abs() < 1).all(-1)
+        err = (fetched - image).abs().mean(-1)
+        errors.append(torch.where(inside, err, torch.full_like(err, math.inf)))
+    if not errors:
+        return depth.sum() * 0
+    best = torch.stack(errors).min(0).values
+    used = (alpha.detach() > min_alpha) & torch.isfinite(best)
+    return best[used].mean() if bool(used.any()) else depth.sum() * 0

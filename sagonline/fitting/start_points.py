@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from sagonline.scene.cameras import Camera
+from sagonline.scene.gaussians import SH_C0
 
 
 def split_views(
@@ -109,3 +110,34 @@ def start_points(
         near_per_view=np.minimum(behind, near_far[1] * 0.99),
     )
     return tuple(np.concatenate([a, b]) for a, b in zip(points, extra, strict=True))
+
+
+def initial_params(
+    xyz: np.ndarray,  # [N, 3] start points
+    rgb: np.ndarray,  # [N, 3] their colours in [0, 1]
+    kind: str,
+    sh_degree: int,
+    rng: np.random.Generator,
+    device: str = "cpu",
+) -> dict[str, torch.Tensor]:
+    """The raw parameters of a fit's first Gaussians, one per start point: scale the distance to
+    the 3 nearest neighbours (as 3DGS; 2 axes for 2DGS surfels), random rotation, opacity 0.1,
+    SH degree 0 from the colour."""
+    from scipy.spatial import cKDTree
+
+    n = len(xyz)
+    d, _ = cKDTree(xyz).query(xyz, k=min(4, n))
+    d = np.sqrt(np.mean(np.asarray(d).reshape(n, -1)[:, 1:] ** 2, axis=1)).clip(1e-7)
+    dims = 2 if kind == "2dgs" else 3
+    sh = torch.zeros(n, (sh_degree + 1) ** 2, 3, device=device)
+    sh[:, 0] = (torch.tensor(rgb, dtype=torch.float32, device=device) - 0.5) / SH_C0
+    quats = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32, device=device)
+    log_scales = torch.log(torch.tensor(d, dtype=torch.float32, device=device))
+    return {
+        "means": torch.tensor(xyz, dtype=torch.float32, device=device),
+        "log_scales": log_scales[:, None].repeat(1, dims),
+        "quats": quats / quats.norm(dim=1, keepdim=True),
+        "opacity_logit": torch.full((n,), math.log(0.1 / 0.9), device=device),
+        "sh_dc": sh[:, :1].contiguous(),
+        "sh_rest": sh[:, 1:].contiguous(),
+    }

@@ -21,7 +21,6 @@ degrees train from the start, and the depth distortion is taken over splat-centr
 from __future__ import annotations
 
 import functools
-import math
 import time
 from collections import deque
 from dataclasses import asdict
@@ -39,16 +38,18 @@ from sagonline.fitting.config import FitConfig
 from sagonline.fitting.losses import (
     anisotropy_penalty,
     depth_distortion,
+    nearest_views,
+    neighbour_consistency,
     normal_consistency,
     photometric_loss,
     psnr,
     splat_geometry,
 )
-from sagonline.fitting.start_points import split_views, start_points
+from sagonline.fitting.start_points import initial_params, split_views, start_points
 from sagonline.fitting.strategy import DensifyStrategy, Params
 from sagonline.render.api import render
 from sagonline.scene.cameras import Camera
-from sagonline.scene.gaussians import SH_C0, Gaussians
+from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io import write_ply
 from sagonline.scene.io.cameras import write_3dgs_cameras_json
 
@@ -144,36 +145,17 @@ class SceneFitter:
         clear = self.strategy.clear_of_cameras(torch.tensor(xyz, dtype=torch.float32))
         clear = clear.cpu().numpy()
         self._init_params(xyz[clear], rgb[clear], rng)
+        train = self.train_idx  # each training photograph's 2 nearest, for `lambda_warp`
+        near = nearest_views([self.cams[i] for i in train])
+        self.neighbours = {v: [train[j] for j in near[i]] for i, v in enumerate(train)}
         self.step, self.history, self.elapsed = 0, [], 0.0
         self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
     # --- parameters ---------------------------------------------------------------------------
     def _init_params(self, xyz: np.ndarray, rgb: np.ndarray, rng) -> None:
-        dev = self.cfg.device
-        n = len(xyz)
-        means = torch.tensor(xyz, dtype=torch.float32, device=dev)
-        # initial scale: distance to the 3 nearest neighbours (as 3DGS), in log space
-        from scipy.spatial import cKDTree
-
-        d, _ = cKDTree(xyz).query(xyz, k=min(4, n))
-        d = np.sqrt(np.mean(np.asarray(d).reshape(n, -1)[:, 1:] ** 2, axis=1)).clip(1e-7)
-        dims = 2 if self.cfg.kind == "2dgs" else 3
-        k = (self.cfg.sh_degree + 1) ** 2
-        sh = torch.zeros(n, k, 3, device=dev)
-        sh[:, 0] = (torch.tensor(rgb, dtype=torch.float32, device=dev) - 0.5) / SH_C0
-        quats = torch.tensor(rng.normal(size=(n, 4)), dtype=torch.float32, device=dev)
-        log_scales = torch.log(torch.tensor(d, dtype=torch.float32, device=dev))
-        self._set_params(
-            {
-                "means": means,
-                "log_scales": log_scales[:, None].repeat(1, dims),
-                "quats": quats / quats.norm(dim=1, keepdim=True),
-                "opacity_logit": torch.full((n,), math.log(0.1 / 0.9), device=dev),
-                "sh_dc": sh[:, :1].contiguous(),
-                "sh_rest": sh[:, 1:].contiguous(),
-            }
-        )
+        cfg = self.cfg
+        self._set_params(initial_params(xyz, rgb, cfg.kind, cfg.sh_degree, rng, cfg.device))
 
     def _set_params(self, params: Params) -> None:
         """Adopt a new parameter set: a fresh optimiser and fresh gradient statistics."""
@@ -261,6 +243,12 @@ class SceneFitter:
         if use_normal:
             terms["normal"] = normal_consistency(out.features[..., :3], out.depth, out.alpha, cam)
             loss = loss + cfg.lambda_normal * terms["normal"]
+        if cfg.lambda_warp > 0 and self.step >= cfg.warp_from:
+            others = [(self.cams[j], self.images[j]) for j in self.neighbours[view]]
+            terms["warp"] = neighbour_consistency(
+                out.depth, out.alpha, self.images[view], cam, others
+            )
+            loss = loss + cfg.lambda_warp * terms["warp"]
         return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
 
     def anisotropy_penalty(

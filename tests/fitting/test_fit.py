@@ -334,6 +334,24 @@ def test_geometric_regularisers_join_the_loss_from_their_iterations(views):
     assert set(metrics["final_regularisers"]) == {"dist", "normal"}
 
 
+def test_the_neighbour_consistency_joins_the_loss_from_its_iteration(views):
+    cams, imgs = views
+    f = SceneFitter(tiny(lambda_warp=2.0, warp_from=5, iterations=12), cams, imgs)
+    plain = SceneFitter(tiny(iterations=12), cams, imgs)
+    view = f.train_idx[0]
+    assert len(f.neighbours[view]) == 2 and set(f.neighbours[view]) <= set(f.train_idx)
+    g = f.gaussians()
+    assert f.loss(g, view)[2] == {}  # before warp_from
+    f.step = 5
+    loss, _, terms = f.loss(g, view)
+    assert set(terms) == {"warp"} and terms["warp"] > 0
+    photometric = plain.loss(plain.gaussians(), view)[0].item()
+    assert loss.item() == pytest.approx(photometric + 2.0 * terms["warp"], rel=1e-5)
+    f.step = 0
+    metrics = f.fit(progress=False)
+    assert np.isfinite(f.history).all() and set(metrics["final_regularisers"]) == {"warp"}
+
+
 def test_bad_inputs(views):
     cams, imgs = views
     with pytest.raises(ValueError, match="kind"):

@@ -118,3 +118,27 @@ def test_regulariser_gradients_through_the_kernel_match_autograd(kind):
         scale = float(ref[k].abs().max())
         assert scale > 0, k
         torch.testing.assert_close(nat[k], ref[k], atol=1e-4 * scale, rtol=1e-3)
+
+
+def test_the_neighbour_consistency_is_least_at_the_scenes_own_depth():
+    from sagonline.fitting.losses import nearest_views, neighbour_consistency
+    from sagonline.scene.generator import make_scene
+
+    s = make_scene(layout="forward", num_gaussians=3000, width=64, height=48, num_train_views=5)
+    cams = s.train_cameras
+    near = nearest_views(cams)
+    assert all(len(n) == 2 and i not in n for i, n in enumerate(near))
+    outs = [rasterize(s.gaussians, c) for c in cams]
+    photos = [o.rgb.clamp(0, 1) for o in outs]
+    me, others = 2, [(cams[j], photos[j]) for j in near[2]]
+
+    def error(scale: float, neighbours=others) -> torch.Tensor:
+        depth = (outs[me].depth * scale).requires_grad_(True)
+        loss = neighbour_consistency(depth, outs[me].alpha, photos[me], cams[me], neighbours)
+        loss.backward()
+        assert torch.isfinite(depth.grad).all()
+        return loss.detach()
+
+    own = error(1.0)
+    assert own < error(0.8) and own < error(1.25)  # nearer or farther fetches other colours
+    assert error(1.0, neighbours=[]) == 0  # no neighbour: nothing to compare
