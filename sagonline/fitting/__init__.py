@@ -3,7 +3,7 @@
 config        FitConfig: the recipe's settings (Hydra schema `fit/schema`)
 capture       images at the fitting size, start points and near depth from a capture on disk
 start_points  training/held-out split, random points in the frusta
-losses        L1 + D-SSIM, PSNR, the needle penalty
+losses        L1 + D-SSIM, PSNR, the needle penalty, the geometric regularisers
 strategy      densify / prune / opacity reset, hooks around the optimiser step
 trainer       SceneFitter (the loop, evaluation, checkpoints) and write_fitted_scene
 """

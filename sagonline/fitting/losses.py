@@ -1,5 +1,6 @@
-"""The fit's losses and image metrics: L1 + D-SSIM, PSNR, the needle penalty on surfels, and
-2DGS's geometric regularisers (depth distortion, normal consistency).
+"""The fit's losses and image metrics: L1 + D-SSIM, PSNR, the needle penalty on surfels,
+2DGS's geometric regularisers (depth distortion, normal consistency) and the rendered depth's
+consistency with neighbouring photographs.
 
 The regularisers are computed from composited per-splat attributes (`splat_geometry`: the
 splat's normal and normalised depth), so their gradients run through whichever rasterizer renders
@@ -138,13 +139,13 @@ def depth_distortion(
     return (alpha * m2 - m1 * m1).clamp_min(0).mean()
 
 
-def depth_normals(
+def surface_points(
     depth: torch.Tensor,  # [H, W] alpha-weighted depth
     alpha: torch.Tensor,  # [H, W]
     camera: Camera,
-) -> torch.Tensor:  # [H, W, 3] unit normals
-    """(H, W, 3) unit normals, facing the camera, of the surface given by the expected depth
-    (depth / alpha) by central differences of the back-projected points; 0 on the border."""
+) -> torch.Tensor:  # [H, W, 3] camera coordinates
+    """(H, W, 3) each pixel centre's point at the expected depth (depth / alpha), in camera
+    coordinates."""
     H, W = depth.shape
     z = depth / alpha.clamp_min(1e-6)
     K = camera.K.to(depth)
@@ -156,7 +157,17 @@ def depth_normals(
     rays = torch.stack(
         [(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1
     )
-    points = rays * z[..., None]
+    return rays * z[..., None]
+
+
+def depth_normals(
+    depth: torch.Tensor,  # [H, W] alpha-weighted depth
+    alpha: torch.Tensor,  # [H, W]
+    camera: Camera,
+) -> torch.Tensor:  # [H, W, 3] unit normals
+    """(H, W, 3) unit normals, facing the camera, of the surface given by the expected depth
+    (depth / alpha) by central differences of the back-projected points; 0 on the border."""
+    points = surface_points(depth, alpha, camera)
     dx = points[1:-1, 2:] - points[1:-1, :-2]
     dy = points[2:, 1:-1] - points[:-2, 1:-1]
     inner = F.normalize(torch.linalg.cross(dy, dx), dim=-1)  # x right, y down: faces the camera
@@ -185,7 +196,7 @@ def nearest_views(
     dist = torch.cdist(centers, centers)
     dist.fill_diagonal_(math.inf)
     k = min(k, len(cameras) - 1)
-    return [row.topk(k, largest=False).indices.tolist() for row in dist]
+    return [[int(j) for j in row.topk(k, largest=False).indices] for row in dist]
 
 
 def neighbour_consistency(
@@ -204,17 +215,7 @@ def neighbour_consistency(
     photographs agree on fetches the wrong colour: its gradient moves the depth, so floaters in
     front of the object are pulled onto the surfaces behind them. 0 without such pixels."""
     H, W = depth.shape
-    z = depth / alpha.clamp_min(1e-6)
-    K = camera.K.to(depth)
-    ys, xs = torch.meshgrid(
-        torch.arange(H, dtype=depth.dtype, device=depth.device) + 0.5,
-        torch.arange(W, dtype=depth.dtype, device=depth.device) + 0.5,
-        indexing="ij",
-    )
-    rays = torch.stack(
-        [(xs - K[0, 2]) / K[0, 0], (ys - K[1, 2]) / K[1, 1], torch.ones_like(xs)], -1
-    )
-    in_camera = (rays * z[..., None]).reshape(-1, 3)
+    in_camera = surface_points(depth, alpha, camera).reshape(-1, 3)
     R, t = camera.rotation.to(depth), camera.translation.to(depth)
     world = (in_camera - t) @ R  # R^T (x - t), row-wise
     errors = []

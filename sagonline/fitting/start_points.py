@@ -119,10 +119,11 @@ def initial_params(
     sh_degree: int,
     rng: np.random.Generator,
     device: str = "cpu",
-) -> dict[str, torch.Tensor]:
+) -> dict[str, torch.Tensor]:  # means [N, 3], log_scales [N, 2 or 3], quats [N, 4], ...
     """The raw parameters of a fit's first Gaussians, one per start point: scale the distance to
     the 3 nearest neighbours (as 3DGS; 2 axes for 2DGS surfels), random rotation, opacity 0.1,
-    SH degree 0 from the colour."""
+    SH degree 0 from the colour: means (N, 3), log_scales (N, 2) for 2DGS or (N, 3), quats
+    (N, 4), opacity_logit (N,), sh_dc (N, 1, 3), sh_rest (N, (sh_degree + 1)^2 - 1, 3)."""
     from scipy.spatial import cKDTree
 
     n = len(xyz)

@@ -146,8 +146,8 @@ class SceneFitter:
         clear = clear.cpu().numpy()
         self._init_params(xyz[clear], rgb[clear], rng)
         train = self.train_idx  # each training photograph's 2 nearest, for `lambda_warp`
-        near = nearest_views([self.cams[i] for i in train])
-        self.neighbours = {v: [train[j] for j in near[i]] for i, v in enumerate(train)}
+        closest = nearest_views([self.cams[i] for i in train])
+        self.neighbours = {v: [train[j] for j in closest[i]] for i, v in enumerate(train)}
         self.step, self.history, self.elapsed = 0, [], 0.0
         self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
