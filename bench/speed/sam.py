@@ -242,6 +242,7 @@ def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
     options.graph_optimization_level = level
     options.log_severity_level = 3
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # as open_pair
     pair.encoder = ort.InferenceSession(str(encoder), options, providers=["CPUExecutionProvider"])
     pair.decoder = ort.InferenceSession(str(decoder), options, providers=["CPUExecutionProvider"])
     pair.memory.clear()

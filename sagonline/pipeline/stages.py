@@ -32,7 +32,7 @@ from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult, VideoSegmenter
 from sagonline.segment.prompts import Prompt
 from sagonline.vote.consensus import VoteConfig, VoteResult
-from sagonline.vote.feedback import FeedbackConfig, FeedbackInputs
+from sagonline.vote.feedback import ADVICE_SIDE, FeedbackConfig, FeedbackInputs
 
 
 @stored
@@ -176,6 +176,7 @@ def stage_keys(
             c.num_labels,
             s.label_render.min_weight,
             plan.vote,
+            ADVICE_SIDE,
         )
     masks_in = MasksInputs(frames_out, prompt, c.trajectory_gt, c.segmenter, feedback, advice)
     masks_key = MASKS.key(masks_in)

@@ -11,9 +11,10 @@ or a click follows the drift: on the sparse photographs of a real capture it fai
 - the object's appearance in the image embeddings (`match`): its prototype is the mean of the
   L2-normalised encoder features inside the prompt view's mask (64x64 grid), updated with the
   last good prediction; in the next view a cosine-similarity map against it gives a positive
-  click at its best cell and a negative at its worst (candidate A: decoded, then decoded
-  again with the result's box and logits), and the map thresholded (Otsu) gives the blob
-  around the best cell, whose box with that click is candidate B;
+  click at its best cell and a negative at its worst (candidate A: decoded, then, until the
+  fused labels advise, decoded again with the result's box and logits), and the map
+  thresholded (Otsu) gives the blob around the best cell, whose box with that click is
+  candidate B;
 - the consensus in 3D (`advice`): once Stage I has voted `advise_after` views, the fused
   labels rendered into the view give the object's box and an interior click (candidate C).
   This closes the paper's loop through the scene, which no 2D tracker can.
@@ -36,6 +37,7 @@ from sagonline.segment.sam_prompting import SamFamilySegmenter
 
 PROMPTS = ("match", "match+3d", "3d")
 CLICK_EXTENTS = ("part", "object", "sam")
+REFINES = ("before-advice", "always")
 OLD_EXTENTS = {"colour": "part"}  # labels.json files written before the rename
 
 
@@ -69,6 +71,11 @@ class SamPromptingConfig:
     largest thing under the click (SAM 2's whole-object mask, SAM's own answer: the whole
     donut); sam, the mask the decoder rates best (its predicted IoU)."""
 
+    refine: str = "before-advice"
+    """When candidate A is decoded a second time with its own box and logits (one decoder call
+    a view): before-advice, only in views the fused labels do not advise (where candidate C's
+    box stands beside it), or always."""
+
     def __post_init__(self) -> None:
         from sagonline.core.settings import check_settings
 
@@ -83,6 +90,7 @@ class SamPromptingConfig:
         check_settings(
             "segmenter",
             prompts=(self.prompts in PROMPTS, self.prompts, f"one of {', '.join(PROMPTS)}"),
+            refine=(self.refine in REFINES, self.refine, f"one of {', '.join(REFINES)}"),
             click_extent=(
                 self.click_extent in CLICK_EXTENTS,
                 self.click_extent,

@@ -295,6 +295,10 @@ def open_pair(
     options.intra_op_num_threads = threads
     options.inter_op_num_threads = 1
     options.log_severity_level = 3
+    # idle threads sleep instead of spinning: between two decoder calls the vote's kernels run
+    # on the same cores (in the viewer a click's 24 views took 7% less; the encoder and the
+    # decoder alone no longer, docs/segmenters.md)
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     providers, note = ["CPUExecutionProvider"], ""
     if device.startswith("cuda"):
         if "CUDAExecutionProvider" in ort.get_available_providers():

@@ -52,6 +52,7 @@ class SamFamilySegmenter(VideoSegmenter):
         self.prompts, self.advise_after = cfg.prompts, cfg.advise_after
         self.min_similarity, self.device = cfg.min_similarity, cfg.device
         self.click_extent = cfg.click_extent
+        self.refine = cfg.refine
         self._model: SamPair | None = None
 
     config_type: type  # the registered plug-in's settings dataclass
@@ -285,7 +286,7 @@ class SamFamilySegmenter(VideoSegmenter):
         if self.prompts != "3d" or not use_render:
             points = np.stack([click, emb.cell_centre(worst)])
             a = at_level(model.decode(emb, points, np.array([1, 0])))
-            if a.mask.any():
+            if a.mask.any() and (self.refine == "always" or not use_render):
                 a = at_level(model.decode(emb, points, np.array([1, 0]), box_of(a.mask), a.logits))
             candidates.append(a.mask)
             part = self.part_of(model, emb, sim, click, a.mask)

@@ -71,7 +71,9 @@ def mask_prompt(labels: np.ndarray, frame: int) -> Prompt:
 class FeedbackInputs:
     """What consensus feedback votes and renders with: its settings, the vote's, the scene,
     the trajectory's cameras, the label count, the label render's threshold, the vote's
-    backend (it is part of the masks' cache key: with feedback, the masks depend on it)."""
+    backend, and the longest side the fused labels are rendered at for a segmenter's advice
+    (None: the view's; `FusedRender`). It is part of the masks' cache key: with feedback or
+    advice, the masks depend on it."""
 
     config: FeedbackConfig
     vote: VoteConfig
@@ -80,13 +82,22 @@ class FeedbackInputs:
     num_labels: int
     label_min_weight: float
     backend: str
+    render_side: int | None = None
+
+
+ADVICE_SIDE = 256
+"""The advice's longer side at most (`pipeline.stages.stage_keys` sets it)."""
 
 
 class FusedRender:
     """The advice Stage I gives a segmenter that asks for it (`VideoSegmenter.wants_advice`):
     the labels fused from the views voted so far, the objects alone, rendered into the view
     it is about to segment ((H, W) ids, 0 elsewhere), or None before `after` views voted or
-    while no Gaussian is an object."""
+    while no Gaussian is an object.
+
+    A view whose longer side exceeds `setup.render_side` is rendered with that side at
+    `render_side` and enlarged to its size (nearest): the segmenter reads a box and an interior
+    click from the advice, and a SAM-family decoder answers masks of 256 x 256 anyway."""
 
     def __init__(self, setup: FeedbackInputs, votes: VoteAccumulator, after: int):
         self.setup, self.votes, self.after = setup, votes, after
@@ -100,17 +111,31 @@ class FusedRender:
         objects = torch.where(labels > 0, labels, -1)
         if not (objects >= 0).any():
             return None
+        camera = self.setup.cameras[t]
+        side = max(camera.width, camera.height)
+        most = self.setup.render_side
+        small = most is not None and side > most
+        if small:
+            s = most / side
+            width, height = max(1, round(camera.width * s)), max(1, round(camera.height * s))
+            camera = camera.scaled(width, height)
         out = render_labels(
             self.setup.gaussians,
-            self.setup.cameras[t],
+            camera,
             objects,
             self.votes.k,
             min_weight=self.setup.label_min_weight,
             backend=self.setup.backend,
         )
+        ids = out.cpu().numpy().astype(np.int64)
+        if small:  # nearest: each pixel of the view takes the rendered pixel it falls in
+            full = self.setup.cameras[t]
+            rows = (np.arange(full.height) + 0.5) * ids.shape[0] // full.height
+            cols = (np.arange(full.width) + 0.5) * ids.shape[1] // full.width
+            ids = ids[np.ix_(rows.astype(int), cols.astype(int))]
         self.renders += 1
         self.render_s += time.perf_counter() - start
-        return out.cpu().numpy().astype(np.int64)
+        return ids
 
 
 class FeedbackPolicy:

@@ -41,6 +41,7 @@ OTHER = {
     "time_budget_s": 5.0,
     "kernel": "another digest",
     "rule_version": "0.1.0+another",
+    "render_side": 256,
 }
 BY_STAGE = {s.name: s for s in STAGES}
 WHOLE = (Gaussians, Prompt, SegmenterRun)  # content, changed as a whole; other dataclasses

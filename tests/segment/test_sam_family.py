@@ -110,12 +110,53 @@ def test_bad_settings_are_refused_before_any_work():
         ({"device": "tpu"}, "segmenter.device='tpu'"),
         ({"min_similarity": 2.0}, "segmenter.min_similarity=2.0"),
         ({"advise_after": 0}, "segmenter.advise_after=0"),
+        ({"refine": "sometimes"}, "segmenter.refine='sometimes'"),
     ]:
         for kind in ("minisam", "sam2_tiny"):
             with pytest.raises(ValueError, match=key.replace("(", r"\(").replace(".", r"\.")):
                 SEGMENTERS.build(kind, values)
     with pytest.raises(ValueError, match="must be a finite number"):
         SEGMENTERS.build("minisam", {"min_similarity": float("nan")})
+
+
+class CountingDecoder:
+    """A stand-in SAM 2 decoder (of levels: no candidate B) that answers the left half of a
+    64 x 64 image to every prompt and counts its calls, with the box and logits of each."""
+
+    levels = 3
+
+    def __init__(self):
+        self.calls: list[tuple[bool, bool]] = []  # (box given, logits given)
+
+    def decode(self, emb, points, labels, box=None, logits=None):
+        from sagonline.segment.sam_onnx import Answer
+
+        self.calls.append((box is not None, logits is not None))
+        mask = np.zeros(emb.size, bool)
+        mask[:, :32] = True
+        return [Answer(mask, np.zeros((256, 256), np.float32), 0.9)]
+
+
+@pytest.mark.parametrize("refine", ["always", "before-advice"])
+def test_candidate_a_is_refined_only_where_the_fused_labels_do_not_advise(refine):
+    """`refine=before-advice` spares candidate A's second call (its own box and logits) in the
+    views the fused labels advise, and only there."""
+    from sagonline.segment.embedding import Embedding
+
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(256, 64, 64)).astype(np.float32)
+    emb = Embedding(features, (16.0, 16.0), (64, 64), (1024, 1024))
+    prototype = emb.normalized()[:, :32].reshape(-1, 256).mean(0)
+    prototype /= np.linalg.norm(prototype)
+    seg = SEGMENTERS.build("sam2_tiny", {"refine": refine, "embedding_cache": None})
+    advice = np.zeros((64, 64), bool)
+    advice[10:50, 5:30] = True
+    for render, refined in ((None, True), (advice, refine == "always")):
+        model = CountingDecoder()
+        mask, _ = seg.follow(model, emb, prototype, render)
+        assert mask[:, :32].all() and not mask[:, 32:].any()
+        assert ((True, True) in model.calls) == refined
+        assert ((True, False) in model.calls) == (render is not None)  # candidate C's box
 
 
 def test_null_given_as_text_means_no_disk_cache_and_colour_is_the_old_name_of_part():

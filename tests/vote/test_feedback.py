@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from sagonline.datasets.synthetic import load_synthetic
@@ -57,3 +59,25 @@ def test_feedback_brings_a_lost_object_back():
     assert all(masks[t].any() for t in lost)  # every frame sees the object again
     assert on.segmenter_miou > off.segmenter_miou + 0.2
     assert on.miou > off.miou
+
+
+def test_the_advice_is_rendered_small_and_enlarged_to_the_view():
+    from sagonline.segment.mask_geometry import box_of
+    from sagonline.vote.consensus import VoteAccumulator
+    from sagonline.vote.feedback import FeedbackInputs, FusedRender
+
+    task = load_synthetic(layout="forward", num_gaussians=1500, width=96, height=64)[0]
+    g, views, truth = task.gaussians, task.trajectory, task.trajectory_gt
+    votes = VoteAccumulator(len(g), task.num_labels, VoteConfig())
+    for t in range(4):
+        votes.add_view(g, views[t], truth[t], backend="native")
+    setup = FeedbackInputs(FeedbackConfig(), VoteConfig(), g, views, task.num_labels, 0.2, "native")
+    full = FusedRender(setup, votes, after=4)(5)
+    small = FusedRender(replace(setup, render_side=48), votes, after=4)(5)  # half the view
+    assert full is not None and small is not None
+    assert small.shape == full.shape == (64, 96)
+    assert set(np.unique(small)) <= set(np.unique(full))
+    assert foreground_iou(small, full) > 0.7
+    for k in np.unique(full[full > 0]):  # each object's box within two rendered pixels
+        assert np.abs(box_of(small == k) - box_of(full == k)).max() <= 4
+    assert FusedRender(setup, votes, after=5)(5) is None  # before `after` views voted
