@@ -238,11 +238,10 @@ def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     """The same pair with sessions at another graph optimisation level."""
     import onnxruntime as ort
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads, options.inter_op_num_threads = threads, 1
+    from sagonline.segment.sam_onnx import session_options
+
+    options = session_options(threads)
     options.graph_optimization_level = level
-    options.log_severity_level = 3
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")  # as open_pair
     pair.encoder = ort.InferenceSession(str(encoder), options, providers=["CPUExecutionProvider"])
     pair.decoder = ort.InferenceSession(str(decoder), options, providers=["CPUExecutionProvider"])
     pair.memory.clear()

@@ -277,6 +277,21 @@ def decoder_format(decoder) -> str:
     return ""
 
 
+def session_options(threads: int):
+    """onnxruntime's session options for a model half: `threads` intra-op threads, quiet logs."""
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.intra_op_num_threads = threads
+    options.inter_op_num_threads = 1
+    options.log_severity_level = 3
+    # idle threads sleep instead of spinning: between two decoder calls the vote's kernels run
+    # on the same cores (in the viewer a click's 24 views took 7% less; the encoder and the
+    # decoder alone no longer, docs/segmenters.md)
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    return options
+
+
 def open_pair(
     encoder: Path,
     decoder: Path,
@@ -291,14 +306,7 @@ def open_pair(
     the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`."""
     import onnxruntime as ort
 
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.log_severity_level = 3
-    # idle threads sleep instead of spinning: between two decoder calls the vote's kernels run
-    # on the same cores (in the viewer a click's 24 views took 7% less; the encoder and the
-    # decoder alone no longer, docs/segmenters.md)
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    options = session_options(threads)
     providers, note = ["CPUExecutionProvider"], ""
     if device.startswith("cuda"):
         if "CUDAExecutionProvider" in ort.get_available_providers():
