@@ -373,6 +373,7 @@ OPTION_VALUES = (
             "prompts",
             "click_extent",
             "embedding_cache",
+            "embedding_cache_gb",
             "encoder",
             "decoder",
             "unknown",
@@ -396,6 +397,7 @@ def test_a_segmenter_option(kind, key, value):
     assert cfg.threads is None or 1 <= cfg.threads <= 256
     assert -1.0 <= cfg.min_similarity <= 1.0 and 1 <= cfg.advise_after <= 10000
     assert cfg.device.split(":")[0] in ("cpu", "cuda")
+    assert cfg.embedding_cache_gb is None or cfg.embedding_cache_gb > 0
     assert cfg.embedding_cache is None or cfg.embedding_cache.strip().lower() not in (
         "null",
         "none",

@@ -236,7 +236,9 @@ def typed_settings(config: type[C], values: Mapping[str, Any], where: str) -> C:
         merged = OmegaConf.merge(OmegaConf.structured(config), values)
         return OmegaConf.to_object(merged)
     except (OmegaConfBaseException, ValueError, TypeError) as exc:
-        raise PluginError(f"{where}: {one_line(exc)}") from None
+        said, key = one_line(exc), getattr(exc, "full_key", None)  # OmegaConf's: the setting
+        named = f"{key}: {said}" if key and key not in said else said
+        raise PluginError(f"{where}: {named}") from None
 
 
 def check_booleans(config: type, values: Mapping[str, Any], where: str) -> None:

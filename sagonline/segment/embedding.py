@@ -4,11 +4,13 @@ against, and what else the decoder reads) and the disk cache of them (`Embedding
 A disk entry records what it was computed from (the frame's digest, the encoder's sha256, each
 array's shape and dtype) inside a file whose bytes are digested (`core.store`); an entry that
 does not match is named in a warning, removed and computed again, never used. A folder that
-cannot hold the cache is named once and the run goes on without it.
+cannot hold the cache is named once and the run goes on without it. The folder is bounded:
+past its size the least recently used entries go.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import warnings
@@ -80,10 +82,16 @@ class Embedding:
 
 
 class EmbeddingCache:
-    """Embeddings on disk under `folder`, one verified `core.store` file a frame."""
+    """Embeddings on disk under `folder`, one verified `core.store` file a frame, at most
+    `max_bytes` of them (None: unbounded): past it the entries least recently used (their
+    modification time, renewed on each read) are removed down to `TRIM_TO` of the bound."""
 
-    def __init__(self, folder: Path | None):
+    TRIM_TO = 0.8  # of max_bytes, so one trim makes room for many entries
+
+    def __init__(self, folder: Path | None, max_bytes: int | None = None):
         self.folder = folder
+        self.max_bytes = max_bytes
+        self._used: int | None = None  # bytes under folder, counted at the first save
         self._warned = False
 
     def path(self, key: str) -> Path | None:
@@ -104,11 +112,14 @@ class EmbeddingCache:
         else:
             try:
                 entry = store.load(path)
+            except FileNotFoundError:  # another process trimmed it meanwhile
+                return None
             except (store.StoreError, OSError) as exc:
                 reason = str(exc)
             else:
                 reason = self._mismatch(entry, expected)
                 if reason is None:
+                    self._touch(path)
                     return {k: np.array(v) for k, v in entry["arrays"].items()}
         warnings.warn(
             f"embedding cache entry unusable, removed and recomputed: {path}: {reason}",
@@ -145,9 +156,50 @@ class EmbeddingCache:
             return
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
+            if self.max_bytes is not None and self._used is None:
+                self._used = sum(size for _, size, _ in self._entries())
             store.save(path, {**record, "arrays": arrays})
         except OSError as exc:
             self._give_up(exc)
+            return
+        if self.max_bytes is None:
+            return
+        self._used += path.stat().st_size
+        if self._used > self.max_bytes:
+            self.trim(keep=path)
+
+    def trim(self, keep: Path | None = None) -> int:
+        """Remove the least recently used entries until the folder holds at most `TRIM_TO` x
+        `max_bytes` (never `keep`, the entry just written); returns how many went."""
+        entries = sorted(self._entries(), key=lambda e: e[2])  # oldest use first
+        used = sum(size for _, size, _ in entries)
+        target, removed = self.TRIM_TO * self.max_bytes, 0
+        for path, size, _ in entries:
+            if used <= target:
+                break
+            if path == keep:
+                continue
+            path.unlink(missing_ok=True)
+            used, removed = used - size, removed + 1
+        self._used = used
+        return removed
+
+    def _entries(self) -> list[tuple[Path, int, float]]:
+        """(path, bytes, last use) of every entry file under the folder."""
+        found = []
+        for path in self.folder.glob("*.store"):
+            try:
+                st = path.stat()
+            except FileNotFoundError:  # trimmed by another process meanwhile
+                continue
+            found.append((path, st.st_size, st.st_mtime))
+        return found
+
+    @staticmethod
+    def _touch(path: Path) -> None:
+        """Mark an entry used now (the trim removes the least recently used first)."""
+        with contextlib.suppress(OSError):  # a read-only cache still serves its entries
+            os.utime(path)
 
     def _remove(self, path: Path) -> None:
         try:

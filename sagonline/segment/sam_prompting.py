@@ -130,6 +130,7 @@ class SamFamilySegmenter(VideoSegmenter):
                     threads=threads,
                     device=self.device,
                     cache=cache,
+                    cache_bytes=gigabytes(self.cfg.embedding_cache_gb),
                     make_target=weights_help(self.package, self.folder),
                     expect=self.format,
                 )
@@ -364,3 +365,8 @@ def best_rated(answers: list[Answer]) -> Answer:
 
 def largest(answers: list[Answer]) -> Answer:
     return max(answers, key=lambda a: int(a.mask.sum()))
+
+
+def gigabytes(gb: float | None) -> int | None:
+    """GB (1e9 bytes) as bytes; None stays None (unbounded)."""
+    return None if gb is None else int(gb * 1e9)

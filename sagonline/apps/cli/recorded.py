@@ -142,6 +142,7 @@ LOCAL_SETTINGS = frozenset(
         "encoder",
         "decoder",
         "embedding_cache",
+        "embedding_cache_gb",
         "threads",
         "device",
         "trust_checkpoint",

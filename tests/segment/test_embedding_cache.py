@@ -1,0 +1,74 @@
+"""The embedding cache's bound: past `max_bytes` the least recently used entries go, a read
+renews an entry's use, the entry just written always stays, and a bad bound is refused."""
+
+import os
+
+import numpy as np
+import pytest
+
+from sagonline.segment.embedding import CACHE_FORMAT, EmbeddingCache
+
+ARRAY = np.zeros((64, 64), np.float32)  # 16 KiB an entry
+
+
+def record(key: str) -> dict:
+    return {"format": CACHE_FORMAT, "frame": key, "encoder": "e" * 64}
+
+
+def expected(key: str) -> dict:
+    return {**record(key), "arrays": {"features": [[64, 64], "float32"]}}
+
+
+def put(cache: EmbeddingCache, key: str, age_s: float) -> None:
+    """Save an entry and date its last use `age_s` seconds ago."""
+    cache.save(key, record(key), {"features": ARRAY + len(key)})
+    when = os.path.getmtime(cache.path(key)) - age_s
+    os.utime(cache.path(key), (when, when))
+
+
+def test_past_its_bound_the_least_recently_used_entries_go(tmp_path):
+    unbounded = EmbeddingCache(tmp_path)
+    for i in range(5):
+        put(unbounded, f"k{i}", age_s=100 - i)  # k0 the oldest
+    entry = os.path.getsize(unbounded.path("k0"))
+    assert len(list(tmp_path.glob("*.store"))) == 5  # no bound: all stay
+
+    # room for 5.5 entries; k1 is read, so it counts as used now
+    cache = EmbeddingCache(tmp_path, max_bytes=int(5.5 * entry))
+    assert cache.load("k1", expected("k1")) is not None
+    put(cache, "k5", age_s=0)  # 6 entries > the bound: trimmed to 0.8 x 5.5 = 4.4 entries
+    left = sorted(p.stem for p in tmp_path.glob("*.store"))
+    assert left == ["k1", "k4", "k5"] or left == ["k1", "k3", "k4", "k5"]
+    assert sum(p.stat().st_size for p in tmp_path.glob("*.store")) <= 0.8 * 5.5 * entry
+    assert "k0" not in left and "k2" not in left  # the oldest unread went first
+
+
+def test_the_entry_just_written_stays_even_when_it_alone_is_past_the_bound(tmp_path):
+    cache = EmbeddingCache(tmp_path, max_bytes=100)  # smaller than one entry
+    put(cache, "old", age_s=10)
+    put(cache, "new", age_s=0)
+    assert [p.stem for p in tmp_path.glob("*.store")] == ["new"]
+    assert cache.load("new", expected("new")) is not None
+
+
+def test_an_entry_trimmed_by_another_process_is_a_miss_not_a_warning(tmp_path, recwarn):
+    cache = EmbeddingCache(tmp_path, max_bytes=10**9)
+    put(cache, "k", age_s=0)
+    cache.path("k").unlink()  # as another process's trim would
+    assert cache.load("k", expected("k")) is None
+    assert not [w for w in recwarn if "embedding cache" in str(w.message)]
+
+
+@pytest.mark.parametrize("bad", [0, -1, "x"])
+def test_a_bound_that_is_not_positive_is_refused_naming_the_option(bad):
+    from sagonline.core.plugins import SEGMENTERS
+
+    plugin = SEGMENTERS["minisam"]
+    with pytest.raises(ValueError, match="embedding_cache_gb"):
+        plugin.build(plugin.settings({"embedding_cache_gb": bad}, where="segmenter minisam"))
+
+
+def test_the_bound_reaches_the_model_cache_in_bytes():
+    from sagonline.segment.sam_prompting import gigabytes
+
+    assert gigabytes(4.0) == 4_000_000_000 and gigabytes(None) is None
