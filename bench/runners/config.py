@@ -104,6 +104,11 @@ class ScenesConfig:
     finish: bool = False
     """Apply the steps the recipe runs after the last iteration (`fit.pose_view_clearance`) to
     a scene fitted before they existed: it becomes what a fit with this recipe writes."""
+    finish_from: str | None = None
+    """A finished fit of the same seed to start from, by its variant ('' or null-like
+    `default`: gaussians/): taken as this recipe's state after the last iteration, so only the
+    steps after it run (`fit.carve_views`' carve and polish). Its recipe must be this one up
+    to those steps; refused otherwise."""
     progress: bool = True
     """Progress bars (always off when CI=true or off a terminal)."""
     device: str = FitConfig.device

@@ -58,6 +58,7 @@ from sagonline.fitting.capture import (
     near_depth,
     view_near_depths,
 )
+from sagonline.scene.io import read_scene
 from sagonline.scene.io.cameras import load_llff_bounds
 from sagonline.scene.io.images import resize_nearest
 
@@ -212,6 +213,10 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
     ckpt = out / "fit_checkpoint.store"
     if fitter.resume(ckpt):
         print(f"{scene}: resuming at iteration {fitter.step}")
+    elif cfg.finish_from is not None:
+        base = finished_base(cfg, fitter, out)
+        fitter.adopt_finished(read_scene(base / "point_cloud.ply"))
+        print(f"{scene}: starting after the last iteration, from the fit in {base}")
     metrics = fitter.fit(progress=not quiet(cfg), checkpoint=ckpt)
     first = fitter.cams[0]
     metrics.update(
@@ -245,11 +250,38 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
     return metrics
 
 
+AFTER_THE_FIT = ("carve_views", "carve_margin", "polish_iterations")
+"""The recipe's settings that act only after the last iteration (`SceneFitter.finish`)."""
+
+
+def finished_base(cfg: ScenesConfig, fitter: SceneFitter, out: Path) -> Path:
+    """The folder of `finish_from`'s fit (same seed), checked: a finished fit of ours whose
+    recipe is this one but for `AFTER_THE_FIT`."""
+    name = "" if cfg.finish_from in ("", "default") else cfg.finish_from
+    base = out.with_name(fit_folder(fit_variant(name, cfg.seed)))
+    if base == out:
+        raise DatasetError(f"finish_from={cfg.finish_from!r} is this fit's own folder ({out})")
+    if not (base / "fit_config.json").is_file() or foreign_scene(base) is not None:
+        raise DatasetError(f"finish_from={cfg.finish_from!r}: {base} holds no fit of ours")
+    theirs = FitConfig().__dict__ | json.loads((base / "fit_config.json").read_text())
+    mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
+    differ = sorted(
+        k for k in mine if k not in AFTER_THE_FIT and json.loads(to_json(theirs.get(k))) != mine[k]
+    )
+    if differ:
+        raise DatasetError(
+            f"finish_from={cfg.finish_from!r}: {base} was fitted with another recipe "
+            f"({', '.join(f'fit.{k}' for k in differ)} differ); only {', '.join(AFTER_THE_FIT)} "
+            "may"
+        )
+    return base
+
+
 def finish_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
     """`finish=true`: the after-the-fit steps on a finished fit that predates them (the fitted
     scene is the state they run on, so the result is what a fit with this recipe writes)."""
     from sagonline.fitting.strategy import clear_of_pose_views
-    from sagonline.scene.io import read_scene, write_ply
+    from sagonline.scene.io import write_ply
 
     scene_dir, cams, images = adapter.capture(scene)
     out = output_dir(scene_dir, adapter.name, variant_of(cfg))

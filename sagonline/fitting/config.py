@@ -86,6 +86,19 @@ class FitConfig:
     depths are the start points', not the photographs' own: at 0.85 in every view the object's
     own surfels went (duck_queen 88.8 -> 82.6 mIoU); at 0.5 the floaters in front of
     mask-only views go and the object stays (docs/real_captures.md: all three captures)."""
+    carve_views: int = 0
+    """After the fit, drop the Gaussians that at least this many training photographs look
+    through: the centre in the view's image, nearer by more than `carve_margin` than the
+    surface the fit renders there, which is opaque (alpha > 0.5). The photograph saw past that
+    point, so nothing is there; such Gaussians explain at most the one or two photographs that
+    see them and stand in front of the object between photographs (`strategy.looked_through`).
+    Then `polish_iterations` close the holes; 0: off."""
+    carve_margin: float = 0.1
+    """How much nearer than the rendered surface (a fraction of its depth) a looked-through
+    centre must be."""
+    polish_iterations: int = 300
+    """With `carve_views`: iterations trained after the carve, without densification, the
+    positions at their last learning rate (the surfaces behind close what the carve opened)."""
     lambda_warp: float = 0.0
     """Weight of the neighbour consistency (`losses.neighbour_consistency`): each pixel moved
     to its rendered depth must show the colour the two nearest training photographs show
@@ -167,6 +180,9 @@ class FitConfig:
             lambda_dist=(self.lambda_dist >= 0, self.lambda_dist, ">= 0"),
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
             lambda_warp=(self.lambda_warp >= 0, self.lambda_warp, ">= 0"),
+            carve_views=(self.carve_views >= 0, self.carve_views, ">= 0"),
+            carve_margin=(0 <= self.carve_margin < 1, self.carve_margin, "a fraction in [0, 1)"),
+            polish_iterations=(self.polish_iterations >= 0, self.polish_iterations, ">= 0"),
             lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
             robust_trim=(0 <= self.robust_trim < 1, self.robust_trim, "a fraction in [0, 1)"),
             backdrop=(self.backdrop in ("fixed", "detect"), self.backdrop, "fixed or detect"),

@@ -226,3 +226,22 @@ def in_front_of_view(
     u, v = uv[:, 0], uv[:, 1]
     overlaps = (u + r > 0) & (u - r < cam.width) & (v + r > 0) & (v - r < cam.height)
     return close & overlaps
+
+
+def looked_through(
+    means: torch.Tensor,  # [N, 3]
+    cam: Camera,
+    alpha: torch.Tensor,  # [H, W] the view's rendered opacity
+    depth: torch.Tensor,  # [H, W] its alpha-weighted depth
+    margin: float,
+) -> torch.Tensor:  # [N] bool
+    """(N,) bool: centres inside `cam`'s image, nearer by more than `margin` (a fraction) than
+    the opaque surface (alpha > 0.5) rendered at their pixel: the photograph sees past them
+    (`FitConfig.carve_views`)."""
+    uv, z = cam.to(means.device).project(means)
+    u, v = uv[:, 0].floor().long(), uv[:, 1].floor().long()
+    inside = (z > 0) & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    u, v = u.clamp(0, cam.width - 1), v.clamp(0, cam.height - 1)
+    a = alpha[v, u]
+    surface = depth[v, u] / a.clamp_min(1e-6)
+    return inside & (a > 0.5) & (z < (1 - margin) * surface)

@@ -46,7 +46,7 @@ from sagonline.fitting.losses import (
     splat_geometry,
 )
 from sagonline.fitting.start_points import initial_params, split_views, start_points
-from sagonline.fitting.strategy import DensifyStrategy, Params
+from sagonline.fitting.strategy import DensifyStrategy, Params, keep_only, looked_through
 from sagonline.render.api import render
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -149,6 +149,8 @@ class SceneFitter:
         closest = nearest_views([self.cams[i] for i in train])
         self.neighbours = {v: [train[j] for j in closest[i]] for i, v in enumerate(train)}
         self.step, self.history, self.elapsed = 0, [], 0.0
+        self.finished = False  # the steps after the last iteration ran (`finish`)
+        self.carved = 0  # Gaussians the carve dropped
         self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
@@ -175,6 +177,22 @@ class SceneFitter:
             [{"params": [params[k]], "lr": lr, "name": k} for k, lr in lrs.items()], eps=1e-15
         )
         self.strategy.reset(len(self))
+
+    def adopt_finished(self, g: Gaussians) -> None:
+        """Take a finished fit of this recipe (its written scene) as the state after the last
+        iteration: `fit` then runs only the steps after it (`finish`)."""
+        d = self.cfg.device
+        self._set_params(
+            {
+                "means": g.means.detach().to(d, torch.float32).clone(),
+                "log_scales": torch.log(g.scales.detach().to(d, torch.float32)),
+                "quats": g.quats.detach().to(d, torch.float32).clone(),
+                "opacity_logit": torch.logit(g.opacities.detach().to(d, torch.float32)),
+                "sh_dc": g.sh[:, :1].detach().to(d, torch.float32).contiguous(),
+                "sh_rest": g.sh[:, 1:].detach().to(d, torch.float32).contiguous(),
+            }
+        )
+        self.step, self.finished = self.cfg.iterations, False
 
     def __len__(self) -> int:
         return self.params["means"].shape[0]
@@ -277,19 +295,9 @@ class SceneFitter:
                 self.stopped = "time_budget"
                 break
             i = self.train_idx[int(rng.integers(len(self.train_idx)))]
-            for group in self.optim.param_groups:
-                if group["name"] == "means":
-                    frac = self.step / max(cfg.iterations, 1)
-                    group["lr"] = cfg.lr_means * self.extent * (0.01**frac)
-            loss, rgb, terms = self.loss(self.gaussians(), i)
-            self.last_terms = terms
-            self.optim.zero_grad(set_to_none=True)
-            loss.backward()
-            self.strategy.after_backward(self.params, self.cams[i])
-            self.optim.step()
+            rgb, terms = self.train_step(i, self.step / max(cfg.iterations, 1))
             self.step += 1
-            self.history.append(loss.item())
-            recent_psnr.append(psnr(rgb.detach().clamp(0, 1), self.images[i]))
+            recent_psnr.append(psnr(rgb.clamp(0, 1), self.images[i]))
             changed = self.strategy.after_step(self.params, self.step)
             if changed is not None:
                 self._set_params(changed)
@@ -308,14 +316,67 @@ class SceneFitter:
                 self.elapsed = time.perf_counter() - start
                 self.save(checkpoint)
         bar.close()
-        self.prune_near_cameras()
-        params, self.pruned_pose_views = self.strategy.prune_pose_views(self.params)
-        if params is not None:
-            self._set_params(params)
+        if not self.finished:
+            self.finish()
         self.elapsed = time.perf_counter() - start
         if checkpoint is not None:
             self.save(checkpoint)
         return self.evaluate()
+
+    def train_step(
+        self, view: int, progress: float
+    ) -> tuple[torch.Tensor, dict]:  # [H, W, 3] render, regularisers
+        """One optimiser step on training view `view`, the positions' learning rate decayed
+        to `progress` (0-1) of the schedule; its render (H, W, 3, detached) and terms."""
+        cfg = self.cfg
+        for group in self.optim.param_groups:
+            if group["name"] == "means":
+                group["lr"] = cfg.lr_means * self.extent * (0.01 ** min(progress, 1.0))
+        loss, rgb, terms = self.loss(self.gaussians(), view)
+        self.last_terms = terms
+        self.optim.zero_grad(set_to_none=True)
+        loss.backward()
+        self.strategy.after_backward(self.params, self.cams[view])
+        self.optim.step()
+        self.history.append(loss.item())
+        return rgb.detach(), terms
+
+    def finish(self) -> None:
+        """The steps after the last iteration: the camera and pose-view clearances, then with
+        `carve_views` the carve and its polish. Run once (a resumed fit that finished skips
+        them)."""
+        self.prune_near_cameras()
+        params, self.pruned_pose_views = self.strategy.prune_pose_views(self.params)
+        if params is not None:
+            self._set_params(params)
+        if self.cfg.carve_views > 0:
+            self.carved = self.carve()
+            self.polish(self.cfg.polish_iterations)
+        self.finished = True
+
+    @torch.no_grad()
+    def carve(self) -> int:
+        """Drop the Gaussians at least `carve_views` training photographs look through
+        (`strategy.looked_through`, against the fit's own render of each); returns how many."""
+        g = self.gaussians()
+        means = g.means.detach()
+        through = torch.zeros(len(self), dtype=torch.long, device=means.device)
+        for i in self.train_idx:
+            out = self.render(g, i)
+            through += looked_through(
+                means, self.cams[i], out.alpha, out.depth, self.cfg.carve_margin
+            ).long()
+        params, dropped = keep_only(self.params, through < self.cfg.carve_views)
+        if params is not None:
+            self._set_params(params)
+        return dropped
+
+    def polish(self, iterations: int) -> None:
+        """Train `iterations` more steps on the training views (in an order of their own,
+        seeded by the fit's seed), without densification, positions at the last rate."""
+        rng = np.random.default_rng([self.cfg.seed, iterations])
+        for _ in range(iterations):
+            self.train_step(self.train_idx[int(rng.integers(len(self.train_idx)))], 1.0)
 
     @torch.no_grad()
     @on_one_torch_thread
@@ -334,6 +395,7 @@ class SceneFitter:
             "iterations_planned": self.cfg.iterations,
             "stopped": self.stopped,
             "pruned_pose_views": getattr(self, "pruned_pose_views", 0),
+            "carved": self.carved,
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "train_views": len(self.train_idx),  # fewer than the rest with fit.train_every > 1
@@ -349,6 +411,8 @@ class SceneFitter:
             "step": self.step,
             "history": self.history,
             "elapsed": self.elapsed,
+            "finished": self.finished,
+            "carved": self.carved,
             **self.strategy.state_dict(),
             "config": asdict(self.cfg),
         }
@@ -365,6 +429,7 @@ class SceneFitter:
         self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
         self.optim.load_state_dict(state["optim"])
         self.step, self.history, self.elapsed = state["step"], state["history"], state["elapsed"]
+        self.finished, self.carved = state.get("finished", False), state.get("carved", 0)
         self.strategy.load_state_dict(state)
         return True
 

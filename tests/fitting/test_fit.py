@@ -727,3 +727,113 @@ def test_backdrop_detect_fits_on_white_only_where_the_photographs_are(tmp_path):
         1.0,
     ]
     assert white_adapter.load_scene("white").background == (1.0, 1.0, 1.0)
+
+
+def test_a_centre_a_photograph_sees_past_is_looked_through(views):
+    """`looked_through`: a centre nearer than the opaque surface rendered at its pixel (by more
+    than the margin) is; one at that surface, one behind it, one where the render is
+    transparent and one outside the image are not."""
+    from sagonline.fitting.strategy import looked_through
+
+    cam = views[0][0]
+    h, w = cam.height, cam.width
+    alpha = torch.ones(h, w)
+    alpha[:, : w // 2] = 0.2  # the left half: nothing opaque drawn
+    depth = alpha * 4.0  # alpha-weighted: the surface at depth 4
+    axis, right = cam.rotation[2], cam.rotation[0]
+    centre = cam.center + axis  # depth 1 on the optical axis (the right half starts there)
+    on_right = centre + right * 0.25 * float(w) / float(cam.K[0, 0])  # a quarter image right
+    means = torch.stack(
+        [
+            on_right,  # depth 1 < 0.9 x 4: looked through
+            cam.center + axis * 3.8 + (on_right - centre) * 3.8,  # at the surface (within 10%)
+            cam.center + axis * 6.0 + (on_right - centre) * 6.0,  # behind it
+            on_right - 2 * (on_right - centre),  # a quarter image left: transparent there
+            centre + right * 100.0,  # outside the image
+        ]
+    )
+    assert looked_through(means, cam, alpha, depth, margin=0.1).tolist() == [
+        True,
+        False,
+        False,
+        False,
+        False,
+    ]
+    assert not looked_through(means, cam, alpha, depth, margin=0.8)[0]  # 1 > 0.2 x 4
+
+
+def test_the_carve_drops_a_floater_the_photographs_look_through_and_the_polish_trains(
+    views, tmp_path
+):
+    """carve_views: a floater put nearer than the fitted surface in the training views goes,
+    the polish trains its iterations after the fit, and a resumed fit that finished does not
+    carve or polish again; off (0), neither runs."""
+    from sagonline.fitting.strategy import looked_through
+
+    cams, imgs = views
+    f = SceneFitter(tiny(iterations=30, carve_views=2, polish_iterations=5), cams, imgs)
+    f.fit(progress=False, checkpoint=tmp_path / "fit.store")
+    assert f.finished and len(f.history) == 35  # 30 iterations, then the polish's 5
+    again = SceneFitter(tiny(iterations=30, carve_views=2, polish_iterations=5), cams, imgs)
+    assert again.resume(tmp_path / "fit.store") and again.finished
+    again.fit(progress=False)
+    assert len(again.history) == 35 and len(again) == len(f)  # not carved nor polished twice
+
+    # a tiny floater on a training camera's axis, at a fifth of the surface's depth there
+    cam = f.cams[f.train_idx[0]]
+    with torch.no_grad():
+        out = f.render(f.gaussians(), f.train_idx[0])
+    v, u = cam.height // 2, cam.width // 2
+    assert float(out.alpha[v, u]) > 0.5
+    surface = float(out.depth[v, u] / out.alpha[v, u])
+    floater = cam.center + cam.rotation[2] * 0.2 * surface
+    with torch.no_grad():
+        f.params["means"][0] = floater
+        f.params["log_scales"][0] = -8.0
+        out = f.render(f.gaussians(), f.train_idx[0])
+    assert looked_through(floater[None], cam, out.alpha, out.depth, 0.1).item()
+    f.cfg = tiny(iterations=30, carve_views=1)
+    n = len(f)
+    assert f.carve() >= 1 and len(f) < n
+    assert not bool((f.params["means"].detach() - floater).norm(dim=1).lt(1e-6).any())
+
+    off = SceneFitter(tiny(iterations=30), cams, imgs)
+    off.fit(progress=False)
+    assert off.carved == 0 and len(off.history) == 30
+
+
+@pytest.mark.parametrize(
+    "bad", [{"carve_views": -1}, {"carve_margin": 1.0}, {"polish_iterations": -5}]
+)
+def test_carve_settings_out_of_range_are_refused(bad):
+    with pytest.raises(ValueError, match=next(iter(bad))):
+        FitConfig(**bad)
+
+
+def test_finish_from_runs_only_the_steps_after_a_finished_fit_of_the_same_recipe(tmp_path):
+    """finish_from: the seed's finished fit is this recipe's state after the last iteration,
+    so only the carve and polish run (into the variant's own folder; the base is untouched);
+    a base fitted with another recipe is refused, naming the settings that differ."""
+    from bench.runners.scenes import fit_scene
+    from sagonline.core.errors import DatasetError
+    from sagonline.core.provenance import digest_file
+
+    cfg, adapter = tiny_capture(tmp_path / "cap")
+    fit_scene(cfg, adapter, "cap")
+    base = tmp_path / "cap" / "gaussians"
+    before = digest_file(base / "point_cloud.ply")
+    carve = [
+        "variant=carved",
+        "finish_from=default",
+        "fit.carve_views=1",
+        "fit.polish_iterations=3",
+    ]
+    cfg2, _ = tiny_capture(tmp_path / "cap", *carve)
+    metrics = fit_scene(cfg2, adapter, "cap")
+    out = tmp_path / "cap" / "gaussians-carved"
+    assert metrics["iterations"] == 12 and "carved" in metrics
+    recorded = json.loads((out / "fit_config.json").read_text())
+    assert recorded["carve_views"] == 1 and digest_file(base / "point_cloud.ply") == before
+    cfg3, _ = tiny_capture(tmp_path / "cap", "variant=other", *carve[1:], "fit.iterations=13")
+    with pytest.raises(DatasetError, match="fit.iterations differ"):
+        fit_scene(cfg3, adapter, "cap")
