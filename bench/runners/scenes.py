@@ -58,6 +58,7 @@ from sagonline.fitting.capture import (
     near_depth,
     view_near_depths,
 )
+from sagonline.fitting.finish import adopt_finished
 from sagonline.scene.io import read_scene
 from sagonline.scene.io.cameras import load_llff_bounds
 from sagonline.scene.io.images import resize_nearest
@@ -215,7 +216,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
         print(f"{scene}: resuming at iteration {fitter.step}")
     elif cfg.finish_from is not None:
         base = finished_base(cfg, fitter, out)
-        fitter.adopt_finished(read_scene(base / "point_cloud.ply"))
+        adopt_finished(fitter, read_scene(base / "point_cloud.ply"))
         print(f"{scene}: starting after the last iteration, from the fit in {base}")
     metrics = fitter.fit(progress=not quiet(cfg), checkpoint=ckpt)
     first = fitter.cams[0]

@@ -5,14 +5,16 @@ capture       images at the fitting size, start points and near depth from a cap
 start_points  training/held-out split, random points in the frusta
 losses        L1 + D-SSIM, PSNR, the needle penalty, the geometric regularisers
 strategy      densify / prune / opacity reset, hooks around the optimiser step
-trainer       SceneFitter (the loop, evaluation, checkpoints) and write_fitted_scene
+trainer       SceneFitter (the loop, evaluation, checkpoints)
+finish        the carve and polish after the last iteration, write_fitted_scene
 """
 
 from sagonline.fitting.config import FitConfig
+from sagonline.fitting.finish import write_fitted_scene
 from sagonline.fitting.losses import psnr, psnr_from_mse, ssim
 from sagonline.fitting.start_points import split_views
 from sagonline.fitting.strategy import DensifyStrategy
-from sagonline.fitting.trainer import SceneFitter, write_fitted_scene
+from sagonline.fitting.trainer import SceneFitter
 
 __all__ = [
     "DensifyStrategy",

@@ -31,10 +31,9 @@ import torch
 import torch.nn.functional as F
 
 from sagonline.core import store
-from sagonline.core.files import atomic_write_json
 from sagonline.core.progress import Progress
-from sagonline.core.provenance import digest_file
 from sagonline.fitting.config import FitConfig
+from sagonline.fitting.finish import carve, polish
 from sagonline.fitting.losses import (
     anisotropy_penalty,
     depth_distortion,
@@ -46,12 +45,10 @@ from sagonline.fitting.losses import (
     splat_geometry,
 )
 from sagonline.fitting.start_points import initial_params, split_views, start_points
-from sagonline.fitting.strategy import DensifyStrategy, Params, keep_only, looked_through
+from sagonline.fitting.strategy import DensifyStrategy, Params
 from sagonline.render.api import render
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.scene.io import write_ply
-from sagonline.scene.io.cameras import write_3dgs_cameras_json
 
 
 def on_one_torch_thread(method):
@@ -177,22 +174,6 @@ class SceneFitter:
             [{"params": [params[k]], "lr": lr, "name": k} for k, lr in lrs.items()], eps=1e-15
         )
         self.strategy.reset(len(self))
-
-    def adopt_finished(self, g: Gaussians) -> None:
-        """Take a finished fit of this recipe (its written scene) as the state after the last
-        iteration: `fit` then runs only the steps after it (`finish`)."""
-        d = self.cfg.device
-        self._set_params(
-            {
-                "means": g.means.detach().to(d, torch.float32).clone(),
-                "log_scales": torch.log(g.scales.detach().to(d, torch.float32)),
-                "quats": g.quats.detach().to(d, torch.float32).clone(),
-                "opacity_logit": torch.logit(g.opacities.detach().to(d, torch.float32)),
-                "sh_dc": g.sh[:, :1].detach().to(d, torch.float32).contiguous(),
-                "sh_rest": g.sh[:, 1:].detach().to(d, torch.float32).contiguous(),
-            }
-        )
-        self.step, self.finished = self.cfg.iterations, False
 
     def __len__(self) -> int:
         return self.params["means"].shape[0]
@@ -350,33 +331,9 @@ class SceneFitter:
         if params is not None:
             self._set_params(params)
         if self.cfg.carve_views > 0:
-            self.carved = self.carve()
-            self.polish(self.cfg.polish_iterations)
+            self.carved = carve(self)
+            polish(self, self.cfg.polish_iterations)
         self.finished = True
-
-    @torch.no_grad()
-    def carve(self) -> int:
-        """Drop the Gaussians at least `carve_views` training photographs look through
-        (`strategy.looked_through`, against the fit's own render of each); returns how many."""
-        g = self.gaussians()
-        means = g.means.detach()
-        through = torch.zeros(len(self), dtype=torch.long, device=means.device)
-        for i in self.train_idx:
-            out = self.render(g, i)
-            through += looked_through(
-                means, self.cams[i], out.alpha, out.depth, self.cfg.carve_margin
-            ).long()
-        params, dropped = keep_only(self.params, through < self.cfg.carve_views)
-        if params is not None:
-            self._set_params(params)
-        return dropped
-
-    def polish(self, iterations: int) -> None:
-        """Train `iterations` more steps on the training views (in an order of their own,
-        seeded by the fit's seed), without densification, positions at the last rate."""
-        rng = np.random.default_rng([self.cfg.seed, iterations])
-        for _ in range(iterations):
-            self.train_step(self.train_idx[int(rng.integers(len(self.train_idx)))], 1.0)
 
     @torch.no_grad()
     @on_one_torch_thread
@@ -432,18 +389,3 @@ class SceneFitter:
         self.finished, self.carved = state.get("finished", False), state.get("carved", 0)
         self.strategy.load_state_dict(state)
         return True
-
-
-def write_fitted_scene(
-    out_dir: Path, fitter: SceneFitter, all_cameras: list[Camera], metrics: dict
-) -> Path:
-    """point_cloud.ply + cameras.json (every camera of the scene) + fit_config.json +
-    fit_metrics.json into `out_dir` (the dataset adapter's `gaussians/` folder)."""
-    out_dir.mkdir(parents=True, exist_ok=True)
-    scene = write_ply(out_dir / "point_cloud.ply", fitter.export())
-    write_3dgs_cameras_json(out_dir / "cameras.json", all_cameras)
-    atomic_write_json(out_dir / "fit_config.json", asdict(fitter.cfg))
-    # the digest marks the scene as ours: `make scenes` replaces only a file that matches it
-    metrics = {**metrics, "scene_digest": digest_file(scene)}
-    atomic_write_json(out_dir / "fit_metrics.json", metrics)
-    return out_dir / "point_cloud.ply"

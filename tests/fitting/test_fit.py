@@ -768,6 +768,7 @@ def test_the_carve_drops_a_floater_the_photographs_look_through_and_the_polish_t
     """carve_views: a floater put nearer than the fitted surface in the training views goes,
     the polish trains its iterations after the fit, and a resumed fit that finished does not
     carve or polish again; off (0), neither runs."""
+    from sagonline.fitting.finish import carve
     from sagonline.fitting.strategy import looked_through
 
     cams, imgs = views
@@ -794,7 +795,7 @@ def test_the_carve_drops_a_floater_the_photographs_look_through_and_the_polish_t
     assert looked_through(floater[None], cam, out.alpha, out.depth, 0.1).item()
     f.cfg = tiny(iterations=30, carve_views=1)
     n = len(f)
-    assert f.carve() >= 1 and len(f) < n
+    assert carve(f) >= 1 and len(f) < n
     assert not bool((f.params["means"].detach() - floater).norm(dim=1).lt(1e-6).any())
 
     off = SceneFitter(tiny(iterations=30), cams, imgs)
