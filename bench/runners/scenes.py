@@ -178,8 +178,7 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     recorded_metrics = json.loads((base / "fit_metrics.json").read_text())
     if any(recorded_metrics.get(k) != v for k, v in fit_pins().items()):
         return None  # another width or branch, or a fit before a pin: another draw
-    mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
-    today = json.loads(to_json(dataclasses.asdict(FitConfig())))
+    mine, today = recipe_json(fitter.cfg), recipe_json(FitConfig())
     # a fit that predates a setting ran without it: it stands for that setting's default (as
     # wherever a finished fit is reused), but for the settings whose rule before them differed
     recorded = today | {"view_near_quantile": 0.02, "backdrop": "fixed"}
@@ -251,6 +250,11 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
     return metrics
 
 
+def recipe_json(cfg: FitConfig) -> dict:
+    """A recipe as fit_config.json records it (tuples as lists), to compare with a record."""
+    return json.loads(to_json(dataclasses.asdict(cfg)))
+
+
 AFTER_THE_FIT = ("carve_views", "carve_margin", "polish_iterations")
 """The recipe's settings that act only after the last iteration (`SceneFitter.finish`)."""
 
@@ -264,11 +268,9 @@ def finished_base(cfg: ScenesConfig, fitter: SceneFitter, out: Path) -> Path:
         raise DatasetError(f"finish_from={cfg.finish_from!r} is this fit's own folder ({out})")
     if not (base / "fit_config.json").is_file() or foreign_scene(base) is not None:
         raise DatasetError(f"finish_from={cfg.finish_from!r}: {base} holds no fit of ours")
-    theirs = FitConfig().__dict__ | json.loads((base / "fit_config.json").read_text())
-    mine = json.loads(to_json(dataclasses.asdict(fitter.cfg)))
-    differ = sorted(
-        k for k in mine if k not in AFTER_THE_FIT and json.loads(to_json(theirs.get(k))) != mine[k]
-    )
+    theirs = recipe_json(FitConfig()) | json.loads((base / "fit_config.json").read_text())
+    mine = recipe_json(fitter.cfg)
+    differ = sorted(k for k in mine if k not in AFTER_THE_FIT and theirs.get(k) != mine[k])
     if differ:
         raise DatasetError(
             f"finish_from={cfg.finish_from!r}: {base} was fitted with another recipe "
