@@ -255,7 +255,7 @@ def recipe_json(cfg: FitConfig) -> dict:
     return json.loads(to_json(dataclasses.asdict(cfg)))
 
 
-AFTER_THE_FIT = ("carve_views", "carve_margin", "polish_iterations")
+AFTER_THE_FIT = ("carve_views", "carve_margin", "polish_iterations", "polish_opacity_entropy")
 """The recipe's settings that act only after the last iteration (`SceneFitter.finish`)."""
 
 

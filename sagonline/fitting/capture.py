@@ -77,6 +77,18 @@ def fitting_background(
     return tuple(cfg.background)
 
 
+def detector_key(cfg: FitConfig) -> str:
+    """What the triangulated start points depend on beside the views and the seed, for their
+    cache's key ('' at the defaults, so the points cached before these settings stay valid)."""
+    default = FitConfig()
+    if (cfg.sift_peak_threshold, cfg.guided_matching) == (
+        default.sift_peak_threshold,
+        default.guided_matching,
+    ):
+        return ""
+    return f"|peak={cfg.sift_peak_threshold:g}|guided={cfg.guided_matching}"
+
+
 def initial_points(
     cfg: FitConfig,
     scene_dir: Path,
@@ -103,7 +115,7 @@ def initial_points(
         train_idx, _ = split_views(cams, cfg.holdout_every, cfg.train_every)  # the fit's own
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.store"
-        key = ",".join(c.name for c in train) + f"|seed={cfg.seed}"
+        key = ",".join(c.name for c in train) + f"|seed={cfg.seed}" + detector_key(cfg)
         for folder in [out] if shared is None else [out, shared]:
             path = folder / "init_points.store"
             cached = store.load_or_discard(path, "triangulated start points")
@@ -111,7 +123,13 @@ def initial_points(
                 xyz = cached["xyz"]
                 return (xyz, cached["rgb"]), f"triangulated ({len(xyz)}, cached in {folder.name})"
         try:
-            xyz, rgb, summary = triangulate_known_poses(train, images, seed=cfg.seed)
+            xyz, rgb, summary = triangulate_known_poses(
+                train,
+                images,
+                seed=cfg.seed,
+                peak_threshold=cfg.sift_peak_threshold,
+                guided_matching=cfg.guided_matching,
+            )
         except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
             if cfg.init == "triangulate":
                 raise DatasetError(f"{scene_dir}: triangulation failed: {exc}") from exc

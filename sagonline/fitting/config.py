@@ -15,6 +15,12 @@ class FitConfig:
     init: str = "auto"
     """Start points: auto (the capture's COLMAP points, else SIFT matches triangulated with the
     poses fixed, else random points in the frusta)."""
+    sift_peak_threshold: float = 0.0066667
+    """The SIFT detector's contrast threshold of the triangulated start points (COLMAP's
+    default); lower finds features on dark or plain surfaces, where few start points fall."""
+    guided_matching: bool = False
+    """Match features again along each verified pair's epipolar geometry (more matches where
+    texture is weak) for the triangulated start points."""
     background_points: int = 5000
     """Random points in the frusta, behind what sparse start points explain."""
     max_side: int = 228
@@ -97,8 +103,14 @@ class FitConfig:
     """How much nearer than the rendered surface (a fraction of its depth) a looked-through
     centre must be."""
     polish_iterations: int = 300
-    """With `carve_views`: iterations trained after the carve, without densification, the
-    positions at their last learning rate (the surfaces behind close what the carve opened)."""
+    """With `carve_views` or `polish_opacity_entropy`: iterations trained after the last one
+    (after the carve), without densification, the positions at their last learning rate (the
+    surfaces behind close what the carve opened)."""
+    polish_opacity_entropy: float = 0.0
+    """Weight of the opacities' binary entropy in the polish (`losses.opacity_entropy`): each
+    opacity is pushed to 0 or 1, and the ones that end below `prune_opacity` are dropped. A
+    half-transparent surface lets what lies behind it show through and vote for the object in
+    the views between photographs; after the polish a surface is there or not; 0: off."""
     lambda_warp: float = 0.0
     """Weight of the neighbour consistency (`losses.neighbour_consistency`): each pixel moved
     to its rendered depth must show the colour the two nearest training photographs show
@@ -164,6 +176,11 @@ class FitConfig:
             sh_degree=(0 <= self.sh_degree <= 3, self.sh_degree, "0, 1, 2 or 3"),
             max_gaussians=(self.max_gaussians >= 1, self.max_gaussians, ">= 1"),
             train_every=(self.train_every >= 1, self.train_every, ">= 1"),
+            sift_peak_threshold=(
+                0 < self.sift_peak_threshold < 1,
+                self.sift_peak_threshold,
+                "in (0, 1)",
+            ),
             opacity_decay=(0 < self.opacity_decay <= 1, self.opacity_decay, "in (0, 1]"),
             time_budget_s=(budget is None or budget >= 0, budget, ">= 0 seconds, or null"),
             view_clearance=(self.view_clearance >= 0, self.view_clearance, ">= 0"),
@@ -183,6 +200,11 @@ class FitConfig:
             carve_views=(self.carve_views >= 0, self.carve_views, ">= 0"),
             carve_margin=(0 <= self.carve_margin < 1, self.carve_margin, "a fraction in [0, 1)"),
             polish_iterations=(self.polish_iterations >= 0, self.polish_iterations, ">= 0"),
+            polish_opacity_entropy=(
+                self.polish_opacity_entropy >= 0,
+                self.polish_opacity_entropy,
+                ">= 0",
+            ),
             lambda_dssim=(0 <= self.lambda_dssim <= 1, self.lambda_dssim, "in [0, 1]"),
             robust_trim=(0 <= self.robust_trim < 1, self.robust_trim, "a fraction in [0, 1)"),
             backdrop=(self.backdrop in ("fixed", "detect"), self.backdrop, "fixed or detect"),

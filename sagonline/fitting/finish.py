@@ -20,6 +20,20 @@ from sagonline.scene.io import write_ply
 from sagonline.scene.io.cameras import write_3dgs_cameras_json
 
 
+def carve_and_polish(fitter) -> None:
+    """With `carve_views`, the carve; with it or `polish_opacity_entropy`, the polish (the
+    opacities' entropy in its loss where weighted), then the faded Gaussians dropped."""
+    cfg = fitter.cfg
+    if cfg.carve_views > 0:
+        fitter.carved = carve(fitter)
+    if cfg.carve_views > 0 or cfg.polish_opacity_entropy > 0:
+        fitter.polishing = True
+        polish(fitter, cfg.polish_iterations)
+        fitter.polishing = False
+    if cfg.polish_opacity_entropy > 0:
+        fitter.faded = prune_faded(fitter)
+
+
 @torch.no_grad()
 def carve(fitter) -> int:
     """Drop the Gaussians at least `carve_views` training photographs look through
@@ -45,6 +59,16 @@ def polish(fitter, iterations: int) -> None:
     rng = np.random.default_rng([fitter.cfg.seed, iterations])
     for _ in range(iterations):
         fitter.train_step(fitter.train_idx[int(rng.integers(len(fitter.train_idx)))], 1.0)
+
+
+@torch.no_grad()
+def prune_faded(fitter) -> int:
+    """Drop the Gaussians whose opacity is below `prune_opacity`; returns how many."""
+    opacity = torch.sigmoid(fitter.params["opacity_logit"]).reshape(len(fitter))
+    params, dropped = keep_only(fitter.params, opacity >= fitter.cfg.prune_opacity)
+    if params is not None:
+        fitter._set_params(params)
+    return dropped
 
 
 def adopt_finished(fitter, g: Gaussians) -> None:

@@ -99,6 +99,15 @@ def anisotropy_penalty(
     return F.relu(torch.exp(log_ratio) - max_aspect).mean()
 
 
+def opacity_entropy(
+    opacity_logit: torch.Tensor,  # [N] or [N, 1]
+) -> torch.Tensor:  # []
+    """Mean binary entropy (nats) of the opacities: 0 where every Gaussian is opaque or gone,
+    ln 2 at one half; its gradient pushes each opacity to the nearer of 0 and 1."""
+    o = torch.sigmoid(opacity_logit)
+    return (o * F.softplus(-opacity_logit) + (1 - o) * F.softplus(opacity_logit)).mean()
+
+
 GEOMETRY_CHANNELS = 5  # splat_geometry's columns: normal (3), depth m, m^2
 
 

@@ -33,13 +33,14 @@ import torch.nn.functional as F
 from sagonline.core import store
 from sagonline.core.progress import Progress
 from sagonline.fitting.config import FitConfig
-from sagonline.fitting.finish import carve, polish
+from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
     anisotropy_penalty,
     depth_distortion,
     nearest_views,
     neighbour_consistency,
     normal_consistency,
+    opacity_entropy,
     photometric_loss,
     psnr,
     splat_geometry,
@@ -147,6 +148,8 @@ class SceneFitter:
         self.neighbours = {v: [train[j] for j in closest[i]] for i, v in enumerate(train)}
         self.step, self.history, self.elapsed = 0, [], 0.0
         self.finished = False  # the steps after the last iteration ran (`finish`)
+        self.polishing = False  # in the polish (`finish`): its own loss terms apply
+        self.faded = 0  # Gaussians dropped below `prune_opacity` after the polish
         self.carved = 0  # Gaussians the carve dropped
         self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
@@ -236,6 +239,9 @@ class SceneFitter:
         terms = {}
         if cfg.lambda_aniso:
             loss = loss + cfg.lambda_aniso * self.anisotropy_penalty()
+        if self.polishing and cfg.polish_opacity_entropy:
+            terms["entropy"] = opacity_entropy(self.params["opacity_logit"])
+            loss = loss + cfg.polish_opacity_entropy * terms["entropy"]
         if use_dist:
             terms["dist"] = depth_distortion(out.alpha, out.features[..., 3], out.features[..., 4])
             loss = loss + cfg.lambda_dist * terms["dist"]
@@ -323,16 +329,14 @@ class SceneFitter:
         return rgb.detach(), terms
 
     def finish(self) -> None:
-        """The steps after the last iteration: the camera and pose-view clearances, then with
-        `carve_views` the carve and its polish. Run once (a resumed fit that finished skips
-        them)."""
+        """The steps after the last iteration: the camera and pose-view clearances, then the
+        carve and the polish (`finish.carve_and_polish`). Run once (a resumed fit that finished
+        skips them)."""
         self.prune_near_cameras()
         params, self.pruned_pose_views = self.strategy.prune_pose_views(self.params)
         if params is not None:
             self._set_params(params)
-        if self.cfg.carve_views > 0:
-            self.carved = carve(self)
-            polish(self, self.cfg.polish_iterations)
+        carve_and_polish(self)
         self.finished = True
 
     @torch.no_grad()
@@ -353,6 +357,7 @@ class SceneFitter:
             "stopped": self.stopped,
             "pruned_pose_views": getattr(self, "pruned_pose_views", 0),
             "carved": self.carved,
+            "faded": self.faded,
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "train_views": len(self.train_idx),  # fewer than the rest with fit.train_every > 1
@@ -370,6 +375,7 @@ class SceneFitter:
             "elapsed": self.elapsed,
             "finished": self.finished,
             "carved": self.carved,
+            "faded": self.faded,
             **self.strategy.state_dict(),
             "config": asdict(self.cfg),
         }
@@ -387,5 +393,6 @@ class SceneFitter:
         self.optim.load_state_dict(state["optim"])
         self.step, self.history, self.elapsed = state["step"], state["history"], state["elapsed"]
         self.finished, self.carved = state.get("finished", False), state.get("carved", 0)
+        self.faded = state.get("faded", 0)
         self.strategy.load_state_dict(state)
         return True

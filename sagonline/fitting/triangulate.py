@@ -27,6 +27,8 @@ def triangulate_known_poses(
     image_paths: dict[str, Path],
     *,
     max_features: int = 8192,
+    peak_threshold: float = 0.0066667,  # COLMAP's default, 0.02 / octave_resolution (3)
+    guided_matching: bool = False,
     two_view_tracks: bool = True,
     num_threads: int = 1,
     seed: int = 0,
@@ -76,6 +78,7 @@ def triangulate_known_poses(
         extraction = pycolmap.FeatureExtractionOptions()
         extraction.num_threads = num_threads
         extraction.sift.max_num_features = max_features
+        extraction.sift.peak_threshold = peak_threshold
         pycolmap.extract_features(
             db,
             folder,
@@ -86,6 +89,7 @@ def triangulate_known_poses(
         )
         matching = pycolmap.FeatureMatchingOptions()
         matching.num_threads = num_threads
+        matching.guided_matching = guided_matching
         verification = pycolmap.TwoViewGeometryOptions()
         verification.ransac.random_seed = seed
         pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification)

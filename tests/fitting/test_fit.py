@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -803,8 +804,48 @@ def test_the_carve_drops_a_floater_the_photographs_look_through_and_the_polish_t
     assert off.carved == 0 and len(off.history) == 30
 
 
+def test_opacity_entropy_is_zero_at_the_ends_ln2_at_a_half_and_pushes_to_the_nearer_end():
+    from sagonline.fitting.losses import opacity_entropy
+
+    ends = torch.tensor([-30.0, 30.0])
+    assert float(opacity_entropy(ends)) < 1e-9
+    assert float(opacity_entropy(torch.zeros(4))) == pytest.approx(math.log(2), abs=1e-6)
+    logits = torch.tensor([-1.0, 0.5, 2.0], requires_grad=True)
+    opacity_entropy(logits).backward()
+    assert logits.grad[0] > 0 and logits.grad[1] < 0 and logits.grad[2] < 0  # descent: away from 0
+
+
+def test_the_opacity_entropy_polish_makes_opacities_binary_and_drops_the_faded(views):
+    """polish_opacity_entropy without the carve: the polish runs its iterations with the
+    entropy in the loss, then the Gaussians below prune_opacity go (counted as faded)."""
+    cams, imgs = views
+    plain = SceneFitter(tiny(iterations=30, polish_iterations=20), cams, imgs)
+    plain.fit(progress=False)
+    assert len(plain.history) == 30 and plain.faded == 0  # 0: no polish
+
+    f = SceneFitter(
+        tiny(iterations=30, polish_iterations=20, polish_opacity_entropy=1.0), cams, imgs
+    )
+    f.fit(progress=False)
+    assert len(f.history) == 50 and "entropy" in f.last_terms
+    assert not f.polishing and f.evaluate()["faded"] == f.faded
+    opacity = torch.sigmoid(f.params["opacity_logit"].detach()).flatten()
+    assert float(opacity.min()) >= f.cfg.prune_opacity  # the faded ones went
+    from sagonline.fitting.losses import opacity_entropy
+
+    assert float(opacity_entropy(f.params["opacity_logit"].detach())) < float(
+        opacity_entropy(plain.params["opacity_logit"].detach())
+    )
+
+
 @pytest.mark.parametrize(
-    "bad", [{"carve_views": -1}, {"carve_margin": 1.0}, {"polish_iterations": -5}]
+    "bad",
+    [
+        {"carve_views": -1},
+        {"carve_margin": 1.0},
+        {"polish_iterations": -5},
+        {"polish_opacity_entropy": -0.1},
+    ],
 )
 def test_carve_settings_out_of_range_are_refused(bad):
     with pytest.raises(ValueError, match=next(iter(bad))):

@@ -43,6 +43,39 @@ def test_points_land_on_the_synthetic_surfaces(tmp_path):
         assert np.median(cKDTree(s.gaussians.means.numpy()).query(bad)[0]) > 5 * np.median(dist)
 
 
+@pytest.mark.slow
+def test_a_lower_peak_threshold_finds_more_points_on_dim_surfaces(tmp_path):
+    """The same views at a quarter of their brightness (a dark, plain object): COLMAP's
+    default SIFT threshold finds few features there; `peak_threshold` 0.002 more, still on the
+    surfaces; guided matching adds matches."""
+    s = make_scene(layout="forward", num_gaussians=20000, width=240, height=180, num_train_views=6)
+    paths = {}
+    for cam in s.train_cameras:
+        dim = (rasterize(s.gaussians, cam).rgb * 0.25).clamp(0, 1)
+        paths[cam.name] = atomic_write_image(tmp_path / f"{cam.name}.png", to_uint8(dim))
+    default, _, _ = triangulate_known_poses(s.train_cameras, paths)
+    low, _, summary = triangulate_known_poses(s.train_cameras, paths, peak_threshold=0.002)
+    guided, _, _ = triangulate_known_poses(
+        s.train_cameras, paths, peak_threshold=0.002, guided_matching=True
+    )
+    assert len(low) >= 50 and len(low) > 1.5 * len(default) and len(guided) >= len(low)
+    size = float(np.ptp(s.gaussians.means.numpy(), axis=0).max())
+    assert np.median(cKDTree(s.gaussians.means.numpy()).query(low)[0]) < 0.01 * size
+    assert summary["mean_reprojection_error_px"] < 1.5
+
+
+def test_the_start_points_cache_key_names_the_detector_settings_only_off_their_defaults():
+    from sagonline.fitting import FitConfig
+    from sagonline.fitting.capture import detector_key
+
+    assert detector_key(FitConfig()) == ""  # points cached before the settings stay valid
+    low = detector_key(FitConfig(sift_peak_threshold=0.002))
+    guided = detector_key(FitConfig(guided_matching=True))
+    assert low and guided and low != guided
+    with pytest.raises(ValueError, match="sift_peak_threshold"):
+        FitConfig(sift_peak_threshold=0)
+
+
 def test_needs_two_views(tmp_path):
     s = make_scene(layout="forward", num_gaussians=500, width=32, height=24, num_train_views=2)
     with pytest.raises(ValueError, match="at least two"):
