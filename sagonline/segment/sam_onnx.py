@@ -76,16 +76,27 @@ class SamPair:
     """An encoder and a decoder of one SAM format; `embed` caches by content."""
 
     format = ""
+    runtime = "onnxruntime"  # or "torch": what runs the encoder (`encoder_runtime`)
     levels = 1  # masks the decoder answers per prompt (SAM 2: whole object, part, sub-part)
     stored_dtype = np.float32  # what the encoder's outputs are rounded to, fresh or cached
     normalise_mean: np.ndarray
     normalise_std: np.ndarray
 
-    def __init__(self, encoder, decoder, encoder_path: Path, cache: EmbeddingCache, note: str = ""):
+    def __init__(
+        self,
+        encoder,
+        decoder,
+        encoder_path: Path,
+        cache: EmbeddingCache,
+        note: str = "",
+        precision: str = "fp32",
+    ):
         self.encoder, self.decoder = encoder, decoder
         from sagonline.core.provenance import sha256_file
 
         self.encoder_sha256 = sha256_file(encoder_path)
+        # what the cache keys embeddings by: the encoder's file, and its precision below fp32
+        self.encoder_id = self.encoder_sha256 + ("" if precision == "fp32" else f":{precision}")
         self.cache = cache
         self.memory: OrderedDict[str, Embedding] = OrderedDict()
         self.encode_s = 0.0
@@ -159,7 +170,7 @@ class SamPair:
             image.tobytes() + str(image.shape).encode(), digest_size=16
         ).hexdigest()
         key = hashlib.blake2b(
-            f"{frame_digest}:{self.encoder_sha256}".encode(), digest_size=16
+            f"{frame_digest}:{self.encoder_id}".encode(), digest_size=16
         ).hexdigest()
         if key in self.memory:
             self.memory.move_to_end(key)
@@ -168,7 +179,7 @@ class SamPair:
         expected = {
             "format": CACHE_FORMAT,
             "frame": frame_digest,
-            "encoder": self.encoder_sha256,
+            "encoder": self.encoder_id,
             "arrays": {
                 o.name: [[int(d) for d in o.shape[1:]], np.dtype(self.stored_dtype).name]
                 for o in self.encoder.get_outputs()
@@ -292,6 +303,26 @@ def session_options(threads: int):
     return options
 
 
+def open_torch_encoder(path: Path, device: str, precision: str, make_target: str):
+    """The encoder's graph on PyTorch (`onnx_torch.TorchSession`), or ModelFileError naming
+    `segmenter.encoder` and the file."""
+    from sagonline.segment.onnx_torch import TorchSession
+
+    if not path.is_file():
+        raise ModelFileError(f"segmenter.encoder={path}: not found; {make_target}")
+    if device.startswith("cuda"):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise ModelFileError(
+                f"segmenter.encoder_runtime=torch on {device}: this PyTorch sees no CUDA device"
+            )
+    try:
+        return TorchSession(path, device, precision)
+    except (ValueError, OSError, KeyError) as exc:
+        raise ModelFileError(f"segmenter.encoder={path}: PyTorch cannot run it ({exc})") from None
+
+
 def open_pair(
     encoder: Path,
     decoder: Path,
@@ -299,6 +330,8 @@ def open_pair(
     threads: int,
     device: str,
     cache: Path | None,
+    runtime: str = "auto",
+    precision: str = "fp32",
     make_target: str,
     cache_bytes: int | None = None,
     expect: str | None = None,
@@ -307,13 +340,22 @@ def open_pair(
     the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`."""
     import onnxruntime as ort
 
+    from sagonline.segment.onnx_torch import encoder_runtime
+
     options = session_options(threads)
     providers, note = ["CPUExecutionProvider"], ""
+    runtime = encoder_runtime(runtime, device)
     if device.startswith("cuda"):
         if "CUDAExecutionProvider" in ort.get_available_providers():
             providers.insert(0, "CUDAExecutionProvider")
+        elif runtime == "torch":
+            note = "onnxruntime has no CUDA provider here: the encoder runs on PyTorch"
         else:
             note = "onnxruntime has no CUDA provider here: the model runs on the CPU"
+    if runtime != "torch" and precision != "fp32":
+        raise ModelFileError(
+            f"segmenter.encoder_precision={precision}: only with segmenter.encoder_runtime=torch"
+        )
     dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
     kind = decoder_format(dec)
     if not kind:
@@ -326,7 +368,10 @@ def open_pair(
             f"segmenter.decoder={decoder}: a {FORMAT_NAMES[kind]} decoder; this segmenter runs "
             f"{FORMAT_NAMES[expect]} pairs"
         )
-    enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
+    if runtime == "torch":
+        enc = open_torch_encoder(encoder, device, precision, make_target)
+    else:
+        enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
     want = {"sam": {"image_embeddings"}, "sam2": {"image_embed"}}[kind]
     inputs, outputs = enc.get_inputs(), {o.name for o in enc.get_outputs()}
     if (
@@ -341,4 +386,6 @@ def open_pair(
         )
     if note:
         print(f"note: {note}", file=sys.stderr)
-    return FORMATS[kind](enc, dec, encoder, EmbeddingCache(cache, cache_bytes), note)
+    pair = FORMATS[kind](enc, dec, encoder, EmbeddingCache(cache, cache_bytes), note, precision)
+    pair.runtime = runtime
+    return pair

@@ -16,6 +16,7 @@ from sagonline.core.plugins import module_version
 from sagonline.core.provenance import sha256_file
 from sagonline.segment.base import VideoSegmenter
 from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour, otsu
+from sagonline.segment.onnx_torch import encoder_runtime
 from sagonline.segment.prompts import ObjectPrompt, Prompt
 from sagonline.segment.sam_onnx import GRID, Answer, Embedding, SamPair, open_pair
 
@@ -103,6 +104,8 @@ class SamFamilySegmenter(VideoSegmenter):
             "decoder_sha256": sha256_file(self.decoder),
             "prompts": self.prompts,
             "click_extent": self.click_extent,
+            "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
+            "encoder_precision": self.cfg.encoder_precision,
         }
 
     def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
@@ -129,6 +132,8 @@ class SamFamilySegmenter(VideoSegmenter):
                     self.decoder,
                     threads=threads,
                     device=self.device,
+                    runtime=self.cfg.encoder_runtime,
+                    precision=self.cfg.encoder_precision,
                     cache=cache,
                     cache_bytes=gigabytes(self.cfg.embedding_cache_gb),
                     make_target=weights_help(self.package, self.folder),

