@@ -52,10 +52,10 @@ from sagonline.datasets.fits import copy_fit, fit_folder, fit_variant, foreign_s
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
 from sagonline.fitting.capture import (
     fit_near_depths,
-    fitting_background,
     initial_points,
     load_images,
     near_depth,
+    resolve_background,
     view_near_depths,
 )
 from sagonline.fitting.finish import adopt_finished
@@ -118,7 +118,7 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
     """The fitter of one capture: images at the fitting size, start points, clearances."""
     fit_cfg = dataclasses.replace(cfg.fit)  # this scene's copy (its clearance is set below)
     train_cams, train_imgs = load_images(cams, images, fit_cfg.max_side)
-    fit_cfg.background = fitting_background(fit_cfg, train_imgs)  # fit_config.json records it
+    resolve_background(fit_cfg, train_imgs)  # fit_config.json records what it sets
     bounds = near_far = None
     if (scene_dir / "poses_bounds.npy").is_file():
         b = load_llff_bounds(scene_dir)

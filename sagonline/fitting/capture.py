@@ -77,6 +77,23 @@ def fitting_background(
     return tuple(cfg.background)
 
 
+def resolve_background(cfg: FitConfig, images: list[torch.Tensor]) -> None:
+    """Set `cfg.background` to the colour the fit renders on (`fitting_background`); on a
+    detected backdrop, also `random_background` off (the photographs show its colour)."""
+    colour = fitting_background(cfg, images)
+    if colour != tuple(cfg.background):
+        cfg.random_background = False
+    cfg.background = colour
+
+
+def training_background(cfg: FitConfig, step: int) -> torch.Tensor | None:  # [3]
+    """The colour training step `step` renders on with `random_background`, drawn from the
+    seed and the step (a resumed fit draws the same); None without it (the fit's own)."""
+    if not cfg.random_background:
+        return None
+    return torch.tensor(np.random.default_rng([cfg.seed, step]).random(3), dtype=torch.float32)
+
+
 def detector_key(cfg: FitConfig) -> str:
     """What the triangulated start points depend on beside the views and the seed, for their
     cache's key ('' at the defaults, so the points cached before these settings stay valid)."""

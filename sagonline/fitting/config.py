@@ -153,6 +153,14 @@ class FitConfig:
     `background`; fixed: always on `background`. On white the backdrop needs no surfaces, so a
     backdrop that moved against the object between photo sets leaves none in front of it
     (mary_rose, docs/real_captures.md)."""
+    random_background: bool = False
+    """Each training step renders on a colour drawn for that step (seeded by seed and step)
+    instead of `background`, so no pixel of a photograph can be matched by letting the
+    background show through: a dark object over a black background is otherwise fitted as a
+    half-transparent surface, through which what lies behind it votes in the views between
+    photographs. Not where the fit renders on a detected backdrop (`backdrop`): there the
+    backdrop's colour is what the photographs show. The renders after the fit use
+    `background`."""
     checkpoint_every: int = 100
     """Iterations between checkpoints (an interrupted fit resumes from the last)."""
     time_budget_s: float | None = None

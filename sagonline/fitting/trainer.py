@@ -32,6 +32,7 @@ import torch.nn.functional as F
 
 from sagonline.core import store
 from sagonline.core.progress import Progress
+from sagonline.fitting.capture import training_background
 from sagonline.fitting.config import FitConfig
 from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
@@ -214,12 +215,12 @@ class SceneFitter:
         gaussians: Gaussians,
         view: int,
         features: torch.Tensor | None = None,  # [N, F] composited beside RGB
+        background: torch.Tensor | None = None,  # [3]; None: the fit's `background`
     ):
         """Render training view `view` as the fit sees it (its background and backend)."""
-        bg = torch.tensor(self.cfg.background, device=self.cfg.device)
-        return render(
-            gaussians, self.cams[view], background=bg, backend=self.cfg.backend, features=features
-        )
+        bg = torch.tensor(self.cfg.background) if background is None else background
+        bg, cam = bg.to(self.cfg.device), self.cams[view]
+        return render(gaussians, cam, background=bg, backend=self.cfg.backend, features=features)
 
     def loss(
         self,
@@ -233,7 +234,8 @@ class SceneFitter:
         geometry = None
         if use_dist or use_normal:
             geometry = splat_geometry(gaussians, cam, *self.near_far)
-        out = self.render(gaussians, view, features=geometry)
+        bg = training_background(cfg, self.step)
+        out = self.render(gaussians, view, features=geometry, background=bg)
         trim = cfg.robust_trim if self.step >= cfg.robust_from else 0.0
         loss = photometric_loss(out.rgb, self.images[view], cfg.lambda_dssim, trim)
         terms = {}

@@ -729,6 +729,13 @@ def test_backdrop_detect_fits_on_white_only_where_the_photographs_are(tmp_path):
     ]
     assert white_adapter.load_scene("white").background == (1.0, 1.0, 1.0)
 
+    # random backgrounds: on for the room, off where the fit renders on the detected backdrop
+    for capture, path in (("cap", tmp_path / "cap"), ("white", root)):
+        rnd, rnd_adapter = tiny_capture(path, "variant=rnd", "fit.random_background=true")
+        fit_scene(rnd, rnd_adapter, capture)
+        recorded = json.loads((path / "gaussians-rnd" / "fit_config.json").read_text())
+        assert recorded["random_background"] is (capture == "cap")
+
 
 def test_a_centre_a_photograph_sees_past_is_looked_through(views):
     """`looked_through`: a centre nearer than the opaque surface rendered at its pixel (by more
@@ -879,3 +886,36 @@ def test_finish_from_runs_only_the_steps_after_a_finished_fit_of_the_same_recipe
     cfg3, _ = tiny_capture(tmp_path / "cap", "variant=other", *carve[1:], "fit.iterations=13")
     with pytest.raises(DatasetError, match="fit.iterations differ"):
         fit_scene(cfg3, adapter, "cap")
+
+
+def test_random_backgrounds_are_drawn_per_step_and_leave_no_pixel_see_through(views):
+    """random_background: each training step renders on its own colour, drawn from the seed
+    and the step (so a resumed fit draws the same); the renders after the fit use
+    `background`; and a photograph's black can no longer be matched by the black background
+    showing through, so the fitted views end more opaque than the plain fit's."""
+    cams, imgs = views
+    from sagonline.fitting.capture import training_background
+
+    plain = SceneFitter(tiny(iterations=150), cams, imgs)
+    rnd = SceneFitter(tiny(iterations=150, random_background=True), cams, imgs)
+    assert training_background(plain.cfg, 0) is None
+    first = training_background(rnd.cfg, 0)
+    assert first.shape == (3,) and bool(((first >= 0) & (first <= 1)).all())
+    assert torch.equal(first, training_background(tiny(random_background=True), 0))
+    assert not torch.equal(first, training_background(rnd.cfg, 1))
+    torch.manual_seed(0)
+    plain.fit(progress=False)
+    torch.manual_seed(0)
+    rnd.fit(progress=False)
+    with torch.no_grad():
+        g_plain, g_rnd = plain.gaussians(), rnd.gaussians()
+        seen_through = [
+            (1 - f.render(g, i).alpha).mean()
+            for f, g in ((plain, g_plain), (rnd, g_rnd))
+            for i in rnd.train_idx
+        ]
+    n = len(rnd.train_idx)
+    assert float(sum(seen_through[n:])) < 0.95 * float(sum(seen_through[:n]))
+    black = torch.zeros(3)
+    with torch.no_grad():  # after the fit: the fixed background
+        assert torch.equal(rnd.render(g_rnd, 0).rgb, rnd.render(g_rnd, 0, background=black).rgb)
