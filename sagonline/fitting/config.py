@@ -111,6 +111,14 @@ class FitConfig:
     opacity is pushed to 0 or 1, and the ones that end below `prune_opacity` are dropped. A
     half-transparent surface lets what lies behind it show through and vote for the object in
     the views between photographs; after the polish a surface is there or not; 0: off."""
+    co_prune_seed: int | None = None
+    """After the last iteration, drop the Gaussians that have no centre of a second draw of
+    the recipe (`finish_from`'s fit of this seed) within `co_prune_distance`, then polish:
+    where the photographs leave depth open, two draws put their surfaces at different depths,
+    so what one draw has alone is not what the photographs agree on (co-pruning, CoR-GS,
+    Zhang et al. 2024). It needs both draws fitted (twice the fitting); None: off."""
+    co_prune_distance: float = 0.01
+    """The co-pruning's distance, as a fraction of the scene's extent (the cameras' spread)."""
     lambda_warp: float = 0.0
     """Weight of the neighbour consistency (`losses.neighbour_consistency`): each pixel moved
     to its rendered depth must show the colour the two nearest training photographs show
@@ -208,6 +216,12 @@ class FitConfig:
             carve_views=(self.carve_views >= 0, self.carve_views, ">= 0"),
             carve_margin=(0 <= self.carve_margin < 1, self.carve_margin, "a fraction in [0, 1)"),
             polish_iterations=(self.polish_iterations >= 0, self.polish_iterations, ">= 0"),
+            co_prune_seed=(
+                self.co_prune_seed is None or self.co_prune_seed >= 0,
+                self.co_prune_seed,
+                "null or a seed >= 0",
+            ),
+            co_prune_distance=(0 < self.co_prune_distance < 1, self.co_prune_distance, "in (0, 1)"),
             polish_opacity_entropy=(
                 self.polish_opacity_entropy >= 0,
                 self.polish_opacity_entropy,

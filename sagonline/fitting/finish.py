@@ -1,7 +1,8 @@
-"""A fit's last steps and what it writes: the carve and its polish after the last iteration
-(`FitConfig.carve_views`), a finished fit taken up again as the state after its last iteration
-(`make scenes finish_from=`), and the fitted scene's folder. `fitter` is a
-`trainer.SceneFitter` (not imported: the trainer imports this module)."""
+"""A fit's last steps and what it writes: the co-pruning against a second draw, the carve and
+their polish after the last iteration (`FitConfig.co_prune_seed`, `carve_views`), a finished
+fit taken up again as the state after its last iteration (`make scenes finish_from=`), and the
+fitted scene's folder. `fitter` is a `trainer.SceneFitter` (not imported: the trainer imports
+this module)."""
 
 from __future__ import annotations
 
@@ -21,12 +22,16 @@ from sagonline.scene.io.cameras import write_3dgs_cameras_json
 
 
 def carve_and_polish(fitter) -> None:
-    """With `carve_views`, the carve; with it or `polish_opacity_entropy`, the polish (the
-    opacities' entropy in its loss where weighted), then the faded Gaussians dropped."""
+    """With a second draw's centres (`fitter.partner_means`, `co_prune_seed`), the co-pruning;
+    with `carve_views`, the carve; after either or with `polish_opacity_entropy`, the polish
+    (the opacities' entropy in its loss where weighted), then the faded Gaussians dropped."""
     cfg = fitter.cfg
+    partner = getattr(fitter, "partner_means", None)
+    if partner is not None:
+        fitter.co_pruned = co_prune(fitter, partner)
     if cfg.carve_views > 0:
         fitter.carved = carve(fitter)
-    if cfg.carve_views > 0 or cfg.polish_opacity_entropy > 0:
+    if cfg.carve_views > 0 or cfg.polish_opacity_entropy > 0 or partner is not None:
         fitter.polishing = True
         polish(fitter, cfg.polish_iterations)
         fitter.polishing = False
@@ -48,6 +53,33 @@ def carve(fitter) -> int:
             means, fitter.cams[i], out.alpha, out.depth, cfg.carve_margin
         ).long()
     params, dropped = keep_only(fitter.params, through < cfg.carve_views)
+    if params is not None:
+        fitter._set_params(params)
+    return dropped
+
+
+def nearest_distances(
+    points: torch.Tensor,  # [N, 3]
+    others: torch.Tensor,  # [M, 3]
+    chunk: int = 1024,
+) -> torch.Tensor:  # [N]
+    """Each point's distance to the nearest of `others` (in chunks of `chunk` points)."""
+    if len(others) == 0:
+        return torch.full((len(points),), float("inf"), device=points.device)
+    parts = [
+        torch.cdist(points[i : i + chunk], others).amin(dim=1) for i in range(0, len(points), chunk)
+    ]
+    return torch.cat(parts) if parts else points.new_zeros(0)
+
+
+@torch.no_grad()
+def co_prune(fitter, partner: torch.Tensor) -> int:  # partner [M, 3]
+    """Drop the Gaussians with no centre of `partner` (a second draw's) within
+    `co_prune_distance` of the scene's extent; returns how many."""
+    means = fitter.params["means"].detach()
+    reach = fitter.cfg.co_prune_distance * fitter.extent
+    near = nearest_distances(means, partner.to(means.device, means.dtype)) <= reach
+    params, dropped = keep_only(fitter.params, near)
     if params is not None:
         fitter._set_params(params)
     return dropped

@@ -151,7 +151,8 @@ class SceneFitter:
         self.finished = False  # the steps after the last iteration ran (`finish`)
         self.polishing = False  # in the polish (`finish`): its own loss terms apply
         self.faded = 0  # Gaussians dropped below `prune_opacity` after the polish
-        self.carved = 0  # Gaussians the carve dropped
+        self.carved = self.co_pruned = 0  # Gaussians the carve and the co-pruning dropped
+        self.partner_means = None  # [M, 3] a second draw's centres, for `co_prune_seed`
         self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
@@ -183,9 +184,7 @@ class SceneFitter:
         return self.params["means"].shape[0]
 
     @property
-    def camera_centers(
-        self,
-    ) -> torch.Tensor:  # [C, 3]
+    def camera_centers(self) -> torch.Tensor:  # [C, 3]
         """(C, 3) centres of every camera of the capture."""
         return self.strategy.camera_centers
 
@@ -258,9 +257,7 @@ class SceneFitter:
             loss = loss + cfg.lambda_warp * terms["warp"]
         return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
 
-    def anisotropy_penalty(
-        self,
-    ) -> torch.Tensor:  # []
+    def anisotropy_penalty(self) -> torch.Tensor:  # []
         return anisotropy_penalty(self.params["log_scales"], self.cfg.max_aspect)
 
     def prune_near_cameras(self) -> int:
@@ -359,6 +356,7 @@ class SceneFitter:
             "stopped": self.stopped,
             "pruned_pose_views": getattr(self, "pruned_pose_views", 0),
             "carved": self.carved,
+            "co_pruned": self.co_pruned,
             "faded": self.faded,
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
@@ -377,6 +375,7 @@ class SceneFitter:
             "elapsed": self.elapsed,
             "finished": self.finished,
             "carved": self.carved,
+            "co_pruned": self.co_pruned,
             "faded": self.faded,
             **self.strategy.state_dict(),
             "config": asdict(self.cfg),
@@ -395,6 +394,6 @@ class SceneFitter:
         self.optim.load_state_dict(state["optim"])
         self.step, self.history, self.elapsed = state["step"], state["history"], state["elapsed"]
         self.finished, self.carved = state.get("finished", False), state.get("carved", 0)
-        self.faded = state.get("faded", 0)
+        self.faded, self.co_pruned = state.get("faded", 0), state.get("co_pruned", 0)
         self.strategy.load_state_dict(state)
         return True

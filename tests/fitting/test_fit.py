@@ -852,6 +852,8 @@ def test_the_opacity_entropy_polish_makes_opacities_binary_and_drops_the_faded(v
         {"carve_margin": 1.0},
         {"polish_iterations": -5},
         {"polish_opacity_entropy": -0.1},
+        {"co_prune_seed": -1},
+        {"co_prune_distance": 0.0},
     ],
 )
 def test_carve_settings_out_of_range_are_refused(bad):
@@ -919,3 +921,53 @@ def test_random_backgrounds_are_drawn_per_step_and_leave_no_pixel_see_through(vi
     black = torch.zeros(3)
     with torch.no_grad():  # after the fit: the fixed background
         assert torch.equal(rnd.render(g_rnd, 0).rgb, rnd.render(g_rnd, 0, background=black).rgb)
+
+
+def test_the_co_pruning_keeps_what_a_second_draw_has_near_and_polishes(views):
+    """co_prune_seed: with a second draw's centres, the Gaussians none of them lies within
+    co_prune_distance (of the extent) of go, counted; the polish then trains; `nearest_distances`
+    is the brute-force minimum."""
+    from sagonline.fitting.finish import co_prune, nearest_distances
+
+    points, others = torch.rand(50, 3), torch.rand(7, 3)
+    brute = (points[:, None] - others[None]).norm(dim=2).min(dim=1).values
+    assert torch.allclose(nearest_distances(points, others, chunk=8), brute, atol=1e-6)
+
+    cams, imgs = views
+    f = SceneFitter(tiny(iterations=30, co_prune_seed=1, polish_iterations=4), cams, imgs)
+    f.fit(progress=False)
+    assert f.co_pruned == 0 and len(f.history) == 30  # no second draw given: nothing to do
+    partner = f.params["means"].detach().clone()
+    n = len(partner)
+    moved = partner.clone()
+    moved[:10] += 10 * f.extent  # ten Gaussians the second draw has nowhere near
+    f.cfg, f.partner_means, f.finished = tiny(iterations=30, co_prune_seed=1), moved[10:], False
+    f.finish()
+    assert f.co_pruned == 10 and len(f) == n - 10 and len(f.history) == 30 + 300
+    assert f.evaluate()["co_pruned"] == 10
+    assert co_prune(f, f.params["means"].detach().clone()) == 0  # a draw agreeing everywhere
+
+
+def test_co_pruning_reads_the_other_seeds_finished_fit_and_needs_finish_from(tmp_path):
+    from bench.runners.scenes import fit_scene
+    from sagonline.core.errors import DatasetError
+
+    root = tmp_path / "cap"
+    for seed in (0, 1):
+        cfg, adapter = tiny_capture(root, f"seed={seed}")
+        fit_scene(cfg, adapter, "cap")
+    copr = ["variant=copr", "fit.co_prune_seed=1", "fit.polish_iterations=2"]
+    cfg, _ = tiny_capture(root, *copr, "finish_from=default")
+    metrics = fit_scene(cfg, adapter, "cap")
+    assert "co_pruned" in metrics and metrics["iterations"] == 12
+    assert (
+        json.loads((root / "gaussians-copr" / "fit_config.json").read_text())["co_prune_seed"] == 1
+    )
+    with pytest.raises(DatasetError, match="give finish_from"):
+        fit_scene(tiny_capture(root, *copr, "variant=copr2")[0], adapter, "cap")
+    same, _ = tiny_capture(root, "variant=copr3", "fit.co_prune_seed=0", "finish_from=default")
+    with pytest.raises(DatasetError, match="this fit's own seed"):
+        fit_scene(same, adapter, "cap")
+    none, _ = tiny_capture(root, "variant=copr4", "fit.co_prune_seed=2", "finish_from=default")
+    with pytest.raises(DatasetError, match="holds no fit of ours"):
+        fit_scene(none, adapter, "cap")
