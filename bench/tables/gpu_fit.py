@@ -1,0 +1,64 @@
+"""The first GPU fit's row: what `scripts/gpu_check.sh` fitted (fit_metrics.json) and how the
+capture scores on it (the real masks' and the classical segmenter's metrics.json), as one
+CSV row and its Markdown table.
+
+    python -m bench.tables.gpu_fit FIT_DIR --runs real=RUN classical=RUN --out F.csv
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import pandas as pd
+
+FIT_COLUMNS = (
+    "iterations",
+    "fit_seconds",
+    "gaussians",
+    "psnr_train",
+    "psnr_heldout",
+    "psnr_heldout_object",
+)
+
+
+def fit_row(fit_dir: Path, runs: dict[str, Path]) -> dict:
+    """One row: the fit's recipe size and figures, and each run's mIoU (percent)."""
+    metrics = json.loads((fit_dir / "fit_metrics.json").read_text())
+    config = json.loads((fit_dir / "fit_config.json").read_text())
+    row = {
+        "scene": metrics.get("scene"),
+        "device": config.get("device"),
+        "resolution": "x".join(str(v) for v in metrics.get("resolution", [])),
+        "seed": config.get("seed"),
+    }
+    row |= {k: round(v, 2) if isinstance(v := metrics.get(k), float) else v for k in FIT_COLUMNS}
+    for source, run in runs.items():
+        run_metrics = json.loads((run / "metrics.json").read_text())
+        row[f"{source} mIoU"] = round(100 * run_metrics["miou"], 2)
+        row["gpu"] = (run_metrics.get("device") or {}).get("gpu", row.get("gpu"))
+    return row
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("fit_dir", type=Path, help="the fit's folder (fit_metrics.json)")
+    ap.add_argument("--runs", nargs="*", default=[], help="SOURCE=RUN_DIR, each an evaluation")
+    ap.add_argument("--out", type=Path, required=True, help="the CSV to write (a .md beside it)")
+    args = ap.parse_args()
+    runs = {}
+    for item in args.runs:
+        source, _, folder = item.partition("=")
+        if not folder:
+            ap.error(f"--runs {item!r}: give SOURCE=RUN_DIR")
+        runs[source] = Path(folder)
+    table = pd.DataFrame([fit_row(args.fit_dir, runs)])
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    table.to_csv(args.out, index=False)
+    args.out.with_suffix(".md").write_text(table.to_markdown(index=False) + "\n")
+    print(table.to_markdown(index=False))
+
+
+if __name__ == "__main__":
+    main()
