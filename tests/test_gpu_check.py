@@ -46,6 +46,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         "bench_render",
         "table-timing",
         "table-masks",
+        "vote profile",
     ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary

@@ -80,7 +80,8 @@ def vote_into(
     chosen = resolve_vote_backend(backend, gaussians.device)
     if n == 0:
         return 0
-    return int(implementation(chosen)(gaussians, camera, labels, hist, rule))
+    with torch.profiler.record_function(f"vote_into ({chosen})"):  # named in a profile
+        return int(implementation(chosen)(gaussians, camera, labels, hist, rule))
 
 
 def implementation(backend: str):
