@@ -32,7 +32,7 @@ AFTER_THE_FIT = (
     "polish_iterations",
     "polish_opacity_entropy",
     "co_prune_seed",
-    "co_prune_distance",
+    "co_prune_sigmas",
 )
 """The recipe's settings that act only after the last iteration (`SceneFitter.finish`)."""
 

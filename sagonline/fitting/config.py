@@ -112,13 +112,13 @@ class FitConfig:
     half-transparent surface lets what lies behind it show through and vote for the object in
     the views between photographs; after the polish a surface is there or not; 0: off."""
     co_prune_seed: int | None = None
-    """After the last iteration, drop the Gaussians that have no centre of a second draw of
-    the recipe (`finish_from`'s fit of this seed) within `co_prune_distance`, then polish:
-    where the photographs leave depth open, two draws put their surfaces at different depths,
-    so what one draw has alone is not what the photographs agree on (co-pruning, CoR-GS,
-    Zhang et al. 2024). It needs both draws fitted (twice the fitting); None: off."""
-    co_prune_distance: float = 0.01
-    """The co-pruning's distance, as a fraction of the scene's extent (the cameras' spread)."""
+    """After the last iteration, drop the Gaussians whose 3-sigma footprint holds no centre
+    of a second draw of the recipe (`finish_from`'s fit of this seed), then polish: where the
+    photographs leave depth open, two draws put their surfaces at different depths, so what
+    one draw has alone is not what the photographs agree on (co-pruning, CoR-GS, Zhang et al.
+    2024). It needs both draws fitted (twice the fitting); None: off."""
+    co_prune_sigmas: float = 3.0
+    """The co-pruning's reach: this many times each Gaussian's largest scale."""
     lambda_warp: float = 0.0
     """Weight of the neighbour consistency (`losses.neighbour_consistency`): each pixel moved
     to its rendered depth must show the colour the two nearest training photographs show
@@ -221,7 +221,7 @@ class FitConfig:
                 self.co_prune_seed,
                 "null or a seed >= 0",
             ),
-            co_prune_distance=(0 < self.co_prune_distance < 1, self.co_prune_distance, "in (0, 1)"),
+            co_prune_sigmas=(self.co_prune_sigmas > 0, self.co_prune_sigmas, "> 0"),
             polish_opacity_entropy=(
                 self.polish_opacity_entropy >= 0,
                 self.polish_opacity_entropy,

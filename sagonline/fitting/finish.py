@@ -75,9 +75,9 @@ def nearest_distances(
 @torch.no_grad()
 def co_prune(fitter, partner: torch.Tensor) -> int:  # partner [M, 3]
     """Drop the Gaussians with no centre of `partner` (a second draw's) within
-    `co_prune_distance` of the scene's extent; returns how many."""
+    `co_prune_sigmas` of their largest scale; returns how many."""
     means = fitter.params["means"].detach()
-    reach = fitter.cfg.co_prune_distance * fitter.extent
+    reach = fitter.cfg.co_prune_sigmas * fitter.params["log_scales"].detach().exp().amax(dim=1)
     near = nearest_distances(means, partner.to(means.device, means.dtype)) <= reach
     params, dropped = keep_only(fitter.params, near)
     if params is not None:

@@ -853,7 +853,7 @@ def test_the_opacity_entropy_polish_makes_opacities_binary_and_drops_the_faded(v
         {"polish_iterations": -5},
         {"polish_opacity_entropy": -0.1},
         {"co_prune_seed": -1},
-        {"co_prune_distance": 0.0},
+        {"co_prune_sigmas": 0.0},
     ],
 )
 def test_carve_settings_out_of_range_are_refused(bad):
@@ -925,8 +925,8 @@ def test_random_backgrounds_are_drawn_per_step_and_leave_no_pixel_see_through(vi
 
 def test_the_co_pruning_keeps_what_a_second_draw_has_near_and_polishes(views):
     """co_prune_seed: with a second draw's centres, the Gaussians none of them lies within
-    co_prune_distance (of the extent) of go, counted; the polish then trains; `nearest_distances`
-    is the brute-force minimum."""
+    co_prune_sigmas of their largest scale of go, counted; the polish then trains;
+    `nearest_distances` is the brute-force minimum."""
     from sagonline.fitting.finish import co_prune, nearest_distances
 
     points, others = torch.rand(50, 3), torch.rand(7, 3)
@@ -937,11 +937,11 @@ def test_the_co_pruning_keeps_what_a_second_draw_has_near_and_polishes(views):
     f = SceneFitter(tiny(iterations=30, co_prune_seed=1, polish_iterations=4), cams, imgs)
     f.fit(progress=False)
     assert f.co_pruned == 0 and len(f.history) == 30  # no second draw given: nothing to do
+    with torch.no_grad():  # ten tiny Gaussians whose centres the second draw lacks
+        f.params["log_scales"][:10] = -12.0
     partner = f.params["means"].detach().clone()
     n = len(partner)
-    moved = partner.clone()
-    moved[:10] += 10 * f.extent  # ten Gaussians the second draw has nowhere near
-    f.cfg, f.partner_means, f.finished = tiny(iterations=30, co_prune_seed=1), moved[10:], False
+    f.cfg, f.partner_means, f.finished = tiny(iterations=30, co_prune_seed=1), partner[10:], False
     f.finish()
     assert f.co_pruned == 10 and len(f) == n - 10 and len(f.history) == 30 + 300
     assert f.evaluate()["co_pruned"] == 10
