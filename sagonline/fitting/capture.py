@@ -77,7 +77,10 @@ def fitting_background(
     return tuple(cfg.background)
 
 
-def resolve_background(cfg: FitConfig, images: list[torch.Tensor]) -> None:
+def resolve_background(
+    cfg: FitConfig,
+    images: list[torch.Tensor],  # each [H, W, 3] in [0, 1]
+) -> None:
     """Set `cfg.background` to the colour the fit renders on (`fitting_background`); on a
     detected backdrop, also `random_background` off (the photographs show its colour)."""
     colour = fitting_background(cfg, images)

@@ -117,11 +117,34 @@ def _read_onnx(path: Path) -> OnnxGraph:
     )
 
 
+def _ort_shapes(g) -> dict[str, list]:
+    """Each value's shape an `.ort` graph declares (a dimension: int, or its name)."""
+    from onnxruntime.tools.ort_format_model.ort_flatbuffers_py.fbs import TensorTypeAndShape
+
+    shapes = {}
+    for i in range(g.NodeArgsLength()):
+        arg = g.NodeArgs(i)
+        kind = arg.Type()
+        if kind is None or kind.Value() is None:
+            continue
+        ts = TensorTypeAndShape.TensorTypeAndShape()
+        ts.Init(kind.Value().Bytes, kind.Value().Pos)
+        shape = ts.Shape()
+        if shape is None:
+            continue
+        dims = []
+        for j in range(shape.DimLength()):
+            d = shape.Dim(j).Value()
+            param = d.DimParam() if d is not None else None
+            dims.append(param.decode() if param else (d.DimValue() if d is not None else "?"))
+        shapes[arg.Name().decode()] = dims
+    return shapes
+
+
 def _read_ort(path: Path) -> OnnxGraph:
     from onnxruntime.tools.ort_format_model.ort_flatbuffers_py.fbs import (
         AttributeType,
         InferenceSession,
-        TensorTypeAndShape,
     )
 
     buf = path.read_bytes()
@@ -157,23 +180,7 @@ def _read_ort(path: Path) -> OnnxGraph:
             out[a.Name().decode()] = readers[a.Type()](a)
         return out
 
-    shapes = {}
-    for i in range(g.NodeArgsLength()):
-        arg = g.NodeArgs(i)
-        kind = arg.Type()
-        if kind is None or kind.Value() is None:
-            continue
-        ts = TensorTypeAndShape.TensorTypeAndShape()
-        ts.Init(kind.Value().Bytes, kind.Value().Pos)
-        shape = ts.Shape()
-        if shape is None:
-            continue
-        dims = []
-        for j in range(shape.DimLength()):
-            d = shape.Dim(j).Value()
-            param = d.DimParam() if d is not None else None
-            dims.append(param.decode() if param else (d.DimValue() if d is not None else "?"))
-        shapes[arg.Name().decode()] = dims
+    shapes = _ort_shapes(g)
 
     def info(name: bytes) -> ValueInfo:
         return ValueInfo(name.decode(), shapes.get(name.decode(), []))

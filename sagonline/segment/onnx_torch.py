@@ -301,6 +301,14 @@ class TorchSession:
         self.device, self.dtype = torch.device(device), PRECISIONS[precision]
         inits = self.graph.initializers
         self.weights = {k: self._place(torch.from_numpy(np.array(v))) for k, v in inits.items()}
+        # after each node, the values no later node reads (an encoder's activations at 1024 px
+        # are gigabytes if all are kept)
+        kept = set(self.weights) | {o.name for o in self.graph.outputs}
+        last = {name: i for i, n in enumerate(self.nodes) for name in n.inputs if name}
+        self.free_after: list[list[str]] = [[] for _ in self.nodes]
+        for name, i in last.items():
+            if name not in kept:
+                self.free_after[i].append(name)
 
     def _place(self, t: torch.Tensor) -> torch.Tensor:
         """Floating tensors to the device in the session's type; integers stay on the CPU."""
@@ -315,17 +323,20 @@ class TorchSession:
         return self.graph.outputs
 
     @torch.inference_mode()
-    def forward(self, feeds: dict[str, torch.Tensor]) -> list[torch.Tensor]:
+    def forward(
+        self,
+        feeds: dict[str, torch.Tensor],  # input name -> its tensor, say [1, 3, 1024, 1024]
+    ) -> list[torch.Tensor]:  # the outputs in the graph's order, say [1, 256, 64, 64]
         """The graph's outputs for `feeds` (input name -> tensor), in the graph's order."""
         values: dict[str, torch.Tensor | None] = {"": None, **self.weights}
         values.update({k: self._place(v) for k, v in feeds.items()})
         opset = self.graph.opset
-        for node in self.nodes:
+        for i, node in enumerate(self.nodes):
             args = [values[name] for name in node.inputs]
             while args and args[-1] is None:  # optional inputs left out at the end
                 args.pop()
             if node.op == "Softmax":
-                out = _softmax(node, *args, opset)
+                out = _softmax(node, args[0], opset)
             else:
                 out = OPS[node.op](node, *args)
             if node.op in ("Constant", "ConstantOfShape", "Cast") and out.is_floating_point():
@@ -333,6 +344,8 @@ class TorchSession:
             outs = out if isinstance(out, list) else [out]
             for name, value in zip(node.outputs, outs, strict=True):
                 values[name] = value
+            for name in self.free_after[i]:
+                values.pop(name, None)
         return [values[o.name] for o in self.graph.outputs]
 
     def run(self, output_names, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
