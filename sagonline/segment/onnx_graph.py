@@ -72,7 +72,8 @@ class OnnxGraph:
 def read_graph(path: Path) -> OnnxGraph:
     """The graph of an `.onnx` or `.ort` file; ValueError naming the file when it is neither."""
     path = Path(path)
-    head = path.read_bytes()[:8]
+    with path.open("rb") as f:
+        head = f.read(8)
     if head[4:8] == b"ORTM":  # the flatbuffer's file identifier
         return _read_ort(path)
     try:
@@ -158,7 +159,7 @@ def _read_ort(path: Path) -> OnnxGraph:
             raise ValueError(f"{path}: tensor {t.Name().decode()} of ONNX type {t.DataType()}")
         if t.RawDataLength() == 0 and math.prod(dims) > 0:
             raise ValueError(f"{path}: tensor {t.Name().decode()} keeps its data outside the file")
-        return np.frombuffer(t.RawDataAsNumpy().tobytes(), dtype).reshape(dims).copy()
+        return t.RawDataAsNumpy().view(dtype).reshape(dims)  # a view of the file's bytes
 
     types = AttributeType.AttributeType
     readers = {

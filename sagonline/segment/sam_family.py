@@ -33,6 +33,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 from sagonline.core.plugins import SEGMENTERS
+from sagonline.segment.onnx_torch import PRECISIONS
 from sagonline.segment.sam_prompting import SamFamilySegmenter
 
 PROMPTS = ("match", "match+3d", "3d")
@@ -136,7 +137,7 @@ class SamPromptingConfig:
                 f"one of {', '.join(RUNTIMES)}",
             ),
             encoder_precision=(
-                self.encoder_precision in ("fp32", "fp16", "bf16"),
+                self.encoder_precision in PRECISIONS,
                 self.encoder_precision,
                 "fp32, fp16 or bf16",
             ),
