@@ -75,7 +75,12 @@ def read_graph(path: Path) -> OnnxGraph:
     with path.open("rb") as f:
         head = f.read(8)
     if head[4:8] == b"ORTM":  # the flatbuffer's file identifier
-        return _read_ort(path)
+        try:
+            return _read_ort(path)
+        except ValueError:
+            raise
+        except Exception as exc:  # the flatbuffer reader raises struct.error, IndexError, ...
+            raise ValueError(f"{path}: a truncated or damaged ORT model file ({exc})") from None
     try:
         return _read_onnx(path)
     except Exception as exc:  # protobuf raises DecodeError and friends

@@ -172,6 +172,10 @@ def test_an_operator_without_a_pytorch_path_and_a_foreign_file_are_named(tmp_pat
     junk.write_bytes(b"\x01\x02not a model at all" * 8)
     with pytest.raises(ValueError, match=r"junk\.onnx: neither an ONNX nor an ORT model"):
         read_graph(junk)
+    cut = tmp_path / "cut.ort"  # an .ort file's header, its body cut short
+    cut.write_bytes(b"\x10\x00\x00\x00ORTM" + b"\x00" * 64)
+    with pytest.raises(ValueError, match=r"cut\.ort: a truncated or damaged ORT model file"):
+        read_graph(cut)
     with pytest.raises(ModelFileError, match=r"segmenter.encoder=.*junk\.onnx: PyTorch cannot"):
         open_pair(
             junk,
