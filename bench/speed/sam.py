@@ -283,6 +283,7 @@ def runtime_table(
             rows.append(
                 {
                     "model": kind,
+                    "encoder": f"{base.encoder.name} (sha256 {pair.encoder_sha256[:12]})",
                     "encoder runtime": runtime,
                     "precision": precision,
                     "device": device if runtime == "torch" or pair.note == "" else "cpu",
