@@ -377,12 +377,14 @@ class SceneFitter:
         store.save(path, state)
 
     def resume(self, path: Path) -> bool:
-        """Continue an interrupted fit with the same settings; False if there is none (or it is
-        damaged or not ours: then it is named, removed, and the fit starts over)."""
+        """Continue an interrupted fit with the same settings (a setting the checkpoint predates
+        counts as its default); False if there is none (or it is damaged or not ours: then it
+        is named, removed, and the fit starts over)."""
         state = store.load_or_discard(path, "fit checkpoint")
         if state is None:
             return False
-        if state["config"] != asdict(self.cfg):
+        # a setting newer than the checkpoint ran at its default there
+        if {**asdict(FitConfig()), **state["config"]} != asdict(self.cfg):
             return False
         self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
         self.optim.load_state_dict(state["optim"])

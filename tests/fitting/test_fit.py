@@ -147,6 +147,18 @@ def test_resume_continues_where_it_stopped(views, tmp_path):
     assert not other.resume(ckpt)
 
 
+def test_a_checkpoint_older_than_a_setting_resumes_at_its_default_only(views, tmp_path):
+    cams, imgs = views
+    ckpt = tmp_path / "fit.store"
+    f = SceneFitter(tiny(iterations=10), cams, imgs)
+    f.fit(progress=False, checkpoint=ckpt)
+    state = store.load(ckpt)
+    state["config"].pop("depth_pseudo_every")  # written before the setting existed
+    store.save(ckpt, state)
+    assert SceneFitter(tiny(iterations=10), cams, imgs).resume(ckpt)
+    assert not SceneFitter(tiny(iterations=10, depth_pseudo_every=2), cams, imgs).resume(ckpt)
+
+
 def test_gaussians_near_cameras_are_pruned(views):
     cams, imgs = views
     f = SceneFitter(tiny(camera_clearance=0.5), cams, imgs)
