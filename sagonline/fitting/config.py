@@ -130,7 +130,9 @@ class FitConfig:
     """Weight of the monocular depth prior (`depth_prior.depth_correlation`): each training
     view's rendered depth must order near and far as a single-image depth network orders its
     photograph (up to scale and shift), so a surface one photograph placed in front of the
-    object, which the photometric loss cannot tell from the right one, is pulled back; 0: off."""
+    object, which the photometric loss cannot tell from the right one, is pulled back; 0: off.
+    Screened at 0.05 on the sparse protocol (docs/fitting.md): +2 to +13 points on two captures,
+    -4 to -14 on the two where the network's depth is wrong, so off."""
     depth_model: str = "weights/fastdepth/fastdepth.onnx"
     """The ONNX depth network of `lambda_depth` (FastDepth, fetched by `make weights`)."""
     depth_pseudo_every: int = 0
