@@ -62,6 +62,7 @@ from sagonline.fitting.capture import (
     near_depth,
     resolve_background,
 )
+from sagonline.fitting.config import as_recorded
 from sagonline.fitting.finish import adopt_finished
 from sagonline.scene.io import read_scene
 from sagonline.scene.io.cameras import load_llff_bounds
@@ -185,8 +186,7 @@ def same_fit_as(cfg: ScenesConfig, scene_dir, cams, images, fitter, out: Path):
     mine, today = recipe_json(fitter.cfg), recipe_json(FitConfig())
     # a fit that predates a setting ran without it: it stands for that setting's default (as
     # wherever a finished fit is reused), but for the settings whose rule before them differed
-    recorded = today | {"view_near_quantile": 0.02, "backdrop": "fixed"}
-    recorded |= json.loads((base / "fit_config.json").read_text())
+    recorded = as_recorded(json.loads((base / "fit_config.json").read_text()), today)
     free = ("view_near_quantile", "backdrop")  # the background they resolve to is compared
     theirs = {k: recorded.pop(k) for k in free}
     for k in free:

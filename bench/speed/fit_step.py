@@ -96,6 +96,7 @@ def main() -> None:
         for name, fitter in runs.items():
             times[name].append(time_steps(fitter, args.steps))
     plain = statistics.median(times["plain"])
+    machine = describe_device()
     rows = [
         {
             "recipe": name,
@@ -106,8 +107,8 @@ def main() -> None:
             "gaussians": args.gaussians,
             "size": args.size,
             "threads": torch.get_num_threads(),
-            "device": describe_device()["cpu"],
-            "load_average_1m": describe_device()["load_average_1m"],
+            "device": machine["cpu"],
+            "load_average_1m": machine["load_average_1m"],
         }
         for name, t in times.items()
     ]

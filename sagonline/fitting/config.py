@@ -7,6 +7,17 @@ from dataclasses import dataclass
 
 from sagonline.core.settings import check_settings
 
+# What a recipe recorded before a setting existed ran with: that setting's default, but for the
+# settings whose rule before them differed, where the fit behaved as these values do.
+BEFORE_SETTINGS = {"view_near_quantile": 0.02, "backdrop": "fixed"}
+
+
+def as_recorded(saved: dict, today: dict) -> dict:
+    """A recorded recipe (fit_config.json, a checkpoint's) with each setting it predates filled
+    in: `today`'s value (the defaults, as `asdict` or as JSON gives them), or the rule before the
+    setting where that differed (`BEFORE_SETTINGS`)."""
+    return today | BEFORE_SETTINGS | saved
+
 
 @dataclass
 class FitConfig:

@@ -15,7 +15,6 @@ The network is an ONNX file run by onnxruntime (`make weights` fetches FastDepth
 
 from __future__ import annotations
 
-import hashlib
 from dataclasses import replace
 from pathlib import Path
 
@@ -23,6 +22,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from sagonline.core.provenance import sha256_file
 from sagonline.render.api import render
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -70,9 +70,8 @@ class MonocularDepth:
                 f"{len(outputs)} outputs; a depth model takes one (1, 3, H, W) RGB image of a "
                 "fixed size and gives one depth map"
             )
-        inp = inputs[0]
-        self.input_name, self.size = inp.name, (int(shape[2]), int(shape[3]))
-        self.sha256 = hashlib.sha256(self.path.read_bytes()).hexdigest()
+        self.input_name, self.size = inputs[0].name, (int(shape[2]), int(shape[3]))
+        self.sha256 = sha256_file(self.path)
 
     def __call__(
         self,

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from sagonline.core import store
 from sagonline.core.progress import Progress
 from sagonline.fitting.capture import training_background
-from sagonline.fitting.config import FitConfig
+from sagonline.fitting.config import FitConfig, as_recorded
 from sagonline.fitting.depth_prior import MonocularDepth, depth_correlation, pseudo_view_term
 from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
@@ -383,8 +383,7 @@ class SceneFitter:
         state = store.load_or_discard(path, "fit checkpoint")
         if state is None:
             return False
-        # a setting newer than the checkpoint ran at its default there
-        if {**asdict(FitConfig()), **state["config"]} != asdict(self.cfg):
+        if as_recorded(state["config"], asdict(FitConfig())) != asdict(self.cfg):
             return False
         self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
         self.optim.load_state_dict(state["optim"])
