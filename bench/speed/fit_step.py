@@ -3,8 +3,9 @@
     python -m bench.speed.fit_step [--gaussians 36000] [--size 228x171] [--views 8]
                                    [--steps 20] [--rounds 3] [--out reports/bench_fit_step.csv]
 
-Each recipe (the plain one, the monocular depth prior on the training views, and the prior with
-pseudo views on every second step) gets a fitter on the same generated 2DGS scene: `--views`
+Each recipe (the plain one, the monocular depth prior on the training views, the prior with
+pseudo views on every second step, and its guarded form: the whole view, 8-pixel blocks,
+trusted) gets a fitter on the same generated 2DGS scene: `--views`
 training photographs rendered from it at `--size`, `--gaussians` random start points, the step
 counter past every regulariser's start (the late part of a fit, densification aside). The
 recipes then take turns, `--steps` steps each per round, for `--rounds` rounds; a recipe's
@@ -17,6 +18,7 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
+from pathlib import Path
 
 import pandas as pd
 import torch
@@ -32,6 +34,12 @@ RECIPES = {
     "plain": {},
     "depth prior": {"lambda_depth": 0.05},
     "depth prior + pseudo views every 2nd step": {"lambda_depth": 0.05, "depth_pseudo_every": 2},
+    "depth prior, whole view, pooled, trusted": {
+        "lambda_depth": 0.05,
+        "depth_patch": 0,
+        "depth_pool": 8,
+        "depth_trust": True,
+    },
 }
 
 
@@ -115,6 +123,7 @@ def main() -> None:
     table = pd.DataFrame(rows)
     print(table.to_string(index=False))
     if args.out:
+        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
         table.to_csv(args.out, index=False)
         print(f"wrote {args.out}")
 

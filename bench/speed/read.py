@@ -98,6 +98,7 @@ def main() -> None:
         ]
     )
     print(table.to_markdown(index=False))
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(args.out, index=False)
 
 

@@ -143,7 +143,20 @@ class FitConfig:
     photograph (up to scale and shift), so a surface one photograph placed in front of the
     object, which the photometric loss cannot tell from the right one, is pulled back; 0: off.
     Screened at 0.05 on the sparse protocol (docs/fitting.md): +2 to +13 points on two captures,
-    -4 to -14 on the two where the network's depth is wrong, so off."""
+    -4 to -14 on the two where the network's depth is wrong, so off; its guarded forms
+    (`depth_patch`, `depth_pool`, `depth_trust`) lose the gains with the harm."""
+    depth_patch: int = 32
+    """The side in pixels of the tiles over which `lambda_depth` also correlates the two depths
+    (each surface against what surrounds it), averaged with the whole view's correlation; 0:
+    the whole view only (near against far: a network's coarse depth orders a view's surfaces
+    more reliably than it shapes each one)."""
+    depth_trust: bool = False
+    """With `lambda_depth`: weight each view's and tile's term by the correlation the fit
+    already has with the network there (clamped at 0, no gradient), so a network that misreads
+    a view is ignored there instead of fought (`depth_prior.trusted`)."""
+    depth_pool: int = 1
+    """With `lambda_depth`: compare the two depths averaged over blocks of this many pixels a
+    side (the detail the network resolves; `depth_prior.pooled`); 1: pixel by pixel."""
     depth_model: str = "weights/fastdepth/fastdepth.onnx"
     """The ONNX depth network of `lambda_depth` (FastDepth, fetched by `make weights`)."""
     depth_pseudo_every: int = 0
@@ -240,6 +253,8 @@ class FitConfig:
             lambda_normal=(self.lambda_normal >= 0, self.lambda_normal, ">= 0"),
             lambda_warp=(self.lambda_warp >= 0, self.lambda_warp, ">= 0"),
             lambda_depth=(self.lambda_depth >= 0, self.lambda_depth, ">= 0"),
+            depth_patch=(self.depth_patch >= 0, self.depth_patch, ">= 0 pixels"),
+            depth_pool=(self.depth_pool >= 1, self.depth_pool, ">= 1 pixel"),
             depth_pseudo_every=(self.depth_pseudo_every >= 0, self.depth_pseudo_every, ">= 0"),
             carve_views=(self.carve_views >= 0, self.carve_views, ">= 0"),
             carve_margin=(0 <= self.carve_margin < 1, self.carve_margin, "a fraction in [0, 1)"),

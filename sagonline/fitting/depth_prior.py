@@ -108,19 +108,35 @@ def depth_correlation(
     prior: torch.Tensor,  # [H, W] the network's depth of the photograph
     patch: int = 32,
     min_alpha: float = 0.5,
+    trust: bool = False,
+    pool: int = 1,
 ) -> torch.Tensor:  # [] in [0, 2]
     """The depth prior's loss: the mean of (1 - Pearson correlation) of the rendered surface depth
     (depth / alpha) with the prior over the view's pixels where alpha > `min_alpha`, and the
     same averaged over the view's `patch` x `patch` tiles that have at least a quarter of their
     pixels covered (the whole view orders near and far; the tiles, each surface against what
-    surrounds it). 0 when the two agree up to a positive scale and a shift; no gradient through
-    alpha. 0 (with a gradient of zeros) where nothing is covered."""
+    surrounds it; `patch` 0: the whole view only). 0 when the two agree up to a positive scale
+    and a shift; no gradient through alpha. 0 (with a gradient of zeros) where nothing is
+    covered. `trust`: each term (the view's, each tile's) is weighted by the correlation it
+    already has, clamped at 0 and taken without gradient, so the network is followed where it
+    orders the surfaces as the fit roughly does and ignored where it contradicts them (a
+    network that misreads a view, say a white backdrop, cannot pull the fit against its
+    photographs). `pool` > 1: both depths are first averaged over `pool` x `pool` blocks of
+    covered pixels (a block counts when most of it is covered; `patch` is then in blocks' units
+    times `pool`), so the render is compared at the detail the network resolves: a 224-pixel
+    network blurs a silhouette, and pixel by pixel the term would pull the object's edges toward
+    the blur."""
     covered = (alpha.detach() > min_alpha).to(depth.dtype)
     if not bool(covered.any()):
         return depth.sum() * 0
     surface = depth / alpha.detach().clamp_min(1e-6)
-    whole = 1 - pearson(surface.flatten(), prior.flatten(), covered.flatten())
-    H, W = depth.shape
+    if pool > 1:
+        surface, prior, covered = pooled(surface, prior, covered, pool)
+        patch //= pool
+    whole = trusted(1 - pearson(surface.flatten(), prior.flatten(), covered.flatten()), trust)
+    H, W = surface.shape
+    if patch == 0:
+        return whole
     rows, cols = H // patch, W // patch
     if rows == 0 or cols == 0:
         return whole
@@ -133,8 +149,40 @@ def depth_correlation(
     used = w.sum(-1) >= patch * patch / 4
     if not bool(used.any()):
         return whole
-    local = 1 - pearson(tiles(surface)[used], tiles(prior)[used], w[used])
+    local = trusted(1 - pearson(tiles(surface)[used], tiles(prior)[used], w[used]), trust)
     return 0.5 * (whole + local.mean())
+
+
+def pooled(
+    surface: torch.Tensor,  # [H, W] rendered surface depth
+    prior: torch.Tensor,  # [H, W]
+    covered: torch.Tensor,  # [H, W] 1 where covered, else 0
+    pool: int,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # each [H // pool, W // pool]
+    """`depth_correlation`'s `pool`: the covered pixels' mean of each depth per block, and 1
+    where more than half of the block is covered."""
+    H, W = surface.shape
+    rows, cols = H // pool, W // pool
+    if rows == 0 or cols == 0:
+        return surface, prior, covered
+
+    def block_sum(t: torch.Tensor) -> torch.Tensor:  # [H, W] -> [rows, cols]
+        t = t[: rows * pool, : cols * pool].reshape(rows, pool, cols, pool)
+        return t.sum((1, 3))
+
+    share = block_sum(covered)
+    count = share.clamp_min(1)
+    mean_surface = block_sum(surface * covered) / count
+    mean_prior = block_sum(prior * covered) / count
+    return mean_surface, mean_prior, (share > pool * pool / 2).to(surface.dtype)
+
+
+def trusted(
+    term: torch.Tensor,  # [...] 1 - correlation, in [0, 2]
+    trust: bool,
+) -> torch.Tensor:  # [...] the term, times its own correlation (clamped at 0, no gradient)
+    """`depth_correlation`'s `trust` weighting: unchanged without it."""
+    return term * (1 - term.detach()).clamp_min(0) if trust else term
 
 
 def between(
@@ -181,4 +229,16 @@ def pseudo_view_term(
     background = torch.tensor(cfg.background, device=cam.K.device)
     out = render(gaussians, cam, background=background, backend=cfg.backend)
     prior = fitter.depth_model(out.rgb.detach().clamp(0, 1))
-    return depth_correlation(out.depth, out.alpha, prior)
+    return prior_term(cfg, out, prior)
+
+
+def prior_term(
+    cfg,
+    out,
+    prior: torch.Tensor,  # [H, W] the network's depth of the view
+) -> torch.Tensor:  # []
+    """`depth_correlation` of a render (`out`: its (H, W) depth and alpha) at the fit's settings
+    (`fit.depth_patch`, `fit.depth_trust`, `fit.depth_pool`)."""
+    return depth_correlation(
+        out.depth, out.alpha, prior, cfg.depth_patch, trust=cfg.depth_trust, pool=cfg.depth_pool
+    )

@@ -33,7 +33,7 @@ from sagonline.core import store
 from sagonline.core.progress import Progress
 from sagonline.fitting.capture import training_background
 from sagonline.fitting.config import FitConfig, as_recorded
-from sagonline.fitting.depth_prior import MonocularDepth, depth_correlation, pseudo_view_term
+from sagonline.fitting.depth_prior import MonocularDepth, prior_term, pseudo_view_term
 from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
     anisotropy_penalty,
@@ -242,7 +242,7 @@ class SceneFitter:
             )
             loss = loss + cfg.lambda_warp * terms["warp"]
         if cfg.lambda_depth > 0:
-            terms["depth"] = depth_correlation(out.depth, out.alpha, self.depth_priors[view])
+            terms["depth"] = prior_term(cfg, out, self.depth_priors[view])
             loss = loss + cfg.lambda_depth * terms["depth"]
         pseudo = pseudo_view_term(self, gaussians)
         if pseudo is not None:

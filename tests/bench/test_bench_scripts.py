@@ -103,7 +103,7 @@ def test_bench_fit_step_quick(tmp_path):
     out = tmp_path / "fit_step.csv"
     text = _run("fit_step", "--out", str(out))
     table = pd.read_csv(out)
-    assert len(table) == 3 and table.recipe[0] == "plain" and table.ratio_to_plain[0] == 1.0
+    assert len(table) == 4 and table.recipe[0] == "plain" and table.ratio_to_plain[0] == 1.0
     assert (table.ms_per_step > 0).all() and "wrote" in text
 
 

@@ -15,8 +15,10 @@ from sagonline.fitting.depth_prior import (
     MonocularDepth,
     between,
     depth_correlation,
+    pearson,
 )
 from sagonline.render import rasterize
+from sagonline.render.api import render
 from sagonline.scene.generator import make_scene
 from tests.fixtures import ROOT, shared_data
 
@@ -67,6 +69,64 @@ def test_the_depth_correlation_is_zero_up_to_scale_and_shift_and_largest_reverse
     assert float(depth_correlation(depth, alpha, 3 * z + 1, patch=512)) == pytest.approx(
         0, abs=1e-5
     )
+
+
+def test_patch_zero_correlates_the_whole_view_only():
+    depth, alpha = surface()
+    z = depth / alpha
+    # each tile's own shape reversed, the tiles' order kept: the tiles disagree, the view agrees
+    tiled = z.clone()
+    for r in range(0, z.shape[0], 16):
+        for c in range(0, z.shape[1], 16):
+            block = tiled[r : r + 16, c : c + 16]
+            tiled[r : r + 16, c : c + 16] = 2 * block.mean() - 0.05 * (block - block.mean())
+    whole = float(depth_correlation(depth, alpha, tiled, patch=0))
+    both = float(depth_correlation(depth, alpha, tiled, patch=16))
+    assert whole < 0.1 and both > 0.5
+    # patch 0 is the whole-view term that patch=16 averages with the tiles'
+    covered = (alpha > 0.5).float().flatten()
+    expected = 1 - float(pearson(z.flatten(), tiled.flatten(), covered))
+    assert whole == pytest.approx(expected, abs=1e-6)
+
+
+def test_trust_ignores_a_prior_that_contradicts_the_fit_and_follows_one_that_agrees():
+    depth, alpha = surface()
+    z = depth / alpha
+    reversed_ = depth_correlation(depth.clone().requires_grad_(True), alpha, -z, trust=True)
+    assert float(reversed_) == pytest.approx(0.0, abs=1e-4)  # weight max(0, -1) = 0
+    noisy = z + 0.3 * torch.randn(z.shape, generator=torch.Generator().manual_seed(0))
+    plain = float(depth_correlation(depth, alpha, noisy, patch=0))
+    weighted = float(depth_correlation(depth, alpha, noisy, patch=0, trust=True))
+    assert weighted == pytest.approx(plain * (1 - plain), rel=1e-5)
+    # the weight takes no gradient: the pull is the plain term's, scaled by the weight
+    rendered = depth.flip(1).clone().requires_grad_(True)
+    depth_correlation(rendered, alpha, noisy, patch=0).backward()
+    plain_grad, rendered.grad = rendered.grad.clone(), None
+    term = float(depth_correlation(rendered, alpha, noisy, patch=0))
+    depth_correlation(rendered, alpha, noisy, patch=0, trust=True).backward()
+    torch.testing.assert_close(rendered.grad, plain_grad * max(0.0, 1 - term))
+
+
+def test_pool_compares_block_means_so_a_blurred_prior_leaves_the_edges_alone():
+    depth, alpha = surface()
+    z = depth / alpha
+    # a step edge on a block boundary, and the prior's blur of it (a 3-pixel box filter)
+    step = torch.where(torch.arange(96) < 48, 1.0, 3.0).expand(64, 96).clone()
+    blurred = torch.nn.functional.avg_pool1d(step[:, None, :], 3, 1, 1, count_include_pad=False)
+    blurred = blurred[:, 0]
+    ones = torch.ones(64, 96)
+    pixel = float(depth_correlation(step, ones, blurred, patch=0))
+    blocks = float(depth_correlation(step, ones, blurred, patch=0, pool=8))
+    assert blocks < 0.2 * pixel
+    # a block counts when most of it is covered: the uncovered 8-pixel strip is one block column
+    wild = (3 * z + 1).clone()
+    wild[:, :8] = torch.rand(64, 8) * 100
+    assert float(depth_correlation(depth, alpha, wild, patch=0, pool=8)) < 1e-3
+    assert float(depth_correlation(depth, alpha, 3 * z + 1, patch=32, pool=8)) < 1e-5
+    # the pull reaches the render's pixels through the block means
+    rendered = depth.flip(0).clone().requires_grad_(True)
+    depth_correlation(rendered, alpha, z, patch=0, pool=8).backward()
+    assert rendered.grad[:, 8:].abs().sum() > 0 and rendered.grad[:, :8].abs().sum() == 0
 
 
 def test_the_depth_correlation_moves_the_depth_toward_the_prior_and_nothing_covered_is_zero():
@@ -132,6 +192,22 @@ def test_the_depth_prior_joins_the_fits_loss_and_the_fit_records_the_model(views
         SceneFitter(FitConfig(**small, lambda_depth=0.5, depth_model="no/such.onnx"), cams, imgs)
     with pytest.raises(ValueError, match="lambda_depth"):
         FitConfig(lambda_depth=-1)
+
+
+def test_the_depth_settings_reach_the_term(views, tmp_path):
+    cams, imgs = views
+    small = dict(iterations=10, init_points=600, densify_from=100, sh_degree=0)
+    model = str(channel_mean_model(tmp_path / "mean.onnx"))
+    settings = dict(depth_patch=0, depth_trust=True, depth_pool=4)
+    f = SceneFitter(FitConfig(**small, lambda_depth=0.5, depth_model=model, **settings), cams, imgs)
+    view = f.train_idx[0]
+    out = render(f.gaussians(), f.cams[view], background=torch.zeros(3), backend=f.cfg.backend)
+    expected = depth_correlation(out.depth, out.alpha, f.depth_priors[view], 0, trust=True, pool=4)
+    _, _, terms = f.loss(f.gaussians(), view)
+    assert float(terms["depth"]) == pytest.approx(float(expected), rel=1e-4, abs=1e-6)
+    for bad in (dict(depth_patch=-1), dict(depth_pool=0)):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            FitConfig(**bad)
 
 
 def test_a_camera_between_two_runs_from_one_to_the_other(views):
