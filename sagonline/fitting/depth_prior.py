@@ -23,7 +23,9 @@ import torch
 import torch.nn.functional as F
 
 from sagonline.core.provenance import sha256_file
+from sagonline.fitting.config import FitConfig
 from sagonline.render.api import render
+from sagonline.render.rasterize import RenderOutput
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 
@@ -130,20 +132,18 @@ def depth_correlation(
     if not bool(covered.any()):
         return depth.sum() * 0
     surface = depth / alpha.detach().clamp_min(1e-6)
-    if pool > 1:
+    if pool > 1 and min(surface.shape) >= pool:
         surface, prior, covered = pooled(surface, prior, covered, pool)
         patch //= pool
     whole = trusted(1 - pearson(surface.flatten(), prior.flatten(), covered.flatten()), trust)
     H, W = surface.shape
     if patch == 0:
         return whole
-    rows, cols = H // patch, W // patch
-    if rows == 0 or cols == 0:
+    if patch > min(H, W):
         return whole
 
     def tiles(t: torch.Tensor) -> torch.Tensor:  # [H, W] -> [tiles, patch * patch]
-        t = t[: rows * patch, : cols * patch].reshape(rows, patch, cols, patch)
-        return t.permute(0, 2, 1, 3).reshape(rows * cols, patch * patch)
+        return blocks(t, patch).flatten(0, 1)
 
     w = tiles(covered)
     used = w.sum(-1) >= patch * patch / 4
@@ -159,22 +159,24 @@ def pooled(
     covered: torch.Tensor,  # [H, W] 1 where covered, else 0
     pool: int,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # each [H // pool, W // pool]
-    """`depth_correlation`'s `pool`: the covered pixels' mean of each depth per block, and 1
-    where more than half of the block is covered."""
-    H, W = surface.shape
-    rows, cols = H // pool, W // pool
-    if rows == 0 or cols == 0:
-        return surface, prior, covered
-
-    def block_sum(t: torch.Tensor) -> torch.Tensor:  # [H, W] -> [rows, cols]
-        t = t[: rows * pool, : cols * pool].reshape(rows, pool, cols, pool)
-        return t.sum((1, 3))
-
-    share = block_sum(covered)
+    """`depth_correlation`'s `pool` (a view at least `pool` pixels a side): the covered pixels'
+    mean of each depth per block, and 1 where more than half of the block is covered."""
+    share = blocks(covered, pool).sum(-1)
     count = share.clamp_min(1)
-    mean_surface = block_sum(surface * covered) / count
-    mean_prior = block_sum(prior * covered) / count
+    mean_surface = blocks(surface * covered, pool).sum(-1) / count
+    mean_prior = blocks(prior * covered, pool).sum(-1) / count
     return mean_surface, mean_prior, (share > pool * pool / 2).to(surface.dtype)
+
+
+def blocks(
+    t: torch.Tensor,  # [H, W]
+    size: int,
+) -> torch.Tensor:  # [H // size, W // size, size * size]
+    """The whole `size` x `size` blocks of `t` (a remainder at the right and bottom is left
+    out), each block's pixels in the last dimension."""
+    rows, cols = t.shape[0] // size, t.shape[1] // size
+    t = t[: rows * size, : cols * size].reshape(rows, size, cols, size)
+    return t.permute(0, 2, 1, 3).reshape(rows, cols, size * size)
 
 
 def trusted(
@@ -233,8 +235,8 @@ def pseudo_view_term(
 
 
 def prior_term(
-    cfg,
-    out,
+    cfg: FitConfig,
+    out: RenderOutput,
     prior: torch.Tensor,  # [H, W] the network's depth of the view
 ) -> torch.Tensor:  # []
     """`depth_correlation` of a render (`out`: its (H, W) depth and alpha) at the fit's settings
