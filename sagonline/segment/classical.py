@@ -16,6 +16,9 @@ Then, frame by frame, forwards and backwards from the prompt frame:
    boundaries snap to image edges instead of drifting with the flow (a region that erodes
    away keeps its innermost pixel);
 4. the colour histograms adapt slowly (`adapt`) to the new frame's labels.
+A label whose region collapses (a view where the object is hidden or unlike itself) also keeps
+the region it had before as its spatial prior (`recover`), so it comes back where its colour
+does instead of staying lost for the rest of the video.
 """
 
 from __future__ import annotations
@@ -62,6 +65,11 @@ class ClassicalConfig:
     """Rate at which the colour histograms adapt to each new frame."""
     bins: int = 16
     """Colour histogram bins per channel."""
+    recover: float = 0.5
+    """A label whose region moved onto a frame is smaller than this fraction of the last region
+    it had before it collapsed (in this pass over the video) also takes its prior from that
+    region: it comes back where its colour does instead of staying lost. Where no label's
+    region halves from one frame to the next the masks are those without it; 0: off."""
 
     def __post_init__(self) -> None:
         from sagonline.core.settings import check_settings
@@ -82,6 +90,7 @@ class ClassicalConfig:
             ),
             motion_px=(self.motion_px > 0, self.motion_px, "> 0"),
             prior_floor=(0 <= self.prior_floor < 1, self.prior_floor, "in [0, 1)"),
+            recover=(0 <= self.recover <= 1, self.recover, "a fraction in [0, 1]"),
             adapt=(0 <= self.adapt <= 1, self.adapt, "in [0, 1]"),
             bins=(2 <= self.bins <= 64, self.bins, "in [2, 64]"),
         )
@@ -108,6 +117,7 @@ class FlowWatershedSegmenter(VideoSegmenter):
         use_masks: bool = True,
         click_tolerance: float = 0.05,
         click_brightness_ratio: float = 2.0,
+        recover: float = 0.5,
     ):
         self.band_px, self.flow_levels, self.flow_window = band_px, flow_levels, flow_window
         self.grabcut_iters, self.click_radius = grabcut_iters, click_radius
@@ -115,6 +125,7 @@ class FlowWatershedSegmenter(VideoSegmenter):
         self.adapt, self.bins, self.use_masks = adapt, bins, use_masks
         self.click_tolerance = click_tolerance
         self.click_brightness_ratio = click_brightness_ratio
+        self.recover = recover
         self.reads = ("masks", "clicks", "boxes") if use_masks else ("clicks", "boxes")
         self.hists: dict[int, np.ndarray] = {}
 
@@ -199,22 +210,38 @@ class FlowWatershedSegmenter(VideoSegmenter):
             old = self.hists.get(int(lab))
             self.hists[int(lab)] = h if old is None or rate >= 1.0 else (1 - rate) * old + rate * h
 
-    def classify(self, frame: np.ndarray, warped: np.ndarray) -> np.ndarray:
-        """argmax over labels of log colour likelihood + log distance prior."""
+    def classify(
+        self,
+        frame: np.ndarray,  # [H, W, 3] uint8 RGB
+        warped: np.ndarray,  # [H, W] int64: the previous labels moved onto this frame
+        last_seen: dict[int, np.ndarray] | None = None,  # label -> [H, W] bool
+    ) -> np.ndarray:  # [H, W] int64
+        """argmax over labels of log colour likelihood + log distance prior: the distance to the
+        label's warped region, and for a label whose warped region collapsed (below `recover`
+        times its `last_seen` region) to that region too."""
         idx = self._bin_index(frame)
         labs = sorted(self.hists)
         scores = np.empty((len(labs), *warped.shape))
         for k, lab in enumerate(labs):
-            outside = (warped != lab).astype(np.uint8)
+            region = warped == lab
+            known = last_seen.get(lab) if last_seen is not None else None
+            if known is not None and region.sum() < self.recover * known.sum():
+                region = region | known
+            outside = (~region).astype(np.uint8)
             dist = cv2.distanceTransform(outside, cv2.DIST_L2, 3)
             prior = np.maximum(np.exp(-dist / self.motion_px), self.prior_floor)
             scores[k] = np.log(self.hists[lab][idx]) + np.log(prior)
         return np.asarray(labs)[scores.argmax(0)]
 
     def propagate(
-        self, prev_frame: np.ndarray, frame: np.ndarray, prev_labels: np.ndarray
-    ) -> np.ndarray:
-        """Labels of `frame` from the labels of the frame before it in video order."""
+        self,
+        prev_frame: np.ndarray,  # [H, W, 3] uint8 RGB
+        frame: np.ndarray,  # [H, W, 3] uint8 RGB
+        prev_labels: np.ndarray,  # [H, W] int64
+        last_seen: dict[int, np.ndarray] | None = None,  # label -> [H, W] bool
+    ) -> np.ndarray:  # [H, W] int64
+        """Labels of `frame` from the labels of the frame before it in video order (and, for a
+        label that collapsed, the region it had before: `recover`)."""
         g0 = cv2.cvtColor(frame, cv2.COLOR_RGB2GRAY)
         g1 = cv2.cvtColor(prev_frame, cv2.COLOR_RGB2GRAY)
         flow = cv2.calcOpticalFlowFarneback(
@@ -229,7 +256,7 @@ class FlowWatershedSegmenter(VideoSegmenter):
             cv2.INTER_NEAREST,
             borderMode=cv2.BORDER_REPLICATE,
         ).astype(np.int64)
-        labels = self.refine(frame, self.classify(frame, warped))
+        labels = self.refine(frame, self.classify(frame, warped, last_seen))
         self.fit_colors(frame, labels, self.adapt)
         return labels
 
@@ -272,14 +299,34 @@ class FlowWatershedSegmenter(VideoSegmenter):
         self.hists = {}
         self.fit_colors(frames[prompt.frame], masks[prompt.frame])
         initial = dict(self.hists)
+        last_seen = remember({}, masks[prompt.frame])
         yield prompt.frame, masks[prompt.frame]
         order = list(range(prompt.frame + 1, n)) + list(range(prompt.frame - 1, -1, -1))
         for t in order:
-            if t == prompt.frame - 1:
-                self.hists = dict(initial)  # the backward pass starts from the prompt frame
+            if t == prompt.frame - 1:  # the backward pass starts from the prompt frame
+                self.hists = dict(initial)
+                last_seen = remember({}, masks[prompt.frame])
             src = t - 1 if t > prompt.frame else t + 1
-            masks[t] = self.propagate(frames[src], frames[t], masks[src])
+            masks[t] = self.propagate(
+                frames[src], frames[t], masks[src], last_seen if self.recover > 0 else None
+            )
+            last_seen = remember(last_seen, masks[t], self.recover)
             yield t, masks[t]
+
+
+def remember(
+    last_seen: dict[int, np.ndarray],  # label -> [H, W] bool
+    labels: np.ndarray,  # [H, W] int64
+    collapse: float = 0.0,
+) -> dict[int, np.ndarray]:
+    """`last_seen` with each label of `labels` at its region there, unless that region is
+    smaller than `collapse` times the one remembered (a collapse is not remembered)."""
+    out = dict(last_seen)
+    for lab in np.unique(labels):
+        region, known = labels == lab, last_seen.get(int(lab))
+        if known is None or region.sum() >= collapse * known.sum():
+            out[int(lab)] = region
+    return out
 
 
 def click_region(

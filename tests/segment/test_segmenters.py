@@ -9,7 +9,7 @@ import torch
 from bench.runners.eval import prepare_segmenter
 from sagonline.score.metrics import match_labels, relabel, view_metrics
 from sagonline.segment import ObjectPrompt, Prompt
-from sagonline.segment.classical import FlowWatershedSegmenter
+from sagonline.segment.classical import ClassicalConfig, FlowWatershedSegmenter, remember
 from sagonline.segment.compat import nms_reference
 from sagonline.segment.sam3_text import SAM3TextSegmenter, merge_text_masks
 from sagonline.segment.yolo import TrackLabeler
@@ -78,6 +78,45 @@ def test_classical_grabcut_from_clicks_on_a_single_object():
     res = FlowWatershedSegmenter(use_masks=False).segment(frames, task.prompt)
     ious = [view_metrics(m, g)["iou"] for m, g in zip(res.masks, task.trajectory_gt, strict=True)]
     assert min(ious) > 0.8, ious
+
+
+def card_video(n: int = 12):
+    """A red disc standing still on noise, and a grey card sliding over it from the left
+    (frames 5 and 6 hide it whole): the frames (n, 64, 96, 3) and the disc's truth masks."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    noise = cv2.GaussianBlur(rng.integers(40, 140, (64, 96, 3)).astype(np.uint8), (5, 5), 0)
+    frames, truth = [], []
+    for t in range(n):
+        frame, disc = noise.copy(), np.zeros((64, 96), np.uint8)
+        cv2.circle(disc, (48, 32), 9, 1, -1)
+        frame[disc > 0] = (220, 40, 40)
+        card = np.s_[:, max(8 * t - 10, 0) : max(8 * t + 24, 0)]
+        frame[card], disc[card] = (128, 128, 128), 0
+        frames.append(frame)
+        truth.append(disc)
+    return frames, truth
+
+
+def test_classical_recovers_an_object_the_flow_lost():
+    """Hidden whole for two frames, the disc comes back with `recover` (where its colour does,
+    in the region it had before it collapsed) and stays lost without it; the frames before
+    are the same. A collapsed region is not remembered."""
+    frames, truth = card_video()
+    prompt = Prompt(objects=[ObjectPrompt(label=1, mask=truth[0] > 0)], frame=0)
+    kept = FlowWatershedSegmenter().segment(frames, prompt).masks
+    lost = FlowWatershedSegmenter(recover=0).segment(frames, prompt).masks
+    assert [int((m == 1).sum()) for m in lost[5:]] == [0] * 7
+    ious = [view_metrics(m, g)["iou"] for m, g in zip(kept[7:], truth[7:], strict=True)]
+    assert min(ious) > 0.9, ious
+    assert all(np.array_equal(a, b) for a, b in zip(kept[:7], lost[:7], strict=True))
+    whole, speck = truth[0].astype(np.int64), np.zeros((64, 96), np.int64)
+    speck[32, 48] = 1
+    assert remember({1: whole == 1}, speck, 0.5)[1].sum() == whole.sum()
+    assert remember({1: whole == 1}, speck, 0.0)[1].sum() == 1
+    with pytest.raises(ValueError, match="recover"):
+        ClassicalConfig(recover=2)
 
 
 def test_classical_rejects_text_only_prompts():
