@@ -137,9 +137,7 @@ def depth_correlation(
         patch //= pool
     whole = trusted(1 - pearson(surface.flatten(), prior.flatten(), covered.flatten()), trust)
     H, W = surface.shape
-    if patch == 0:
-        return whole
-    if patch > min(H, W):
+    if patch == 0 or patch > min(H, W):  # the whole view only
         return whole
 
     def tiles(t: torch.Tensor) -> torch.Tensor:  # [H, W] -> [tiles, patch * patch]

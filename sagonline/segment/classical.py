@@ -299,17 +299,14 @@ class FlowWatershedSegmenter(VideoSegmenter):
         self.hists = {}
         self.fit_colors(frames[prompt.frame], masks[prompt.frame])
         initial = dict(self.hists)
-        last_seen = remember({}, masks[prompt.frame])
+        last_seen = seen_at_prompt = remember({}, masks[prompt.frame])
         yield prompt.frame, masks[prompt.frame]
         order = list(range(prompt.frame + 1, n)) + list(range(prompt.frame - 1, -1, -1))
         for t in order:
             if t == prompt.frame - 1:  # the backward pass starts from the prompt frame
-                self.hists = dict(initial)
-                last_seen = remember({}, masks[prompt.frame])
+                self.hists, last_seen = dict(initial), seen_at_prompt
             src = t - 1 if t > prompt.frame else t + 1
-            masks[t] = self.propagate(
-                frames[src], frames[t], masks[src], last_seen if self.recover > 0 else None
-            )
+            masks[t] = self.propagate(frames[src], frames[t], masks[src], last_seen)
             last_seen = remember(last_seen, masks[t], self.recover)
             yield t, masks[t]
 
