@@ -61,6 +61,23 @@ def test_a_fit_that_fails_is_named_with_its_log_and_the_batch_fails(tmp_path, ca
         assert "fit.iterations=0" in log, log
 
 
+def test_fits_of_two_seeds_started_in_one_second_get_their_own_run_folders():
+    """The seeds of one batch start together: a shared run folder would mix their logs, and a
+    refused fit's clean-up would delete it under the other (its log handler then fails)."""
+    from hydra import compose, initialize_config_dir
+
+    from bench.runners.config import register_schemas
+    from tests.fixtures import CONF
+
+    register_schemas()
+    with initialize_config_dir(config_dir=CONF, version_base="1.3"):
+        for seed in (0, 1):
+            overrides = ["dataset=duck_queen", f"seed={seed}"]
+            cfg = compose("scenes", overrides=overrides, return_hydra_config=True)
+            run = cfg.hydra.run.dir
+            assert run.startswith("runs/scenes/duck_queen/") and run.endswith(f"-seed{seed}"), run
+
+
 def test_the_other_vector_width_is_a_variant_of_its_own_and_said_in_the_commands(capsys):
     """--width avx512: the fits run with ATEN_CPU_CAPABILITY=avx512 into the variant avx512
     (or <variant>-avx512): another draw of the recipe, never the AVX2 fit's folder."""
