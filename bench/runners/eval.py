@@ -216,7 +216,7 @@ def prepare_segmenter(node: dict, corrupt: MaskCorruption | None = None) -> Segm
 def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes) -> dict:
     """A finished run is in `out_dir`: skip if it came from this config and these inputs,
     else refuse naming the difference. Nothing in `out_dir` is written either way."""
-    old_flat = finished_config(previous.config)
+    old_flat = finished_config(previous.config, flat_cfg)
     if previous.config_fingerprint != fingerprint and old_flat != flat_cfg:
         refuse(out_dir, ["made with another config:", *config_difference(old_flat, flat_cfg)])
     changed = []

@@ -32,11 +32,13 @@ PRESENTATION_KEYS = ("overwrite", "progress", "record", "cache", "cache_dir", "t
 
 # Settings added after runs were made, with the value that does what those runs did: a
 # finished run whose config lacks one is compared as if it had that value (a new option left
-# at its default does not make a finished run "another config").
+# at its default does not make a finished run "another config"). A plug-in's own setting
+# counts only where this run's plug-in has it (the SAM family's segmenter.max_growth).
 ADDED_SETTINGS = {
     "consensus.body": False,
     "consensus.weighting": "count",
     "label_render.size": "render",
+    "segmenter.max_growth": None,
 }
 
 
@@ -45,13 +47,15 @@ def comparable_config(config: dict) -> dict:
     return flatten({k: v for k, v in config.items() if k not in PRESENTATION_KEYS and k != "hydra"})
 
 
-def finished_config(config: dict) -> dict:
+def finished_config(config: dict, now: dict) -> dict:
     """A finished run's recorded config made comparable (`comparable_config`), the settings
-    added since at the values that do what it did (ADDED_SETTINGS)."""
+    added since that this run's flat config `now` has at the values that do what it did
+    (ADDED_SETTINGS)."""
     flat = comparable_config(config)
     if flat:
         for key, value in ADDED_SETTINGS.items():
-            flat.setdefault(key, value)
+            if key in now:
+                flat.setdefault(key, value)
     return flat
 
 

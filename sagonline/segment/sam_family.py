@@ -79,6 +79,10 @@ class SamPromptingConfig:
     min_similarity: float = 0.0
     """A view whose best candidate's mean feature is less similar than this to the prototype
     gets no mask of the object (it is not seen there); in [-1, 1]."""
+    max_growth: float | None = None
+    """The most a followed object's mask may grow from the view before (area ratio, > 1): a
+    larger candidate is set aside where a smaller one stands, so one view's near-tie with the
+    whole view does not become the prototype the next views follow; null: no bound."""
     click_extent: str = "part"
     """What clicks alone select: part, the part under the click (of the decoder's masks, the
     one that agrees most with the clicks' region of like colour: a donut's icing); object, the
@@ -105,6 +109,11 @@ class SamPromptingConfig:
             "segmenter",
             prompts=(self.prompts in PROMPTS, self.prompts, f"one of {', '.join(PROMPTS)}"),
             refine=(self.refine in REFINES, self.refine, f"one of {', '.join(REFINES)}"),
+            max_growth=(
+                self.max_growth is None or self.max_growth > 1,
+                self.max_growth,
+                "null or > 1",
+            ),
             click_extent=(
                 self.click_extent in CLICK_EXTENTS,
                 self.click_extent,

@@ -53,7 +53,7 @@ class SamFamilySegmenter(VideoSegmenter):
         self.prompts, self.advise_after = cfg.prompts, cfg.advise_after
         self.min_similarity, self.device = cfg.min_similarity, cfg.device
         self.click_extent = cfg.click_extent
-        self.refine = cfg.refine
+        self.refine, self.max_growth = cfg.refine, cfg.max_growth
         self._model: SamPair | None = None
 
     config_type: type  # the registered plug-in's settings dataclass
@@ -104,6 +104,7 @@ class SamFamilySegmenter(VideoSegmenter):
             "decoder_sha256": sha256_file(self.decoder),
             "prompts": self.prompts,
             "click_extent": self.click_extent,
+            "max_growth": self.max_growth,
             "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
             "encoder_precision": self.cfg.encoder_precision,
         }
@@ -164,10 +165,12 @@ class SamFamilySegmenter(VideoSegmenter):
         first = self.prompt_view(model, frames[p], prompt)
         levels = {k: level for k, (_, _, level) in first.items()}
         prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
+        areas = {k: int(mask.sum()) for k, (mask, _, _) in first.items()}
         yield p, self.paint(first, frames[p].shape[:2]), time.perf_counter() - start
         for t in list(range(p + 1, n)) + list(range(p - 1, -1, -1)):
             if t == p - 1:  # the backward pass starts again from the prompt view's prototype
                 prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
+                areas = {k: int(mask.sum()) for k, (mask, _, _) in first.items()}
             start = time.perf_counter()
             emb = model.embed(frames[t])
             fused = advice(t) if advice is not None and self.prompts != "match" else None
@@ -179,10 +182,12 @@ class SamFamilySegmenter(VideoSegmenter):
                 prototype = origin + last
                 prototype = prototype / max(float(np.linalg.norm(prototype)), 1e-6)
                 render = (fused == k) if fused is not None else None
-                mask, feature = self.follow(model, emb, prototype, render, levels[k])
+                bound = self.max_growth * areas[k] if self.max_growth and areas[k] else None
+                mask, feature = self.follow(model, emb, prototype, render, levels[k], bound)
                 found[k] = (mask, feature)
                 if feature is not None:
                     prototypes[k] = (origin, feature)
+                    areas[k] = int(mask.sum())
             yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
 
     def prompt_view(self, model: SamPair, frame: np.ndarray, prompt: Prompt) -> dict:
@@ -270,10 +275,11 @@ class SamFamilySegmenter(VideoSegmenter):
         prototype: np.ndarray | None,
         render: np.ndarray | None,
         level: int = 0,
+        max_area: float | None = None,
     ) -> tuple[np.ndarray, np.ndarray | None]:  # [H, W] bool, its mean feature
         """The object in a later view: the candidates of the module docstring (of each
         prompt, the decoder's mask at the object's `level`), the one most like the
-        prototype."""
+        prototype; candidates of more than `max_area` pixels only where none is smaller."""
 
         def at_level(answers: list[Answer]) -> Answer:
             return answers[min(level, len(answers) - 1)]
@@ -310,8 +316,9 @@ class SamFamilySegmenter(VideoSegmenter):
             inside = interior_point(render)
             found = model.decode(emb, inside[None], np.array([1]), box_of(render))
             candidates.append(at_level(found).mask)
+        within = [m for m in candidates if max_area is None or m.sum() <= max_area]
         scored = []
-        for mask in candidates:
+        for mask in within or candidates:
             feature = emb.mean_feature(mask)
             if feature is not None:
                 scored.append((float(feature @ prototype), mask, feature))

