@@ -374,6 +374,7 @@ OPTION_VALUES = (
             "click_extent",
             "embedding_cache",
             "embedding_cache_gb",
+            "max_growth",
             "encoder",
             "decoder",
             "unknown",
@@ -398,6 +399,7 @@ def test_a_segmenter_option(kind, key, value):
     assert -1.0 <= cfg.min_similarity <= 1.0 and 1 <= cfg.advise_after <= 10000
     assert cfg.device.split(":")[0] in ("cpu", "cuda")
     assert cfg.embedding_cache_gb is None or cfg.embedding_cache_gb > 0
+    assert cfg.max_growth is None or cfg.max_growth > 1
     assert cfg.embedding_cache is None or cfg.embedding_cache.strip().lower() not in (
         "null",
         "none",

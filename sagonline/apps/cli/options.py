@@ -130,7 +130,10 @@ def build_segmenter(args, prompt, replay=None):
 
     plugin = SEGMENTERS[args.segmenter]
     names = {f.name for f in fields(plugin.config)}
-    values: dict = dict(item.split("=", 1) for item in segmenter_options(args))
+    values: dict = {
+        key: None if value.strip().lower() == "null" else value  # Hydra's spelling of none
+        for key, value in (item.split("=", 1) for item in segmenter_options(args))
+    }
     if "device" in names:
         values.setdefault("device", args.device)
     segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))

