@@ -200,16 +200,45 @@ _SOURCES = {
         "csrc/vote_cpu.cpp",
         "csrc/splat_common.h",
     ),
-    "triton": ("triton_vote.py", "triton_composite.py", "projection.py", "rasterize.py"),
+    "triton": (
+        "triton_vote.py",
+        "triton_vote_chunk.py",
+        "triton_composite.py",
+        "projection.py",
+        "rasterize.py",
+    ),
     "gsplat": ("gsplat_backend.py", "_torch_impl.py", "projection.py", "rasterize.py", "sh.py"),
 }
 
 
-@functools.cache
+# The Triton vote's kernels, by the splats a step of its loop takes (0: the splat walk, one):
+# `walk` (triton_vote, the default and the one measured on a GPU), `chunk16` and `chunk32`
+# (triton_vote_chunk); SAGONLINE_TRITON_VOTE chooses, read at each vote, so that a benchmark
+# times them side by side in one process (bench/speed/vote_kernels.py).
+TRITON_VOTE_KERNELS = {"walk": 0, "chunk16": 16, "chunk32": 32}
+
+
+def triton_vote_kernel() -> str:
+    """The Triton vote kernel this process launches (SAGONLINE_TRITON_VOTE, default walk)."""
+    name = os.environ.get("SAGONLINE_TRITON_VOTE") or "walk"
+    if name not in TRITON_VOTE_KERNELS:
+        raise BackendError(
+            f"SAGONLINE_TRITON_VOTE={name!r}: use one of {tuple(TRITON_VOTE_KERNELS)}"
+        )
+    return name
+
+
 def implementation_digest(backend: str) -> str:
-    """A digest of what a resolved backend computes with: its source files (kernels included)
-    and, for gsplat and triton, the installed package's version; part of every cache key that
-    a render or a vote produced, so a changed kernel never reuses an old entry."""
+    """A digest of what a resolved backend computes with: its source files (kernels included),
+    for gsplat and triton the installed package's version, and for triton which of its vote
+    kernels runs (SAGONLINE_TRITON_VOTE); part of every cache key that a render or a vote
+    produced, so a changed kernel never reuses an old entry."""
+    kernel = triton_vote_kernel() if backend == "triton" else ""
+    return _implementation_digest(backend, kernel)
+
+
+@functools.cache
+def _implementation_digest(backend: str, kernel: str) -> str:
     import hashlib
 
     if backend not in _SOURCES:
@@ -222,4 +251,6 @@ def implementation_digest(backend: str) -> str:
 
         with contextlib.suppress(PackageNotFoundError):
             digest.update(version(backend).encode())
+    if kernel not in ("", "walk"):  # the default's digest is the one before the choice
+        digest.update(kernel.encode())
     return digest.hexdigest()

@@ -288,9 +288,11 @@ def bin_tiles(proj: ProjectedSplats, ntx: int, nty: int, ts: int):
     y1 = (torch.floor(proj.bbox[:, 3] / ts) + 1).clamp(0, nty).long()
     wx, wy = (x1 - x0).clamp_min(0), (y1 - y0).clamp_min(0)
     n = wx * wy
-    splat = torch.repeat_interleave(torch.arange(m, device=device), n)
-    first = torch.repeat_interleave(torch.cumsum(n, 0) - n, n)
-    local = torch.arange(splat.numel(), device=device) - first
+    # one host sync for the pairs' count (on CUDA each repeat_interleave without it is another)
+    total = int(n.sum())
+    splat = torch.repeat_interleave(torch.arange(m, device=device), n, output_size=total)
+    first = (torch.cumsum(n, 0) - n)[splat]
+    local = torch.arange(total, device=device) - first
     tx = x0[splat] + local % wx[splat]
     ty = y0[splat] + local // wx[splat]
     tile = ty * ntx + tx

@@ -13,6 +13,11 @@ One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sort
   Gaussian per pixel and, for images, the depth and the final T: the label renders and the
   image renderer of a CUDA machine without gsplat (`triton_composite.py`; no gradients).
 
+A second vote kernel, `triton_vote_chunk._vote_chunk_kernel`, takes the same tile lists CHUNK
+splats at a time; which one the vote op launches is `backends.triton_vote_kernel()`
+(SAGONLINE_TRITON_VOTE: walk, the default, chunk16 or chunk32; docs/performance.md, "The
+chunked vote").
+
 Alpha is `projection.splat_response`'s (3DGS conics, 2DGS ray-splat intersection). The kernel
 is compiled by `triton.jit` for CUDA tensors at run time (no CUDA toolkit needed) or, in a
 process without CUDA, run by Triton's interpreter on CPU tensors, which is how CI tests it.
@@ -315,26 +320,33 @@ def walk(
     )
 
 
+def vote_walk(
+    view: TiledView,
+    hist: torch.Tensor,  # [N, K] float64, added into
+    pixel_labels: torch.Tensor,  # [H, W] int32
+    cast: torch.Tensor,  # [tiles] int64, pairs that voted per tile
+    rule: VoteRule,
+) -> None:
+    """The vote's launch of the splat walk (`walk` with a rule)."""
+    walk(view, hist, hist.shape[1], pixel_labels=pixel_labels, cast=cast, rule=rule)
+
+
 def vote_into(
     gaussians: Gaussians,
     camera: Camera,
     labels: torch.Tensor,  # [H, W] long, the view's mask
     hist: torch.Tensor,  # [N, K] float64, added into
     rule: VoteRule,
+    *,
+    launch=vote_walk,
 ) -> int:
-    """The op `render.vote.vote_into` as one fused Triton walk: one view's votes under `rule`
-    added into hist; returns the pairs that voted."""
+    """The op `render.vote.vote_into` as one fused Triton kernel: one view's votes under `rule`
+    added into hist; returns the pairs that voted. `launch(view, hist, pixel_labels, cast,
+    rule)` runs the kernel: the splat walk, or `triton_vote_chunk.vote_chunks`."""
     with torch.no_grad():
         view = tile_view(gaussians, camera, 0.01, with_colors=False)
         if view is None:
             return 0
         cast = torch.zeros(view.tiles_x * view.tiles_y, dtype=torch.int64, device=hist.device)
-        walk(
-            view,
-            hist,
-            hist.shape[1],
-            pixel_labels=labels.to(torch.int32).contiguous(),
-            cast=cast,
-            rule=rule,
-        )
+        launch(view, hist, labels.to(torch.int32).contiguous(), cast, rule)
         return int(cast.sum())

@@ -16,7 +16,8 @@ rule) -> pairs voted` (as gsplat pairs `_wrapper.py` with `_torch_impl.py`):
 - native (`native.py`): the compiled CPU pass (csrc/prepare_view.cpp: projection and tile
   lists; csrc/vote_cpu.cpp: an 8-pixel-wide walk in C++, AVX2 chosen at run time);
 - triton (`triton_vote.py`): the fused trace-and-vote kernel, one launch per view, on CUDA; the
-  tests run the same kernel on the CPU through Triton's interpreter;
+  tests run the same kernel on the CPU through Triton's interpreter (SAGONLINE_TRITON_VOTE=
+  chunk16 or chunk32: `triton_vote_chunk.py`'s chunked vote instead);
 - gsplat (`_torch_impl.py`, `via="gsplat"`): gsplat's per-pixel ids walked in depth batches
   from Python (CUDA; the former path, kept to compare against).
 """
@@ -27,7 +28,11 @@ import functools
 
 import torch
 
-from sagonline.render.backends import resolve_vote_backend
+from sagonline.render.backends import (
+    TRITON_VOTE_KERNELS,
+    resolve_vote_backend,
+    triton_vote_kernel,
+)
 from sagonline.render.rule import VoteRule
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -73,8 +78,10 @@ def vote_into(
         raise ValueError(
             f"labels are {tuple(labels.shape)}; the view renders {camera.height}x{camera.width}"
         )
-    if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= k):
-        raise ValueError(f"label ids must lie in [0, {k})")
+    if labels.numel():  # one host sync on CUDA, not two
+        low, high = (int(v) for v in torch.aminmax(labels))
+        if low < 0 or high >= k:
+            raise ValueError(f"label ids must lie in [0, {k})")
     if hist.shape != (n, k) or hist.dtype != torch.float64 or not hist.is_contiguous():
         raise ValueError(f"out must be a contiguous ({n}, {k}) float64 histogram")
     chosen = resolve_vote_backend(backend, gaussians.device)
@@ -90,10 +97,16 @@ def implementation(backend: str):
         from sagonline.render.native import vote_into
 
         return vote_into
-    if backend == "triton":
-        from sagonline.render.triton_vote import vote_into
+    if backend == "triton":  # the splat walk, or the chunked vote (`triton_vote_kernel`)
+        from sagonline.render import triton_vote
 
-        return vote_into
+        chunk = TRITON_VOTE_KERNELS[triton_vote_kernel()]
+        if chunk:
+            from sagonline.render.triton_vote_chunk import vote_chunks
+
+            launch = functools.partial(vote_chunks, chunk=chunk)
+            return functools.partial(triton_vote.vote_into, launch=launch)
+        return triton_vote.vote_into
     from sagonline.render import _torch_impl
 
     if backend == "gsplat":

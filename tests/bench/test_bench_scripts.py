@@ -54,6 +54,47 @@ def test_bench_render_rows_on_cuda_follow_what_is_installed():
 
 
 @pytest.mark.slow
+def test_bench_vote_kernels_quick_agree_with_the_first_kernel(tmp_path):
+    """The chunked Triton votes side by side in the interpreter (the splat walk takes minutes
+    there; on a GPU it is the first, the base)."""
+    out = tmp_path / "kernels.csv"
+    text = _run("vote_kernels", "--kernels", "chunk16,chunk32", "--out", str(out))
+    table = pd.read_csv(out)
+    assert list(table.kernel.unique()) == ["chunk16", "chunk32"]
+    assert table.same_votes_as_first.all() and (table.aggregate_ms > 0).all()
+    assert "interpreter" in text
+
+
+def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run(monkeypatch):
+    """On a GPU lent for minutes, a chunked kernel that does not compile must not cost the
+    splat walk's figures."""
+    from bench.speed.vote_kernels import kernel_rows
+    from sagonline.render import triton_vote_chunk
+    from tests.fixtures import random_gaussians, small_camera
+
+    def broken(*args, **kwargs):
+        raise RuntimeError("no such layout")
+
+    monkeypatch.setattr(triton_vote_chunk, "vote_chunks", broken)
+    g = random_gaussians(40, "3dgs", seed=3, spread=0.8)
+    views = [small_camera(20, 15, eye=(0.3, -4.0, 0.8), name="a")]
+    rows = kernel_rows("tiny", g, views, ["walk", "chunk16"], 2, 1, "cpu")
+    assert rows[0]["error"] is None and rows[0]["same_votes_as_first"]
+    assert rows[1]["error"] == "RuntimeError: no such layout"
+
+
+def test_bench_vote_kernels_refuses_an_unknown_kernel():
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.speed.vote_kernels", "--kernels", "walk,chunk8"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert proc.returncode == 2 and "chunk8" in proc.stderr
+
+
+@pytest.mark.slow
 def test_bench_contention_quick(tmp_path):
     out = tmp_path / "contention.csv"
     _run("contention", "--out", str(out))

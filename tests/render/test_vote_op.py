@@ -80,11 +80,17 @@ def test_native_matches_the_reference(kind, seed, rule):
         _same(got, ref, RULES[rule].weighting, bound)
 
 
+TRITON_VOTE_KERNELS = ["walk", "chunk16", "chunk32"]
+
+
 @needs_triton
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
-@pytest.mark.parametrize("rule", ["rgc", "rgc-eps.2-delta.7", "blend"])
-def test_triton_kernel_matches_the_reference(kind, rule):
-    """The fused GPU kernel, run by Triton's interpreter on the CPU (on CUDA with -m gpu)."""
+@pytest.mark.parametrize("rule", ["rgc", "rgc-eps.2-delta.7", "rgc-eps0-delta6", "blend"])
+@pytest.mark.parametrize("kernel", TRITON_VOTE_KERNELS)
+def test_triton_kernel_matches_the_reference(kind, rule, kernel, monkeypatch):
+    """The fused GPU kernels (the splat walk and the chunked vote), run by Triton's interpreter
+    on the CPU (on CUDA with -m gpu)."""
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", kernel)
     g, cams = _scene_views(kind, 3, 40, 20, 15)
     labels = _masks(cams[0], 3, 0)
     ref = vote_histogram(g, cams[0], labels, 3, RULES[rule], backend="torch")
@@ -268,9 +274,12 @@ KERNEL_CASES = {
     "3dgs-3000-320x240": ("3dgs", 3000, 320, 240),
     "2dgs-3000-320x240": ("2dgs", 3000, 320, 240),
 }
-# The interpreter takes about 30 s per rule and case: each kind with one of the rules (both
-# rules on both kinds run at the small size in test_triton_kernel_matches_the_reference).
+# The interpreter takes about 30 s per rule and case for the splat walk: each kind with one of
+# the rules (both rules on both kinds run at the small size in
+# test_triton_kernel_matches_the_reference). The chunked vote takes under a second at 96x72 and
+# 5-7 s at 320x240 there: every case, both rules.
 INTERPRETED = {"3dgs-800-96x72": ("rgc",), "2dgs-800-96x72": ("blend",)}
+INTERPRETED_CHUNKS = {case: ("rgc", "blend") for case in KERNEL_CASES}
 
 
 def _check_kernel_case(case: str, device: str, views: int, rules=("rgc", "blend")) -> None:
@@ -294,6 +303,36 @@ def test_triton_kernel_on_the_gpu_tests_inputs_in_the_interpreter(case):
     if torch.cuda.is_available():
         pytest.skip("CUDA is here: the gpu test runs these inputs compiled")
     _check_kernel_case(case, "cpu", views=1, rules=INTERPRETED[case])
+
+
+@pytest.mark.slow
+@needs_triton
+@pytest.mark.parametrize("case", INTERPRETED_CHUNKS)
+def test_the_chunked_vote_on_the_gpu_tests_inputs_in_the_interpreter(case, monkeypatch):
+    """Counts exact, blend weights within the derived bound, as the splat walk's."""
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is here: the gpu test runs these inputs compiled")
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk16")
+    _check_kernel_case(case, "cpu", views=1, rules=INTERPRETED_CHUNKS[case])
+
+
+@needs_triton
+def test_an_unknown_triton_vote_kernel_is_refused_and_each_kernel_keys_its_own_cache(
+    monkeypatch,
+):
+    from sagonline.render.backends import implementation_digest
+
+    g, cams = _scene_views("3dgs", 3, 40, 20, 15)
+    digests = set()
+    for kernel in TRITON_VOTE_KERNELS:
+        monkeypatch.setenv("SAGONLINE_TRITON_VOTE", kernel)
+        digests.add(implementation_digest("triton"))
+    assert len(digests) == len(TRITON_VOTE_KERNELS)  # a vote cached by one is not another's
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "")
+    assert implementation_digest("triton") in digests  # unset: the walk
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk8")
+    with pytest.raises(ValueError, match=r"SAGONLINE_TRITON_VOTE='chunk8'.*walk"):
+        vote_histogram(g, cams[0], _masks(cams[0], 3, 0), 3, RULES["rgc"], backend="triton")
 
 
 @pytest.mark.slow
@@ -336,8 +375,12 @@ def test_the_blend_bound_takes_another_rounding_and_refuses_a_wrong_walk(monkeyp
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available() or not HAS_TRITON, reason="needs CUDA, triton")
 @pytest.mark.parametrize("case", list(KERNEL_CASES))
-def test_triton_on_cuda_matches_the_reference(case):
+@pytest.mark.parametrize("kernel", TRITON_VOTE_KERNELS)
+def test_triton_on_cuda_matches_the_reference(case, kernel, monkeypatch):
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", kernel)
     _check_kernel_case(case, "cuda", views=3)
+    if kernel != "walk":  # the composite walk is one kernel: checked once
+        return
     kind, n, width, height = KERNEL_CASES[case]
     g, cams = _scene_views(kind, 0, n, width, height)
     for cam in cams:

@@ -1,0 +1,114 @@
+"""The Triton vote kernels side by side: the splat walk (`walk`, the default) and the chunked
+vote (`chunk16`, `chunk32`), on `bench.speed.render`'s scenes: ms per vote, `--masks` votes in a
+row, and whether each kernel's histogram is the first kernel's (RGC counts: exactly).
+
+    python -m bench.speed.vote_kernels [--device cuda] [--kernels walk,chunk16,chunk32]
+                                       [--masks 206] [--repeats 5] [--out F.csv] [--quick]
+
+The kernel is chosen per vote by SAGONLINE_TRITON_VOTE (`render.backends.triton_vote_kernel`), so
+the kernels run in one process on one machine: their ratio is the figure to read. On the CPU
+the kernels run in Triton's interpreter (what the tests run, with --quick): its times say
+nothing of a GPU's.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+from functools import partial
+from pathlib import Path
+
+import pandas as pd
+import torch
+
+from bench.speed.render import RULE, aggregate, random_mask, scenes, timed
+from sagonline.render import vote_histogram
+from sagonline.render.backends import TRITON_VOTE_KERNELS
+
+
+@contextlib.contextmanager
+def triton_vote_kernel(kernel: str):
+    """SAGONLINE_TRITON_VOTE set to `kernel` within, restored after."""
+    before = os.environ.get("SAGONLINE_TRITON_VOTE")
+    os.environ["SAGONLINE_TRITON_VOTE"] = kernel
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("SAGONLINE_TRITON_VOTE")
+        else:
+            os.environ["SAGONLINE_TRITON_VOTE"] = before
+
+
+def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: int, device: str):
+    """One row per kernel on one scene: ms per vote (median of `repeats` after a warm-up), ms
+    for `masks` votes in a row, and whether its histogram of one mask equals the first
+    kernel's that ran (exact) or how far it is (largest difference); a kernel that fails has
+    its error instead."""
+    ring = [v.to(device) for v in views]
+    mask_of = [random_mask(v) for v in ring]
+    many = [mask_of[i % len(ring)] for i in range(masks)]
+    rows, first, first_ms = [], None, None
+    for kernel in kernels:
+        row = {"scene": name, "device": device, "kernel": kernel, "masks": masks}
+        try:  # a kernel that fails to compile or run is a row that says so, not the end
+            with triton_vote_kernel(kernel):
+                vote = partial(vote_histogram, g, ring[0], mask_of[0], 3, RULE, backend="triton")
+                hist = vote()
+                ms = 1000 * timed(vote, repeats, device)
+                warm = partial(aggregate, g, ring, many[: len(ring)], "triton")
+                all_ms = 1000 * timed(partial(aggregate, g, ring, many, "triton"), 1, device, warm)
+        except Exception as exc:  # noqa: BLE001 (reported in the table)
+            rows.append(row | {"error": f"{type(exc).__name__}: {exc}"[:300]})
+            continue
+        first = hist if first is None else first
+        first_ms = ms if first_ms is None else first_ms
+        rows.append(
+            row
+            | {
+                "vote_ms_per_mask": ms,
+                "aggregate_ms": all_ms,
+                "speedup_vs_first": first_ms / ms,
+                "same_votes_as_first": bool(torch.equal(hist, first)),
+                "max_difference": float((hist - first).abs().max()),
+                "error": None,
+            }
+        )
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--kernels", default="walk,chunk16,chunk32", help="the first is the base")
+    ap.add_argument("--masks", type=int, default=206, help="votes in the aggregate column")
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")
+    ap.add_argument("--quick", action="store_true", help="the tiny scenes, 2 masks, 1 repeat")
+    args = ap.parse_args()
+    if args.quick:
+        args.masks, args.repeats = 2, 1
+    kernels = args.kernels.split(",")
+    unknown = [k for k in kernels if k not in TRITON_VOTE_KERNELS]
+    if unknown or not kernels:
+        ap.error(f"--kernels {args.kernels!r}: each one of {tuple(TRITON_VOTE_KERNELS)}")
+    rows = []
+    for name, g, _, views in scenes(args.quick):
+        rows += kernel_rows(
+            name, g.to(args.device), views, kernels, args.masks, args.repeats, args.device
+        )
+    table = pd.DataFrame(rows)
+    gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
+    where = gpu or "the CPU, in Triton's interpreter (not a GPU's times)"
+    print(f"Triton vote kernels on {where}; RGC, 3-label masks; median of {args.repeats}\n")
+    print(table.to_markdown(index=False, floatfmt=".3g"))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        table.assign(gpu=gpu).to_csv(args.out, index=False)
+    if table["error"].notna().any():
+        raise SystemExit("a kernel failed: its row says why")
+
+
+if __name__ == "__main__":
+    main()
