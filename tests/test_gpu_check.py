@@ -7,6 +7,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import tarfile
 from pathlib import Path
 
 import pandas as pd
@@ -30,6 +31,10 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             str(tmp_path),
             "--step-timeout",
             "600",
+            "--deadline",
+            "1200",
+            "--archive",
+            str(tmp_path / "archive" / "check.tgz"),
         ],
         cwd=ROOT,
         capture_output=True,
@@ -47,10 +52,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         "table-timing",
         "table-masks",
         "vote profile",
+        "vote kernels",
     ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary
-    for table in ("bench_render", "timing", "masks"):
+    for table in ("bench_render", "timing", "masks", "vote_kernels"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
     data = ROOT.parent / "shared" / "data"
@@ -64,8 +70,36 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         assert set(runtimes["encoder runtime"]) == {"onnxruntime", "torch"}
         assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
     if (data / "duck_queen").is_dir():  # the fit on a copy of it
-        fit = pd.read_csv(tmp_path / "gpu_fit_cpu_check.csv")
-        assert fit["iterations"].tolist() == [30] and 0 <= fit["real mIoU"].iloc[0] <= 100
+        fit = pd.read_csv(tmp_path / "gpu_fit_cpu_check.csv").set_index("fit")
+        assert fit.loc["gpu", "iterations"] == 30 and 0 <= fit.loc["gpu", "real mIoU"] <= 100
+        assert fit.loc["gpu", "stopped"] == "iterations"  # the deadline's budget left it alone
+    with tarfile.open(tmp_path / "archive" / "check.tgz") as archive:
+        names = archive.getnames()
+    assert any(n.endswith("/gpu_check.md") for n in names)
+    assert any(n.endswith("/timing_cpu_check.csv") for n in names)
+    assert any(n.endswith("/eval.log") for n in names)  # the runs' own logs travel too
+    assert not any(n.endswith((".ply", ".png")) and "/gpu_check." in n for n in names)
+
+
+def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_path):
+    """--deadline bounds the whole run: with no time left every step is skipped as a failure,
+    and the summary and the archive are written all the same."""
+    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    archive = tmp_path / "check.tgz"
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
+        + ["--deadline", "5", "--archive", str(archive), "--skip-fit"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
+    summary = (tmp_path / "gpu_check.md").read_text()
+    assert "| environment | FAIL (skipped:" in summary and "| pass |" not in summary
+    with tarfile.open(archive) as packed:
+        assert any(n.endswith("/gpu_check.md") for n in packed.getnames())
 
 
 def test_an_unknown_option_is_refused():

@@ -1,8 +1,9 @@
 """The first GPU fit's row: what `scripts/gpu_check.sh` fitted (fit_metrics.json) and how the
-capture scores on it (the real masks' and the classical segmenter's metrics.json), as one
-CSV row and its Markdown table.
+capture scores on it (the real masks' and the classical segmenter's metrics.json), beside the
+CPU fit of the same capture and seed (its fit_config.json and fit_metrics.json, which `make
+gpu-bundle` carries), as CSV rows and their Markdown table.
 
-    python -m bench.tables.gpu_fit FIT_DIR --runs real=RUN classical=RUN --out F.csv
+    python -m bench.tables.gpu_fit FIT_DIR --runs real=RUN classical=RUN [--cpu-fit DIR] --out F.csv
 """
 
 from __future__ import annotations
@@ -23,17 +24,23 @@ FIT_COLUMNS = (
 )
 
 
-def fit_row(fit_dir: Path, runs: dict[str, Path]) -> dict:
-    """One row: the fit's recipe size and figures, and each run's mIoU (percent)."""
+def fit_row(fit_dir: Path, runs: dict[str, Path], fit: str = "gpu") -> dict:
+    """One row: the fit's recipe size and figures (seconds per 1,000 iterations too), and each
+    run's mIoU (percent)."""
     metrics = json.loads((fit_dir / "fit_metrics.json").read_text())
     config = json.loads((fit_dir / "fit_config.json").read_text())
     row = {
+        "fit": fit,
         "scene": metrics.get("scene"),
         "device": config.get("device"),
         "resolution": "x".join(str(v) for v in metrics.get("resolution", [])),
         "seed": config.get("seed"),
+        "init": metrics.get("init"),
     }
     row |= {k: round(v, 2) if isinstance(v := metrics.get(k), float) else v for k in FIT_COLUMNS}
+    if metrics.get("iterations") and metrics.get("fit_seconds") is not None:
+        row["s per 1k iterations"] = round(1000 * metrics["fit_seconds"] / metrics["iterations"], 1)
+    row["stopped"] = metrics.get("stopped")
     for source, run in runs.items():
         run_metrics = json.loads((run / "metrics.json").read_text())
         row[f"{source} mIoU"] = round(100 * run_metrics["miou"], 2)
@@ -45,6 +52,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("fit_dir", type=Path, help="the fit's folder (fit_metrics.json)")
     ap.add_argument("--runs", nargs="*", default=[], help="SOURCE=RUN_DIR, each an evaluation")
+    ap.add_argument(
+        "--cpu-fit", type=Path, help="the CPU fit's figures (fit_config.json, fit_metrics.json)"
+    )
     ap.add_argument("--out", type=Path, required=True, help="the CSV to write (a .md beside it)")
     args = ap.parse_args()
     runs = {}
@@ -53,7 +63,10 @@ def main() -> None:
         if not folder:
             ap.error(f"--runs {item!r}: give SOURCE=RUN_DIR")
         runs[source] = Path(folder)
-    table = pd.DataFrame([fit_row(args.fit_dir, runs)])
+    rows = [fit_row(args.fit_dir, runs)]
+    if args.cpu_fit is not None:
+        rows.append(fit_row(args.cpu_fit, {}, fit="cpu (the same capture and seed)"))
+    table = pd.DataFrame(rows)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(args.out, index=False)
     args.out.with_suffix(".md").write_text(table.to_markdown(index=False) + "\n")

@@ -150,6 +150,16 @@ def initial_points(
                 peak_threshold=cfg.sift_peak_threshold,
                 guided_matching=cfg.guided_matching,
             )
+        except ImportError as exc:  # a machine without pycolmap (the GPU machines lent so far)
+            why = (
+                f"triangulation needs pycolmap ({exc}); install it (`pip install pycolmap`), or "
+                f"put the start points a fit of seed {cfg.seed} cached beside this one at "
+                f"{cache} (`make gpu-bundle` carries duck_queen's)"
+            )
+            if cfg.init == "triangulate":
+                raise DatasetError(f"{scene_dir}: {why}") from exc
+            print(f"note: {scene_dir}: {why}; random start points")
+            return None, "random in frusta (no pycolmap)"
         except (ValueError, RuntimeError) as exc:  # e.g. images in several folders
             if cfg.init == "triangulate":
                 raise DatasetError(f"{scene_dir}: triangulation failed: {exc}") from exc

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial import cKDTree
@@ -80,3 +82,35 @@ def test_needs_two_views(tmp_path):
     s = make_scene(layout="forward", num_gaussians=500, width=32, height=24, num_train_views=2)
     with pytest.raises(ValueError, match="at least two"):
         triangulate_known_poses(s.train_cameras[:1], {}, num_threads=1)
+
+
+def test_a_machine_without_pycolmap_fits_from_cached_start_points_or_says_why(
+    tmp_path, monkeypatch
+):
+    """The lent GPU machines have no pycolmap: a fit there reads the start points a fit of the
+    same views and seed cached (what `make gpu-bundle` carries); without them, `auto` starts
+    from random points and says why, and `triangulate` is refused naming pycolmap."""
+    from sagonline.core import store
+    from sagonline.core.errors import DatasetError
+    from sagonline.fitting import FitConfig
+    from sagonline.fitting.capture import initial_points
+    from sagonline.fitting.start_points import split_views
+
+    s = make_scene(layout="forward", num_gaussians=500, width=32, height=24, num_train_views=4)
+    cams = s.train_cameras
+    images = {c.name: tmp_path / f"{c.name}.png" for c in cams}
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # `import pycolmap` raises ImportError
+    out, shared = tmp_path / "gaussians-gpu", tmp_path / "gaussians"
+
+    points, init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, shared)
+    assert points is None and init == "random in frusta (no pycolmap)"
+    with pytest.raises(DatasetError, match=r"needs pycolmap.*init_points\.store"):
+        initial_points(FitConfig(init="triangulate"), tmp_path, cams, images, out, shared)
+
+    train, _ = split_views(cams, FitConfig().holdout_every, FitConfig().train_every)
+    xyz = np.random.default_rng(0).random((150, 3)).astype(np.float32)
+    key = ",".join(cams[i].name for i in train) + "|seed=0"
+    shared.mkdir()
+    store.save(shared / "init_points.store", {"xyz": xyz, "rgb": xyz, "views": key})
+    (got, _), init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, shared)
+    assert np.array_equal(got, xyz) and "cached in gaussians" in init
