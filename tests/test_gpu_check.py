@@ -18,32 +18,27 @@ ROOT = Path(__file__).resolve().parents[1]
 pytestmark = pytest.mark.slow
 
 
-def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
+def _quick_check(tmp_path, *args: str, timeout: int, expect: int = 0) -> str:
+    """`scripts/gpu_check.sh --quick --device cpu --out tmp_path ARGS`; its summary."""
     env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     proc = subprocess.run(
-        [
-            "bash",
-            "scripts/gpu_check.sh",
-            "--quick",
-            "--device",
-            "cpu",
-            "--out",
-            str(tmp_path),
-            "--step-timeout",
-            "600",
-            "--deadline",
-            "1200",
-            "--archive",
-            str(tmp_path / "archive" / "check.tgz"),
-        ],
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
+        + list(args),
         cwd=ROOT,
         capture_output=True,
         text=True,
-        timeout=600,
+        timeout=timeout,
         env=env,
     )
-    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
-    summary = (tmp_path / "gpu_check.md").read_text()
+    assert proc.returncode == expect, proc.stdout[-4000:] + proc.stderr[-2000:]
+    return (tmp_path / "gpu_check.md").read_text()
+
+
+def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
+    archive = str(tmp_path / "archive" / "check.tgz")
+    summary = _quick_check(
+        tmp_path, "--step-timeout", "600", "--deadline", "1200", "--archive", archive, timeout=600
+    )
     for step in (
         "environment",
         "pytest -m gpu",
@@ -87,19 +82,10 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
 def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_path):
     """--deadline bounds the whole run: with no time left every step is skipped as a failure,
     and the summary and the archive are written all the same."""
-    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     archive = tmp_path / "check.tgz"
-    proc = subprocess.run(
-        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
-        + ["--deadline", "5", "--archive", str(archive), "--skip-fit"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=120,
-        env=env,
+    summary = _quick_check(
+        tmp_path, "--deadline", "5", "--archive", str(archive), "--skip-fit", timeout=120, expect=1
     )
-    assert proc.returncode == 1, proc.stdout[-2000:] + proc.stderr[-2000:]
-    summary = (tmp_path / "gpu_check.md").read_text()
     assert "| environment | FAIL (skipped:" in summary and "| pass |" not in summary
     with tarfile.open(archive) as packed:
         assert any(n.endswith("/gpu_check.md") for n in packed.getnames())
@@ -108,18 +94,9 @@ def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_pa
 def test_steps_and_skip_choose_the_steps_by_the_start_of_their_names(tmp_path):
     """--steps keeps the steps named by a prefix, --skip leaves some of those out; a step left
     out is listed as such, not as a failure (a second call on a lent machine runs the rest)."""
-    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
-    proc = subprocess.run(
-        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
-        + ["--steps", "environment,eval", "--skip", "eval (make", "--skip-fit"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env=env,
+    summary = _quick_check(
+        tmp_path, "--steps", "environment,eval", "--skip", "eval (make", "--skip-fit", timeout=300
     )
-    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-2000:]
-    summary = (tmp_path / "gpu_check.md").read_text()
     ran = [line.split(" | ")[0].strip("| ") for line in summary.splitlines() if "| pass |" in line]
     assert ran == ["environment", "eval without gsplat"]
     assert "| eval (make eval) | left out (--steps / --skip) |" in summary
