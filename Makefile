@@ -94,7 +94,8 @@ bench: install
 # gsplat's wheel (its CUDA sources compile there on first use) and rich, the one package it
 # imports that such a machine may lack, travel too, and all of duck_queen (the first GPU fit;
 # its photographs and masks for the encoder-runtime step) with its CPU fit's start points and
-# figures, where that fit is here (scripts/bundle_cpu_fit.py). About 16 MB.
+# figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
+# benchmarks' 3DGS scene). About 16 MB.
 GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py rich
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
@@ -106,6 +107,8 @@ gpu-bundle: install-extras
 	if [ -d ../shared/data/duck_queen ]; then mkdir -p .gpu-bundle/data && \
 	  cp -r ../shared/data/duck_queen .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data && \
 	  $(BIN)/python scripts/bundle_cpu_fit.py duck_queen --bundle .gpu-bundle; fi
+	if [ -d ../shared/data/donut_3dgs ]; then mkdir -p .gpu-bundle/data && \
+	  cp -r ../shared/data/donut_3dgs .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data; fi
 	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
 	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
 

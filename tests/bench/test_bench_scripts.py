@@ -41,6 +41,23 @@ def test_bench_render_quick_writes_its_table(tmp_path):
     assert "96x54" in text and "wrote" in text
 
 
+@pytest.mark.skipif(not DONUT.is_dir(), reason="the shared donut is not beside the checkout")
+def test_the_bench_scenes_take_the_bundles_donut_where_the_shared_data_is_absent(
+    tmp_path, monkeypatch
+):
+    """A GPU machine has no shared data beside the checkout: the donut `make gpu-bundle`
+    carries is the vote benchmarks' 3DGS scene there."""
+    import shutil
+
+    from bench.speed import render as render_bench
+
+    checkout = tmp_path / "checkout"
+    shutil.copytree(DONUT, checkout / ".gpu-bundle" / "data" / "donut_3dgs")
+    monkeypatch.setattr(render_bench, "ROOT", checkout)
+    names = [name for name, *_ in render_bench.scenes(quick=True)]
+    assert names[0].startswith("donut (3DGS") and len(names) == 2
+
+
 def test_bench_render_rows_on_cuda_follow_what_is_installed():
     cuda = dict(cuda=True, native=False)
     assert backends("cuda", Installed(**cuda, gsplat=False, triton=True)) == [
