@@ -78,8 +78,8 @@ def vote_into(
         raise ValueError(
             f"labels are {tuple(labels.shape)}; the view renders {camera.height}x{camera.width}"
         )
-    if labels.numel():  # one host sync on CUDA, not two
-        low, high = (int(v) for v in torch.aminmax(labels))
+    if labels.numel():  # one copy to the host on CUDA, not two
+        low, high = torch.stack(torch.aminmax(labels)).tolist()
         if low < 0 or high >= k:
             raise ValueError(f"label ids must lie in [0, {k})")
     if hist.shape != (n, k) or hist.dtype != torch.float64 or not hist.is_contiguous():
