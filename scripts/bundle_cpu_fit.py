@@ -5,7 +5,8 @@
 From the capture's default fit of seed 0 (`make scenes`, `bench.runners.fit_captures`):
 - its triangulated start points (init_points.store) into <bundle>/data/<capture>/gaussians/,
   where a fit of another recipe of the same seed reads them: the GPU fit then starts from the
-  CPU fit's points (the lent GPU machines have no pycolmap to triangulate with);
+  CPU fit's points (a GPU machine without a package registry may have no pycolmap to
+  triangulate with);
 - its fit_config.json and fit_metrics.json into <bundle>/cpu_fit/<capture>/, the CPU row that
   `bench.tables.gpu_fit --cpu-fit` sets beside the GPU fit.
 

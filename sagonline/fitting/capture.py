@@ -150,7 +150,7 @@ def initial_points(
                 peak_threshold=cfg.sift_peak_threshold,
                 guided_matching=cfg.guided_matching,
             )
-        except ImportError as exc:  # a machine without pycolmap (the GPU machines lent so far)
+        except ImportError as exc:  # a machine without pycolmap (a GPU machine without a registry)
             why = (
                 f"triangulation needs pycolmap ({exc}); install it (`pip install pycolmap`), or "
                 f"put the start points a fit of seed {cfg.seed} cached beside this one at "

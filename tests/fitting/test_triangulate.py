@@ -87,9 +87,10 @@ def test_needs_two_views(tmp_path):
 def test_a_machine_without_pycolmap_fits_from_cached_start_points_or_says_why(
     tmp_path, monkeypatch
 ):
-    """The lent GPU machines have no pycolmap: a fit there reads the start points a fit of the
-    same views and seed cached (what `make gpu-bundle` carries); without them, `auto` starts
-    from random points and says why, and `triangulate` is refused naming pycolmap."""
+    """A GPU machine without a registry may have no pycolmap: a fit there reads the start
+    points a fit of the same views and seed cached (what `make gpu-bundle` carries); without
+    them, `auto` starts from random points and says why, and `triangulate` is refused naming
+    pycolmap."""
     from sagonline.core import store
     from sagonline.core.errors import DatasetError
     from sagonline.fitting import FitConfig
