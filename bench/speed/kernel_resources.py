@@ -1,0 +1,142 @@
+"""The Triton vote kernels compiled for a GPU without one: registers per thread, the stack frame
+their spilled registers take, shared memory, and the blocks an SM can hold, per kernel and rule.
+
+    python -m bench.speed.kernel_resources [--arch 90] [--out F.csv] [--quick]
+
+Triton compiles for a named target on any machine (its wheel carries ptxas and cuobjdump), so
+this runs on the CPU: a kernel that does not compile for CUDA is caught here, and what bounds
+its occupancy (registers, shared memory) is known before a GPU times it. The walk launches 4
+warps, the chunked vote `triton_vote_chunk.CHUNK_WARPS`. "blocks per SM" takes an sm_90 SM's
+limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory; registers allocated
+per warp in units of 256). --quick: the 3DGS count vote of each kernel only (what the tests
+run).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import tempfile
+from pathlib import Path
+
+import pandas as pd
+
+# Compile, never interpret: set before triton is first imported (render.triton_vote would
+# choose the interpreter on a machine without CUDA).
+os.environ["TRITON_INTERPRET"] = "0"
+
+# sm_90's limits per SM
+REGISTERS, THREADS, BLOCKS, SHARED = 65_536, 2_048, 32, 228 * 1024
+
+POINTER_TYPES = {  # the kernels' pointer arguments, as the vote passes them
+    "params_ptr": "*fp32",
+    "order_ptr": "*i64",
+    "offsets_ptr": "*i64",
+    "counts_ptr": "*i64",
+    "ids_ptr": "*i64",
+    "pixel_labels_ptr": "*i32",
+    "rows_ptr": "*fp32",
+    "out_ptr": "*fp64",
+    "best_ptr": "*i64",
+    "depth_ptr": "*fp32",
+    "trans_ptr": "*fp32",
+    "cast_ptr": "*i64",
+}
+SCALAR_TYPES = {"eps": "fp32", "delta": "fp32", "t_stop": "fp32"}  # the rest: i32
+
+
+def compile_for(fn, constants: dict, warps: int, arch: int):
+    """`fn` (a triton.jit kernel) compiled for CUDA sm_`arch` with `constants` bound."""
+    import triton
+    from triton.backends.compiler import GPUTarget
+    from triton.compiler import ASTSource
+
+    names = list(fn.arg_names)
+    signature = {
+        name: "constexpr"
+        if name in constants
+        else POINTER_TYPES.get(name, SCALAR_TYPES.get(name, "i32"))
+        for name in names
+    }
+    bound = {(i,): constants[name] for i, name in enumerate(names) if name in constants}
+    source = ASTSource(fn=fn, signature=signature, constexprs=bound)
+    return triton.compile(source, target=GPUTarget("cuda", arch, 32), options={"num_warps": warps})
+
+
+def resources(kernel) -> dict:
+    """Registers per thread, its stack frame (registers spilled there) and the shared memory of
+    a compiled kernel, read from its cubin by the cuobjdump in Triton's wheel."""
+    import triton
+
+    tool = Path(triton.__file__).parent / "backends" / "nvidia" / "bin" / "cuobjdump"
+    with tempfile.NamedTemporaryFile(suffix=".cubin") as cubin:
+        cubin.write(kernel.asm["cubin"])
+        cubin.flush()
+        text = subprocess.run(
+            [str(tool), "--dump-resource-usage", cubin.name],
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout
+    line = next(line for line in text.splitlines() if "REG:" in line)
+    fields = dict(item.split(":", 1) for item in line.split() if ":" in item)
+    return {
+        "registers": int(fields["REG"]),
+        "stack_bytes": int(fields["STACK"]),  # a thread's stack frame: its spilled registers
+        "shared_bytes": int(fields["SHARED"]) + kernel.metadata.shared,  # static + launch's
+    }
+
+
+def blocks_per_sm(registers: int, shared: int, warps: int) -> int:
+    """Thread blocks of `warps` warps an sm_90 SM holds at once."""
+    per_warp = -(-registers * 32 // 256) * 256  # allocated per warp in units of 256
+    by_registers = REGISTERS // (per_warp * warps)
+    by_shared = SHARED // shared if shared else BLOCKS
+    return min(by_registers, by_shared, THREADS // (32 * warps), BLOCKS)
+
+
+def variants(quick: bool):
+    """(kernel, variant, function, constants, warps) of each vote kernel and rule form."""
+    from sagonline.render.triton_vote import CHECK_EVERY, TILE, _walk_kernel
+    from sagonline.render.triton_vote_chunk import CHUNK_WARPS, _vote_chunk_kernel
+
+    kinds = [("3dgs", False)] if quick else [("3dgs", False), ("2dgs", True)]
+    weightings = [("count", False)] if quick else [("count", False), ("blend", True)]
+    for kind, surfel in kinds:
+        for weighting, weighted in weightings:
+            rule = {"SURFEL": surfel, "WEIGHTED": weighted, "USE_DISTANCE": not weighted}
+            shape = {"TILE": TILE, "NP": 13 if surfel else 7}
+            walk = {"COMPOSITE": False, "IMAGE": False, "KP": 4, "CHECK_EVERY": CHECK_EVERY}
+            yield "walk", f"{kind} {weighting}", _walk_kernel, rule | shape | walk, 4
+            for chunk in (16,) if quick else (16, 32):
+                chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
+                name = f"chunk{chunk}"
+                yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, CHUNK_WARPS
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--arch", type=int, default=90, help="CUDA compute capability, e.g. 90")
+    ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")
+    ap.add_argument("--quick", action="store_true", help="the 3DGS count vote only")
+    args = ap.parse_args()
+    rows = []
+    for kernel, variant, fn, constants, warps in variants(args.quick):
+        used = resources(compile_for(fn, constants, warps, args.arch))
+        rows.append(
+            {"kernel": kernel, "variant": variant, "warps": warps}
+            | used
+            | {"blocks_per_sm": blocks_per_sm(used["registers"], used["shared_bytes"], warps)}
+        )
+    table = pd.DataFrame(rows)
+    table["occupancy %"] = (100 * table.blocks_per_sm * 32 * table.warps / THREADS).round(1)
+    print(f"Triton vote kernels compiled for sm_{args.arch} (no GPU needed)\n")
+    print(table.to_markdown(index=False))
+    if args.out is not None:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        table.assign(arch=args.arch).to_csv(args.out, index=False)
+
+
+if __name__ == "__main__":
+    main()
