@@ -172,7 +172,7 @@ else
   MASK_COUNTS=1,3,6,12,25,50,100,206
   RENDER_ARGS=(--no-reference-aggregate)
   PROFILE_ARGS=(--masks 20)
-  KERNEL_ARGS=(--kernels walk,chunk16,chunk32 --masks 206)
+  KERNEL_ARGS=(--kernels walk,chunk16,chunk32,chunk16w16 --masks 206)
   STAGE_ONE_ARGS=(--views 40)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)

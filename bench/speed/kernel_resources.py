@@ -6,10 +6,10 @@ their spilled registers take, shared memory, and the blocks an SM can hold, per 
 Triton compiles for a named target on any machine (its wheel carries ptxas and cuobjdump), so
 this runs on the CPU: a kernel that does not compile for CUDA is caught here, and what bounds
 its occupancy (registers, shared memory) is known before a GPU times it. The walk launches 4
-warps, the chunked vote `triton_vote_chunk.CHUNK_WARPS`. "blocks per SM" takes an sm_90 SM's
-limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory; registers allocated
-per warp in units of 256). --quick: the 3DGS count vote of each kernel only (what the tests
-run).
+warps, the chunked vote as many as `backends.TRITON_VOTE_KERNELS` names. "blocks per SM" takes
+an sm_90 SM's limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory;
+registers allocated per warp in units of 256). --quick: the 3DGS count vote of the walk and
+chunk16 only (what the tests run).
 """
 
 from __future__ import annotations
@@ -98,8 +98,9 @@ def blocks_per_sm(registers: int, shared: int, warps: int) -> int:
 
 def variants(quick: bool):
     """(kernel, variant, function, constants, warps) of each vote kernel and rule form."""
+    from sagonline.render.backends import TRITON_VOTE_KERNELS
     from sagonline.render.triton_vote import CHECK_EVERY, TILE, _walk_kernel
-    from sagonline.render.triton_vote_chunk import CHUNK_WARPS, _vote_chunk_kernel
+    from sagonline.render.triton_vote_chunk import _vote_chunk_kernel
 
     kinds = [("3dgs", False)] if quick else [("3dgs", False), ("2dgs", True)]
     weightings = [("count", False)] if quick else [("count", False), ("blend", True)]
@@ -109,10 +110,10 @@ def variants(quick: bool):
             shape = {"TILE": TILE, "NP": 13 if surfel else 7}
             walk = {"COMPOSITE": False, "IMAGE": False, "KP": 4, "CHECK_EVERY": CHECK_EVERY}
             yield "walk", f"{kind} {weighting}", _walk_kernel, rule | shape | walk, 4
-            for chunk in (16,) if quick else (16, 32):
-                chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
-                name = f"chunk{chunk}"
-                yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, CHUNK_WARPS
+            for name, (chunk, warps) in TRITON_VOTE_KERNELS.items():
+                if chunk and (name == "chunk16" or not quick):
+                    chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
+                    yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, warps
 
 
 def main() -> None:

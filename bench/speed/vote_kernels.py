@@ -2,7 +2,7 @@
 vote (`chunk16`, `chunk32`), on `bench.speed.render`'s scenes: ms per vote, `--masks` votes in a
 row, and whether each kernel's histogram is the first kernel's (RGC counts: exactly).
 
-    python -m bench.speed.vote_kernels [--device cuda] [--kernels walk,chunk16,chunk32]
+    python -m bench.speed.vote_kernels [--device cuda] [--kernels walk,chunk16,chunk32,chunk16w16]
                                        [--masks 206] [--repeats 5] [--out F.csv] [--quick]
 
 The kernel is chosen per vote by SAGONLINE_TRITON_VOTE (`render.backends.triton_vote_kernel`), so
@@ -81,7 +81,9 @@ def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: in
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--kernels", default="walk,chunk16,chunk32", help="the first is the base")
+    ap.add_argument(
+        "--kernels", default=",".join(TRITON_VOTE_KERNELS), help="the first is the base"
+    )
     ap.add_argument("--masks", type=int, default=206, help="votes in the aggregate column")
     ap.add_argument("--repeats", type=int, default=5)
     ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")

@@ -211,11 +211,18 @@ _SOURCES = {
 }
 
 
-# The Triton vote's kernels, by the splats a step of its loop takes (0: the splat walk, one):
-# `walk` (triton_vote, the default and the one measured on a GPU), `chunk16` and `chunk32`
-# (triton_vote_chunk); SAGONLINE_TRITON_VOTE chooses, read at each vote, so that a benchmark
-# times them side by side in one process (bench/speed/vote_kernels.py).
-TRITON_VOTE_KERNELS = {"walk": 0, "chunk16": 16, "chunk32": 32}
+# The Triton vote's kernels: (splats a step of its loop takes, warps per tile) (0: the splat
+# walk, one splat on 4 warps): `walk` (triton_vote, the default and the one measured on a GPU),
+# `chunk16`, `chunk32` and `chunk16w16` (triton_vote_chunk on 8 or 16 warps: the compiler gives
+# it one block an SM at 8 warps, `bench.speed.kernel_resources`); SAGONLINE_TRITON_VOTE chooses,
+# read at each vote, so that a benchmark times them side by side in one process
+# (bench/speed/vote_kernels.py).
+TRITON_VOTE_KERNELS = {
+    "walk": (0, 4),
+    "chunk16": (16, 8),
+    "chunk32": (32, 8),
+    "chunk16w16": (16, 16),
+}
 
 
 def triton_vote_kernel() -> str:

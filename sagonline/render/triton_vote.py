@@ -15,8 +15,8 @@ One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sort
 
 A second vote kernel, `triton_vote_chunk._vote_chunk_kernel`, takes the same tile lists CHUNK
 splats at a time; which one the vote op launches is `backends.triton_vote_kernel()`
-(SAGONLINE_TRITON_VOTE: walk, the default, chunk16 or chunk32; docs/performance.md, "The
-chunked vote").
+(SAGONLINE_TRITON_VOTE: walk, the default, chunk16, chunk32 or chunk16w16; docs/performance.md,
+"The chunked vote").
 
 Alpha is `projection.splat_response`'s (3DGS conics, 2DGS ray-splat intersection). The kernel
 is compiled by `triton.jit` for CUDA tensors at run time (no CUDA toolkit needed) or, in a

@@ -5,7 +5,8 @@ walk's vote gives (the (N, K) histogram and the pairs that voted per tile), by t
 a chunk's parameters are loaded together, alpha is a (256 pixels, CHUNK) block, the
 transmittance before each splat a running product along the chunk (tl.cumprod), and the
 chunk's votes per label one (CHUNK, 256) x (256, KP) product (tl.dot). `triton_vote.vote_into`
-launches it when SAGONLINE_TRITON_VOTE is chunk16 or chunk32 (`backends.triton_vote_kernel`).
+launches it when SAGONLINE_TRITON_VOTE is chunk16, chunk32 or chunk16w16 (16 warps a tile;
+`backends.triton_vote_kernel`).
 Which kernel is faster on a GPU is not measured yet (docs/performance.md, "The chunked vote").
 """
 
@@ -22,8 +23,8 @@ import triton.language as tl
 
 from sagonline.render.rule import VoteRule
 
-# Warps per tile program: on 8 warps (256 threads) a (256, CHUNK) float32 block is CHUNK values
-# a thread, and the chunk's intermediates stay in registers at CHUNK 16 or 32.
+# Warps per tile program by default: on 8 warps (256 threads) a (256, CHUNK) float32 block is
+# CHUNK values a thread (`backends.TRITON_VOTE_KERNELS` names the variants).
 CHUNK_WARPS = 8
 
 
@@ -157,9 +158,11 @@ def vote_chunks(
     cast: torch.Tensor,  # [tiles] int64, pairs that voted per tile
     rule: VoteRule,
     chunk: int,
+    warps: int = CHUNK_WARPS,
 ) -> None:
-    """One launch of `_vote_chunk_kernel` over the view's tiles, `chunk` splats a step: the
-    `launch` of `triton_vote.vote_into` that SAGONLINE_TRITON_VOTE=chunk16 or chunk32 picks."""
+    """One launch of `_vote_chunk_kernel` over the view's tiles, `chunk` splats a step on
+    `warps` warps: the `launch` of `triton_vote.vote_into` that SAGONLINE_TRITON_VOTE picks
+    (chunk16, chunk32, chunk16w16)."""
     num_labels = hist.shape[1]
     _vote_chunk_kernel[(view.tiles_x * view.tiles_y,)](
         view.params,
@@ -183,5 +186,5 @@ def vote_chunks(
         KP=max(16, triton.next_power_of_2(num_labels)),
         NP=view.params.shape[1],
         CHUNK=chunk,
-        num_warps=CHUNK_WARPS,
+        num_warps=warps,
     )

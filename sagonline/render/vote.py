@@ -17,7 +17,7 @@ rule) -> pairs voted` (as gsplat pairs `_wrapper.py` with `_torch_impl.py`):
   lists; csrc/vote_cpu.cpp: an 8-pixel-wide walk in C++, AVX2 chosen at run time);
 - triton (`triton_vote.py`): the fused trace-and-vote kernel, one launch per view, on CUDA; the
   tests run the same kernel on the CPU through Triton's interpreter (SAGONLINE_TRITON_VOTE=
-  chunk16 or chunk32: `triton_vote_chunk.py`'s chunked vote instead);
+  chunk16, chunk32 or chunk16w16: `triton_vote_chunk.py`'s chunked vote instead);
 - gsplat (`_torch_impl.py`, `via="gsplat"`): gsplat's per-pixel ids walked in depth batches
   from Python (CUDA; the former path, kept to compare against).
 """
@@ -100,11 +100,11 @@ def implementation(backend: str):
     if backend == "triton":  # the splat walk, or the chunked vote (`triton_vote_kernel`)
         from sagonline.render import triton_vote
 
-        chunk = TRITON_VOTE_KERNELS[triton_vote_kernel()]
+        chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel()]
         if chunk:
             from sagonline.render.triton_vote_chunk import vote_chunks
 
-            launch = functools.partial(vote_chunks, chunk=chunk)
+            launch = functools.partial(vote_chunks, chunk=chunk, warps=warps)
             return functools.partial(triton_vote.vote_into, launch=launch)
         return triton_vote.vote_into
     from sagonline.render import _torch_impl

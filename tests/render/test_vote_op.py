@@ -80,7 +80,7 @@ def test_native_matches_the_reference(kind, seed, rule):
         _same(got, ref, RULES[rule].weighting, bound)
 
 
-TRITON_VOTE_KERNELS = ["walk", "chunk16", "chunk32"]
+TRITON_VOTE_KERNELS = ["walk", "chunk16", "chunk32", "chunk16w16"]
 
 
 @needs_triton
