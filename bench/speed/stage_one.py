@@ -111,7 +111,8 @@ def time_views(
 ):
     """Per view: each part's milliseconds (render, encoder, decoder, the rest of the segmenter,
     vote, labels), the total and the decoder's calls (a SAM-family segmenter decodes several
-    candidates per object per view)."""
+    candidates per object per view); with the backend plan and the weights that ran (each
+    file's name and sha256 prefix)."""
     width, height = size
     scene = make_scene(
         layout="360",
@@ -155,7 +156,10 @@ def time_views(
             {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}
             | {"decoder_calls": clock.calls["decoder"] - decodes}
         )
-    return pd.DataFrame(rows), plan
+    weights = ", ".join(
+        f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()
+    )
+    return pd.DataFrame(rows), plan, weights or "none"
 
 
 def main() -> None:
@@ -177,7 +181,7 @@ def main() -> None:
         ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")
     settings = dict(item.partition("=")[::2] for item in args.option)
     try:
-        table, plan = time_views(
+        table, plan, weights = time_views(
             args.segmenter,
             args.views,
             (int(width), int(height)),
@@ -192,7 +196,8 @@ def main() -> None:
     means = steady.drop(columns="view").mean().round(2)
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     print(
-        f"Stage I per view: {args.segmenter} on {gpu or args.device} ({plan.describe()}), "
+        f"Stage I per view: {args.segmenter} (weights: {weights}) on {gpu or args.device} "
+        f"({plan.describe()}), "
         f"{args.views} views at {args.size}, {args.gaussians:,} surfels, {args.objects} "
         "objects clicked, embedding cache cold"
     )
@@ -205,8 +210,9 @@ def main() -> None:
         args.out.parent.mkdir(parents=True, exist_ok=True)
         summary = {"view": "mean (views 1..)", **means.to_dict()}
         out = pd.concat([table, pd.DataFrame([summary])], ignore_index=True)
-        out = out.assign(segmenter=args.segmenter, objects=args.objects, size=args.size)
-        out.assign(device=args.device, gpu=gpu).to_csv(args.out, index=False)
+        named = {"segmenter": args.segmenter, "weights": weights, "objects": args.objects}
+        named |= {"size": args.size, "device": args.device, "gpu": gpu}
+        out.assign(**named).to_csv(args.out, index=False)
 
 
 if __name__ == "__main__":

@@ -14,10 +14,10 @@ nothing of a GPU's.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 from functools import partial
 from pathlib import Path
+from unittest import mock
 
 import pandas as pd
 import torch
@@ -25,20 +25,6 @@ import torch
 from bench.speed.render import RULE, aggregate, random_mask, scenes, timed
 from sagonline.render import vote_histogram
 from sagonline.render.backends import TRITON_VOTE_KERNELS
-
-
-@contextlib.contextmanager
-def triton_vote_kernel(kernel: str):
-    """SAGONLINE_TRITON_VOTE set to `kernel` within, restored after."""
-    before = os.environ.get("SAGONLINE_TRITON_VOTE")
-    os.environ["SAGONLINE_TRITON_VOTE"] = kernel
-    try:
-        yield
-    finally:
-        if before is None:
-            os.environ.pop("SAGONLINE_TRITON_VOTE")
-        else:
-            os.environ["SAGONLINE_TRITON_VOTE"] = before
 
 
 def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: int, device: str):
@@ -53,7 +39,7 @@ def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: in
     for kernel in kernels:
         row = {"scene": name, "device": device, "kernel": kernel, "masks": masks}
         try:  # a kernel that fails to compile or run is a row that says so, not the end
-            with triton_vote_kernel(kernel):
+            with mock.patch.dict(os.environ, {"SAGONLINE_TRITON_VOTE": kernel}):
                 vote = partial(vote_histogram, g, ring[0], mask_of[0], 3, RULE, backend="triton")
                 hist = vote()
                 ms = 1000 * timed(vote, repeats, device)
