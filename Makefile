@@ -88,20 +88,17 @@ bench: install
 	$(BIN)/python -m bench.speed.render --out $(REPORTS)/bench_render.csv $(ARGS)
 	$(BIN)/python -m bench.speed.contention --out $(REPORTS)/bench_contention.csv
 
-# A GPU machine without a package registry: the pure-Python packages it lacks, copied from this
-# environment into .gpu-bundle/site (ignored by git; it travels with the checkout), which
-# scripts/gpu_check.sh puts on PYTHONPATH. See docs/performance.md.
-# gsplat's wheel (its CUDA sources compile there on first use) and rich, the one package it
-# imports that such a machine may lack, travel too, and all of duck_queen (the first GPU fit;
+# A GPU machine without a package registry: the pure-Python packages it lacks (CARRIED in
+# scripts/gpu_machine/sitecustomize.py), copied from this environment into .gpu-bundle/site
+# (ignored by git; it travels with the checkout), which scripts/gpu_check.sh puts on PYTHONPATH.
+# See docs/performance.md. gsplat's wheel (its CUDA sources compile there on first use) travels
+# too, and all of duck_queen (the first GPU fit;
 # its photographs and masks for the encoder-runtime step) with its CPU fit's start points and
 # figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
 # benchmarks' 3DGS scene). About 16 MB.
-GPU_BUNDLE := hydra omegaconf antlr4 plyfile.py rich
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
-	cd $$($(BIN)/python -c "import sysconfig; print(sysconfig.get_paths()['purelib'])") && \
-	  cp -r $(GPU_BUNDLE) hydra_core-*.dist-info omegaconf-*.dist-info rich-*.dist-info \
-	    antlr4_python3_runtime-*.dist-info plyfile-*.dist-info $(CURDIR)/.gpu-bundle/site/
+	$(BIN)/python scripts/bundle_site.py .gpu-bundle/site
 	$(BIN)/python -m pip download --quiet --no-deps --only-binary :all: -d .gpu-bundle \
 	  gsplat==$$($(BIN)/python -c "import importlib.metadata as m; print(m.version('gsplat'))")
 	if [ -d ../shared/data/duck_queen ]; then mkdir -p .gpu-bundle/data && \

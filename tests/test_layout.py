@@ -225,6 +225,7 @@ def test_every_link_in_the_docs_leads_somewhere():
 
 
 # Folders of the repository a backticked path in the docs may start with.
+SCRIPTS = [p for p in (ROOT / "scripts").rglob("*") if p.is_file() and "__pycache__" not in p.parts]
 TRACKED_TOPS = ("sagonline/", "bench/", "docs/", "scripts/", "tests/", "conf/", "reports/", ".ci/")
 
 
@@ -238,7 +239,7 @@ def test_every_backticked_repository_path_in_the_docs_exists():
 
     tools = "\n".join(
         p.read_text()
-        for p in [ROOT / "Makefile", *(ROOT / "scripts").glob("*"), *(ROOT / "bench").rglob("*.py")]
+        for p in [ROOT / "Makefile", *SCRIPTS, *(ROOT / "bench").rglob("*.py")]
         if p.is_file()
     )
     stale = []
@@ -274,7 +275,7 @@ def unknown_flags(spans) -> list[str]:
     import re
 
     sources = [*ROOT.glob("sagonline/**/*.py"), *ROOT.glob("bench/**/*.py"), ROOT / "Makefile"]
-    text = "\n".join(p.read_text() for p in [*sources, *(ROOT / "scripts").glob("*")])
+    text = "\n".join(p.read_text() for p in [*sources, *SCRIPTS])
     defined = set(re.findall(r'"(--[a-z][a-z0-9_-]*)"', text)) | OTHER_TOOLS_FLAGS
     return [
         f"{page}: {flag}"

@@ -231,8 +231,13 @@ def _mean3d(m: RunMetrics, key: str):
 
 def plot_masks(df: pd.DataFrame, out: Path, pattern: str = "masks_{}") -> list[Path]:
     """Two PNGs (mIoU and aggregation time against the mask count): `pattern` with "miou" and
-    "time" in the place of {}."""
-    import matplotlib
+    "time" in the place of {}; none where matplotlib is not installed (a GPU machine may lack
+    it), the table being whole without them."""
+    try:
+        import matplotlib
+    except ModuleNotFoundError:
+        print("masks table: no plots (matplotlib is not installed here); the table is whole")
+        return []
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
