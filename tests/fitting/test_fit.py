@@ -16,6 +16,7 @@ import torch
 from sagonline.core import store
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
 from sagonline.render import rasterize
+from sagonline.render.gsplat_backend import gsplat_available
 from sagonline.scene.generator import make_scene
 from tests.fixtures import ROOT, compose_config
 
@@ -93,6 +94,22 @@ def test_loss_falls_and_densify_changes_the_count(views, kind):
     assert np.mean(f.history[-10:]) < 0.9 * np.mean(f.history[:10])
     assert len(f) != n0 and m["iterations"] == 80
     assert m["psnr_train"] > 12 and m["heldout_views"]
+    g = f.export()
+    assert g.kind == kind and torch.isfinite(g.means).all()
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not gsplat_available(), reason="a fit through gsplat needs CUDA and gsplat")
+@pytest.mark.parametrize("kind", ["2dgs", "3dgs"])
+def test_a_fit_on_cuda_renders_through_gsplat_and_its_loss_falls(views, kind):
+    """The GPU recipe's path (gsplat's rasterizer and its backward, densification on CUDA) on
+    a tiny scene, before `scripts/gpu_check.sh` spends minutes on a capture with it."""
+    cams, imgs = views
+    f = SceneFitter(tiny(kind=kind, device="cuda", backend="gsplat"), cams, imgs)
+    n0 = len(f)
+    m = f.fit(progress=False)
+    assert np.mean(f.history[-10:]) < 0.9 * np.mean(f.history[:10])
+    assert len(f) != n0 and m["iterations"] == 80 and m["psnr_train"] > 12
     g = f.export()
     assert g.kind == kind and torch.isfinite(g.means).all()
 
@@ -589,6 +606,7 @@ import hashlib, sys, torch
 torch.set_num_threads(int(sys.argv[1]))
 from sagonline.fitting import FitConfig, SceneFitter
 from sagonline.render import rasterize
+from sagonline.render.gsplat_backend import gsplat_available
 from sagonline.scene.generator import make_scene
 s = make_scene(layout="forward", num_gaussians=2000, width=48, height=36, num_train_views=9)
 imgs = [rasterize(s.gaussians, c).rgb.clamp(0, 1) for c in s.train_cameras]
