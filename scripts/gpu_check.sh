@@ -150,10 +150,11 @@ from pathlib import Path
 import torch
 device = sys.argv[1]
 print("python", sys.version.split()[0], "torch", torch.__version__)
-# the machine's own distributions (not the bundle's): what scripts/gpu_machine/sitecustomize.py's
-# listing of them is checked against
+# the machine's own distributions (not those the bundle carries or the check builds): what
+# scripts/gpu_machine/sitecustomize.py's listing of them is checked against
+ours = [Path(folder).resolve() for folder in (".gpu-bundle", ".gsplat-build")]
 names = {f"{d.metadata['Name']}=={d.version}" for d in importlib.metadata.distributions()
-         if not Path(str(d.locate_file(""))).resolve().is_relative_to(Path.cwd())}
+         if not any(Path(str(d.locate_file(""))).resolve().is_relative_to(o) for o in ours)}
 Path(sys.argv[2]).write_text("\n".join(sorted(names, key=str.lower)) + "\n")
 from scripts.bundle_site import carried as carried_by_the_bundle
 carried = tuple(module for modules in carried_by_the_bundle().values() for module in modules)
