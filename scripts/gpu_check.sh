@@ -4,7 +4,8 @@
 #
 #   scripts/gpu_check.sh [--device cuda] [--out reports] [--quick] [--step-timeout S]
 #                        [--deadline S] [--archive FILE] [--steps LIST] [--skip LIST]
-#                        [--fit-budget S] [--skip-gsplat-build] [--skip-fit] [--as-gpu-machine]
+#                        [--fit-budget S] [--fit-dir DIR] [--skip-gsplat-build] [--skip-fit]
+#                        [--as-gpu-machine]
 #
 # It needs PyTorch (with CUDA) and Triton; gsplat is optional. A machine without a package
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
@@ -24,7 +25,8 @@
 # skipped (a failure), and the summary is always written. --archive FILE packs the summary, the
 # tables and every step's log into one .tar.gz (one file to copy back from a lent machine). The
 # steps run most-wanted first: the CUDA tests, the default evaluation with and without gsplat,
-# the GPU fit (its time budget --fit-budget S, 150 s on a GPU; 0: none), the real model's
+# the GPU fit (its time budget --fit-budget S, 150 s on a GPU; 0: none; kept in --fit-dir DIR,
+# .gpu-fit/ by default, where a second call scores it), the real model's
 # encoders, Table II and Stage I per view with it, the vote profile and kernels, the classical
 # timing table, the mask-count table, the render benchmark.
 # --steps LIST runs only the steps whose names start with one of LIST's comma-separated
@@ -50,6 +52,7 @@ ARCHIVE=
 ONLY=
 SKIP=
 FIT_BUDGET_S=
+FIT_DIR=
 AS_GPU_MACHINE=0
 while [ $# -gt 0 ]; do
   case "$1" in
@@ -64,8 +67,9 @@ while [ $# -gt 0 ]; do
     "--steps") ONLY=$2; shift 2 ;;
     "--skip") SKIP=$2; shift 2 ;;
     "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
+    "--fit-dir") FIT_DIR=$(mkdir -p "$2" && cd "$2" && pwd); shift 2 ;;
     "--as-gpu-machine") AS_GPU_MACHINE=1; shift ;;
-    -h|--help) sed -n '2,36p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,38p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -232,11 +236,20 @@ step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.runners.e
 # --skip-fit leaves it out. On CUDA it
 # needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
 # The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
-# else the shared one), so nothing it writes grows the bundle that travels.
-FIT_DATA="$WORK/duck_queen"
-for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
-  if [ -d "$source" ]; then cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"; break; fi
-done
+# else the shared one), so nothing it writes grows the bundle that travels. The copy is kept in
+# --fit-dir (.gpu-fit/, ignored and not carried; --quick: this call's temporary folder): a second
+# call on the same machine scores the first call's fit (--steps "GPU fit: classical") where the
+# first call's deadline left its scoring out.
+FIT_DATA="${FIT_DIR:-$([ "$QUICK" = 1 ] && echo "$WORK" || echo "$ROOT/.gpu-fit")}/duck_queen"
+if [ ! -d "$FIT_DATA" ]; then
+  for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
+    if [ -d "$source" ]; then
+      mkdir -p "$(dirname "$FIT_DATA")" && cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"
+      break
+    fi
+  done
+fi
+FIT_SCORES="$(dirname "$FIT_DATA")/scores"  # its evaluations, kept beside it
 if [ "$QUICK" = 1 ]; then
   FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
               fit.densify_until=20 fit.init_points=500)
@@ -263,8 +276,8 @@ if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
   for source in $FIT_SOURCES; do
     case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
     step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
-      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true \
-      cache_dir="$WORK/fit_cache" hydra.run.dir="$WORK/fit_$source"
+      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true overwrite=true \
+      cache_dir="$WORK/fit_cache" hydra.run.dir="$FIT_SCORES/fit_$source"
   done
   # fit=paper's seconds per 1,000 iterations: the paper's recipe, its schedule unchanged, stopped
   # at a time budget (the first PAPER_S seconds of it; --quick: at 64 px)
@@ -281,7 +294,9 @@ if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
   [ -f "$FIT_DATA/gaussians-paper_probe_$TAG/fit_metrics.json" ] && \
     PAPER_ROW=(--also "fit=paper (its first $PAPER_S s)=$FIT_DATA/gaussians-paper_probe_$TAG")
   step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
-    --runs $(for source in $FIT_SOURCES; do echo "$source=$WORK/fit_$source"; done) \
+    --runs $(for source in $FIT_SOURCES; do
+      [ -f "$FIT_SCORES/fit_$source/metrics.json" ] && echo "$source=$FIT_SCORES/fit_$source"
+    done) \
     "${CPU_FIT[@]}" "${PAPER_ROW[@]}" --out "$OUT/gpu_fit_$TAG.csv"
 fi
 
@@ -377,6 +392,11 @@ if [ -n "$ARCHIVE" ]; then  # the summary, this run's tables, every step's log a
   { (cd "$OUT" && ls gpu_check.md *_"$TAG".* 2>/dev/null | sed "s|^|$OUT/|")
     find "$WORK" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
       -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
+    if [ -d "$FIT_DATA" ] && [ "${FIT_DATA#"$WORK"/}" = "$FIT_DATA" ]; then  # kept in --fit-dir
+      find "$FIT_DATA" -path '*/gaussians-*' -name 'fit_*.json' -print
+      find "$FIT_SCORES" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
+        -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print 2>/dev/null
+    fi
   } | sed 's|^/||' | tar -czf "$ARCHIVE" -C / -T - \
     && echo "archive: $ARCHIVE ($(du -h "$ARCHIVE" | cut -f1))"
 fi

@@ -121,6 +121,34 @@ def test_steps_and_skip_choose_the_steps_by_the_start_of_their_names(tmp_path):
     assert "| pytest -m gpu | left out (--steps / --skip) |" in summary
 
 
+def test_a_second_call_scores_the_fit_of_the_first(tmp_path):
+    """The fit is kept in --fit-dir: where the first call's deadline left its scoring out, a
+    second call on the same machine scores it and builds its table, without fitting again."""
+    data = ROOT.parent / "shared" / "data" / "duck_queen"
+    if not (data.is_dir() or (ROOT / ".gpu-bundle" / "data" / "duck_queen").is_dir()):
+        pytest.skip("no duck_queen to fit here")
+    fits = tmp_path / "fits"
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir(), second.mkdir()
+    common = ("--fit-dir", str(fits), "--skip-gsplat-build")
+    fitted = _quick_check(
+        first,
+        *common,
+        "--steps",
+        "environment,GPU fit",
+        "--skip",
+        "GPU fit: ,GPU fit (",
+        timeout=300,
+    )
+    assert "| GPU fit | pass |" in fitted and "| GPU fit: real | left out" in fitted
+    scored = _quick_check(
+        second, *common, "--steps", "environment,GPU fit: real,GPU fit (table)", timeout=300
+    )
+    assert "| GPU fit | left out" in scored and "| GPU fit: real | pass |" in scored
+    row = pd.read_csv(second / "gpu_fit_cpu_check.csv").set_index("fit").loc["gpu"]
+    assert row["iterations"] == 30 and 0 <= row["real mIoU"] <= 100
+
+
 def test_an_unknown_option_is_refused():
     proc = subprocess.run(
         ["bash", "scripts/gpu_check.sh", "--fast"],
