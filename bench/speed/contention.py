@@ -19,11 +19,11 @@ import multiprocessing as mp
 import os
 import statistics
 import time
-from pathlib import Path
 
 import pandas as pd
 
 from bench import OUT_HELP, REPORTS
+from sagonline.core.files import atomic_write_text
 
 
 def scene(quick: bool = False):
@@ -101,8 +101,8 @@ def main() -> None:
     print(f"{name} at {cam.width}x{cam.height}; {where}")
     print(f"median of {args.masks} masks; together = the slower of two votes started at once\n")
     print(table.to_string(index=False, float_format=lambda v: f"{v:,.2f}"))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    table.assign(cpu=info["cpu"], cores=cores, load_before=load).to_csv(args.out, index=False)
+    table = table.assign(cpu=info["cpu"], cores=cores, load_before=load)
+    atomic_write_text(args.out, table.to_csv(index=False))
     print(f"\nwrote {args.out}")
 
 

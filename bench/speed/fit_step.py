@@ -18,12 +18,12 @@ from __future__ import annotations
 import argparse
 import statistics
 import time
-from pathlib import Path
 
 import pandas as pd
 import torch
 
 from bench import OUT_HELP, REPORTS, ROOT
+from sagonline.core.files import atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.fitting import FitConfig, SceneFitter
 from sagonline.render import rasterize
@@ -123,8 +123,7 @@ def main() -> None:
     table = pd.DataFrame(rows)
     print(table.to_string(index=False))
     if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        table.to_csv(args.out, index=False)
+        atomic_write_text(args.out, table.to_csv(index=False))
         print(f"wrote {args.out}")
 
 

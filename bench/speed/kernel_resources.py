@@ -22,6 +22,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from sagonline.core.files import atomic_write_text
+
 # Compile, never interpret: set before triton is first imported (render.triton_vote would
 # choose the interpreter on a machine without CUDA).
 os.environ["TRITON_INTERPRET"] = "0"
@@ -135,8 +137,7 @@ def main() -> None:
     print(f"Triton vote kernels compiled for sm_{args.arch} (no GPU needed)\n")
     print(table.to_markdown(index=False))
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        table.assign(arch=args.arch).to_csv(args.out, index=False)
+        atomic_write_text(args.out, table.assign(arch=args.arch).to_csv(index=False))
 
 
 if __name__ == "__main__":

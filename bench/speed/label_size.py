@@ -23,6 +23,7 @@ import torch
 
 from bench import OUT_HELP, REPORTS, ROOT
 from bench.speed.render import timed
+from sagonline.core.files import atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.render import render_labels
 from sagonline.render.backends import resolve_vote_backend
@@ -109,8 +110,7 @@ def main() -> None:
         f"{torch.get_num_threads()} threads, load {machine.get('load_average_1m')}"
     )
     print(table.to_markdown(index=False, floatfmt=".1f"))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out, index=False)
+    atomic_write_text(args.out, table.to_csv(index=False))
     print(f"wrote {args.out}")
 
 

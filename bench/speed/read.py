@@ -21,6 +21,7 @@ import numpy as np
 import pandas as pd
 
 from bench import OUT_HELP, REPORTS, ROOT
+from sagonline.core.files import atomic_write_text
 
 PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
 PROPS += [f"f_rest_{i}" for i in range(45)]
@@ -98,8 +99,7 @@ def main() -> None:
         ]
     )
     print(table.to_markdown(index=False))
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out, index=False)
+    atomic_write_text(args.out, table.to_csv(index=False))
 
 
 if __name__ == "__main__":

@@ -25,12 +25,12 @@ import statistics
 import sys
 import time
 from functools import partial
-from pathlib import Path
 
 import pandas as pd
 import torch
 
 from bench import OUT_HELP, REPORTS, ROOT
+from sagonline.core.files import atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.render import RasterStats, render, render_labels, vote_histogram
 from sagonline.render.backends import installed
@@ -217,8 +217,8 @@ def main() -> None:
     print(
         shown.to_string(index=False, float_format=lambda v: f"{v:,.2f}" if v < 1e5 else f"{v:.3g}")
     )
-    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-    table.assign(**{k: str(v) for k, v in info.items()}).to_csv(args.out, index=False)
+    table = table.assign(**{k: str(v) for k, v in info.items()})
+    atomic_write_text(args.out, table.to_csv(index=False))
     print(f"\nwrote {args.out}")
 
 

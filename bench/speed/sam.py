@@ -36,6 +36,7 @@ import numpy as np
 import pandas as pd
 
 from bench import ROOT
+from sagonline.core.files import atomic_write_text
 from sagonline.core.plugins import SEGMENTERS
 from sagonline.segment.mask_geometry import box_of, interior_point, iou
 from sagonline.segment.prompts import ObjectPrompt
@@ -351,8 +352,7 @@ def main() -> None:
         table = runtime_table(models, args.device, args.repeats, min(args.photos, 3), args.data)
         print(table.to_markdown(index=False))
         if args.out is not None:
-            args.out.parent.mkdir(parents=True, exist_ok=True)
-            table.to_csv(args.out, index=False)
+            atomic_write_text(args.out, table.to_csv(index=False))
     print(f"\nafter: {uptime()}")
 
 

@@ -28,6 +28,7 @@ import numpy as np
 import pandas as pd
 import torch
 
+from sagonline.core.files import atomic_write_text
 from sagonline.core.plugins import SEGMENTERS
 from sagonline.render import render, render_labels
 from sagonline.render.api import to_uint8
@@ -207,12 +208,11 @@ def main() -> None:
         + ", ".join(f"{k.removesuffix('_ms')} {v}" for k, v in means.items())
     )
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
         summary = {"view": "mean (views 1..)", **means.to_dict()}
         out = pd.concat([table, pd.DataFrame([summary])], ignore_index=True)
         named = {"segmenter": args.segmenter, "weights": weights, "objects": args.objects}
         named |= {"size": args.size, "device": args.device, "gpu": gpu}
-        out.assign(**named).to_csv(args.out, index=False)
+        atomic_write_text(args.out, out.assign(**named).to_csv(index=False))
 
 
 if __name__ == "__main__":

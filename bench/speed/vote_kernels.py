@@ -23,6 +23,7 @@ import pandas as pd
 import torch
 
 from bench.speed.render import RULE, aggregate, random_mask, scenes, timed
+from sagonline.core.files import atomic_write_text
 from sagonline.render import vote_histogram
 from sagonline.render.backends import TRITON_VOTE_KERNELS
 
@@ -92,8 +93,7 @@ def main() -> None:
     print(f"Triton vote kernels on {where}; RGC, 3-label masks; median of {args.repeats}\n")
     print(table.to_markdown(index=False, floatfmt=".3g"))
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        table.assign(gpu=gpu).to_csv(args.out, index=False)
+        atomic_write_text(args.out, table.assign(gpu=gpu).to_csv(index=False))
     if table["error"].notna().any():
         raise SystemExit("a kernel failed: its row says why")
 

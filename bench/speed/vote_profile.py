@@ -21,6 +21,7 @@ import pandas as pd
 import torch
 
 from bench.speed.render import RULE, random_mask, scenes
+from sagonline.core.files import atomic_write_text
 from sagonline.render import vote_histogram
 
 
@@ -77,8 +78,7 @@ def main() -> None:
         print(table.head(args.top).to_markdown(index=False))
         tables.append(table.assign(scene=name, backend=backend, device=args.device))
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        pd.concat(tables).to_csv(args.out, index=False)
+        atomic_write_text(args.out, pd.concat(tables).to_csv(index=False))
 
 
 if __name__ == "__main__":

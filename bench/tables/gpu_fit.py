@@ -15,6 +15,8 @@ from pathlib import Path
 
 import pandas as pd
 
+from sagonline.core.files import atomic_write_text
+
 FIT_COLUMNS = (
     "iterations",
     "fit_seconds",
@@ -79,9 +81,8 @@ def main() -> None:
             ap.error(f"--also {item!r}: give LABEL=FIT_DIR")
         rows.append(fit_row(Path(folder), {}, fit=label))
     table = pd.DataFrame(rows)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    table.to_csv(args.out, index=False)
-    args.out.with_suffix(".md").write_text(table.to_markdown(index=False) + "\n")
+    atomic_write_text(args.out, table.to_csv(index=False))
+    atomic_write_text(args.out.with_suffix(".md"), table.to_markdown(index=False) + "\n")
     print(table.to_markdown(index=False))
 
 

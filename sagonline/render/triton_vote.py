@@ -102,9 +102,11 @@ def _walk_kernel(
     reduction; dead pixels do no work meanwhile). Reductions go through tl.reduce with Triton's
     own combine functions (its interpreter runs them as numpy reductions).
 
-    Why one function: a Triton kernel's helpers are separate device functions, and both the
-    fused walk's speed on a GPU and its interpreter's speed in CI depend on the per-splat body
-    (alpha, compositing or vote) being one straight block the compiler sees whole."""
+    Why one function: Triton inlines a jit helper, but a helper this kernel and the chunked
+    vote shared (the 2DGS intersection and alpha) cost this kernel 7 registers and one block an
+    SM on the 2DGS count rule under Triton 3.6, the GPU machines' version (63 against 56
+    registers, 8 against 9 blocks; `python -m bench.speed.kernel_resources`), so the splat
+    response is written out in both."""
     tile = tl.program_id(0)
     q = tl.arange(0, TILE * TILE)
     x0 = (tile % tiles_x) * TILE

@@ -59,9 +59,8 @@ def _vote_chunk_kernel(
     in fp16, blend weights in fp32 "ieee"). The splat walk's loop carries one splat's loads and
     a block reduction per step; this one a chunk's. KP >= 16 (tl.dot's smallest side).
 
-    Why one function: as `_walk_kernel`'s, the chunk's body (alpha, the running product, the
-    product per label and the atomic add) is one block the compiler sees whole; a helper would
-    be a separate device function."""
+    Why one function: as `_walk_kernel`'s (its splat response repeats the walk's, which says
+    why that is not a shared helper)."""
     tile = tl.program_id(0)
     q = tl.arange(0, TILE * TILE)
     x0 = (tile % tiles_x) * TILE

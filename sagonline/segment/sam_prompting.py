@@ -164,15 +164,14 @@ class SamFamilySegmenter(VideoSegmenter):
         start = time.perf_counter()
         first = self.prompt_view(model, frames[p], prompt)
         levels = {k: level for k, (_, _, level) in first.items()}
-        at_prompt = (
-            {k: (proto, proto) for k, (_, proto, _) in first.items()},  # origin, last
-            {k: int(mask.sum()) for k, (mask, _, _) in first.items()},  # last mask's area
-        )
-        prototypes, areas = dict(at_prompt[0]), dict(at_prompt[1])
+        # each object's prototypes (origin, last) and last mask's area at the prompt view
+        prompt_prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
+        prompt_areas = {k: int(mask.sum()) for k, (mask, _, _) in first.items()}
+        prototypes, areas = dict(prompt_prototypes), dict(prompt_areas)
         yield p, self.paint(first, frames[p].shape[:2]), time.perf_counter() - start
         for t in list(range(p + 1, n)) + list(range(p - 1, -1, -1)):
             if t == p - 1:  # the backward pass starts again from the prompt view's state
-                prototypes, areas = dict(at_prompt[0]), dict(at_prompt[1])
+                prototypes, areas = dict(prompt_prototypes), dict(prompt_areas)
             start = time.perf_counter()
             emb = model.embed(frames[t])
             fused = advice(t) if advice is not None and self.prompts != "match" else None
