@@ -95,7 +95,9 @@ bench: install
 # too, and all of duck_queen (the first GPU fit;
 # its photographs and masks for the encoder-runtime step) with its CPU fit's start points and
 # figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
-# benchmarks' 3DGS scene). About 16 MB.
+# benchmarks' 3DGS scene). About 16 MB. And, where SAM 2 Hiera-tiny's weights are here, its
+# encoder with int8 weights (scripts/compact_weights.py: 34 MB of the 135) and its decoder into
+# .gpu-sam2/ (ignored, 51 MB), which a second call carries (docs/performance.md).
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	$(BIN)/python scripts/bundle_site.py .gpu-bundle/site
@@ -108,6 +110,10 @@ gpu-bundle: install-extras
 	  cp -r ../shared/data/donut_3dgs .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data; fi
 	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
 	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
+	rm -rf .gpu-sam2
+	if [ -f weights/sam2_tiny/encoder.ort ]; then \
+	  $(BIN)/python scripts/compact_weights.py weights/sam2_tiny/encoder.ort .gpu-sam2/encoder.w8.onnx && \
+	  cp weights/sam2_tiny/decoder.onnx .gpu-sam2/ && du -sh .gpu-sam2 | sed 's/^/gpu-sam2: /'; fi
 
 # On a GPU machine (python3 with torch + triton; .gpu-bundle carried): tests, eval, benchmark
 # and tables on CUDA, into reports/*_cuda.*.

