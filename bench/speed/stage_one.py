@@ -197,7 +197,9 @@ def main() -> None:
     means = steady.drop(columns="view").mean().round(2)
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     print(
-        f"Stage I per view: {args.segmenter} (weights: {weights}) on {gpu or args.device} "
+        f"Stage I per view: {args.segmenter} (weights: {weights}"
+        + "".join(f", {o}" for o in args.option)
+        + f") on {gpu or args.device} "
         f"({plan.describe()}), "
         f"{args.views} views at {args.size}, {args.gaussians:,} surfels, {args.objects} "
         "objects clicked, embedding cache cold"
@@ -211,6 +213,7 @@ def main() -> None:
         summary = {"view": "mean (views 1..)", **means.to_dict()}
         out = pd.concat([table, pd.DataFrame([summary])], ignore_index=True)
         named = {"segmenter": args.segmenter, "weights": weights, "objects": args.objects}
+        named |= {"options": " ".join(args.option)}
         named |= {"size": args.size, "device": args.device, "gpu": gpu}
         atomic_write_text(args.out, out.assign(**named).to_csv(index=False))
 

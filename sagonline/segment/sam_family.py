@@ -40,6 +40,7 @@ PROMPTS = ("match", "match+3d", "3d")
 CLICK_EXTENTS = ("part", "object", "sam")
 REFINES = ("before-advice", "always")
 RUNTIMES = ("auto", "onnxruntime", "torch")
+DECODER_RUNTIMES = ("onnxruntime", "torch")
 OLD_EXTENTS = {"colour": "part"}  # labels.json files written before the rename
 
 
@@ -64,8 +65,13 @@ class SamPromptingConfig:
     encoder_runtime: str = "auto"
     """What runs the image encoder: auto (onnxruntime on the CPU, and on CUDA where
     onnxruntime-gpu gives its CUDA provider; else PyTorch on CUDA), onnxruntime, or torch (the
-    encoder's graph run by PyTorch on `device`, `segment.onnx_torch`). The decoder always runs
-    on onnxruntime."""
+    encoder's graph run by PyTorch on `device`, `segment.onnx_torch`). The decoder's runtime is
+    `decoder_runtime`."""
+    decoder_runtime: str = "onnxruntime"
+    """What runs the prompt decoder: onnxruntime (its CUDA provider where onnxruntime-gpu is
+    installed, else the CPU), or torch (the decoder's graph run by PyTorch on `device` in
+    float32, `segment.onnx_torch`; its shape arithmetic once per prompt shape). Which is faster
+    on a GPU without onnxruntime-gpu is for `bench.speed.stage_one` there to say."""
     encoder_precision: str = "fp32"
     """With the PyTorch runtime: fp32, fp16 or bf16 for the encoder's weights and activations
     (embeddings of fp16 or bf16 are cached apart from fp32's)."""
@@ -144,6 +150,11 @@ class SamPromptingConfig:
                 self.encoder_runtime in RUNTIMES,
                 self.encoder_runtime,
                 f"one of {', '.join(RUNTIMES)}",
+            ),
+            decoder_runtime=(
+                self.decoder_runtime in DECODER_RUNTIMES,
+                self.decoder_runtime,
+                f"one of {', '.join(DECODER_RUNTIMES)}",
             ),
             encoder_precision=(
                 self.encoder_precision in PRECISIONS,

@@ -303,24 +303,24 @@ def session_options(threads: int):
     return options
 
 
-def open_torch_encoder(path: Path, device: str, precision: str, make_target: str):
-    """The encoder's graph on PyTorch (`onnx_torch.TorchSession`), or ModelFileError naming
-    `segmenter.encoder` and the file."""
+def open_torch_session(path: Path, option: str, device: str, precision: str, make_target: str):
+    """A model half's graph on PyTorch (`onnx_torch.TorchSession`), or ModelFileError naming
+    `option` (segmenter.encoder / segmenter.decoder) and the file."""
     from sagonline.segment.onnx_torch import TorchSession
 
     if not path.is_file():
-        raise ModelFileError(f"segmenter.encoder={path}: not found; {make_target}")
+        raise ModelFileError(f"{option}={path}: not found; {make_target}")
     if device.startswith("cuda"):
         import torch
 
         if not torch.cuda.is_available():
             raise ModelFileError(
-                f"segmenter.encoder_runtime=torch on {device}: this PyTorch sees no CUDA device"
+                f"{option}_runtime=torch on {device}: this PyTorch sees no CUDA device"
             )
     try:
         return TorchSession(path, device, precision)
     except (ValueError, OSError, KeyError) as exc:
-        raise ModelFileError(f"segmenter.encoder={path}: PyTorch cannot run it ({exc})") from None
+        raise ModelFileError(f"{option}={path}: PyTorch cannot run it ({exc})") from None
 
 
 def open_pair(
@@ -332,6 +332,7 @@ def open_pair(
     cache: Path | None,
     runtime: str = "auto",
     precision: str = "fp32",
+    decoder_runtime: str = "onnxruntime",
     make_target: str,
     cache_bytes: int | None = None,
     expect: str | None = None,
@@ -356,7 +357,10 @@ def open_pair(
         raise ModelFileError(
             f"segmenter.encoder_precision={precision}: only with segmenter.encoder_runtime=torch"
         )
-    dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
+    if decoder_runtime == "torch":
+        dec = open_torch_session(decoder, "segmenter.decoder", device, "fp32", make_target)
+    else:
+        dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
     kind = decoder_format(dec)
     if not kind:
         names = ", ".join(i.name for i in dec.get_inputs())
@@ -369,7 +373,7 @@ def open_pair(
             f"{FORMAT_NAMES[expect]} pairs"
         )
     if runtime == "torch":
-        enc = open_torch_encoder(encoder, device, precision, make_target)
+        enc = open_torch_session(encoder, "segmenter.encoder", device, precision, make_target)
     else:
         enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
     want = {"sam": {"image_embeddings"}, "sam2": {"image_embed"}}[kind]

@@ -107,6 +107,7 @@ class SamFamilySegmenter(VideoSegmenter):
             "max_growth": self.max_growth,
             "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
             "encoder_precision": self.cfg.encoder_precision,
+            "decoder_runtime": self.cfg.decoder_runtime,
         }
 
     def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
@@ -135,6 +136,7 @@ class SamFamilySegmenter(VideoSegmenter):
                     device=self.device,
                     runtime=self.cfg.encoder_runtime,
                     precision=self.cfg.encoder_precision,
+                    decoder_runtime=self.cfg.decoder_runtime,
                     cache=cache,
                     cache_bytes=gigabytes(self.cfg.embedding_cache_gb),
                     make_target=weights_help(self.package, self.folder),

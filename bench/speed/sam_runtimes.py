@@ -1,0 +1,144 @@
+"""The SAM-family models' halves on each runtime (`bench.speed.sam --parts runtimes,decoders`):
+the image encoder on onnxruntime and on PyTorch at each precision, the prompt decoder on
+onnxruntime and on PyTorch; per row the time, the largest difference from onnxruntime's outputs
+and the box IoU on the captures' photographs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from bench.speed.sam import CAPTURES, DATA, photos, segmenter, timed
+from sagonline.segment.mask_geometry import box_of, iou
+
+
+def captured(count: int, data: Path | None) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, RGB image, truth) of the first `count` photographs of each capture in `data`."""
+    root = data or DATA
+    return [p for c in CAPTURES if (root / c).is_dir() for p in photos(c, count, root)]
+
+
+def runtime_table(
+    models: list[str],
+    device: str,
+    repeats: int,
+    count: int,
+    data: Path | None = None,
+    options: dict | None = None,
+) -> pd.DataFrame:
+    """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
+    provider) and PyTorch (`encoder_runtime=torch`) at fp32, fp16 and bf16 (on the CPU only
+    fp32). Per image: the encoder's time (median of `repeats`, the frame already on the host),
+    the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
+    decoder on onnxruntime's CPU in every row). `options`: segmenter settings (say another
+    `encoder` file) for every model."""
+    from sagonline.segment.sam_onnx import open_pair
+
+    shots = captured(count, data)
+    precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
+    runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
+    rows = []
+    for kind in models:
+        base = segmenter(kind, **(options or {}))
+        reference = None
+        for runtime, precision in runs:
+            pair = open_pair(
+                base.encoder,
+                base.decoder,
+                threads=2,
+                device=device,
+                cache=None,
+                runtime=runtime,
+                precision=precision,
+                make_target="make weights",
+            )
+            name = pair.encoder.get_inputs()[0].name
+            frame = pair.preprocess(shots[0][1])
+            outputs = pair.encoder.run(None, {name: frame})
+            reference = reference or outputs
+            # both runtimes hand numpy back, so a timed call includes the GPU's work
+            seconds = timed(lambda p=pair, f=frame, n=name: p.encoder.run(None, {n: f}), repeats)
+            ious = []
+            for _, im, gt in shots:
+                answers = pair.decode(pair.embed(im), None, None, box_of(gt))
+                ious.append(iou(max(answers, key=lambda a: a.predicted_iou).mask, gt))
+            rows.append(
+                {
+                    "model": kind,
+                    "encoder": f"{base.encoder.name} (sha256 {pair.encoder_sha256[:12]})",
+                    "encoder runtime": runtime,
+                    "precision": precision,
+                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
+                    "encoder ms/image": round(1000 * seconds, 1),
+                    "max |difference| from onnxruntime": float(
+                        max(np.abs(o - r).max() for o, r in zip(outputs, reference, strict=True))
+                    ),
+                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                }
+            )
+    return pd.DataFrame(rows)
+
+
+def decoder_table(
+    models: list[str],
+    device: str,
+    repeats: int,
+    count: int,
+    data: Path | None = None,
+    options: dict | None = None,
+) -> pd.DataFrame:
+    """The prompt decoder on onnxruntime (on the CPU unless it has a CUDA provider) and on
+    PyTorch on `device` (`decoder_runtime=torch`), the embeddings made once on onnxruntime: ms
+    per prompt (median of 5 x `repeats`, a box and a box with the previous logits in turn),
+    the largest logit difference from onnxruntime's, and the box IoU on the photographs."""
+    from sagonline.segment.sam_onnx import open_pair
+
+    shots = captured(count, data)
+    rows = []
+    for kind in models:
+        base = segmenter(kind, **(options or {}))
+        pairs = {
+            runtime: open_pair(
+                base.encoder,
+                base.decoder,
+                threads=2,
+                device=device,
+                cache=None,
+                decoder_runtime=runtime,
+                make_target="make weights",
+            )
+            for runtime in ("onnxruntime", "torch")
+        }
+        reference = pairs["onnxruntime"]
+        embeddings = [(reference.embed(im), box_of(gt), gt) for _, im, gt in shots]
+        first = [reference.decode(e, None, None, b)[0].logits for e, b, _ in embeddings]
+        for runtime, pair in pairs.items():
+            emb, box, _ = embeddings[0]
+            prompts = [(None, None, box, None), (None, None, box, first[0])]
+            calls = iter(prompts * (5 * repeats + 1))
+            seconds = timed(lambda p=pair, e=emb, c=calls: p.decode(e, *next(c)), 5 * repeats)
+            gaps, ious = [], []
+            for (e, b, gt), logits in zip(embeddings, first, strict=True):
+                for prompt in ((None, None, b, None), (None, None, b, logits)):
+                    want = reference.decode(e, *prompt)
+                    got = pair.decode(e, *prompt)
+                    gaps += [
+                        float(np.abs(g.logits - w.logits).max())
+                        for g, w in zip(got, want, strict=True)
+                    ]
+                answers = pair.decode(e, None, None, b)
+                ious.append(iou(max(answers, key=lambda a: a.predicted_iou).mask, gt))
+            rows.append(
+                {
+                    "model": kind,
+                    "decoder": f"{base.decoder.name}",
+                    "decoder runtime": runtime,
+                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
+                    "decoder ms/prompt": round(1000 * seconds, 1),
+                    "max |logit difference| from onnxruntime": max(gaps),
+                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                }
+            )
+    return pd.DataFrame(rows)
