@@ -72,6 +72,7 @@ def runtime_table(
                     "precision": precision,
                     "device": device if runtime == "torch" or pair.note == "" else "cpu",
                     "encoder ms/image": round(1000 * seconds, 1),
+                    "operators per call": getattr(pair.encoder, "operators_per_call", None),
                     "max |difference| from onnxruntime": float(
                         max(np.abs(o - r).max() for o, r in zip(outputs, reference, strict=True))
                     ),
@@ -90,7 +91,8 @@ def decoder_table(
     options: dict | None = None,
 ) -> pd.DataFrame:
     """The prompt decoder on onnxruntime (on the CPU unless it has a CUDA provider) and on
-    PyTorch on `device` (`decoder_runtime=torch`), the embeddings made once on onnxruntime: ms
+    PyTorch on `device` (`decoder_runtime=torch`; and again with its shape arithmetic run on
+    every call, which shows what reusing it saves), the embeddings made once on onnxruntime: ms
     per prompt (median of 5 x `repeats`, a box and a box with the previous logits in turn),
     the largest logit difference from onnxruntime's, and the box IoU on the photographs."""
     from sagonline.segment.sam_onnx import open_pair
@@ -99,8 +101,10 @@ def decoder_table(
     rows = []
     for kind in models:
         base = segmenter(kind, **(options or {}))
+        runs = {"onnxruntime": "onnxruntime", "torch": "torch"}
+        runs["torch (shape arithmetic every call)"] = "torch"
         pairs = {
-            runtime: open_pair(
+            name: open_pair(
                 base.encoder,
                 base.decoder,
                 threads=2,
@@ -109,8 +113,9 @@ def decoder_table(
                 decoder_runtime=runtime,
                 make_target="make weights",
             )
-            for runtime in ("onnxruntime", "torch")
+            for name, runtime in runs.items()
         }
+        pairs["torch (shape arithmetic every call)"].decoder.reuse_shapes = False
         reference = pairs["onnxruntime"]
         embeddings = [(reference.embed(im), box_of(gt), gt) for _, im, gt in shots]
         first = [reference.decode(e, None, None, b)[0].logits for e, b, _ in embeddings]
@@ -137,6 +142,7 @@ def decoder_table(
                     "decoder runtime": runtime,
                     "device": device if runtime == "torch" or pair.note == "" else "cpu",
                     "decoder ms/prompt": round(1000 * seconds, 1),
+                    "operators per call": getattr(pair.decoder, "operators_per_call", None),
                     "max |logit difference| from onnxruntime": max(gaps),
                     f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
                 }

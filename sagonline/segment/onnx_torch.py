@@ -58,6 +58,8 @@ class TorchSession:
     """An ONNX graph on `device` at `precision` (fp32, fp16 or bf16: floating tensors and the
     weights in that type, outputs back in float32), with onnxruntime's session calls."""
 
+    reuse_shapes = True  # False: shape arithmetic on every call (what reusing it saves)
+
     def __init__(self, path: Path, device: str = "cpu", precision: str = "fp32"):
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: use one of {', '.join(PRECISIONS)}")
@@ -141,6 +143,11 @@ class TorchSession:
         shapes = tuple((k, tuple(v.shape), v.dtype) for k, v in sorted(feeds.items()))
         return shapes + tuple(tuple(feeds[k].reshape(-1).tolist()) for k in self.small_inputs)
 
+    @property
+    def operators_per_call(self) -> int:
+        """Nodes a call runs once its key's shape arithmetic is known."""
+        return len(self.nodes) - (sum(self.bound) if self.reuse_shapes else 0)
+
     def _place(self, t: torch.Tensor) -> torch.Tensor:
         """Floating tensors to the device in the session's type; integers stay on the CPU."""
         if t.is_floating_point():
@@ -162,7 +169,7 @@ class TorchSession:
         values: dict[str, torch.Tensor | None] = {"": None, **self.weights}
         key = self._key(feeds)
         values.update({k: self._place(v) for k, v in feeds.items()})
-        known = self.bound_values.get(key)
+        known = self.bound_values.get(key) if self.reuse_shapes else None
         values.update(known or {})
         record: dict[str, torch.Tensor] = {}  # on a new key: the bound values later nodes read
         opset = self.graph.opset
@@ -180,7 +187,7 @@ class TorchSession:
                     record[name] = value
             for name in self.free_after[i]:
                 values.pop(name, None)
-        if known is None:
+        if known is None and self.reuse_shapes:
             if len(self.bound_values) >= 64:  # prompts of many shapes: keep the latest
                 self.bound_values.clear()
             self.bound_values[key] = record

@@ -278,6 +278,13 @@ def test_shape_arithmetic_runs_once_a_key_and_a_value_decided_shape_every_time(t
         for got, want in zip(session.run(None, feeds), reference.run(None, feeds), strict=True):
             np.testing.assert_array_equal(got, want)
     assert len(session.bound_values) == 3  # (3, 4), (5, 4), (3, 6): the repeats were hits
+    assert session.operators_per_call == len(session.nodes) - len(bound)
+    session.reuse_shapes = False  # all of it on every call, a new key stored for none
+    assert session.operators_per_call == len(session.nodes)
+    feeds = {"x": np.ones((2, 7), np.float32), "size": np.array([3, 5], np.float32), "x4": x4}
+    for got, want in zip(session.run(None, feeds), reference.run(None, feeds), strict=True):
+        np.testing.assert_array_equal(got, want)
+    assert len(session.bound_values) == 3
 
 
 def test_an_operator_without_a_pytorch_path_and_a_foreign_file_are_named(tmp_path):
