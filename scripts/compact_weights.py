@@ -30,7 +30,15 @@ import numpy as np
 from sagonline.core.files import atomic_write
 from sagonline.segment.onnx_graph import OnnxGraph, read_graph, topological
 
-ONNX_FLOAT = 1
+ONNX_FLOAT = 1  # onnx.TensorProto.FLOAT (onnx is imported where a file is written)
+
+
+def along(ndim: int, axis: int | None) -> list[int]:
+    """The shape that broadcasts one value per index of `axis` over `ndim` dimensions."""
+    shape = [1] * ndim
+    if axis is not None:
+        shape[axis] = -1
+    return shape
 
 
 def weight_axis(consumers: list[tuple[str, int]], ndim: int) -> int | None:
@@ -53,10 +61,7 @@ def quantise(weight: np.ndarray, axis: int | None) -> tuple[np.ndarray, np.ndarr
         others = tuple(d for d in range(w.ndim) if d != axis)
         peak = np.abs(w).max(axis=others)
     scale = np.where(peak > 0, peak / 127.0, 1.0).astype(np.float32)
-    shape = [1] * w.ndim
-    if axis is not None:
-        shape[axis] = -1
-    values = np.clip(np.rint(w / scale.reshape(shape)), -127, 127).astype(np.int8)
+    values = np.clip(np.rint(w / scale.reshape(along(w.ndim, axis))), -127, 127).astype(np.int8)
     return values, scale
 
 
@@ -76,12 +81,9 @@ def to_onnx(graph: OnnxGraph, min_elements: int):
             continue
         axis = weight_axis(consumers.get(name, []), value.ndim)
         values, scale = quantise(value, axis)
-        shape = [1] * value.ndim  # the scales broadcast along `axis`
-        if axis is not None:
-            shape[axis] = -1
         initializers += [
             numpy_helper.from_array(values, f"{name}.int8"),
-            numpy_helper.from_array(scale.reshape(shape), f"{name}.scale"),
+            numpy_helper.from_array(scale.reshape(along(value.ndim, axis)), f"{name}.scale"),
         ]
         widen += [
             helper.make_node("Cast", [f"{name}.int8"], [f"{name}.float"], to=ONNX_FLOAT),

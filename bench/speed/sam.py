@@ -281,19 +281,17 @@ def main() -> None:
         "--option",
         action="append",
         default=[],
-        help="runtimes: a segmenter KEY=VALUE for every model (say encoder=FILE)",
+        help="runtimes, decoders: a segmenter KEY=VALUE for every model (say encoder=FILE)",
     )
     args = ap.parse_args()
     if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
         ap.error("--photos in [1, 40], --repeats in [1, 20]")
     models = [m for m in args.models.split(",") if m]
     options = dict(item.partition("=")[::2] for item in args.option)
-    for m in models:  # the weights are there (else: make weights), before any work
-        segmenter(
-            m, **(options if {"runtimes", "decoders"} & set(args.parts.split(",")) else {})
-        ).check()
-    print(f"before: {uptime()}")
     parts = set(args.parts.split(","))
+    for m in models:  # the weights are there (else: make weights), before any work
+        segmenter(m, **(options if {"runtimes", "decoders"} & parts else {})).check()
+    print(f"before: {uptime()}")
     if "photos" in parts:
         print("\n## One photograph, one prompt\n")
         print(photo_table(models, args.photos).to_markdown(index=False))

@@ -126,6 +126,15 @@ def _pad(node, x, pads=None, value=None, axes=None):
     return F.pad(x, _pad_pairs(spatial), mode={"reflect": "reflect", "edge": "replicate"}[mode])
 
 
+def _window(node, k: int) -> dict:
+    """A convolution's strides, dilations and groups over `k` spatial dimensions."""
+    return {
+        "stride": _ints(node.attrs.get("strides", [1] * k)),
+        "dilation": _ints(node.attrs.get("dilations", [1] * k)),
+        "groups": int(node.attrs.get("group", 1)),
+    }
+
+
 def _conv(node, x, w, b=None):
     k = w.dim() - 2
     pads = _ints(node.attrs.get("pads", [0] * 2 * k))
@@ -134,15 +143,7 @@ def _conv(node, x, w, b=None):
     if pads[:k] != pads[k:]:
         x, pads = F.pad(x, _pad_pairs([0, 0, *pads[:k], 0, 0, *pads[k:]])), [0] * 2 * k
     conv = {1: F.conv1d, 2: F.conv2d, 3: F.conv3d}[k]
-    return conv(
-        x,
-        w,
-        b,
-        stride=_ints(node.attrs.get("strides", [1] * k)),
-        padding=pads[:k],
-        dilation=_ints(node.attrs.get("dilations", [1] * k)),
-        groups=int(node.attrs.get("group", 1)),
-    )
+    return conv(x, w, b, padding=pads[:k], **_window(node, k))
 
 
 def _max_pool(node, x):
@@ -291,16 +292,8 @@ def _conv_transpose(node, x, w, b=None):
     if pads[:k] != pads[k:]:
         raise ValueError("ConvTranspose with uneven pads is not supported")
     conv = {1: F.conv_transpose1d, 2: F.conv_transpose2d, 3: F.conv_transpose3d}[k]
-    return conv(
-        x,
-        w,
-        b,
-        stride=_ints(node.attrs.get("strides", [1] * k)),
-        padding=pads[:k],
-        output_padding=_ints(node.attrs.get("output_padding", [0] * k)),
-        groups=int(node.attrs.get("group", 1)),
-        dilation=_ints(node.attrs.get("dilations", [1] * k)),
-    )
+    extra = _ints(node.attrs.get("output_padding", [0] * k))
+    return conv(x, w, b, padding=pads[:k], output_padding=extra, **_window(node, k))
 
 
 def _gemm(node, a, b, c=None):

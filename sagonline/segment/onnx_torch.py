@@ -179,7 +179,7 @@ class TorchSession:
                     values.pop(name, None)
                 continue
             outs = _run_node(node, [values[name] for name in node.inputs], opset)
-            if node.op in ("Constant", "ConstantOfShape", "Cast"):
+            if node.op in ("ConstantOfShape", "Cast"):  # Constants were folded at open
                 outs = [self._place(o) if o.is_floating_point() else o for o in outs]
             for name, value in zip(node.outputs, outs, strict=True):
                 values[name] = value
