@@ -66,8 +66,10 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--call", action="append", required=True, help="the paths one call carries")
     ap.add_argument("--root", type=Path, default=ROOT, help="the checkout (default: this one)")
+    ap.add_argument("--limit", type=int, default=LIMIT_BYTES, help="bytes a call may carry")
     args = ap.parse_args()
-    lines = check_calls([c.split() for c in args.call if c.split()], args.root)  # "": none
+    calls = [c.split() for c in args.call if c.split()]  # "": no such call
+    lines = check_calls(calls, args.root, args.limit)
     print("\n".join(lines))
     if any(line.startswith("over") for line in lines):
         raise SystemExit(1)

@@ -272,3 +272,24 @@ def test_a_call_that_carries_more_than_it_may_is_refused_before_it_starts(tmp_pa
         lines[-1]
         == f"over: call 1 carries {carried / 1e6:.1f} MB, over {(carried - 1) / 1e6:.1f} MB"
     )
+
+
+def test_carry_sizes_exits_1_naming_the_call_that_is_over(tmp_path):
+    """The command `make gpu-bundle` ends with: a call over --limit fails it, one under passes."""
+    subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
+    (tmp_path / "big.bin").write_bytes(b"z" * 5000)
+    script = [sys.executable, str(ROOT / "scripts" / "carry_sizes.py"), "--root", str(tmp_path)]
+    over = subprocess.run(
+        [*script, "--call", "big.bin", "--limit", "4000"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert over.returncode == 1 and "over: call 1 carries 0.0 MB" in over.stdout
+    under = subprocess.run(
+        [*script, "--call", "big.bin", "--limit", "6000"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert under.returncode == 0 and "  big.bin: 0.0 MB" in under.stdout

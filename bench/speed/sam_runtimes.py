@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 
 from bench.speed.sam import CAPTURES, DATA, photos, segmenter, timed
+from sagonline.core.provenance import sha256_file
 from sagonline.segment.mask_geometry import box_of, iou
 
 
@@ -117,6 +118,8 @@ def decoder_table(
         }
         pairs["torch (shape arithmetic every call)"].decoder.reuse_shapes = False
         reference = pairs["onnxruntime"]
+        decoder_named = f"{base.decoder.name} (sha256 {sha256_file(base.decoder)[:12]})"
+        encoder_named = f"{base.encoder.name} (sha256 {reference.encoder_sha256[:12]})"
         embeddings = [(reference.embed(im), box_of(gt), gt) for _, im, gt in shots]
         first = [reference.decode(e, None, None, b)[0].logits for e, b, _ in embeddings]
         for runtime, pair in pairs.items():
@@ -138,7 +141,8 @@ def decoder_table(
             rows.append(
                 {
                     "model": kind,
-                    "decoder": f"{base.decoder.name}",
+                    "decoder": decoder_named,
+                    "embeddings from": encoder_named,
                     "decoder runtime": runtime,
                     "device": device if runtime == "torch" or pair.note == "" else "cpu",
                     "decoder ms/prompt": round(1000 * seconds, 1),

@@ -115,3 +115,38 @@ def test_sam2_tinys_compact_encoder_keeps_its_masks(tmp_path):
     want = original.decode(original.embed(image), None, None, box_of(truth))[0].mask
     got = pairs["torch"].decode(pairs["torch"].embed(image), None, None, box_of(truth))[0].mask
     assert iou(got, want) > 0.995
+
+
+def test_the_command_writes_a_compact_file_and_names_a_bad_source(tmp_path):
+    """`scripts/compact_weights.py SOURCE OUT`: the file written with its size and each
+    output's cosine on the record; a missing or damaged source named, nothing written."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    rng = np.random.default_rng(5)
+    w = numpy_helper.from_array(rng.standard_normal((16, 300)).astype(np.float32), "w")
+    nodes = [helper.make_node("MatMul", ["x", "w"], ["y"])]
+    source = model_file(tmp_path, nodes, [tensor("x", [2, 16])], [tensor("y", [2, 300])], [w])
+    script = [sys.executable, str(root / "scripts" / "compact_weights.py")]
+    done = subprocess.run(
+        [*script, str(source), str(tmp_path / "out.onnx")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "out.onnx:" in done.stdout and "  y: largest |difference|" in done.stdout
+    assert (tmp_path / "out.onnx").stat().st_size < source.stat().st_size / 3
+    cut = tmp_path / "cut.onnx"
+    cut.write_bytes(source.read_bytes()[:100])
+    for bad, why in ((tmp_path / "nope.ort", "not found"), (cut, "neither an ONNX nor an ORT")):
+        failed = subprocess.run(
+            [*script, str(bad), str(tmp_path / "bad.onnx")],
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert failed.returncode == 1 and f"{bad}: {why}" in failed.stderr
+    assert not (tmp_path / "bad.onnx").exists()

