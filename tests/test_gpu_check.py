@@ -279,17 +279,15 @@ def test_carry_sizes_exits_1_naming_the_call_that_is_over(tmp_path):
     subprocess.run(["git", "init", "-q", str(tmp_path)], check=True)
     (tmp_path / "big.bin").write_bytes(b"z" * 5000)
     script = [sys.executable, str(ROOT / "scripts" / "carry_sizes.py"), "--root", str(tmp_path)]
-    over = subprocess.run(
-        [*script, "--call", "big.bin", "--limit", "4000"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
+
+    def carry(limit: int) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [*script, "--call", "big.bin", "--limit", str(limit)],
+            capture_output=True,
+            text=True,
+            timeout=60,
+        )
+
+    over, under = carry(4000), carry(6000)
     assert over.returncode == 1 and "over: call 1 carries 0.0 MB" in over.stdout
-    under = subprocess.run(
-        [*script, "--call", "big.bin", "--limit", "6000"],
-        capture_output=True,
-        text=True,
-        timeout=60,
-    )
     assert under.returncode == 0 and "  big.bin: 0.0 MB" in under.stdout
