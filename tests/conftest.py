@@ -48,6 +48,13 @@ def pytest_configure(config) -> None:
     settings.load_profile("sagonline")
 
 
+def pytest_collection_modifyitems(config, items) -> None:
+    """The `slow` tests run first (in their order, then the rest in theirs): with a worker per
+    core, the longest ones (the GPU check's, a minute or more) starting last would leave one
+    worker busy while the other has nothing left."""
+    items.sort(key=lambda item: item.get_closest_marker("slow") is None)
+
+
 @pytest.fixture(scope="module")
 def tiny_task():
     """The forward-facing synthetic preset at 40x30: 1,500 Gaussians, 5 trajectory views, 2
