@@ -196,7 +196,7 @@ def trace_step(
     T_before = (T[pids].double() * torch.exp(exclusive)).to(alpha.dtype)
     hit = request.keeps(T_before, alpha, dist2)
     T_new = T.clone()
-    T_new.index_reduce_(0, pids, (1.0 - alpha).to(T.dtype), "prod")
+    T_new.scatter_reduce_(0, pids, (1.0 - alpha).to(T.dtype), "prod")
     chunk = TraceChunk(
         pixel=pids[hit],
         gaussian=gids[hit],

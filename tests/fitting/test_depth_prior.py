@@ -93,7 +93,7 @@ def test_trust_ignores_a_prior_that_contradicts_the_fit_and_follows_one_that_agr
     depth, alpha = surface()
     z = depth / alpha
     reversed_ = depth_correlation(depth.clone().requires_grad_(True), alpha, -z, trust=True)
-    assert float(reversed_) == pytest.approx(0.0, abs=1e-4)  # weight max(0, -1) = 0
+    assert float(reversed_.detach()) == pytest.approx(0.0, abs=1e-4)  # weight max(0, -1) = 0
     noisy = z + 0.3 * torch.randn(z.shape, generator=torch.Generator().manual_seed(0))
     plain = float(depth_correlation(depth, alpha, noisy, patch=0))
     weighted = float(depth_correlation(depth, alpha, noisy, patch=0, trust=True))
@@ -102,7 +102,7 @@ def test_trust_ignores_a_prior_that_contradicts_the_fit_and_follows_one_that_agr
     rendered = depth.flip(1).clone().requires_grad_(True)
     depth_correlation(rendered, alpha, noisy, patch=0).backward()
     plain_grad, rendered.grad = rendered.grad.clone(), None
-    term = float(depth_correlation(rendered, alpha, noisy, patch=0))
+    term = float(depth_correlation(rendered.detach(), alpha, noisy, patch=0))
     depth_correlation(rendered, alpha, noisy, patch=0, trust=True).backward()
     torch.testing.assert_close(rendered.grad, plain_grad * max(0.0, 1 - term))
 
@@ -204,7 +204,7 @@ def test_the_depth_settings_reach_the_term(views, tmp_path):
     out = render(f.gaussians(), f.cams[view], background=torch.zeros(3), backend=f.cfg.backend)
     expected = depth_correlation(out.depth, out.alpha, f.depth_priors[view], 0, trust=True, pool=4)
     _, _, terms = f.loss(f.gaussians(), view)
-    assert float(terms["depth"]) == pytest.approx(float(expected), rel=1e-4, abs=1e-6)
+    assert terms["depth"] == pytest.approx(float(expected.detach()), rel=1e-4, abs=1e-6)
     for bad in (dict(depth_patch=-1), dict(depth_pool=0)):
         with pytest.raises(ValueError, match=next(iter(bad))):
             FitConfig(**bad)
