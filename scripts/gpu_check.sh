@@ -25,7 +25,9 @@
 # lent for minutes still reaches the later steps. --deadline S bounds the whole run: a step
 # gets at most the seconds left (the GPU fit's time budget too), a step with under 20 s left is
 # skipped (a failure), and the summary is always written. --archive FILE packs the summary, the
-# tables and every step's log into one .tar.gz (one file to copy back from a lent machine). The
+# tables and every step's log into one .tar.gz (one file to copy back from a lent machine). Both
+# are rewritten as each step starts and ends, so a check killed from outside leaves what it
+# finished, and the step it was in as a failure ("running when the check was stopped"). The
 # steps run most-wanted first: the CUDA tests, the default evaluation with and without gsplat,
 # the GPU fit (its time budget --fit-budget S, 150 s on a GPU; 0: none; kept in --fit-dir DIR,
 # .gpu-fit/ by default, where a second call scores it), the real model's
@@ -72,7 +74,7 @@ while [ $# -gt 0 ]; do
     "--fit-budget") FIT_BUDGET_S=$2; shift 2 ;;
     "--fit-dir") FIT_DIR=$(mkdir -p "$2" && cd "$2" && pwd); shift 2 ;;
     "--as-gpu-machine") AS_GPU_MACHINE=1; shift ;;
-    -h|--help) sed -n '2,41p' "$0"; exit 0 ;;
+    -h|--help) sed -n '2,/^set /{/^set /!p}' "$0"; exit 0 ;;
     *) echo "gpu_check: unknown option $1 (see --help)" >&2; exit 2 ;;
   esac
 done
@@ -96,6 +98,11 @@ STAMP=$(date +%Y-%m-%d_%H-%M-%S)
 TAG=$([ "$DEVICE" = cpu ] && echo cpu_check || echo cuda)
 failed=0
 rows=()
+if [ -n "$ARCHIVE" ]; then
+  mkdir -p "$(dirname "$ARCHIVE")"
+  ARCHIVE=$(cd "$(dirname "$ARCHIVE")" && pwd)/$(basename "$ARCHIVE")
+fi
+GPU=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
 
 BEGAN=$(date +%s)
 touch "$WORK/began"  # what this run writes is newer
@@ -113,6 +120,35 @@ named_in() {  # named_in NAME LIST: whether NAME starts with one of LIST's comma
     [ -n "$prefix" ] && [ "${1#"$prefix"}" != "$1" ] && return 0
   done
   return 1
+}
+
+write_summary() {  # write_summary [ROW]: the summary (and --archive) as they stand, ROW last
+  # (the step now running): rewritten after each step, so a check stopped from outside (a lent
+  # machine's time running out) still leaves what it finished
+  {
+    echo "# GPU check ($STAMP)"
+    echo
+    echo "device $DEVICE ($GPU); \`scripts/gpu_check.sh$GIVEN\`; logs in $WORK"
+    echo
+    echo "| step | result | time |"
+    echo "|---|---|---|"
+    printf '%s\n' "${rows[@]}" "$@"
+    echo
+    # every table this run wrote (not those an earlier run left in OUT)
+    find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began" | sort | sed 's/^/- wrote /'
+  } >"$SUMMARY.partial" && mv "$SUMMARY.partial" "$SUMMARY"
+  [ -z "$ARCHIVE" ] && return
+  # the summary, this run's tables, every step's log and each run's text files (metrics,
+  # per-view tables, configs; no images, scenes or caches), in one file
+  { echo "$SUMMARY"; find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began"
+    find "$WORK" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
+      -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
+    if [ -d "${FIT_DATA:-}" ] && [ "${FIT_DATA#"$WORK"/}" = "$FIT_DATA" ]; then  # in --fit-dir
+      find "$FIT_DATA" -path '*/gaussians-*' -name 'fit_*.json' -print
+      find "$FIT_SCORES" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
+        -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print 2>/dev/null
+    fi
+  } | sed 's|^/||' | tar -czf "$ARCHIVE.partial" -C / -T - && mv "$ARCHIVE.partial" "$ARCHIVE"
 }
 
 step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fail
@@ -142,6 +178,7 @@ step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fa
   fi
   echo "== $name: $*"
   start=$(date +%s)
+  write_summary "| $name | FAIL (running when the check was stopped; started $(date +%H:%M:%S)) | |"
   if [ "$limit" -gt 0 ]; then timeout "$limit" "$@" >"$log" 2>&1
   else "$@" >"$log" 2>&1
   fi
@@ -155,6 +192,7 @@ step() {  # step NAME COMMAND...: run it, time it, keep its log, note pass or fa
   else rows+=("| $name | FAIL (exit $status; log $log) | $((end - start)) s |"); failed=1
   fi
   echo "== $name: exit $status in $((end - start)) s"
+  write_summary
 }
 
 step "environment" "$PY" - "$DEVICE" "$OUT/packages_$TAG.txt" <<'EOF'
@@ -403,33 +441,7 @@ step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/mas
 step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
   --out "$OUT/bench_render_$TAG.csv"
 
-gpu=$("$PY" -c "import torch; print(torch.cuda.get_device_name(0) if torch.cuda.is_available() else 'no GPU')" 2>/dev/null)
-{
-  echo "# GPU check ($STAMP)"
-  echo
-  echo "device $DEVICE ($gpu); \`scripts/gpu_check.sh$GIVEN\`; logs in $WORK"
-  echo
-  echo "| step | result | time |"
-  echo "|---|---|---|"
-  printf '%s\n' "${rows[@]}"
-  echo
-  # every table this run wrote (not those an earlier run left in OUT)
-  find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began" | sort | sed 's/^/- wrote /'
-} >"$SUMMARY"
+write_summary
 cat "$SUMMARY"
-if [ -n "$ARCHIVE" ]; then  # the summary, this run's tables, every step's log and each run's
-  # text files (metrics, per-view tables, configs; no images, scenes or caches), in one file
-  mkdir -p "$(dirname "$ARCHIVE")"
-  ARCHIVE=$(cd "$(dirname "$ARCHIVE")" && pwd)/$(basename "$ARCHIVE")
-  { echo "$SUMMARY"; find "$OUT" -maxdepth 1 -name "*_$TAG.*" -newer "$WORK/began"
-    find "$WORK" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
-      -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
-    if [ -d "$FIT_DATA" ] && [ "${FIT_DATA#"$WORK"/}" = "$FIT_DATA" ]; then  # kept in --fit-dir
-      find "$FIT_DATA" -path '*/gaussians-*' -name 'fit_*.json' -print
-      find "$FIT_SCORES" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
-        -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print 2>/dev/null
-    fi
-  } | sed 's|^/||' | tar -czf "$ARCHIVE" -C / -T - \
-    && echo "archive: $ARCHIVE ($(du -h "$ARCHIVE" | cut -f1))"
-fi
+[ -n "$ARCHIVE" ] && echo "archive: $ARCHIVE ($(du -h "$ARCHIVE" | cut -f1))"
 exit $failed

@@ -7,9 +7,11 @@ from __future__ import annotations
 
 import json
 import os
+import signal
 import subprocess
 import sys
 import tarfile
+import time
 from pathlib import Path
 
 import pandas as pd
@@ -121,6 +123,41 @@ def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_pa
     assert "| environment | FAIL (skipped:" in summary and "| pass |" not in summary
     with tarfile.open(archive) as packed:
         assert any(n.endswith("/gpu_check.md") for n in packed.getnames())
+
+
+def test_a_check_killed_from_outside_leaves_the_steps_it_finished(tmp_path):
+    """A lent machine's time can run out mid-step (its process group killed, no chance to clean
+    up): the summary and the archive as they stood when the step began are on disk, with the
+    finished steps and the one that was running as a failure."""
+    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    archive = tmp_path / "check.tgz"
+    proc = subprocess.Popen(
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
+        + ["--steps", "environment,eval (make eval)", "--skip-fit", "--archive", str(archive)],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    summary = tmp_path / "gpu_check.md"
+    try:
+        for _ in range(1200):  # until the evaluation starts (at most 120 s)
+            if summary.is_file() and "| eval (make eval) | FAIL (running" in summary.read_text():
+                break
+            assert proc.poll() is None, "the check ended before its evaluation started"
+            time.sleep(0.1)
+    finally:
+        os.killpg(proc.pid, signal.SIGKILL)
+        proc.wait()
+    text = summary.read_text()
+    assert "| environment | pass |" in text
+    assert "| eval (make eval) | FAIL (running when the check was stopped" in text
+    assert "- wrote " in text and "packages_cpu_check.txt" in text
+    with tarfile.open(archive) as packed:
+        names = packed.getnames()
+    assert any(n.endswith("/gpu_check.md") for n in names)
+    assert any(n.endswith("/environment.log") for n in names)
 
 
 def test_steps_and_skip_choose_the_steps_by_the_start_of_their_names(tmp_path):

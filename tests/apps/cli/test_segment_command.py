@@ -171,7 +171,10 @@ def test_segment_takes_drop_nonfinite_as_its_message_says(user_scene, tmp_path, 
     data.write(str(bad / "point_cloud.ply"))
     assert _segment(bad, "--click", click, "--out", str(tmp_path / "o")) == 2
     assert "--drop-nonfinite" in error_line(capsys)
-    assert _segment(bad, "--click", click, "--out", str(tmp_path / "o"), "--drop-nonfinite") == 0
+    with pytest.warns(UserWarning, match=r"point_cloud\.ply: dropped 1 of \d+ Gaussians with NaN"):
+        assert (
+            _segment(bad, "--click", click, "--out", str(tmp_path / "o"), "--drop-nonfinite") == 0
+        )
 
 
 def test_null_given_to_a_segmenter_option_means_none():
