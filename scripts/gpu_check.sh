@@ -424,7 +424,7 @@ if [ "$DEVICE" != cpu ] && [ -n "$NCU" ]; then
   for kernel in walk chunk16; do
     step "vote kernel $kernel (ncu)" env SAGONLINE_TRITON_VOTE=$kernel "$NCU" \
       --target-processes all --kernel-name regex:'walk_kernel|vote_chunk_kernel' \
-      --launch-count 2 --section SpeedOfLight --section MemoryWorkloadAnalysis \
+      --clock-control none --launch-count 2 --section SpeedOfLight --section MemoryWorkloadAnalysis \
       --section Occupancy --section LaunchStats --log-file "$OUT/vote_ncu_${kernel}_$TAG.txt" \
       "$PY" -m bench.speed.vote_profile --device "$DEVICE" --masks 2
   done
