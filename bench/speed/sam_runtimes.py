@@ -104,6 +104,8 @@ def decoder_table(
         base = segmenter(kind, **(options or {}))
         runs = {"onnxruntime": "onnxruntime", "torch": "torch"}
         runs["torch (shape arithmetic every call)"] = "torch"
+        if device.startswith("cuda"):  # each prompt shape's call replayed as one launch
+            runs["torch (CUDA graphs)"] = "torch"
         pairs = {
             name: open_pair(
                 base.encoder,
@@ -112,6 +114,7 @@ def decoder_table(
                 device=device,
                 cache=None,
                 decoder_runtime=runtime,
+                cuda_graphs=name == "torch (CUDA graphs)",
                 make_target="make weights",
             )
             for name, runtime in runs.items()

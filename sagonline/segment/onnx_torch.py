@@ -7,7 +7,8 @@ dependency order on torch tensors (`segment.onnx_ops`); only the operators these
 implemented, and any other is refused by name when the file is opened. Integer tensors
 (shapes, indices) stay on the CPU, so shape arithmetic never waits on the GPU; nodes of weights
 and constants alone run once, when the file is opened, and shape arithmetic once per input
-shape (`TorchSession._shape_bound`).
+shape (`TorchSession._shape_bound`). On CUDA, `cuda_graphs` replays the rest of each input
+shape's call as one CUDA graph (`segmenter.cuda_graphs`).
 
 `TorchSession` answers the three calls `sam_onnx.SamPair` makes of an onnxruntime session
 (`get_inputs`, `get_outputs`, `run`), so either runtime serves a pair.
@@ -16,13 +17,16 @@ shape (`TorchSession._shape_bound`).
 from __future__ import annotations
 
 import math
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from sagonline.segment.onnx_graph import Node, ValueInfo, read_graph, topological
-from sagonline.segment.onnx_ops import OPS, softmax
+from sagonline.segment.onnx_ops import OPS, device_copies, softmax
 
 __all__ = ["PRECISIONS", "TorchSession", "encoder_runtime"]
 
@@ -54,16 +58,57 @@ SHAPE_FROM_VALUES = {
 # --- running a graph ------------------------------------------------------------------------------
 
 
+@dataclass
+class Replay:
+    """One key's CUDA graph: copy new inputs into `inputs`, `launch()`, read `outputs`."""
+
+    launch: Callable[[], None]  # the graph's replay
+    inputs: dict[str, torch.Tensor]
+    outputs: list[torch.Tensor]
+    keep: tuple  # what its kernels read by address: the key's bound values, the device copies
+
+
+def record_cuda_graph(run: Callable[[], list[torch.Tensor]]):
+    """run()'s kernels captured as one CUDA graph, after a warm-up run on a side stream (as a
+    capture wants): (its replay, the outputs each replay rewrites)."""
+    side = torch.cuda.Stream()
+    side.wait_stream(torch.cuda.current_stream())
+    with torch.cuda.stream(side):
+        run()
+    torch.cuda.current_stream().wait_stream(side)
+    graph = torch.cuda.CUDAGraph()
+    # thread_local: what other threads do meanwhile (the student training) is not the capture's
+    with torch.cuda.graph(graph, capture_error_mode="thread_local"):
+        outputs = run()
+    return graph.replay, outputs
+
+
+# Input keys (shapes) a session captures at most; past them a new key runs eagerly
+MAX_GRAPHS = 16
+
+
 class TorchSession:
     """An ONNX graph on `device` at `precision` (fp32, fp16 or bf16: floating tensors and the
-    weights in that type, outputs back in float32), with onnxruntime's session calls."""
+    weights in that type, outputs back in float32), with onnxruntime's session calls.
+
+    cuda_graphs: each key's kernels (`_key`: a prompt's shapes) are captured as one CUDA graph on
+    its first call and replayed from then on, one launch instead of hundreds. A capture that
+    fails, or whose replay differs from the eager run, is said once and that key runs eagerly."""
 
     reuse_shapes = True  # False: shape arithmetic on every call (what reusing it saves)
+    record = staticmethod(record_cuda_graph)  # how a key's graph is captured
 
-    def __init__(self, path: Path, device: str = "cpu", precision: str = "fp32"):
+    def __init__(
+        self, path: Path, device: str = "cpu", precision: str = "fp32", cuda_graphs: bool = False
+    ):
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: use one of {', '.join(PRECISIONS)}")
-        self.graph = read_graph(Path(path))
+        if cuda_graphs and torch.device(device).type != "cuda":
+            raise ValueError(f"CUDA graphs need a CUDA device, not {device!r}")
+        self.cuda_graphs = cuda_graphs
+        self.replays: dict[tuple, Replay | None] = {}  # None: refused, runs eagerly
+        self.path = Path(path)
+        self.graph = read_graph(self.path)
         missing = sorted({n.op for n in self.graph.nodes} - {*OPS, "Softmax"})
         if missing:
             raise ValueError(f"{path}: operators {', '.join(missing)} have no PyTorch path here")
@@ -166,8 +211,57 @@ class TorchSession:
         feeds: dict[str, torch.Tensor],  # input name -> its tensor, say [1, 3, 1024, 1024]
     ) -> list[torch.Tensor]:  # the outputs in the graph's order, say [1, 256, 64, 64]
         """The graph's outputs for `feeds` (input name -> tensor), in the graph's order."""
-        values: dict[str, torch.Tensor | None] = {"": None, **self.weights}
         key = self._key(feeds)
+        if not self.cuda_graphs:
+            return self._run(feeds, key)
+        replay = self.replays.get(key)
+        if replay is None:
+            outputs = self._run(feeds, key)  # a new key's shape arithmetic, and the warm-up
+            if key not in self.replays and len(self.replays) < MAX_GRAPHS:
+                self.replays[key] = self._capture(feeds, key, outputs)
+            return outputs
+        for name, value in feeds.items():
+            replay.inputs[name].copy_(value)
+        replay.launch()
+        return [o.clone() for o in replay.outputs]
+
+    def _capture(
+        self, feeds: dict[str, torch.Tensor], key: tuple, eager: list[torch.Tensor]
+    ) -> Replay | None:
+        """`key`'s CUDA graph, checked against `eager` (this call's outputs), or None (said)."""
+        inputs = {k: self._place(v).clone() for k, v in feeds.items()}
+        if not all(t.is_floating_point() for t in inputs.values()):
+            return self._refuse(key, "an integer input stays on the CPU")
+        copies: dict = {}
+        try:
+            with device_copies(copies):  # made before the capture, which cannot copy from host
+                launch, outputs = self.record(lambda: self._run(inputs, key))
+            launch()
+            gap = max(
+                float((o.float() - e.float()).abs().max())
+                for o, e in zip(outputs, eager, strict=True)
+            )
+        except RuntimeError as exc:
+            return self._refuse(key, f"its capture failed ({str(exc).splitlines()[0]})")
+        scale = max(float(e.float().abs().max()) for e in eager)
+        if not gap <= 1e-3 * max(1.0, scale):
+            return self._refuse(key, f"its replay differs from the eager run by {gap:.3g}")
+        return Replay(launch, inputs, outputs, (self.bound_values.get(key), copies))
+
+    def _refuse(self, key: tuple, why: str) -> None:
+        shapes = ", ".join(
+            f"{k} {list(shape)}" for k, shape, _ in key[: len(key) - len(self.small_inputs)]
+        )
+        warnings.warn(
+            f"{self.path.name}: no CUDA graph for inputs of shapes {shapes}: {why}; they run "
+            "eagerly",
+            stacklevel=4,
+        )
+        return None
+
+    def _run(self, feeds: dict[str, torch.Tensor], key: tuple) -> list[torch.Tensor]:
+        """The graph's nodes, one by one, on `feeds` of `key`."""
+        values: dict[str, torch.Tensor | None] = {"": None, **self.weights}
         values.update({k: self._place(v) for k, v in feeds.items()})
         known = self.bound_values.get(key) if self.reuse_shapes else None
         values.update(known or {})

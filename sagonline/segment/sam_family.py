@@ -75,6 +75,11 @@ class SamPromptingConfig:
     encoder_precision: str = "fp32"
     """With the PyTorch runtime: fp32, fp16 or bf16 for the encoder's weights and activations
     (embeddings of fp16 or bf16 are cached apart from fp32's)."""
+    cuda_graphs: bool = False
+    """On CUDA, for the halves on PyTorch: each input shape's kernels (an image; a prompt's
+    points) captured as one CUDA graph on its first call and replayed after, one launch
+    instead of hundreds; a capture that fails or replays other values is said and runs
+    eagerly. Refused off CUDA or with neither half on PyTorch."""
     embedding_cache: str | None = "~/.cache/sagonline/embeddings"
     """Where image embeddings are kept, by the frame's and the encoder's content (each entry
     checked on read); null: in this process only."""
@@ -160,6 +165,11 @@ class SamPromptingConfig:
                 self.encoder_precision in PRECISIONS,
                 self.encoder_precision,
                 "fp32, fp16 or bf16",
+            ),
+            cuda_graphs=(
+                not self.cuda_graphs or self.device.startswith("cuda"),
+                self.cuda_graphs,
+                "false unless segmenter.device is cuda",
             ),
             encoder=(bool(self.encoder.strip()), self.encoder, "a file path"),
             decoder=(bool(self.decoder.strip()), self.decoder, "a file path"),

@@ -303,7 +303,14 @@ def session_options(threads: int):
     return options
 
 
-def open_torch_session(path: Path, option: str, device: str, precision: str, make_target: str):
+def open_torch_session(
+    path: Path,
+    option: str,
+    device: str,
+    precision: str,
+    make_target: str,
+    cuda_graphs: bool = False,
+):
     """A model half's graph on PyTorch (`onnx_torch.TorchSession`), or ModelFileError naming
     `option` (segmenter.encoder / segmenter.decoder) and the file."""
     from sagonline.segment.onnx_torch import TorchSession
@@ -318,7 +325,7 @@ def open_torch_session(path: Path, option: str, device: str, precision: str, mak
                 f"{option}_runtime=torch on {device}: this PyTorch sees no CUDA device"
             )
     try:
-        return TorchSession(path, device, precision)
+        return TorchSession(path, device, precision, cuda_graphs)
     except (ValueError, OSError, KeyError) as exc:
         raise ModelFileError(f"{option}={path}: PyTorch cannot run it ({exc})") from None
 
@@ -333,12 +340,14 @@ def open_pair(
     runtime: str = "auto",
     precision: str = "fp32",
     decoder_runtime: str = "onnxruntime",
+    cuda_graphs: bool = False,
     make_target: str,
     cache_bytes: int | None = None,
     expect: str | None = None,
 ) -> SamPair:
     """The pair of model files as a `SamPair` of the format the decoder declares (`expect`:
-    the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`."""
+    the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`.
+    cuda_graphs: the halves on PyTorch replay each input shape as a CUDA graph."""
     import onnxruntime as ort
 
     from sagonline.segment.onnx_torch import encoder_runtime
@@ -357,8 +366,15 @@ def open_pair(
         raise ModelFileError(
             f"segmenter.encoder_precision={precision}: only with segmenter.encoder_runtime=torch"
         )
+    if cuda_graphs and not (device.startswith("cuda") and "torch" in (runtime, decoder_runtime)):
+        raise ModelFileError(
+            "segmenter.cuda_graphs=true: only on CUDA with a half on PyTorch "
+            f"(segmenter.device={device}, encoder on {runtime}, decoder on {decoder_runtime})"
+        )
     if decoder_runtime == "torch":
-        dec = open_torch_session(decoder, "segmenter.decoder", device, "fp32", make_target)
+        dec = open_torch_session(
+            decoder, "segmenter.decoder", device, "fp32", make_target, cuda_graphs
+        )
     else:
         dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
     kind = decoder_format(dec)
@@ -373,7 +389,9 @@ def open_pair(
             f"{FORMAT_NAMES[expect]} pairs"
         )
     if runtime == "torch":
-        enc = open_torch_session(encoder, "segmenter.encoder", device, precision, make_target)
+        enc = open_torch_session(
+            encoder, "segmenter.encoder", device, precision, make_target, cuda_graphs
+        )
     else:
         enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
     want = {"sam": {"image_embeddings"}, "sam2": {"image_embed"}}[kind]

@@ -108,6 +108,7 @@ class SamFamilySegmenter(VideoSegmenter):
             "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
             "encoder_precision": self.cfg.encoder_precision,
             "decoder_runtime": self.cfg.decoder_runtime,
+            "cuda_graphs": self.cfg.cuda_graphs,
         }
 
     def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
@@ -137,6 +138,7 @@ class SamFamilySegmenter(VideoSegmenter):
                     runtime=self.cfg.encoder_runtime,
                     precision=self.cfg.encoder_precision,
                     decoder_runtime=self.cfg.decoder_runtime,
+                    cuda_graphs=self.cfg.cuda_graphs,
                     cache=cache,
                     cache_bytes=gigabytes(self.cfg.embedding_cache_gb),
                     make_target=weights_help(self.package, self.folder),

