@@ -183,7 +183,7 @@ def quantised(path: Path, folder: Path) -> Path | None:
 def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
     import onnxruntime as ort
 
-    from sagonline.segment.sam_onnx import open_pair
+    from sagonline.segment.sam_sessions import open_pair
 
     levels = {
         "all (default)": ort.GraphOptimizationLevel.ORT_ENABLE_ALL,
@@ -251,7 +251,7 @@ def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     """The same pair with sessions at another graph optimisation level."""
     import onnxruntime as ort
 
-    from sagonline.segment.sam_onnx import session_options
+    from sagonline.segment.sam_sessions import session_options
 
     options = session_options(threads)
     options.graph_optimization_level = level

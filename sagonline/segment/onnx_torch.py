@@ -25,8 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from sagonline.segment.onnx_device import device_copies
 from sagonline.segment.onnx_graph import Node, ValueInfo, read_graph, topological
-from sagonline.segment.onnx_ops import OPS, device_copies, softmax
+from sagonline.segment.onnx_ops import OPS, softmax
 
 __all__ = ["PRECISIONS", "TorchSession", "encoder_runtime"]
 
@@ -68,7 +69,9 @@ class Replay:
     keep: tuple  # what its kernels read by address: the key's bound values, the device copies
 
 
-def record_cuda_graph(run: Callable[[], list[torch.Tensor]]):
+def record_cuda_graph(
+    run: Callable[[], list[torch.Tensor]],  # () -> the outputs, [...] each
+):
     """run()'s kernels captured as one CUDA graph, after a warm-up run on a side stream (as a
     capture wants): (its replay, the outputs each replay rewrites)."""
     side = torch.cuda.Stream()
@@ -129,7 +132,7 @@ class TorchSession:
                 nodes.append(node)
         read = {n for node in nodes for n in node.inputs} | {o.name for o in self.graph.outputs}
         self.nodes = nodes
-        self.weights = {k: self._place(v) for k, v in stored.items() if k in read}
+        self.weights = {k: self.place(v) for k, v in stored.items() if k in read}
         self.bound, self.small_inputs = self._shape_bound()
         self.bound_values: dict[tuple, dict[str, torch.Tensor]] = {}
         # of the bound nodes' values, those an unbound node or the caller reads
@@ -193,7 +196,10 @@ class TorchSession:
         """Nodes a call runs once its key's shape arithmetic is known."""
         return len(self.nodes) - (sum(self.bound) if self.reuse_shapes else 0)
 
-    def _place(self, t: torch.Tensor) -> torch.Tensor:
+    def place(
+        self,
+        t: torch.Tensor,  # [...] an input, a weight or an operator's output
+    ) -> torch.Tensor:  # [...] the same, floating ones on the device in the session's type
         """Floating tensors to the device in the session's type; integers stay on the CPU."""
         if t.is_floating_point():
             return t.to(self.device, self.dtype)
@@ -229,7 +235,7 @@ class TorchSession:
         self, feeds: dict[str, torch.Tensor], key: tuple, eager: list[torch.Tensor]
     ) -> Replay | None:
         """`key`'s CUDA graph, checked against `eager` (this call's outputs), or None (said)."""
-        inputs = {k: self._place(v).clone() for k, v in feeds.items()}
+        inputs = {k: self.place(v).clone() for k, v in feeds.items()}
         if not all(t.is_floating_point() for t in inputs.values()):
             return self._refuse(key, "an integer input stays on the CPU")
         copies: dict = {}
@@ -262,7 +268,7 @@ class TorchSession:
     def _run(self, feeds: dict[str, torch.Tensor], key: tuple) -> list[torch.Tensor]:
         """The graph's nodes, one by one, on `feeds` of `key`."""
         values: dict[str, torch.Tensor | None] = {"": None, **self.weights}
-        values.update({k: self._place(v) for k, v in feeds.items()})
+        values.update({k: self.place(v) for k, v in feeds.items()})
         known = self.bound_values.get(key) if self.reuse_shapes else None
         values.update(known or {})
         record: dict[str, torch.Tensor] = {}  # on a new key: the bound values later nodes read
@@ -274,7 +280,7 @@ class TorchSession:
                 continue
             outs = _run_node(node, [values[name] for name in node.inputs], opset)
             if node.op in ("ConstantOfShape", "Cast"):  # Constants were folded at open
-                outs = [self._place(o) if o.is_floating_point() else o for o in outs]
+                outs = [self.place(o) if o.is_floating_point() else o for o in outs]
             for name, value in zip(node.outputs, outs, strict=True):
                 values[name] = value
                 if name in self.bound_read:

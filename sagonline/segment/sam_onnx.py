@@ -21,7 +21,6 @@ when given a folder (`segment.embedding.EmbeddingCache`: every entry checked on 
 from __future__ import annotations
 
 import hashlib
-import sys
 import threading
 import time
 from collections import OrderedDict
@@ -33,10 +32,9 @@ import numpy as np
 
 from sagonline.segment.embedding import CACHE_FORMAT, GRID, SIZE, Embedding, EmbeddingCache
 
-__all__ = ["GRID", "SIZE", "Answer", "Embedding", "SamPair", "open_pair"]
+__all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "SamPair"]
 
 LOW_RES = 256  # the decoder's mask side
-MAX_MODEL_BYTES = 4 << 30  # no SAM-family ONNX file is near this; a larger one is refused unread
 
 
 @dataclass
@@ -49,34 +47,12 @@ class Answer:
     predicted_iou: float
 
 
-class ModelFileError(ValueError):
-    """A model file that cannot be used; the message names the option and the file."""
-
-
-def open_session(path: Path, option: str, options, providers, make_target: str):
-    """An onnxruntime session of `path`, or ModelFileError naming `option` and the file (a
-    truncated, foreign or swapped file says so in one line, before any frame is rendered)."""
-    import onnxruntime as ort
-
-    if not path.is_file():
-        raise ModelFileError(f"{option}={path}: not found; {make_target}")
-    size = path.stat().st_size
-    if size < 1024 or size > MAX_MODEL_BYTES:
-        raise ModelFileError(
-            f"{option}={path}: {size:,} bytes, not a model of this family (1 kB to 4 GB)"
-        )
-    try:
-        return ort.InferenceSession(str(path), options, providers=providers)
-    except Exception as exc:  # onnxruntime raises its own types (Fail, InvalidGraph, ...)
-        text = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else type(exc).__name__
-        raise ModelFileError(f"{option}={path}: onnxruntime cannot load it ({text})") from None
-
-
 class SamPair:
     """An encoder and a decoder of one SAM format; `embed` caches by content."""
 
     format = ""
     runtime = "onnxruntime"  # or "torch": what runs the encoder (`encoder_runtime`)
+    decoder_runtime = "onnxruntime"  # or "torch" (`decoder_runtime`)
     levels = 1  # masks the decoder answers per prompt (SAM 2: whole object, part, sub-part)
     stored_dtype = np.float32  # what the encoder's outputs are rounded to, fresh or cached
     normalise_mean: np.ndarray
@@ -103,6 +79,7 @@ class SamPair:
         self.note = note
         self.outputs = [o.name for o in encoder.get_outputs()]
         self._lock = threading.Lock()
+        self._on_device: tuple[Embedding | None, dict] = (None, {})  # the last view's, placed
 
     # --- the two formats differ here ------------------------------------------------------------
 
@@ -130,6 +107,28 @@ class SamPair:
         raise NotImplementedError
 
     # --- shared -------------------------------------------------------------------------------
+
+    def run_decoder(self, emb: Embedding, feeds: dict[str, np.ndarray], view: set[str]):
+        """The decoder's outputs (numpy, its order) for `feeds`. On PyTorch the inputs named in
+        `view` (the embedding's arrays, the same for each of a view's prompts; SAM 2's are 16
+        MB) go to the decoder's device once a view, not once a prompt."""
+        if self.decoder_runtime != "torch":
+            return self.decoder.run(None, feeds)
+        import torch
+
+        held, placed = self._on_device
+        if held is not emb:
+            placed = {}
+            self._on_device = (emb, placed)
+        tensors = {}
+        for name, value in feeds.items():
+            tensor = torch.from_numpy(np.asarray(value))
+            if name in view:
+                if name not in placed:
+                    placed[name] = self.decoder.place(tensor)
+                tensor = placed[name]
+            tensors[name] = tensor
+        return [o.float().cpu().numpy() for o in self.decoder.forward(tensors)]
 
     @staticmethod
     def prompt_arrays(points, labels, box) -> tuple[np.ndarray, np.ndarray]:
@@ -238,7 +237,7 @@ class Sam1Pair(SamPair):
             **self.prompt_feeds(emb, coords, kinds, logits),
             "orig_im_size": np.array(emb.size, np.float32),
         }
-        masks, iou, low_res = self.decoder.run(None, feeds)
+        masks, iou, low_res = self.run_decoder(emb, feeds, {"image_embeddings"})
         return [Answer(masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0]))]
 
 
@@ -266,7 +265,7 @@ class Sam2Pair(SamPair):
             **emb.extras,
             **self.prompt_feeds(emb, coords, kinds, logits),
         }
-        masks, iou = self.decoder.run(None, feeds)
+        masks, iou = self.run_decoder(emb, feeds, {"image_embed", *emb.extras})
         h, w = emb.size
         return [
             Answer(cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0, m, float(score))
@@ -276,138 +275,3 @@ class Sam2Pair(SamPair):
 
 FORMATS = {"sam": Sam1Pair, "sam2": Sam2Pair}
 FORMAT_NAMES = {"sam": "SAM-format", "sam2": "SAM 2"}
-
-
-def decoder_format(decoder) -> str:
-    """'sam' or 'sam2' by the decoder's inputs; '' for neither."""
-    names = {i.name for i in decoder.get_inputs()}
-    if {"image_embed", "high_res_feats_0", "high_res_feats_1"} <= names:
-        return "sam2"
-    if {"image_embeddings", "orig_im_size"} <= names:
-        return "sam"
-    return ""
-
-
-def session_options(threads: int):
-    """onnxruntime's session options for a model half: `threads` intra-op threads, quiet logs."""
-    import onnxruntime as ort
-
-    options = ort.SessionOptions()
-    options.intra_op_num_threads = threads
-    options.inter_op_num_threads = 1
-    options.log_severity_level = 3
-    # idle threads sleep instead of spinning: between two decoder calls the vote's kernels run
-    # on the same cores (in the viewer a click's 24 views took 7% less; the encoder and the
-    # decoder alone no longer, docs/segmenters.md)
-    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    return options
-
-
-def open_torch_session(
-    path: Path,
-    option: str,
-    device: str,
-    precision: str,
-    make_target: str,
-    cuda_graphs: bool = False,
-):
-    """A model half's graph on PyTorch (`onnx_torch.TorchSession`), or ModelFileError naming
-    `option` (segmenter.encoder / segmenter.decoder) and the file."""
-    from sagonline.segment.onnx_torch import TorchSession
-
-    if not path.is_file():
-        raise ModelFileError(f"{option}={path}: not found; {make_target}")
-    if device.startswith("cuda"):
-        import torch
-
-        if not torch.cuda.is_available():
-            raise ModelFileError(
-                f"{option}_runtime=torch on {device}: this PyTorch sees no CUDA device"
-            )
-    try:
-        return TorchSession(path, device, precision, cuda_graphs)
-    except (ValueError, OSError, KeyError) as exc:
-        raise ModelFileError(f"{option}={path}: PyTorch cannot run it ({exc})") from None
-
-
-def open_pair(
-    encoder: Path,
-    decoder: Path,
-    *,
-    threads: int,
-    device: str,
-    cache: Path | None,
-    runtime: str = "auto",
-    precision: str = "fp32",
-    decoder_runtime: str = "onnxruntime",
-    cuda_graphs: bool = False,
-    make_target: str,
-    cache_bytes: int | None = None,
-    expect: str | None = None,
-) -> SamPair:
-    """The pair of model files as a `SamPair` of the format the decoder declares (`expect`:
-    the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`.
-    cuda_graphs: the halves on PyTorch replay each input shape as a CUDA graph."""
-    import onnxruntime as ort
-
-    from sagonline.segment.onnx_torch import encoder_runtime
-
-    options = session_options(threads)
-    providers, note = ["CPUExecutionProvider"], ""
-    runtime = encoder_runtime(runtime, device)
-    if device.startswith("cuda"):
-        if "CUDAExecutionProvider" in ort.get_available_providers():
-            providers.insert(0, "CUDAExecutionProvider")
-        elif runtime == "torch":
-            note = "onnxruntime has no CUDA provider here: the encoder runs on PyTorch"
-        else:
-            note = "onnxruntime has no CUDA provider here: the model runs on the CPU"
-    if runtime != "torch" and precision != "fp32":
-        raise ModelFileError(
-            f"segmenter.encoder_precision={precision}: only with segmenter.encoder_runtime=torch"
-        )
-    if cuda_graphs and not (device.startswith("cuda") and "torch" in (runtime, decoder_runtime)):
-        raise ModelFileError(
-            "segmenter.cuda_graphs=true: only on CUDA with a half on PyTorch "
-            f"(segmenter.device={device}, encoder on {runtime}, decoder on {decoder_runtime})"
-        )
-    if decoder_runtime == "torch":
-        dec = open_torch_session(
-            decoder, "segmenter.decoder", device, "fp32", make_target, cuda_graphs
-        )
-    else:
-        dec = open_session(decoder, "segmenter.decoder", options, providers, make_target)
-    kind = decoder_format(dec)
-    if not kind:
-        names = ", ".join(i.name for i in dec.get_inputs())
-        raise ModelFileError(
-            f"segmenter.decoder={decoder}: not a SAM or SAM 2 prompt decoder (its inputs: {names})"
-        )
-    if expect and kind != expect:
-        raise ModelFileError(
-            f"segmenter.decoder={decoder}: a {FORMAT_NAMES[kind]} decoder; this segmenter runs "
-            f"{FORMAT_NAMES[expect]} pairs"
-        )
-    if runtime == "torch":
-        enc = open_torch_session(
-            encoder, "segmenter.encoder", device, precision, make_target, cuda_graphs
-        )
-    else:
-        enc = open_session(encoder, "segmenter.encoder", options, providers, make_target)
-    want = {"sam": {"image_embeddings"}, "sam2": {"image_embed"}}[kind]
-    inputs, outputs = enc.get_inputs(), {o.name for o in enc.get_outputs()}
-    if (
-        len(inputs) != 1
-        or list(inputs[0].shape)[-2:] != [SIZE, SIZE]
-        or not (want <= outputs or (kind == "sam" and len(outputs) == 1))
-    ):
-        shape = [list(i.shape) for i in inputs]
-        raise ModelFileError(
-            f"segmenter.encoder={encoder}: not the image encoder of a {FORMAT_NAMES[kind]} "
-            f"decoder (inputs {shape}, outputs {sorted(outputs)}); is it swapped with the decoder?"
-        )
-    if note:
-        print(f"note: {note}", file=sys.stderr)
-    pair = FORMATS[kind](enc, dec, encoder, EmbeddingCache(cache, cache_bytes), note, precision)
-    pair.runtime = runtime
-    return pair

@@ -18,7 +18,8 @@ from sagonline.segment.base import VideoSegmenter
 from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour, otsu
 from sagonline.segment.onnx_torch import encoder_runtime
 from sagonline.segment.prompts import ObjectPrompt, Prompt
-from sagonline.segment.sam_onnx import GRID, Answer, Embedding, SamPair, open_pair
+from sagonline.segment.sam_onnx import GRID, Answer, Embedding, SamPair
+from sagonline.segment.sam_sessions import open_pair
 
 PROJECT = Path(__file__).resolve().parents[2]
 """Relative weight paths are read from here (the checkout `make weights` writes into), never
@@ -68,6 +69,7 @@ class SamFamilySegmenter(VideoSegmenter):
             type(self).__module__,
             __name__,
             "sagonline.segment.sam_onnx",
+            "sagonline.segment.sam_sessions",
             "sagonline.segment.embedding",
         )
         return "+".join(module_version(m) for m in modules)
@@ -124,7 +126,7 @@ class SamFamilySegmenter(VideoSegmenter):
         if self._model is None:
             import torch
 
-            from sagonline.segment.sam_onnx import ModelFileError
+            from sagonline.segment.sam_sessions import ModelFileError
 
             threads = self.cfg.threads or max(1, torch.get_num_threads())
             folder = self.cfg.embedding_cache

@@ -97,7 +97,7 @@ def test_sam2_tinys_compact_encoder_keeps_its_masks(tmp_path):
     1e-4, and on a real photograph the box prompt's mask from its embeddings matches the
     original encoder's (IoU > 0.995; measured 0.9997)."""
     from sagonline.segment.mask_geometry import box_of, iou
-    from sagonline.segment.sam_onnx import open_pair
+    from sagonline.segment.sam_sessions import open_pair
 
     encoder, decoder = PAIRS["sam2_tiny"]
     compact = tmp_path / "encoder.w8.onnx"

