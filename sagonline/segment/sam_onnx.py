@@ -108,26 +108,23 @@ class SamPair:
 
     # --- shared -------------------------------------------------------------------------------
 
-    def run_decoder(self, emb: Embedding, feeds: dict[str, np.ndarray], view: set[str]):
-        """The decoder's outputs (numpy, its order) for `feeds`. On PyTorch the inputs named in
-        `view` (the embedding's arrays, the same for each of a view's prompts; SAM 2's are 16
-        MB) go to the decoder's device once a view, not once a prompt."""
+    def run_decoder(self, emb: Embedding, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """The decoder's outputs (numpy, its order) for the view's arrays (`view_arrays`) and
+        a prompt's `feeds`. On PyTorch the view's arrays (the same for each of its prompts;
+        SAM 2's are 16 MB) go to the decoder's device once a view, not once a prompt."""
+        view = self.view_arrays(emb)
         if self.decoder_runtime != "torch":
-            return self.decoder.run(None, feeds)
+            return self.decoder.run(None, {**view, **feeds})
         import torch
 
         held, placed = self._on_device
         if held is not emb:
             placed = {}
             self._on_device = (emb, placed)
-        tensors = {}
-        for name, value in feeds.items():
-            tensor = torch.from_numpy(np.asarray(value))
-            if name in view:
-                if name not in placed:
-                    placed[name] = self.decoder.place(tensor)
-                tensor = placed[name]
-            tensors[name] = tensor
+        for name, value in view.items():
+            if name not in placed:
+                placed[name] = self.decoder.place(torch.from_numpy(value))
+        tensors = {**placed, **{k: torch.from_numpy(np.asarray(v)) for k, v in feeds.items()}}
         return [o.float().cpu().numpy() for o in self.decoder.forward(tensors)]
 
     @staticmethod
@@ -212,6 +209,10 @@ class SamPair:
     def embedding(self, arrays: dict, scale, size, cover) -> Embedding:
         raise NotImplementedError
 
+    def view_arrays(self, emb: Embedding) -> dict[str, np.ndarray]:
+        """The view's decoder inputs, by name (the embedding's arrays, batch first)."""
+        raise NotImplementedError
+
     def view_feeds(self, outputs: dict) -> dict:
         """The encoder's outputs by the names the decoder reads them under."""
         return outputs
@@ -249,6 +250,9 @@ class Sam1Pair(SamPair):
         (features,) = arrays.values()
         return Embedding(features.astype(np.float32), scale, size, cover)
 
+    def view_arrays(self, emb):
+        return {"image_embeddings": emb.features[None]}
+
     def view_feeds(self, outputs):
         (features,) = outputs.values()
         return {"image_embeddings": features}
@@ -259,11 +263,10 @@ class Sam1Pair(SamPair):
             coords = np.concatenate([coords, np.zeros((1, 2), np.float32)])
             kinds = np.concatenate([kinds, [-1.0]]).astype(np.float32)
         feeds = {
-            "image_embeddings": emb.features[None],
             **self.prompt_feeds(emb, coords, kinds, logits),
             "orig_im_size": np.array(emb.size, np.float32),
         }
-        masks, iou, low_res = self.run_decoder(emb, feeds, {"image_embeddings"})
+        masks, iou, low_res = self.run_decoder(emb, feeds)
         return [Answer(masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0]))]
 
 
@@ -284,14 +287,12 @@ class Sam2Pair(SamPair):
         extras = {k: v.astype(np.float32)[None] for k, v in arrays.items() if k != "image_embed"}
         return Embedding(arrays["image_embed"].astype(np.float32), scale, size, cover, extras)
 
+    def view_arrays(self, emb):
+        return {"image_embed": emb.features[None], **emb.extras}
+
     def decode(self, emb, points=None, labels=None, box=None, logits=None):
         coords, kinds = self.prompt_arrays(points, labels, box)
-        feeds = {
-            "image_embed": emb.features[None],
-            **emb.extras,
-            **self.prompt_feeds(emb, coords, kinds, logits),
-        }
-        masks, iou = self.run_decoder(emb, feeds, {"image_embed", *emb.extras})
+        masks, iou = self.run_decoder(emb, self.prompt_feeds(emb, coords, kinds, logits))
         h, w = emb.size
         return [
             Answer(cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0, m, float(score))
