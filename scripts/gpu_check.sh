@@ -248,22 +248,23 @@ else
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
 
-# gsplat, where its wheel or source travels in .gpu-bundle/ and it is not installed: installed
-# into .gsplat-build/site, then its CUDA sources compiled as a step of their own (on all cores,
-# into .gsplat-build/extensions): an ignored folder outside what travels, so a later call on the
-# same machine finds both built. --skip-gsplat-build leaves it out.
+# gsplat, where it travels in .gpu-bundle/ (scripts/gsplat_bundle.py) and is not installed:
+# unpacked into .gsplat-build/site, then made ready on CUDA as a step of its own: its extension
+# compiled by `make gsplat-prebuilt` is loaded and rasterises one Gaussian, or, where none
+# travels or it fails (another PyTorch, another GPU), its CUDA sources are compiled on all cores
+# into .gsplat-build/extensions. An ignored folder outside what travels, so a later call on the
+# same machine finds both. --skip-gsplat-build leaves it out.
 GSPLAT_BUILD="$ROOT/.gsplat-build"
 export PYTHONPATH="$GSPLAT_BUILD/site:$PYTHONPATH"
 export TORCH_EXTENSIONS_DIR=${TORCH_EXTENSIONS_DIR:-$GSPLAT_BUILD/extensions}
-GSPLAT_PKG=$(ls .gpu-bundle/gsplat-*.whl .gpu-bundle/gsplat-*.tar.gz 2>/dev/null | head -n 1)
+GSPLAT_PKG=$(ls .gpu-bundle/gsplat-*.tar.xz 2>/dev/null | head -n 1)
 if [ "$SKIP_GSPLAT" = 0 ] && [ -n "$GSPLAT_PKG" ] && ! "$PY" -c "import gsplat" 2>/dev/null; then
-  step "gsplat install" "$PY" -m pip install --no-deps --no-build-isolation --no-index \
-    --target "$GSPLAT_BUILD/site" "$GSPLAT_PKG"
+  step "gsplat install" "$PY" scripts/gsplat_bundle.py install --bundle .gpu-bundle \
+    --site "$GSPLAT_BUILD/site"
 fi
 if [ "$SKIP_GSPLAT" = 0 ] && [ "$DEVICE" != cpu ] && "$PY" -c "import gsplat" 2>/dev/null; then
   export MAX_JOBS=${MAX_JOBS:-$(nproc)}
-  step "gsplat build" "$PY" -c "from gsplat.cuda._backend import _C; import sys
-sys.exit(0 if _C is not None else 'gsplat: its CUDA extension did not build (no CUDA toolkit?)')"
+  step "gsplat build" "$PY" scripts/gsplat_bundle.py ready --site "$GSPLAT_BUILD/site"
 fi
 
 # only the files that mark GPU tests are collected (collecting all of tests/ took 10 s)
