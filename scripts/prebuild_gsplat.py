@@ -69,29 +69,13 @@ def toolchain(folder: Path, python: str, torch_version: str) -> Path:
                 "(3.12) with --python (make gsplat-prebuilt GPU_PYTHON=/path/to/python3.12)"
             )
         run(python, "-m", "venv", folder)
-    run(
-        interpreter,
-        "-m",
-        "pip",
-        "install",
-        "--quiet",
-        f"torch=={torch_version}",
-        "numpy",
-        "ninja",
-        "rich",
-    )
+    install = (interpreter, "-m", "pip", "install", "--quiet")
+    run(*install, f"torch=={torch_version}", "numpy", "ninja", "rich")
     requires = ask(interpreter, "import importlib.metadata as m; print(*m.requires('torch'))")
     toolkit = re.search(r"cuda-toolkit\[[^\]]*\]\s*==\s*([\d.]+)", requires)
     if toolkit is None:
         sys.exit(f"prebuild_gsplat: torch {torch_version} names no cuda-toolkit (a CPU build?)")
-    run(
-        interpreter,
-        "-m",
-        "pip",
-        "install",
-        "--quiet",
-        f"cuda-toolkit[nvcc,cccl,crt,nvvm]=={toolkit.group(1)}",
-    )
+    run(*install, f"cuda-toolkit[nvcc,cccl,crt,nvvm]=={toolkit.group(1)}")
     return interpreter
 
 
