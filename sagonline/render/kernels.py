@@ -53,8 +53,17 @@ def kernel_root() -> Path:
 def load_extension():
     """Compile (once per environment) and import the C++ rasterizer and vote."""
     import hashlib
+    import logging
 
-    from torch.utils import cpp_extension
+    # A CUDA build of PyTorch on a machine without a GPU warns at this import that it found no
+    # CUDA runtime: nothing this CPU kernel needs, and a line before every command's own output.
+    importing = logging.getLogger("torch.utils.cpp_extension")
+    level = importing.level
+    importing.setLevel(logging.ERROR)
+    try:
+        from torch.utils import cpp_extension
+    finally:
+        importing.setLevel(level)
 
     # The source's digest in the name: each version of the kernel gets its own build folder, so
     # a build of another version is never loaded by mistake (torch's loader trusts file times,
