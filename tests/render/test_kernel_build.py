@@ -27,3 +27,34 @@ def test_a_truncated_kernel_library_is_built_again_not_loaded(tmp_path):
     assert any("not the build that finished (its bytes changed)" in s for s in said), said
     build_once(folder, "k", build, say=said.append)  # an intact library is loaded as it is
     assert built == [False, False, True]
+
+
+CUDA_BUILD_WITHOUT_A_GPU = """
+import os, sys, torch
+os.environ["CUDA_HOME"] = sys.argv[1]  # a CUDA build of PyTorch that finds a toolkit, no GPU
+torch.cuda._is_compiled = lambda: True
+torch.cuda.is_available = lambda: False
+torch.version.cuda = "13.0"
+if sys.argv[2] == "kernel":
+    from sagonline.render.kernels import load_extension
+    load_extension()
+else:
+    from torch.utils import cpp_extension
+"""
+
+
+def test_loading_the_cpu_kernel_under_a_cuda_build_without_a_gpu_prints_nothing(tmp_path):
+    """PyTorch's extension loader, imported under a CUDA build on a machine without a GPU,
+    warns that it found no CUDA runtime: a line before every command's own output (and before
+    the one-line refusals). Loading the CPU kernel keeps it quiet; imported plainly, it warns."""
+    import subprocess
+    import sys
+
+    from tests.fixtures import ROOT
+
+    def stderr(how: str) -> str:
+        command = [sys.executable, "-c", CUDA_BUILD_WITHOUT_A_GPU, str(tmp_path), how]
+        return subprocess.run(command, cwd=ROOT, capture_output=True, text=True).stderr
+
+    assert "No CUDA runtime is found" in stderr("plainly")
+    assert "No CUDA runtime is found" not in stderr("kernel")
