@@ -23,10 +23,10 @@ rasterisation is tried again. The step says which extension works.
 from __future__ import annotations
 
 import argparse
-import hashlib
 import importlib
 import importlib.metadata
 import json
+import lzma
 import os
 import subprocess
 import sys
@@ -36,12 +36,11 @@ import time
 import zipfile
 from pathlib import Path
 
+from sagonline.core.files import atomic_write, atomic_write_json
+from sagonline.core.provenance import sha256_file
+
 MANIFEST = "BUILT_FOR.json"  # scripts/prebuild_gsplat.py writes it beside its wheel
 SET_ASIDE = ".not-used"  # appended to a compiled extension's name where it is not used
-
-
-def sha256(path: Path) -> str:
-    return hashlib.sha256(path.read_bytes()).hexdigest()
 
 
 def prebuilt_wheel(prebuilt: Path, version: str) -> tuple[Path, dict] | None:
@@ -55,7 +54,7 @@ def prebuilt_wheel(prebuilt: Path, version: str) -> tuple[Path, dict] | None:
     if built["gsplat"] != version:
         print(f"gsplat_bundle: {prebuilt} holds gsplat {built['gsplat']}, not {version}: unused")
         return None
-    if not wheel.exists() or sha256(wheel) != built["sha256"]:
+    if not wheel.exists() or sha256_file(wheel) != built["sha256"]:
         sys.exit(f"gsplat_bundle: {wheel} is missing or not the file {manifest} names")
     return wheel, built
 
@@ -83,22 +82,26 @@ def registry_wheel(version: str, folder: Path) -> Path:
 
 def pack(bundle: Path, wheel: Path, built: dict | None, version: str) -> Path:
     """Write gsplat `version`'s `wheel` into `bundle` as the installed files (tar.xz) and where
-    they came from (json: `built` is BUILT_FOR.json or None); returns the tar.xz. Earlier
-    versions' files there are removed."""
-    bundle.mkdir(parents=True, exist_ok=True)
-    for old in [*bundle.glob("gsplat-*.tar.xz"), *bundle.glob("gsplat-*.json")]:
-        old.unlink()
-    packed = bundle / f"gsplat-{version}.tar.xz"
+    they came from (json: `built` is BUILT_FOR.json or None), each atomically; returns the
+    tar.xz. Earlier versions' files there are removed once these are written."""
+    packed, record = bundle / f"gsplat-{version}.tar.xz", bundle / f"gsplat-{version}.json"
     with tempfile.TemporaryDirectory() as tmp:
         tree = Path(tmp)
         with zipfile.ZipFile(wheel) as archive:
             archive.extractall(tree)
-        with tarfile.open(packed, "w:xz", preset=9) as tar:
-            for path in sorted(tree.rglob("*")):
-                if path.is_file() and "__pycache__" not in path.parts:
-                    tar.add(path, arcname=str(path.relative_to(tree)))
-    record = {"gsplat": version, "from": wheel.name, "sha256": sha256(wheel), "built_for": built}
-    (bundle / f"gsplat-{version}.json").write_text(json.dumps(record, indent=2) + "\n")
+        files = [p for p in sorted(tree.rglob("*")) if p.is_file() and "__pycache__" not in p.parts]
+
+        def write(path: Path) -> None:
+            with tarfile.open(path, "w:xz", preset=9) as tar:
+                for file in files:
+                    tar.add(file, arcname=str(file.relative_to(tree)))
+
+        atomic_write(packed, write)
+    source = {"gsplat": version, "from": wheel.name, "sha256": sha256_file(wheel)}
+    atomic_write_json(record, source | {"built_for": built})
+    for old in [*bundle.glob("gsplat-*.tar.xz"), *bundle.glob("gsplat-*.json")]:
+        if old not in (packed, record):
+            old.unlink()
     return packed
 
 
@@ -134,10 +137,16 @@ def install(bundle: Path, site: Path, here: dict | None = None) -> str:
     packed = sorted(bundle.glob("gsplat-*.tar.xz"))
     if len(packed) != 1:
         sys.exit(f"gsplat_bundle: {bundle} holds {len(packed)} gsplat-*.tar.xz, not one")
-    record = json.loads(packed[0].with_suffix("").with_suffix(".json").read_text())
+    source = packed[0].with_suffix("").with_suffix(".json")
+    if not source.exists():
+        sys.exit(f"gsplat_bundle: {source} is missing beside {packed[0].name} (make gpu-bundle)")
+    record = json.loads(source.read_text())
     site.mkdir(parents=True, exist_ok=True)
-    with tarfile.open(packed[0]) as tar:
-        tar.extractall(site, filter="data")
+    try:
+        with tarfile.open(packed[0]) as tar:
+            tar.extractall(site, filter="data")
+    except (tarfile.TarError, EOFError, lzma.LZMAError) as exc:
+        sys.exit(f"gsplat_bundle: {packed[0]} cannot be unpacked ({exc}): make gpu-bundle again")
     built = record["built_for"]
     if built is None:
         return f"gsplat {record['gsplat']} installed ({record['from']}: compiles on first use)"

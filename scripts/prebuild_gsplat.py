@@ -21,9 +21,7 @@ versions it was built against) go into --out, where `make gpu-bundle` takes them
 from __future__ import annotations
 
 import argparse
-import hashlib
 import importlib.metadata
-import json
 import os
 import re
 import shutil
@@ -32,6 +30,9 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+
+from sagonline.core.files import atomic_write_json
+from sagonline.core.provenance import sha256_file
 
 MANIFEST = "BUILT_FOR.json"
 
@@ -98,14 +99,6 @@ def cuda_home(interpreter: Path) -> Path:
     return home
 
 
-def sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def build(interpreter: Path, version: str, archs: str, out: Path) -> dict:
     """gsplat `version`'s source distribution from the registry built into a wheel in `out`;
     returns what BUILT_FOR.json records."""
@@ -134,7 +127,7 @@ def build(interpreter: Path, version: str, archs: str, out: Path) -> dict:
         )
         (source,) = Path(tmp).glob("gsplat-*.tar.gz")
         run(*pip, "wheel", "--no-deps", "--no-build-isolation", source, "-w", out, env=env)
-        source_sha256 = sha256(source)
+        source_sha256 = sha256_file(source)
     (wheel,) = out.glob(f"gsplat-{version}-*.whl")
     facts = ask(
         interpreter,
@@ -145,7 +138,7 @@ def build(interpreter: Path, version: str, archs: str, out: Path) -> dict:
     return {
         "gsplat": version,
         "wheel": wheel.name,
-        "sha256": sha256(wheel),
+        "sha256": sha256_file(wheel),
         "source_sha256": source_sha256,
         "python": facts[0],
         "torch": facts[1],
@@ -170,7 +163,7 @@ def main(argv: list[str] | None = None) -> None:
     shutil.rmtree(partial, ignore_errors=True)
     partial.mkdir(parents=True)
     built = build(interpreter, version, args.archs, partial.resolve())
-    (partial / MANIFEST).write_text(json.dumps(built, indent=2) + "\n")
+    atomic_write_json(partial / MANIFEST, built)
     shutil.rmtree(args.out, ignore_errors=True)
     partial.rename(args.out)
     print(

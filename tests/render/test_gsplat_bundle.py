@@ -16,6 +16,8 @@ from pathlib import Path
 import pytest
 import torch
 
+from sagonline.core.provenance import sha256_file
+
 ROOT = Path(__file__).resolve().parents[2]
 spec = importlib.util.spec_from_file_location("gsplat_bundle", ROOT / "scripts/gsplat_bundle.py")
 gsplat_bundle = importlib.util.module_from_spec(spec)
@@ -46,7 +48,7 @@ def a_prebuilt(folder: Path, version: str = "1.5.3") -> Path:
     """What scripts/prebuild_gsplat.py leaves: a compiled wheel and BUILT_FOR.json."""
     folder.mkdir()
     wheel = a_wheel(folder, version)
-    built = {"gsplat": version, "wheel": wheel.name, "sha256": gsplat_bundle.sha256(wheel)}
+    built = {"gsplat": version, "wheel": wheel.name, "sha256": sha256_file(wheel)}
     built |= MACHINE | {"archs": "9.0"}
     (folder / gsplat_bundle.MANIFEST).write_text(json.dumps(built))
     return folder
@@ -198,3 +200,36 @@ def test_ready_without_a_cuda_device_stops_and_sets_nothing_aside(tmp_path):
     )
     assert done.returncode == 1 and "no CUDA device here" in done.stderr
     assert (site / EXTENSION).exists()
+
+
+def test_a_truncated_or_unrecorded_bundle_is_refused_naming_the_file(tmp_path):
+    bundle = bundled(tmp_path)
+    packed = bundle / "gsplat-1.5.3.tar.xz"
+    packed.write_bytes(packed.read_bytes()[:200])  # a copy cut short
+    with pytest.raises(SystemExit, match=r"gsplat-1\.5\.3\.tar\.xz cannot be unpacked"):
+        gsplat_bundle.install(bundle, tmp_path / "site", here=MACHINE)
+    (bundle / "gsplat-1.5.3.json").unlink()
+    with pytest.raises(SystemExit, match=r"gsplat-1\.5\.3\.json is missing"):
+        gsplat_bundle.install(bundle, tmp_path / "site", here=MACHINE)
+
+
+def test_the_commands_pack_a_prebuilt_wheel_and_install_it(tmp_path):
+    """`pack` and `install` as make gpu-bundle and the GPU check call them: the prebuilt wheel
+    of the installed gsplat's version packed (no download), then unpacked under this Python,
+    for which it was not built, so its extension is set aside."""
+    import importlib.metadata
+
+    version = importlib.metadata.version("gsplat")
+    prebuilt, bundle, site = (
+        a_prebuilt(tmp_path / "prebuilt", version),
+        tmp_path / "b",
+        tmp_path / "s",
+    )
+    script = [sys.executable, "scripts/gsplat_bundle.py"]
+    packing = [*script, "pack", "--bundle", str(bundle), "--prebuilt", str(prebuilt)]
+    said = subprocess.run(packing, cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert "compiled for torch 2.11.0+cu130" in said
+    installing = [*script, "install", "--bundle", str(bundle), "--site", str(site)]
+    said = subprocess.run(installing, cwd=ROOT, capture_output=True, text=True, check=True).stdout
+    assert "its compiled extension unused (built for" in said
+    assert (site / (EXTENSION + gsplat_bundle.SET_ASIDE)).exists()
