@@ -233,7 +233,7 @@ if [ "$QUICK" = 1 ]; then
   MASK_COUNTS=1,3
   RENDER_ARGS=(--quick)
   PROFILE_ARGS=(--quick --masks 2)
-  KERNEL_ARGS=(--quick --kernels chunk32)
+  KERNEL_ARGS=(--quick --kernels chunk32+fused)
   STAGE_ONE_ARGS=(--quick)
 else
   EVAL_DATA=(dataset=synthetic)
@@ -243,7 +243,7 @@ else
   MASK_COUNTS=1,3,6,12,25,50,100,206
   RENDER_ARGS=(--no-reference-aggregate)
   PROFILE_ARGS=(--masks 20)
-  KERNEL_ARGS=(--kernels walk,chunk16,chunk32,chunk16w16 --masks 206)
+  KERNEL_ARGS=(--kernels walk,walk+fused,chunk16,chunk16+fused,chunk32,chunk16w16 --masks 206)
   STAGE_ONE_ARGS=(--views 40)
 fi
 COMMON=(device="$DEVICE" record=false progress=false)
@@ -418,11 +418,16 @@ done
 # Compute installed, the walk kernel's speed-of-light, memory and occupancy sections too
 step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROFILE_ARGS[@]}" \
   --out "$OUT/vote_profile_$TAG.csv"
-# the Triton vote kernels side by side (the splat walk, the default, and the chunked vote):
-# ms per vote, 206 votes in a row, and whether their votes agree (--quick: the chunked ones in
-# the interpreter; the walk takes minutes there)
+# the Triton vote kernels side by side (the splat walk, the default, and the chunked vote, on
+# PyTorch's tile lists and, +fused, triton_prepare's): ms for one view's tile lists, ms per
+# vote, 206 votes in a row, and whether their votes agree (--quick: the chunked ones in the
+# interpreter; the walk takes minutes there)
 step "vote kernels" "$PY" -m bench.speed.vote_kernels --device "$DEVICE" "${KERNEL_ARGS[@]}" \
   --out "$OUT/vote_kernels_$TAG.csv"
+# one view's tile lists made by PyTorch's operators and by triton_prepare's two kernels: the
+# operators and launches each takes, ms per view, and whether the lists are the same
+step "tile lists" "$PY" -m bench.speed.tile_lists --device "$DEVICE" \
+  $([ "$QUICK" = 1 ] && echo --quick) --out "$OUT/tile_lists_$TAG.csv"
 # the vote kernels' registers, spills, shared memory and blocks per SM, as this Triton compiles
 # them for sm_90 (static: no GPU needed, so --quick runs it too)
 step "vote kernel resources" "$PY" -m bench.speed.kernel_resources \

@@ -66,12 +66,13 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         "table-masks",
         "vote profile",
         "vote kernels",
+        "tile lists",
     ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary
     wrote = {line.split("/")[-1] for line in summary.splitlines() if line.startswith("- wrote ")}
     assert {"timing_cpu_check.csv", "packages_cpu_check.txt"} <= wrote and stale.name not in wrote
-    for table in ("bench_render", "timing", "masks", "vote_kernels"):
+    for table in ("bench_render", "timing", "masks", "vote_kernels", "tile_lists"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
     data = ROOT.parent / "shared" / "data"

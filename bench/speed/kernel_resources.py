@@ -1,5 +1,6 @@
-"""The Triton vote kernels compiled for a GPU without one: registers per thread, the stack frame
-their spilled registers take, shared memory, and the blocks an SM can hold, per kernel and rule.
+"""The Triton vote kernels (and the tile lists') compiled for a GPU without one: registers per
+thread, the stack frame their spilled registers take, shared memory, and the blocks an SM can
+hold, per kernel and rule.
 
     python -m bench.speed.kernel_resources [--arch 90] [--out F.csv] [--quick]
 
@@ -9,7 +10,7 @@ its occupancy (registers, shared memory) is known before a GPU times it. The wal
 warps, the chunked vote as many as `backends.TRITON_VOTE_KERNELS` names. "blocks per SM" takes
 an sm_90 SM's limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory;
 registers allocated per warp in units of 256). --quick: the 3DGS count vote of the walk and
-chunk16 only (what the tests run).
+chunk16, and the 3DGS projection and the emission of `triton_prepare` (what the tests run).
 """
 
 from __future__ import annotations
@@ -44,8 +45,21 @@ POINTER_TYPES = {  # the kernels' pointer arguments, as the vote passes them
     "depth_ptr": "*fp32",
     "trans_ptr": "*fp32",
     "cast_ptr": "*i64",
+    # triton_prepare's projection and emission
+    "means_ptr": "*fp32",
+    "quats_ptr": "*fp32",
+    "scales_ptr": "*fp32",
+    "opac_ptr": "*fp32",
+    "cam_ptr": "*fp32",
+    "boxes_ptr": "*fp32",
+    "rects_ptr": "*i32",
+    "valid_ptr": "*i8",
+    "starts_ptr": "*i64",
+    "depths_ptr": "*fp32",
+    "keys_ptr": "*i64",
+    "splats_ptr": "*i64",
 }
-SCALAR_TYPES = {"eps": "fp32", "delta": "fp32", "t_stop": "fp32"}  # the rest: i32
+SCALAR_TYPES = {"eps": "fp32", "delta": "fp32", "t_stop": "fp32", "near": "fp32"}  # else i32
 
 
 def compile_for(fn, constants: dict, warps: int, arch: int):
@@ -99,7 +113,9 @@ def blocks_per_sm(registers: int, shared: int, warps: int) -> int:
 
 
 def variants(quick: bool):
-    """(kernel, variant, function, constants, warps) of each vote kernel and rule form."""
+    """(kernel, variant, function, constants, warps) of each vote kernel and rule form, then
+    of `triton_prepare`'s projection (per kind) and emission."""
+    from sagonline.render import triton_prepare as prepare
     from sagonline.render.backends import TRITON_VOTE_KERNELS
     from sagonline.render.triton_vote import CHECK_EVERY, TILE, _walk_kernel
     from sagonline.render.triton_vote_chunk import _vote_chunk_kernel
@@ -116,6 +132,12 @@ def variants(quick: bool):
                 if chunk and (name == "chunk16" or not quick):
                     chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
                     yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, warps
+    for kind, surfel in kinds:
+        shape = {"SURFEL": surfel, "NP": 13 if surfel else 7, "TILE": TILE}
+        block = {"BLOCK": prepare.PROJECT_BLOCK}
+        yield "prepare: project", kind, prepare._project_kernel, shape | block, 4
+    emit = {"SPLATS": prepare.EMIT_SPLATS, "TILES": prepare.EMIT_TILES}
+    yield "prepare: emit", "both kinds", prepare._emit_kernel, emit, 4
 
 
 def main() -> None:

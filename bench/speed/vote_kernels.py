@@ -1,14 +1,17 @@
 """The Triton vote kernels side by side: the splat walk (`walk`, the default) and the chunked
-vote (`chunk16`, `chunk32`), on `bench.speed.render`'s scenes: ms per vote, `--masks` votes in a
-row, and whether each kernel's histogram is the first kernel's (RGC counts: exactly).
+vote (`chunk16`, `chunk32`), each on tile lists made by PyTorch (the default) or, with the
+suffix `+fused`, by `triton_prepare`'s kernels, on `bench.speed.render`'s scenes: ms to make one
+view's tile lists, ms per vote (tile lists included), `--masks` votes in a row, and whether
+each histogram is the first row's (RGC counts: exactly).
 
-    python -m bench.speed.vote_kernels [--device cuda] [--kernels walk,chunk16,chunk32,chunk16w16]
-                                       [--masks 206] [--repeats 5] [--out F.csv] [--quick]
+    python -m bench.speed.vote_kernels [--device cuda] [--masks 206] [--repeats 5]
+        [--kernels walk,walk+fused,chunk16,chunk16+fused,chunk32,chunk16w16] [--out F.csv]
+        [--quick]
 
-The kernel is chosen per vote by SAGONLINE_TRITON_VOTE (`render.backends.triton_vote_kernel`), so
-the kernels run in one process on one machine: their ratio is the figure to read. On the CPU
-the kernels run in Triton's interpreter (what the tests run, with --quick): its times say
-nothing of a GPU's.
+The kernel is chosen per vote by SAGONLINE_TRITON_VOTE (`render.backends.triton_vote_kernel`)
+and the tile lists by SAGONLINE_TRITON_PREPARE (`render.backends.triton_prepare`), so every row
+runs in one process on one machine: their ratio is the figure to read. On the CPU the kernels
+run in Triton's interpreter (what the tests run, with --quick): its times say nothing of a GPU's.
 """
 
 from __future__ import annotations
@@ -25,22 +28,43 @@ import torch
 from bench.speed.render import RULE, aggregate, random_mask, scenes, timed
 from sagonline.core.files import atomic_write_text
 from sagonline.render import vote_histogram
-from sagonline.render.backends import TRITON_VOTE_KERNELS
+from sagonline.render.backends import TRITON_PREPARES, TRITON_VOTE_KERNELS
+from sagonline.render.triton_prepare import chosen_tile_view
+
+DEFAULT_KERNELS = "walk,walk+fused,chunk16,chunk16+fused,chunk32,chunk16w16"
+
+
+def parse_kernel(spec: str) -> tuple[str, str]:
+    """'chunk16+fused' -> ('chunk16', 'fused'); 'walk' -> ('walk', 'torch'). ValueError names
+    what is not known."""
+    kernel, _, prepare = spec.partition("+")
+    prepare = prepare or "torch"
+    if kernel not in TRITON_VOTE_KERNELS or prepare not in TRITON_PREPARES:
+        raise ValueError(
+            f"{spec!r}: a kernel of {tuple(TRITON_VOTE_KERNELS)}, optionally +fused (tile lists "
+            f"by triton_prepare)"
+        )
+    return kernel, prepare
 
 
 def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: int, device: str):
-    """One row per kernel on one scene: ms per vote (median of `repeats` after a warm-up), ms
-    for `masks` votes in a row, and whether its histogram of one mask equals the first
-    kernel's that ran (exact) or how far it is (largest difference); a kernel that fails has
-    its error instead."""
+    """One row per kernel ('walk', 'chunk16+fused': `parse_kernel`) on one scene: ms to make
+    one view's tile lists, ms per vote (median of `repeats` after a warm-up), ms for `masks`
+    votes in a row, and whether its histogram of one mask equals the first kernel's that ran
+    (exact) or how far it is (largest difference); a kernel that fails has its error
+    instead."""
     ring = [v.to(device) for v in views]
     mask_of = [random_mask(v) for v in ring]
     many = [mask_of[i % len(ring)] for i in range(masks)]
     rows, first, first_ms = [], None, None
     for kernel in kernels:
+        vote_kernel, prepare = parse_kernel(kernel)
         row = {"scene": name, "device": device, "kernel": kernel, "masks": masks}
+        chosen = {"SAGONLINE_TRITON_VOTE": vote_kernel, "SAGONLINE_TRITON_PREPARE": prepare}
         try:  # a kernel that fails to compile or run is a row that says so, not the end
-            with mock.patch.dict(os.environ, {"SAGONLINE_TRITON_VOTE": kernel}):
+            with mock.patch.dict(os.environ, chosen):
+                bins = partial(chosen_tile_view(), g, ring[0], 0.01, with_colors=False)
+                prepare_ms = 1000 * timed(bins, repeats, device)
                 vote = partial(vote_histogram, g, ring[0], mask_of[0], 3, RULE, backend="triton")
                 hist = vote()
                 ms = 1000 * timed(vote, repeats, device)
@@ -54,6 +78,7 @@ def kernel_rows(name: str, g, views, kernels: list[str], masks: int, repeats: in
         rows.append(
             row
             | {
+                "tile_lists_ms": prepare_ms,
                 "vote_ms_per_mask": ms,
                 "aggregate_ms": all_ms,
                 "speedup_vs_first": first_ms / ms,
@@ -69,7 +94,9 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     ap.add_argument(
-        "--kernels", default=",".join(TRITON_VOTE_KERNELS), help="the first is the base"
+        "--kernels",
+        default=DEFAULT_KERNELS,
+        help="the first is the base; a kernel's suffix +fused makes its tile lists in Triton",
     )
     ap.add_argument("--masks", type=int, default=206, help="votes in the aggregate column")
     ap.add_argument("--repeats", type=int, default=5)
@@ -79,9 +106,10 @@ def main() -> None:
     if args.quick:
         args.masks, args.repeats = 2, 1
     kernels = args.kernels.split(",")
-    unknown = [k for k in kernels if k not in TRITON_VOTE_KERNELS]
-    if unknown or not kernels:
-        ap.error(f"--kernels {args.kernels!r}: each one of {tuple(TRITON_VOTE_KERNELS)}")
+    try:
+        [parse_kernel(k) for k in kernels]
+    except ValueError as exc:
+        ap.error(f"--kernels {args.kernels!r}: {exc}")
     rows = []
     for name, g, _, views in scenes(args.quick):
         rows += kernel_rows(

@@ -204,6 +204,7 @@ _SOURCES = {
         "triton_vote.py",
         "triton_vote_chunk.py",
         "triton_composite.py",
+        "triton_prepare.py",
         "projection.py",
         "rasterize.py",
     ),
@@ -235,12 +236,32 @@ def triton_vote_kernel() -> str:
     return name
 
 
+# How the Triton walks' tile lists are made (SAGONLINE_TRITON_PREPARE, read at each view):
+# `torch` (`projection.project` and `rasterize.bin_tiles`, a chain of small PyTorch operators,
+# the default and the one measured on a GPU) or `fused` (`triton_prepare`: two kernels and a
+# sort); bench/speed/vote_kernels.py times both.
+TRITON_PREPARES = ("torch", "fused")
+
+
+def triton_prepare() -> str:
+    """How this process's Triton walks project and bin a view (SAGONLINE_TRITON_PREPARE,
+    default torch)."""
+    name = os.environ.get("SAGONLINE_TRITON_PREPARE") or "torch"
+    if name not in TRITON_PREPARES:
+        raise BackendError(f"SAGONLINE_TRITON_PREPARE={name!r}: use one of {TRITON_PREPARES}")
+    return name
+
+
 def implementation_digest(backend: str) -> str:
     """A digest of what a resolved backend computes with: its source files (kernels included),
     for gsplat and triton the installed package's version, and for triton which of its vote
-    kernels runs (SAGONLINE_TRITON_VOTE); part of every cache key that a render or a vote
-    produced, so a changed kernel never reuses an old entry."""
-    kernel = triton_vote_kernel() if backend == "triton" else ""
+    kernels runs (SAGONLINE_TRITON_VOTE) and how it bins a view (SAGONLINE_TRITON_PREPARE);
+    part of every cache key that a render or a vote produced, so a changed kernel never
+    reuses an old entry."""
+    kernel = ""
+    if backend == "triton":
+        prepare = triton_prepare()
+        kernel = triton_vote_kernel() + ("" if prepare == "torch" else f"+{prepare}")
     return _implementation_digest(backend, kernel)
 
 

@@ -83,11 +83,7 @@ def project(
     valid = valid & on_screen
     valid = valid & (g.opacities >= ALPHA_MIN)
     ids = torch.nonzero(valid).squeeze(1)
-    colors = torch.zeros(0, 3, device=g.device)
-    if with_colors:
-        dirs = g.means[ids] - cam.center
-        dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        colors = eval_sh(g.sh[ids], dirs)
+    colors = view_colors(g, ids, cam.center) if with_colors else torch.zeros(0, 3, device=g.device)
     out = ProjectedSplats(
         kind=g.kind,
         ids=ids,
@@ -102,6 +98,17 @@ def project(
     else:
         out.transforms = extra[ids]
     return out
+
+
+def view_colors(
+    gaussians: Gaussians,
+    ids: torch.Tensor,  # [M] indices of the Gaussians to shade
+    center: torch.Tensor,  # [3] the camera's centre, world coordinates
+) -> torch.Tensor:  # [M, 3]
+    """(M, 3) the SH colours of Gaussians `ids` seen from the camera's centre."""
+    dirs = gaussians.means[ids] - center
+    dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
+    return eval_sh(gaussians.sh[ids], dirs)
 
 
 def _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam):

@@ -10,7 +10,8 @@ from __future__ import annotations
 import torch
 
 from sagonline.render.rasterize import T_STOP, RenderOutput, image_output
-from sagonline.render.triton_vote import tile_view, walk
+from sagonline.render.triton_prepare import chosen_tile_view
+from sagonline.render.triton_vote import walk
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 
@@ -36,7 +37,7 @@ def composite_triton(
     depth = torch.zeros(H * W, device=device)
     trans = torch.ones(H * W, device=device)
     with torch.no_grad():
-        view = tile_view(gaussians, camera, near, with_colors=image)
+        view = chosen_tile_view()(gaussians, camera, near, with_colors=image)
         if view is not None:
             parts = ([view.proj.colors] if image else []) + (
                 [rows[view.proj.ids]] if rows is not None else []

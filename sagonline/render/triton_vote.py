@@ -250,7 +250,8 @@ class TiledView:
 def tile_view(
     gaussians: Gaussians, camera: Camera, near: float, with_colors: bool
 ) -> TiledView | None:
-    """Project and bin one view for the walk; None when nothing is on screen."""
+    """Project and bin one view for the walk with PyTorch's operators; None when nothing is on
+    screen (`triton_prepare.tile_view_fused` makes the same with two Triton kernels)."""
     if (gaussians.device.type == "cuda") == INTERPRET:
         mode = "Triton's interpreter (CPU tensors)" if INTERPRET else "CUDA (CUDA tensors)"
         raise ValueError(
@@ -341,12 +342,15 @@ def vote_into(
     rule: VoteRule,
     *,
     launch=vote_walk,
+    prepare=tile_view,
 ) -> int:
     """The op `render.vote.vote_into` as one fused Triton kernel: one view's votes under `rule`
-    added into hist; returns the pairs that voted. `launch(view, hist, pixel_labels, cast,
-    rule)` runs the kernel: the splat walk, or `triton_vote_chunk.vote_chunks`."""
+    added into hist; returns the pairs that voted. `prepare(gaussians, camera, near,
+    with_colors)` makes the view's tile lists (`tile_view`, or `triton_prepare`'s), and
+    `launch(view, hist, pixel_labels, cast, rule)` runs the kernel: the splat walk, or
+    `triton_vote_chunk.vote_chunks`."""
     with torch.no_grad():
-        view = tile_view(gaussians, camera, 0.01, with_colors=False)
+        view = prepare(gaussians, camera, 0.01, with_colors=False)
         if view is None:
             return 0
         cast = torch.zeros(view.tiles_x * view.tiles_y, dtype=torch.int64, device=hist.device)

@@ -99,14 +99,16 @@ def implementation(backend: str):
         return vote_into
     if backend == "triton":  # the splat walk, or the chunked vote (`triton_vote_kernel`)
         from sagonline.render import triton_vote
+        from sagonline.render.triton_prepare import chosen_tile_view
 
         chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel()]
+        prepare = chosen_tile_view()  # PyTorch's tile lists or the fused kernels'
         if chunk:
             from sagonline.render.triton_vote_chunk import vote_chunks
 
             launch = functools.partial(vote_chunks, chunk=chunk, warps=warps)
-            return functools.partial(triton_vote.vote_into, launch=launch)
-        return triton_vote.vote_into
+            return functools.partial(triton_vote.vote_into, launch=launch, prepare=prepare)
+        return functools.partial(triton_vote.vote_into, prepare=prepare)
     from sagonline.render import _torch_impl
 
     if backend == "gsplat":

@@ -74,14 +74,33 @@ def test_bench_render_rows_on_cuda_follow_what_is_installed():
 
 @pytest.mark.slow
 def test_bench_vote_kernels_quick_agree_with_the_first_kernel(tmp_path):
-    """The chunked Triton votes side by side in the interpreter (the splat walk takes minutes
-    there; on a GPU it is the first, the base)."""
+    """A chunked Triton vote on PyTorch's tile lists and on the fused ones, side by side in the
+    interpreter (the splat walk takes minutes there; on a GPU it is the first, the base; the
+    check script runs chunk32 on the fused lists)."""
     out = tmp_path / "kernels.csv"
-    text = _run("vote_kernels", "--kernels", "chunk16,chunk32", "--out", str(out))
+    text = _run("vote_kernels", "--kernels", "chunk16,chunk16+fused", "--out", str(out))
     table = pd.read_csv(out)
-    assert list(table.kernel.unique()) == ["chunk16", "chunk32"]
+    assert list(table.kernel.unique()) == ["chunk16", "chunk16+fused"]
     assert table.same_votes_as_first.all() and (table.aggregate_ms > 0).all()
+    assert (table.tile_lists_ms > 0).all()
     assert "interpreter" in text
+
+
+@pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
+def test_bench_tile_lists_counts_the_operators_of_each_way(tmp_path):
+    """PyTorch's tile lists dispatch a couple of hundred operators a view (each a launch on a
+    GPU), the fused ones two Triton launches and a few dozen; the lists are the same."""
+    out = tmp_path / "tile_lists.csv"
+    _run("tile_lists", "--out", str(out))
+    table = pd.read_csv(out)
+    torch_rows, fused = table[table["tile lists"] == "torch"], table[table["tile lists"] == "fused"]
+    assert len(torch_rows) == len(fused) == 2  # both scenes
+    assert (torch_rows["torch operators"] > 200).all() and (
+        torch_rows["triton launches"] == 0
+    ).all()
+    assert (fused["torch operators"] < 50).all() and (fused["triton launches"] == 2).all()
+    assert fused["same lists as torch"].astype(bool).all()
+    assert (fused.pairs.values == torch_rows.pairs.values).all() and (fused.pairs > 0).all()
 
 
 def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run(monkeypatch):
@@ -104,24 +123,26 @@ def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run
 
 @pytest.mark.skipif(importlib.util.find_spec("triton") is None, reason="triton is not installed")
 def test_the_vote_kernels_compile_for_a_gpu_here(tmp_path):
-    """Both Triton vote kernels compile for sm_90 on this CPU (Triton's wheel carries ptxas): a
-    kernel that does not compile for CUDA fails here, not on a machine lent for minutes."""
+    """Both Triton vote kernels and the tile lists' two compile for sm_90 on this CPU (Triton's
+    wheel carries ptxas): a kernel that does not compile for CUDA fails here, not on a machine
+    lent for minutes."""
     out = tmp_path / "resources.csv"
     _run("kernel_resources", "--out", str(out))
     table = pd.read_csv(out)
-    assert list(table.kernel) == ["walk", "chunk16"]
+    assert list(table.kernel) == ["walk", "chunk16", "prepare: project", "prepare: emit"]
     assert (table.registers > 0).all() and (table.blocks_per_sm >= 1).all()
 
 
-def test_bench_vote_kernels_refuses_an_unknown_kernel():
+@pytest.mark.parametrize("kernels, unknown", [("walk,chunk8", "chunk8"), ("walk+cuda", "+cuda")])
+def test_bench_vote_kernels_refuses_an_unknown_kernel(kernels, unknown):
     proc = subprocess.run(
-        [sys.executable, "-m", "bench.speed.vote_kernels", "--kernels", "walk,chunk8"],
+        [sys.executable, "-m", "bench.speed.vote_kernels", "--kernels", kernels],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=120,
     )
-    assert proc.returncode == 2 and "chunk8" in proc.stderr
+    assert proc.returncode == 2 and unknown in proc.stderr
 
 
 @pytest.mark.slow
