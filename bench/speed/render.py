@@ -113,6 +113,19 @@ def backends(device: str, have=None) -> list[tuple[str, str]]:
     return rows
 
 
+def show_table(rows: list[dict], device: str, heading: str, out=None) -> pd.DataFrame:
+    """Print `rows` under `heading` (its {where}: the GPU's name, or the CPU with Triton's
+    interpreter) and write them, with a `gpu` column, to the CSV `out` when given."""
+    table = pd.DataFrame(rows)
+    gpu = torch.cuda.get_device_name(0) if device.startswith("cuda") else None
+    where = gpu or "the CPU, Triton's kernels in its interpreter (not a GPU's times)"
+    print(heading.format(where=where) + "\n")
+    print(table.to_markdown(index=False, floatfmt=".3g"))
+    if out is not None:
+        atomic_write_text(out, table.assign(gpu=gpu).to_csv(index=False))
+    return table
+
+
 def timed(fn, repeats: int, device: str, warmup=None) -> float:
     """Median seconds of `repeats` calls of `fn` after one call of `warmup` (default: `fn`)."""
 

@@ -18,12 +18,10 @@ import argparse
 from pathlib import Path
 from unittest import mock
 
-import pandas as pd
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
-from bench.speed.render import scenes, timed
-from sagonline.core.files import atomic_write_text
+from bench.speed.render import scenes, show_table, timed
 from sagonline.render import triton_prepare
 from sagonline.render.triton_vote import TiledView, tile_view
 
@@ -119,13 +117,8 @@ def main() -> None:
         rows += scene_rows(
             name, g.to(args.device), views[0].to(args.device), args.repeats, args.device
         )
-    table = pd.DataFrame(rows)
-    gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
-    where = gpu or "the CPU, Triton's kernels in its interpreter (not a GPU's times)"
-    print(f"One view's tile lists for the Triton walks, on {where}; median of {args.repeats}\n")
-    print(table.to_markdown(index=False, floatfmt=".3g"))
-    if args.out is not None:
-        atomic_write_text(args.out, table.assign(gpu=gpu).to_csv(index=False))
+    heading = f"One view's tile lists for the Triton walks, on {{where}}; median of {args.repeats}"
+    show_table(rows, args.device, heading, args.out)
 
 
 if __name__ == "__main__":

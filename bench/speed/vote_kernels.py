@@ -22,11 +22,9 @@ from functools import partial
 from pathlib import Path
 from unittest import mock
 
-import pandas as pd
 import torch
 
-from bench.speed.render import RULE, aggregate, random_mask, scenes, timed
-from sagonline.core.files import atomic_write_text
+from bench.speed.render import RULE, aggregate, random_mask, scenes, show_table, timed
 from sagonline.render import vote_histogram
 from sagonline.render.backends import TRITON_PREPARES, TRITON_VOTE_KERNELS
 from sagonline.render.triton_prepare import chosen_tile_view
@@ -115,13 +113,8 @@ def main() -> None:
         rows += kernel_rows(
             name, g.to(args.device), views, kernels, args.masks, args.repeats, args.device
         )
-    table = pd.DataFrame(rows)
-    gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
-    where = gpu or "the CPU, in Triton's interpreter (not a GPU's times)"
-    print(f"Triton vote kernels on {where}; RGC, 3-label masks; median of {args.repeats}\n")
-    print(table.to_markdown(index=False, floatfmt=".3g"))
-    if args.out is not None:
-        atomic_write_text(args.out, table.assign(gpu=gpu).to_csv(index=False))
+    heading = f"Triton vote kernels on {{where}}; RGC, 3-label masks; median of {args.repeats}"
+    table = show_table(rows, args.device, heading, args.out)
     if table["error"].notna().any():
         raise SystemExit("a kernel failed: its row says why")
 

@@ -113,6 +113,16 @@ def _project_kernel(
     g20 = 2 * (qx * qz - qw * qy)
     g21 = 2 * (qy * qz + qw * qx)
     g22 = 1 - 2 * (qx * qx + qy * qy)
+    # C = R G: the Gaussian's axes (columns) in the camera's frame, before its scales
+    c00 = r00 * g00 + r01 * g10 + r02 * g20
+    c10 = r10 * g00 + r11 * g10 + r12 * g20
+    c20 = r20 * g00 + r21 * g10 + r22 * g20
+    c01 = r00 * g01 + r01 * g11 + r02 * g21
+    c11 = r10 * g01 + r11 * g11 + r12 * g21
+    c21 = r20 * g01 + r21 * g11 + r22 * g21
+    c02 = r00 * g02 + r01 * g12 + r02 * g22
+    c12 = r10 * g02 + r11 * g12 + r12 * g22
+    c22 = r20 * g02 + r21 * g12 + r22 * g22
     opac = tl.load(opac_ptr + i, mask=m, other=0.0)
     k00, k01, k02 = tl.load(cam_ptr + 12), tl.load(cam_ptr + 13), tl.load(cam_ptr + 14)
     k10, k11, k12 = tl.load(cam_ptr + 15), tl.load(cam_ptr + 16), tl.load(cam_ptr + 17)
@@ -124,18 +134,12 @@ def _project_kernel(
     if SURFEL:  # projection._project_surfels: M = K [R t_u s_u | R t_v s_v | p_cam]
         s0 = tl.load(scales_ptr + 2 * i, mask=m, other=1.0)
         s1 = tl.load(scales_ptr + 2 * i + 1, mask=m, other=1.0)
-        ux = (r00 * g00 + r01 * g10 + r02 * g20) * s0
-        uy = (r10 * g00 + r11 * g10 + r12 * g20) * s0
-        uz = (r20 * g00 + r21 * g10 + r22 * g20) * s0
-        vx = (r00 * g01 + r01 * g11 + r02 * g21) * s1
-        vy = (r10 * g01 + r11 * g11 + r12 * g21) * s1
-        vz = (r20 * g01 + r21 * g11 + r22 * g21) * s1
-        t00 = k00 * ux + k01 * uy + k02 * uz
-        t10 = k10 * ux + k11 * uy + k12 * uz
-        t20 = k20 * ux + k21 * uy + k22 * uz
-        t01 = k00 * vx + k01 * vy + k02 * vz
-        t11 = k10 * vx + k11 * vy + k12 * vz
-        t21 = k20 * vx + k21 * vy + k22 * vz
+        t00 = (k00 * c00 + k01 * c10 + k02 * c20) * s0
+        t10 = (k10 * c00 + k11 * c10 + k12 * c20) * s0
+        t20 = (k20 * c00 + k21 * c10 + k22 * c20) * s0
+        t01 = (k00 * c01 + k01 * c11 + k02 * c21) * s1
+        t11 = (k10 * c01 + k11 * c11 + k12 * c21) * s1
+        t21 = (k20 * c01 + k21 * c11 + k22 * c21) * s1
         t02 = k00 * px + k01 * py + k02 * pz
         t12 = k10 * px + k11 * py + k12 * pz
         t22 = k20 * px + k21 * py + k22 * pz
@@ -179,7 +183,7 @@ def _project_kernel(
         tl.store(row + 10, t20, mask=m)
         tl.store(row + 11, t21, mask=m)
         tl.store(row + 12, t22, mask=m)
-    else:  # projection._project_ellipsoids: EWA, cov2d = (J R G S)(J R G S)^T + low-pass
+    else:  # projection._project_ellipsoids: EWA, cov2d = (J C S)(J C S)^T + low-pass
         s0 = tl.load(scales_ptr + 3 * i, mask=m, other=1.0)
         s1 = tl.load(scales_ptr + 3 * i + 1, mask=m, other=1.0)
         s2 = tl.load(scales_ptr + 3 * i + 2, mask=m, other=1.0)
@@ -191,22 +195,13 @@ def _project_kernel(
         j02 = -fx * tx / (z * z)
         j11 = fy / z
         j12 = -fy * ty / (z * z)
-        # W = R (G S): column c is R times the Gaussian's axis c scaled by s_c
-        w00 = (r00 * g00 + r01 * g10 + r02 * g20) * s0
-        w10 = (r10 * g00 + r11 * g10 + r12 * g20) * s0
-        w20 = (r20 * g00 + r21 * g10 + r22 * g20) * s0
-        w01 = (r00 * g01 + r01 * g11 + r02 * g21) * s1
-        w11 = (r10 * g01 + r11 * g11 + r12 * g21) * s1
-        w21 = (r20 * g01 + r21 * g11 + r22 * g21) * s1
-        w02 = (r00 * g02 + r01 * g12 + r02 * g22) * s2
-        w12 = (r10 * g02 + r11 * g12 + r12 * g22) * s2
-        w22 = (r20 * g02 + r21 * g12 + r22 * g22) * s2
-        a0 = j00 * w00 + j02 * w20
-        a1 = j00 * w01 + j02 * w21
-        a2 = j00 * w02 + j02 * w22
-        b0 = j11 * w10 + j12 * w20
-        b1 = j11 * w11 + j12 * w21
-        b2 = j11 * w12 + j12 * w22
+        # the rows of J C S, whose product with itself is cov2d before the low-pass
+        a0 = (j00 * c00 + j02 * c20) * s0
+        a1 = (j00 * c01 + j02 * c21) * s1
+        a2 = (j00 * c02 + j02 * c22) * s2
+        b0 = (j11 * c10 + j12 * c20) * s0
+        b1 = (j11 * c11 + j12 * c21) * s1
+        b2 = (j11 * c12 + j12 * c22) * s2
         ca = a0 * a0 + a1 * a1 + a2 * a2 + _LOW_PASS
         cb = a0 * b0 + a1 * b1 + a2 * b2
         cc = b0 * b0 + b1 * b1 + b2 * b2 + _LOW_PASS
