@@ -233,7 +233,7 @@ if [ "$QUICK" = 1 ]; then
   MASK_COUNTS=1,3
   RENDER_ARGS=(--quick)
   PROFILE_ARGS=(--quick --masks 2)
-  KERNEL_ARGS=(--quick --kernels chunk32+fused)
+  KERNEL_ARGS=(--quick --kernels chunk16,chunk32+fused)
   STAGE_ONE_ARGS=(--quick)
 else
   EVAL_DATA=(dataset=synthetic)
@@ -386,7 +386,7 @@ for model in minisam sam2_tiny; do
       --models "$model" "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
       --out "$OUT/encoder_runtimes_${model}_$TAG.csv" \
       --decoder-out "$OUT/decoder_runtimes_${model}_$TAG.csv" \
-      $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1")
+      $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1 --precisions fp32,bf16")
   fi
   step "$model: table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
     segmenter="$model" "${EVAL_FILES[@]}" segmenter.embedding_cache=null refine=student \
