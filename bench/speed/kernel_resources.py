@@ -10,7 +10,7 @@ its occupancy (registers, shared memory) is known before a GPU times it. The wal
 warps, the chunked vote as many as `backends.TRITON_VOTE_KERNELS` names. "blocks per SM" takes
 an sm_90 SM's limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory;
 registers allocated per warp in units of 256). --quick: the 3DGS count vote of the walk and
-chunk16, and the 3DGS projection and the emission of `triton_prepare` (what the tests run).
+chunk16, and both kinds' projection and the emission of `triton_prepare` (what the tests run).
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def variants(quick: bool):
                 if chunk and (name == "chunk16" or not quick):
                     chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
                     yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, warps
-    for kind, surfel in kinds:
+    for kind, surfel in [("3dgs", False), ("2dgs", True)]:  # both kinds' branches, --quick too
         shape = {"SURFEL": surfel, "NP": 13 if surfel else 7, "TILE": TILE}
         block = {"BLOCK": prepare.PROJECT_BLOCK}
         yield "prepare: project", kind, prepare._project_kernel, shape | block, 4

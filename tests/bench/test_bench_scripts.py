@@ -117,7 +117,9 @@ def test_the_vote_kernels_compile_for_a_gpu_here(tmp_path):
     out = tmp_path / "resources.csv"
     _run("kernel_resources", "--out", str(out))
     table = pd.read_csv(out)
-    assert list(table.kernel) == ["walk", "chunk16", "prepare: project", "prepare: emit"]
+    kernels = ["walk", "chunk16", "prepare: project", "prepare: project", "prepare: emit"]
+    assert list(table.kernel) == kernels
+    assert list(table.variant[2:4]) == ["3dgs", "2dgs"]  # both kinds' projection branches
     assert (table.registers > 0).all() and (table.blocks_per_sm >= 1).all()
 
 
