@@ -26,11 +26,15 @@ import time
 from collections import OrderedDict
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
 
 from sagonline.segment.embedding import CACHE_FORMAT, GRID, SIZE, Embedding, EmbeddingCache
+
+if TYPE_CHECKING:
+    import torch
 
 __all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "SamPair"]
 
@@ -45,6 +49,14 @@ class Answer:
     mask: np.ndarray
     logits: np.ndarray
     predicted_iou: float
+
+
+def digest_frame(image: np.ndarray) -> str:
+    """What the embedding cache knows a frame by: its bytes (C order) and its shape, hashed
+    where the array lies (no copy of a contiguous image)."""
+    hashed = hashlib.blake2b(np.ascontiguousarray(image), digest_size=16)
+    hashed.update(str(image.shape).encode())
+    return hashed.hexdigest()
 
 
 class SamPair:
@@ -87,13 +99,53 @@ class SamPair:
         """(sx, sy) image -> 1024 frame, and the (height, width) the image covers there."""
         raise NotImplementedError
 
-    def preprocess(self, image: np.ndarray) -> np.ndarray:  # [1, 3, 1024, 1024] float32
+    def resized(
+        self,
+        image: np.ndarray,  # [H, W, 3] uint8 RGB
+    ) -> np.ndarray:  # [ch, cw, 3] uint8, the part of the 1024 frame the image covers
+        """The image at the size it covers in the encoder's frame (bilinear, on uint8 as the
+        formats' own preprocessing does)."""
         h, w = image.shape[:2]
         _, (ch, cw) = self.geometry(h, w)
-        resized = cv2.resize(image, (cw, ch), interpolation=cv2.INTER_LINEAR).astype(np.float32)
-        frame = np.zeros((SIZE, SIZE, 3), np.float32)
-        frame[:ch, :cw] = (resized - self.normalise_mean) / self.normalise_std
-        return frame.transpose(2, 0, 1)[None]
+        return cv2.resize(image, (cw, ch), interpolation=cv2.INTER_LINEAR)
+
+    def preprocess(
+        self,
+        image: np.ndarray,  # [H, W, 3] uint8 RGB
+    ) -> np.ndarray:  # [1, 3, 1024, 1024] float32, C-contiguous
+        """The encoder's input on the host: resized, normalised, zero-padded right and bottom.
+        One channel plane at a time: the same float32 operations as normalising the (h, w, 3)
+        image at once, a tenth of the time (13.5 -> 1.3 ms for a 960x540 view, here), and
+        contiguous, so no runtime copies it again."""
+        resized = self.resized(image)
+        ch, cw = resized.shape[:2]
+        frame = np.zeros((1, 3, SIZE, SIZE), np.float32)
+        for c, plane in enumerate(cv2.split(resized)):
+            out = frame[0, c, :ch, :cw]
+            np.subtract(plane, self.normalise_mean[c], out=out, dtype=np.float32)
+            np.divide(out, self.normalise_std[c], out=out)
+        return frame
+
+    def preprocess_on(
+        self,
+        image: np.ndarray,  # [H, W, 3] uint8 RGB
+        device,
+    ) -> torch.Tensor:  # [1, 3, 1024, 1024] float32 on `device`
+        """`preprocess` where a PyTorch encoder runs: the resized uint8 image goes to the device
+        (1.7 MB for a 960x540 view, not the 12.6 MB float frame) and is normalised there, by the
+        same float32 operations (a division by a tensor, never by a host scalar, which CUDA
+        turns into a multiplication by its reciprocal)."""
+        import torch
+
+        resized = torch.from_numpy(self.resized(image)).to(device)
+        ch, cw = resized.shape[:2]
+        mean, std = (
+            torch.from_numpy(v).to(device)[:, None, None]
+            for v in (self.normalise_mean, self.normalise_std)
+        )
+        frame = torch.zeros(1, 3, SIZE, SIZE, device=device)
+        frame[0, :, :ch, :cw] = (resized.permute(2, 0, 1).float() - mean) / std
+        return frame
 
     def decode(
         self,
@@ -162,9 +214,7 @@ class SamPair:
             return self._embed(image)
 
     def _embed(self, image: np.ndarray) -> Embedding:
-        frame_digest = hashlib.blake2b(
-            image.tobytes() + str(image.shape).encode(), digest_size=16
-        ).hexdigest()
+        frame_digest = digest_frame(image)
         key = hashlib.blake2b(
             f"{frame_digest}:{self.encoder_id}".encode(), digest_size=16
         ).hexdigest()
@@ -184,7 +234,7 @@ class SamPair:
         arrays, on_device = self.cache.load(key, expected), None
         if arrays is None:
             start = time.perf_counter()
-            outputs, on_device = self._encode(self.preprocess(image))
+            outputs, on_device = self._encode(image)
             self.encode_s += time.perf_counter() - start
             arrays = {
                 n: np.ascontiguousarray(o[0], self.stored_dtype)
@@ -217,20 +267,36 @@ class SamPair:
         """The encoder's outputs by the names the decoder reads them under."""
         return outputs
 
-    def _encode(self, frame: np.ndarray) -> tuple[list[np.ndarray], dict]:
-        """The encoder's outputs for a [1, 3, 1024, 1024] frame, as numpy (rounded to the stored
-        type); and where both halves run on PyTorch on one device, the same values there in
-        float32 by output name (what the decoder reads: no copy to the host and back)."""
+    def encoder_frame(
+        self,
+        image: np.ndarray,  # [H, W, 3] uint8 RGB
+        device,
+    ) -> torch.Tensor:  # [1, 3, 1024, 1024] float32 on `device`
+        """A PyTorch encoder's input: made on its device (`preprocess_on`), or on the CPU the
+        host's frame itself (numpy's per-plane work is faster there than PyTorch's, and no copy
+        is needed)."""
+        import torch
+
+        if torch.device(device).type == "cpu":
+            return torch.from_numpy(self.preprocess(image))
+        return self.preprocess_on(image, device)
+
+    def _encode(self, image: np.ndarray) -> tuple[list[np.ndarray], dict]:
+        """The encoder's outputs for an RGB uint8 (H, W, 3) image, as numpy (rounded to the
+        stored type); and where both halves run on PyTorch on one device, the same values there
+        in float32 by output name (what the decoder reads: no copy to the host and back). A
+        PyTorch encoder gets its frame made on its device (`encoder_frame`)."""
         name = self.encoder.get_inputs()[0].name
         device = getattr(self.encoder, "device", None)
+        if device is None:  # onnxruntime
+            return self.encoder.run(None, {name: self.preprocess(image)}), {}
+        outputs = self.encoder.forward({name: self.encoder_frame(image, device)})
         if self.decoder_runtime != "torch" or device != getattr(self.decoder, "device", None):
-            return self.encoder.run(None, {name: frame}), {}
+            return [o.float().cpu().numpy() for o in outputs], {}
         import torch
 
         stored = getattr(torch, np.dtype(self.stored_dtype).name)  # float16 or float32
-        rounded = [
-            o.float().to(stored) for o in self.encoder.forward({name: torch.from_numpy(frame)})
-        ]
+        rounded = [o.float().to(stored) for o in outputs]
         on_device = {n: r.float() for n, r in zip(self.outputs, rounded, strict=True)}
         return [r.cpu().numpy() for r in rounded], on_device
 

