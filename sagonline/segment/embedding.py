@@ -22,6 +22,7 @@ import numpy as np
 
 SIZE = 1024  # the encoder's input side
 GRID = 64  # the embedding's side (16 px cells of the 1024 frame)
+CELL = SIZE // GRID  # a cell's side in the 1024 frame
 CACHE_FORMAT = 1  # bumped when an entry's layout changes
 
 
@@ -43,14 +44,25 @@ class Embedding:
     _derived: dict[str, np.ndarray] = field(default_factory=dict, repr=False, compare=False)
 
     def grid_mask(self, mask: np.ndarray) -> np.ndarray:  # [64, 64] bool
-        """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside)."""
+        """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside): the mask at
+        the size it covers in the 1024 frame, then each 16x16 cell's share. Only the cells the
+        cover reaches are averaged (the rest of the frame is padding, so theirs is 0); an area
+        resize by a whole factor averages each cell on its own, so the shares are those of the
+        whole padded frame, bit for bit."""
         ch, cw = self.cover
         if (ch, cw) == (SIZE, SIZE):  # the image fills the frame: each cell's share, directly
             small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
             return small > 0.5
-        big = np.zeros((SIZE, SIZE), np.float32)
-        big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
-        return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
+        rows, cols = -(-ch // CELL), -(-cw // CELL)  # the cells the cover reaches
+        covered = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
+        if (rows * CELL, cols * CELL) != (ch, cw):  # a last row or column of cells, part padding
+            padded = np.zeros((rows * CELL, cols * CELL), np.float32)
+            padded[:ch, :cw] = covered
+            covered = padded
+        cells = np.zeros((GRID, GRID), bool)
+        shares = cv2.resize(covered, (cols, rows), interpolation=cv2.INTER_AREA)
+        cells[:rows, :cols] = shares > 0.5
+        return cells
 
     def valid(self) -> np.ndarray:  # [64, 64] bool, the cells the image covers
         if "valid" not in self._derived:

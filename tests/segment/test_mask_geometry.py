@@ -1,0 +1,87 @@
+"""The per-candidate mask arithmetic of the SAM family's prompting (`mask_geometry.box_of`,
+`iou`, `Embedding.grid_mask`): each equal, value for value, to its first, slower form, on masks
+of every kind (empty, full, one pixel, boxes at the edges, noise) and on image sizes whose cover
+of the 1024 frame ends inside a cell, on a cell's edge, or fills the frame."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from sagonline.segment.embedding import GRID, SIZE, Embedding
+from sagonline.segment.mask_geometry import box_of, iou
+
+# (height, width): a view; 4:3; a cover ending inside a cell (577 rows); portrait; tiny;
+# a line of pixels; larger than the frame; square (SAM 2's stretch fills the frame)
+SHAPES = [(540, 960), (480, 640), (677, 1201), (1000, 750), (33, 17), (1, 7), (1600, 1200)]
+
+
+def first_box_of(mask):
+    ys, xs = np.nonzero(mask)
+    if not len(xs):
+        return None
+    return np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float32)
+
+
+def first_iou(a, b):
+    return float((a & b).sum() / max((a | b).sum(), 1))
+
+
+def first_grid_mask(emb: Embedding, mask):
+    """The 64x64 cells from the whole zero-padded 1024x1024 frame."""
+    ch, cw = emb.cover
+    if (ch, cw) == (SIZE, SIZE):
+        small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
+        return small > 0.5
+    big = np.zeros((SIZE, SIZE), np.float32)
+    big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
+    return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
+
+
+def masks(shape, seed: int):
+    """Empty, full, a pixel in each corner, boxes anywhere (edges included), and noise."""
+    h, w = shape
+    rng = np.random.default_rng(seed)
+    yield np.zeros(shape, bool)
+    yield np.ones(shape, bool)
+    for y, x in ((0, 0), (h - 1, w - 1), (0, w - 1), (h - 1, 0)):
+        one = np.zeros(shape, bool)
+        one[y, x] = True
+        yield one
+    for _ in range(12):
+        box = np.zeros(shape, bool)
+        y0, x0 = rng.integers(0, h), rng.integers(0, w)
+        box[y0 : y0 + rng.integers(1, h + 1), x0 : x0 + rng.integers(1, w + 1)] = True
+        yield box
+    for _ in range(4):
+        yield rng.random(shape) < rng.random()
+
+
+@pytest.mark.parametrize("shape", SHAPES, ids=str)
+def test_box_and_overlap_are_their_first_forms(shape):
+    previous = None
+    for mask in masks(shape, seed=sum(shape)):
+        want, got = first_box_of(mask), box_of(mask)
+        assert (want is None and got is None) or (
+            got.dtype == np.float32 and np.array_equal(got, want)
+        )
+        if previous is not None:
+            assert iou(mask, previous) == first_iou(mask, previous)
+        previous = mask
+
+
+@pytest.mark.parametrize("stretch", [False, True], ids=["sam", "sam2"])
+@pytest.mark.parametrize("shape", SHAPES, ids=str)
+def test_the_grid_cells_are_those_of_the_whole_padded_frame(shape, stretch):
+    h, w = shape
+    if stretch:  # SAM 2: the image resized to fill the frame
+        scale, cover = (SIZE / w, SIZE / h), (SIZE, SIZE)
+    else:  # SAM: the longer side to 1024, padded right and bottom
+        s = SIZE / max(h, w)
+        scale, cover = (s, s), (round(h * s), round(w * s))
+    emb = Embedding(np.zeros((1, 1, 1), np.float32), scale, shape, cover)
+    for mask in masks(shape, seed=h * w):
+        got = emb.grid_mask(mask)
+        assert got.shape == (GRID, GRID) and got.dtype == bool
+        np.testing.assert_array_equal(got, first_grid_mask(emb, mask))
