@@ -172,7 +172,7 @@ class SamFamilySegmenter(VideoSegmenter):
         levels = {k: level for k, (_, _, level) in first.items()}
         # each object's prototypes (origin, last) and last mask's area at the prompt view
         prompt_prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
-        prompt_areas = {k: int(mask.sum()) for k, (mask, _, _) in first.items()}
+        prompt_areas = {k: np.count_nonzero(mask) for k, (mask, _, _) in first.items()}
         prototypes, areas = dict(prompt_prototypes), dict(prompt_areas)
         yield p, self.paint(first, frames[p].shape[:2]), time.perf_counter() - start
         for t in list(range(p + 1, n)) + list(range(p - 1, -1, -1)):
@@ -194,7 +194,7 @@ class SamFamilySegmenter(VideoSegmenter):
                 found[k] = (mask, feature)
                 if feature is not None:
                     prototypes[k] = (origin, feature)
-                    areas[k] = int(mask.sum())
+                    areas[k] = np.count_nonzero(mask)
             yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
 
     def prompt_view(self, model: SamPair, frame: np.ndarray, prompt: Prompt) -> dict:
@@ -250,7 +250,7 @@ class SamFamilySegmenter(VideoSegmenter):
             candidates = [
                 r.mask for r in model.decode(emb, obj.points, labels, box_of(a.mask), a.logits)
             ]
-        if region.sum() < 0.25 * min(int(m.sum()) for m in candidates):
+        if np.count_nonzero(region) < 0.25 * min(np.count_nonzero(m) for m in candidates):
             return largest(answers).mask if len(answers) > 1 else candidates[0]
         if len(answers) > 1:
             return max(candidates, key=lambda m: iou(m, region))
@@ -323,7 +323,7 @@ class SamFamilySegmenter(VideoSegmenter):
             inside = interior_point(render)
             found = model.decode(emb, inside[None], np.array([1]), box_of(render))
             candidates.append(at_level(found).mask)
-        within = [m for m in candidates if max_area is None or m.sum() <= max_area]
+        within = [m for m in candidates if max_area is None or np.count_nonzero(m) <= max_area]
         scored = []
         for mask in within or candidates:
             feature = emb.mean_feature(mask)
@@ -383,7 +383,7 @@ def best_rated(answers: list[Answer]) -> Answer:
 
 
 def largest(answers: list[Answer]) -> Answer:
-    return max(answers, key=lambda a: int(a.mask.sum()))
+    return max(answers, key=lambda a: np.count_nonzero(a.mask))
 
 
 def gigabytes(gb: float | None) -> int | None:
