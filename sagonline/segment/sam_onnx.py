@@ -41,6 +41,7 @@ from sagonline.segment.embedding import (
     converted,
     widened,
 )
+from sagonline.segment.onnx_torch import to_host
 
 if TYPE_CHECKING:
     import torch
@@ -169,10 +170,14 @@ class SamPair:
 
     # --- shared -------------------------------------------------------------------------------
 
-    def run_decoder(self, emb: Embedding, feeds: dict[str, np.ndarray]) -> list[np.ndarray]:
+    def run_decoder(
+        self, emb: Embedding, feeds: dict[str, np.ndarray], signs: tuple[int, ...] = ()
+    ) -> list[np.ndarray]:
         """The decoder's outputs (numpy, its order) for the view's arrays (`view_arrays`) and
         a prompt's `feeds`. On PyTorch the view's arrays (the same for each of its prompts;
-        SAM 2's are 16 MB) go to the decoder's device once a view, not once a prompt."""
+        SAM 2's are 16 MB) go to the decoder's device once a view, not once a prompt, and the
+        outputs numbered in `signs` come back as `> 0` (bool, a quarter of the bytes: SAM's
+        mask at the image's size, whose sign is all its reader takes)."""
         if self.decoder_runtime != "torch":
             return self.decoder.run(None, {**self.view_arrays(emb), **feeds})
         import torch
@@ -185,7 +190,8 @@ class SamPair:
             for name, value in self.view_arrays(emb).items():
                 placed[name] = self.decoder.place(torch.from_numpy(value))
         tensors = {**placed, **{k: torch.from_numpy(np.asarray(v)) for k, v in feeds.items()}}
-        return [o.float().cpu().numpy() for o in self.decoder.forward(tensors)]
+        outputs = self.decoder.forward(tensors)
+        return to_host([o > 0 if i in signs else o.float() for i, o in enumerate(outputs)])
 
     @staticmethod
     def prompt_arrays(points, labels, box) -> tuple[np.ndarray, np.ndarray]:
@@ -306,13 +312,13 @@ class SamPair:
             return self.encoder.run(None, {name: self.preprocess(image)}), {}
         outputs = self.encoder.forward({name: self.encoder_frame(image, device)})
         if self.decoder_runtime != "torch" or device != getattr(self.decoder, "device", None):
-            return [o.float().cpu().numpy() for o in outputs], {}
+            return to_host([o.float() for o in outputs]), {}
         import torch
 
         stored = getattr(torch, np.dtype(self.stored_dtype).name)  # float16 or float32
         rounded = [o.float().to(stored) for o in outputs]
         on_device = {n: r.float() for n, r in zip(self.outputs, rounded, strict=True)}
-        return [r.cpu().numpy() for r in rounded], on_device
+        return to_host(rounded), on_device
 
 
 class Sam1Pair(SamPair):
@@ -346,7 +352,7 @@ class Sam1Pair(SamPair):
             **self.prompt_feeds(emb, coords, kinds, logits),
             "orig_im_size": np.array(emb.size, np.float32),
         }
-        masks, iou, low_res = self.run_decoder(emb, feeds)
+        masks, iou, low_res = self.run_decoder(emb, feeds, signs=(0,))
         return [Answer(masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0]))]
 
 

@@ -647,3 +647,26 @@ def test_with_both_halves_on_pytorch_the_encoders_outputs_reach_the_decoder_wher
     got, expected = pair.decode(emb, None, None, box), through_host.decode(want, None, None, box)
     assert np.abs(got[0].logits - expected[0].logits).max() < 1e-3
     assert len(given) == 1 and given[0] is placed["image_embeddings"]
+
+
+def _outputs_of_each_kind(device: str) -> list[torch.Tensor]:  # float32, float16, bool, scalar
+    rng = torch.Generator().manual_seed(8)
+    values = torch.randn(2, 3, 5, generator=rng)
+    tensors = [values, values.half(), values > 0, torch.tensor(3.5)]
+    return [t.to(device) for t in tensors]
+
+
+@pytest.mark.parametrize(
+    "device", ["cpu", pytest.param("cuda", marks=[pytest.mark.gpu, needs_cuda])]
+)
+def test_outputs_come_to_the_host_whole_and_in_their_types(device):
+    """`to_host`: numpy arrays of the same values, shapes and types (from a GPU by copies
+    queued together and one wait: the values read after it are the finished ones)."""
+    from sagonline.segment.onnx_torch import to_host
+
+    tensors = _outputs_of_each_kind(device)
+    got = to_host(tensors)
+    for g, t in zip(got, tensors, strict=True):
+        assert isinstance(g, np.ndarray) and g.shape == tuple(t.shape)
+        np.testing.assert_array_equal(g, t.cpu().numpy())
+    assert to_host([]) == []
