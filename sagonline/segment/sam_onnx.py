@@ -125,8 +125,8 @@ class SamPair:
     ) -> np.ndarray:  # [1, 3, 1024, 1024] float32, C-contiguous
         """The encoder's input on the host: resized, normalised, zero-padded right and bottom.
         One channel plane at a time: the same float32 operations as normalising the (h, w, 3)
-        image at once, a tenth of the time (13.5 -> 1.3 ms for a 960x540 view, here), and
-        contiguous, so no runtime copies it again."""
+        image at once, in a fraction of the time (`bench/speed/sam_host.py`), and contiguous,
+        so no runtime copies it again."""
         resized = self.resized(image)
         ch, cw = resized.shape[:2]
         frame = np.zeros((1, 3, SIZE, SIZE), np.float32)
