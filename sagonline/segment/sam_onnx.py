@@ -287,33 +287,25 @@ class SamPair:
         """The encoder's outputs by the names the decoder reads them under."""
         return outputs
 
-    def encoder_frame(
-        self,
-        image: np.ndarray,  # [H, W, 3] uint8 RGB
-        device,
-    ) -> torch.Tensor:  # [1, 3, 1024, 1024] float32 on `device`
-        """A PyTorch encoder's input: made on its device (`preprocess_on`), or on the CPU the
-        host's frame itself (numpy's per-plane work is faster there than PyTorch's, and no copy
-        is needed)."""
-        import torch
-
-        if torch.device(device).type == "cpu":
-            return torch.from_numpy(self.preprocess(image))
-        return self.preprocess_on(image, device)
-
     def _encode(self, image: np.ndarray) -> tuple[list[np.ndarray], dict]:
         """The encoder's outputs for an RGB uint8 (H, W, 3) image, as numpy (rounded to the
         stored type); and where both halves run on PyTorch on one device, the same values there
         in float32 by output name (what the decoder reads: no copy to the host and back). A
-        PyTorch encoder gets its frame made on its device (`encoder_frame`)."""
+        PyTorch encoder off the CPU gets its frame made on its device (`preprocess_on`); on the
+        CPU, the host's (numpy's per-plane work is faster there, and nothing is copied)."""
         name = self.encoder.get_inputs()[0].name
         device = getattr(self.encoder, "device", None)
         if device is None:  # onnxruntime
             return self.encoder.run(None, {name: self.preprocess(image)}), {}
-        outputs = self.encoder.forward({name: self.encoder_frame(image, device)})
+        import torch
+
+        if device.type == "cpu":
+            frame = torch.from_numpy(self.preprocess(image))
+        else:
+            frame = self.preprocess_on(image, device)
+        outputs = self.encoder.forward({name: frame})
         if self.decoder_runtime != "torch" or device != getattr(self.decoder, "device", None):
             return to_host([o.float() for o in outputs]), {}
-        import torch
 
         stored = getattr(torch, np.dtype(self.stored_dtype).name)  # float16 or float32
         rounded = [o.float().to(stored) for o in outputs]

