@@ -307,12 +307,11 @@ def to_host(
 ) -> list[np.ndarray]:  # [...] each, the same values
     """Tensors as numpy. From a GPU, the copies are queued together into pinned memory and
     waited for once (each `.cpu()` would wait for the GPU on its own: a decoder call's three
-    outputs, three waits)."""
-    device = next((t.device for t in tensors if t.is_cuda), None)
-    if device is None:
-        return [t.detach().cpu().numpy() for t in tensors]
+    outputs, three waits); on the CPU they are the tensors themselves."""
     copies = [t.detach().to("cpu", non_blocking=True) for t in tensors]
-    torch.cuda.current_stream(device).synchronize()
+    device = next((t.device for t in tensors if t.is_cuda), None)
+    if device is not None:
+        torch.cuda.current_stream(device).synchronize()
     return [c.numpy() for c in copies]
 
 

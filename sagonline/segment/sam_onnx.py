@@ -20,6 +20,7 @@ when given a folder (`segment.embedding.EmbeddingCache`: every entry checked on 
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import threading
 import time
@@ -67,6 +68,17 @@ def digest_frame(image: np.ndarray) -> str:
     hashed = hashlib.blake2b(np.ascontiguousarray(image), digest_size=16)
     hashed.update(str(image.shape).encode())
     return hashed.hexdigest()
+
+
+@functools.cache
+def _normaliser(pair_type: type[SamPair], device) -> tuple:  # ([3, 1, 1], [3, 1, 1]) on `device`
+    """A format's mean and std where `preprocess_on` normalises, copied there once."""
+    import torch
+
+    return tuple(
+        torch.from_numpy(v).to(device)[:, None, None]
+        for v in (pair_type.normalise_mean, pair_type.normalise_std)
+    )
 
 
 class SamPair:
@@ -149,10 +161,7 @@ class SamPair:
 
         resized = torch.from_numpy(self.resized(image)).to(device)
         ch, cw = resized.shape[:2]
-        mean, std = (
-            torch.from_numpy(v).to(device)[:, None, None]
-            for v in (self.normalise_mean, self.normalise_std)
-        )
+        mean, std = _normaliser(type(self), torch.device(device))
         frame = torch.zeros(1, 3, SIZE, SIZE, device=device)
         frame[0, :, :ch, :cw] = (resized.permute(2, 0, 1).float() - mean) / std
         return frame
