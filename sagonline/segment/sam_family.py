@@ -80,6 +80,11 @@ class SamPromptingConfig:
     points) captured as one CUDA graph on its first call and replayed after, one launch
     instead of hundreds; a capture that fails or replays other values is said and runs
     eagerly. Refused off CUDA or with neither half on PyTorch."""
+    batch_prompts: bool | None = None
+    """A view's decoder prompts of one shape (its objects' candidates) in one decoder call, not
+    one call each: the same masks (to about 1e-5 of the logits), a few hundred operator
+    launches a call fewer per object. null: where the decoder runs on PyTorch on CUDA; true
+    only with decoder_runtime=torch; false: one call a prompt."""
     embedding_cache: str | None = "~/.cache/sagonline/embeddings"
     """Where image embeddings are kept, by the frame's and the encoder's content (each entry
     checked on read); null: in this process only."""
@@ -170,6 +175,11 @@ class SamPromptingConfig:
                 not self.cuda_graphs or self.device.startswith("cuda"),
                 self.cuda_graphs,
                 "false unless segmenter.device is cuda",
+            ),
+            batch_prompts=(
+                not self.batch_prompts or self.decoder_runtime == "torch",
+                self.batch_prompts,
+                "null or false unless segmenter.decoder_runtime is torch",
             ),
             encoder=(bool(self.encoder.strip()), self.encoder, "a file path"),
             decoder=(bool(self.decoder.strip()), self.decoder, "a file path"),

@@ -32,6 +32,14 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from sagonline.segment.decoder_prompts import (
+    DecoderPrompt,
+    calls,
+    prompt_arrays,
+    prompt_feeds,
+    rows_for,
+    stacked,
+)
 from sagonline.segment.embedding import (
     CACHE_FORMAT,
     GRID,
@@ -48,8 +56,6 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "SamPair"]
-
-LOW_RES = 256  # the decoder's mask side
 
 
 @dataclass
@@ -88,6 +94,9 @@ class SamPair:
     runtime = "onnxruntime"  # or "torch": what runs the encoder (`encoder_runtime`)
     decoder_runtime = "onnxruntime"  # or "torch" (`decoder_runtime`)
     levels = 1  # masks the decoder answers per prompt (SAM 2: whole object, part, sub-part)
+    signs: tuple[int, ...] = ()  # the decoder's outputs read only as `> 0` (`run_decoder`)
+    batch_prompts = False  # a view's prompts of one shape in one decoder call (`decode_many`)
+    pad_prompts = False  # such calls padded to a power of two of prompts (`rows_for`)
     stored_dtype = np.float32  # what the encoder's outputs are rounded to, fresh or cached
     normalise_mean: np.ndarray
     normalise_std: np.ndarray
@@ -166,6 +175,17 @@ class SamPair:
         frame[0, :, :ch, :cw] = (resized.permute(2, 0, 1).float() - mean) / std
         return frame
 
+    def feeds(self, emb: Embedding, prompt: DecoderPrompt) -> dict[str, np.ndarray]:
+        """The decoder's inputs for one prompt, each per-prompt input with a prompt axis of
+        one (`decoder_prompts`), the view's arrays aside."""
+        raise NotImplementedError
+
+    def answers(self, emb: Embedding, row: list[np.ndarray]) -> list[Answer]:
+        """One prompt's answers from its row of the decoder's outputs (their order)."""
+        raise NotImplementedError
+
+    # --- shared -------------------------------------------------------------------------------
+
     def decode(
         self,
         emb: Embedding,
@@ -175,9 +195,19 @@ class SamPair:
         logits: np.ndarray | None = None,  # [256, 256] a previous answer's logits
     ) -> list[Answer]:
         """The decoder's masks for one prompt (SAM: one; SAM 2: three)."""
-        raise NotImplementedError
+        return self.decode_many(emb, [DecoderPrompt(points, labels, box, logits)])[0]
 
-    # --- shared -------------------------------------------------------------------------------
+    def decode_many(self, emb: Embedding, prompts: list[DecoderPrompt]) -> list[list[Answer]]:
+        """Each prompt's answers (as `decode`'s): with `batch_prompts`, those whose inputs
+        agree in shape in one decoder call (`decoder_prompts.calls`); else one call each."""
+        feeds = [self.feeds(emb, p) for p in prompts]
+        answers: list[list[Answer]] = [[] for _ in prompts]
+        for rows in calls(feeds, self.batch_prompts):
+            padded = rows_for(len(rows), self.pad_prompts)
+            outputs = self.run_decoder(emb, stacked([feeds[i] for i in rows], padded), self.signs)
+            for j, i in enumerate(rows):
+                answers[i] = self.answers(emb, [o[j] for o in outputs])
+        return answers
 
     def run_decoder(
         self, emb: Embedding, feeds: dict[str, np.ndarray], signs: tuple[int, ...] = ()
@@ -201,33 +231,6 @@ class SamPair:
         tensors = {**placed, **{k: torch.from_numpy(np.asarray(v)) for k, v in feeds.items()}}
         outputs = self.decoder.forward(tensors)
         return to_host([o > 0 if i in signs else o.float() for i, o in enumerate(outputs)])
-
-    @staticmethod
-    def prompt_arrays(points, labels, box) -> tuple[np.ndarray, np.ndarray]:
-        """Points and box corners as (P, 2) coordinates and (P,) SAM point labels (1, 0; 2, 3
-        the box's corners)."""
-        coords, kinds = [], []
-        if points is not None and len(points):
-            coords += list(np.asarray(points, np.float32).reshape(-1, 2))
-            kinds += list(np.asarray(labels, np.float32).reshape(-1))
-        if box is not None:
-            box = np.asarray(box, np.float32).reshape(4)
-            coords += [box[:2], box[2:]]
-            kinds += [2.0, 3.0]
-        return np.asarray(coords, np.float32).reshape(-1, 2), np.asarray(kinds, np.float32)
-
-    @staticmethod
-    def prompt_feeds(emb: Embedding, coords, kinds, logits) -> dict[str, np.ndarray]:
-        """The decoder inputs both formats share: the points in the 1024 frame, their labels,
-        and a previous answer's logits (or none)."""
-        has_mask = logits is not None
-        mask = logits if has_mask else np.zeros((LOW_RES, LOW_RES), np.float32)
-        return {
-            "point_coords": emb.to_frame(coords)[None],
-            "point_labels": kinds[None],
-            "mask_input": mask[None, None].astype(np.float32),
-            "has_mask_input": np.array([1.0 if has_mask else 0.0], np.float32),
-        }
 
     def embed(self, image: np.ndarray) -> Embedding:
         """The encoder's outputs for an RGB uint8 (H, W, 3) image, from memory, the disk cache
@@ -326,6 +329,7 @@ class Sam1Pair(SamPair):
     """SAM's standard ONNX export (one mask an answer)."""
 
     format = "sam"
+    signs = (0,)  # the mask at the image's size, whose sign is all `answers` reads
     normalise_mean = np.array([123.675, 116.28, 103.53], np.float32)
     normalise_std = np.array([58.395, 57.12, 57.375], np.float32)
 
@@ -344,17 +348,19 @@ class Sam1Pair(SamPair):
         (features,) = outputs.values()
         return {"image_embeddings": features}
 
-    def decode(self, emb, points=None, labels=None, box=None, logits=None):
-        coords, kinds = self.prompt_arrays(points, labels, box)
-        if box is None:  # SAM's export expects a padding point where no box is given
+    def feeds(self, emb, prompt):
+        coords, kinds = prompt_arrays(prompt)
+        if prompt.box is None:  # SAM's export expects a padding point where no box is given
             coords = np.concatenate([coords, np.zeros((1, 2), np.float32)])
             kinds = np.concatenate([kinds, [-1.0]]).astype(np.float32)
-        feeds = {
-            **self.prompt_feeds(emb, coords, kinds, logits),
+        return {
+            **prompt_feeds(emb, coords, kinds, prompt.logits),
             "orig_im_size": np.array(emb.size, np.float32),
         }
-        masks, iou, low_res = self.run_decoder(emb, feeds, signs=(0,))
-        return [Answer(masks[0, 0] > 0.0, low_res[0, 0], float(np.asarray(iou).reshape(-1)[0]))]
+
+    def answers(self, emb, row):
+        masks, iou, low_res = row  # [1, H, W] (bool from PyTorch), [1], [1, 256, 256]
+        return [Answer(masks[0] > 0.0, low_res[0], float(iou[0]))]
 
 
 class Sam2Pair(SamPair):
@@ -378,13 +384,15 @@ class Sam2Pair(SamPair):
     def view_arrays(self, emb):
         return {"image_embed": emb.features[None], **emb.extras}
 
-    def decode(self, emb, points=None, labels=None, box=None, logits=None):
-        coords, kinds = self.prompt_arrays(points, labels, box)
-        masks, iou = self.run_decoder(emb, self.prompt_feeds(emb, coords, kinds, logits))
+    def feeds(self, emb, prompt):
+        return prompt_feeds(emb, *prompt_arrays(prompt), prompt.logits)
+
+    def answers(self, emb, row):
+        masks, iou = row  # [3, 256, 256] logits of the 1024 frame, [3]
         h, w = emb.size
         return [
             Answer(cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0, m, float(score))
-            for m, score in zip(masks[0], np.asarray(iou).reshape(-1), strict=True)
+            for m, score in zip(masks, iou, strict=True)
         ]
 
 

@@ -15,11 +15,12 @@ import numpy as np
 from sagonline.core.plugins import module_version
 from sagonline.core.provenance import sha256_file
 from sagonline.segment.base import VideoSegmenter
-from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour, otsu
+from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour
 from sagonline.segment.onnx_torch import encoder_runtime
 from sagonline.segment.prompts import ObjectPrompt, Prompt
+from sagonline.segment.sam_follow import Rules, Track, follow_together, part_prompt
 from sagonline.segment.sam_onnx import GRID, Answer, Embedding, SamPair
-from sagonline.segment.sam_sessions import open_pair
+from sagonline.segment.sam_sessions import batch_decoder, open_pair
 
 PROJECT = Path(__file__).resolve().parents[2]
 """Relative weight paths are read from here (the checkout `make weights` writes into), never
@@ -68,6 +69,8 @@ class SamFamilySegmenter(VideoSegmenter):
         modules = (
             type(self).__module__,
             __name__,
+            "sagonline.segment.sam_follow",
+            "sagonline.segment.decoder_prompts",
             "sagonline.segment.sam_onnx",
             "sagonline.segment.sam_sessions",
             "sagonline.segment.embedding",
@@ -111,6 +114,9 @@ class SamFamilySegmenter(VideoSegmenter):
             "encoder_precision": self.cfg.encoder_precision,
             "decoder_runtime": self.cfg.decoder_runtime,
             "cuda_graphs": self.cfg.cuda_graphs,
+            "batch_prompts": batch_decoder(
+                self.cfg.batch_prompts, self.device, self.cfg.decoder_runtime
+            ),
         }
 
     def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
@@ -141,6 +147,7 @@ class SamFamilySegmenter(VideoSegmenter):
                     precision=self.cfg.encoder_precision,
                     decoder_runtime=self.cfg.decoder_runtime,
                     cuda_graphs=self.cfg.cuda_graphs,
+                    batch_prompts=self.cfg.batch_prompts,
                     cache=cache,
                     cache_bytes=gigabytes(self.cfg.embedding_cache_gb),
                     make_target=weights_help(self.package, self.folder),
@@ -166,6 +173,7 @@ class SamFamilySegmenter(VideoSegmenter):
         `advice(t)`, when given, is the fused labels rendered into view t ((H, W) ids, or None
         before enough views voted)."""
         model = self.model()
+        rules = Rules(self.prompts, self.refine, self.min_similarity)
         n, p = len(frames), prompt.frame
         start = time.perf_counter()
         first = self.prompt_view(model, frames[p], prompt)
@@ -181,19 +189,19 @@ class SamFamilySegmenter(VideoSegmenter):
             start = time.perf_counter()
             emb = model.embed(frames[t])
             fused = advice(t) if advice is not None and self.prompts != "match" else None
-            found = {}
+            tracks = {}
             for k, (origin, last) in prototypes.items():
-                if origin is None:
-                    found[k] = (np.zeros(emb.size, bool), None)
-                    continue
-                prototype = origin + last
-                prototype = prototype / max(float(np.linalg.norm(prototype)), 1e-6)
+                prototype = None
+                if origin is not None:
+                    prototype = origin + last
+                    prototype = prototype / max(float(np.linalg.norm(prototype)), 1e-6)
                 render = (fused == k) if fused is not None else None
                 bound = self.max_growth * areas[k] if self.max_growth and areas[k] else None
-                mask, feature = self.follow(model, emb, prototype, render, levels[k], bound)
-                found[k] = (mask, feature)
+                tracks[k] = Track(prototype, render, levels[k], bound)
+            found = follow_together(model, emb, tracks, rules)
+            for k, (mask, feature) in found.items():
                 if feature is not None:
-                    prototypes[k] = (origin, feature)
+                    prototypes[k] = (prototypes[k][0], feature)
                     areas[k] = np.count_nonzero(mask)
             yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
 
@@ -259,8 +267,9 @@ class SamFamilySegmenter(VideoSegmenter):
         clicked = emb.mean_feature(disc(frame.shape[:2], positive[0]))
         if clicked is not None:
             sim = np.where(emb.valid(), emb.normalized() @ clicked, np.nan)
-            part = self.part_of(model, emb, sim, positive[0], candidates[0])
-            candidates += [a.mask for a in part or []]
+            part = part_prompt(emb, sim, positive[0], candidates[0])
+            if part is not None:
+                candidates += [a.mask for a in model.decode_many(emb, [part])[0]]
         return max(candidates, key=lambda m: iou(m, region))
 
     @staticmethod
@@ -274,99 +283,6 @@ class SamFamilySegmenter(VideoSegmenter):
             return 0
         answers = model.decode(emb, inside[None], np.array([1]))
         return int(np.argmax([iou(a.mask, mask) for a in answers]))
-
-    def follow(
-        self,
-        model: SamPair,
-        emb: Embedding,
-        prototype: np.ndarray | None,
-        render: np.ndarray | None,
-        level: int = 0,
-        max_area: float | None = None,
-    ) -> tuple[np.ndarray, np.ndarray | None]:  # [H, W] bool, its mean feature
-        """The object in a later view: the candidates of the module docstring (of each
-        prompt, the decoder's mask at the object's `level`), the one most like the
-        prototype; candidates of more than `max_area` pixels only where none is smaller."""
-
-        def at_level(answers: list[Answer]) -> Answer:
-            return answers[min(level, len(answers) - 1)]
-
-        empty = np.zeros(emb.size, bool)
-        if prototype is None:
-            return empty, None
-        feats, valid = emb.normalized(), emb.valid()
-        sim = np.where(valid, feats @ prototype, np.nan)
-        if not np.isfinite(sim).any():
-            return empty, None
-        best, worst = int(np.nanargmax(sim)), int(np.nanargmin(sim))
-        click = emb.cell_centre(best)
-        candidates: list[np.ndarray] = []
-        use_render = render is not None and render.any()
-        if self.prompts != "3d" or not use_render:
-            points = np.stack([click, emb.cell_centre(worst)])
-            a = at_level(model.decode(emb, points, np.array([1, 0])))
-            if a.mask.any() and (self.refine == "always" or not use_render):
-                a = at_level(model.decode(emb, points, np.array([1, 0]), box_of(a.mask), a.logits))
-            candidates.append(a.mask)
-            part = self.part_of(model, emb, sim, click, a.mask)
-            if part is not None:
-                candidates.append(at_level(part).mask)
-            # the similarity blob's box with the best click (B): a decoder of one level only;
-            # SAM 2's levels already hold what it adds (on the shared captures' photographs it
-            # changed the masks by -0.03 to +0.41 IoU points, one decoder call a view)
-            blob = self.blob(sim, best, emb) if model.levels == 1 else None
-            if blob is not None:
-                candidates.append(
-                    at_level(model.decode(emb, click[None], np.array([1]), blob)).mask
-                )
-        if use_render:
-            inside = interior_point(render)
-            found = model.decode(emb, inside[None], np.array([1]), box_of(render))
-            candidates.append(at_level(found).mask)
-        within = [m for m in candidates if max_area is None or np.count_nonzero(m) <= max_area]
-        scored = []
-        for mask in within or candidates:
-            feature = emb.mean_feature(mask)
-            if feature is not None:
-                scored.append((float(feature @ prototype), mask, feature))
-        if not scored:
-            return empty, None
-        score, mask, feature = max(scored, key=lambda s: s[0])
-        if score < self.min_similarity:
-            return empty, None
-        return mask, feature
-
-    @staticmethod
-    def part_of(
-        model: SamPair, emb: Embedding, sim: np.ndarray, click: np.ndarray, mask: np.ndarray
-    ) -> list[Answer] | None:  # None where the mask is of one appearance
-        """A decoder answers with the largest thing a click lies on (the whole donut for a click
-        on its icing): where the mask holds cells far less like the object than the clicked
-        one, the decoder's answers without them (a negative click on the least like)."""
-        cells = emb.grid_mask(mask) & np.isfinite(sim)
-        if not cells.any():
-            return None
-        inside = np.where(cells, sim, np.inf)
-        least = int(np.argmin(inside))
-        if np.nanmax(sim) - inside.flat[least] < 0.3:  # the mask is of one appearance
-            return None
-        points = np.stack([click, emb.cell_centre(least)])
-        return model.decode(emb, points, np.array([1, 0]))
-
-    @staticmethod
-    def blob(sim: np.ndarray, best: int, emb: Embedding) -> np.ndarray | None:  # [4] or None
-        """The box (image pixels) of the Otsu blob of the similarity map around the best cell."""
-        import cv2
-
-        values = sim[np.isfinite(sim)]
-        above = np.nan_to_num(sim, nan=-1.0) > otsu(values)
-        count, comp = cv2.connectedComponents(above.astype(np.uint8))
-        gy, gx = divmod(best, GRID)
-        if count < 2 or comp[gy, gx] == 0:
-            return None
-        ys, xs = np.nonzero(comp == comp[gy, gx])
-        box = np.array([xs.min(), ys.min(), xs.max() + 1, ys.max() + 1], np.float32) * 16
-        return box / np.array([*emb.scale, *emb.scale], np.float32)
 
     @staticmethod
     def paint(found: dict, size) -> np.ndarray:

