@@ -19,6 +19,12 @@ widened to float32; SAM 2's are 3.1 million values in float16):
   high-resolution maps are not widened: the decoder reads the encoder's own outputs there);
 - outputs now, decoder on the host: the same, and `Embedding.extras` widened.
 
+And the host work of following objects into a view (format "follow"; five objects the
+size of the synthetic scene's), as first written and now: an advised object's interior point
+(the distance transform of the whole image, then within the mask's box and a ring of one
+pixel), the cells the image covers (made for each view, then once a geometry), the objects
+painted into one label map (indexed, then `np.copyto`).
+
 Per row: ms (median of --repeats, synchronised on CUDA), MB copied to the device, and whether
 the values are those of the first-written way, bit for bit. Any image and outputs of the size
 will do: the work does not depend on their values. Times on this machine; say what else ran.
@@ -140,6 +146,62 @@ def format_rows(pair_type, image: np.ndarray, device: str, repeats: int) -> list
     return rows
 
 
+def first_interior_point(mask: np.ndarray) -> np.ndarray:  # [2] x, y
+    dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    y, x = np.unravel_index(int(dist.argmax()), dist.shape)
+    return np.array([x + 0.5, y + 0.5], np.float32)
+
+
+def first_paint(found: dict, size) -> np.ndarray:  # [H, W] int64
+    out = np.zeros(size, np.int64)
+    for label, (mask, *_) in sorted(found.items()):
+        out[mask] = label
+    return out
+
+
+def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
+    """Each part of following objects into a view, as first written and now."""
+    from sagonline.segment.embedding import Embedding, grid_cells
+    from sagonline.segment.mask_geometry import interior_point
+    from sagonline.segment.sam_prompting import SamFamilySegmenter
+
+    rng = np.random.default_rng(2)
+    found = {}
+    for label in range(1, 6):  # five objects, a fifth of the view's side across
+        mask = np.zeros((height, width), np.uint8)
+        centre = (int(rng.integers(width)), int(rng.integers(height)))
+        cv2.circle(mask, centre, min(height, width) // 5, 1, -1)
+        found[label] = (mask > 0, None)
+    _, cover = Sam1Pair.geometry(Sam1Pair, height, width)
+    emb = Embedding(np.zeros((1, 1, 1), np.float32), (1.0, 1.0), (height, width), cover)
+    ones = np.ones((height, width), np.float32)
+    pairs = {
+        "interior point": (
+            lambda: first_interior_point(found[1][0]),
+            lambda: interior_point(found[1][0]),
+        ),
+        "covered cells": (lambda: grid_cells(ones, cover), emb.valid),
+        "paint (5 objects)": (
+            lambda: first_paint(found, (height, width)),
+            lambda: SamFamilySegmenter.paint(found, (height, width)),
+        ),
+    }
+    rows = []
+    for part, (first, now) in pairs.items():
+        want = first()
+        for when, make in (("as first written", first), ("now", now)):
+            rows.append(
+                {
+                    "format": "follow",
+                    "way": f"{part}, {when}",
+                    "ms": 1000 * timed(make, repeats, "cpu"),
+                    "MB_to_device": 0.0,
+                    "same_as_first_written": bool(np.array_equal(make(), want)),
+                }
+            )
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -156,9 +218,10 @@ def main() -> None:
         for pair_type in (Sam1Pair, Sam2Pair)
         for row in format_rows(pair_type, image, args.device, args.repeats)
     ]
+    rows += follow_rows(int(height), int(width), args.repeats)
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     table = pd.DataFrame(rows)
-    print(f"A SAM-family segmenter's host work around its encoder, one {args.size} view, on ")
+    print(f"A SAM-family segmenter's host work on one {args.size} view, on ")
     print(f"{gpu or args.device}:\n")
     print(table.to_markdown(index=False, floatfmt=".3g"))
     if args.out is not None:

@@ -11,6 +11,7 @@ past its size the least recently used entries go.
 from __future__ import annotations
 
 import contextlib
+import functools
 import os
 import shutil
 import warnings
@@ -78,30 +79,11 @@ class Embedding:
         return self._derived["extras"]
 
     def grid_mask(self, mask: np.ndarray) -> np.ndarray:  # [64, 64] bool
-        """An (H, W) mask on the 64x64 grid of the features (a cell: mostly inside): the mask at
-        the size it covers in the 1024 frame, then each 16x16 cell's share. Only the cells the
-        cover reaches are averaged (the rest of the frame is padding, so theirs is 0); an area
-        resize by a whole factor averages each cell on its own, so the shares are those of the
-        whole padded frame, bit for bit."""
-        ch, cw = self.cover
-        if (ch, cw) == (SIZE, SIZE):  # the image fills the frame: each cell's share, directly
-            small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
-            return small > 0.5
-        rows, cols = -(-ch // CELL), -(-cw // CELL)  # the cells the cover reaches
-        covered = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
-        if (rows * CELL, cols * CELL) != (ch, cw):  # a last row or column of cells, part padding
-            padded = np.zeros((rows * CELL, cols * CELL), np.float32)
-            padded[:ch, :cw] = covered
-            covered = padded
-        cells = np.zeros((GRID, GRID), bool)
-        shares = cv2.resize(covered, (cols, rows), interpolation=cv2.INTER_AREA)
-        cells[:rows, :cols] = shares > 0.5
-        return cells
+        """An (H, W) mask on the 64x64 grid of the features (`grid_cells`)."""
+        return grid_cells(mask, self.cover)
 
-    def valid(self) -> np.ndarray:  # [64, 64] bool, the cells the image covers
-        if "valid" not in self._derived:
-            self._derived["valid"] = self.grid_mask(np.ones(self.size, np.float32))
-        return self._derived["valid"]
+    def valid(self) -> np.ndarray:  # [64, 64] bool, read-only: the cells the image covers
+        return covered_cells(tuple(self.size), tuple(self.cover))
 
     def normalized(self) -> np.ndarray:  # [64, 64, 256], computed once
         if "normalized" not in self._derived:
@@ -111,8 +93,14 @@ class Embedding:
             )
         return self._derived["normalized"]
 
-    def mean_feature(self, mask: np.ndarray) -> np.ndarray | None:  # [256] unit, or None
-        cells = self.grid_mask(mask)
+    def mean_feature(
+        self,
+        mask: np.ndarray,  # [H, W] bool
+        cells: np.ndarray | None = None,  # [64, 64] bool, its `grid_mask` where known
+    ) -> np.ndarray | None:  # [256] unit, or None
+        """The mean of the normalised features in the mask's cells, made unit (None where it
+        covers none)."""
+        cells = self.grid_mask(mask) if cells is None else cells
         if not cells.any():
             return None
         mean = self.normalized()[cells].mean(axis=0)
@@ -125,6 +113,40 @@ class Embedding:
 
     def to_frame(self, xy: np.ndarray) -> np.ndarray:  # [..., 2] image pixels -> 1024 frame
         return np.asarray(xy, np.float32) * np.asarray(self.scale, np.float32)
+
+
+def grid_cells(
+    mask: np.ndarray,  # [H, W] bool (or float)
+    cover: tuple[int, int],
+) -> np.ndarray:  # [64, 64] bool
+    """A mask on the 64x64 grid of the features (a cell: mostly inside): the mask at the
+    (height, width) `cover` it fills in the 1024 frame, then each 16x16 cell's share. Only the
+    cells the cover reaches are averaged (the rest of the frame is padding, so theirs is 0); an
+    area resize by a whole factor averages each cell on its own, so the shares are those of the
+    whole padded frame, bit for bit."""
+    ch, cw = cover
+    if (ch, cw) == (SIZE, SIZE):  # the image fills the frame: each cell's share, directly
+        small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
+        return small > 0.5
+    rows, cols = -(-ch // CELL), -(-cw // CELL)  # the cells the cover reaches
+    covered = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
+    if (rows * CELL, cols * CELL) != (ch, cw):  # a last row or column of cells, part padding
+        padded = np.zeros((rows * CELL, cols * CELL), np.float32)
+        padded[:ch, :cw] = covered
+        covered = padded
+    cells = np.zeros((GRID, GRID), bool)
+    shares = cv2.resize(covered, (cols, rows), interpolation=cv2.INTER_AREA)
+    cells[:rows, :cols] = shares > 0.5
+    return cells
+
+
+@functools.lru_cache(maxsize=16)
+def covered_cells(size: tuple[int, int], cover: tuple[int, int]) -> np.ndarray:  # [64, 64] bool
+    """The cells an image of (height, width) `size` covers: one grid a geometry, not one a
+    view (read-only, shared)."""
+    cells = grid_cells(np.ones(size, np.float32), cover)
+    cells.flags.writeable = False
+    return cells
 
 
 class EmbeddingCache:

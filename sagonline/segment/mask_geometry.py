@@ -23,11 +23,20 @@ def box_of(mask: np.ndarray) -> np.ndarray | None:  # [4] x0, y0, x1, y1
 
 
 def interior_point(mask: np.ndarray) -> np.ndarray | None:  # [2] x, y: farthest from the edge
-    if not mask.any():
+    """The mask's pixel farthest from its edge (the first in row order where several are), or
+    None for an empty mask. The distances are taken within the mask's box and a ring of one
+    pixel around it (inside the image; cv2 takes none beyond the image's edge): a pixel off the
+    mask outside it lies no nearer to any inside than its clamp onto the ring, which is off the
+    mask too, so the distances are the whole image's, in a fraction of its time."""
+    box = box_of(mask)
+    if box is None:
         return None
-    dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    x0, y0, x1, y1 = box.astype(int)
+    top, left = max(y0 - 1, 0), max(x0 - 1, 0)
+    ring = mask[top : y1 + 1, left : x1 + 1]  # slicing stops at the image's edge
+    dist = cv2.distanceTransform(ring.astype(np.uint8), cv2.DIST_L2, 5)
     y, x = np.unravel_index(int(dist.argmax()), dist.shape)
-    return np.array([x + 0.5, y + 0.5], np.float32)
+    return np.array([left + x + 0.5, top + y + 0.5], np.float32)
 
 
 def disc(size: tuple[int, int], xy, radius: int = 8) -> np.ndarray:  # [H, W] bool

@@ -94,30 +94,32 @@ def follow(emb: Embedding, track: Track, levels: int, rules: Rules) -> Rounds:
         first.append(DecoderPrompt(inside[None], np.array([1]), box_of(track.render)))
     answers = yield first
     picked = [a[min(track.level, len(a) - 1)] for a in answers]
-    candidates = []
+    candidates = []  # (mask, its grid cells where known)
     if clicks:
         a = picked[0]
         if a.mask.any() and (rules.refine == "always" or not use_render):
             (again,) = yield [DecoderPrompt(points, np.array([1, 0]), box_of(a.mask), a.logits)]
             a = again[min(track.level, len(again) - 1)]
-        candidates.append(a.mask)
-        part = part_prompt(emb, sim, click, a.mask)
+        cells = emb.grid_mask(a.mask)  # once, for its part and for its likeness
+        candidates.append((a.mask, cells))
+        part = part_prompt(emb, sim, click, cells)
         if part is not None:
             (answer,) = yield [part]
-            candidates.append(answer[min(track.level, len(answer) - 1)].mask)
-    candidates += [a.mask for a in picked[1 if clicks else 0 :]]  # the blob's, the render's
+            candidates.append((answer[min(track.level, len(answer) - 1)].mask, None))
+    candidates += [(a.mask, None) for a in picked[1 if clicks else 0 :]]  # B's, C's
     return most_alike(emb, candidates, track, rules.min_similarity) or empty
 
 
 def most_alike(emb: Embedding, candidates: list, track: Track, least: float) -> Found | None:
-    """Of [H, W] bool candidates (those within `max_area`, else all), the one whose mean feature
-    is most like the prototype, with that feature; None where none is at least `least` like."""
+    """Of (mask, cells or None) candidates (those within `max_area`, else all), the mask whose
+    mean feature is most like the prototype, with that feature; None where none is at least
+    `least` like."""
     within = [
-        m for m in candidates if track.max_area is None or np.count_nonzero(m) <= track.max_area
+        c for c in candidates if track.max_area is None or np.count_nonzero(c[0]) <= track.max_area
     ]
     scored = []
-    for mask in within or candidates:
-        feature = emb.mean_feature(mask)
+    for mask, cells in within or candidates:
+        feature = emb.mean_feature(mask, cells)
         if feature is not None:
             scored.append((float(feature @ track.prototype), mask, feature))
     if not scored:
@@ -130,12 +132,12 @@ def part_prompt(
     emb: Embedding,
     sim: np.ndarray,  # [64, 64] similarity to the object, NaN off the image
     click: np.ndarray,  # [2] image pixels
-    mask: np.ndarray,  # [H, W] bool
+    cells: np.ndarray,  # [64, 64] bool, a mask's `grid_mask`
 ) -> DecoderPrompt | None:  # None where the mask is of one appearance
     """A decoder answers with the largest thing a click lies on (the whole donut for a click
     on its icing): where the mask holds cells far less like the object than the clicked one,
     the prompt for its answers without them (a negative click on the least like)."""
-    cells = emb.grid_mask(mask) & np.isfinite(sim)
+    cells = cells & np.isfinite(sim)
     if not cells.any():
         return None
     inside = np.where(cells, sim, np.inf)

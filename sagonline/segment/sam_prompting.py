@@ -267,7 +267,7 @@ class SamFamilySegmenter(VideoSegmenter):
         clicked = emb.mean_feature(disc(frame.shape[:2], positive[0]))
         if clicked is not None:
             sim = np.where(emb.valid(), emb.normalized() @ clicked, np.nan)
-            part = part_prompt(emb, sim, positive[0], candidates[0])
+            part = part_prompt(emb, sim, positive[0], emb.grid_mask(candidates[0]))
             if part is not None:
                 candidates += [a.mask for a in model.decode_many(emb, [part])[0]]
         return max(candidates, key=lambda m: iou(m, region))
@@ -289,7 +289,7 @@ class SamFamilySegmenter(VideoSegmenter):
         """Objects' masks -> one (H, W) label map (a later object over an earlier one)."""
         out = np.zeros(size, np.int64)
         for label, (mask, *_) in sorted(found.items()):
-            out[mask] = label
+            np.copyto(out, label, where=mask)
         return out
 
 

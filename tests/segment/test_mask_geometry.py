@@ -1,7 +1,8 @@
 """The per-candidate mask arithmetic of the SAM family's prompting (`mask_geometry.box_of`,
-`iou`, `Embedding.grid_mask`): each equal, value for value, to its first, slower form, on masks
-of every kind (empty, full, one pixel, boxes at the edges, noise) and on image sizes whose cover
-of the 1024 frame ends inside a cell, on a cell's edge, or fills the frame."""
+`iou`, `interior_point`, `Embedding.grid_mask`, `Embedding.valid`): each equal, value for
+value, to its first, slower form, on masks of every kind (empty, full, one pixel, boxes at the
+edges, noise, discs cut by the edges) and on image sizes whose cover of the 1024 frame ends
+inside a cell, on a cell's edge, or fills the frame."""
 
 from __future__ import annotations
 
@@ -10,7 +11,7 @@ import numpy as np
 import pytest
 
 from sagonline.segment.embedding import GRID, SIZE, Embedding
-from sagonline.segment.mask_geometry import box_of, iou
+from sagonline.segment.mask_geometry import box_of, interior_point, iou
 
 # (height, width): a view; 4:3; a cover ending inside a cell (577 rows); portrait; tiny;
 # a line of pixels; larger than the frame; square (SAM 2's stretch fills the frame)
@@ -39,6 +40,15 @@ def first_grid_mask(emb: Embedding, mask):
     return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA) > 0.5
 
 
+def first_interior_point(mask):
+    """The distance transform of the whole image."""
+    if not mask.any():
+        return None
+    dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
+    y, x = np.unravel_index(int(dist.argmax()), dist.shape)
+    return np.array([x + 0.5, y + 0.5], np.float32)
+
+
 def masks(shape, seed: int):
     """Empty, full, a pixel in each corner, boxes anywhere (edges included), and noise."""
     h, w = shape
@@ -56,10 +66,19 @@ def masks(shape, seed: int):
         yield box
     for _ in range(4):
         yield rng.random(shape) < rng.random()
+    for _ in range(6):  # discs, cut by the image's edges or not, and their unions
+        disc = np.zeros(shape, np.uint8)
+        for _ in range(rng.integers(1, 4)):
+            centre = (
+                int(rng.integers(-w // 4, w + w // 4)),
+                int(rng.integers(-h // 4, h + h // 4)),
+            )
+            cv2.circle(disc, centre, int(rng.integers(1, max(h, w) // 2 + 2)), 1, -1)
+        yield disc > 0
 
 
 @pytest.mark.parametrize("shape", SHAPES, ids=str)
-def test_box_and_overlap_are_their_first_forms(shape):
+def test_box_overlap_and_interior_point_are_their_first_forms(shape):
     previous = None
     for mask in masks(shape, seed=sum(shape)):
         want, got = first_box_of(mask), box_of(mask)
@@ -69,6 +88,8 @@ def test_box_and_overlap_are_their_first_forms(shape):
         if previous is not None:
             assert iou(mask, previous) == first_iou(mask, previous)
         previous = mask
+        want, got = first_interior_point(mask), interior_point(mask)
+        assert (want is None and got is None) or np.array_equal(got, want)
 
 
 @pytest.mark.parametrize("stretch", [False, True], ids=["sam", "sam2"])
@@ -85,3 +106,7 @@ def test_the_grid_cells_are_those_of_the_whole_padded_frame(shape, stretch):
         got = emb.grid_mask(mask)
         assert got.shape == (GRID, GRID) and got.dtype == bool
         np.testing.assert_array_equal(got, first_grid_mask(emb, mask))
+    valid = emb.valid()  # one grid a geometry, shared by its views
+    np.testing.assert_array_equal(valid, first_grid_mask(emb, np.ones(shape, bool)))
+    assert not valid.flags.writeable
+    assert Embedding(np.zeros((1, 1, 1), np.float32), scale, shape, cover).valid() is valid
