@@ -43,9 +43,11 @@ class Track:
     max_area: float | None  # pixels a candidate may cover where a smaller one stands
 
 
-def follow_together(model: SamPair, emb: Embedding, tracks: dict, rules: Rules) -> dict:
-    """{label: Track} -> {label: Found}: every object's `follow`, each round of prompts of
-    all the objects decoded at once."""
+def follow_together(
+    model: SamPair, emb: Embedding, tracks: dict[int, Track], rules: Rules
+) -> dict[int, Found]:
+    """Every object's `follow` by label, each round of prompts of all the objects decoded at
+    once."""
     running = {k: follow(emb, track, model.levels, rules) for k, track in tracks.items()}
     found: dict[int, Found] = {}
     asked: dict[int, list[DecoderPrompt]] = {}
@@ -92,20 +94,23 @@ def follow(emb: Embedding, track: Track, levels: int, rules: Rules) -> Rounds:
     if use_render:
         inside = interior_point(track.render)
         first.append(DecoderPrompt(inside[None], np.array([1]), box_of(track.render)))
-    answers = yield first
-    picked = [a[min(track.level, len(a) - 1)] for a in answers]
+
+    def at_level(answers: list[Answer]) -> Answer:  # SAM answers one level, SAM 2 three
+        return answers[min(track.level, len(answers) - 1)]
+
+    picked = [at_level(a) for a in (yield first)]
     candidates = []  # (mask, its grid cells where known)
     if clicks:
         a = picked[0]
         if a.mask.any() and (rules.refine == "always" or not use_render):
             (again,) = yield [DecoderPrompt(points, np.array([1, 0]), box_of(a.mask), a.logits)]
-            a = again[min(track.level, len(again) - 1)]
+            a = at_level(again)
         cells = emb.grid_mask(a.mask)  # once, for its part and for its likeness
         candidates.append((a.mask, cells))
         part = part_prompt(emb, sim, click, cells)
         if part is not None:
             (answer,) = yield [part]
-            candidates.append((answer[min(track.level, len(answer) - 1)].mask, None))
+            candidates.append((at_level(answer).mask, None))
     candidates += [(a.mask, None) for a in picked[1 if clicks else 0 :]]  # B's, C's
     return most_alike(emb, candidates, track, rules.min_similarity) or empty
 
