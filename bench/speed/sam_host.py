@@ -22,8 +22,9 @@ widened to float32; SAM 2's are 3.1 million values in float16):
 And the host work of following objects into a view (format "follow"; five objects the
 size of the synthetic scene's), as first written and now: an advised object's interior point
 (the distance transform of the whole image, then within the mask's box and a ring of one
-pixel), the cells the image covers (made for each view, then once a geometry), the objects
-painted into one label map (indexed, then `np.copyto`).
+pixel), the cells the image covers (made for each view, then once a geometry), a SAM 2
+prompt's answer of which following reads one level (its three masks enlarged to the image, then
+the read one alone), the objects painted into one label map (indexed, then `np.copyto`).
 
 Per row: ms (median of --repeats, synchronised on CUDA), MB copied to the device, and whether
 the values are those of the first-written way, bit for bit. Any image and outputs of the size
@@ -175,12 +176,24 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
     _, cover = Sam1Pair.geometry(Sam1Pair, height, width)
     emb = Embedding(np.zeros((1, 1, 1), np.float32), (1.0, 1.0), (height, width), cover)
     ones = np.ones((height, width), np.float32)
+    logits = rng.standard_normal((3, 256, 256), np.float32)  # a SAM 2 prompt's three levels
+    row = [logits, np.ones(3, np.float32)]
+
+    def first_levels() -> np.ndarray:  # every level enlarged, one read
+        return [cv2.resize(m, (width, height), interpolation=cv2.INTER_LINEAR) > 0 for m in logits][
+            0
+        ]
+
     pairs = {
         "interior point": (
             lambda: first_interior_point(found[1][0]),
             lambda: interior_point(found[1][0]),
         ),
         "covered cells": (lambda: grid_cells(ones, cover), emb.valid),
+        "SAM 2 answer, one level of three read": (
+            first_levels,
+            lambda: Sam2Pair.answers(Sam2Pair, emb, row)[0].mask,
+        ),
         "paint (5 objects)": (
             lambda: first_paint(found, (height, width)),
             lambda: SamFamilySegmenter.paint(found, (height, width)),

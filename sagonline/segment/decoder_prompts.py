@@ -1,6 +1,7 @@
-"""A SAM-family decoder's prompts as its inputs: one prompt's points, box and previous logits as
-the feeds both formats share, and several prompts of one view stacked into one decoder call
-where their inputs agree in shape (`SamPair.decode_many`, `segmenter.batch_prompts`).
+"""A SAM-family decoder's prompts as its inputs and its answers: one prompt's points, box and
+previous logits as the feeds both formats share, and several prompts of one view stacked into
+one decoder call where their inputs agree in shape (`SamPair.decode_many`,
+`segmenter.batch_prompts`).
 
 Both decoders take a prompt axis first in `point_coords`, `point_labels` and `mask_input`, and
 answer each prompt's row from it alone: the view's embedding is repeated per prompt inside the
@@ -9,9 +10,11 @@ go together only where those agree too."""
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
+import cv2
 import numpy as np
 
 if TYPE_CHECKING:
@@ -19,6 +22,35 @@ if TYPE_CHECKING:
 
 LOW_RES = 256  # the decoder's mask side
 PER_PROMPT = ("point_coords", "point_labels", "mask_input")  # the inputs with a prompt axis
+
+
+@dataclass
+class Answer:
+    """One mask the decoder proposes: (H, W) bool at the image's size, its (256, 256) logits
+    (a later prompt's `mask_input`) and the decoder's own estimate of its IoU."""
+
+    mask: np.ndarray
+    logits: np.ndarray
+    predicted_iou: float
+
+
+class EnlargedAnswer(Answer):
+    """SAM 2's answer, whose mask is its logits (of the 1024 frame, which the image fills)
+    enlarged to the image, bilinear, then > 0: made when first read (following an object
+    reads one of a prompt's three levels)."""
+
+    def __init__(
+        self,
+        logits: np.ndarray,  # [256, 256] of the 1024 frame
+        predicted_iou: float,
+        size: tuple[int, int],  # the image's (height, width)
+    ):
+        self.logits, self.predicted_iou, self.size = logits, predicted_iou, size
+
+    @functools.cached_property
+    def mask(self) -> np.ndarray:  # type: ignore[override]  # [H, W] bool
+        h, w = self.size
+        return cv2.resize(self.logits, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0
 
 
 @dataclass(frozen=True)

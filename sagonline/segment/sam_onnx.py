@@ -25,7 +25,6 @@ import hashlib
 import threading
 import time
 from collections import OrderedDict
-from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -33,7 +32,9 @@ import cv2
 import numpy as np
 
 from sagonline.segment.decoder_prompts import (
+    Answer,
     DecoderPrompt,
+    EnlargedAnswer,
     calls,
     prompt_arrays,
     prompt_feeds,
@@ -56,16 +57,6 @@ if TYPE_CHECKING:
     import torch
 
 __all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "SamPair"]
-
-
-@dataclass
-class Answer:
-    """One mask the decoder proposes: (H, W) bool at the image's size, its (256, 256) logits
-    (a later prompt's `mask_input`) and the decoder's own estimate of its IoU."""
-
-    mask: np.ndarray
-    logits: np.ndarray
-    predicted_iou: float
 
 
 def digest_frame(image: np.ndarray) -> str:
@@ -389,11 +380,7 @@ class Sam2Pair(SamPair):
 
     def answers(self, emb, row):
         masks, iou = row  # [3, 256, 256] logits of the 1024 frame, [3]
-        h, w = emb.size
-        return [
-            Answer(cv2.resize(m, (w, h), interpolation=cv2.INTER_LINEAR) > 0.0, m, float(score))
-            for m, score in zip(masks, iou, strict=True)
-        ]
+        return [EnlargedAnswer(m, float(s), emb.size) for m, s in zip(masks, iou, strict=True)]
 
 
 FORMATS = {"sam": Sam1Pair, "sam2": Sam2Pair}
