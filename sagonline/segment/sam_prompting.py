@@ -191,11 +191,11 @@ class SamFamilySegmenter(VideoSegmenter):
             fused = advice(t) if advice is not None and self.prompts != "match" else None
             tracks = {}
             for k, (origin, last) in prototypes.items():
-                prototype = None
+                prototype, render = None, None  # an object not followed: neither is needed
                 if origin is not None:
                     prototype = origin + last
                     prototype = prototype / max(float(np.linalg.norm(prototype)), 1e-6)
-                render = (fused == k) if fused is not None else None
+                    render = (fused == k) if fused is not None else None
                 bound = self.max_growth * areas[k] if self.max_growth and areas[k] else None
                 tracks[k] = Track(prototype, render, levels[k], bound)
             found = follow_together(model, emb, tracks, rules)
