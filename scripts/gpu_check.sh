@@ -145,8 +145,11 @@ write_summary() {  # write_summary [ROW]: the summary (and --archive) as they st
       -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
     if [ -d "${FIT_DATA:-}" ] && [ "${FIT_DATA#"$WORK"/}" = "$FIT_DATA" ]; then  # in --fit-dir
       find "$FIT_DATA" -path '*/gaussians-*' -name 'fit_*.json' -print
-      find "$FIT_SCORES" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
-        -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print 2>/dev/null
+      if [ -d "$FIT_SCORES" ]; then  # none before its first scoring (a failing find would fail
+        # the pipe, under pipefail, and leave the archive as it stood)
+        find "$FIT_SCORES" -path '*cache*' -prune -o -type f \( -name '*.log' -o -name '*.json' \
+          -o -name '*.csv' -o -name '*.md' -o -name '*.yaml' \) -print
+      fi
     fi
   } | sed 's|^/||' | tar -czf "$ARCHIVE.partial" -C / -T - && mv "$ARCHIVE.partial" "$ARCHIVE"
 }

@@ -41,13 +41,19 @@ def _quick_check(tmp_path, *args: str, timeout: int, expect: int = 0) -> str:
 
 def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     """Every step, importing only what the GPU machines have and the bundle carries
-    (--as-gpu-machine): a step needing anything else fails here, not in the one GPU run."""
+    (--as-gpu-machine): a step needing anything else fails here, not in the one GPU run. In two
+    calls, as on a lent machine: the fit is kept in --fit-dir, and where the first call left its
+    scoring out, a second call scores it and builds its table without fitting again."""
     archive = str(tmp_path / "archive" / "check.tgz")
     stale = tmp_path / "vote_kernels_old_cpu_check.csv"  # an earlier run's table in OUT
     stale.write_text("kernel\n")
     os.utime(stale, (1e9, 1e9))
+    fits, second = ("--fit-dir", str(tmp_path / "fits")), tmp_path / "second"
     summary = _quick_check(
         tmp_path,
+        *fits,
+        "--skip",
+        "GPU fit: real,GPU fit (table)",
         "--step-timeout",
         "600",
         "--deadline",
@@ -121,8 +127,20 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             "torch (shape arithmetic every call)",
         }
         assert decoders["max |logit difference| from onnxruntime"].max() < 1e-3
-    if (data / "duck_queen").is_dir():  # the fit on a copy of it
-        fit = pd.read_csv(tmp_path / "gpu_fit_cpu_check.csv").set_index("fit")
+    if (data / "duck_queen").is_dir():  # the fit on a copy of it, scored by a second call
+        assert "| GPU fit | pass |" in summary and "| GPU fit: real | left out" in summary
+        second.mkdir()
+        scored = _quick_check(
+            second,
+            *fits,
+            "--steps",
+            "environment,GPU fit: real,GPU fit (table)",
+            "--as-gpu-machine",
+            timeout=300,
+        )
+        assert "| GPU fit | left out" in scored and "| GPU fit: real | pass |" in scored
+        assert "| GPU fit: fit=paper probe | left out" in scored
+        fit = pd.read_csv(second / "gpu_fit_cpu_check.csv").set_index("fit")
         assert fit.loc["gpu", "iterations"] == 30 and 0 <= fit.loc["gpu", "real mIoU"] <= 100
         assert fit.loc["gpu", "stopped"] == "iterations"  # the deadline's budget left it alone
         paper = fit.loc["fit=paper (its first 5 s)"]  # the paper recipe, stopped by its budget
@@ -196,34 +214,6 @@ def test_steps_and_skip_choose_the_steps_by_the_start_of_their_names(tmp_path):
     assert ran == ["environment", "eval without gsplat"]
     assert "| eval (make eval) | left out (--steps / --skip) |" in summary
     assert "| pytest -m gpu | left out (--steps / --skip) |" in summary
-
-
-def test_a_second_call_scores_the_fit_of_the_first(tmp_path):
-    """The fit is kept in --fit-dir: where the first call's deadline left its scoring out, a
-    second call on the same machine scores it and builds its table, without fitting again."""
-    data = ROOT.parent / "shared" / "data" / "duck_queen"
-    if not (data.is_dir() or (ROOT / ".gpu-bundle" / "data" / "duck_queen").is_dir()):
-        pytest.skip("no duck_queen to fit here")
-    fits = tmp_path / "fits"
-    first, second = tmp_path / "first", tmp_path / "second"
-    first.mkdir(), second.mkdir()
-    common = ("--fit-dir", str(fits), "--skip-gsplat-build")
-    fitted = _quick_check(
-        first,
-        *common,
-        "--steps",
-        "environment,GPU fit",
-        "--skip",
-        "GPU fit: ,GPU fit (",
-        timeout=300,
-    )
-    assert "| GPU fit | pass |" in fitted and "| GPU fit: real | left out" in fitted
-    scored = _quick_check(
-        second, *common, "--steps", "environment,GPU fit: real,GPU fit (table)", timeout=300
-    )
-    assert "| GPU fit | left out" in scored and "| GPU fit: real | pass |" in scored
-    row = pd.read_csv(second / "gpu_fit_cpu_check.csv").set_index("fit").loc["gpu"]
-    assert row["iterations"] == 30 and 0 <= row["real mIoU"] <= 100
 
 
 def test_an_unknown_option_is_refused():

@@ -161,8 +161,10 @@ def seg_default(kind: str) -> str:
     return SEGMENTERS[kind].config().click_extent
 
 
-def timed(fn, repeats: int) -> float:
-    fn()  # warm
+def timed(fn, repeats: int, warm: bool = True) -> float:
+    """Median seconds of `repeats` calls of `fn`, after one untimed call where `warm`."""
+    if warm:
+        fn()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()

