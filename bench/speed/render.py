@@ -126,6 +126,11 @@ def show_table(rows: list[dict], device: str, heading: str, out=None) -> pd.Data
     return table
 
 
+def no_warmup() -> None:
+    """`timed`'s warmup where the first call already ran (or Triton's interpreter, which
+    compiles nothing, runs it)."""
+
+
 def timed(fn, repeats: int, device: str, warmup=None) -> float:
     """Median seconds of `repeats` calls of `fn` after one call of `warmup` (default: `fn`)."""
 

@@ -32,7 +32,6 @@ Prints Markdown tables; times on this machine, say what else ran.
 from __future__ import annotations
 
 import argparse
-import statistics
 import subprocess
 import tempfile
 import time
@@ -161,18 +160,6 @@ def seg_default(kind: str) -> str:
     return SEGMENTERS[kind].config().click_extent
 
 
-def timed(fn, repeats: int, warm: bool = True) -> float:
-    """Median seconds of `repeats` calls of `fn`, after one untimed call where `warm`."""
-    if warm:
-        fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def quantised(path: Path, folder: Path) -> Path | None:
     """An int8 copy of an ONNX file (dynamic quantisation), None for an .ort file."""
     if path.suffix != ".onnx":
@@ -187,6 +174,7 @@ def quantised(path: Path, folder: Path) -> Path | None:
 def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
     import onnxruntime as ort
 
+    from bench.speed.render import timed
     from sagonline.segment.sam_sessions import open_pair
 
     levels = {
@@ -226,11 +214,13 @@ def speed_table(models: list[str], repeats: int, count: int) -> pd.DataFrame:
                             None, {p.encoder.get_inputs()[0].name: t}
                         ),
                         repeats,
+                        "cpu",  # numpy back from either runtime: the GPU's work is in the call
                     )
                     emb, box = pair.embed(image), box_of(truth)
                     dec_s = timed(
                         lambda p=pair, e=emb, b=box: p.decode(e, None, None, b),
                         repeats * 5,
+                        "cpu",
                     )
                     ious = []
                     for _, im, gt in shots:

@@ -5,12 +5,14 @@ and the box IoU on the captures' photographs."""
 
 from __future__ import annotations
 
+from functools import partial
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 
-from bench.speed.sam import CAPTURES, DATA, photos, segmenter, timed
+from bench.speed.render import no_warmup, timed
+from bench.speed.sam import CAPTURES, DATA, photos, segmenter
 from sagonline.core.provenance import sha256_file
 from sagonline.segment.mask_geometry import box_of, iou
 
@@ -62,9 +64,8 @@ def runtime_table(
             outputs = pair.encoder.run(None, {name: frame})  # also the warm-up of those timed
             reference = reference or outputs
             # both runtimes hand numpy back, so a timed call includes the GPU's work
-            seconds = timed(
-                lambda p=pair, f=frame, n=name: p.encoder.run(None, {n: f}), repeats, warm=False
-            )
+            run = partial(pair.encoder.run, None, {name: frame})
+            seconds = timed(run, repeats, "cpu", no_warmup)
             ious = []
             for _, im, gt in shots:
                 answers = pair.decode(pair.embed(im), None, None, box_of(gt))
@@ -133,7 +134,9 @@ def decoder_table(
             emb, box, _ = embeddings[0]
             prompts = [(None, None, box, None), (None, None, box, first[0])]
             calls = iter(prompts * (5 * repeats + 1))
-            seconds = timed(lambda p=pair, e=emb, c=calls: p.decode(e, *next(c)), 5 * repeats)
+            seconds = timed(
+                lambda p=pair, e=emb, c=calls: p.decode(e, *next(c)), 5 * repeats, "cpu"
+            )
             gaps, ious = [], []
             for (e, b, gt), logits in zip(embeddings, first, strict=True):
                 for prompt in ((None, None, b, None), (None, None, b, logits)):

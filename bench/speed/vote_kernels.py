@@ -25,7 +25,15 @@ from unittest import mock
 
 import torch
 
-from bench.speed.render import RULE, aggregate, random_mask, scenes, show_table, timed
+from bench.speed.render import (
+    RULE,
+    aggregate,
+    no_warmup,
+    random_mask,
+    scenes,
+    show_table,
+    timed,
+)
 from sagonline.render import vote_histogram
 from sagonline.render.backends import TRITON_PREPARES, TRITON_VOTE_KERNELS
 from sagonline.render.triton_prepare import chosen_tile_view
@@ -44,10 +52,6 @@ def parse_kernel(spec: str) -> tuple[str, str]:
             f"by triton_prepare)"
         )
     return kernel, prepare
-
-
-def _nothing() -> None:
-    """A warm-up that runs nothing (`timed`'s warmup)."""
 
 
 def kernel_rows(
@@ -70,15 +74,14 @@ def kernel_rows(
         try:  # a kernel that fails to compile or run is a row that says so, not the end
             with mock.patch.dict(os.environ, chosen):
                 bins = partial(chosen_tile_view(), g, ring[0], 0.01, with_colors=False)
-                prepare_ms = 1000 * timed(bins, repeats, device, _nothing if quick else None)
+                prepare_ms = 1000 * timed(bins, repeats, device, no_warmup if quick else None)
                 vote = partial(vote_histogram, g, ring[0], mask_of[0], 3, RULE, backend="triton")
                 start = time.perf_counter()
                 hist = vote()  # also the vote's warm-up: its kernels are compiled now
-                ms = 1000 * (time.perf_counter() - start)  # quick: this one call, interpreted
-                if not quick:
-                    ms = 1000 * timed(vote, repeats, device, warmup=_nothing)
+                first_call_s = time.perf_counter() - start  # quick: the one call timed
+                ms = 1000 * (first_call_s if quick else timed(vote, repeats, device, no_warmup))
                 warm = (
-                    _nothing if quick else partial(aggregate, g, ring, many[: len(ring)], "triton")
+                    no_warmup if quick else partial(aggregate, g, ring, many[: len(ring)], "triton")
                 )
                 all_ms = 1000 * timed(partial(aggregate, g, ring, many, "triton"), 1, device, warm)
         except Exception as exc:  # noqa: BLE001 (reported in the table)
