@@ -60,6 +60,10 @@ FIT_BUDGET_S=
 FIT_DIR=
 AS_GPU_MACHINE=0
 while [ $# -gt 0 ]; do
+  case "$1" in  # an option whose value is missing: said, not read past the end (nor looped on)
+    --device|--out|--step-timeout|--deadline|--archive|--steps|--skip|--fit-budget|--fit-dir)
+      [ $# -ge 2 ] || { echo "gpu_check: $1 needs a value (see --help)" >&2; exit 2; } ;;
+  esac
   case "$1" in
     "--device") DEVICE=$2; shift 2 ;;
     "--out") OUT=$2; shift 2 ;;

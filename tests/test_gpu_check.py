@@ -227,6 +227,21 @@ def test_an_unknown_option_is_refused():
     assert proc.returncode == 2 and "unknown option --fast" in proc.stderr
 
 
+@pytest.mark.parametrize("option", ["--fit-dir", "--device", "--deadline"])
+def test_an_option_without_its_value_is_refused(option):
+    """Last on the line with no value: one line naming it, exit 2 (--fit-dir looped forever)."""
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", option],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert (
+        proc.returncode == 2 and proc.stderr == f"gpu_check: {option} needs a value (see --help)\n"
+    )
+
+
 PROBE = """
 import importlib, importlib.util, json, sys
 found = {}
