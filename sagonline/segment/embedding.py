@@ -212,7 +212,7 @@ class EmbeddingCache:
         if shapes != expected["arrays"]:
             return f"arrays {shapes}, expected {expected['arrays']}"
         for name, value in arrays.items():
-            if not np.isfinite(value).all():
+            if not all_finite(np.asarray(value)):
                 return f"{name} holds values that are not finite"
         return None
 

@@ -61,10 +61,12 @@ __all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "Sa
 
 def digest_frame(image: np.ndarray) -> str:
     """What the embedding cache knows a frame by: its bytes (C order) and its shape, hashed
-    where the array lies (no copy of a contiguous image)."""
-    hashed = hashlib.blake2b(np.ascontiguousarray(image), digest_size=16)
+    where the array lies (no copy of a contiguous image), 128 bits of SHA-256 (which CPUs
+    compute in hardware: 1.3 ms for a 960x540 view here, BLAKE2b's 3.1 before; every view of
+    Stage I pays it)."""
+    hashed = hashlib.sha256(np.ascontiguousarray(image))
     hashed.update(str(image.shape).encode())
-    return hashed.hexdigest()
+    return hashed.hexdigest()[:32]
 
 
 @functools.cache

@@ -5,6 +5,7 @@ goes on."""
 from __future__ import annotations
 
 import dataclasses
+import hashlib
 import json
 import os
 import re
@@ -81,9 +82,17 @@ def test_store_refuses_damage_before_decoding(tmp_path):
     assert torch.equal(back["a"], value["a"]) and back[(1, 2)][2] == float("inf")
     assert back["s"] == {1, 3}
     raw = path.read_bytes()
+    rest = raw[8 + 32 :]  # a file of the first format: BLAKE2b-256 of the same bytes
+    first = b"SAGOST01" + hashlib.blake2b(rest, digest_size=32).digest() + rest
     for damaged in (raw[:-1], raw[:20], raw[:60] + b"\0" + raw[61:], b"PK" + raw[2:]):
         path.write_bytes(damaged)
         with pytest.raises(store.StoreError, match=re.escape(str(path))):
+            store.load(path)
+    path.write_bytes(first)  # still loads, and its damage is still found
+    assert store.load(path)["s"] == {1, 3}
+    for damaged in (first[:60] + b"\0" + first[61:], b"SAGOST01" + raw[8:]):
+        path.write_bytes(damaged)
+        with pytest.raises(store.StoreError, match="do not match their recorded digest"):
             store.load(path)
 
 
