@@ -50,7 +50,7 @@ import torch
 from bench.speed.render import timed
 from sagonline.core import store
 from sagonline.core.files import atomic_write_text
-from sagonline.segment.embedding import CACHE_FORMAT, EmbeddingCache
+from sagonline.segment.embedding import CACHE_FORMAT, GRID, EmbeddingCache
 from sagonline.segment.sam_onnx import SIZE, Sam1Pair, Sam2Pair, digest_frame
 
 OUTPUTS = {  # the encoders' outputs by name, [1, C, H, W]
@@ -203,6 +203,21 @@ def cache_rows(pair, image: np.ndarray, outputs: list[np.ndarray], repeats: int)
     return [{"format": pair.format, **row, "MB_to_device": 0.0} for row in rows]
 
 
+def first_shares(
+    mask: np.ndarray,  # [H, W] bool
+    cover: tuple[int, int],
+) -> np.ndarray:  # [64, 64] float32
+    """Each feature cell's share of the mask as first written: the mask resized to its cover
+    of the 1024 frame, the frame padded, then resized to the grid (or straight to the grid
+    where the image fills the frame); a cell is in above a half."""
+    ch, cw = cover
+    if (ch, cw) == (SIZE, SIZE):
+        return cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
+    big = np.zeros((SIZE, SIZE), np.float32)
+    big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
+    return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA)
+
+
 def first_interior_point(mask: np.ndarray) -> np.ndarray:  # [2] x, y
     dist = cv2.distanceTransform(mask.astype(np.uint8), cv2.DIST_L2, 5)
     y, x = np.unravel_index(int(dist.argmax()), dist.shape)
@@ -245,7 +260,11 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             lambda: first_interior_point(found[1][0]),
             lambda: interior_point(found[1][0]),
         ),
-        "covered cells": (lambda: grid_cells(ones, cover), emb.valid),
+        "grid cells of an object": (
+            lambda: first_shares(found[1][0], cover) > 0.5,
+            lambda: grid_cells(found[1][0], cover),
+        ),
+        "covered cells": (lambda: first_shares(ones, cover) > 0.5, emb.valid),
         "SAM 2 answer, one level of three read": (
             first_levels,
             lambda: Sam2Pair.answers(Sam2Pair, emb, row)[0].mask,

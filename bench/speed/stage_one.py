@@ -10,7 +10,8 @@ The scene is the generated 360-degree 2DGS scene of the timing table (five objec
 one another); the views are its orbit, the prompt one click per object at the point of its
 true mask farthest from the edge in view 0. Every part is synchronised on CUDA before its clock
 stops. The segmenter sees each view as it is rendered (the frames are rendered when it asks for
-them), so a view's total is what an online Stage I spends on it. The first view (the prompt's,
+them), so a view's total is what an online Stage I spends on it; "render" ends with the view
+as the segmenter reads it, an 8-bit image on the host. The first view (the prompt's,
 with the model's warm-up) is listed but left out of the mean and the median (the median also
 sets aside a later view's one-off cost, such as a CUDA graph's capture). A segmenter without an
 encoder (classical) has its whole time under "segment"; the oracle reads the truth and is
@@ -83,9 +84,12 @@ class RenderedOnAsk(Sequence):
     def __getitem__(self, index):  # type: ignore[override]
         if index not in self.frames:
             camera = self.cameras[index]
-            out = self.clock.timed("render", render, self.gaussians, camera, backend=self.backend)
-            self.frames[index] = to_uint8(out.rgb)
+            self.frames[index] = self.clock.timed("render", self.image, camera)
         return self.frames[index]
+
+    def image(self, camera) -> np.ndarray:  # [H, W, 3] uint8 on the host
+        """The view as the segmenter reads it: rendered, made 8-bit and copied to the host."""
+        return to_uint8(render(self.gaussians, camera, backend=self.backend).rgb)
 
 
 def click_prompt(scene, camera, backend: str) -> Prompt:

@@ -115,29 +115,64 @@ class Embedding:
         return np.asarray(xy, np.float32) * np.asarray(self.scale, np.float32)
 
 
+TIE = 4e-6  # a cell's share within this of a half is a tie, and a tie is not "mostly inside"
+
+
 def grid_cells(
     mask: np.ndarray,  # [H, W] bool (or float)
     cover: tuple[int, int],
 ) -> np.ndarray:  # [64, 64] bool
-    """A mask on the 64x64 grid of the features (a cell: mostly inside): the mask at the
-    (height, width) `cover` it fills in the 1024 frame, then each 16x16 cell's share. Only the
-    cells the cover reaches are averaged (the rest of the frame is padding, so theirs is 0); an
-    area resize by a whole factor averages each cell on its own, so the shares are those of the
-    whole padded frame, bit for bit."""
-    ch, cw = cover
-    if (ch, cw) == (SIZE, SIZE):  # the image fills the frame: each cell's share, directly
-        small = cv2.resize(mask.astype(np.float32), (GRID, GRID), interpolation=cv2.INTER_AREA)
-        return small > 0.5
-    rows, cols = -(-ch // CELL), -(-cw // CELL)  # the cells the cover reaches
-    covered = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
-    if (rows * CELL, cols * CELL) != (ch, cw):  # a last row or column of cells, part padding
-        padded = np.zeros((rows * CELL, cols * CELL), np.float32)
-        padded[:ch, :cw] = covered
-        covered = padded
+    """A mask on the 64x64 grid of the features (a cell: mostly inside): each cell's share of
+    the mask at the (height, width) `cover` it fills in the 1024 frame (the rest is padding).
+
+    The shares are those of OpenCV's area resize of the mask to its cover, then of each 16x16
+    cell's mean (`cell_operator`): one axis's operator, the mask's box, the other's; a fifth of
+    the time of the two resizes for a mask a fifth of a 960x540 view across
+    (`bench.speed.sam_host`). The two resizes decided an exact half by float32 rounding
+    (0.5 out, 0.50000006 in); here a share within `TIE` of a half is out
+    (`tests/segment/test_mask_geometry.py`: every other cell as the resizes have it)."""
     cells = np.zeros((GRID, GRID), bool)
-    shares = cv2.resize(covered, (cols, rows), interpolation=cv2.INTER_AREA)
-    cells[:rows, :cols] = shares > 0.5
+    rows = np.flatnonzero(mask.any(axis=1))
+    if not len(rows):
+        return cells
+    y0, y1 = rows[0], rows[-1] + 1
+    cols = np.flatnonzero(mask[y0:y1].any(axis=0))
+    x0, x1 = cols[0], cols[-1] + 1
+    direct = tuple(cover) == (SIZE, SIZE)  # the image fills the frame: straight to the grid
+    down = cell_operator(mask.shape[0], cover[0], direct)[:, y0:y1]
+    across = cell_operator(mask.shape[1], cover[1], direct)[:, x0:x1]
+    (r0, r1), (c0, c1) = reached(down), reached(across)  # the cells the box reaches
+    shares = (down[r0:r1] @ mask[y0:y1, x0:x1].astype(np.float32)) @ across[c0:c1].T
+    cells[r0:r1, c0:c1] = shares > 0.5 + TIE
     return cells
+
+
+def reached(operator: np.ndarray) -> tuple[int, int]:  # [64, n]: first, end of its cells
+    """The first and the end of the cells that pixels of `operator` reach."""
+    hit = np.flatnonzero(operator.any(axis=1))
+    return int(hit[0]), int(hit[-1]) + 1
+
+
+@functools.lru_cache(maxsize=16)
+def cell_operator(pixels: int, cover: int, direct: bool) -> np.ndarray:  # [64, pixels] float32
+    """Each grid cell's share of each of an axis's `pixels`: OpenCV's area resize of the axis
+    to the `cover` pixels it fills in the 1024 frame, then each cell's mean of 16 (the frame's
+    padding adds nothing); `direct`: resized straight to the 64 cells. Taken from the resize's
+    own response to each pixel, 512 pixels at a time."""
+    size = GRID if direct else cover
+    response = np.empty((size, pixels))
+    for start in range(0, pixels, 512):
+        stop = min(start + 512, pixels)
+        impulses = np.zeros((pixels, stop - start), np.float32)
+        impulses[np.arange(start, stop), np.arange(stop - start)] = 1
+        response[:, start:stop] = cv2.resize(
+            impulses, (stop - start, size), interpolation=cv2.INTER_AREA
+        )
+    if not direct:
+        padded = np.zeros((GRID * CELL, pixels))
+        padded[:cover] = response
+        response = padded.reshape(GRID, CELL, pixels).mean(axis=1)
+    return response.astype(np.float32)
 
 
 @functools.lru_cache(maxsize=16)
