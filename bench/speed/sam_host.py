@@ -50,7 +50,8 @@ import torch
 from bench.speed.render import timed
 from sagonline.core import store
 from sagonline.core.files import atomic_write_text
-from sagonline.segment.embedding import CACHE_FORMAT, GRID, EmbeddingCache
+from sagonline.segment.embedding import CACHE_FORMAT, GRID
+from sagonline.segment.embedding_cache import EmbeddingCache
 from sagonline.segment.sam_onnx import SIZE, Sam1Pair, Sam2Pair, digest_frame
 
 OUTPUTS = {  # the encoders' outputs by name, [1, C, H, W]
@@ -188,6 +189,7 @@ def cache_rows(pair, image: np.ndarray, outputs: list[np.ndarray], repeats: int)
         cache = EmbeddingCache(Path(folder))
         cache.save("entry", record, arrays)
         cache.save("first", record, arrays)
+        cache.flush()  # written in the background
         first_format(cache.path("first"))
         reads = {
             "as first written": functools.partial(first_cache_read, cache.path("first")),

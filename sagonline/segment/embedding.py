@@ -1,22 +1,12 @@
 """A SAM-family encoder's output for one frame (`Embedding`: the feature grid prompts are matched
-against, and what else the decoder reads) and the disk cache of them (`EmbeddingCache`).
-
-A disk entry records what it was computed from (the frame's digest, the encoder's sha256, each
-array's shape and dtype) inside a file whose bytes are digested (`core.store`); an entry that
-does not match is named in a warning, removed and computed again, never used. A folder that
-cannot hold the cache is named once and the run goes on without it. The folder is bounded:
-past its size the least recently used entries go.
+against, and what else the decoder reads), and a mask's cells on that grid (`grid_cells`). Their
+disk cache is `embedding_cache.EmbeddingCache`.
 """
 
 from __future__ import annotations
 
-import contextlib
 import functools
-import os
-import shutil
-import warnings
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -182,144 +172,3 @@ def covered_cells(size: tuple[int, int], cover: tuple[int, int]) -> np.ndarray: 
     cells = grid_cells(np.ones(size, np.float32), cover)
     cells.flags.writeable = False
     return cells
-
-
-class EmbeddingCache:
-    """Embeddings on disk under `folder`, one verified `core.store` file a frame, at most
-    `max_bytes` of them (None: unbounded): past it the entries least recently used (their
-    modification time, renewed on each read) are removed down to `TRIM_TO` of the bound."""
-
-    TRIM_TO = 0.8  # of max_bytes, so one trim makes room for many entries
-
-    def __init__(self, folder: Path | None, max_bytes: int | None = None):
-        self.folder = folder
-        self.max_bytes = max_bytes
-        self._used: int | None = None  # bytes under folder, counted at the first save
-        self._warned = False
-
-    def path(self, key: str) -> Path | None:
-        return None if self.folder is None else self.folder / f"{key}.store"
-
-    def load(self, key: str, expected: dict) -> dict[str, np.ndarray] | None:
-        """The arrays stored under `key` when the entry records exactly `expected` (frame and
-        encoder digests, names, shapes, dtypes) and every value is finite; else None, and a
-        bad entry is named, removed and left to be computed again."""
-        from sagonline.core import store
-
-        path = self.path(key)
-        if path is None or not os.path.lexists(path):
-            return None
-        reason = None
-        if path.is_dir() or not path.is_file():
-            reason = "not a file"
-        else:
-            try:
-                entry = store.load(path)
-            except FileNotFoundError:  # another process trimmed it meanwhile
-                return None
-            except (store.StoreError, OSError) as exc:
-                reason = str(exc)
-            else:
-                reason = self._mismatch(entry, expected)
-                if reason is None:
-                    self._touch(path)
-                    return {k: np.array(v) for k, v in entry["arrays"].items()}
-        warnings.warn(
-            f"embedding cache entry unusable, removed and recomputed: {path}: {reason}",
-            stacklevel=3,
-        )
-        self._remove(path)
-        return None
-
-    @staticmethod
-    def _mismatch(entry, expected: dict) -> str | None:
-        if not isinstance(entry, dict) or not isinstance(entry.get("arrays"), dict):
-            return "holds no embedding record"
-        record = {k: entry.get(k) for k in ("format", "frame", "encoder")}
-        want = {k: expected[k] for k in ("format", "frame", "encoder")}
-        if record != want:
-            return f"computed from {record}, not {want}"
-        arrays = entry["arrays"]
-        shapes = {
-            k: [list(np.shape(v)), str(getattr(v, "dtype", type(v).__name__))]
-            for k, v in arrays.items()
-        }
-        if shapes != expected["arrays"]:
-            return f"arrays {shapes}, expected {expected['arrays']}"
-        for name, value in arrays.items():
-            if not all_finite(np.asarray(value)):
-                return f"{name} holds values that are not finite"
-        return None
-
-    def save(self, key: str, record: dict, arrays: dict[str, np.ndarray]) -> None:
-        from sagonline.core import store
-
-        path = self.path(key)
-        if path is None:
-            return
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-            if self.max_bytes is not None and self._used is None:
-                self._used = sum(size for _, size, _ in self._entries())
-            store.save(path, {**record, "arrays": arrays})
-        except OSError as exc:
-            self._give_up(exc)
-            return
-        if self.max_bytes is None:
-            return
-        self._used += path.stat().st_size
-        if self._used > self.max_bytes:
-            self.trim(keep=path)
-
-    def trim(self, keep: Path | None = None) -> int:
-        """Remove the least recently used entries until the folder holds at most `TRIM_TO` x
-        `max_bytes` (never `keep`, the entry just written); returns how many went."""
-        entries = sorted(self._entries(), key=lambda e: e[2])  # oldest use first
-        used = sum(size for _, size, _ in entries)
-        target, removed = self.TRIM_TO * self.max_bytes, 0
-        for path, size, _ in entries:
-            if used <= target:
-                break
-            if path == keep:
-                continue
-            path.unlink(missing_ok=True)
-            used, removed = used - size, removed + 1
-        self._used = used
-        return removed
-
-    def _entries(self) -> list[tuple[Path, int, float]]:
-        """(path, bytes, last use) of every entry file under the folder."""
-        found = []
-        for path in self.folder.glob("*.store"):
-            try:
-                st = path.stat()
-            except FileNotFoundError:  # trimmed by another process meanwhile
-                continue
-            found.append((path, st.st_size, st.st_mtime))
-        return found
-
-    @staticmethod
-    def _touch(path: Path) -> None:
-        """Mark an entry used now (the trim removes the least recently used first)."""
-        with contextlib.suppress(OSError):  # a read-only cache still serves its entries
-            os.utime(path)
-
-    def _remove(self, path: Path) -> None:
-        try:
-            if path.is_dir() and not path.is_symlink():
-                shutil.rmtree(path)
-            else:
-                path.unlink(missing_ok=True)
-        except OSError as exc:
-            self._give_up(exc)
-
-    def _give_up(self, exc: OSError) -> None:
-        """The folder cannot hold the cache: say so once, then go on without it."""
-        if not self._warned:
-            warnings.warn(
-                f"embedding cache {self.folder} is unusable ({exc.strerror or exc}); embeddings "
-                "are computed and kept in this process only",
-                stacklevel=4,
-            )
-        self._warned = True
-        self.folder = None

@@ -15,7 +15,8 @@ Two formats, told apart by the decoder's inputs:
   normalised with the ImageNet mean 0.485/0.456/0.406 and std 0.229/0.224/0.225.
 
 Embeddings are cached by the frame's and the encoder's content: in the process, and on disk
-when given a folder (`segment.embedding.EmbeddingCache`: every entry checked on read).
+when given a folder (`segment.embedding_cache.EmbeddingCache`: every entry checked on read,
+written in the background).
 """
 
 from __future__ import annotations
@@ -46,11 +47,11 @@ from sagonline.segment.embedding import (
     GRID,
     SIZE,
     Embedding,
-    EmbeddingCache,
     all_finite,
     converted,
     widened,
 )
+from sagonline.segment.embedding_cache import EmbeddingCache
 from sagonline.segment.onnx_torch import to_host
 
 if TYPE_CHECKING:

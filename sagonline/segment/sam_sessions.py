@@ -9,7 +9,8 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from sagonline.segment.embedding import SIZE, EmbeddingCache
+from sagonline.segment.embedding import SIZE
+from sagonline.segment.embedding_cache import EmbeddingCache
 from sagonline.segment.sam_onnx import FORMAT_NAMES, FORMATS, SamPair
 
 __all__ = ["ModelFileError", "decoder_format", "open_pair", "session_options"]

@@ -1,4 +1,5 @@
-"""The embedding cache's bound: past `max_bytes` the least recently used entries go, a read
+"""The embedding cache: entries written by a thread of their own, a read of one still being
+written waiting for it; its bound: past `max_bytes` the least recently used entries go, a read
 renews an entry's use, the entry just written always stays, and a bad bound is refused."""
 
 import os
@@ -6,7 +7,8 @@ import os
 import numpy as np
 import pytest
 
-from sagonline.segment.embedding import CACHE_FORMAT, EmbeddingCache
+from sagonline.segment.embedding import CACHE_FORMAT
+from sagonline.segment.embedding_cache import EmbeddingCache
 
 ARRAY = np.zeros((64, 64), np.float32)  # 16 KiB an entry
 
@@ -22,6 +24,7 @@ def expected(key: str) -> dict:
 def put(cache: EmbeddingCache, key: str, age_s: float) -> None:
     """Save an entry and date its last use `age_s` seconds ago."""
     cache.save(key, record(key), {"features": ARRAY + len(key)})
+    cache.flush()
     when = os.path.getmtime(cache.path(key)) - age_s
     os.utime(cache.path(key), (when, when))
 
@@ -72,3 +75,28 @@ def test_the_bound_reaches_the_model_cache_in_bytes():
     from sagonline.segment.sam_prompting import gigabytes
 
     assert gigabytes(4.0) == 4_000_000_000 and gigabytes(None) is None
+
+
+def test_an_entry_is_written_in_the_background_and_a_read_waits_for_it(tmp_path, monkeypatch):
+    """`save` hands the entry to the writer thread and returns; a read of it, from this cache
+    or another on the same folder, waits until it is on disk, whole."""
+    import threading
+
+    from sagonline.core import store
+
+    release, writers = threading.Event(), []
+    save = store.save
+
+    def slow_save(path, value):
+        writers.append(threading.current_thread().name)
+        release.wait(10)
+        return save(path, value)
+
+    monkeypatch.setattr(store, "save", slow_save)
+    cache = EmbeddingCache(tmp_path / "emb")
+    cache.save("k", record("k"), {"features": ARRAY + 1})  # returns with the write held back
+    assert not cache.path("k").exists()
+    threading.Timer(0.2, release.set).start()
+    got = EmbeddingCache(tmp_path / "emb").load("k", expected("k"))
+    assert got is not None and np.array_equal(got["features"], ARRAY + 1)
+    assert writers and all(name.startswith("embedding-cache") for name in writers)

