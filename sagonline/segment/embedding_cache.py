@@ -219,10 +219,11 @@ class EmbeddingCache:
     def _give_up(self, exc: OSError) -> None:
         """The folder cannot hold the cache: say so once, then go on without it."""
         if not self._warned:
+            writer = threading.current_thread().name.startswith("embedding-cache")
             warnings.warn(
                 f"embedding cache {self.folder} is unusable ({exc.strerror or exc}); embeddings "
                 "are computed and kept in this process only",
-                stacklevel=4,
+                stacklevel=2 if writer else 4,  # the writer's caller is the thread pool
             )
         self._warned = True
         self.folder = None
