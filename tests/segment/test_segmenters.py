@@ -119,6 +119,26 @@ def test_classical_recovers_an_object_the_flow_lost():
         ClassicalConfig(recover=2)
 
 
+def test_the_click_colour_is_its_first_form_for_every_pixel_sum():
+    """`chromaticity_and_brightness` a plane at a time gives the values of the interleaved
+    form, on an image holding every sum of r, g and b (3 to 768 with the + 1s): each log and
+    each ratio the first form could take."""
+    from sagonline.segment.classical import chromaticity_and_brightness
+
+    rng = np.random.default_rng(0)
+    frame = rng.integers(0, 256, (200, 300, 3), np.uint8)
+    frame[0, :256] = [[v, 0, 0] for v in range(256)]  # sums 0 .. 255
+    frame[1, :256] = [[255, v, 0] for v in range(256)]  # 255 .. 510
+    frame[2, :256] = [[255, 255, v] for v in range(256)]  # 510 .. 765
+    assert set(np.unique(frame.astype(int).sum(-1))) == set(range(766))
+    first = frame.astype(np.float32) + 1.0
+    total = first.sum(-1, keepdims=True)
+    want = np.concatenate([first[..., :2] / total, np.log(total)], -1).astype(np.float32)
+    got = chromaticity_and_brightness(frame)
+    assert got.dtype == np.float32 and got.shape == frame.shape
+    np.testing.assert_array_equal(got, want)
+
+
 def test_classical_rejects_text_only_prompts():
     with pytest.raises(ValueError, match="clicks, boxes or masks"):
         FlowWatershedSegmenter().segment([np.zeros((8, 8, 3), np.uint8)], Prompt(texts=["car"]))
