@@ -45,12 +45,17 @@ def disc(size: tuple[int, int], xy, radius: int = 8) -> np.ndarray:  # [H, W] bo
     return out > 0
 
 
-def like_colour(frame: np.ndarray, points: np.ndarray, labels: np.ndarray) -> np.ndarray:
+def like_colour(
+    frame: np.ndarray,  # [H, W, 3] uint8
+    points: np.ndarray,  # [P, 2] x, y
+    labels: np.ndarray,  # [P] 1 positive, 0 negative
+    colour: np.ndarray | None = None,  # [H, W, 3] the frame's, where already made
+) -> np.ndarray:  # [H, W] bool
     """The pixels of like colour connected to the positive clicks, less those of the negative
-    ones (`classical.click_region`): what the clicks point at, by colour alone. [H, W] bool."""
+    ones (`classical.click_region`): what the clicks point at, by colour alone."""
     from sagonline.segment.classical import chromaticity_and_brightness, click_region
 
-    colour = chromaticity_and_brightness(frame)
+    colour = chromaticity_and_brightness(frame) if colour is None else colour
     region = np.zeros(frame.shape[:2], bool)
     for (x, y), kind in zip(np.asarray(points), np.asarray(labels), strict=True):
         if kind > 0:

@@ -5,6 +5,7 @@ decoder's masks judged against the prototype (the module docstring of `sam_famil
 
 from __future__ import annotations
 
+import functools
 import sys
 import time
 from collections.abc import Callable, Iterator
@@ -15,6 +16,7 @@ import numpy as np
 from sagonline.core.plugins import module_version
 from sagonline.core.provenance import sha256_file
 from sagonline.segment.base import VideoSegmenter
+from sagonline.segment.classical import chromaticity_and_brightness
 from sagonline.segment.mask_geometry import box_of, disc, interior_point, iou, like_colour
 from sagonline.segment.onnx_torch import encoder_runtime
 from sagonline.segment.prompts import ObjectPrompt, Prompt
@@ -209,9 +211,10 @@ class SamFamilySegmenter(VideoSegmenter):
         """Each object's mask on the prompt view, its prototype feature (None where the mask
         covers no cell of the feature grid: the object is then not followed) and its level."""
         emb = model.embed(frame)
+        colour = functools.cache(lambda: chromaticity_and_brightness(frame))  # once, if asked
         out = {}
         for obj in prompt.objects:
-            mask = self.answer_prompt(model, emb, obj, frame)
+            mask = self.answer_prompt(model, emb, obj, frame, colour)
             out[obj.label] = (mask, emb.mean_feature(mask), self.level_of(model, emb, mask))
             if out[obj.label][1] is None and mask.any():
                 print(
@@ -223,10 +226,16 @@ class SamFamilySegmenter(VideoSegmenter):
         return out
 
     def answer_prompt(
-        self, model: SamPair, emb: Embedding, obj: ObjectPrompt, frame: np.ndarray
+        self,
+        model: SamPair,
+        emb: Embedding,
+        obj: ObjectPrompt,
+        frame: np.ndarray,  # [H, W, 3] uint8
+        colour: Callable[[], np.ndarray] | None = None,  # the frame's colour for clicks
     ) -> np.ndarray:  # [H, W] bool
         """The prompt view's mask of one object: its given mask as it is; else the decoder's
-        from its clicks and box, clicks alone read by `click_extent`."""
+        from its clicks and box, clicks alone read by `click_extent` (`colour`: the frame's
+        `chromaticity_and_brightness`, made once for the view's objects)."""
         size = frame.shape[:2]
         if obj.mask is not None:
             return np.asarray(obj.mask, bool)
@@ -240,9 +249,9 @@ class SamFamilySegmenter(VideoSegmenter):
             return best_rated(answers).mask
         if self.click_extent == "object" or not any(a.mask.any() for a in answers):
             return largest(answers).mask
-        return self.part_under_clicks(model, emb, obj, labels, answers, frame)
+        return self.part_under_clicks(model, emb, obj, labels, answers, frame, colour)
 
-    def part_under_clicks(self, model, emb, obj, labels, answers, frame) -> np.ndarray:
+    def part_under_clicks(self, model, emb, obj, labels, answers, frame, colour=None) -> np.ndarray:
         """`click_extent=part`: the mask that agrees most with the clicks' region of like colour
         (`like_colour`). SAM 2 proposes the part levels itself: its three masks are the
         candidates. SAM proposes one mask (the largest thing under the click): the candidates
@@ -250,7 +259,7 @@ class SamFamilySegmenter(VideoSegmenter):
         its part without cells far less like the clicked one. A region that is a speck beside
         the candidates says nothing of the extent: the whole thing under the click then (SAM 2's
         largest mask; SAM's mask decoded again)."""
-        region = like_colour(frame, obj.points, labels)
+        region = like_colour(frame, obj.points, labels, colour() if colour else None)
         if len(answers) > 1:
             candidates = [a.mask for a in answers if a.mask.any()]
         else:
