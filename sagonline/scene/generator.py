@@ -5,9 +5,8 @@ cones, tori) standing on a checkered ground plane, in front of a backdrop (a wal
 forward-facing captures, a surrounding cylinder for 360-degree ones). Every surfel carries the
 instance id of the object it belongs to (0 for ground and backdrop) and a semantic class (its
 shape). Cameras come on a forward-facing arc (NVOS-like) or a 360-degree orbit
-(DesktopObjects-like); ground-truth masks are rendered from the labels.
-
-Everything is a pure function of the settings and the seed.
+(DesktopObjects-like); ground-truth masks are rendered from the labels. Everything is a pure
+function of the settings and the seed.
 """
 
 from __future__ import annotations
@@ -305,6 +304,9 @@ def make_scene(
         sem.append(np.full(len(p), SEMANTIC_NAMES.index(spec.shape)))
         scl.append(np.full((len(p), 2), 0.6 * spacing))
     rest = num_gaussians - sum(len(p) for p in pts)
+    if rest < 0:  # the objects take about 200 surfels each at least
+        too_few = f"its {num_objects} object(s) take {num_gaussians - rest}; the ground needs more"
+        raise ValueError(f"num_gaussians={num_gaussians} is too few: {too_few}")
     extent = 4.0 if layout == "360" else 3.0
     ground_n = rest // 2 if layout == "forward" else int(rest * 0.45)
     g_pts, g_nrm, step = _plane_grid(ground_n, (-extent, extent), (-extent, extent), 0.0)

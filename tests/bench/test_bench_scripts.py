@@ -162,6 +162,14 @@ def test_bench_contention_quick(tmp_path):
     assert (pd.read_csv(out).slowdown > 0).all()
 
 
+def test_bench_recording_times_each_way_of_logging_a_frame(tmp_path):
+    out = tmp_path / "recording.csv"
+    _run("recording", "--out", str(out))
+    rows = pd.read_csv(out)
+    assert list(rows.way) == ["as first written", "on the caller's thread", "handed over"]
+    assert (rows.file_MB > 0).all() and (rows.ms_a_view > 0).all()
+
+
 @pytest.mark.slow
 def test_bench_read_quick(tmp_path):
     out = tmp_path / "read.csv"

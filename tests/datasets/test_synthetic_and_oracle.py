@@ -35,6 +35,12 @@ def test_presets_shape(layout, objects):
     assert len({o.shape for o in s.objects}) == objects  # different shapes
 
 
+def test_too_few_gaussians_for_the_objects_is_said_by_name():
+    with pytest.raises(ValueError, match=r"num_gaussians=200 is too few: its 5 object"):
+        make_scene(layout="360", num_gaussians=200, width=32, height=24, num_train_views=2)
+    assert len(make_scene(layout="360", num_gaussians=1000, width=32, height=24).gaussians)
+
+
 def test_360_scene_has_occlusion():
     task = load_synthetic(
         layout="360", num_gaussians=8000, width=96, height=72, num_train_views=12, num_eval_views=2
