@@ -352,7 +352,7 @@ def chromaticity_and_brightness(frame: np.ndarray) -> np.ndarray:
     """(H, W, 3) uint8 RGB -> (H, W, 3) float32: r / s, g / s and log s, with s = r + g + b
     (+ 3, so black is a colour too). Shading scales s and leaves r / s, g / s alone. Computed a
     plane at a time (a tenth of the time of the interleaved arrays, the same values)."""
-    r, g, b = (plane.astype(np.float32) + 1.0 for plane in cv2.split(frame))
+    r, g, b = (plane.astype(np.float32) + 1.0 for plane in cv2.split(np.ascontiguousarray(frame)))
     total = r + g
     total += b
     return cv2.merge([r / total, g / total, np.log(total)])

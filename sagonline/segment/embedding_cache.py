@@ -35,13 +35,23 @@ _WRITER: tuple[int, ThreadPoolExecutor, threading.BoundedSemaphore] | None = Non
 
 
 def _writer() -> tuple[ThreadPoolExecutor, threading.BoundedSemaphore]:
-    """This process's writer thread and its bound (a forked child makes its own: the parent's
-    thread is not in it)."""
+    """This process's writer thread and its bound (a forked child makes its own)."""
     global _WRITER
     if _WRITER is None or _WRITER[0] != os.getpid():
         executor = ThreadPoolExecutor(1, thread_name_prefix="embedding-cache")
         _WRITER = (os.getpid(), executor, threading.BoundedSemaphore(IN_FLIGHT))
     return _WRITER[1], _WRITER[2]
+
+
+def _forget_the_parents_writes() -> None:
+    """In a forked child: the parent's writes are not this process's to wait for (their thread
+    is not here), and a lock the parent held at the fork would never be let go."""
+    global _WRITES_LOCK, _WRITER
+    _WRITES.clear()
+    _WRITES_LOCK, _WRITER = threading.Lock(), None
+
+
+os.register_at_fork(after_in_child=_forget_the_parents_writes)
 
 
 def _written(path: Path, future: Future, bound: threading.BoundedSemaphore) -> None:

@@ -100,3 +100,39 @@ def test_an_entry_is_written_in_the_background_and_a_read_waits_for_it(tmp_path,
     got = EmbeddingCache(tmp_path / "emb").load("k", expected("k"))
     assert got is not None and np.array_equal(got["features"], ARRAY + 1)
     assert writers and all(name.startswith("embedding-cache") for name in writers)
+
+
+def test_a_forked_child_neither_waits_for_its_parents_writes_nor_loses_its_own(
+    tmp_path, monkeypatch
+):
+    """A write still held back in the parent at the fork is not the child's to wait for (its
+    thread is not in the child): the child's read is a miss at once, and its own write lands."""
+    import signal
+    import threading
+    import time
+
+    from sagonline.core import store
+
+    release = threading.Event()
+    save = store.save
+    monkeypatch.setattr(store, "save", lambda path, value: release.wait(10) and save(path, value))
+    cache = EmbeddingCache(tmp_path)
+    cache.save("held", record("held"), {"features": ARRAY})
+    pid = os.fork()
+    if pid == 0:  # the child: a miss, then its own entry written by its own thread
+        monkeypatch.setattr(store, "save", save)
+        ok = cache.load("held", expected("held")) is None
+        cache.save("child", record("child"), {"features": ARRAY + 2})
+        cache.flush()
+        os._exit(0 if ok and cache.path("child").is_file() else 1)
+    deadline = time.monotonic() + 20
+    while (done := os.waitpid(pid, os.WNOHANG))[0] == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    if done[0] == 0:
+        os.kill(pid, signal.SIGKILL)
+        os.waitpid(pid, 0)
+    release.set()
+    cache.flush()
+    assert done[0] == pid and os.waitstatus_to_exitcode(done[1]) == 0
+    assert cache.load("child", expected("child")) is not None
+    assert cache.load("held", expected("held")) is not None

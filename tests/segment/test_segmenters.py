@@ -137,6 +137,12 @@ def test_the_click_colour_is_its_first_form_for_every_pixel_sum():
     got = chromaticity_and_brightness(frame)
     assert got.dtype == np.float32 and got.shape == frame.shape
     np.testing.assert_array_equal(got, want)
+    # a view of another layout (flipped, its channels reversed) as its contiguous copy
+    flipped = frame[:, ::-1, ::-1]
+    np.testing.assert_array_equal(
+        chromaticity_and_brightness(flipped),
+        chromaticity_and_brightness(np.ascontiguousarray(flipped)),
+    )
 
 
 def test_classical_rejects_text_only_prompts():
