@@ -12,6 +12,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from sagonline.segment.mask_geometry import box_of
+
 SIZE = 1024  # the encoder's input side
 GRID = 64  # the embedding's side (16 px cells of the 1024 frame)
 CELL = SIZE // GRID  # a cell's side in the 1024 frame
@@ -122,12 +124,10 @@ def grid_cells(
     (0.5 out, 0.50000006 in); here a share within `TIE` of a half is out
     (`tests/segment/test_mask_geometry.py`: every other cell as the resizes have it)."""
     cells = np.zeros((GRID, GRID), bool)
-    rows = np.flatnonzero(mask.any(axis=1))
-    if not len(rows):
+    box = box_of(mask)
+    if box is None:
         return cells
-    y0, y1 = rows[0], rows[-1] + 1
-    cols = np.flatnonzero(mask[y0:y1].any(axis=0))
-    x0, x1 = cols[0], cols[-1] + 1
+    x0, y0, x1, y1 = box.astype(int)
     direct = tuple(cover) == (SIZE, SIZE)  # the image fills the frame: straight to the grid
     down = cell_operator(mask.shape[0], cover[0], direct)[:, y0:y1]
     across = cell_operator(mask.shape[1], cover[1], direct)[:, x0:x1]

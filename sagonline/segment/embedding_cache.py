@@ -31,16 +31,19 @@ IN_FLIGHT = 4  # entries waiting to be written at most (SAM 2's: 8 MB each); a s
 
 _WRITES: dict[Path, Future] = {}  # the entries being written, by path, in this process
 _WRITES_LOCK = threading.Lock()
-_WRITER: tuple[int, ThreadPoolExecutor, threading.BoundedSemaphore] | None = None
+_WRITER: tuple[ThreadPoolExecutor, threading.BoundedSemaphore] | None = None
 
 
 def _writer() -> tuple[ThreadPoolExecutor, threading.BoundedSemaphore]:
-    """This process's writer thread and its bound (a forked child makes its own)."""
+    """This process's writer thread and its bound, made at the first save (a forked child's
+    first save makes its own: `_forget_the_parents_writes`)."""
     global _WRITER
-    if _WRITER is None or _WRITER[0] != os.getpid():
-        executor = ThreadPoolExecutor(1, thread_name_prefix="embedding-cache")
-        _WRITER = (os.getpid(), executor, threading.BoundedSemaphore(IN_FLIGHT))
-    return _WRITER[1], _WRITER[2]
+    if _WRITER is None:
+        _WRITER = (
+            ThreadPoolExecutor(1, thread_name_prefix="embedding-cache"),
+            threading.BoundedSemaphore(IN_FLIGHT),
+        )
+    return _WRITER
 
 
 def _forget_the_parents_writes() -> None:
