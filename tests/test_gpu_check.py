@@ -82,6 +82,10 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     for table in ("bench_render", "timing", "masks", "vote_kernels", "tile_lists"):
         rows = pd.read_csv(tmp_path / f"{table}_cpu_check.csv")
         assert len(rows) and "device" in rows.columns
+    rendered = pd.read_csv(tmp_path / "bench_render_cpu_check.csv")
+    assert {"torch"} <= set(rendered.backend) and (rendered.vote_ms_per_mask > 0).all()
+    tile_lists_hold(pd.read_csv(tmp_path / "tile_lists_cpu_check.csv"))
+    kernel_resources_hold(pd.read_csv(tmp_path / "vote_kernel_resources_cpu_check.csv"))
     # a chunked vote on PyTorch's tile lists and another on the fused ones: the same votes
     kernels = pd.read_csv(tmp_path / "vote_kernels_cpu_check.csv")
     assert list(kernels.kernel.unique()) == ["chunk16", "chunk32+fused"]
@@ -155,6 +159,31 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     assert not any(n.endswith(stale.name) for n in names)
     assert any(n.endswith("/eval.log") for n in names)  # the runs' own logs travel too
     assert not any(n.endswith((".ply", ".png")) and "/gpu_check." in n for n in names)
+
+
+def tile_lists_hold(table: pd.DataFrame) -> None:
+    """`bench.speed.tile_lists --quick`: PyTorch's tile lists dispatch a couple of hundred
+    operators a view (each a launch on a GPU), the fused ones two Triton launches and a few
+    dozen; the lists are the same."""
+    torch_rows, fused = table[table["tile lists"] == "torch"], table[table["tile lists"] == "fused"]
+    assert list(torch_rows.scene) == list(fused.scene)  # each scene both ways
+    assert any("synthetic" in name for name in fused.scene)  # and the donut where it is
+    assert len(fused) == 1 + any("donut" in name for name in fused.scene)
+    assert (torch_rows["torch operators"] > 200).all()
+    assert (torch_rows["triton launches"] == 0).all()
+    assert (fused["torch operators"] < 50).all() and (fused["triton launches"] == 2).all()
+    assert fused["same lists as torch"].astype(bool).all()
+    assert (fused.pairs.values == torch_rows.pairs.values).all() and (fused.pairs > 0).all()
+
+
+def kernel_resources_hold(table: pd.DataFrame) -> None:
+    """`bench.speed.kernel_resources --quick`: both Triton vote kernels and the tile lists' two
+    compile for sm_90 on this CPU (Triton's wheel carries ptxas), so a kernel that does not
+    compile for CUDA fails here, not on a machine lent for minutes."""
+    kernels = ["walk", "chunk16", "prepare: project", "prepare: project", "prepare: emit"]
+    assert list(table.kernel) == kernels
+    assert list(table.variant[2:4]) == ["3dgs", "2dgs"]  # both kinds' projection branches
+    assert (table.registers > 0).all() and (table.blocks_per_sm >= 1).all()
 
 
 def test_a_deadline_skips_what_it_cannot_fit_and_still_writes_the_summary(tmp_path):

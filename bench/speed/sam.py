@@ -98,17 +98,19 @@ def photo_table(models: list[str], count: int) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def video_table(models: list[str], side: int = 456, captures=CAPTURES) -> pd.DataFrame:
-    """Each capture's photographs as a video (longer side `side`): the first one's ground
-    truth prompts (a mask), every later one's mask scored against its truth (`match`: the
-    embeddings alone, no 3D consensus in a video of photographs)."""
+def video_table(
+    models: list[str], side: int = 456, captures=CAPTURES, count: int = 1000
+) -> pd.DataFrame:
+    """Each capture's first `count` photographs as a video (longer side `side`): the first
+    one's ground truth prompts (a mask), every later one's mask scored against its truth
+    (`match`: the embeddings alone, no 3D consensus in a video of photographs)."""
     from sagonline.segment.prompts import Prompt
 
     rows = []
     for kind in models:
         seg = segmenter(kind, prompts="match")
         for capture in captures:
-            shots = photos(capture, 1000)
+            shots = photos(capture, count)
             frames, truths = [], []
             for _, image, truth in shots:
                 s = side / max(image.shape[:2])
@@ -272,6 +274,11 @@ def main() -> None:
         "--data", type=Path, default=None, help="runtimes: the captures' folder (default: shared)"
     )
     ap.add_argument(
+        "--captures",
+        default=",".join(CAPTURES),
+        help="runtimes, decoders: the captures whose photographs they run on",
+    )
+    ap.add_argument(
         "--option",
         action="append",
         default=[],
@@ -290,6 +297,9 @@ def main() -> None:
     if not 1 <= args.photos <= 40 or not 1 <= args.repeats <= 20:
         ap.error("--photos in [1, 40], --repeats in [1, 20]")
     models = [m for m in args.models.split(",") if m]
+    captures = tuple(c for c in args.captures.split(",") if c)
+    if not captures or not set(captures) <= set(CAPTURES):
+        ap.error(f"--captures {args.captures}: some of {', '.join(CAPTURES)}")
     options = dict(item.partition("=")[::2] for item in args.option)
     parts = set(args.parts.split(","))
     for m in models:  # the weights are there (else: make weights), before any work
@@ -317,7 +327,14 @@ def main() -> None:
             print(f"\n## The {half}'s runtimes on {args.device}\n")
             more = {"precisions": precisions} if part == "runtimes" else {}
             table = table_of(
-                models, args.device, args.repeats, args.photos, args.data, options, **more
+                models,
+                args.device,
+                args.repeats,
+                args.photos,
+                args.data,
+                options,
+                captures=captures,
+                **more,
             )
             print(table.to_markdown(index=False))
             if out is not None:

@@ -17,10 +17,17 @@ from sagonline.core.provenance import sha256_file
 from sagonline.segment.mask_geometry import box_of, iou
 
 
-def captured(count: int, data: Path | None) -> list[tuple[str, np.ndarray, np.ndarray]]:
-    """(name, RGB image, truth) of the first `count` photographs of each capture in `data`."""
+def captured(
+    count: int, data: Path | None, captures: tuple[str, ...] = CAPTURES
+) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """(name, RGB image, truth) of the first `count` photographs of each of `captures` that
+    is in `data`."""
     root = data or DATA
-    return [p for c in CAPTURES if (root / c).is_dir() for p in photos(c, count, root)]
+    return [p for c in captures if (root / c).is_dir() for p in photos(c, count, root)]
+
+
+def iou_column(photos: int) -> str:
+    return f"box IoU ({photos} photo{'s' * (photos != 1)})"
 
 
 def runtime_table(
@@ -31,6 +38,7 @@ def runtime_table(
     data: Path | None = None,
     options: dict | None = None,
     precisions: tuple[str, ...] | None = None,
+    captures: tuple[str, ...] = CAPTURES,
 ) -> pd.DataFrame:
     """The encoder under each runtime on `device`: onnxruntime (on the CPU unless it has a CUDA
     provider) and PyTorch (`encoder_runtime=torch`) at each of `precisions` (default: fp32, fp16
@@ -40,7 +48,7 @@ def runtime_table(
     in every row). `options`: segmenter settings (say another `encoder` file) for every model."""
     from sagonline.segment.sam_sessions import open_pair
 
-    shots = captured(count, data)
+    shots = captured(count, data, captures)
     if precisions is None:
         precisions = ("fp32", "fp16", "bf16") if device.startswith("cuda") else ("fp32",)
     runs = [("onnxruntime", "fp32"), *(("torch", p) for p in precisions)]
@@ -82,7 +90,7 @@ def runtime_table(
                     "max |difference| from onnxruntime": float(
                         max(np.abs(o - r).max() for o, r in zip(outputs, reference, strict=True))
                     ),
-                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                    iou_column(len(shots)): round(float(np.mean(ious)), 4),
                 }
             )
     return pd.DataFrame(rows)
@@ -95,6 +103,7 @@ def decoder_table(
     count: int,
     data: Path | None = None,
     options: dict | None = None,
+    captures: tuple[str, ...] = CAPTURES,
 ) -> pd.DataFrame:
     """The prompt decoder on onnxruntime (on the CPU unless it has a CUDA provider) and on
     PyTorch on `device` (`decoder_runtime=torch`; and again with its shape arithmetic run on
@@ -103,7 +112,7 @@ def decoder_table(
     the largest logit difference from onnxruntime's, and the box IoU on the photographs."""
     from sagonline.segment.sam_sessions import open_pair
 
-    shots = captured(count, data)
+    shots = captured(count, data, captures)
     rows = []
     for kind in models:
         base = segmenter(kind, **(options or {}))
@@ -158,7 +167,7 @@ def decoder_table(
                     "decoder ms/prompt": round(1000 * seconds, 1),
                     "operators per call": getattr(pair.decoder, "operators_per_call", None),
                     "max |logit difference| from onnxruntime": max(gaps),
-                    f"box IoU ({len(shots)} photos)": round(float(np.mean(ious)), 4),
+                    iou_column(len(shots)): round(float(np.mean(ious)), 4),
                 }
             )
     return pd.DataFrame(rows)

@@ -17,7 +17,7 @@ with the model's warm-up) is listed but left out of the mean and the median (the
 sets aside a later view's one-off cost, such as a CUDA graph's capture). A segmenter without an
 encoder (classical) has its whole time under "segment"; the oracle reads the truth and is
 refused.
---quick: 6 views at 96x54, 4k surfels (what the tests run).
+--quick: 3 views at 96x54, 4k surfels (what the tests run).
 """
 
 from __future__ import annotations
@@ -187,10 +187,10 @@ def main() -> None:
     ap.add_argument("--gaussians", type=int, default=200_000)
     ap.add_argument("--objects", type=int, default=5, help="objects in the scene, each clicked")
     ap.add_argument("--out", type=Path, default=None, help="also write the per-view CSV")
-    ap.add_argument("--quick", action="store_true", help="6 views at 96x54, 4k surfels")
+    ap.add_argument("--quick", action="store_true", help="3 views at 96x54, 4k surfels")
     args = ap.parse_args()
     if args.quick:
-        args.views, args.size, args.gaussians = 6, "96x54", 4000
+        args.views, args.size, args.gaussians = 3, "96x54", 4000
     width, _, height = args.size.partition("x")
     if not (width.isdigit() and height.isdigit()) or args.views < 2 or args.objects < 1:
         ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")

@@ -258,8 +258,7 @@ class SamPair:
             self.encode_s += time.perf_counter() - start
             arrays = self.kept(outputs, f"a {w}x{h} frame")
             self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
-        scale, cover = self.geometry(h, w)
-        emb = self.embedding(arrays, scale, (h, w), cover)
+        emb = self.embedding_of(arrays, (h, w))
         if on_device:  # the decoder's view inputs, already where it runs
             self._on_device = (emb, self.view_feeds(on_device))
         self.memory[key] = emb
@@ -281,6 +280,11 @@ class SamPair:
                 f"{what}: the encoder file is not a working model of this format"
             )
         return arrays
+
+    def embedding_of(self, arrays: dict[str, np.ndarray], size: tuple[int, int]) -> Embedding:
+        """The `Embedding` of an (height, width) image from its encoder outputs as `kept`."""
+        scale, cover = self.geometry(*size)
+        return self.embedding(arrays, scale, size, cover)
 
     def embedding(self, arrays: dict, scale, size, cover) -> Embedding:
         raise NotImplementedError

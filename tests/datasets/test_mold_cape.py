@@ -131,15 +131,17 @@ def test_needs_a_trained_scene(cape, tmp_path, monkeypatch):
 
 @pytest.mark.slow
 def test_triangulated_points_fall_inside_the_object_masks(cape):
-    """SIFT matches between every other photograph, triangulated with the LLFF poses held fixed
-    (what `make scenes` starts from), must project into the independently drawn object masks."""
+    """SIFT matches between every third photograph (8 of 24), triangulated with the LLFF poses
+    held fixed (what `make scenes` starts from), must project into the independently drawn
+    object masks (measured: 517 points, 0.27 px, at least 94% inside in every view; with every
+    other photograph 1,430 points and 94% in twice the time)."""
     from sagonline.fitting.triangulate import triangulate_known_poses
 
     root, ds, cams, masks = cape
     _, _, images = ds.capture("mold_cape")
-    views = [c for c in cams if c.name in images][::2]
+    views = [c for c in cams if c.name in images][::3]
     xyz, _, summary = triangulate_known_poses(views, images, max_features=4096, num_threads=2)
-    assert summary["points"] > 1000 and summary["mean_reprojection_error_px"] < 1.0
+    assert summary["points"] > 300 and summary["mean_reprojection_error_px"] < 1.0
     inside = []
     for cam in views:
         mask = ds.read_label_map(masks[cam.name]) > 0

@@ -386,7 +386,11 @@ def test_both_real_encoders_give_onnxruntimes_embeddings_on_pytorch(kind):
     assert len(got) == (3 if kind == "sam2_tiny" else 1)
     for g, w in zip(got, want, strict=True):
         assert g.shape == w.shape and np.abs(g - w).max() < 1e-4
-    a, b = reference.embed(image), torch_pair.embed(image)  # as stored (SAM 2's in float16)
+    # each pair's Embedding of those outputs, as it stores them (SAM 2's in float16)
+    a, b = (
+        p.embedding_of(p.kept(o, "mold_cape's photograph"), image.shape[:2])
+        for p, o in ((reference, want), (torch_pair, got))
+    )
     mask_a = reference.decode(a, None, None, box_of(truth))[0].mask
     mask_b = torch_pair.decode(b, None, None, box_of(truth))[0].mask
     assert iou(mask_a, mask_b) > 0.999
