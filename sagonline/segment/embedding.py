@@ -21,10 +21,11 @@ CACHE_FORMAT = 1  # bumped when an entry's layout changes
 
 
 def all_finite(array: np.ndarray) -> bool:
-    """Whether every value is finite; float16 by its exponent bits (all ones: inf or NaN), a
-    tenth of the time of `np.isfinite`, which widens each value first."""
+    """Whether every value is finite; float16 by its exponent bits (all ones, the largest they
+    can be: inf or NaN), in one pass and a fraction of the time of `np.isfinite`, which widens
+    each value first."""
     if array.dtype == np.float16:
-        return not ((array.view(np.uint16) & 0x7C00) == 0x7C00).any()
+        return array.size == 0 or int((array.view(np.uint16) & 0x7C00).max()) < 0x7C00
     return bool(np.isfinite(array).all())
 
 

@@ -116,7 +116,8 @@ class EmbeddingCache:
                 reason = self._mismatch(entry, expected)
                 if reason is None:
                     self._touch(path)
-                    return {k: np.array(v) for k, v in entry["arrays"].items()}
+                    # the arrays are views of the file's own buffer, which nothing else holds
+                    return dict(entry["arrays"])
         warnings.warn(
             f"embedding cache entry unusable, removed and recomputed: {path}: {reason}",
             stacklevel=3,
