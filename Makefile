@@ -13,6 +13,7 @@ SEEDS ?= 0,1,2
 JOBS ?= 1
 
 EXTRAS := $(VENV)/.extras
+KERNELS := $(VENV)/.kernels
 
 # basic: one job after another (the first warms the shared stage cache; timings stay clean);
 # local: parallel jobs on this machine (joblib); slurm: a cluster (submitit); slurm_local: the
@@ -31,7 +32,7 @@ SWEEP     = $(BIN)/python -m bench.runners.eval --multirun hydra/launcher=$(LAUN
         tables table-timing table-masks table-ablation table-robustness scenes tables-real \
         crossval-captures loo-captures fits-captures
 
-install: $(STAMP)
+install: $(STAMP) $(KERNELS)
 
 # The model-backed segmenters' packages, for their tests on CPU (random weights), gsplat,
 # whose PyTorch reference functions check the CUDA backend's conventions on CPU, and Triton,
@@ -56,6 +57,13 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet torch==2.13.0
 	$(BIN)/python -m pip install --quiet -e '.[dev,launchers,viewer]'
 	touch $(STAMP)
+
+# The compiled CPU kernels (sagonline/render/csrc), built here once (1-2 min on 2 cores) and again
+# whenever their source changes, so no run or test waits on them. A build that fails here is said
+# and the install goes on: a run then tries again and names what is missing.
+$(KERNELS): $(STAMP) $(wildcard sagonline/render/csrc/*)
+	-$(BIN)/python -m sagonline.render.kernels
+	touch $(KERNELS)
 
 eval: install
 	$(BIN)/python -m bench.runners.eval dataset=$(DATASET) $(ARGS)

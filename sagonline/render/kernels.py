@@ -173,3 +173,14 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
 
 
 __all__ = ["NativeBuildError", "build_once", "kernel_root", "load_extension"]
+
+
+if (
+    __name__ == "__main__"
+):  # `make install`: build them now (or find them built), not at a first run
+    try:
+        load_extension()
+    except NativeBuildError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        sys.exit(1)
+    print(f"the CPU kernels are built ({kernel_root()})")

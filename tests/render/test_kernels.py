@@ -7,6 +7,8 @@ import subprocess
 import sys
 import threading
 
+import pytest
+
 from sagonline.render.kernels import build_once, kernel_root
 
 
@@ -134,3 +136,23 @@ def test_a_kernel_folder_that_is_a_file_is_refused(tmp_path, monkeypatch):
     monkeypatch.setenv("SAGONLINE_KERNEL_DIR", str(tmp_path / "f"))
     with pytest.raises(NativeBuildError, match="is a file: it must name a folder"):
         kernel_root()
+
+
+@pytest.mark.filterwarnings("ignore:'sagonline.render.kernels' found in sys.modules")
+def test_the_install_step_builds_them_and_names_a_place_it_cannot_use(
+    tmp_path, monkeypatch, capsys
+):
+    """`python -m sagonline.render.kernels` (`make install`): builds the kernels, or finds them
+    built, and says where; a kernel folder that is a file is named, with exit status 1 (the
+    Makefile then goes on, and a run tries again)."""
+    import runpy
+
+    monkeypatch.delenv("SAGONLINE_KERNEL_DIR", raising=False)
+    runpy.run_module("sagonline.render.kernels", run_name="__main__")
+    assert f"the CPU kernels are built ({kernel_root()})" in capsys.readouterr().out
+    (tmp_path / "f").write_text("")
+    monkeypatch.setenv("SAGONLINE_KERNEL_DIR", str(tmp_path / "f"))
+    with pytest.raises(SystemExit) as stop:
+        runpy.run_module("sagonline.render.kernels", run_name="__main__")
+    assert stop.value.code == 1
+    assert f"SAGONLINE_KERNEL_DIR={tmp_path / 'f'} is a file" in capsys.readouterr().err
