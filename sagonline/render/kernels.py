@@ -175,9 +175,8 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
 __all__ = ["NativeBuildError", "build_once", "kernel_root", "load_extension"]
 
 
-if (
-    __name__ == "__main__"
-):  # `make install`: build them now (or find them built), not at a first run
+# `make install`: build them now (or find them built), not at a first run
+if __name__ == "__main__":
     try:
         load_extension()
     except NativeBuildError as exc:
