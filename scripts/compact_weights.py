@@ -1,9 +1,10 @@
-"""An image encoder small enough to travel to a GPU machine: its large weights as int8.
+"""A model file small enough to travel to a GPU machine: its large weights as int8.
 
-    python scripts/compact_weights.py weights/sam2_tiny/encoder.ort .gpu-sam2/encoder.w8.onnx
+    python scripts/compact_weights.py weights/sam2_tiny/encoder.ort /tmp/encoder.w8.onnx
 
 What reaches a GPU machine is capped (64 MiB with the checkout), and SAM 2 Hiera-tiny's encoder
-is 135 MB of float32. This writes the same graph as a standard `.onnx` file in which every
+is 135 MB of float32 (`scripts/bundle_models.py` packs each real model's encoder and decoder
+so for `make gpu-bundle`). This writes the same graph as a standard `.onnx` file in which every
 float weight of at least `--min-elements` values is stored as int8 with one float32 scale per
 output channel (symmetric), widened by a `Cast` and a `Mul` by its scales:
 - a MatMul's weight [K, N]: a scale per column (axis 1);
@@ -17,7 +18,8 @@ as with the original file, on weights rounded to 255 levels a channel. (ONNX's o
 product that quantises the activations too, a different computation.)
 
 It then runs both files on onnxruntime (CPU) on one frame and prints each output's largest
-difference and the cosine similarity of the two, so the rounding's cost is on record.
+difference and the cosine similarity of the two, so the rounding's cost is on record (an
+encoder's; a decoder's prompts are no random frame).
 """
 
 from __future__ import annotations
@@ -77,7 +79,7 @@ def to_onnx(graph: OnnxGraph, min_elements: int):
     for name, value in graph.initializers.items():
         value = np.asarray(value)
         if value.dtype != np.float32 or value.size < min_elements:
-            initializers.append(numpy_helper.from_array(np.ascontiguousarray(value), name))
+            initializers.append(numpy_helper.from_array(np.array(value, order="C"), name))
             continue
         axis = weight_axis(consumers.get(name, []), value.ndim)
         values, scale = quantise(value, axis)
@@ -92,7 +94,7 @@ def to_onnx(graph: OnnxGraph, min_elements: int):
 
     def attribute(value):
         if isinstance(value, np.ndarray):
-            return numpy_helper.from_array(np.ascontiguousarray(value))
+            return numpy_helper.from_array(np.array(value, order="C"))
         return value
 
     known = set(graph.initializers) | {i.name for i in graph.inputs}
@@ -118,13 +120,17 @@ def to_onnx(graph: OnnxGraph, min_elements: int):
 
 def compare(original: Path, compact: Path, seed: int = 0) -> list[tuple[str, float, float]]:
     """(output, largest |difference|, cosine similarity) of the two files on onnxruntime's CPU
-    for one random frame of the encoder's input shape."""
+    for one random frame of the encoder's input shape; none for a model of several inputs (a
+    decoder's prompts are no random frame: `tests/segment/test_compact_weights.py` compares
+    the real decoders' masks)."""
     import onnxruntime as ort
 
     sessions = [
         ort.InferenceSession(str(p), providers=["CPUExecutionProvider"])
         for p in (original, compact)
     ]
+    if len(sessions[0].get_inputs()) != 1:
+        return []
     first = sessions[0].get_inputs()[0]
     shape = [d if isinstance(d, int) else 1 for d in first.shape]
     frame = np.random.default_rng(seed).standard_normal(shape).astype(np.float32)
@@ -159,7 +165,10 @@ def main() -> None:
         f"(from {args.source.stat().st_size / 1e6:.1f} MB)"
     )
     if not args.no_compare:
-        for name, largest, cosine in compare(args.source, args.out):
+        rows = compare(args.source, args.out)
+        if not rows:
+            print("  not compared: the model takes several inputs (a decoder's prompts)")
+        for name, largest, cosine in rows:
             print(f"  {name}: largest |difference| {largest:.4g}, cosine {cosine:.6f}")
 
 

