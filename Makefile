@@ -59,9 +59,10 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 # The compiled CPU kernels (sagonline/render/csrc), built here once (1-2 min on 2 cores) and again
-# whenever their source changes, so no run or test waits on them. A build that fails here is said
-# and the install goes on: a run then tries again and names what is missing.
-$(KERNELS): $(STAMP) $(wildcard sagonline/render/csrc/*)
+# whenever their source or their build (sagonline/render/kernels.py) changes, so no run or test
+# waits on them. A build that fails here is said and the install goes on: a run then tries
+# again and names what is missing.
+$(KERNELS): $(STAMP) $(wildcard sagonline/render/csrc/*) sagonline/render/kernels.py
 	-$(BIN)/python -m sagonline.render.kernels
 	touch $(KERNELS)
 

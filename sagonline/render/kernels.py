@@ -75,22 +75,44 @@ def load_extension():
     build_dir = kernel_root() / name
 
     def build():
-        return cpp_extension.load(
-            name=name,
-            sources=[str(path) for path in SOURCES],
-            extra_include_paths=[str(CSRC)],
-            # no FMA contraction: the AVX2 and baseline builds of the vote (and x86 and ARM)
-            # then run the same float operations
-            extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", "-Wno-psabi"],
-            extra_ldflags=["-fopenmp"],
-            build_directory=str(build_dir),
-            verbose=False,
-        )
+        return cpp_extension.load(**load_arguments(build_dir, name))
 
     try:
         return build_once(build_dir, name, build)
     except Exception as exc:  # compiler missing, ninja missing, build error
         raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
+
+
+def load_arguments(build_dir: Path, name: str) -> dict:
+    """torch's `cpp_extension.load` arguments for the kernels, compiled from a copy of their
+    sources inside `build_dir`: the loader rebuilds whenever its compile command changes, and
+    with each checkout's own source paths in it, two checkouts sharing one environment (a clone
+    beside the working tree) rebuilt the kernels in turn, a minute each time."""
+    sources = copied_sources(build_dir / "src")
+    return dict(
+        name=name,
+        sources=[str(sources / path.name) for path in SOURCES],
+        extra_include_paths=[str(sources)],
+        # no FMA contraction: the AVX2 and baseline builds of the vote (and x86 and ARM) then
+        # run the same float operations
+        extra_cflags=["-O3", "-fopenmp", "-ffp-contract=off", "-Wno-psabi"],
+        extra_ldflags=["-fopenmp"],
+        build_directory=str(build_dir),
+        verbose=False,
+    )
+
+
+def copied_sources(folder: Path) -> Path:
+    """The kernels' sources and headers copied into `folder` (each rewritten only where its
+    bytes differ, so that a copy already there keeps the file time the build went by)."""
+    from sagonline.core.files import atomic_write
+
+    folder.mkdir(parents=True, exist_ok=True)
+    for path in SOURCES + HEADERS:
+        text, copy = path.read_bytes(), folder / path.name
+        if not copy.is_file() or copy.read_bytes() != text:
+            atomic_write(copy, lambda target, text=text: target.write_bytes(text))
+    return folder
 
 
 def library_digest(path: Path) -> str:
@@ -152,21 +174,30 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
         if fresh:
             say("compiling the CPU kernels, one time for this environment (about 1-3 min) ...")
 
-            def heartbeat() -> None:
-                while not done.wait(every):
-                    say(f"still compiling the CPU kernels ({time.perf_counter() - start:.0f} s)")
+        def heartbeat() -> None:  # a library already there is built again only where torch's
+            # loader finds its compile command changed (a new PyTorch, another build's flags)
+            while not done.wait(every):
+                again = "" if fresh else " again (their compile command changed)"
+                say(f"still compiling the CPU kernels{again} ({time.perf_counter() - start:.0f} s)")
 
-            threading.Thread(target=heartbeat, daemon=True).start()
+        threading.Thread(target=heartbeat, daemon=True).start()
         try:
             module = build()
         finally:
             done.set()
-        if fresh and library.exists():
-            from sagonline.core.files import atomic_write_text
+        # recorded after every build, not only the first: where torch's loader built the library
+        # again (a changed compile command), the next process would otherwise find bytes other
+        # than those recorded and build a third time
+        record = build_dir / f"{name}.so.sha256"
+        if library.exists():
+            digest = library_digest(library)
+            if not record.is_file() or record.read_text().strip() != digest:
+                from sagonline.core.files import atomic_write_text
 
-            atomic_write_text(build_dir / f"{name}.so.sha256", library_digest(library) + "\n")
-        if fresh:
-            say(f"compiled the CPU kernels in {time.perf_counter() - start:.0f} s ({build_dir})")
+                atomic_write_text(record, digest + "\n")
+        took = time.perf_counter() - start
+        if fresh or took >= every:
+            say(f"compiled the CPU kernels in {took:.0f} s ({build_dir})")
         return module
     finally:
         os.close(fd)

@@ -58,3 +58,60 @@ def test_loading_the_cpu_kernel_under_a_cuda_build_without_a_gpu_prints_nothing(
 
     assert "No CUDA runtime is found" in stderr("plainly")
     assert "No CUDA runtime is found" not in stderr("kernel")
+
+
+def test_a_library_the_loader_built_again_is_recorded_not_built_a_third_time(tmp_path):
+    """Where torch's loader builds the library again in a folder that had one (its compile
+    command changed), the new bytes are recorded: the next process loads them instead of
+    finding bytes other than those recorded and building once more. A rebuild that takes a
+    while is said, as a first build is."""
+    import time
+
+    from sagonline.render.kernels import build_once, library_digest
+
+    folder, said, built = tmp_path / "kernels" / "build", [], []
+
+    def build():  # torch's loader, whose compile command changed after the first build
+        library = folder / "k.so"
+        built.append(library.exists())
+        if len(built) == 2:
+            time.sleep(0.5)  # compiling again
+        library.write_bytes(b"\x7fELF" + bytes([len(built)]) * 8000)
+        return library.read_bytes()
+
+    build_once(folder, "k", build, say=said.append, every=0.2)
+    first = len(said)
+    build_once(folder, "k", build, say=said.append, every=0.2)  # rebuilt by the loader
+    assert (folder / "k.so.sha256").read_text().strip() == library_digest(folder / "k.so")
+    assert any("still compiling the CPU kernels again" in s for s in said[first:]), said
+    assert said[-1].startswith("compiled the CPU kernels in")
+    again = len(said)
+    build_once(folder, "k", build, say=said.append, every=0.2)
+    assert built == [False, True, True]  # never emptied and built from nothing again
+    assert not any("not the build that finished" in s for s in said), said
+    assert len(said) == again  # a library loaded at once: nothing said
+
+
+def test_the_kernels_compile_from_a_copy_of_their_sources_in_the_build_folder(tmp_path):
+    """The loader's arguments name copies of the sources inside the build folder, the same for
+    every checkout, so two checkouts sharing an environment do not rebuild in turn; a copy
+    already there is left as it is (its file time is what the build goes by), a changed one
+    rewritten."""
+    from sagonline.render.kernels import CSRC, HEADERS, SOURCES, load_arguments
+
+    build_dir = tmp_path / "sagonline_raster_cpu_x"
+    arguments = load_arguments(build_dir, "sagonline_raster_cpu_x")
+    copies = build_dir / "src"
+    assert arguments["sources"] == [str(copies / p.name) for p in SOURCES]
+    assert arguments["extra_include_paths"] == [str(copies)]
+    assert arguments["build_directory"] == str(build_dir)
+    for path in SOURCES + HEADERS:
+        assert (copies / path.name).read_bytes() == path.read_bytes()
+    assert str(CSRC) not in repr(arguments)
+    header = copies / HEADERS[0].name
+    before = header.stat().st_mtime_ns
+    vote_source = copies / SOURCES[-1].name
+    vote_source.write_text("// damaged\n")
+    assert load_arguments(build_dir, "sagonline_raster_cpu_x") == arguments
+    assert header.stat().st_mtime_ns == before
+    assert vote_source.read_bytes() == SOURCES[-1].read_bytes()
