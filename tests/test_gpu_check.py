@@ -415,10 +415,23 @@ def test_a_checkout_with_only_the_bundle_runs_a_model_from_its_compact_files(tmp
     out = tmp_path / "out"
     env = {**os.environ, "PYTHON": sys.executable, "TMPDIR": str(tmp_path)}
     proc = subprocess.run(
-        ["bash", str(checkout / "scripts" / "gpu_check.sh"), "--quick", "--device", "cpu",
-         "--out", str(out), "--skip-fit", "--steps", "minisam: stage one per view (1"],
-        capture_output=True, text=True, timeout=600, env=env,
-    )  # fmt: skip
+        [
+            "bash",
+            str(checkout / "scripts" / "gpu_check.sh"),
+            "--quick",
+            "--device",
+            "cpu",
+            "--out",
+            str(out),
+            "--skip-fit",
+            "--steps",
+            "minisam: stage one per view (1",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
     summary = (out / "gpu_check.md").read_text()
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
     assert "| models unpack | pass |" in summary
