@@ -151,3 +151,17 @@ def test_truncated_splat(tmp_path):
 def test_missing_file(tmp_path):
     with pytest.raises(SceneFileError, match="not found"):
         read_scene(tmp_path / "nope.ply")
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".splat"])
+def test_a_folder_or_a_device_is_named_as_such_not_as_missing(tmp_path, suffix):
+    """`/dev/null` and a folder exist: each is said for what it is (both were "not found")."""
+    from sagonline.scene.io.ply import read_ply
+    from sagonline.scene.io.splat import read_splat
+
+    read = read_ply if suffix == ".ply" else read_splat
+    (tmp_path / f"scene{suffix}").mkdir()
+    with pytest.raises(SceneFileError, match=rf"scene\{suffix}: a folder, not a scene file"):
+        read(tmp_path / f"scene{suffix}")
+    with pytest.raises(SceneFileError, match="/dev/null: not a regular file"):
+        read("/dev/null")

@@ -19,7 +19,7 @@ from sagonline.core.errors import SceneFileError
 from sagonline.core.files import atomic_write
 from sagonline.scene.gaussians import Gaussians, sh_degree_from_coeffs
 from sagonline.scene.io.ply_rows import read_ply_header, vertex_blocks
-from sagonline.scene.io.scene_checks import nonfinite_rows, normalize_quats
+from sagonline.scene.io.scene_checks import nonfinite_rows, normalize_quats, require_scene_file
 
 _REQUIRED = [
     "x",
@@ -87,8 +87,7 @@ def kept_rows(path: str | Path) -> np.ndarray:
 
 
 def _read_arrays(path: Path) -> _SceneArrays:
-    if not path.is_file():
-        raise SceneFileError(f"{path}: scene file not found")
+    require_scene_file(path)
     header = read_ply_header(path)
     vertex = next((e for e in header.elements if e.name == "vertex"), None)
     if vertex is None:

@@ -71,3 +71,17 @@ def check_finite(
         return raw
     keep = nonfinite_rows(path, bad, bad_rows, drop)
     return {k: v[keep] for k, v in raw.items()}
+
+
+def require_scene_file(path: Path) -> None:
+    """SceneFileError naming `path` unless it is a regular file: missing, a folder, or a
+    device or pipe (`/dev/null` was "not found")."""
+    if path.is_file():
+        return
+    if not path.exists():
+        why = "scene file not found"
+    elif path.is_dir():
+        why = "a folder, not a scene file (name the .ply or .splat in it)"
+    else:
+        why = "not a regular file (a device, a pipe or a socket), not a scene file"
+    raise SceneFileError(f"{path}: {why}")

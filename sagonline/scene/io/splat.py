@@ -9,14 +9,13 @@ import torch
 
 from sagonline.core.errors import SceneFileError
 from sagonline.scene.gaussians import SH_C0, Gaussians
-from sagonline.scene.io.scene_checks import check_finite, normalize_quats
+from sagonline.scene.io.scene_checks import check_finite, normalize_quats, require_scene_file
 
 
 def read_splat(path: str | Path, *, drop_nonfinite: bool = False) -> Gaussians:
     """Read the 32-byte-per-splat format: xyz f32, scales f32 (linear), RGBA u8, wxyz u8."""
     path = Path(path)
-    if not path.is_file():
-        raise SceneFileError(f"{path}: scene file not found")
+    require_scene_file(path)
     buf = path.read_bytes()
     if len(buf) == 0 or len(buf) % 32:
         raise SceneFileError(
