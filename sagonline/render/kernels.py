@@ -174,10 +174,12 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
         if fresh:
             say("compiling the CPU kernels, one time for this environment (about 1-3 min) ...")
 
-        def heartbeat() -> None:  # a library already there is built again only where torch's
-            # loader finds its compile command changed (a new PyTorch, another build's flags)
+        # a library already there is built again only where torch's loader finds its compile
+        # command changed (a new PyTorch, another build's flags)
+        again = "" if fresh else " again (their compile command changed)"
+
+        def heartbeat() -> None:
             while not done.wait(every):
-                again = "" if fresh else " again (their compile command changed)"
                 say(f"still compiling the CPU kernels{again} ({time.perf_counter() - start:.0f} s)")
 
         threading.Thread(target=heartbeat, daemon=True).start()
