@@ -84,7 +84,7 @@ def load_views(
     cams = pseudo_temporal_order(load_cameras(cameras))
     if not cams:
         raise ViewError(f"{cameras}: holds no cameras (no images in the model?)")
-    source = f"{len(cams)} cameras of {cameras}, sorted by name"
+    source = f"{len(cams)} cameras of {cameras}{photographs_named(cameras)}, sorted by name"
     if orbit:
         if gaussians is None:
             raise ViewError("--orbit needs the scene")
@@ -102,6 +102,17 @@ def load_views(
         except ValueError as exc:
             raise ViewError(f"--width {width} --height {height}: {exc}") from None
     return Views(cams, source)
+
+
+def photographs_named(cameras: str | Path) -> str:
+    """", sized and named by its images_8/ photographs" where LLFF poses took their size and
+    names from a photo folder (`llff.photo_folder`), else ""."""
+    from sagonline.scene.io.cameras import camera_source
+    from sagonline.scene.io.llff import photo_folder
+
+    source = camera_source(cameras)
+    folder = photo_folder(source.parent) if source.name == "poses_bounds.npy" else None
+    return f", sized and named by its {folder}/ photographs" if folder else ""
 
 
 def view_index(text: str, cams: list[Camera]) -> int:

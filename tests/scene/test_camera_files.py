@@ -35,12 +35,13 @@ def test_random_bytes_as_poses_bounds_name_the_file(tmp_path, capsys):
 
 
 def test_singular_llff_pose_names_the_frame(tmp_path):
+    """Named by its photograph (the poses take the names of images_4/ beside them)."""
     llff_scene(tmp_path, NAMES, with_scene=False)
     arr = np.load(tmp_path / "poses_bounds.npy")
     arr[2, :15] = 0.0
     arr[2, [4, 9, 14]] = [24, 32, 30]  # keep h, w, f
     np.save(tmp_path / "poses_bounds.npy", arr)
-    with pytest.raises(CameraFileError, match="frame '00002' has a singular pose"):
+    with pytest.raises(CameraFileError, match="frame 'IMG_0002' has a singular pose"):
         load_cameras(tmp_path / "poses_bounds.npy")
 
 

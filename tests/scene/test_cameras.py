@@ -114,6 +114,44 @@ def test_transforms_json_errors(tmp_path):
         load_cameras(empty)
 
 
+def test_llff_cameras_take_the_size_and_names_of_the_photographs_beside_them(tmp_path):
+    """Full-resolution poses (64x48) with images_2/ and images_4/ of one photograph per pose
+    and images_8/ of fewer: the most downsampled full folder sizes and names the cameras, and its
+    photographs are among the cameras' input files; with no full folder, the poses' own."""
+    from sagonline.scene.io.cameras import camera_input_files
+    from sagonline.scene.views import load_views
+    from tests.fixtures import orbit_cameras, write_image, write_poses_bounds
+
+    write_poses_bounds(tmp_path / "poses_bounds.npy", orbit_cameras(3, 64, 48))
+    for folder, factor, count in (("images_2", 2, 3), ("images_4", 4, 3), ("images_8", 8, 2)):
+        for i in range(count):
+            write_image(
+                tmp_path / folder / f"IMG_{i}.png", np.zeros((48 // factor, 64 // factor, 3))
+            )
+    cams = load_cameras(tmp_path)
+    assert [(c.name, c.width, c.height) for c in cams] == [(f"IMG_{i}", 16, 12) for i in range(3)]
+    full = load_llff(tmp_path)
+    assert (full[1].name, full[1].width) == ("00001", 64)
+    assert torch.allclose(cams[1].K[:2], full[1].K[:2] / 4)
+    assert camera_input_files(tmp_path) == [
+        tmp_path / "poses_bounds.npy",
+        *(tmp_path / "images_4" / f"IMG_{i}.png" for i in range(3)),
+    ]
+    assert "sized and named by its images_4/ photographs" in load_views(tmp_path).source
+    for folder in ("images_2", "images_4"):
+        (tmp_path / folder / "IMG_2.png").unlink()
+    cams = load_cameras(tmp_path / "poses_bounds.npy")
+    assert [(c.name, c.width) for c in cams] == [(f"{i:05d}", 64) for i in range(3)]
+    assert camera_input_files(tmp_path) == [tmp_path / "poses_bounds.npy"]
+    assert "sized and named" not in load_views(tmp_path).source
+
+
+def test_fern_folder_gives_its_images_8_cameras():
+    cams = load_cameras(shared_data("llff_fern"))
+    first = cams[0]
+    assert len(cams) == 20 and (first.name, first.width, first.height) == ("image000", 504, 378)
+
+
 def test_llff_name_count_mismatch():
     with pytest.raises(CameraFileError, match="119 poses but 24 image names"):
         load_llff(shared_data("mold_cape"), image_dir="images_4")

@@ -12,7 +12,14 @@ import numpy as np
 from sagonline.core.errors import CameraFileError
 from sagonline.scene.cameras import Camera, intrinsics, make_camera
 from sagonline.scene.io.colmap import is_colmap_dir, load_colmap, read_colmap_points
-from sagonline.scene.io.llff import load_llff, load_llff_bounds, read_npy, read_poses_bounds
+from sagonline.scene.io.images import list_images
+from sagonline.scene.io.llff import (
+    load_llff,
+    load_llff_bounds,
+    photo_folder,
+    read_npy,
+    read_poses_bounds,
+)
 from sagonline.scene.io.pose import check_count, check_unique_names, checked_camera, invert_pose
 
 __all__ = [
@@ -34,7 +41,8 @@ __all__ = [
 def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     """Load cameras from any supported file or folder.
 
-    `cameras.json` (3DGS output), `transforms*.json` (NeRF/Blender), `poses_bounds.npy` (LLFF),
+    `cameras.json` (3DGS output), `transforms*.json` (NeRF/Blender), `poses_bounds.npy` (LLFF;
+    sized and named by the photographs beside it: `llff.photo_folder`),
     a COLMAP sparse folder (`cameras.bin`/`images.bin` or `.txt`), or a `.npz` with `viewmats`,
     `Ks`, `width`, `height`. A JSON file is read as NeRF or 3DGS by its content, whatever its
     name. A dataset folder is searched for those in that order. Every camera is validated
@@ -88,9 +96,13 @@ def camera_source(path: str | Path) -> Path:
 
 
 def camera_input_files(path: str | Path) -> list[Path]:
-    """Every file `load_cameras(path)` reads (a COLMAP model: the files of its folder)."""
+    """Every file `load_cameras(path)` reads (a COLMAP model: the files of its folder; LLFF
+    poses: with the photographs that size and name them, `photo_folder`)."""
     source = camera_source(path)
-    return sorted(p for p in source.iterdir() if p.is_file()) if source.is_dir() else [source]
+    if source.is_dir():
+        return sorted(p for p in source.iterdir() if p.is_file())
+    folder = photo_folder(source.parent) if source.name == "poses_bounds.npy" else None
+    return [source, *(list_images(source.parent / folder) if folder else [])]
 
 
 def _load_cameras(path: Path, **kwargs) -> list[Camera]:
@@ -101,7 +113,8 @@ def _load_cameras(path: Path, **kwargs) -> list[Camera]:
         raise CameraFileError(f"{path}: camera file not found")
     name = path.name
     if name == "poses_bounds.npy":
-        return load_llff(path.parent, **kwargs)
+        # sized and named by the photographs beside it where a folder holds one per pose
+        return load_llff(path.parent, **(kwargs or {"image_dir": photo_folder(path.parent)}))
     if name.endswith(".json"):
         try:
             content = json.loads(path.read_text())

@@ -3,6 +3,7 @@ the file cannot back)."""
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -58,6 +59,20 @@ def load_llff(
         w2c = invert_pose(c2w, pb_path, Path(name).stem)
         cams.append(checked_camera(K, w2c, width, height, Path(name).stem, pb_path))
     return cams
+
+
+def photo_folder(scene_dir: str | Path) -> str | None:
+    """The folder beside `poses_bounds.npy` with one photograph per pose, LLFF's `images/` or a
+    downsampled `images_<N>/`: where several have one per pose, the most downsampled (the
+    lightest renders; a command's --width/--height give any other size). None where none has."""
+    scene_dir = Path(scene_dir)
+    poses = len(read_poses_bounds(scene_dir / "poses_bounds.npy"))
+    factors = {}
+    for folder in scene_dir.iterdir() if scene_dir.is_dir() else ():
+        found = re.fullmatch(r"images(?:_(\d+))?", folder.name)
+        if found and folder.is_dir() and len(list_images(folder)) == poses:
+            factors[folder.name] = int(found.group(1) or 1)
+    return max(factors, key=lambda name: (factors[name], name)) if factors else None
 
 
 def read_npy(path: Path, error: type[Exception]) -> np.ndarray:
