@@ -124,7 +124,8 @@ class SAM2VideoSegmenter(VideoSegmenter):
             raise ValueError(
                 "segmenter 'sam2' needs a local checkpoint: set "
                 "segmenter.checkpoint=/path/to/sam2.1_hiera_tiny.pt (nothing is "
-                "downloaded)"
+                "downloaded). SAM 2 Hiera-tiny as ONNX files, prompted view by view: "
+                "segmenter=sam2_tiny, after `make weights`"
             )
         if checkpoint is not None and not Path(checkpoint).is_file():
             raise FileNotFoundError(f"segmenter.checkpoint={checkpoint}: no such file")

@@ -188,7 +188,10 @@ def test_model_backed_segmenters_name_the_missing_option(name, option, capsys):
     cfg = compose_config("eval", *[f"segmenter={name}"])
     with pytest.raises(SystemExit):
         prepare_segmenter(cfg.segmenter)
-    assert option in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert option in err
+    # sam2 has no make target for its checkpoint: it names the same model's ONNX files
+    assert name != "sam2" or "segmenter=sam2_tiny, after `make weights`" in err
     cfg = compose_config("eval", *[f"segmenter={name}", f"{option}=/nope.pt"])
     with pytest.raises(SystemExit):
         prepare_segmenter(cfg.segmenter)
