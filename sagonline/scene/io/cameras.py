@@ -149,7 +149,9 @@ def load_nerf_transforms(
         raise CameraFileError(f"{path}: not a readable JSON file ({exc})") from exc
     frames = meta.get("frames") if isinstance(meta, dict) else None
     if not isinstance(frames, list) or not frames:
-        kind = type(frames).__name__ if frames is not None else "nothing"
+        kind = {"NoneType": "nothing", "list": "an empty list"}.get(
+            type(frames).__name__, f"a value of type {type(frames).__name__}"
+        )
         raise CameraFileError(f"{path}: 'frames' must be a non-empty list of frames, got {kind}")
     check_count(len(frames), path)
     cams = []
