@@ -77,7 +77,10 @@ def _transforms(tmp_path, **changes):
         ({"fl_x": "500"}, "fl_x='500' is not a number"),
         ({"w": True}, "is not a whole number of pixels"),
         ({"w": 32.5}, "is not a whole number of pixels"),
-        ({"frames": {"a": 1}}, "'frames' must be a non-empty list of frames, got a value of ty"),
+        (
+            {"frames": {"a": 1}},
+            "'frames' must be a non-empty list of frames, got a value of type dict",
+        ),
         ({"frames": []}, "'frames' must be a non-empty list of frames, got an empty list"),
     ],
 )
