@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from sagonline.core.progress import Progress
 from sagonline.pipeline.graph import Output, StageRun
 from sagonline.pipeline.stages import Frames
 from sagonline.render.backends import BackendPlan
@@ -77,3 +78,30 @@ class StageOneOutput:
     @property
     def keys(self) -> dict[str, str]:
         return {"frames": self.frames.key, "masks": self.masks.key, "vote": self.vote.key}
+
+
+class StageOneBars:
+    """Stage I's stream on two bars of `n` views each: `<prefix>render` counts FrameRendered
+    and, from the first MaskReady on, `<prefix>segment and vote` counts the masks."""
+
+    def __init__(self, n: int, prefix: str = "", enabled: bool = True):
+        self.n, self.prefix, self.enabled = n, prefix, enabled
+        self.frames = Progress(f"{prefix}render", n, enabled=enabled)
+        self.masks: Progress | None = None
+
+    def update(self, event) -> None:
+        """Count `event` (any event of the stream; only renders and masks are counted)."""
+        if isinstance(event, FrameRendered):
+            self.frames.update()
+        elif isinstance(event, MaskReady):
+            if self.masks is None:
+                self.frames.close()
+                self.masks = Progress(
+                    f"{self.prefix}segment and vote", self.n, enabled=self.enabled
+                )
+            self.masks.update()
+
+    def close(self) -> None:
+        self.frames.close()
+        if self.masks is not None:
+            self.masks.close()

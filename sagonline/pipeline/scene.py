@@ -17,10 +17,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sagonline.core.progress import Progress, progress
+from sagonline.core.progress import progress
 from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.datasets.base import SceneTask
 from sagonline.pipeline.diagnose import diagnose_scene
+from sagonline.pipeline.events import StageOneBars
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import (
     SceneReport,
@@ -30,7 +31,6 @@ from sagonline.pipeline.scoring import (
     segmenter_miou,
 )
 from sagonline.pipeline.stage_one import (
-    FrameRendered,
     MaskReady,
     PipelineSettings,
     StageOne,
@@ -143,16 +143,10 @@ def follow_stage_one(
     names = task.label_names or ["background"] + [str(i) for i in range(1, task.num_labels)]
     recorder.annotate(task.name, names)
     n = len(task.trajectory)
-    frames_bar = Progress(f"{task.name}: render", n, enabled=show)
-    masks_bar = None
+    bars = StageOneBars(n, f"{task.name}: ", enabled=show)
     for event in engine.stream():
-        if isinstance(event, FrameRendered):
-            frames_bar.update()
-        elif isinstance(event, MaskReady):
-            if masks_bar is None:
-                frames_bar.close()
-                masks_bar = Progress(f"{task.name}: segment and vote", n, enabled=show)
-            masks_bar.update()
+        bars.update(event)
+        if isinstance(event, MaskReady):
             recorder.trajectory_frame(
                 task.name,
                 event.index,
@@ -160,9 +154,7 @@ def follow_stage_one(
                 event.mask,
                 camera=task.trajectory[event.index],
             )
-    frames_bar.close()
-    if masks_bar is not None:
-        masks_bar.close()
+    bars.close()
     out = engine.result()
     recorder.annotate(task.name, names + [f"id {i}" for i in range(len(names), out.num_labels)])
     return out

@@ -27,13 +27,11 @@ import numpy as np
 
 from sagonline.core.errors import PromptError
 from sagonline.core.machine import DEVICE_DEFAULT, resolve_device
-from sagonline.core.progress import Progress
 from sagonline.core.provenance import digest_file
+from sagonline.pipeline.events import StageOneBars
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.settings import RendererSettings
 from sagonline.pipeline.stage_one import (
-    FrameRendered,
-    MaskReady,
     PipelineSettings,
     StageOne,
     StageOneConfig,
@@ -210,11 +208,10 @@ def segment_scene(
         cache=StageCache(cache_dir),
     )
     engine = StageOne(config, prompt)
-    steps = Progress("segment and vote", 2 * len(cameras), enabled=progress)
+    bars = StageOneBars(len(cameras), enabled=progress)
     for event in engine.stream():
-        if isinstance(event, (FrameRendered, MaskReady)):
-            steps.update()
-    steps.close()
+        bars.update(event)
+    bars.close()
     stage_one = engine.result()
     frames, seg, v = stage_one.frames.value, stage_one.masks.value, stage_one.vote.value
     warn_sparse_views(frames.images, cameras, settings.background)
