@@ -105,14 +105,14 @@ def load_views(
 
 
 def photographs_named(cameras: str | Path) -> str:
-    """", sized and named by its images_8/ photographs" where LLFF poses took their size and
-    names from a photo folder (`llff.photo_folder`), else ""."""
+    """ ", sized and named by the images of its images_8/" where LLFF poses took their size and
+    names from a folder beside them (`llff.photo_folder`), else ""."""
     from sagonline.scene.io.cameras import camera_source
     from sagonline.scene.io.llff import photo_folder
 
     source = camera_source(cameras)
     folder = photo_folder(source.parent) if source.name == "poses_bounds.npy" else None
-    return f", sized and named by its {folder}/ photographs" if folder else ""
+    return f", sized and named by the images of its {folder}/" if folder else ""
 
 
 def view_index(text: str, cams: list[Camera]) -> int:

@@ -114,20 +114,20 @@ def test_transforms_json_errors(tmp_path):
         load_cameras(empty)
 
 
-def test_llff_cameras_take_the_size_and_names_of_the_photographs_beside_them(tmp_path):
-    """Full-resolution poses (64x48) with images_2/ and images_4/ of one photograph per pose
-    and images_8/ of fewer: the most downsampled full folder sizes and names the cameras, and its
-    photographs are among the cameras' input files; with no full folder, the poses' own."""
+def test_llff_cameras_take_the_size_and_names_of_the_images_beside_them(tmp_path):
+    """Full-resolution poses (64x48) with images_2/, images_4/ and masks_2/ of one image per pose
+    and images_8/ of fewer: the most downsampled photographs size and name the cameras, and are
+    among the cameras' input files; without them, the masks (the NeRD captures' layout); with
+    no folder of one image per pose, the poses' own size and numbers."""
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.views import load_views
     from tests.fixtures import orbit_cameras, write_image, write_poses_bounds
 
     write_poses_bounds(tmp_path / "poses_bounds.npy", orbit_cameras(3, 64, 48))
-    for folder, factor, count in (("images_2", 2, 3), ("images_4", 4, 3), ("images_8", 8, 2)):
+    folders = (("images_2", 2, 3), ("images_4", 4, 3), ("images_8", 8, 2), ("masks_2", 2, 3))
+    for folder, factor, count in folders:
         for i in range(count):
-            write_image(
-                tmp_path / folder / f"IMG_{i}.png", np.zeros((48 // factor, 64 // factor, 3))
-            )
+            write_image(tmp_path / folder / f"IMG_{i}.png", np.zeros((48 // factor, 64 // factor)))
     cams = load_cameras(tmp_path)
     assert [(c.name, c.width, c.height) for c in cams] == [(f"IMG_{i}", 16, 12) for i in range(3)]
     full = load_llff(tmp_path)
@@ -137,19 +137,27 @@ def test_llff_cameras_take_the_size_and_names_of_the_photographs_beside_them(tmp
         tmp_path / "poses_bounds.npy",
         *(tmp_path / "images_4" / f"IMG_{i}.png" for i in range(3)),
     ]
-    assert "sized and named by its images_4/ photographs" in load_views(tmp_path).source
+    assert "sized and named by the images of its images_4/" in load_views(tmp_path).source
     for folder in ("images_2", "images_4"):
         (tmp_path / folder / "IMG_2.png").unlink()
+    cams = load_cameras(tmp_path / "poses_bounds.npy")
+    assert [(c.name, c.width) for c in cams] == [(f"IMG_{i}", 32) for i in range(3)]
+    assert "the images of its masks_2/" in load_views(tmp_path).source
+    (tmp_path / "masks_2" / "IMG_2.png").unlink()
     cams = load_cameras(tmp_path / "poses_bounds.npy")
     assert [(c.name, c.width) for c in cams] == [(f"{i:05d}", 64) for i in range(3)]
     assert camera_input_files(tmp_path) == [tmp_path / "poses_bounds.npy"]
     assert "sized and named" not in load_views(tmp_path).source
 
 
-def test_fern_folder_gives_its_images_8_cameras():
-    cams = load_cameras(shared_data("llff_fern"))
-    first = cams[0]
-    assert len(cams) == 20 and (first.name, first.width, first.height) == ("image000", 504, 378)
+def test_real_llff_folders_give_cameras_at_their_images_size_and_names():
+    """fern: its images_8/ (20 photographs); mold_cape: its masks_4/ (119 masks, 24 photographs
+    of them), whose names the photographs share."""
+    fern = load_cameras(shared_data("llff_fern"))
+    first = fern[0]
+    assert len(fern) == 20 and (first.name, first.width, first.height) == ("image000", 504, 378)
+    cape = load_cameras(shared_data("mold_cape"))
+    assert len(cape) == 119 and (cape[0].name, cape[0].width) == ("IMG_5881", 912)
 
 
 def test_llff_name_count_mismatch():

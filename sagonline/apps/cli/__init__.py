@@ -56,8 +56,8 @@ def joined_values(argv: list[str]) -> list[str]:
 
 def main(argv: list[str] | None = None) -> int:
     """Run one command; returns its exit status (0: done, 2: a problem with the input, 1: an
-    unexpected failure, 130: interrupted). SAGONLINE_DEBUG=1 shows the traceback of an
-    unexpected failure."""
+    unexpected failure, 130: interrupted, 141: its output's reader went away).
+    SAGONLINE_DEBUG=1 shows the traceback of an unexpected failure."""
     import warnings
 
     from sagonline.core.errors import DatasetError
@@ -69,7 +69,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     try:
         args = build_parser().parse_args(joined_values(sys.argv[1:] if argv is None else argv))
-        return args.func(args)
+        status = args.func(args)
+        sys.stdout.flush()  # a reader that went away is met here, not at the interpreter's exit
+        return status
+    except BrokenPipeError:  # `sagonline cameras X | head`: the reader has what it wanted
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # for the exit's flush
+        return 141  # as a shell reports a writer its pipe's SIGPIPE ended
     except KeyboardInterrupt:
         print("interrupted: nothing was left half-written", file=sys.stderr)
         return 130

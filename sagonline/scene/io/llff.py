@@ -62,17 +62,19 @@ def load_llff(
 
 
 def photo_folder(scene_dir: str | Path) -> str | None:
-    """The folder beside `poses_bounds.npy` with one photograph per pose, LLFF's `images/` or a
-    downsampled `images_<N>/`: where several have one per pose, the most downsampled (the
-    lightest renders; a command's --width/--height give any other size). None where none has."""
+    """The folder beside `poses_bounds.npy` with one image per pose, to size and name its
+    cameras by: LLFF's photographs, `images/` or a downsampled `images_<N>/`, else a `masks/` or
+    `masks_<N>/` (the NeRD captures': a mask for every pose, photographs of some). Of several,
+    the most downsampled (the lightest renders; a command's --width/--height give any other
+    size). None where no folder has one image per pose."""
     scene_dir = Path(scene_dir)
     poses = len(read_poses_bounds(scene_dir / "poses_bounds.npy"))
-    factors = {}
+    ranked = {}
     for folder in scene_dir.iterdir() if scene_dir.is_dir() else ():
-        found = re.fullmatch(r"images(?:_(\d+))?", folder.name)
+        found = re.fullmatch(r"(images|masks)(?:_(\d+))?", folder.name)
         if found and folder.is_dir() and len(list_images(folder)) == poses:
-            factors[folder.name] = int(found.group(1) or 1)
-    return max(factors, key=lambda name: (factors[name], name)) if factors else None
+            ranked[folder.name] = (found.group(1) == "images", int(found.group(2) or 1))
+    return max(ranked, key=lambda name: (ranked[name], name)) if ranked else None
 
 
 def read_npy(path: Path, error: type[Exception]) -> np.ndarray:

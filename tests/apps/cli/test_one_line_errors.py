@@ -106,3 +106,25 @@ def test_export_of_a_metrics_list_is_one_line(tmp_path, capsys):
     (tmp_path / "metrics.json").write_text("[1, 2]")
     assert main(["export", str(tmp_path)]) == 2
     error_line(capsys, "holds a list, not a JSON object")
+
+
+def test_a_reader_that_goes_away_is_no_error(tmp_path):
+    """`sagonline cameras X | head -1`: the pipe closed before the listing is written ends the
+    command quietly with 141 (a shell's status for a writer ended by SIGPIPE), not with
+    'error: [Errno 32] Broken pipe'."""
+    import subprocess
+    import sys
+
+    from tests.fixtures import ROOT, orbit_cameras, write_nerf_transforms
+
+    cams = write_nerf_transforms(tmp_path / "transforms.json", orbit_cameras(3))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "sagonline", "cameras", str(cams)],
+        cwd=ROOT,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    proc.stdout.close()  # the reader is gone before a line is written
+    err = proc.stderr.read()
+    assert proc.wait(timeout=60) == 141 and err == "", err

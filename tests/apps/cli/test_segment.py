@@ -420,7 +420,11 @@ def test_progress_off_a_terminal_is_plain_lines(tmp_path, capsys):
     err = capsys.readouterr().err
     assert "\r" not in err
     assert "segmenting 12 views with classical ..." in err
-    assert "render: 12 to do" in err and "segment and vote: 12 to do" in err and "label renders: 12 of 12 done in" in err
+    assert (
+        "render: 12 to do" in err
+        and "segment and vote: 12 to do" in err
+        and "label renders: 12 of 12 done in" in err
+    )
 
 
 def test_views_that_show_almost_nothing_are_named(monkeypatch):
