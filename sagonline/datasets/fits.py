@@ -78,13 +78,24 @@ def find_trained_scene(scene_dir: Path, dataset: str | None = None, variant: str
     )
     if iterations:
         return iterations[-1]
+    # where `make scenes` would write it: the project's overlay for data on a read-only disk
+    home = scene_dir
+    if dataset is not None and scene_dir.is_dir() and read_only(scene_dir):
+        home = SCENES_ROOT / dataset / scene_dir.name
+    why = f" ({scene_dir} is read-only)" if home != scene_dir else ""
     raise DatasetError(
         f"no trained scene for {scene_dir.name}: expected "
-        f"{scene_dir / fit_folder(variant) / 'point_cloud.ply'}; "
+        f"{home / fit_folder(variant) / 'point_cloud.ply'}{why}; "
         + TRAINED_SCENE_HELP.format(
-            dir=scene_dir, folder=fit_folder(variant), fit=fit_args(dataset, variant)
+            dir=home, folder=fit_folder(variant), fit=fit_args(dataset, variant)
         )
     )
+
+
+def read_only(folder: Path) -> bool:
+    """A folder whose owner-write bit is off: read-only for the project even for root (who
+    could write anyway), so shared, read-only data is never modified."""
+    return not (folder.stat().st_mode & stat.S_IWUSR)
 
 
 def fit_args(dataset: str | None, variant: str = "") -> str:
@@ -141,10 +152,9 @@ def load_trained_scene(
 
 def output_dir(scene_dir: Path, dataset: str, variant: str = "") -> Path:
     """`<scene>/gaussians/` (`gaussians-<variant>/`) when the data folder is writable, else the
-    project's overlay. A folder whose owner-write bit is off counts as read-only even for root
-    (who could write anyway), so shared, read-only data is never modified."""
+    project's overlay (a `read_only` data folder, or one that refuses a file)."""
     own = scene_dir / fit_folder(variant)
-    if not (scene_dir.stat().st_mode & stat.S_IWUSR):
+    if read_only(scene_dir):
         return SCENES_ROOT / dataset / scene_dir.name / fit_folder(variant)
     try:
         own.mkdir(parents=True, exist_ok=True)

@@ -685,6 +685,31 @@ def test_each_draw_of_the_recipe_has_a_folder_of_its_own(tmp_path):
         find_trained_scene(scene, "cap", "seed1")  # the message names the draw's folder and fit
 
 
+def test_a_missing_fit_of_read_only_data_is_expected_where_make_scenes_writes(
+    tmp_path, monkeypatch
+):
+    """Shared data on a read-only disk: its fits live in the project's scenes/ overlay, and the
+    refusal names that path, not one inside the data folder that nobody can write."""
+    import sagonline.datasets.fits as fits
+
+    monkeypatch.setattr(fits, "SCENES_ROOT", tmp_path / "scenes")
+    scene = tmp_path / "data" / "cap"
+    scene.mkdir(parents=True)
+    scene.chmod(0o555)
+    try:
+        with pytest.raises(fits.DatasetError) as refused:
+            fits.find_trained_scene(scene, "capset")
+        assert (
+            fits.output_dir(scene, "capset") == tmp_path / "scenes" / "capset" / "cap" / "gaussians"
+        )
+    finally:
+        scene.chmod(0o755)
+    expected = tmp_path / "scenes" / "capset" / "cap" / "gaussians" / "point_cloud.ply"
+    assert f"expected {expected} ({scene} is read-only); put" in str(refused.value)
+    with pytest.raises(fits.DatasetError, match=f"expected {scene}/gaussians/point_cloud.ply; put"):
+        fits.find_trained_scene(scene, "capset")
+
+
 def test_a_second_fit_into_the_same_folder_is_refused(tmp_path, monkeypatch):
     """Two `make scenes` of one scene and seed at once would interleave their checkpoints and
     files: the second is refused while the first holds the folder."""
