@@ -165,8 +165,9 @@ class PromptParser:
         empty = [o.name for o in self.objects.values() if not o.points and o.mask is None]
         if empty:
             raise PromptError(
-                f"object {empty[0]!r} has no positive click and no mask (a negative click "
-                "alone says what it is not)"
+                f"object {empty[0]!r} has no positive click and no mask: an --object takes the "
+                f"--click and --mask after it (`--object {empty[0]} --click VIEW:X,Y`); a "
+                "negative click alone says what it is not"
             )
         if not self.texts and not self.objects:
             raise PromptError("no prompt: give --click, --mask or --text (or --preview VIEW)")

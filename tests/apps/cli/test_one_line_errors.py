@@ -66,6 +66,10 @@ def test_the_small_refusals_say_what_to_do(tmp_path, capsys):
             ["segment", "{ply}", "--cameras", "{cams}", "--object", "chair"],
             "has no positive click and no mask",
         ),
+        (  # the name after its click: the click went to a first, unnamed object
+            ["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--object", "chair"],
+            "an --object takes the --click and --mask after it (`--object chair --click VIEW:X,Y`)",
+        ),
         (["segment", "{ply}", "--cameras", "{cams}", "--text", "a vase"], "does not read text"),
         (
             ["segment", "{ply}", "--cameras", "{cams}", "--click", "0:5,5", "--device", "cuda"],
