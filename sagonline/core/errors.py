@@ -23,4 +23,14 @@ class PromptError(ValueError):
     """A prompt that does not fit the scene's views; says which and why."""
 
 
-__all__ = ["CameraFileError", "DatasetError", "PromptError", "SceneFileError"]
+class NativeBuildError(RuntimeError):
+    """The C++ rasterizer could not be compiled here (no compiler, no ninja, ...)."""
+
+
+__all__ = [
+    "CameraFileError",
+    "DatasetError",
+    "NativeBuildError",
+    "PromptError",
+    "SceneFileError",
+]

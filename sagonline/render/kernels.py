@@ -15,13 +15,11 @@ import sys
 import time
 from pathlib import Path
 
+from sagonline.core.errors import NativeBuildError
+
 CSRC = Path(__file__).parent / "csrc"
 SOURCES = (CSRC / "raster_cpu.cpp", CSRC / "prepare_view.cpp", CSRC / "vote_cpu.cpp")
 HEADERS = (CSRC / "splat_common.h",)
-
-
-class NativeBuildError(RuntimeError):
-    """The C++ rasterizer could not be compiled here (no compiler, no ninja, ...)."""
 
 
 def kernel_root() -> Path:

@@ -22,17 +22,50 @@ import argparse
 import os
 import sys
 
+# Each command: the module of this package that declares it, and its line in `--help`
+COMMANDS = {
+    "info": ("inspect", "format, Gaussian count, SH degree, bounding box"),
+    "cameras": (
+        "inspect",
+        "every view's index, name and size, in the order every command numbers them",
+    ),
+    "plugins": ("inspect", "the registered segmenters, datasets, vote rules"),
+    "render": ("render", "render one view to PNG or .npy (float32 HxWx3)"),
+    "segment": (
+        "segment",
+        "segment a scene from clicks, masks or text; write labels, object PLYs, renders",
+    ),
+    "view": ("view", "segment a scene in the browser: click, watch the labels form, export"),
+    "figure": ("figure", "a picture of a segment folder: render | labels | each object alone"),
+    "export": ("export", "a finished eval run's labels as files (per scene)"),
+    "score": ("score", "re-score label maps (a run's, or a peer's) by our rules"),
+}
 
-def build_parser() -> argparse.ArgumentParser:
-    from sagonline.apps.cli import export, figure, inspect, render, score, segment, view
+
+def command_parser(sub, name: str) -> argparse.ArgumentParser:
+    """The sub-parser of command `name`, with its line from COMMANDS."""
+    return sub.add_parser(name, help=COMMANDS[name][1])
+
+
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The command line's parser. With `argv`, only the module of the command it names is
+    imported, the others' commands are listed by name and line: `sagonline --help`, a typo
+    in a command's name and `sagonline info --help` need no PyTorch (about 2 s)."""
+    import importlib
 
     parser = argparse.ArgumentParser(
         prog="sagonline",
         description="Segment any Gaussians online: inspect, render, segment and export scenes.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
-    for module in (inspect, render, segment, view, figure, export, score):
-        module.add_parsers(sub)
+    named = next((a for a in argv if not a.startswith("-")), None) if argv is not None else None
+    wanted = {COMMANDS[named][0]} if named in COMMANDS else set()
+    for module in dict.fromkeys(m for m, _ in COMMANDS.values()):
+        if argv is None or module in wanted:
+            importlib.import_module(f"sagonline.apps.cli.{module}").add_parsers(sub)
+        else:
+            for name in (c for c, (m, _) in COMMANDS.items() if m == module):
+                command_parser(sub, name)
     return parser
 
 
@@ -60,15 +93,15 @@ def main(argv: list[str] | None = None) -> int:
     SAGONLINE_DEBUG=1 shows the traceback of an unexpected failure."""
     import warnings
 
-    from sagonline.core.errors import DatasetError
-    from sagonline.render.kernels import NativeBuildError
+    from sagonline.core.errors import DatasetError, NativeBuildError
 
     # the library's warnings are said as one line each, not with the source line that raised them
     warnings.formatwarning = lambda message, category, *_, **__: (
         f"warning: {message}\n" if issubclass(category, UserWarning) else f"{message}\n"
     )
     try:
-        args = build_parser().parse_args(joined_values(sys.argv[1:] if argv is None else argv))
+        argv = joined_values(sys.argv[1:] if argv is None else argv)
+        args = build_parser(argv).parse_args(argv)
         status = args.func(args)
         sys.stdout.flush()  # a reader that went away is met here, not at the interpreter's exit
         return status

@@ -11,7 +11,9 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    exp = sub.add_parser("export", help="a finished eval run's labels as files (per scene)")
+    from sagonline.apps.cli import command_parser
+
+    exp = command_parser(sub, "export")
     exp.add_argument("run_dir")
     exp.add_argument(
         "--out",

@@ -20,9 +20,9 @@ TITLE_PX = 22  # height of the title strip above the columns
 
 
 def add_parsers(sub) -> None:
-    fig = sub.add_parser(
-        "figure", help="a picture of a segment folder: render | labels | each object alone"
-    )
+    from sagonline.apps.cli import command_parser
+
+    fig = command_parser(sub, "figure")
     fig.add_argument("folder", help="a `sagonline segment` output folder")
     fig.add_argument(
         "--views", default="0", help="comma-separated view indices of the folder (default 0)"

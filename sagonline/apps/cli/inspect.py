@@ -8,19 +8,18 @@ from pathlib import Path
 
 
 def add_parsers(sub) -> None:
-    info = sub.add_parser("info", help="format, Gaussian count, SH degree, bounding box")
+    from sagonline.apps.cli import command_parser
+
+    info = command_parser(sub, "info")
     info.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     info.add_argument("--drop-nonfinite", action="store_true", help="drop NaN/Inf rows")
     info.set_defaults(func=cmd_info)
-    cams = sub.add_parser(
-        "cameras",
-        help="every view's index, name and size, in the order every command numbers them",
-    )
+    cams = command_parser(sub, "cameras")
     cams.add_argument(
         "cameras", help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz"
     )
     cams.set_defaults(func=cmd_cameras)
-    plugins = sub.add_parser("plugins", help="the registered segmenters, datasets, vote rules")
+    plugins = command_parser(sub, "plugins")
     plugins.add_argument(
         "kind", nargs="?", choices=["segmenters", "datasets", "vote-rules"], default=None
     )

@@ -15,7 +15,9 @@ OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
 
 
 def add_parsers(sub) -> None:
-    rend = sub.add_parser("render", help="render one view to PNG or .npy (float32 HxWx3)")
+    from sagonline.apps.cli import command_parser
+
+    rend = command_parser(sub, "render")
     rend.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     add_view_arguments(rend)
     rend.add_argument(

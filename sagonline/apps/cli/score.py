@@ -32,7 +32,9 @@ from sagonline.score.rescore import compare_recorded, read_rules, recorded_metri
 
 
 def add_parsers(sub) -> None:
-    ap = sub.add_parser("score", help="re-score label maps (a run's, or a peer's) by our rules")
+    from sagonline.apps.cli import command_parser
+
+    ap = command_parser(sub, "score")
     ap.add_argument("folders", type=Path, nargs="+", help="RUN_DIR, or PRED_DIR GT_DIR")
     ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
     ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")
@@ -66,7 +68,7 @@ def main(argv: list[str]) -> dict:
     from sagonline.apps.cli import build_parser
 
     try:
-        return score(folders_of(build_parser().parse_args(["score", *argv])))
+        return score(folders_of(build_parser(["score"]).parse_args(["score", *argv])))
     except DatasetError as exc:
         print(f"error: {exc}", file=sys.stderr)
         raise SystemExit(2) from None

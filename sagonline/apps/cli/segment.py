@@ -35,10 +35,9 @@ class PromptItems(argparse.Action):
 
 
 def add_parsers(sub) -> None:
-    seg = sub.add_parser(
-        "segment",
-        help="segment a scene from clicks, masks or text; write labels, object PLYs, renders",
-    )
+    from sagonline.apps.cli import command_parser
+
+    seg = command_parser(sub, "segment")
     seg.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     add_view_arguments(seg)
     prompts = seg.add_argument_group(f"prompts (all on one view; {CLICK_HELP})")

@@ -18,10 +18,9 @@ from sagonline.render.backends import BACKENDS
 
 
 def add_parsers(sub) -> None:
+    from sagonline.apps.cli import command_parser
 
-    view = sub.add_parser(
-        "view", help="segment a scene in the browser: click, watch the labels form, export"
-    )
+    view = command_parser(sub, "view")
     view.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     add_view_arguments(view)
     add_segmenter_arguments(view)

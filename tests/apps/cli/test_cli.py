@@ -147,6 +147,34 @@ def test_one_view_numbering_for_every_command(tmp_path, capsys):
     assert (prompt["view"], prompt["view_name"], prompt["render_size"]) == (2, "r_10", [48, 36])
 
 
+def test_the_overview_and_a_light_commands_help_import_no_torch():
+    """`sagonline --help`, no command, a misspelt one and `sagonline info --help` build only
+    what they show: PyTorch (about 2 s) is not imported, and the overview lists every command
+    with the line the full parser gives it."""
+    import subprocess
+    import sys
+
+    from sagonline.apps.cli import build_parser
+    from tests.fixtures import ROOT
+
+    code = (
+        "import sys\n"
+        "from sagonline.apps.cli import main\n"
+        "try:\n"
+        "    status = main(sys.argv[1:])\n"
+        "except SystemExit as exc:\n"
+        "    status = exc.code\n"
+        "print('torch imported:', 'torch' in sys.modules, 'status:', status, file=sys.stderr)\n"
+    )
+    for argv, status in (["--help"], 0), ([], 2), (["rendr", "x"], 2), (["info", "--help"], 0):
+        run = subprocess.run(
+            [sys.executable, "-c", code, *argv], cwd=ROOT, capture_output=True, text=True
+        )
+        last = run.stderr.splitlines()[-1]
+        assert last == f"torch imported: False status: {status}", (argv, run.stderr)
+    assert build_parser(["--help"]).format_help() == build_parser().format_help()
+
+
 def test_render_defaults_to_the_backend_everything_else_takes():
     """`sagonline render` defaults to backend auto (it said torch) and device auto, as
     `segment`, `view` and the evaluation do."""
