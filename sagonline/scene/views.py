@@ -84,7 +84,7 @@ def load_views(
     cams = pseudo_temporal_order(load_cameras(cameras))
     if not cams:
         raise ViewError(f"{cameras}: holds no cameras (no images in the model?)")
-    source = f"{len(cams)} cameras of {cameras}{photographs_named(cameras)}, sorted by name"
+    source = f"{len(cams)} cameras of {cameras}{sized_by_images(cameras)}, sorted by name"
     if orbit:
         if gaussians is None:
             raise ViewError("--orbit needs the scene")
@@ -104,15 +104,13 @@ def load_views(
     return Views(cams, source)
 
 
-def photographs_named(cameras: str | Path) -> str:
+def sized_by_images(cameras: str | Path) -> str:
     """ ", sized and named by the images of its images_8/" where LLFF poses took their size and
-    names from a folder beside them (`llff.photo_folder`), else ""."""
-    from sagonline.scene.io.cameras import camera_source
-    from sagonline.scene.io.llff import photo_folder
+    names from a folder beside them (`cameras.llff_image_folder`), else ""."""
+    from sagonline.scene.io.cameras import llff_image_folder
 
-    source = camera_source(cameras)
-    folder = photo_folder(source.parent) if source.name == "poses_bounds.npy" else None
-    return f", sized and named by the images of its {folder}/" if folder else ""
+    folder = llff_image_folder(cameras)
+    return f", sized and named by the images of its {folder.name}/" if folder else ""
 
 
 def view_index(text: str, cams: list[Camera]) -> int:

@@ -26,6 +26,7 @@ __all__ = [
     "CameraFileError",
     "camera_input_files",
     "camera_source",
+    "llff_image_folder",
     "load_cameras",
     "load_colmap",
     "load_llff",
@@ -101,8 +102,18 @@ def camera_input_files(path: str | Path) -> list[Path]:
     source = camera_source(path)
     if source.is_dir():
         return sorted(p for p in source.iterdir() if p.is_file())
-    folder = photo_folder(source.parent) if source.name == "poses_bounds.npy" else None
-    return [source, *(list_images(source.parent / folder) if folder else [])]
+    folder = llff_image_folder(source)
+    return [source, *(list_images(folder) if folder else [])]
+
+
+def llff_image_folder(path: str | Path) -> Path | None:
+    """The folder whose images size and name the cameras `load_cameras(path)` reads from LLFF
+    poses (`llff.photo_folder`); None for any other camera file, or poses without one."""
+    source = camera_source(path)
+    if source.is_dir() or source.name != "poses_bounds.npy":
+        return None
+    folder = photo_folder(source.parent)
+    return source.parent / folder if folder else None
 
 
 def _load_cameras(path: Path, **kwargs) -> list[Camera]:
