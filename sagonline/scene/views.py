@@ -105,8 +105,9 @@ def load_views(
 
 
 def sized_by_images(cameras: str | Path) -> str:
-    """ ", sized and named by the images of its images_8/" where LLFF poses took their size and
-    names from a folder beside them (`cameras.llff_image_folder`), else ""."""
+    """The views line's ', sized and named by the images of its images_8/' where LLFF poses
+    took their size and names from a folder beside them (`cameras.llff_image_folder`), else
+    nothing."""
     from sagonline.scene.io.cameras import llff_image_folder
 
     folder = llff_image_folder(cameras)

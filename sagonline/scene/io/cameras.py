@@ -43,7 +43,7 @@ def load_cameras(path: str | Path, **kwargs) -> list[Camera]:
     """Load cameras from any supported file or folder.
 
     `cameras.json` (3DGS output), `transforms*.json` (NeRF/Blender), `poses_bounds.npy` (LLFF;
-    sized and named by the photographs beside it: `llff.photo_folder`),
+    sized and named by the images beside it: `llff.photo_folder`),
     a COLMAP sparse folder (`cameras.bin`/`images.bin` or `.txt`), or a `.npz` with `viewmats`,
     `Ks`, `width`, `height`. A JSON file is read as NeRF or 3DGS by its content, whatever its
     name. A dataset folder is searched for those in that order. Every camera is validated
@@ -98,7 +98,7 @@ def camera_source(path: str | Path) -> Path:
 
 def camera_input_files(path: str | Path) -> list[Path]:
     """Every file `load_cameras(path)` reads (a COLMAP model: the files of its folder; LLFF
-    poses: with the photographs that size and name them, `photo_folder`)."""
+    poses: with the images that size and name them, `llff_image_folder`)."""
     source = camera_source(path)
     if source.is_dir():
         return sorted(p for p in source.iterdir() if p.is_file())
@@ -124,7 +124,7 @@ def _load_cameras(path: Path, **kwargs) -> list[Camera]:
         raise CameraFileError(f"{path}: camera file not found")
     name = path.name
     if name == "poses_bounds.npy":
-        # sized and named by the photographs beside it where a folder holds one per pose
+        # sized and named by the images beside it where a folder holds one per pose
         return load_llff(path.parent, **(kwargs or {"image_dir": photo_folder(path.parent)}))
     if name.endswith(".json"):
         try:
