@@ -20,14 +20,18 @@ if os.environ.get("PYTEST_XDIST_WORKER"):
 
 from tests.fixtures import random_gaussians
 
+TEST_HOME = pytest.StashKey[Path]()
+
 
 def pytest_configure(config) -> None:
     """The suite writes only below a temporary folder: caches that default to the home folder
     (the file digests' memo, matplotlib's, YOLO's settings, XDG caches) go to one of the run's
-    own, for this process and every process it starts."""
+    own, for this process and every process it starts; removed when the process ends
+    (`pytest_unconfigure`; under pytest-xdist each worker has its own)."""
     import tempfile
 
     home = Path(tempfile.mkdtemp(prefix="sagonline-tests-home-"))
+    config.stash[TEST_HOME] = home
     for var, sub in (
         ("SAGONLINE_DIGEST_CACHE", "digests.json"),
         ("XDG_CACHE_HOME", "cache"),
@@ -46,6 +50,15 @@ def pytest_configure(config) -> None:
         "sagonline", database=DirectoryBasedExampleDatabase(str(home / "hypothesis"))
     )
     settings.load_profile("sagonline")
+
+
+def pytest_unconfigure(config) -> None:
+    """The run's home folder goes (tens of MB of caches a run, left in /tmp otherwise)."""
+    import shutil
+
+    home = config.stash.get(TEST_HOME, None)
+    if home is not None:
+        shutil.rmtree(home, ignore_errors=True)
 
 
 def pytest_collection_modifyitems(config, items) -> None:
