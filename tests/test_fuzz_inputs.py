@@ -210,6 +210,7 @@ FIELDS = st.sampled_from(
         ("segmenter",),
         ("segmenter", "options"),
         ("inbetween",),
+        ("every",),
         ("inputs",),
     ]
 )

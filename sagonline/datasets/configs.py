@@ -74,6 +74,9 @@ class PosedMasksConfig:
     order: str = "name"
     """Video order: name (the NVOS/SPIn-NeRF protocol) | path (shortest path through the poses
     from the reference view)."""
+    every: int = 1
+    """Render and segment every `every`-th view of the video only (and the reference view): a
+    segmenter's time over `every`, a sparser video for it; every view is still scored."""
     inbetween: int = 0
     """Cameras slerped between consecutive views (rendered for the segmenter only)."""
     seed: int = 0
@@ -97,6 +100,7 @@ class PosedMasksConfig:
                 self.fit,
                 "a fit variant's plain name (letters, digits, - _ .), never a path",
             ),
+            every=(self.every >= 1, self.every, ">= 1"),
             inbetween=(self.inbetween >= 0, self.inbetween, ">= 0"),
             mask_threshold=(0 <= self.mask_threshold < 256, self.mask_threshold, "in [0, 256)"),
         )

@@ -45,7 +45,8 @@ from sagonline.scene.cameras import Camera
 from sagonline.scene.io.cameras import CameraFileError, read_poses_bounds
 from sagonline.scene.io.images import IMAGE_SUFFIXES, resize_nearest
 from sagonline.scene.io.ply import fitted_background
-from sagonline.scene.trajectory import insert_between, nearest_view, shortest_path_order
+from sagonline.scene.trajectory import nearest_view, shortest_path_order
+from sagonline.scene.views import trajectory
 from sagonline.segment.prompts import Prompt
 
 
@@ -81,6 +82,7 @@ class PosedMasksDataset(DatasetAdapter):
         self.readme = cfg.readme or f"datasets/{name}/README.md"
         self.render_max_side = cfg.render_max_side
         self.order, self.inbetween = cfg.order, int(cfg.inbetween)
+        self.every = int(cfg.every)
         self.drop_nonfinite = cfg.drop_nonfinite
 
     # --- discovery ----------------------------------------------------------------------------
@@ -311,14 +313,16 @@ class PosedMasksDataset(DatasetAdapter):
         if self.order == "path":  # the video starts at the prompt and moves as little as it can
             start = [c.name for c in cams].index(reference)
             cams = [cams[i] for i in shortest_path_order(cams, start)]
-        cams = insert_between(cams, self.inbetween)  # rendered only: no mask, no photograph
+        views = cams  # every view: the photographed ones are found among them
+        keep = [c.name for c in cams].index(reference)
+        cams = trajectory(cams, every=self.every, keep=keep, inbetween=self.inbetween)
         frame = [c.name for c in cams].index(reference)
         prompt = self.make_prompt(gts[reference], by_name[reference], frame, num_labels, names)
         scored = [n for n in sorted(gts) if not (self.exclude_reference and n == reference)]
         evals = [EvalView(by_name[n], gts[n], n) for n in scored]
-        photographs = self.photographed(scene, scene_dir, cams)
+        photographs = self.photographed(scene, scene_dir, views)
         check_photographs_of_the_fit(scene_file, scene_dir, photographs, self.expected_photos)
-        view_groups = group_by_photographs(evals, cams, photographs)
+        view_groups = group_by_photographs(evals, views, photographs)
         traj_gt = None
         if all(c.name in gts for c in cams):
             traj_gt = [resize_nearest(gts[c.name], (c.height, c.width)) for c in cams]

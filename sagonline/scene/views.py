@@ -8,6 +8,9 @@ index in it, or a camera's name; from Python, `load_views` gives the same list. 
 or, for a scene without cameras, around its bounds; `--inside`: from its centre looking out,
 for a room seen from within), numbered in ring order.
 
+`segment --every N` and `view --every N` render and segment views 0, N, 2N, ... only (and
+the prompt's view: `segmented_views`); those keep their numbers and names.
+
 Clicks are pixels of the view **at its render size** (`--width`/`--height`, else the
 camera's own size): x to the right, y down, origin at the top-left corner.
 """
@@ -132,6 +135,47 @@ def view_index(text: str, cams: list[Camera]) -> int:
     raise ViewError(f"no view named {text!r} (views: {shown}; `sagonline cameras` lists them)")
 
 
+def segmented_views(cams: list[Camera], every: int = 1, keep: int = 0) -> list[Camera]:
+    """The views a segmenter watches: every `every`-th of `cams` (0, every, 2 every, ...) and
+    cams[keep] (the prompt's view), in their order; the others are neither rendered nor
+    segmented. Each keeps its name, so clicks and files keep `sagonline cameras`' numbering."""
+    if every < 1:
+        raise ViewError(f"--every {every}: must be 1 (every view) or more")
+    if not 0 <= keep < len(cams):
+        raise ViewError(f"view {keep} is out of range: there are {len(cams)} views")
+    return [c for i, c in enumerate(cams) if i % every == 0 or i == keep]
+
+
+def trajectory(
+    cams: list[Camera], *, every: int = 1, keep: int = 0, inbetween: int = 0
+) -> list[Camera]:
+    """What `segment` renders, segments and votes from, and what `figure` rebuilds from a
+    segment folder's labels.json: `segmented_views`, then `inbetween` views slerped between
+    each consecutive pair (`trajectory.insert_between`)."""
+    from sagonline.scene.trajectory import insert_between
+
+    return insert_between(segmented_views(cams, every, keep), inbetween)
+
+
+def every_line(cams: list[Camera], every: int, keep: int, length: int | None = None) -> str:
+    """'50 of 198 views (every 4th, and the prompt's view 7)', '198 views' for every view;
+    with the trajectory's `length`, the views slerped in between too ('... and 49 in between')."""
+    picked = len(segmented_views(cams, every, keep))
+    line = f"{len(cams)} views"
+    if every > 1:
+        extra = f", and the prompt's view {keep}" if keep % every else ""
+        line = f"{picked} of {len(cams)} views (every {ordinal(every)}{extra})"
+    if length is not None and length > picked:
+        line += f" and {length - picked} in between"
+    return line
+
+
+def ordinal(n: int) -> str:
+    """2 -> '2nd', 11 -> '11th', 23 -> '23rd'."""
+    last = "th" if n % 100 in (11, 12, 13) else {1: "st", 2: "nd", 3: "rd"}.get(n % 10, "th")
+    return f"{n}{last}"
+
+
 def check_trajectory(cams: list[Camera]) -> None:
     if len(cams) > MAX_TRAJECTORY:
         raise ViewError(
@@ -141,4 +185,13 @@ def check_trajectory(cams: list[Camera]) -> None:
         )
 
 
-__all__ = ["CLICK_HELP", "MAX_ORBIT", "MAX_TRAJECTORY", "ViewError", "Views", "load_views"]
+__all__ = [
+    "CLICK_HELP",
+    "MAX_ORBIT",
+    "MAX_TRAJECTORY",
+    "ViewError",
+    "Views",
+    "load_views",
+    "segmented_views",
+    "trajectory",
+]

@@ -312,6 +312,29 @@ def test_generic_photographed_views_path_order_and_per_view_split(tmp_path):
     assert [v.name for v in task.eval_views] == NAMES  # only the real views are scored
 
 
+def test_every_nth_view_is_segmented_and_every_view_scored(tmp_path):
+    """`every=4` on six views, the reference the fourth: the video is views 0, 3 and 4 (every
+    4th and the reference), the prompt on view 3; all six are scored, and the photographed
+    ones are found among all six, not only those of the video."""
+    from sagonline.pipeline import PipelineSettings, run_scene
+    from sagonline.segment.oracle import OracleSegmenter
+    from sagonline.vote.consensus import VoteConfig
+
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)
+    for n in NAMES[3:]:
+        (tmp_path / "cap" / "images_4" / f"{n}.JPG").unlink()
+    ds = PosedMasksDataset(tmp_path / "cap", mask_dir="masks", reference=NAMES[3], every=4)
+    task = ds.load_scene("cap")
+    assert [c.name for c in task.trajectory] == [NAMES[0], NAMES[3], NAMES[4]]
+    assert task.trajectory[task.prompt.frame].name == NAMES[3]
+    assert [v.name for v in task.eval_views] == NAMES and task.meta["photographs"] == NAMES[:3]
+    report, _ = run_scene(task, OracleSegmenter(), VoteConfig(), PipelineSettings(progress=False))
+    assert report.vote["num_masks"] == 3 and len(report.views) == 6 and report.miou > 0.5
+    with pytest.raises(DatasetError, match="every"):
+        PosedMasksDataset(tmp_path / "cap", every=0)
+
+
 def test_scene_renders_on_the_colour_it_was_fitted_on(tmp_path):
     """A fit on white (fit.background) is rendered on white for the segmenter; a scene
     without fit_config.json keeps the pipeline's black."""

@@ -240,3 +240,26 @@ def test_inside_view_zero_faces_the_deepest_part_of_the_room():
     forward = cams[0].cam_to_world[:3, 2].numpy()
     assert forward[0] > 0.9, forward  # +x: towards the far wall (the near one is 1.5 away)
     assert "view 0 faces the deepest part" in line
+
+
+def test_every_nth_view_keeps_the_prompts_view_and_the_order():
+    from dataclasses import replace
+
+    from sagonline.scene.views import ViewError, every_line, segmented_views, trajectory
+
+    cams = [replace(small_camera(), name=f"v{i:02d}") for i in range(10)]
+    assert [c.name for c in segmented_views(cams, 4, keep=5)] == ["v00", "v04", "v05", "v08"]
+    assert [c.name for c in segmented_views(cams, 4, keep=8)] == ["v00", "v04", "v08"]
+    assert segmented_views(cams, 1, keep=3) == cams
+    assert [c.name for c in segmented_views(cams, 11, keep=9)] == ["v00", "v09"]
+    assert every_line(cams, 4, 5) == "4 of 10 views (every 4th, and the prompt's view 5)"
+    assert every_line(cams, 2, 0) == "5 of 10 views (every 2nd)"
+    assert every_line(cams, 1, 3) == "10 views"
+    traj = trajectory(cams, every=4, keep=0, inbetween=1)
+    assert [c.name for c in traj] == ["v00", "v00+1", "v04", "v04+1", "v08"]
+    assert every_line(cams, 4, 0, len(traj)) == "3 of 10 views (every 4th) and 2 in between"
+    assert every_line(cams, 11, 0) == "1 of 10 views (every 11th)"
+    with pytest.raises(ViewError, match="--every 0"):
+        segmented_views(cams, 0)
+    with pytest.raises(ViewError, match="view 10 is out of range"):
+        segmented_views(cams, 2, keep=10)

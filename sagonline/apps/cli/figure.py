@@ -34,9 +34,9 @@ def add_parsers(sub) -> None:
 
 
 def folder_views(info: dict, scene) -> list:
-    """The segment folder's trajectory, as its labels.json records it."""
-    from sagonline.scene.trajectory import insert_between
-    from sagonline.scene.views import load_views
+    """The segment folder's trajectory, as its labels.json records it: its views (every
+    `every`-th and the prompt's) and the views slerped in between."""
+    from sagonline.scene.views import load_views, trajectory, view_index
 
     width, height = info["prompt"]["render_size"]
     views = load_views(
@@ -47,7 +47,9 @@ def folder_views(info: dict, scene) -> list:
         height=height,
         inside=bool(info.get("inside")),
     )
-    return insert_between(views.cameras, info.get("inbetween") or 0)
+    every = info.get("every") or 1
+    keep = view_index(info["prompt"].get("view_name", "0"), views.cameras) if every > 1 else 0
+    return trajectory(views.cameras, every=every, keep=keep, inbetween=info.get("inbetween") or 0)
 
 
 def put_text(image: np.ndarray, text: str, org: tuple[int, int], height: int, color) -> None:
@@ -94,6 +96,11 @@ def read_folder_record(folder: Path) -> dict:
         and all(isinstance(v, int) and v > 0 for v in size)
     ):
         raise PromptError(f"{path}: prompt.render_size must be [width, height], found {size!r}")
+    every = info.get("every", 1)
+    if not (isinstance(every, int) and not isinstance(every, bool) and every >= 1):
+        raise PromptError(f"{path}: every must be a whole number of 1 or more, found {every!r}")
+    if every > 1 and not isinstance(info["prompt"].get("view_name"), str):
+        raise PromptError(f"{path}: prompt.view_name must name the prompt's view (every: {every})")
     return info
 
 

@@ -57,6 +57,10 @@ def apply_recorded_prompts(args) -> Replay:
         args.width, args.height = (field.check("prompt.render_size", v, int) for v in size)
     if not args.inbetween and record.get("inbetween"):
         args.inbetween = field.get("inbetween", int)
+    if args.every is None and record.get("every") is not None:
+        args.every = field.get("every", int)
+        if args.every < 1:
+            raise PromptError(f"{path}: every must be 1 (every view) or more, found {args.every}")
     weights = apply_recorded_segmenter(args, field, record)
     vote = field.get("vote", dict, record.get("vote") or {})
     known = VoteConfig.__dataclass_fields__

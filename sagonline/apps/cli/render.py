@@ -69,6 +69,18 @@ def add_view_arguments(parser) -> None:
     parser.epilog = f"Views and clicks: {CLICK_HELP}."
 
 
+def add_every_argument(parser, picks: str) -> None:
+    """--every N (default None, read as 1: every view), for `segment` and `view`; `picks` says
+    which views the command then works on."""
+    parser.add_argument(
+        "--every",
+        type=int,
+        metavar="N",
+        help=f"{picks}; default 1, all: N times less of the segmenter's time, a sparser video "
+        "for it; views keep their numbers and names",
+    )
+
+
 def views_of(args: argparse.Namespace, scene):
     """The views the view arguments (`add_view_arguments`) pick for `scene`."""
     from sagonline.scene.views import load_views

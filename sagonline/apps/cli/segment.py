@@ -18,7 +18,7 @@ from sagonline.apps.cli.options import (
     segmenter_options,
     vote_config,
 )
-from sagonline.apps.cli.render import add_view_arguments, views_of
+from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
 from sagonline.scene.views import CLICK_HELP
 from sagonline.segment.base import DEFAULT_SEGMENTER
@@ -73,6 +73,9 @@ def add_parsers(sub) -> None:
     add_segmenter_arguments(seg, default=None)
     add_vote_arguments(seg)
     add_min_weight_argument(seg)
+    add_every_argument(
+        seg, "render and segment every N-th view only (0, N, 2N, ... and the prompt's view)"
+    )
     seg.add_argument("--inbetween", type=int, default=0, help="views slerped between cameras")
     seg.add_argument("--backend", default="auto", choices=BACKENDS)
     seg.add_argument("--out", help="output folder (default: segment-<scene>-<time>)")
@@ -100,8 +103,7 @@ def cmd_segment(args) -> int:
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
-    from sagonline.scene.trajectory import insert_between
-    from sagonline.scene.views import check_trajectory
+    from sagonline.scene.views import check_trajectory, every_line, trajectory
 
     started = time.perf_counter()
     replay = None
@@ -113,8 +115,7 @@ def cmd_segment(args) -> int:
     scene = scene_file(args.scene)
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
-    if args.inbetween < 0 or args.inbetween > 32:
-        raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
+    check_trajectory_options(args)
     masks = [Path(v.partition(":")[2]) for k, v, *_ in args.prompt_items if k == "mask"]
     inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else []), *masks]
     out = output_of(args, scene, inputs)
@@ -128,9 +129,9 @@ def cmd_segment(args) -> int:
         from sagonline.apps.cli.preview import write_preview
 
         return write_preview(g, given, args.preview, out, args)
-    traj = insert_between(given, args.inbetween)
-    check_trajectory(traj)
     parsed = parse_prompt(args.prompt_items, given)
+    traj = trajectory(given, every=args.every, keep=parsed.view, inbetween=args.inbetween)
+    check_trajectory(traj)
     frame = [c.name for c in traj].index(given[parsed.view].name)
     prompt = to_prompt(parsed, frame)
     from sagonline.labels.export import object_file_names
@@ -139,7 +140,8 @@ def cmd_segment(args) -> int:
     segmenter = build_segmenter(args, prompt, replay)
     check_cameras_see_scene(g, traj)  # another scene's cameras: said before any click is
     check_clicks_hit_the_scene(g, given[parsed.view], parsed, args)
-    print(f"segmenting {len(traj)} views with {args.segmenter} ...", file=sys.stderr)
+    views_line = every_line(given, args.every, parsed.view, len(traj))
+    print(f"segmenting {views_line} with {args.segmenter} ...", file=sys.stderr)
     seg = segment_scene(
         g,
         traj,
@@ -171,6 +173,15 @@ def cmd_segment(args) -> int:
     return 0
 
 
+def check_trajectory_options(args) -> None:
+    """--inbetween in [0, 32]; --every 1 or more (1 where neither it nor --prompts gave one)."""
+    if args.inbetween < 0 or args.inbetween > 32:
+        raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
+    args.every = 1 if args.every is None else args.every
+    if args.every < 1:
+        raise ValueError(f"--every {args.every}: must be 1 (every view) or more")
+
+
 def output_of(args, scene: Path, inputs: list[Path]) -> Path:
     """Where `segment` writes: the preview's image, or the segmentation's folder (named after
     the scene and the time), never one of its inputs nor, without --overwrite, a finished
@@ -197,6 +208,7 @@ def segment_record(args, scene, views, parsed, given, out, masks, segmenter, vot
         "views": views.source,
         "orbit": args.orbit,
         "inside": args.inside,
+        "every": args.every,
         "inbetween": args.inbetween,
         "prompt": parsed.record(given, folder=out),
         "inputs": input_digests(scene, args.cameras, masks),

@@ -13,7 +13,7 @@ from sagonline.apps.cli.options import (
     label_min_weight,
     segmenter_options,
 )
-from sagonline.apps.cli.render import add_view_arguments, views_of
+from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
 from sagonline.render.backends import BACKENDS
 
 
@@ -23,6 +23,7 @@ def add_parsers(sub) -> None:
     view = command_parser(sub, "view")
     view.add_argument("scene", help="point_cloud.ply, .splat, or a folder holding one")
     add_view_arguments(view)
+    add_every_argument(view, "show, render and segment every N-th view only (0, N, 2N, ...)")
     add_segmenter_arguments(view)
     view.add_argument("--backend", default="auto", choices=BACKENDS)
     add_min_weight_argument(view)
@@ -116,7 +117,7 @@ def cmd_view(args) -> int:
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
-    from sagonline.scene.views import check_trajectory
+    from sagonline.scene.views import check_trajectory, every_line, segmented_views
 
     scene = scene_file(args.scene)
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
@@ -129,13 +130,16 @@ def cmd_view(args) -> int:
     min_weight = label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
-    check_trajectory(views.cameras)
+    every = 1 if args.every is None else args.every
+    cams = segmented_views(views.cameras, every)
+    check_trajectory(cams)
     build = segmenter_builder(args)
     segmenter = build(args.segmenter)
-    print(f"views: {views.source}; rendering {len(views.cameras)} views ...", file=sys.stderr)
+    line = every_line(views.cameras, every, 0)
+    print(f"views: {views.source}; rendering {line} ...", file=sys.stderr)
     session = SegmentSession(
         g,
-        views.cameras,
+        cams,
         segmenter=segmenter,
         segmenter_kind=args.segmenter,
         segmenter_options=segmenter_options(args),
@@ -150,6 +154,7 @@ def cmd_view(args) -> int:
         "orbit": args.orbit,
         "inside": args.inside,
         "render_size": [args.width, args.height] if args.width else None,
+        "every": every,
         "inbetween": 0,
     }
     app = ViewerApp(
@@ -163,7 +168,7 @@ def cmd_view(args) -> int:
         segmenters=tuple(SEGMENTERS.keys()),
     )
     print(
-        f"viewer at {app.url} ({len(views.cameras)} views rendered in "
+        f"viewer at {app.url} ({len(cams)} views rendered in "
         f"{session.render_seconds:.1f} s; segmenter {args.segmenter}"
         f"{', its embeddings are made in the background' if needs_embeddings(segmenter) else ''}"
         "); Ctrl+C stops it",

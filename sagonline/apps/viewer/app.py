@@ -90,6 +90,7 @@ class ViewerApp:
         for name in ("websockets.server", "websockets.asyncio.server"):
             logging.getLogger(name).addFilter(OneLineConnectionErrors())
         self.session, self.scene, self.info = session, scene, dict(info or {})
+        self.every = int(self.info.get("every") or 1)  # the session's views: every N-th
         self.make_segmenter = make_segmenter
         self.server = viser.ViserServer(host=host, port=port, verbose=False)
         self.host = host
@@ -199,10 +200,12 @@ class ViewerApp:
             self.export_button.on_click(lambda _: self.guarded(self.export, self.export_status))
 
     def view_label(self, i: int) -> str:
-        return f"{i}: {self.session.cameras[i].name}"
+        """'8: IMG_0008': the session's view i by its number in `sagonline cameras` (with
+        --every N the session holds views 0, N, 2N, ...) and its name."""
+        return f"{i * self.every}: {self.session.cameras[i].name}"
 
     def view_choice_index(self) -> int:
-        return int(str(self.view_choice.value).split(":", 1)[0])
+        return int(str(self.view_choice.value).split(":", 1)[0]) // self.every
 
     def select_view(self, view: int) -> None:
         """Show `view`'s render (with the session's clicks when it is their view)."""
@@ -258,7 +261,7 @@ class ViewerApp:
         self.click_markers.append(marker)
         self.status.content = (
             f"{'positive' if positive else 'negative'} click on {self.session.current!r}: "
-            f"view {click.view} at ({click.x:.0f}, {click.y:.0f})"
+            f"view {self.view_label(click.view)} at ({click.x:.0f}, {click.y:.0f})"
         )
         self.select_view(click.view)
 

@@ -49,11 +49,12 @@ def export_session(
     --prompts OUT/labels.json` reproduces it without the browser."""
     seg = segmentation_of(session)
     check_objects_were_found(seg)
-    parsed = session.parsed()
+    prompt = session.parsed().record(session.cameras)
+    prompt["view"] *= int((info or {}).get("every") or 1)  # its number in `sagonline cameras`
     full = {
         "scene": str(scene) if scene else None,
         "inputs": {"scene": digest_file(scene)} if scene else {},
-        "prompt": parsed.record(session.cameras),
+        "prompt": prompt,
         "segmenter": {
             "kind": session.segmenter_kind,
             "options": list(session.segmenter_options),

@@ -180,6 +180,7 @@ def test_a_mask_prompt_labels_several_objects(tmp_path):
         (["--mask", "0:MASK"], "mask is 10x10 but view 0"),
         ([], "no prompt"),
         (["--click", "0:5,5", "--eps", "2"], "--eps 2.0: must be"),
+        (["--click", "0:5,5", "--every", "0"], "--every 0: must be 1 (every view) or more"),
     ],
 )
 def test_bad_prompts_stop_before_any_work(tmp_path, args, message, capsys):
@@ -190,6 +191,39 @@ def test_bad_prompts_stop_before_any_work(tmp_path, args, message, capsys):
     err = capsys.readouterr().err
     assert message in err and err.count("\n") == 1, err
     assert not (tmp_path / "out").exists()
+
+
+def test_every_nth_view_and_the_prompts_view_are_segmented_and_replayed(tmp_path, capsys):
+    """--every 4 on 12 views: views 0, 4, 8 and the prompt's view 5 are rendered, segmented and
+    vote, in their order and under their own names; labels.json records it, so a replay
+    segments the same views to the same labels and `figure` finds the folder's views."""
+    sc, cams, _ = _scene(tmp_path, "forward")
+    xy = _click_inside(gt_mask(sc, cams[5], sc.instance, sc.num_instances) == 1)
+    assert _segment(tmp_path, "--object", "vase", "--click", f"5:{xy}", "--every", "4") == 0
+    captured = capsys.readouterr()
+    assert "segmenting 4 of 12 views (every 4th, and the prompt's view 5) with" in captured.err
+    assert "(4 masks)" in captured.out
+    out = tmp_path / "out"
+    shown = sorted({p.name.rsplit("_", 1)[0] for p in (out / "views").glob("*_labels.png")})
+    assert shown == [f"{i:04d}_{cams[k].name}" for i, k in enumerate((0, 4, 5, 8))]
+    info = json.loads((out / "labels.json").read_text())
+    assert info["every"] == 4 and info["prompt"]["view_name"] == cams[5].name
+    labels, _ = read_labels(out)
+    on = labels >= 0
+    assert (labels[on] == sc.instance.numpy()[on]).mean() > 0.9
+    again = tmp_path / "again"
+    scene = str(tmp_path / "scene.ply")
+    replay = ["segment", scene, "--prompts", str(out / "labels.json"), "--no-record"]
+    assert main([*replay, "--out", str(again)]) == 0
+    assert "segmenting 4 of 12 views" in capsys.readouterr().err
+    np.testing.assert_array_equal(read_labels(again)[0], labels)
+    assert main([*replay, "--every", "1", "--out", str(tmp_path / "all")]) == 0  # the line wins
+    assert "segmenting 12 views with" in capsys.readouterr().err
+    assert main(["figure", str(out), "--views", "3", "--out", str(tmp_path / "f.png")]) == 0
+    tile = np.asarray(Image.open(tmp_path / "f.png").convert("RGB"))[-72:, :96].astype(float)
+    g = read_scene(tmp_path / "scene.ply")
+    off = [np.abs(tile - 255 * render(g, cams[k]).rgb.clamp(0, 1).numpy()).mean() for k in (8, 3)]
+    assert off[0] < off[1] / 2, off  # the folder's view 3 is camera 8, not camera 3
 
 
 def test_cameras_of_another_scene_are_refused(tmp_path, capsys):

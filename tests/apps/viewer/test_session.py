@@ -191,6 +191,34 @@ def test_an_export_keeps_the_segmenter_options_and_replays_with_them(donut, tmp_
         assert render.read_bytes() == (again / "views" / render.name).read_bytes(), render.name
 
 
+def test_a_session_on_every_other_view_exports_in_the_full_numbering_and_replays(donut, tmp_path):
+    """`sagonline view --every 2`: the session holds views 0, 2, 4, 6; a click on its second
+    view is recorded as view 2 (`sagonline cameras`' number) with that view's name, and
+    `segment --prompts` segments the same four views to the same labels."""
+    import json
+
+    from sagonline.apps.cli import main
+    from sagonline.scene.io import write_ply
+    from sagonline.scene.views import segmented_views
+
+    g, parts, ring = donut
+    session = SegmentSession(
+        g, segmented_views(ring, 2), segmenter=FlowWatershedSegmenter(), backend="native"
+    )
+    session.add_click(1, *icing_pixel(session, parts, view=1))
+    session.wait(60)
+    write_ply(tmp_path / "donut.ply", g)
+    info = {"orbit": 8, "every": 2}
+    out = session.export(tmp_path / "seg", scene=tmp_path / "donut.ply", info=info)
+    prompt = json.loads((out / "labels.json").read_text())["prompt"]
+    assert prompt["view"] == 2 and prompt["view_name"] == ring[2].name
+    again = tmp_path / "again"
+    replay = ["segment", str(tmp_path / "donut.ply"), "--prompts", str(out / "labels.json")]
+    assert main([*replay, "--backend", "native", "--out", str(again), "--no-record"]) == 0
+    assert json.loads((again / "labels.json").read_text())["every"] == 2
+    assert np.array_equal(np.load(again / "labels.npy"), session.labels)
+
+
 def test_the_views_are_rendered_on_the_colour_the_scene_was_fitted_on(donut):
     """A scene fitted on white (its fit_config.json says so) is rendered on white in the viewer,
     as `segment` and the evaluation render it: the segmenter sees what the fit saw."""

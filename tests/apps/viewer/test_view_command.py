@@ -12,7 +12,13 @@ from sagonline.scene.io import write_ply
 from tests.segment.test_clicks import iced_donut
 
 
-def test_view_serves_prints_its_url_and_stops_on_ctrl_c(tmp_path, capsys, monkeypatch):
+@pytest.mark.parametrize(
+    ("every", "shown", "line"),
+    [((), 6, "rendering 6 views"), (("--every", "2"), 3, "rendering 3 of 6 views (every 2nd)")],
+)
+def test_view_serves_prints_its_url_and_stops_on_ctrl_c(
+    tmp_path, capsys, monkeypatch, every, shown, line
+):
     g, _ = iced_donut(40, 20)
     write_ply(tmp_path / "donut.ply", g)
     with socket.socket() as s:
@@ -36,11 +42,12 @@ def test_view_serves_prints_its_url_and_stops_on_ctrl_c(tmp_path, capsys, monkey
         str(port),
         "--backend",
         "native",
+        *every,
     ]
     assert main(argv) == 130
     out = capsys.readouterr()
-    assert f"viewer at http://127.0.0.1:{port} (6 views rendered in" in out.out
-    assert "no --cameras given" in out.err
+    assert f"viewer at http://127.0.0.1:{port} ({shown} views rendered in" in out.out
+    assert "no --cameras given" in out.err and line in out.err
 
 
 def test_view_of_a_missing_scene_is_one_line(tmp_path, capsys):
