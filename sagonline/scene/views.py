@@ -135,12 +135,20 @@ def view_index(text: str, cams: list[Camera]) -> int:
     raise ViewError(f"no view named {text!r} (views: {shown}; `sagonline cameras` lists them)")
 
 
+def check_every(every: int | None) -> int:
+    """--every as a number of views: None (not given) is 1, every view; below 1 is refused."""
+    if every is None:
+        return 1
+    if every < 1:
+        raise ViewError(f"--every {every}: must be 1 (every view) or more")
+    return every
+
+
 def segmented_views(cams: list[Camera], every: int = 1, keep: int = 0) -> list[Camera]:
     """The views a segmenter watches: every `every`-th of `cams` (0, every, 2 every, ...) and
     cams[keep] (the prompt's view), in their order; the others are neither rendered nor
     segmented. Each keeps its name, so clicks and files keep `sagonline cameras`' numbering."""
-    if every < 1:
-        raise ViewError(f"--every {every}: must be 1 (every view) or more")
+    check_every(every)
     if not 0 <= keep < len(cams):
         raise ViewError(f"view {keep} is out of range: there are {len(cams)} views")
     return [c for i, c in enumerate(cams) if i % every == 0 or i == keep]
@@ -191,6 +199,7 @@ __all__ = [
     "MAX_TRAJECTORY",
     "ViewError",
     "Views",
+    "check_every",
     "load_views",
     "segmented_views",
     "trajectory",

@@ -175,11 +175,11 @@ def cmd_segment(args) -> int:
 
 def check_trajectory_options(args) -> None:
     """--inbetween in [0, 32]; --every 1 or more (1 where neither it nor --prompts gave one)."""
+    from sagonline.scene.views import check_every
+
     if args.inbetween < 0 or args.inbetween > 32:
         raise ValueError(f"--inbetween {args.inbetween}: must be in [0, 32]")
-    args.every = 1 if args.every is None else args.every
-    if args.every < 1:
-        raise ValueError(f"--every {args.every}: must be 1 (every view) or more")
+    args.every = check_every(args.every)
 
 
 def output_of(args, scene: Path, inputs: list[Path]) -> Path:

@@ -117,9 +117,10 @@ def cmd_view(args) -> int:
     from sagonline.render.api import resolve_backend
     from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
-    from sagonline.scene.views import check_trajectory, every_line, segmented_views
+    from sagonline.scene.views import check_every, check_trajectory, every_line, segmented_views
 
     scene = scene_file(args.scene)
+    every = check_every(args.every)  # refused before the scene is read
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
     out = args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}"
     check_not_input(out, [scene, *(camera_input_files(args.cameras) if args.cameras else [])])
@@ -130,7 +131,6 @@ def cmd_view(args) -> int:
     min_weight = label_min_weight(args)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     views = views_of(args, g)
-    every = 1 if args.every is None else args.every
     cams = segmented_views(views.cameras, every)
     check_trajectory(cams)
     build = segmenter_builder(args)
