@@ -25,9 +25,21 @@ def test_view_serves_prints_its_url_and_stops_on_ctrl_c(
         s.bind(("127.0.0.1", 0))
         port = s.getsockname()[1]
 
-    def interrupt(_seconds):
+    from sagonline.apps.viewer.app import ViewerApp
+
+    apps, picked = [], []
+    build = ViewerApp.__init__
+
+    def keep(self, *args, **kwargs):
+        build(self, *args, **kwargs)
+        apps.append(self)
+
+    def interrupt(_seconds):  # the panel while it serves: its last view chosen, then Ctrl+C
+        apps[0].view_choice.value = apps[0].view_choice.options[-1]
+        picked.append(apps[0].view_choice_index())
         raise KeyboardInterrupt
 
+    monkeypatch.setattr(ViewerApp, "__init__", keep)
     monkeypatch.setattr("sagonline.apps.cli.view.time.sleep", interrupt)
     argv = [
         "view",
@@ -48,6 +60,9 @@ def test_view_serves_prints_its_url_and_stops_on_ctrl_c(
     out = capsys.readouterr()
     assert f"viewer at http://127.0.0.1:{port} ({shown} views rendered in" in out.out
     assert "no --cameras given" in out.err and line in out.err
+    step = 6 // shown  # the panel numbers the session's views as `sagonline cameras` does
+    expected = [f"{i}: orbit_{i:03d}" for i in range(0, 6, step)]
+    assert list(apps[0].view_choice.options) == expected and picked == [shown - 1]
 
 
 def test_view_of_a_missing_scene_is_one_line(tmp_path, capsys):
