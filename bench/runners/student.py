@@ -1,0 +1,108 @@
+"""Stage II on the real captures: the refinement student's answers against the coarse render's.
+
+    python -m bench.runners.student [--captures duck_queen,mold_cape] [--sources sam2_tiny]
+                                    [--out reports]
+
+The student (`refine=student`, docs/method.md) trains in the background on the segmenter's 2D
+masks of the trajectory and then answers every scored view from the view's RGB render and its
+coarse label render. For each capture present and fitted (seed 0) and each source, one
+real-capture evaluation with the paper's vote defaults and one with the setting the captures
+chose leave-one-capture-out (`captures.CHOSEN`), each with the student: the segmenter's own
+mIoU, the coarse render's (the vote's) and the student's, on the same views, and how its
+training ended. Each run goes to `multirun/real/<capture>/<source>@refine-student[+...]`; a
+rerun reads the finished ones. Table: <out>/student.md and .csv.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import pandas as pd
+
+from bench import OUT_HELP, REPORTS
+from bench.runners import captures
+from bench.runners.real import Evaluations
+from bench.tables.report import in_percent, write_table
+from sagonline.score.run_metrics import RunMetrics
+
+STUDENT = ("refine=student",)
+# the sources whose every mask votes and trains the student (real masks vote on every 4th)
+SOURCES = sorted(s for s, o in captures.SOURCES.items() if "consensus.stride=4" not in o)
+
+
+def settings(source: str) -> dict[str, tuple[str, ...]]:
+    """The vote settings a source is scored with: the paper's defaults and its chosen ones."""
+    return {"defaults": STUDENT, "chosen": (*STUDENT, *captures.CHOSEN.get(source, ()))}
+
+
+def row(capture: str, source: str, vote: str, m: RunMetrics) -> dict:
+    """One run's line: the three answers' mIoU (fractions: the table shows them in percent), the
+    student's gain over the coarse render in points, and how its training ended."""
+    refine = m.scene_extra("refine")
+    timings = m.first_scene().get("timings") or m.timings
+    gain = None
+    if m.refined_miou is not None and m.miou is not None:
+        gain = round(100 * (m.refined_miou - m.miou), 2)
+    return {
+        "capture": capture,
+        "source": source,
+        "vote": vote,
+        "segmenter alone mIoU": m.segmenter_miou,
+        "coarse mIoU": m.miou,
+        "student mIoU": m.refined_miou,
+        "student - coarse, points": gain,
+        "training ended": refine.get("status"),
+        "steps": refine.get("steps"),
+        "train s": round(timings["refine_train_s"], 1) if "refine_train_s" in timings else None,
+        "protocol": m.protocol_id,
+    }
+
+
+def main(argv: list[str] | None = None) -> pd.DataFrame:
+    ap = argparse.ArgumentParser(
+        prog="python -m bench.runners.student", description=__doc__.split("\n\n")[0]
+    )
+    ap.add_argument("--captures", default="duck_queen,mold_cape", help="comma-separated, or all")
+    ap.add_argument("--sources", default="sam2_tiny", help=f"comma-separated, of {SOURCES}")
+    ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
+    args = ap.parse_args(argv)
+    sources = args.sources.split(",")
+    if not set(sources) <= set(SOURCES):
+        bad = sorted(set(sources) - set(SOURCES))[0]
+        ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
+    known = captures.captures()  # each preset composed: once
+    names = known if args.captures == "all" else args.captures.split(",")
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        ap.error(f"--captures: {unknown[0]!r} is not a capture ({', '.join(known)})")
+    for capture in [c for c in names if not captures.fitted(c, 0)]:
+        print(f"{capture}: no fit (make scenes DATASET={capture}); left out")
+    names = [c for c in names if captures.fitted(c, 0)]
+    runs, rows, commands = Evaluations(), [], []
+    for capture in names:
+        for source in sources:
+            for vote, setting in settings(source).items():
+                commands.append(" ".join(captures.command(capture, source, 0, setting)))
+                m = runs.run(capture, source, 0, setting)
+                if m is not None:
+                    rows.append(row(capture, source, vote, m))
+    df = pd.DataFrame(rows)
+    notes = [
+        "mIoU in percent on every masked view but the reference, fit seed 0; segmenter alone: "
+        "its masks' own, on the trajectory's views; coarse: the fused labels rendered (the "
+        "vote's answer); student: the refinement student's answer (`refine=student`) from the "
+        "view's RGB render and its coarse label render, after training on the segmenter's masks",
+        "vote: defaults, the paper's; chosen: `"
+        + " ".join(captures.KEPT)
+        + "` (chosen leave-one-capture-out, reports/real_captures_loo.md)",
+        "built by `python -m bench.runners.student`; each run:",
+        *(f"`python -m bench.runners.eval {c}`" for c in commands),
+    ]
+    write_table(df, args.out, "student", title="Stage II on the real captures", notes=notes)
+    print(in_percent(df).to_string(index=False))
+    return df
+
+
+if __name__ == "__main__":
+    main()
