@@ -60,9 +60,15 @@ def answer_while_training(
     return ms
 
 
-def answer_alone(service: OnlineSegmentation, views, mode: str) -> list:
-    """Each view's answer in `mode`, nothing else running in the process."""
-    return [service.answer(view.camera, mode, view.gt) for view in views]
+def answer_alone(service: OnlineSegmentation, views, mode: str, settings: PipelineSettings) -> list:
+    """Each view's answer in `mode`, nothing else running in the process; the student's at the
+    size the coarse labels are scored at (`label_render.size`)."""
+    answers = []
+    for view in views:
+        scored = settings.scored_camera(view)
+        size = (scored.height, scored.width) if mode == "refined" else None
+        answers.append(service.answer(view.camera, mode, view.gt, size))
+    return answers
 
 
 def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig) -> None:
@@ -143,7 +149,7 @@ def run_stage_two(
     trainer.wait()
     switched = time.perf_counter() - start
     say_why_it_stopped(task.name, trainer, cfg)
-    alone = {mode: answer_alone(service, task.eval_views, mode) for mode in modes}
+    alone = {mode: answer_alone(service, task.eval_views, mode, settings) for mode in modes}
     preds = [a.mask for a in alone["refined"]]
     report.refined_miou, report.refined_macc = record_scores(
         task, preds, settings.metrics.resize, report, "refined", stage_one.voted, predictions_to

@@ -77,10 +77,15 @@ class OnlineSegmentation:
         return to_uint8(render(self.g, camera, backend=self.backend).rgb)
 
     def answer(
-        self, camera: Camera, mode: str | None = None, ground_truth: np.ndarray | None = None
+        self,
+        camera: Camera,
+        mode: str | None = None,
+        ground_truth: np.ndarray | None = None,
+        size: tuple[int, int] | None = None,
     ) -> Answer:
         """The view's (H, W) labels in `mode` (None: `self.mode`); ground_truth is read by the
-        oracle segmenter in initial mode only."""
+        oracle segmenter in initial mode only; `size`: (H', W') the student answers at in
+        refined mode (its scores drawn up from the render's size; None: the camera's)."""
         mode = mode or self.mode
         start = time.perf_counter()
         if mode == "coarse":
@@ -92,7 +97,7 @@ class OnlineSegmentation:
         elif mode == "refined":
             if self.trainer is None:
                 raise RuntimeError("no refinement student to answer in refined mode")
-            mask = self.trainer.predict(self.rgb(camera), self.coarse(camera))
+            mask = self.trainer.predict(self.rgb(camera), self.coarse(camera), size)
         else:
             raise ValueError(f"answer mode {mode!r} is not one of {', '.join(MODES)}")
         return Answer(mask=mask, mode=mode, ms=1000 * (time.perf_counter() - start))

@@ -296,8 +296,16 @@ class RefinementTrainer:
 
     # --- answering ----------------------------------------------------------------------------
     @torch.no_grad()
-    def predict(self, frame: np.ndarray, coarse: np.ndarray) -> np.ndarray:
-        """(H, W) labels for one view from its RGB render and coarse label render."""
+    def predict(
+        self,
+        frame: np.ndarray,  # [H, W, 3] uint8 RGB render
+        coarse: np.ndarray,  # [H, W] coarse label render
+        size: tuple[int, int] | None = None,  # (H', W') to answer at; None: (H, W)
+    ) -> np.ndarray:  # [H', W'] labels
+        """Labels for one view from its RGB render and coarse label render; at another `size`
+        (the scored label render's, `label_render.size=truth`) the student's class scores are
+        drawn up bilinearly before the argmax, so its outline is not the render's pixel
+        grid blown up."""
         with self._lock:
             self.model.eval()
             logits = self.model(
@@ -306,4 +314,6 @@ class RefinementTrainer:
                     self.cfg.device
                 ),
             )
+            if size is not None and tuple(size) != tuple(logits.shape[-2:]):
+                logits = F.interpolate(logits, size=tuple(size), mode="bilinear")
         return logits[0].argmax(0).cpu().numpy()

@@ -84,3 +84,29 @@ def test_labels_scored_at_the_truths_size(tmp_path, capsys):
     assert main(["export", str(tmp_path / "truth")]) == 2
     err = capsys.readouterr().err
     assert "config.label_render" in err and "full" in err, err
+
+
+def test_the_students_answers_are_drawn_at_the_truths_size_too(tmp_path):
+    """With `label_render.size=truth` the student answers at the masks' size (its class scores
+    drawn up from the render's), as the coarse labels it is compared with are drawn."""
+    root = tmp_path / "data"
+    _capture(root)
+    cfg = compose_config(
+        "eval",
+        "dataset=generic",
+        f"dataset.root={root}",
+        "dataset.adapter.render_max_side=24",
+        "label_render.size=truth",
+        "refine=student",
+        "refine.max_steps=2",
+        "refine.batch_size=2",
+        "progress=false",
+        "record=false",
+        f"cache_dir={tmp_path / 'cache'}",
+    )
+    run = evaluate(cfg, tmp_path / "run")
+    refined = list((tmp_path / "run" / "predictions_refined").glob("**/*.png"))
+    assert refined and {cv2.imread(str(p), cv2.IMREAD_UNCHANGED).shape for p in refined} == {
+        (36, 48)
+    }
+    assert 0 < run["refined_miou"] <= 1

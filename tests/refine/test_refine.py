@@ -226,3 +226,15 @@ def test_a_lucky_first_batch_does_not_end_training():
         if flat.converged:
             break
     assert flat.converged and 120 <= i < 200 and flat.best_step >= 59
+
+
+def test_the_student_answers_at_another_size_from_its_scores_drawn_up():
+    """`predict(..., size)`: an untrained student answers the coarse mask; at twice the size its
+    scores, drawn up bilinearly, give that mask twice as large (no blocky grid of its own)."""
+    frames, coarse, teacher = _toy(2)
+    tr = RefinementTrainer(RefineConfig(max_steps=1), 2, frames, coarse, teacher)
+    h, w = coarse[0].shape
+    assert np.array_equal(tr.predict(frames[0], coarse[0]), coarse[0])
+    large = tr.predict(frames[0], coarse[0], size=(2 * h, 2 * w))
+    assert np.array_equal(large, np.kron(coarse[0], np.ones((2, 2), np.int64)))
+    assert tr.predict(frames[0], coarse[0], size=(h, w)).shape == (h, w)
