@@ -133,6 +133,19 @@ def fitted(capture: str, seed: int, setting: tuple[str, ...] = ()) -> bool:
     return fit_of(capture, seed, setting) is not None
 
 
+def fitted_named(spec: str, refuse) -> list[str]:
+    """The captures `spec` names ('all', or comma-separated) that have a fit of seed 0; an
+    unknown name goes to `refuse` (a parser's `error`), one without a fit is said and left out."""
+    known = captures()  # each preset composed: once
+    names = known if spec == "all" else spec.split(",")
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        refuse(f"--captures: {unknown[0]!r} is not a capture ({', '.join(known)})")
+    for capture in [c for c in names if not fitted(c, 0)]:
+        print(f"{capture}: no fit (make scenes DATASET={capture}); left out")
+    return [c for c in names if fitted(c, 0)]
+
+
 def same_scene(capture: str, seed: int, setting: tuple[str, ...]) -> tuple[str, ...]:
     """The setting with its fit recipe left out where that recipe's fit of this seed is the
     default recipe's, copied (`make scenes` copies a fit the variant would repeat bit for bit,

@@ -73,14 +73,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         steps = [0]
     if any(n < 1 for n in steps):
         ap.error(f"--every {args.every}: give whole numbers of 1 or more, comma-separated")
-    known = captures.captures()  # each preset composed: once
-    names = known if args.captures == "all" else args.captures.split(",")
-    unknown = sorted(set(names) - set(known))
-    if unknown:
-        ap.error(f"--captures: {unknown[0]!r} is not a capture ({', '.join(known)})")
-    for capture in [c for c in names if not captures.fitted(c, 0)]:
-        print(f"{capture}: no fit (make scenes DATASET={capture}); left out")
-    names = [c for c in names if captures.fitted(c, 0)]
+    names = captures.fitted_named(args.captures, ap.error)
     runs, rows = Evaluations(), []
     for capture in names:
         for every in steps:
