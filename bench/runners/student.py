@@ -10,7 +10,9 @@ real-capture evaluation with the paper's vote defaults and one with the setting 
 chose leave-one-capture-out (`captures.CHOSEN`), each with the student: the segmenter's own
 mIoU, the coarse render's (the vote's) and the student's, on the same views, and how its
 training ended. Each run goes to `multirun/real/<capture>/<source>@refine-student[+...]`; a
-rerun reads the finished ones. Table: <out>/student.md and .csv.
+rerun reads the finished ones. Tables: <out>/student.md and .csv; <out>/student_views.md and
+.csv, the student's gain over the coarse render view by view (from each run's per_view.csv),
+by angle to the nearest photograph.
 """
 
 from __future__ import annotations
@@ -20,10 +22,11 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench import OUT_HELP, REPORTS
+from bench import OUT_HELP, REPORTS, ROOT
 from bench.runners import captures
 from bench.runners.real import Evaluations
 from bench.tables.report import in_percent, write_table
+from bench.tables.views import refined_gain
 from sagonline.score.run_metrics import RunMetrics
 
 STUDENT = ("refine=student",)
@@ -71,7 +74,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(sources) - set(SOURCES))[0]
         ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
     names = captures.fitted_named(args.captures, ap.error)
-    runs, rows, commands = Evaluations(), [], []
+    runs, rows, gains, commands = Evaluations(), [], [], []
     for capture in names:
         for source in sources:
             for vote, setting in settings(source).items():
@@ -79,6 +82,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 m = runs.run(capture, source, 0, setting)
                 if m is not None:
                     rows.append(row(capture, source, vote, m))
+                    gains.append(view_gains(capture, source, vote, setting))
     df = pd.DataFrame(rows)
     notes = [
         "mIoU in percent on every masked view but the reference, fit seed 0; segmenter alone: "
@@ -92,8 +96,29 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         *(f"`python -m bench.runners.eval {c}`" for c in commands),
     ]
     write_table(df, args.out, "student", title="Stage II on the real captures", notes=notes)
+    write_table(
+        pd.DataFrame(gains),
+        args.out,
+        "student_views",
+        title="Stage II on the real captures, view by view",
+        notes=[
+            "the student's IoU minus the coarse render's on each scored view, in points (each "
+            "run's per_view.csv, its `refined` rows against its `coarse` ones); better / worse: "
+            "the views that gain / lose more than 0.1 point; by the angle from the view to the "
+            "nearest photograph (at photo: a photographed view): the mean gain and the views",
+            "the runs of student.md (`python -m bench.runners.student`)",
+        ],
+    )
     print(in_percent(df).to_string(index=False))
     return df
+
+
+def view_gains(capture: str, source: str, vote: str, setting: tuple[str, ...]) -> dict:
+    """One run's line of student_views: its per-view gains (`views.refined_gain`)."""
+    run = ROOT / captures.folder(capture, source, 0, captures.same_scene(capture, 0, setting))
+    per_view = run / "per_view.csv"
+    found = refined_gain(pd.read_csv(per_view)) if per_view.is_file() else {}
+    return {"capture": capture, "source": source, "vote": vote, **found}
 
 
 if __name__ == "__main__":

@@ -51,6 +51,34 @@ def view_rows(runs: dict[Path, RunMetrics]) -> tuple[pd.DataFrame, dict[str, pd.
     return pd.DataFrame(rows), per_view
 
 
+GAIN_PAST = 0.001  # IoU: a view counts as better or worse past 0.1 point
+
+
+def refined_gain(views: pd.DataFrame) -> dict:
+    """The refinement student's gain over the coarse render, view by view, from one run's
+    per_view.csv (its `refined` rows against its coarse ones): the views compared, how many gain
+    and lose past 0.1 point, and the mean gain in points by angle to the nearest photograph
+    with the views in each group. Empty where the run has no refined rows or no angles."""
+    key = ["scene", "view"]
+    coarse = views[views["mode"].isin(COARSE)].set_index(key)
+    refined = views[views["mode"] == "refined"].set_index(key)["iou"]
+    if refined.empty or "photo_angle_deg" not in coarse:
+        return {}
+    both = coarse.join(refined.rename("refined_iou"), how="inner")
+    gain = both["refined_iou"] - both["iou"]
+    row = {
+        "views": len(both),
+        "better": int((gain > GAIN_PAST).sum()),
+        "worse": int((gain < -GAIN_PAST).sum()),
+    }
+    by_angle = pd.cut(both["photo_angle_deg"], ANGLE_BINS, labels=ANGLE_LABELS)
+    for name, group in gain.groupby(by_angle, observed=False):
+        label = f"{name} deg" if name != "photographed" else "at photo"
+        row[f"{label}: gain, points"] = round(100 * float(group.mean()), 2) if len(group) else None
+        row[f"{label}: views"] = len(group)
+    return row
+
+
 def short_labels(overrides: dict[str, list[str]]) -> dict[str, str]:
     """A legend entry per run: only the overrides that differ between the runs shown, each key
     by its last part (`dataset.adapter.exclude_reference=true` -> `exclude_reference=true`);

@@ -54,6 +54,49 @@ def test_each_source_runs_with_both_votes_and_the_student_and_gives_one_row_each
     assert "hydra.run.dir=multirun/real/cap/minisam@refine-student+consensus-flashsplat+" in page
 
 
+def per_view(coarse: list[float], refined: list[float], angles: list[float]) -> pd.DataFrame:
+    """A run's per_view.csv: one coarse and one refined row per view of scene `cap`."""
+    n = len(coarse)
+    common = {"scene": ["cap"] * n, "view": [f"v{i}" for i in range(n)], "photo_angle_deg": angles}
+    return pd.concat(
+        [
+            pd.DataFrame({**common, "mode": "coarse", "iou": coarse}),
+            pd.DataFrame({**common, "mode": "refined", "iou": refined}),
+        ]
+    )
+
+
+def test_the_views_table_says_where_the_student_gains_by_angle_to_a_photograph(
+    tmp_path, monkeypatch
+):
+    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
+    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    monkeypatch.setattr(student, "ROOT", tmp_path)
+    monkeypatch.setattr(
+        real.Evaluations,
+        "run",
+        lambda self, c, source, seed=0, setting=(): finished(source, 0.9, 0.9),
+    )
+    run = tmp_path / captures.folder("cap", "sam2_tiny", 0, student.STUDENT)
+    run.mkdir(parents=True)
+    # views at a photograph, 5 and 15 degrees off one, and two past 30: gains of +2, -0.05
+    # (neither better nor worse), -1, +4 and -3 points
+    per_view(
+        [0.90, 0.80, 0.70, 0.60, 0.50], [0.92, 0.7995, 0.69, 0.64, 0.47], [0, 5, 15, 40, 50]
+    ).to_csv(run / "per_view.csv", index=False)
+    student.main(["--captures", "cap", "--out", str(tmp_path / "out")])
+    table = pd.read_csv(tmp_path / "out" / "student_views.csv")
+    defaults, chosen = table.iloc[0], table.iloc[1]
+    assert (defaults.views, defaults.better, defaults.worse) == (5, 2, 2)
+    assert defaults["at photo: gain, points"] == 2.0 and defaults["at photo: views"] == 1
+    assert defaults["0-10 deg: gain, points"] == -0.05
+    assert defaults["10-20 deg: gain, points"] == -1.0
+    assert defaults[">30 deg: gain, points"] == 0.5 and defaults[">30 deg: views"] == 2
+    assert defaults["20-30 deg: views"] == 0 and pd.isna(defaults["20-30 deg: gain, points"])
+    assert chosen.vote == "chosen" and pd.isna(chosen.views)  # its run folder holds no per_view
+    assert "view by view" in (tmp_path / "out" / "student_views.md").read_text()
+
+
 def test_an_unknown_source_or_capture_is_refused_and_an_unfitted_one_left_out(
     tmp_path, monkeypatch, capsys
 ):
