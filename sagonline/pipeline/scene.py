@@ -121,7 +121,7 @@ def run_scene(
     causes = None
     if settings.diagnose and not is_automatic(task):
         causes = diagnose_scene(task, g, stage_one, preds, segmenter, vote, settings, report, cache)
-    record_eval_views(task, recorder, preds, report, g, plan.images, causes)
+    record_eval_views(task, recorder, preds, report, g, plan.images, causes, settings.background)
     recorder.gaussians(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
     )
@@ -238,15 +238,18 @@ def score_views(
     return preds
 
 
-def record_eval_views(task, recorder, preds, report, gaussians, backend, causes=None) -> None:
-    """Each eval view's render, prediction, ground truth and (with a diagnosis) the causes of
-    its wrong pixels, at its nearest trajectory frame."""
+def record_eval_views(
+    task, recorder, preds, report, gaussians, backend, causes=None, background=(0.0, 0.0, 0.0)
+) -> None:
+    """Each eval view's render (on `background`, Stage I's colour), prediction, ground truth and
+    (with a diagnosis) the causes of its wrong pixels, at its nearest trajectory frame."""
     if not recorder.enabled:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
     frames = nearest_frames(task)
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
-        rgb = to_uint8(render(gaussians, view.camera, backend=backend).rgb)
+        out = render(gaussians, view.camera, background=torch.tensor(background), backend=backend)
+        rgb = to_uint8(out.rgb)
         recorder.eval_view(
             task.name,
             i,

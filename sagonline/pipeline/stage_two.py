@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.datasets.base import SceneTask
-from sagonline.pipeline.scene import nearest_frames
+from sagonline.pipeline.scene import nearest_frames, task_settings
 from sagonline.pipeline.scoring import SceneReport, mean_iou, record_scores
 from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stage_one import StageOneOutput
@@ -112,6 +112,7 @@ def run_stage_two(
 
     Why one function: it is the Stage II timeline (start, answer while training, switch,
     answer alone), whose order the timings depend on."""
+    settings = task_settings(task, settings)  # its renders on the colour Stage I's were
     vote = stage_one.vote.value
     novel = None
     if segmenter is not None:
@@ -130,6 +131,7 @@ def run_stage_two(
         segmenter=novel,
         backend=settings.renderer.backend,
         min_weight=settings.label_render.min_weight,
+        background=settings.background,
     )
     modes = ["coarse", "initial", "refined"] if novel is not None else ["coarse", "refined"]
     coarse = [service.coarse(c) for c in task.trajectory]

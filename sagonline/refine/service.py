@@ -34,7 +34,9 @@ class Answer:
 
 class OnlineSegmentation:
     """gaussians with their fused labels (N,) (-1: unlabelled); `trainer`: the student (refined
-    mode); `segmenter`: the 2D segmenter for novel views (initial mode)."""
+    mode); `segmenter`: the 2D segmenter for novel views (initial mode); `background`: the
+    RGB renders' colour, the one Stage I's frames were rendered on (the student learnt from
+    those, and the segmenter's prompts were set on them)."""
 
     def __init__(
         self,
@@ -46,10 +48,12 @@ class OnlineSegmentation:
         *,
         backend: str = "torch",
         min_weight: float = LABEL_MIN_WEIGHT,
+        background: tuple[float, float, float] = (0.0, 0.0, 0.0),
     ):
         self.g, self.labels = gaussians, labels
         self.num_labels, self.trainer, self.segmenter = num_labels, trainer, segmenter
         self.backend, self.min_weight = backend, min_weight
+        self.background = torch.tensor(background, dtype=torch.float32)
 
     @property
     def mode(self) -> str:
@@ -74,7 +78,8 @@ class OnlineSegmentation:
         )
 
     def rgb(self, camera: Camera) -> np.ndarray:
-        return to_uint8(render(self.g, camera, backend=self.backend).rgb)
+        out = render(self.g, camera, background=self.background, backend=self.backend)
+        return to_uint8(out.rgb)
 
     def answer(
         self,

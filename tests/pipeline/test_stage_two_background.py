@@ -1,0 +1,90 @@
+"""Stage II renders its views on the colour Stage I's frames were rendered on (the scene's
+fitted background): the student answers from the renders it learnt from, and the 2D segmenter
+of the initial mode sees the frames its prompts were set on."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from sagonline.datasets.generic import PosedMasksDataset
+from sagonline.pipeline import PipelineSettings, run_scene
+from sagonline.pipeline.scene import record_eval_views
+from sagonline.pipeline.scoring import SceneReport
+from sagonline.pipeline.stage_two import run_stage_two
+from sagonline.pipeline.stages import SegmenterRun
+from sagonline.record.recording import Recorder
+from sagonline.refine import RefineConfig, RefinementTrainer
+from sagonline.segment.novel_view import NovelViewSegmenter
+from sagonline.segment.oracle import OracleSegmenter
+from sagonline.vote.consensus import VoteConfig
+from tests.fixtures import llff_scene, object_mask, write_image
+
+NAMES = [f"IMG_{i:04d}" for i in range(4)]
+
+
+def white_capture(tmp_path):
+    """A capture fitted on white: its task, and Stage I's frames by camera name."""
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    for cam, name in zip(cams, NAMES, strict=True):
+        mask = (object_mask(scene, cam) > 0).astype(np.uint8) * 255
+        write_image(tmp_path / "cap" / "masks" / f"{name}.png", mask)
+    fit_config = tmp_path / "cap" / "gaussians" / "fit_config.json"
+    fit_config.write_text(json.dumps({"background": [1.0, 1.0, 1.0], "seed": 0}))
+    task = PosedMasksDataset(tmp_path / "cap", mask_dir="masks").load_scene("cap")
+    assert task.background == (1.0, 1.0, 1.0)
+    settings = PipelineSettings(progress=False)  # black: the task's colour comes with the task
+    segmenter = SegmenterRun(OracleSegmenter())
+    _, stage_one = run_scene(task, segmenter, VoteConfig(), settings)
+    names = [c.name for c in task.trajectory]
+    frames = dict(zip(names, stage_one.frames.value.images, strict=True))
+    empty = frames[NAMES[0]].max(-1) == 0
+    assert not empty.any() and (frames[NAMES[0]] == 255).any()  # white where nothing is
+    return task, settings, segmenter, stage_one, frames
+
+
+def test_the_student_and_the_segmenter_answer_on_the_renders_stage_one_made(tmp_path, monkeypatch):
+    task, settings, segmenter, stage_one, frames = white_capture(tmp_path)
+
+    seen: dict[str, list[np.ndarray]] = {"refined": [], "initial": []}
+    predict, answer = RefinementTrainer.predict, NovelViewSegmenter.answer
+
+    def predict_seen(self, frame, coarse, size=None):
+        seen["refined"].append(frame)
+        return predict(self, frame, coarse, size)
+
+    def answer_seen(self, frame, camera, ground_truth=None):
+        seen["initial"].append(frame)
+        return answer(self, frame, camera, ground_truth)
+
+    monkeypatch.setattr(RefinementTrainer, "predict", predict_seen)
+    monkeypatch.setattr(NovelViewSegmenter, "answer", answer_seen)
+    cfg = RefineConfig(max_steps=1, batch_size=2)
+    report = SceneReport(scene="cap")
+    run_stage_two(task, stage_one, cfg, settings, report, Recorder(None), segmenter=segmenter)
+    assert report.refined_miou is not None
+    for mode, images in seen.items():
+        # the last answers: each eval view alone, in order
+        last = images[-len(task.eval_views) :]
+        for view, image in zip(task.eval_views, last, strict=True):
+            assert np.array_equal(image, frames[view.name]), (mode, view.name)
+
+
+def test_the_recordings_eval_views_show_the_renders_stage_one_made(tmp_path):
+    task, settings, _, stage_one, frames = white_capture(tmp_path)
+    shown = {}
+
+    class Shown:
+        enabled = True
+
+        def eval_view(self, scene, i, rgb, *rest, **named):
+            shown[task.eval_views[i].name] = rgb
+
+    preds = [view.gt for view in task.eval_views]
+    report = SceneReport(scene="cap")
+    report.views = [{"iou": 1.0} for _ in preds]
+    g, backend = task.gaussians, stage_one.backends.images
+    record_eval_views(task, Shown(), preds, report, g, backend, background=task.background)
+    assert shown.keys() == frames.keys()
+    assert all(np.array_equal(shown[name], frames[name]) for name in shown)
