@@ -6,17 +6,19 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import torch
 
 
-def write_preview(g, cams, view: str, out: Path, args) -> int:
+def write_preview(g, cams, view: str, out: Path, args, background=(0.0, 0.0, 0.0)) -> int:
     """VIEW at its render size with a light pixel grid (every 50 px, labelled every 100); `all`:
-    the contact sheet of every view."""
+    the contact sheet of every view. Rendered on `background`, as the segmenter's frames are
+    (the scene's fitted colour)."""
     import cv2
 
     from sagonline.scene.views import view_index
 
     if view == "all":
-        return write_contact_sheet(g, cams, out, args)
+        return write_contact_sheet(g, cams, out, args, background)
     index = view_index(view, cams)
     from sagonline.core.files import atomic_write_image
     from sagonline.render.api import render, to_uint8
@@ -26,7 +28,9 @@ def write_preview(g, cams, view: str, out: Path, args) -> int:
     if out.exists() and not args.overwrite:
         raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
     cam = cams[index]
-    rgb = to_uint8(render(g.to(args.device), cam.to(args.device), backend=args.backend).rgb)
+    bg = torch.tensor(background, dtype=torch.float32)
+    rgb = render(g.to(args.device), cam.to(args.device), background=bg, backend=args.backend).rgb
+    rgb = to_uint8(rgb)
     image = np.ascontiguousarray(rgb)
     grid = image.copy()
     for x in range(0, cam.width, 50):
@@ -54,7 +58,7 @@ def write_preview(g, cams, view: str, out: Path, args) -> int:
     return 0
 
 
-def write_contact_sheet(g, cams, out: Path, args) -> int:
+def write_contact_sheet(g, cams, out: Path, args, background=(0.0, 0.0, 0.0)) -> int:
     """Every view in one image, each small and labelled with its index and name, to choose the
     view to click on (`--preview all`)."""
     import cv2
@@ -71,7 +75,8 @@ def write_contact_sheet(g, cams, out: Path, args) -> int:
     for cam in cams:
         s = side / max(cam.width, cam.height)
         small = cam.scaled(max(1, round(cam.width * s)), max(1, round(cam.height * s)))
-        out_ = render(g.to(args.device), small.to(args.device), backend=args.backend)
+        bg = torch.tensor(background, dtype=torch.float32)
+        out_ = render(g.to(args.device), small.to(args.device), background=bg, backend=args.backend)
         renders.append(np.ascontiguousarray(to_uint8(out_.rgb)))
     height = max(r.shape[0] for r in renders)
     tiles = []

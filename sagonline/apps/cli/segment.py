@@ -121,6 +121,7 @@ def cmd_segment(args) -> int:
     out = output_of(args, scene, inputs)
     vote, min_weight = vote_config(args, replay), label_min_weight(args, replay)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
+    background = fitted_background(scene) or (0.0, 0.0, 0.0)  # the colour it was fitted on
     views = views_of(args, g)
     if args.cameras is None or args.orbit:
         print(f"views: {views.source}", file=sys.stderr)
@@ -128,7 +129,7 @@ def cmd_segment(args) -> int:
     if args.preview is not None:
         from sagonline.apps.cli.preview import write_preview
 
-        return write_preview(g, given, args.preview, out, args)
+        return write_preview(g, given, args.preview, out, args, background)
     parsed = parse_prompt(args.prompt_items, given)
     traj = trajectory(given, every=args.every, keep=parsed.view, inbetween=args.inbetween)
     check_trajectory(traj)
@@ -151,7 +152,7 @@ def cmd_segment(args) -> int:
         backend=args.backend,
         device=args.device,
         progress=True,
-        background=fitted_background(scene) or (0, 0, 0),
+        background=background,
     )
     check_objects_were_found(seg)
     info = segment_record(args, scene, views, parsed, given, out, masks, segmenter, vote, seg)

@@ -147,6 +147,31 @@ def test_one_view_numbering_for_every_command(tmp_path, capsys):
     assert (prompt["view"], prompt["view_name"], prompt["render_size"]) == (2, "r_10", [48, 36])
 
 
+def test_the_preview_shows_the_views_on_the_colour_the_segmenter_sees(tmp_path, capsys):
+    """A scene fitted on white (fit_config.json beside it, as `make scenes` writes) is
+    previewed on white, as `segment` renders its frames: one view and the contact sheet."""
+    from sagonline.apps.cli import main
+    from tests.fixtures import own_scene
+
+    folder, *_ = own_scene(tmp_path / "scene", views=4)
+    ply, cams = str(folder / "point_cloud.ply"), str(folder / "transforms.json")
+    shown = {}
+    for colour in ("black", "white"):
+        if colour == "white":
+            (folder / "fit_config.json").write_text('{"background": [1.0, 1.0, 1.0]}')
+        for view in ("0", "all"):
+            out = tmp_path / f"{colour}_{view}.png"
+            argv = ["segment", ply, "--cameras", cams, "--preview", view, "--out", str(out)]
+            assert main(argv) == 0, capsys.readouterr().err
+            shown[colour, view] = np.asarray(Image.open(out).convert("RGB")).astype(int)
+    for view in ("0", "all"):
+        black, white = shown["black", view], shown["white", view]
+        empty = black.max(-1) == 0  # nothing of the scene, no grid line, no tile label there
+        if view == "all":
+            empty[:16] = False  # the sheet's strip of tile labels: black on both
+        assert empty.mean() > 0.01 and (white[empty] == 255).all(), view
+
+
 def test_the_overview_and_a_light_commands_help_import_no_torch():
     """`sagonline --help`, no command, a misspelt one and `sagonline info --help` build only
     what they show: PyTorch (about 2 s) is not imported, and the overview lists every command
