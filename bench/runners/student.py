@@ -1,7 +1,6 @@
 """Stage II on the real captures: the refinement student's answers against the coarse render's.
 
-    python -m bench.runners.student [--captures duck_queen,mold_cape] [--sources sam2_tiny]
-                                    [--out reports]
+    python -m bench.runners.student [--captures all] [--sources sam2_tiny] [--out reports]
 
 The student (`refine=student`, docs/method.md) trains in the background on the segmenter's 2D
 masks of the trajectory and then answers every scored view from the view's RGB render and its
@@ -65,7 +64,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap = argparse.ArgumentParser(
         prog="python -m bench.runners.student", description=__doc__.split("\n\n")[0]
     )
-    ap.add_argument("--captures", default="duck_queen,mold_cape", help="comma-separated, or all")
+    ap.add_argument("--captures", default="all", help="comma-separated, or all (the fitted)")
     ap.add_argument("--sources", default="sam2_tiny", help=f"comma-separated, of {SOURCES}")
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
