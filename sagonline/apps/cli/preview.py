@@ -71,11 +71,10 @@ def write_contact_sheet(g, cams, out: Path, args, background=(0.0, 0.0, 0.0)) ->
     if out.exists() and not args.overwrite:
         raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
     side = 200  # each tile's longer side
-    renders = []
+    renders, bg = [], torch.tensor(background, dtype=torch.float32)
     for cam in cams:
         s = side / max(cam.width, cam.height)
         small = cam.scaled(max(1, round(cam.width * s)), max(1, round(cam.height * s)))
-        bg = torch.tensor(background, dtype=torch.float32)
         out_ = render(g.to(args.device), small.to(args.device), background=bg, backend=args.backend)
         renders.append(np.ascontiguousarray(to_uint8(out_.rgb)))
     height = max(r.shape[0] for r in renders)
