@@ -246,9 +246,9 @@ def record_eval_views(
     if not recorder.enabled:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
-    frames = nearest_frames(task)
+    frames, bg = nearest_frames(task), torch.tensor(background, dtype=torch.float32)
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
-        out = render(gaussians, view.camera, background=torch.tensor(background), backend=backend)
+        out = render(gaussians, view.camera, background=bg, backend=backend)
         rgb = to_uint8(out.rgb)
         recorder.eval_view(
             task.name,
