@@ -2,7 +2,8 @@
 
 For a few of its views (rows, each named in its first tile): the scene's render, the label
 render, each object PLY rendered alone and, with one object, the scene without it (columns,
-titled once at the top). The object PLYs are read back
+titled once at the top), on the colour the scene was fitted on as `segment` renders its frames
+(the fit_config.json beside it; else black). The object PLYs are read back
 like any scene file, so the picture shows what another 3DGS tool gets from them. The views are
 the folder's own trajectory, rebuilt from its labels.json (cameras, orbit, in-between views,
 render size).
@@ -130,11 +131,13 @@ def check_same_scene(folder: Path, info: dict, scene) -> None:
 
 
 def cmd_figure(args) -> int:
+    import torch
+
     from sagonline.core.files import atomic_write_image
     from sagonline.core.outputs import OutputError, check_not_input
     from sagonline.labels.colours import label_colors
     from sagonline.render.api import render, to_uint8
-    from sagonline.scene.io import read_scene
+    from sagonline.scene.io import fitted_background, read_scene
     from sagonline.scene.io.masks import read_mask
 
     folder, out = Path(args.folder), Path(args.out)
@@ -164,6 +167,13 @@ def cmd_figure(args) -> int:
     titles = ["scene", "labels", *(f"{name} alone" for name in objects)]
     if len(objects) == 1 and rest:
         titles.append(f"without {next(iter(objects))}")
+    bg = torch.tensor(fitted_background(info["scene"]) or (0.0, 0.0, 0.0))  # as segment saw it
+
+    ink = (0, 0, 0) if float(bg.mean()) > 0.5 else (255, 255, 255)  # the view's name, legible
+
+    def show(g, cam) -> np.ndarray:
+        return to_uint8(render(g, cam, background=bg, backend=args.backend).rgb)
+
     rows = []
     for v in picks:
         cam = cams[v]
@@ -178,14 +188,11 @@ def cmd_figure(args) -> int:
                 f"{label_png}: {labels.shape[1]}x{labels.shape[0]}, but view {v} renders at "
                 f"{cam.width}x{cam.height}: not this folder's label render"
             )
-        tiles = [
-            to_uint8(render(scene, cam, backend=args.backend).rgb),
-            colors[labels].astype(np.uint8),
-        ]
-        tiles += [to_uint8(render(g, cam, backend=args.backend).rgb) for g in objects.values()]
+        tiles = [show(scene, cam), colors[labels].astype(np.uint8)]
+        tiles += [show(g, cam) for g in objects.values()]
         if len(titles) > len(tiles):
-            tiles.append(to_uint8(render(read_scene(rest[0]), cam, backend=args.backend).rgb))
-        put_text(tiles[0], f"view {v}", (3, 14), 10, (255, 255, 255))
+            tiles.append(show(read_scene(rest[0]), cam))
+        put_text(tiles[0], f"view {v}", (3, 14), 10, ink)
         rows.append(np.concatenate(tiles, axis=1))
     widths = [tile.shape[1] for tile in tiles]
     atomic_write_image(out, np.concatenate([header(widths, titles), *rows], axis=0))

@@ -27,7 +27,11 @@ def add_parsers(sub) -> None:
     rend.add_argument(
         "--overwrite", action="store_true", help="replace an earlier --out (a file, not an input)"
     )
-    rend.add_argument("--background", default="0,0,0", help="r,g,b in [0, 1]")
+    rend.add_argument(
+        "--background",
+        help="r,g,b in [0, 1]; default the colour the scene was fitted on (the fit_config.json "
+        "beside it, as `segment` renders), else black",
+    )
     rend.add_argument(
         "--backend",
         default="auto",
@@ -128,7 +132,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from sagonline.core.outputs import OutputError, check_not_input
     from sagonline.render import render
     from sagonline.render.api import resolve_backend
-    from sagonline.scene.io import read_scene, scene_file
+    from sagonline.scene.io import fitted_background, read_scene, scene_file
     from sagonline.scene.io.cameras import camera_input_files
     from sagonline.scene.views import view_index
 
@@ -142,7 +146,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise ValueError(f"--out {out}: use a .png, .jpg or .npy path (got {out.suffix!r})")
     if out.exists() and not args.overwrite:
         raise OutputError(f"--out {out} exists; pass --overwrite to replace it")
-    background = parse_background(args.background)
+    background = (
+        parse_background(args.background)
+        if args.background is not None
+        else list(fitted_background(scene) or (0.0, 0.0, 0.0))
+    )
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)

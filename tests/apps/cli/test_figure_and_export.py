@@ -89,3 +89,21 @@ def test_export_writes_beside_the_run_not_into_it(tmp_path, monkeypatch):
     assert main(["export", str(run)]) == 0
     assert tree_digest(run) == before
     assert (tmp_path / "export-runs-r1" / "forward_single" / "labels.npy").is_file()
+
+
+def test_figure_draws_the_scene_on_the_colour_it_was_fitted_on(segment_folder, capsys):
+    """With a fit_config.json of white beside the scene (as `make scenes` writes), the scene's
+    tile is drawn on white, as `segment` renders its frames; its view name stays legible."""
+    tmp, seg, scene = segment_folder
+    shown = {}
+    for colour in ("black", "white"):
+        if colour == "white":
+            (scene.parent / "fit_config.json").write_text('{"background": [1.0, 1.0, 1.0]}')
+        out = tmp / f"{colour}.png"
+        assert main(["figure", str(seg), "--out", str(out)]) == 0, capsys.readouterr().err
+        shown[colour] = cv2.imread(str(out)).astype(int)[22:, :40]  # view 0's scene tile
+    black, white = shown["black"], shown["white"]
+    empty = black.max(-1) == 0  # no scene and no ink of the view's name
+    assert empty.mean() > 0.01 and (white[empty] == 255).all()
+    ink = black.min(-1) > 200  # the name's white strokes on black: black strokes on white
+    assert ink.sum() >= 3 and (white[ink].max(-1) < 128).all()

@@ -7,7 +7,9 @@ import json
 import subprocess
 import sys
 
+import numpy as np
 import pytest
+from PIL import Image
 
 from sagonline.apps.cli import main
 from sagonline.scene.io import write_ply
@@ -135,3 +137,23 @@ def test_render_out_never_destroys_an_input(tmp_path, tiny_task, capsys):
     assert _cli("info", str(tmp_path)).returncode == 0
     r = _cli("info", str(tmp_path / "gaussians" / "nothing_here"))
     assert r.returncode == 2 and "not found" in r.stderr
+
+
+def test_render_draws_on_the_colour_the_scene_was_fitted_on(tmp_path, capsys):
+    """Without --background, a scene with a fit_config.json of white beside it renders on white
+    (as `segment` renders its frames); --background still decides where given."""
+    folder, scene, _, _ = user_scene_files(tmp_path / "scene", 4, 40, 30)
+    cams = folder / "transforms.json"
+
+    def shown(name: str, *extra: str) -> np.ndarray:
+        out = tmp_path / f"{name}.png"
+        argv = ["render", str(scene), "--cameras", str(cams), "--out", str(out), *extra]
+        assert main(argv) == 0, capsys.readouterr().err
+        return np.asarray(Image.open(out).convert("RGB")).astype(int)
+
+    black = shown("black")
+    (folder / "fit_config.json").write_text('{"background": [1.0, 1.0, 1.0]}')
+    white, asked = shown("white"), shown("asked", "--background", "0,0,0")
+    empty = black.max(-1) == 0
+    assert empty.mean() > 0.01 and (white[empty] == 255).all()
+    assert (asked == black).all()
