@@ -35,6 +35,7 @@ from bench.runners.outputs import print_summary, write_outputs
 from bench.runners.overrides import check_override_keys
 from bench.runners.rundir import (
     check_writable,
+    code_difference,
     config_difference,
     config_fingerprint,
     finished_config,
@@ -240,6 +241,9 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
     if changed:
         refuse(out_dir, ["made from other inputs (same config):", *changed])
     print(f"skipped: {out_dir} already holds this run (same config and inputs)")
+    older = code_difference(previous, git_state(), STAGE_VERSIONS)
+    if older:
+        print(f"  {older}")
     return previous.to_json()
 
 

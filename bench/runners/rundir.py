@@ -1,8 +1,9 @@
 """Run directories: finished runs are never rewritten, sweeps resume, reports read them.
 
 A run directory holds one finished run once its metrics.json says so. Rerunning into it with
-the same config (presentation keys aside) and the same inputs skips it; another config or
-changed inputs are refused naming the difference, and nothing in the folder changes.
+the same config (presentation keys aside) and the same inputs skips it (saying so where it was
+made at another commit); another config or changed inputs are refused naming the difference,
+and nothing in the folder changes.
 """
 
 from __future__ import annotations
@@ -101,6 +102,26 @@ def finished_run(out_dir: Path) -> RunMetrics | None:
         print(f"error: {exc}; move it away or pass overwrite=true", file=sys.stderr)
         raise RunExists(2) from None
     return None if metrics.status == "failed" else metrics
+
+
+def code_difference(previous: RunMetrics, now_git: dict, now_stages: dict) -> str:
+    """How the code that made `previous` differs from this checkout's (`git_state()` and
+    `STAGE_VERSIONS`), as a clause; '' where nothing recorded differs."""
+    then = (previous.git or {}).get("commit")
+    now = now_git.get("commit")
+    if not then or not now or then == now:
+        return ""
+    stages = [
+        f"{name} {previous.stage_versions.get(name, '<absent>')} -> {version}"
+        for name, version in now_stages.items()
+        if previous.stage_versions and previous.stage_versions.get(name) != version
+    ]
+    return (
+        f"made at commit {then[:10]}, this checkout is {now[:10]}"
+        + (f" (stage versions {', '.join(stages)})" if stages else "")
+        + ": its numbers are that code's; overwrite=true reruns it (unchanged stages come "
+        "from the cache)"
+    )
 
 
 def config_difference(old: dict, new: dict, limit: int = 8) -> list[str]:

@@ -221,3 +221,33 @@ def test_a_metrics_json_that_is_no_object_is_named(tmp_path, capsys):
     assert exc.value.code == 2
     err = capsys.readouterr().err
     assert "metrics.json: holds a list, not a JSON object" in err and err.count("\n") == 1
+
+
+def test_a_skipped_run_made_by_other_code_says_so(tmp_path, capsys):
+    """Rerunning a finished run skips it; where its metrics.json records another commit (and
+    other stage versions) than this checkout's, the skip says so and how to rerun it."""
+    from bench.runners.eval import evaluate
+    from bench.runners.rundir import code_difference
+    from sagonline.score.run_metrics import RunMetrics
+
+    run = tmp_path / "run"
+    cfg = cfg_with("dataset=synthetic_ff", "record=false")
+    evaluate(cfg, run)
+    capsys.readouterr()
+    evaluate(cfg, run)
+    out = capsys.readouterr().out
+    assert "already holds this run" in out and "made at commit" not in out
+    record = json.loads((run / "metrics.json").read_text())
+    if not record["git"].get("commit"):
+        pytest.skip("not a git checkout: no commit to compare")
+    record["git"]["commit"] = "0123456789" * 4
+    stage = next(iter(record["stage_versions"]))
+    record["stage_versions"][stage] = -1
+    (run / "metrics.json").write_text(json.dumps(record))
+    evaluate(cfg, run)
+    out = capsys.readouterr().out
+    assert "already holds this run" in out
+    assert "made at commit 0123456789, this checkout is" in out
+    assert f"stage versions {stage} -1 -> " in out and "overwrite=true reruns it" in out
+    previous = RunMetrics.read(run / "metrics.json")
+    assert code_difference(previous, {"commit": None}, {}) == ""  # no git here: say nothing
