@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sagonline.core.errors import SceneFileError
 from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import (
     check_mask_size,
@@ -303,6 +304,10 @@ class PosedMasksDataset(DatasetAdapter):
         num_labels = len(names)
         gaussians = load_trained_scene(scene_dir, self.name, self.drop_nonfinite, self.fit)
         scene_file = find_trained_scene(scene_dir, self.name, self.fit)
+        try:
+            background = fitted_background(scene_file)
+        except SceneFileError as exc:
+            raise DatasetError(str(exc)) from exc
         for name, gt in gts.items():
             valid = gt if self.ignore is None else gt[gt != self.ignore]
             if valid.size and (valid.min() < 0 or valid.max() >= num_labels):
@@ -347,7 +352,7 @@ class PosedMasksDataset(DatasetAdapter):
             },
             ignore_label=self.ignore,
             view_groups=view_groups,
-            background=fitted_background(scene_file),
+            background=background,
         )
 
     def make_prompt(

@@ -367,7 +367,9 @@ def test_scene_renders_on_the_colour_it_was_fitted_on(tmp_path):
 
 def test_fitted_background_reads_the_fit_config_beside_the_scene(tmp_path):
     """The colour beside a point_cloud.ply (fit_config.json of `make scenes`); None where
-    there is no such file, it is not JSON, or it records no colour."""
+    there is no such file or it records no colour; a file that is not JSON or a colour that is
+    not three numbers in [0, 1] is refused naming the file (not rendered on black silently)."""
+    from sagonline.core.errors import SceneFileError
     from sagonline.scene.io import fitted_background
 
     ply = tmp_path / "point_cloud.ply"
@@ -375,9 +377,39 @@ def test_fitted_background_reads_the_fit_config_beside_the_scene(tmp_path):
     config = tmp_path / "fit_config.json"
     config.write_text('{"background": [1, 0.5, 0]}')
     assert fitted_background(ply) == (1.0, 0.5, 0.0)
-    for broken in ("{", "[1, 2, 3]", '{"background": "white"}', '{"seed": 0}'):
+    for silent in ("[1, 2, 3]", '{"seed": 0}', '{"background": null}'):
+        config.write_text(silent)
+        assert fitted_background(ply) is None, silent
+    for broken, words in (
+        ('{"background": [1, 1, ', "not JSON"),
+        ('{"background": "white"}', "'white' is not three numbers"),
+        ('{"background": 1}', "background 1 is not"),
+        ('{"background": ["a", 1, 1]}', "not three numbers r, g, b in [0, 1]"),
+        ('{"background": [2, 0, 0]}', "in [0, 1]"),
+        ('{"background": [NaN, 0, 0]}', "in [0, 1]"),
+        ('{"background": [true, 0, 0]}', "in [0, 1]"),
+        ('{"background": [1, 1]}', "in [0, 1]"),
+    ):
         config.write_text(broken)
-        assert fitted_background(ply) is None, broken
+        with pytest.raises(SceneFileError) as exc:
+            fitted_background(ply)
+        assert str(exc.value).startswith(f"{config}: ") and words in str(exc.value), broken
+
+
+def test_a_broken_fit_config_fails_the_scene_naming_the_file(tmp_path):
+    """The adapters say a broken colour as a dataset error of the scene (the run reports the
+    scene failed, naming the file), and `sagonline render` in one line."""
+    from sagonline.apps.cli import main
+
+    cams, scene = llff_scene(tmp_path / "cap", NAMES)
+    _masks(tmp_path / "cap" / "masks", cams, scene, NAMES)
+    config = tmp_path / "cap" / "gaussians" / "fit_config.json"
+    config.write_text('{"background": [1, 1, 7]}')
+    with pytest.raises(DatasetError, match="fit_config.json: background"):
+        PosedMasksDataset(tmp_path / "cap", mask_dir="masks").load_scene("cap")
+    ply = tmp_path / "cap" / "gaussians" / "point_cloud.ply"
+    assert main(["render", str(ply), "--orbit", "4", "--out", str(tmp_path / "v.png")]) == 2
+    assert not (tmp_path / "v.png").exists()
 
 
 def test_a_photograph_lost_since_the_fit_is_refused_not_regrouped(tmp_path):

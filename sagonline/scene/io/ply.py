@@ -267,12 +267,24 @@ def _encode(activated: np.ndarray, forward, inverse) -> np.ndarray:
 
 def fitted_background(scene_file: Path) -> tuple[float, float, float] | None:
     """The `background` the fit_config.json beside `scene_file` records (a fit of `make
-    scenes`), or None where there is none."""
+    scenes`), or None where there is no such file or it records no colour. A file that is not
+    JSON, or a colour that is not three numbers in [0, 1], is refused naming the file: the
+    scene would otherwise be rendered silently on another colour than it was fitted on."""
+    path = Path(scene_file).parent / "fit_config.json"
     try:
-        colour = json.loads((Path(scene_file).parent / "fit_config.json").read_text())
-        colour = colour.get("background") if isinstance(colour, dict) else None
-    except (OSError, ValueError):
+        text = path.read_text()
+    except OSError:
         return None
-    if not (isinstance(colour, list) and len(colour) == 3):
+    try:
+        record = json.loads(text)
+    except ValueError as exc:
+        raise SceneFileError(f"{path}: not JSON ({exc}); fix or remove it") from None
+    colour = record.get("background") if isinstance(record, dict) else None
+    if colour is None:
         return None
+    numeric = [v for v in colour if type(v) in (int, float)] if isinstance(colour, list) else []
+    if not (len(numeric) == 3 == len(colour) and all(0.0 <= v <= 1.0 for v in numeric)):
+        raise SceneFileError(  # NaN fails the range too
+            f"{path}: background {colour!r} is not three numbers r, g, b in [0, 1]"
+        )
     return (float(colour[0]), float(colour[1]), float(colour[2]))
