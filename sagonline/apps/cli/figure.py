@@ -168,7 +168,6 @@ def cmd_figure(args) -> int:
     if len(objects) == 1 and rest:
         titles.append(f"without {next(iter(objects))}")
     bg = torch.tensor(fitted_background(info["scene"]) or (0.0, 0.0, 0.0))  # as segment saw it
-
     ink = (0, 0, 0) if float(bg.mean()) > 0.5 else (255, 255, 255)  # the view's name, legible
 
     def show(g, cam) -> np.ndarray:
