@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict
 from pathlib import Path
 
@@ -59,9 +60,10 @@ def write_outputs(
     metrics = RunMetrics.from_json(record).to_json()  # the schema's fields, checked
     rows = [{**v, "protocol": r.protocol} for r in reports for v in r.views]
     columns = ["protocol", "scene", "view", "mode", "iou", "acc", "voted"]
+    from sagonline.score.alignment import SHIFT_KEYS
     from sagonline.score.diagnosis import EXTRA, MISSED
 
-    diagnosis = ("object_px", "hidden_px", "missed_px", *MISSED, "extra_px", *EXTRA)
+    diagnosis = ("object_px", "hidden_px", *SHIFT_KEYS, "missed_px", *MISSED, "extra_px", *EXTRA)
     columns += [
         k
         for k in ("photographed", "photo_angle_deg", "photo_distance", *diagnosis)
@@ -110,6 +112,37 @@ def fmt(x, pct: bool = True) -> str:
     return f"{100 * x:.2f}" if pct else f"{x:.1f}"
 
 
+def diagnosis_lines(d: dict) -> list[str]:
+    """A scene's diagnosis (`score.diagnosis` shares, `report.extra["diagnosis"]`) as summary
+    lines: where the missed pixels were lost, what the fit hides, the views rendered displaced."""
+    lines: list[str] = []
+    if d.get("missed_px"):
+        lines.append(
+            f"    missed pixels {d['missed_px']}: fit {fmt(d['share_fit'])}%, vote "
+            f"{fmt(d['share_vote'])}%, segmenter {fmt(d['share_segmenter'])}% "
+            "(per view: per_view.csv; the causes: sagonline/score/diagnosis.py)"
+        )
+    if d.get("hidden"):
+        lines.append(
+            f"    the fit hides {fmt(d['hidden'])}% of the object's pixels behind nearer "
+            f"surfaces ({d.get('hidden_views', 0)} views more than a tenth: per_view.csv "
+            "hidden_px / object_px)"
+        )
+    if d.get("displaced"):
+        shown = ", ".join(
+            f"{v['view']} {math.hypot(v['shift_dx'], v['shift_dy']):.0f} px "
+            f"({v['silhouette_iou']:.2f} -> {v['shifted_iou']:.2f})"
+            for v in d["displaced"][:5]
+        )
+        more = f" and {len(d['displaced']) - 5} more" if len(d["displaced"]) > 5 else ""
+        lines.append(
+            f"    the object is rendered displaced from its mask in {len(d['displaced'])} "
+            f"view(s) (a camera's pose?): {shown}{more} (view, shift, silhouette IoU unshifted "
+            "-> shifted; per_view.csv shift_dx, shift_dy)"
+        )
+    return lines
+
+
 def print_summary(
     out_dir: Path,
     metrics: dict,
@@ -143,19 +176,7 @@ def print_summary(
         )
         if r.error:
             lines.append(f"    {r.error}")
-        d = r.extra.get("diagnosis") or {}
-        if d.get("missed_px"):
-            lines.append(
-                f"    missed pixels {d['missed_px']}: fit {fmt(d['share_fit'])}%, vote "
-                f"{fmt(d['share_vote'])}%, segmenter {fmt(d['share_segmenter'])}% "
-                "(per view: per_view.csv; the causes: sagonline/score/diagnosis.py)"
-            )
-        if d.get("hidden"):
-            lines.append(
-                f"    the fit hides {fmt(d['hidden'])}% of the object's pixels behind nearer "
-                f"surfaces ({d.get('hidden_views', 0)} views more than a tenth: per_view.csv "
-                "hidden_px / object_px)"
-            )
+        lines += diagnosis_lines(r.extra.get("diagnosis") or {})
         groups = r.extra.get("by_view_group") or {}
         for key, value in groups.items():  # e.g. photographed / mask-only views of a capture
             if key.endswith("_miou") and value is not None:

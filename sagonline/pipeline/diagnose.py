@@ -20,6 +20,7 @@ from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stage_one import StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
 from sagonline.scene.gaussians import Gaussians
+from sagonline.score.alignment import SHIFT_KEYS, displaced
 from sagonline.score.diagnosis import (
     GaussianCauses,
     OutsideTally,
@@ -77,9 +78,10 @@ def diagnose_scene(
     cache: StageCache,
 ) -> list[np.ndarray]:
     """Add each eval view's cause counts to its per-view row, the scene's shares to
-    report.extra["diagnosis"] and the labelled Gaussians shown outside the object's silhouette
-    to report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
-    images (for the recording)."""
+        report.extra["diagnosis"] (with the views whose object is rendered displaced,
+    `score.alignment`) and the labelled Gaussians shown outside the object's silhouette
+        to report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
+        images (for the recording)."""
     truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
     causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
     rows = {(r["view"], r["mode"]): r for r in report.views}
@@ -104,5 +106,10 @@ def diagnose_scene(
     report.extra["diagnosis"] = shares(counts) | {
         "counterfactual": "truth's masks" if truth is not None else None,
         "outside": outside_summary(report.outside, sum(c["extra_px"] for c in counts)),
+        "displaced": [
+            {"view": view.name, **{k: c[k] for k in SHIFT_KEYS}}
+            for view, c in zip(task.eval_views, counts, strict=True)
+            if displaced(c, view.camera.width, view.camera.height)
+        ],
     }
     return images

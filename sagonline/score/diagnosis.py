@@ -26,7 +26,10 @@ extra (ground truth background, predicted an object): `extra_fit` where the fitt
 renders there (its surface reaches beyond the object's silhouette), `extra_segmenter` where
 the Gaussian shown is that object by the run's vote but not by the truth's, `extra_other`.
 
-Whatever the labels, `hidden_px` counts the object's pixels (its ground truth) where the fit
+Whatever the labels, the shift that best aligns the fitted objects' silhouette with the truth's
+object pixels (`score.alignment`: `shift_dx`, `shift_dy`, `silhouette_iou`, `shifted_iou`)
+says whether the view's object is rendered displaced, as an error in its camera's pose does.
+`hidden_px` counts the object's pixels (its ground truth) where the fit
 covers the fitted object with a nearer surface (the rule of `fit_occluded`): what a segmenter
 looking at the render cannot see. A fit that draws surfaces in front of the object between its
 photographs shows here before any label is wrong.
@@ -54,6 +57,7 @@ import torch
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io.images import resize_nearest
+from sagonline.score.alignment import best_shift
 from sagonline.vote.body import Body, extents
 from sagonline.vote.consensus import VoteConfig, VoteResult
 
@@ -160,10 +164,10 @@ def diagnose_view(
     backend: str = "auto",
     outside: OutsideTally | None = None,
     voted: bool = False,
-) -> tuple[dict[str, int], np.ndarray]:
-    """Counts of one view's wrong pixels by cause, and an (H, W) uint8 map of the causes
-    (index into MISSED + EXTRA, +1; 0: right). gt: the view's ground truth (any resolution of
-    the camera's aspect); pred: the label render at the camera's size. `outside`: adds this
+) -> tuple[dict[str, int | float], np.ndarray]:
+    """Counts of one view's wrong pixels by cause, its `best_shift`, and an (H, W) uint8 map of
+    the causes (index into MISSED + EXTRA, +1; 0: right). gt: the view's ground truth (any size
+    of the camera's aspect); pred: the label render at the camera's size. `outside`: adds this
     view's extra pixels to it, per labelled Gaussian shown there (`voted`: the view voted)."""
     from sagonline.render.api import render
 
@@ -191,14 +195,16 @@ def diagnose_view(
 
     mark("fit_empty", missed & ((alpha < 0.5) | ~shown))
     hidden = np.zeros((h, w), bool)  # the object's pixels where a nearer surface covers it
-    objects = np.unique(truth[valid & (truth > 0)]).tolist() + np.unique(pred[extra]).tolist()
-    for k in sorted(set(objects)):
+    silhouette = np.zeros((h, w), bool)  # where the fitted objects of the truth render
+    in_truth = np.unique(truth[valid & (truth > 0)]).tolist()
+    for k in sorted(set(in_truth + np.unique(pred[extra]).tolist())):
         if k <= 0:
             continue
         obj_alpha, obj_depth = object_depths(gaussians, camera, causes.members(k), backend)
         with np.errstate(invalid="ignore"):
             covered = depth < (1 - OCCLUSION) * obj_depth  # False where the object renders nothing
         hidden |= valid & (truth == k) & covered
+        silhouette |= (obj_alpha >= 0.5) & (k in in_truth)
         at_k = missed & (truth == k)
         mark("fit_missing", at_k & (obj_alpha < 0.5))
         mark("fit_occluded", at_k & covered)
@@ -226,7 +232,7 @@ def diagnose_view(
     counts["extra_px"] = int(extra.sum())
     counts["object_px"] = int((valid & (truth > 0)).sum())
     counts["hidden_px"] = int(hidden.sum())
-    return counts, kinds
+    return {**counts, **best_shift(valid & (truth > 0), silhouette)}, kinds
 
 
 POSITIONS = ("in_front", "beside", "behind")
