@@ -30,9 +30,9 @@ def best_shift(truth: np.ndarray, silhouette: np.ndarray) -> dict[str, float | i
     if not t_px or not s_px:
         return {}
     h, w = t.shape
-    size = (2 * h, 2 * w)  # zero padding: a shift never wraps round the view
-    corr = np.fft.irfft2(np.fft.rfft2(t, size) * np.conj(np.fft.rfft2(s, size)), size)
     reach = math.ceil(MAX_SHIFT * max(h, w))
+    size = (h + reach, w + reach)  # zero padding: a shift within reach never wraps round
+    corr = np.fft.irfft2(np.fft.rfft2(t, size) * np.conj(np.fft.rfft2(s, size)), size)
     dy, dx = np.meshgrid(np.arange(-reach, reach + 1), np.arange(-reach, reach + 1), indexing="ij")
     overlap = np.maximum(np.rint(corr[dy % size[0], dx % size[1]]), 0)  # [2r+1, 2r+1] in common
     iou = overlap / (t_px + s_px - overlap)
