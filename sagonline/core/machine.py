@@ -31,6 +31,10 @@ DEVICE_DEFAULT = "auto"
 """Every front end's device when none is given: `device=` (Hydra), `--device` (the commands),
 `PipelineSettings.device`."""
 DEVICE_HELP = "auto (cuda when available, else cpu), cpu, cuda or cuda:N"
+# The renderer's and the vote's implementations by name (chosen per device in
+# `render.backends`; named here, without PyTorch, for the commands' --help)
+BACKENDS = ("torch", "native", "gsplat", "triton", "auto")
+VOTE_BACKENDS = ("torch", "native", "triton", "gsplat", "auto")
 
 
 def resolve_device(device) -> str:

@@ -30,10 +30,8 @@ from pathlib import Path
 
 import torch
 
-from sagonline.core.machine import resolve_device
+from sagonline.core.machine import BACKENDS, VOTE_BACKENDS, resolve_device
 
-BACKENDS = ("torch", "native", "gsplat", "triton", "auto")
-VOTE_BACKENDS = ("torch", "native", "triton", "gsplat", "auto")
 DEVICES = ("cpu", "cuda", "cuda:N", "auto")
 
 # What to install for a backend that is not there, named in every refusal.

@@ -29,12 +29,6 @@ MAX_ORBIT = int(os.environ.get("SAGONLINE_MAX_ORBIT", 720))
 MAX_TRAJECTORY = int(os.environ.get("SAGONLINE_MAX_TRAJECTORY", 2000))
 DEFAULT_ORBIT = 24
 
-CLICK_HELP = (
-    "VIEW is an index in `sagonline cameras` (cameras sorted by name) or a camera's name; X,Y "
-    "are pixels of that view at its render size (--width/--height, else the camera's own), x "
-    "right, y down, from the top-left corner"
-)
-
 
 class ViewError(ValueError):
     """A view, a size or an orbit that the cameras cannot give; says which and why."""
@@ -194,7 +188,6 @@ def check_trajectory(cams: list[Camera]) -> None:
 
 
 __all__ = [
-    "CLICK_HELP",
     "MAX_ORBIT",
     "MAX_TRAJECTORY",
     "ViewError",

@@ -22,6 +22,14 @@ import argparse
 import os
 import sys
 
+# How every command that renders names a view and a pixel (`scene.views`, `segment.clicks`)
+CLICK_HELP = (
+    "VIEW is an index in `sagonline cameras` (cameras sorted by name) or a camera's name; X,Y "
+    "are pixels of that view at its render size (--width/--height, else the camera's own), x "
+    "right, y down, from the top-left corner"
+)
+
+
 # Each command: the module of this package that declares it, and its line in `--help`
 COMMANDS = {
     "info": ("inspect", "format, Gaussian count, SH degree, bounding box"),

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.render.backends import BACKENDS
+from sagonline.core.machine import BACKENDS
 
 TITLE_PX = 22  # height of the title strip above the columns
 

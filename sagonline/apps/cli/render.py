@@ -7,9 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.core.machine import DEVICE_DEFAULT, DEVICE_HELP
-from sagonline.render.backends import BACKENDS
-from sagonline.scene.views import CLICK_HELP
+from sagonline.apps.cli import CLICK_HELP
+from sagonline.core.machine import BACKENDS, DEVICE_DEFAULT, DEVICE_HELP
 
 OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
 

@@ -9,6 +9,7 @@ import time
 from dataclasses import asdict
 from pathlib import Path
 
+from sagonline.apps.cli import CLICK_HELP
 from sagonline.apps.cli.options import (
     add_min_weight_argument,
     add_segmenter_arguments,
@@ -19,8 +20,7 @@ from sagonline.apps.cli.options import (
     vote_config,
 )
 from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
-from sagonline.render.backends import BACKENDS
-from sagonline.scene.views import CLICK_HELP
+from sagonline.core.machine import BACKENDS
 from sagonline.segment.base import DEFAULT_SEGMENTER
 from sagonline.segment.clicks import parse_prompt, to_prompt
 

@@ -14,7 +14,7 @@ from sagonline.apps.cli.options import (
     segmenter_options,
 )
 from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
-from sagonline.render.backends import BACKENDS
+from sagonline.core.machine import BACKENDS
 
 
 def add_parsers(sub) -> None:
