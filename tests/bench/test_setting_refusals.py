@@ -119,7 +119,7 @@ def test_unreadable_sam2_checkpoint_fails_before_rendering(tmp_path, capsys):
 
     GlobalHydra.instance().clear()  # importing sam2 initialises Hydra globally
     bad = tmp_path / "sam2.pt"
-    bad.write_bytes(os.urandom(4096))
+    bad.write_bytes(b"\x00 not a checkpoint\n" * 200)  # the same bytes every run
     _fails_before_rendering(tmp_path, "segmenter=sam2", f"segmenter.checkpoint={bad}")
     err = capsys.readouterr().err
     assert f"segmenter.checkpoint={bad}" in err and "not a readable PyTorch checkpoint" in err
@@ -128,6 +128,6 @@ def test_unreadable_sam2_checkpoint_fails_before_rendering(tmp_path, capsys):
 def test_unreadable_yolo_weights_fail_before_rendering(tmp_path, capsys):
     pytest.importorskip("ultralytics")
     bad = tmp_path / "yolo.pt"
-    bad.write_bytes(os.urandom(4096))
+    bad.write_bytes(b"\x00 not a checkpoint\n" * 200)  # the same bytes every run
     _fails_before_rendering(tmp_path, "segmenter=yolo", f"segmenter.weights={bad}")
     assert f"segmenter.weights={bad}" in capsys.readouterr().err
