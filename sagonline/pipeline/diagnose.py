@@ -78,10 +78,10 @@ def diagnose_scene(
     cache: StageCache,
 ) -> list[np.ndarray]:
     """Add each eval view's cause counts to its per-view row, the scene's shares to
-        report.extra["diagnosis"] (with the views whose object is rendered displaced,
-    `score.alignment`) and the labelled Gaussians shown outside the object's silhouette
-        to report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
-        images (for the recording)."""
+    report.extra["diagnosis"] (with the views whose object is rendered displaced,
+    `score.alignment`) and the labelled Gaussians shown outside the object's silhouette to
+    report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
+    images (for the recording)."""
     truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
     causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
     rows = {(r["view"], r["mode"]): r for r in report.views}

@@ -246,10 +246,9 @@ def record_eval_views(
     if not recorder.enabled:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
-    frames, bg = nearest_frames(task), torch.tensor(background, dtype=torch.float32)
+    frames = nearest_frames(task)
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
-        out = render(gaussians, view.camera, background=bg, backend=backend)
-        rgb = to_uint8(out.rgb)
+        rgb = to_uint8(render(gaussians, view.camera, background=background, backend=backend).rgb)
         recorder.eval_view(
             task.name,
             i,

@@ -53,7 +53,7 @@ class OnlineSegmentation:
         self.g, self.labels = gaussians, labels
         self.num_labels, self.trainer, self.segmenter = num_labels, trainer, segmenter
         self.backend, self.min_weight = backend, min_weight
-        self.background = torch.tensor(background, dtype=torch.float32)
+        self.background = background
 
     @property
     def mode(self) -> str:

@@ -21,13 +21,16 @@ def render(
 ) -> RenderOutput | None:
     """Render (and optionally trace) one view; options as in `rasterize`. The native CPU kernel
     renders images, features and most-visible ids; a trace (`TraceRequest`) runs on the tiled
-    PyTorch path there (the vote has its own compiled pass: `vote_histogram`). An option the
-    chosen backend cannot honour raises, as does a misspelt one."""
+    PyTorch path there (the vote has its own compiled pass: `vote_histogram`). `background` may
+    be a tensor [3] or three floats. An option the chosen backend cannot honour raises, as does
+    a misspelt one."""
     unknown = sorted(set(options) - RENDER_OPTIONS)
     if unknown:  # a misspelt option would otherwise do nothing
         raise TypeError(
             f"render(): unknown option(s) {unknown}; the options are {sorted(RENDER_OPTIONS)}"
         )
+    if options.get("background") is not None and not torch.is_tensor(options["background"]):
+        options["background"] = torch.tensor(options["background"], dtype=torch.float32)  # r,g,b
     chosen = resolve_backend(backend, gaussians.device)
     if chosen in ("native", "triton") and options.get("trace") is not None:
         chosen = "torch"

@@ -131,8 +131,6 @@ def check_same_scene(folder: Path, info: dict, scene) -> None:
 
 
 def cmd_figure(args) -> int:
-    import torch
-
     from sagonline.core.files import atomic_write_image
     from sagonline.core.outputs import OutputError, check_not_input
     from sagonline.labels.colours import label_colors
@@ -167,8 +165,8 @@ def cmd_figure(args) -> int:
     titles = ["scene", "labels", *(f"{name} alone" for name in objects)]
     if len(objects) == 1 and rest:
         titles.append(f"without {next(iter(objects))}")
-    bg = torch.tensor(fitted_background(info["scene"]) or (0.0, 0.0, 0.0))  # as segment saw it
-    ink = (0, 0, 0) if float(bg.mean()) > 0.5 else (255, 255, 255)  # the view's name, legible
+    bg = fitted_background(info["scene"]) or (0.0, 0.0, 0.0)  # as segment saw it
+    ink = (0, 0, 0) if sum(bg) > 1.5 else (255, 255, 255)  # the view's name, legible
 
     def show(g, cam) -> np.ndarray:
         return to_uint8(render(g, cam, background=bg, backend=args.backend).rgb)

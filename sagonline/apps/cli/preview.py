@@ -6,7 +6,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-import torch
 
 
 def write_preview(g, cams, view: str, out: Path, args, background=(0.0, 0.0, 0.0)) -> int:
@@ -28,9 +27,10 @@ def write_preview(g, cams, view: str, out: Path, args, background=(0.0, 0.0, 0.0
     if out.exists() and not args.overwrite:
         raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
     cam = cams[index]
-    bg = torch.tensor(background, dtype=torch.float32)
-    rgb = render(g.to(args.device), cam.to(args.device), background=bg, backend=args.backend).rgb
-    rgb = to_uint8(rgb)
+    shown = render(
+        g.to(args.device), cam.to(args.device), background=background, backend=args.backend
+    )
+    rgb = to_uint8(shown.rgb)
     image = np.ascontiguousarray(rgb)
     grid = image.copy()
     for x in range(0, cam.width, 50):
@@ -71,11 +71,13 @@ def write_contact_sheet(g, cams, out: Path, args, background=(0.0, 0.0, 0.0)) ->
     if out.exists() and not args.overwrite:
         raise ValueError(f"--out {out} exists; pass --overwrite to replace it")
     side = 200  # each tile's longer side
-    renders, bg = [], torch.tensor(background, dtype=torch.float32)
+    renders = []
     for cam in cams:
         s = side / max(cam.width, cam.height)
         small = cam.scaled(max(1, round(cam.width * s)), max(1, round(cam.height * s)))
-        out_ = render(g.to(args.device), small.to(args.device), background=bg, backend=args.backend)
+        out_ = render(
+            g.to(args.device), small.to(args.device), background=background, backend=args.backend
+        )
         renders.append(np.ascontiguousarray(to_uint8(out_.rgb)))
     height = max(r.shape[0] for r in renders)
     tiles = []

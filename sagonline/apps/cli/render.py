@@ -124,7 +124,6 @@ def warn_if_empty(alpha, index: int, cam) -> None:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    import torch
 
     from sagonline.core.files import atomic_write_image, atomic_write_npy
     from sagonline.core.machine import check_device
@@ -159,7 +158,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out_img = render(
         g.to(args.device),
         cam.to(args.device),
-        background=torch.tensor(background),
+        background=background,
         backend=args.backend,
     )
     rgb = out_img.rgb.clamp_min(0).cpu().numpy().astype(np.float32)
