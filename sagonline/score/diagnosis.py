@@ -27,12 +27,12 @@ renders there (its surface reaches beyond the object's silhouette), `extra_segme
 the Gaussian shown is that object by the run's vote but not by the truth's, `extra_other`.
 
 Whatever the labels, the shift that best aligns the fitted objects' silhouette with the truth's
-object pixels (`score.alignment`: `shift_dx`, `shift_dy`, `silhouette_iou`, `shifted_iou`)
-says whether the view's object is rendered displaced, as an error in its camera's pose does.
-`hidden_px` counts the object's pixels (its ground truth) where the fit
-covers the fitted object with a nearer surface (the rule of `fit_occluded`): what a segmenter
-looking at the render cannot see. A fit that draws surfaces in front of the object between its
-photographs shows here before any label is wrong.
+object pixels (`score.alignment`: `shift_dx`, `shift_dy`, `silhouette_iou`, `shifted_iou`) says
+whether the view's object is rendered displaced, as an error in its camera's pose does.
+`hidden_px` counts the object's pixels (its ground truth) where the fit covers the fitted
+object with a nearer surface (the rule of `fit_occluded`): what a segmenter looking at the
+render cannot see. A fit that draws surfaces in front of the object between its photographs
+shows here before any label is wrong.
 
 Counts are pixels at the render's resolution (the ground truth resized to it by nearest
 neighbour). The groups: fit (fit_*), vote (vote_*, label_render), segmenter.
