@@ -44,6 +44,7 @@ import pandas as pd
 from bench import ROOT
 from sagonline.core.files import atomic_write_text
 from sagonline.core.plugins import SEGMENTERS
+from sagonline.scene.io.images import resize_nearest
 from sagonline.segment.mask_geometry import box_of, interior_point, iou
 from sagonline.segment.prompts import ObjectPrompt
 
@@ -61,7 +62,7 @@ def photos(
     for photo in sorted((root / "images_4").iterdir())[:count]:
         image = cv2.cvtColor(cv2.imread(str(photo)), cv2.COLOR_BGR2RGB)
         gt = cv2.imread(str(next((root / "masks_4").glob(photo.stem + "*"))), 0)
-        gt = cv2.resize(gt, image.shape[1::-1], interpolation=cv2.INTER_NEAREST) > 127
+        gt = resize_nearest(gt, image.shape[:2]) > 127
         out.append((photo.stem, image, gt))
     return out
 
@@ -116,9 +117,7 @@ def video_table(
                 s = side / max(image.shape[:2])
                 size = (round(image.shape[1] * s), round(image.shape[0] * s))
                 frames.append(cv2.resize(image, size, interpolation=cv2.INTER_AREA))
-                truths.append(
-                    cv2.resize(truth.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
-                )
+                truths.append(resize_nearest(truth, size[::-1]))
             result = seg.segment(frames, Prompt(frame=0, objects=[ObjectPrompt(1, mask=truths[0])]))
             ious = [iou(m == 1, t) for m, t in zip(result.masks[1:], truths[1:], strict=True)]
             rows.append(

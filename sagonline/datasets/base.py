@@ -12,7 +12,14 @@ from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.prompts import Prompt
 
-__all__ = ["DatasetAdapter", "DatasetError", "EvalView", "SceneTask"]
+__all__ = ["PROTOCOL_VERSION", "DatasetAdapter", "DatasetError", "EvalView", "SceneTask"]
+
+# The version every protocol id ends with where the ground truth can be resized (`@2`): 2 since
+# truths, prompt masks and predictions are resized pixel-centred (scene.io.images.resize_nearest);
+# 1 read each target pixel's top-left source pixel, half a pixel off. The synthetic scenes'
+# truths are drawn at the view's size, never resized: their protocol stays at 1.
+# docs/datasets.md, "Protocol versions".
+PROTOCOL_VERSION = 2
 
 
 @dataclass
@@ -90,7 +97,7 @@ class DatasetAdapter:
         """A short versioned id of the evaluation protocol (`<dataset>/<variant>@<version>`):
         every result carries it, and no table averages results of different ids. Adapters
         whose settings change what is scored or how it is prompted name the variant."""
-        return f"{self.name}/default@1"
+        return f"{self.name}/default@{PROTOCOL_VERSION}"
 
     def describe(self) -> dict:
         """Protocol settings recorded in every report."""

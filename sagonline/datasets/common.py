@@ -13,7 +13,7 @@ from sagonline.datasets.base import DatasetError
 from sagonline.datasets.fits import gaussians_dir
 from sagonline.scene.cameras import Camera
 from sagonline.scene.io.cameras import load_cameras, load_llff
-from sagonline.scene.io.images import IMAGE_SUFFIXES, image_size, list_images
+from sagonline.scene.io.images import IMAGE_SUFFIXES, image_size, list_images, resize_nearest
 from sagonline.scene.io.masks import MAX_LABELS, MaskFileError, read_mask
 from sagonline.scene.trajectory import pseudo_temporal_order
 from sagonline.segment.prompts import ObjectPrompt, Prompt
@@ -155,11 +155,6 @@ def click_prompt(
         if obj is not None:
             sy, sx = scale[1], scale[0]
             h, w = mask.shape
-            full = cv2.resize(
-                (mask == label).astype(np.uint8),
-                (round(w * sx), round(h * sy)),
-                interpolation=cv2.INTER_NEAREST,
-            )
-            obj.mask = full.astype(bool)
+            obj.mask = resize_nearest(mask == label, (round(h * sy), round(w * sx)))
             objects.append(obj)
     return Prompt(frame=frame, objects=objects)

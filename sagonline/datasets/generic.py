@@ -23,7 +23,13 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.core.errors import SceneFileError
-from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
+from sagonline.datasets.base import (
+    PROTOCOL_VERSION,
+    DatasetAdapter,
+    DatasetError,
+    EvalView,
+    SceneTask,
+)
 from sagonline.datasets.common import (
     check_mask_size,
     check_one_mask_size,
@@ -139,10 +145,10 @@ class PosedMasksDataset(DatasetAdapter):
 
     @property
     def protocol(self) -> str:
-        """What is scored and what the segmenter is offered, e.g. `mold_cape/exclude-reference@1`
+        """What is scored and what the segmenter is offered, e.g. `mold_cape/exclude-reference@2`
         (the default: the reference view's mask with 3 clicks in it, on the first view with a
-        mask), `...-clicks1@1` (one click, no mask), `...-mask-clicks1@1`, `...-ref-IMG_5961@1`
-        (another reference view); `...-photos1of2@1` where the fits were made from every second
+        mask), `...-clicks1@2` (one click, no mask), `...-mask-clicks1@2`, `...-ref-IMG_5961@2`
+        (another reference view); `...-photos1of2@2` where the fits were made from every second
         training photograph (`fit.train_every=2`, the sparse-photograph protocol)."""
         views = "exclude-reference" if self.exclude_reference else "all-views"
         prompt = "" if self.prompt_kind == "mask" else f"-{self.prompt_kind}"
@@ -153,7 +159,7 @@ class PosedMasksDataset(DatasetAdapter):
         ref = f"-ref-{self.reference}" if self.reference else ""
         every = {photographs_fitted(d, self.name, self.fit) for d in self._fitted_dirs()}
         sparse = f"-photos1of{max(every)}" if max(every, default=1) > 1 else ""
-        return f"{self.name}/{views}{prompt}{ref}{sparse}@1"
+        return f"{self.name}/{views}{prompt}{ref}{sparse}@{PROTOCOL_VERSION}"
 
     def _fitted_dirs(self) -> list[Path]:
         """The scenes' folders, where they can be listed (none: the protocol names no fit)."""

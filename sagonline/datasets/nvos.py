@@ -23,7 +23,7 @@ Each task prompts on its reference view by one of the protocols of `nvos_prompts
 sampled uniformly or SAGA's skeleton way, one click, a frozen points file), or, as the SAGOnline
 paper does, by seeded random clicks on the ground-truth object, which NVOS only provides on the
 target view; it scores the single target view. `protocol` names the choice (e.g.
-`nvos/scribbles-skeleton@1`) and every result carries it.
+`nvos/scribbles-skeleton@2`) and every result carries it.
 """
 
 from __future__ import annotations
@@ -33,7 +33,13 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
+from sagonline.datasets.base import (
+    PROTOCOL_VERSION,
+    DatasetAdapter,
+    DatasetError,
+    EvalView,
+    SceneTask,
+)
 from sagonline.datasets.common import check_mask_size, click_prompt, load_mask, scene_cameras
 from sagonline.datasets.fits import find_trained_scene, fit_record, load_trained_scene
 from sagonline.datasets.nvos_prompts import (
@@ -138,14 +144,14 @@ class NVOSDataset(DatasetAdapter):
         neg = "-neg" if self.negative else ""
         if self.prompt_kind == "points":
             digest = hashlib.sha256(Path(self.points_file).read_bytes()).hexdigest()[:8]
-            return f"nvos/points-{Path(self.points_file).stem}-{digest}@1"
+            return f"nvos/points-{Path(self.points_file).stem}-{digest}@{PROTOCOL_VERSION}"
         if self.prompt_kind == "click":
-            return "nvos/click@1"
+            return f"nvos/click@{PROTOCOL_VERSION}"
         if self.prompt_kind == "clicks":
-            return f"nvos/gt-clicks{self.clicks}@1"
+            return f"nvos/gt-clicks{self.clicks}@{PROTOCOL_VERSION}"
         if self.sampling == "skeleton":
-            return f"nvos/scribbles-skeleton{neg}@1"
-        return f"nvos/scribbles-uniform{self.points}{neg}@1"
+            return f"nvos/scribbles-skeleton{neg}@{PROTOCOL_VERSION}"
+        return f"nvos/scribbles-uniform{self.points}{neg}@{PROTOCOL_VERSION}"
 
     def describe(self) -> dict:
         return {

@@ -114,6 +114,8 @@ class SyntheticDataset(DatasetAdapter):
 
     @property
     def protocol(self) -> str:
+        """Version 1 still: the truths are drawn at each view's size, so the resize rule that
+        version 2 changed (datasets.base.PROTOCOL_VERSION) never reaches them."""
         return "synthetic/held-out-views@1"
 
     def describe(self) -> dict:

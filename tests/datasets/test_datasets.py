@@ -430,17 +430,17 @@ def test_a_photograph_lost_since_the_fit_is_refused_not_regrouped(tmp_path):
 
 def test_a_fit_of_every_second_photograph_has_a_protocol_of_its_own(tmp_path):
     """A capture whose fit recorded fit.train_every=2 (the sparse-photograph protocol) is scored
-    under `...-photos1of2@1`; a fit that records nothing, or every photograph, under the plain
+    under `...-photos1of2@2`; a fit that records nothing, or every photograph, under the plain
     protocol (whose id, and so every cached run, stays as it was)."""
     import json
 
     llff_scene(tmp_path / "cap", NAMES)
     ds = PosedMasksDataset(tmp_path / "cap", image_dir="images_4", mask_dir="masks")
-    assert ds.protocol == "generic/all-views@1"
+    assert ds.protocol == "generic/all-views@2"
     config = tmp_path / "cap" / "gaussians" / "fit_config.json"
     config.write_text(json.dumps({"train_every": 1}))
-    assert ds.protocol == "generic/all-views@1"
+    assert ds.protocol == "generic/all-views@2"
     config.write_text(json.dumps({"train_every": 2}))
-    assert ds.protocol == "generic/all-views-photos1of2@1"
+    assert ds.protocol == "generic/all-views-photos1of2@2"
     config.write_text("not json")
-    assert ds.protocol == "generic/all-views@1"
+    assert ds.protocol == "generic/all-views@2"

@@ -30,7 +30,7 @@ def test_frozen_points_land_on_the_reference_view(tmp_path):
     np.testing.assert_allclose(obj.points, [[16, 11], [17.5, 11.5]])
     assert obj.point_labels.tolist() == [1, 1]
     assert task.meta["protocol"].startswith("nvos/points-saga_v2_input_points-")
-    assert task.meta["protocol"].endswith("@1") and task.meta["protocol"] == ds.protocol
+    assert task.meta["protocol"].endswith("@2") and task.meta["protocol"] == ds.protocol
 
 
 @pytest.mark.parametrize(
@@ -94,11 +94,11 @@ def test_protocols_click_and_skeleton_on_a_task(tmp_path):
     root, *_ = _nvos(tmp_path)
     click = NVOSDataset(root, tasks=["horns_center"], prompt="click")
     task = click.load_scene("horns_center")
-    assert len(task.prompt.objects[0].points) == 1 and task.meta["protocol"] == "nvos/click@1"
+    assert len(task.prompt.objects[0].points) == 1 and task.meta["protocol"] == "nvos/click@2"
     skel = NVOSDataset(root, tasks=["horns_center"], sampling="skeleton", seed=3)
     pts = skel.load_scene("horns_center").prompt.objects[0].points
     again = NVOSDataset(root, tasks=["horns_center"], sampling="skeleton", seed=3)
     np.testing.assert_array_equal(pts, again.load_scene("horns_center").prompt.objects[0].points)
-    assert skel.protocol == "nvos/scribbles-skeleton@1"
-    assert NVOSDataset(root).protocol == "nvos/scribbles-uniform16@1"
-    assert NVOSDataset(root, prompt="clicks").protocol == "nvos/gt-clicks3@1"
+    assert skel.protocol == "nvos/scribbles-skeleton@2"
+    assert NVOSDataset(root).protocol == "nvos/scribbles-uniform16@2"
+    assert NVOSDataset(root, prompt="clicks").protocol == "nvos/gt-clicks3@2"

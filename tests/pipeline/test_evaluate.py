@@ -46,5 +46,5 @@ def test_every_scene_is_reported_in_order_and_a_broken_one_does_not_stop_the_res
     assert reports[0].status == "failed" and "no trained scene" in reports[0].error
     assert said == ["scene broken skipped: broken: no trained scene"]
     assert reports[1].status == "ok" and reports[1].miou > 0.5
-    assert all(r.protocol == "two/default@1" for r in reports)
+    assert all(r.protocol == "two/default@2" for r in reports)
     assert (tmp_path / "cache" / "good").is_dir() and not (tmp_path / "cache" / "broken").exists()

@@ -1,5 +1,5 @@
-"""Images and masks: a PNG bomb is refused from its header; masks are read as what they are; a file
-that is no mask is refused with what was seen."""
+"""Images and masks: a PNG bomb is refused from its header; masks are read as what they are and
+resized pixel-centred; a file that is no mask is refused with what was seen."""
 
 from __future__ import annotations
 
@@ -92,3 +92,38 @@ def test_a_file_that_is_no_mask_is_refused_with_what_was_seen(tmp_path, image, s
     cv2.imwrite(str(tmp_path / "m.png"), image)
     with pytest.raises(MaskFileError, match=seen):
         read_mask(tmp_path / "m.png")
+
+
+def centre_of(mask: np.ndarray) -> tuple[float, float]:
+    """(x, y) mean of the mask's pixel centres."""
+    ys, xs = np.nonzero(mask)
+    return float(xs.mean() + 0.5), float(ys.mean() + 0.5)
+
+
+@pytest.mark.parametrize("side", [228, 57, 2400])
+def test_a_resized_mask_keeps_its_place(side):
+    """A centred square shrunk 1000 -> 228 px stays centred (protocol 2). OpenCV's
+    INTER_NEAREST (protocol 1) drew it at 114.5, half a pixel right and down."""
+    from sagonline.datasets.common import click_prompt
+    from sagonline.scene.io.images import resize_nearest
+
+    mask = np.zeros((1000, 1000), np.uint8)
+    mask[300:700, 300:700] = 1
+    assert centre_of(resize_nearest(mask, (side, side))) == (side / 2, side / 2)
+    prompt = click_prompt(mask, 0, 2, 3, seed=0, scale=(side / 1000, side / 1000))
+    assert centre_of(prompt.objects[0].mask) == (side / 2, side / 2)
+
+
+def test_the_resize_is_pils_nearest_neighbour():
+    """Any size to any size, labels and dtype kept: the same pixels as PIL's nearest."""
+    from PIL import Image
+
+    from sagonline.scene.io.images import resize_nearest
+
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        (h, w), (th, tw) = rng.integers(1, 300, (2, 2))
+        labels = rng.integers(0, 250, (h, w)).astype(np.int64)
+        resized = resize_nearest(labels, (int(th), int(tw)))
+        expected = Image.fromarray(labels.astype(np.uint8)).resize((int(tw), int(th)), 0)
+        assert resized.dtype == np.int64 and np.array_equal(resized, np.asarray(expected))

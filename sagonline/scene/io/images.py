@@ -95,9 +95,15 @@ def list_images(folder: str | Path) -> list[Path]:
 
 
 def resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) label map -> `shape` by nearest neighbour, dtype kept."""
-    if mask.shape == shape:
+    """(H, W) label map -> `shape` (H', W') by nearest neighbour, dtype kept.
+
+    Pixel-centred: target row i reads source row floor((i + 0.5) H / H'), the source pixel
+    under the target pixel's centre (OpenCV's INTER_NEAREST_EXACT, as PIL's nearest), so a mask
+    keeps its place at any scale. OpenCV's INTER_NEAREST reads floor(i H / H'), the pixel under
+    the target's top-left corner, and draws a shrunk mask half a target pixel right and down:
+    protocol version 1 scored with that rule (docs/datasets.md, "Protocol versions")."""
+    if mask.shape == tuple(shape):
         return mask
     return cv2.resize(
-        mask.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST
+        mask.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT
     ).astype(mask.dtype)
