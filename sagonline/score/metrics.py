@@ -7,7 +7,9 @@ the mean over its views; a dataset's is the mean over scenes.
 
 Resolution: the prediction is compared at the ground truth's resolution, resized with
 nearest-neighbour (`resize="pred_to_gt"`, the default), or the ground truth at the
-prediction's (`resize="gt_to_pred"`).
+prediction's (`resize="gt_to_pred"`); nearest neighbour reads each target pixel's centre
+(`nearest="centre"`, protocol 2) or, re-scoring a protocol 1 run, its top-left corner
+(`nearest="corner"`; scene.io.images.NEAREST_SAMPLING).
 """
 
 from __future__ import annotations
@@ -15,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from sagonline.scene.io.images import resize_nearest
+from sagonline.scene.io.images import NEAREST_SAMPLING, resize_nearest
 
 RESIZE_RULES = {
     "pred_to_gt": "prediction resized to the ground truth's resolution (nearest neighbour)",
@@ -27,7 +29,9 @@ class ScoringError(ValueError):
     """A prediction that cannot be scored against its ground truth by the rules given."""
 
 
-def align(pred, gt, resize: str | None = "pred_to_gt") -> tuple[np.ndarray, np.ndarray]:
+def align(
+    pred, gt, resize: str | None = "pred_to_gt", nearest: str = "centre"
+) -> tuple[np.ndarray, np.ndarray]:
     """The prediction and the ground truth at one resolution. resize None: the sizes must
     match. The aspect ratios must match always (a stretched prediction is not scored), and
     `gt_to_pred` never shrinks the ground truth to a smaller prediction (a 1x1 prediction would
@@ -43,22 +47,26 @@ def align(pred, gt, resize: str | None = "pred_to_gt") -> tuple[np.ndarray, np.n
         )
     if resize not in RESIZE_RULES:
         raise ScoringError(f"resize rule {resize!r} is not one of {sorted(RESIZE_RULES)}")
+    if nearest not in NEAREST_SAMPLING:
+        raise ScoringError(f"nearest {nearest!r} is not one of {sorted(NEAREST_SAMPLING)}")
     if abs(pw / ph - gw / gh) > 0.01 * (gw / gh):
         raise ScoringError(
             f"the prediction is {pw}x{ph} and the ground truth {gw}x{gh}: other aspect ratios "
             f"({pw / ph:.3f} and {gw / gh:.3f}); a stretched prediction is never scored"
         )
     if resize == "pred_to_gt":
-        return resize_nearest(pred, gt.shape), gt
+        return resize_nearest(pred, gt.shape, nearest), gt
     if ph < gh or pw < gw:
         raise ScoringError(
             f"gt_to_pred with a prediction ({pw}x{ph}) smaller than the ground truth ({gw}x{gh})"
             " would score a shrunken truth; use pred_to_gt"
         )
-    return pred, resize_nearest(gt, pred.shape)
+    return pred, resize_nearest(gt, pred.shape, nearest)
 
 
-def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None) -> dict:
+def view_metrics(
+    pred, gt, resize: str = "pred_to_gt", ignore: int | None = None, nearest: str = "centre"
+) -> dict:
     """IoU (mean over foreground labels present) and pixel accuracy of one view.
 
     pred, gt: (H, W) integer label maps, 0 = background. `ignore`: a gt value to skip (e.g. 255).
@@ -66,7 +74,7 @@ def view_metrics(pred, gt, resize: str = "pred_to_gt", ignore: int | None = None
     A view whose every ground-truth pixel is ignored has nothing to score: iou and acc are None
     and "skipped" says why (it never counts as a perfect view).
     """
-    p, g = align(pred, gt, resize)
+    p, g = align(pred, gt, resize, nearest)
     if ignore is not None:
         valid = g != ignore
         if not valid.any():

@@ -68,6 +68,7 @@ def folder_sha256(folder: Path, pattern: str = "*/*.png") -> str:
 
 
 def write_scoring_rules(folder: Path, protocol: str | None, resize: str, ignore: int | None):
-    """The rules a ground-truth folder is scored by, for `sagonline score`."""
-    rules = {"protocol_id": protocol, "resize": resize, "ignore_label": ignore}
+    """The rules a ground-truth folder is scored by, for `sagonline score` (`nearest`: which
+    source pixel a resize reads, scene.io.images.NEAREST_SAMPLING)."""
+    rules = {"protocol_id": protocol, "resize": resize, "ignore_label": ignore, "nearest": "centre"}
     atomic_write_json(folder / SCORING_FILE, rules)

@@ -11,6 +11,7 @@ import pandas as pd
 
 from sagonline.core.errors import DatasetError
 from sagonline.core.files import read_json_object
+from sagonline.scene.io.images import NEAREST_SAMPLING
 from sagonline.score.metrics import RESIZE_RULES, ScoringError, view_metrics
 from sagonline.score.predictions import SCORING_FILE, label_maps, read_label_map
 from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
@@ -22,11 +23,13 @@ PREDICTION_PIXELS_OVER_TRUTH = 16
 
 @dataclass(frozen=True)
 class ScoringRules:
-    """scoring.json: how a ground-truth folder is scored."""
+    """scoring.json: how a ground-truth folder is scored. `nearest`: which source pixel a
+    resize reads ("centre"; "corner" in the files protocol 1's runs wrote, which lack the key)."""
 
     protocol_id: str | None = None
     resize: str | None = None
     ignore_label: int | None = None
+    nearest: str = "centre"
 
 
 def read_rules(gt_dir: Path) -> ScoringRules:
@@ -36,11 +39,14 @@ def read_rules(gt_dir: Path) -> ScoringRules:
     if not path.is_file():
         return ScoringRules()
     raw = read_json_object(path, DatasetError)
-    unknown = sorted(set(raw) - {"protocol_id", "resize", "ignore_label"})
+    unknown = sorted(set(raw) - {"protocol_id", "resize", "ignore_label", "nearest"})
     if unknown:
         raise DatasetError(
-            f"{path}: unknown key {unknown[0]!r} (protocol_id, resize, ignore_label)"
+            f"{path}: unknown key {unknown[0]!r} (protocol_id, resize, ignore_label, nearest)"
         )
+    nearest = raw.get("nearest", "corner")  # absent: written by a protocol 1 run
+    if nearest not in NEAREST_SAMPLING:
+        raise DatasetError(f"{path}: nearest {nearest!r} is not one of {sorted(NEAREST_SAMPLING)}")
     protocol, resize, ignore = (raw.get(k) for k in ("protocol_id", "resize", "ignore_label"))
     if protocol is not None and not isinstance(protocol, str):
         raise DatasetError(f"{path}: protocol_id must be a string, got {protocol!r}")
@@ -53,11 +59,11 @@ def read_rules(gt_dir: Path) -> ScoringRules:
         )
     if ignore is not None and not 0 <= ignore <= 65535:
         raise DatasetError(f"{path}: ignore_label {ignore} is not a label id in [0, 65535]")
-    return ScoringRules(protocol, resize, ignore)
+    return ScoringRules(protocol, resize, ignore, nearest)
 
 
 def score_folders(
-    pred_dir: Path, gt_dir: Path, resize: str | None, ignore: int | None
+    pred_dir: Path, gt_dir: Path, resize: str | None, ignore: int | None, nearest: str = "centre"
 ) -> pd.DataFrame:
     """One row per ground-truth view: scene, view, iou, acc (None for a skipped view), and why
     it was skipped."""
@@ -76,7 +82,7 @@ def score_folders(
         try:
             gt = read_label_map(truth)
             pred = read_label_map(pred_dir / rel, PREDICTION_PIXELS_OVER_TRUTH * gt.size)
-            m = view_metrics(pred, gt, resize, ignore)
+            m = view_metrics(pred, gt, resize, ignore, nearest)
         except ScoringError as exc:
             raise DatasetError(f"{pred_dir / rel}: {exc}") from None
         rows.append(
@@ -130,7 +136,7 @@ def rescore_run(run: Path, predictions: str = "predictions") -> dict | None:
     if not (pred_dir.is_dir() and gt_dir.is_dir()):
         return None
     rules = read_rules(gt_dir)
-    views = score_folders(pred_dir, gt_dir, rules.resize, rules.ignore_label)
+    views = score_folders(pred_dir, gt_dir, rules.resize, rules.ignore_label, rules.nearest)
     scenes = views[views["iou"].notna()].groupby("scene")[["iou", "acc"]].mean()
     if scenes.empty:
         return None

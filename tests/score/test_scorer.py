@@ -118,6 +118,7 @@ def test_a_view_that_is_all_ignored_is_skipped_not_perfect(tmp_path, capsys):
         ({"resize": "stretch"}, "resize 'stretch' is not one of"),
         ({"protocol_id": 3}, "protocol_id must be a string"),
         ({"ignore": 255}, "unknown key 'ignore'"),
+        ({"nearest": "middle"}, "nearest 'middle' is not one of"),
         ([1, 2], "holds a list, not an object"),
     ],
 )
@@ -130,6 +131,31 @@ def test_scoring_rules_are_checked_against_their_schema(tmp_path, rules, message
     error_line(capsys, message)
 
 
+def test_a_protocol_1_run_is_rescored_by_the_resize_it_was_scored_with(tmp_path, capsys):
+    """A scoring.json without `nearest` was written by a protocol 1 run: its prediction is drawn
+    up to the truth reading each target pixel's top-left source pixel, as it was scored then.
+    Today's files say `centre`; --nearest overrides either."""
+    from sagonline.score.metrics import view_metrics
+
+    rng = np.random.default_rng(1)
+    pred = rng.integers(0, 2, (7, 7)).astype(np.uint8)
+    gt = rng.integers(0, 2, (30, 30)).astype(np.uint8)
+    _label_maps(tmp_path / "gt", v0=gt)
+    _label_maps(tmp_path / "pred", v0=pred)
+    corner, centre = (
+        view_metrics(pred, gt, "pred_to_gt", nearest=n)["iou"] for n in ("corner", "centre")
+    )
+    assert corner != centre
+    rules = {"protocol_id": "cap/all-views@1", "resize": "pred_to_gt", "ignore_label": None}
+    scoring = tmp_path / "gt" / "scoring.json"
+    scoring.write_text(json.dumps(rules))
+    assert _score(tmp_path / "pred", tmp_path / "gt")["miou"] == corner
+    assert "resize rule pred_to_gt (nearest: corner)" in capsys.readouterr().out
+    scoring.write_text(json.dumps(rules | {"nearest": "centre"}))
+    assert _score(tmp_path / "pred", tmp_path / "gt")["miou"] == centre
+    assert _score(tmp_path / "pred", tmp_path / "gt", "--nearest", "corner")["miou"] == corner
+
+
 def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
     from bench.runners.eval import evaluate
 
@@ -137,6 +163,7 @@ def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
     metrics = evaluate(cfg_with("dataset=synthetic_ff", "record=false"), run)
     result = _score(run)
     assert result["matches_run"] is True and abs(result["miou"] - metrics["miou"]) < 1e-12
+    assert json.loads((run / "ground_truth" / "scoring.json").read_text())["nearest"] == "centre"
     assert "predictions: match" in capsys.readouterr().out
     some = next((run / "predictions").rglob("*.png"))
     cv2.imwrite(str(some), np.zeros_like(cv2.imread(str(some), cv2.IMREAD_UNCHANGED)))

@@ -1,13 +1,16 @@
 """Score predicted label maps against ground truth, by this harness's rules, strictly.
 
     sagonline score RUN_DIR [--predictions predictions_refined]
-    sagonline score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--ignore LABEL]
+    sagonline score PRED_DIR GT_DIR [--protocol ID] [--resize RULE] [--nearest centre|corner]
+                                    [--ignore LABEL]
 
 Both folders hold `<scene>/<view>.png` single-channel label maps (0 = background), as a run
 writes them (`predictions/`, `ground_truth/`; see sagonline/score/predictions.py): so a peer's
 predictions can be scored by our protocol, and ours by theirs. Every ground-truth view needs a
 prediction. The rules come from GT_DIR/scoring.json (checked against its schema: the protocol
-id, the resize rule, the ignored label), flags override them. The rules are strict:
+id, the resize rule, which source pixel a resize reads, the ignored label), flags override them;
+a scoring.json without `nearest` was written by a protocol 1 run, whose resizes read each target
+pixel's top-left corner, and is re-scored so. The rules are strict:
 - sizes must match unless a resize rule is given, and aspect ratios must match always;
 - `gt_to_pred` never shrinks the ground truth to a smaller prediction;
 - a view whose ground truth is all ignored pixels is skipped and reported, never scored;
@@ -26,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.core.errors import DatasetError
+from sagonline.scene.io.images import NEAREST_SAMPLING
 from sagonline.score.metrics import RESIZE_RULES
 from sagonline.score.predictions import SCORING_FILE, folder_sha256, label_maps
 from sagonline.score.rescore import compare_recorded, read_rules, recorded_metrics, score_folders
@@ -39,6 +43,12 @@ def add_parsers(sub) -> None:
     ap.add_argument("--predictions", default="predictions", help="RUN_DIR's folder to score")
     ap.add_argument("--protocol", help="the protocol id to report (default: scoring.json's)")
     ap.add_argument("--resize", choices=sorted(RESIZE_RULES), help="default: scoring.json's")
+    ap.add_argument(
+        "--nearest",
+        choices=sorted(NEAREST_SAMPLING),
+        help="the source pixel a resize reads: each target pixel's centre (protocol 2) or "
+        "top-left corner (protocol 1); default: scoring.json's",
+    )
     ap.add_argument("--ignore", type=int, help="a ground-truth label id to skip, in [0, 65535]")
     ap.set_defaults(func=cmd_score)
 
@@ -88,6 +98,7 @@ def score(args) -> dict:
         )
     rules = read_rules(args.gt_dir)
     resize = args.resize or rules.resize
+    nearest = args.nearest or rules.nearest
     ignore = args.ignore if args.ignore is not None else rules.ignore_label
     if args.protocol and rules.protocol_id and args.protocol != rules.protocol_id:
         raise DatasetError(
@@ -96,7 +107,7 @@ def score(args) -> dict:
             "that produced it"
         )
     protocol = args.protocol or rules.protocol_id or "(unnamed)"
-    views = score_folders(args.pred_dir, args.gt_dir, resize, ignore)
+    views = score_folders(args.pred_dir, args.gt_dir, resize, ignore, nearest)
     scored = views[views["iou"].notna()]
     skipped = views[views["iou"].isna()]
     truths = {p.relative_to(args.gt_dir) for p in label_maps(args.gt_dir)}
@@ -123,7 +134,8 @@ def score(args) -> dict:
         "matches_run": None,
     }
     print(
-        f"protocol {protocol}  resize rule {resize or 'none (sizes must match)'}  "
+        f"protocol {protocol}  resize rule {resize or 'none (sizes must match)'}"
+        f"{f' (nearest: {nearest})' if resize else ''}  "
         f"ignored label {ignore}"
     )
     print(scenes.assign(iou=100 * scenes["iou"], acc=100 * scenes["acc"]).to_string(index=False))

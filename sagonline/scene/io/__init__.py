@@ -1,7 +1,12 @@
 """File formats: Gaussian scenes (PLY, .splat), camera files, image folders."""
 
 from sagonline.scene.io.cameras import CameraFileError, load_cameras, write_3dgs_cameras_json
-from sagonline.scene.io.images import IMAGE_SUFFIXES, list_images, resize_nearest
+from sagonline.scene.io.images import (
+    IMAGE_SUFFIXES,
+    NEAREST_SAMPLING,
+    list_images,
+    resize_nearest,
+)
 from sagonline.scene.io.ply import (
     SceneFileError,
     fitted_background,
@@ -21,6 +26,7 @@ __all__ = [
     "read_scene",
     "read_splat",
     "scene_file",
+    "NEAREST_SAMPLING",
     "resize_nearest",
     "write_3dgs_cameras_json",
     "write_ply",

@@ -94,16 +94,21 @@ def list_images(folder: str | Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.suffix in IMAGE_SUFFIXES)
 
 
-def resize_nearest(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """(H, W) label map -> `shape` (H', W') by nearest neighbour, dtype kept.
+# Which source pixel a nearest-neighbour resize reads for each target pixel: the one under its
+# centre (floor((i + 0.5) H / H'), OpenCV's INTER_NEAREST_EXACT, the same pixels as PIL's
+# nearest), or the one under its top-left corner (floor(i H / H'), OpenCV's INTER_NEAREST, which
+# draws a shrunk mask half a target pixel right and down). Protocol version 2 reads centres;
+# version 1 read corners, and re-scoring its runs still does (docs/datasets.md).
+NEAREST_SAMPLING = {"centre": cv2.INTER_NEAREST_EXACT, "corner": cv2.INTER_NEAREST}
 
-    Pixel-centred: target row i reads source row floor((i + 0.5) H / H'), the source pixel
-    under the target pixel's centre (OpenCV's INTER_NEAREST_EXACT, as PIL's nearest), so a mask
-    keeps its place at any scale. OpenCV's INTER_NEAREST reads floor(i H / H'), the pixel under
-    the target's top-left corner, and draws a shrunk mask half a target pixel right and down:
-    protocol version 1 scored with that rule (docs/datasets.md, "Protocol versions")."""
+
+def resize_nearest(
+    mask: np.ndarray, shape: tuple[int, int], sampling: str = "centre"
+) -> np.ndarray:
+    """(H, W) label map -> `shape` (H', W') by nearest neighbour, dtype kept; `sampling`: a
+    key of NEAREST_SAMPLING (the default keeps a mask in its place at any scale)."""
     if mask.shape == tuple(shape):
         return mask
     return cv2.resize(
-        mask.astype(np.int32), (shape[1], shape[0]), interpolation=cv2.INTER_NEAREST_EXACT
+        mask.astype(np.int32), (shape[1], shape[0]), interpolation=NEAREST_SAMPLING[sampling]
     ).astype(mask.dtype)
