@@ -45,12 +45,12 @@ def read_rules(gt_dir: Path) -> ScoringRules:
             f"{path}: unknown key {unknown[0]!r} (protocol_id, resize, ignore_label, nearest)"
         )
     nearest = raw.get("nearest", "corner")  # absent: written by a protocol 1 run
-    if nearest not in NEAREST_SAMPLING:
+    if not isinstance(nearest, str) or nearest not in NEAREST_SAMPLING:
         raise DatasetError(f"{path}: nearest {nearest!r} is not one of {sorted(NEAREST_SAMPLING)}")
     protocol, resize, ignore = (raw.get(k) for k in ("protocol_id", "resize", "ignore_label"))
     if protocol is not None and not isinstance(protocol, str):
         raise DatasetError(f"{path}: protocol_id must be a string, got {protocol!r}")
-    if resize is not None and resize not in RESIZE_RULES:
+    if resize is not None and (not isinstance(resize, str) or resize not in RESIZE_RULES):
         raise DatasetError(f"{path}: resize {resize!r} is not one of {sorted(RESIZE_RULES)}")
     if ignore is not None and (isinstance(ignore, bool) or not isinstance(ignore, int)):
         raise DatasetError(

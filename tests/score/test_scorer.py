@@ -118,7 +118,9 @@ def test_a_view_that_is_all_ignored_is_skipped_not_perfect(tmp_path, capsys):
         ({"resize": "stretch"}, "resize 'stretch' is not one of"),
         ({"protocol_id": 3}, "protocol_id must be a string"),
         ({"ignore": 255}, "unknown key 'ignore'"),
+        ({"resize": ["pred_to_gt"]}, "resize ['pred_to_gt'] is not one of"),
         ({"nearest": "middle"}, "nearest 'middle' is not one of"),
+        ({"nearest": {"x": 1}}, "nearest {'x': 1} is not one of"),
         ([1, 2], "holds a list, not an object"),
     ],
 )
