@@ -85,6 +85,7 @@ class DatasetAdapter:
     override both methods; a scene that cannot load raises `DatasetError`."""
 
     name = "dataset"
+    protocol_version = PROTOCOL_VERSION  # what its protocol ids end with (`@<version>`)
 
     def scene_names(self) -> list[str]:
         raise NotImplementedError
@@ -97,7 +98,7 @@ class DatasetAdapter:
         """A short versioned id of the evaluation protocol (`<dataset>/<variant>@<version>`):
         every result carries it, and no table averages results of different ids. Adapters
         whose settings change what is scored or how it is prompted name the variant."""
-        return f"{self.name}/default@{PROTOCOL_VERSION}"
+        return f"{self.name}/default@{self.protocol_version}"
 
     def describe(self) -> dict:
         """Protocol settings recorded in every report."""

@@ -23,13 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.core.errors import SceneFileError
-from sagonline.datasets.base import (
-    PROTOCOL_VERSION,
-    DatasetAdapter,
-    DatasetError,
-    EvalView,
-    SceneTask,
-)
+from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import (
     check_mask_size,
     check_one_mask_size,
@@ -159,7 +153,7 @@ class PosedMasksDataset(DatasetAdapter):
         ref = f"-ref-{self.reference}" if self.reference else ""
         every = {photographs_fitted(d, self.name, self.fit) for d in self._fitted_dirs()}
         sparse = f"-photos1of{max(every)}" if max(every, default=1) > 1 else ""
-        return f"{self.name}/{views}{prompt}{ref}{sparse}@{PROTOCOL_VERSION}"
+        return f"{self.name}/{views}{prompt}{ref}{sparse}@{self.protocol_version}"
 
     def _fitted_dirs(self) -> list[Path]:
         """The scenes' folders, where they can be listed (none: the protocol names no fit)."""

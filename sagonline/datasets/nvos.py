@@ -33,13 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sagonline.datasets.base import (
-    PROTOCOL_VERSION,
-    DatasetAdapter,
-    DatasetError,
-    EvalView,
-    SceneTask,
-)
+from sagonline.datasets.base import DatasetAdapter, DatasetError, EvalView, SceneTask
 from sagonline.datasets.common import check_mask_size, click_prompt, load_mask, scene_cameras
 from sagonline.datasets.fits import find_trained_scene, fit_record, load_trained_scene
 from sagonline.datasets.nvos_prompts import (
@@ -144,14 +138,14 @@ class NVOSDataset(DatasetAdapter):
         neg = "-neg" if self.negative else ""
         if self.prompt_kind == "points":
             digest = hashlib.sha256(Path(self.points_file).read_bytes()).hexdigest()[:8]
-            return f"nvos/points-{Path(self.points_file).stem}-{digest}@{PROTOCOL_VERSION}"
+            return f"nvos/points-{Path(self.points_file).stem}-{digest}@{self.protocol_version}"
         if self.prompt_kind == "click":
-            return f"nvos/click@{PROTOCOL_VERSION}"
+            return f"nvos/click@{self.protocol_version}"
         if self.prompt_kind == "clicks":
-            return f"nvos/gt-clicks{self.clicks}@{PROTOCOL_VERSION}"
+            return f"nvos/gt-clicks{self.clicks}@{self.protocol_version}"
         if self.sampling == "skeleton":
-            return f"nvos/scribbles-skeleton{neg}@{PROTOCOL_VERSION}"
-        return f"nvos/scribbles-uniform{self.points}{neg}@{PROTOCOL_VERSION}"
+            return f"nvos/scribbles-skeleton{neg}@{self.protocol_version}"
+        return f"nvos/scribbles-uniform{self.points}{neg}@{self.protocol_version}"
 
     def describe(self) -> dict:
         return {

@@ -92,6 +92,9 @@ class SyntheticDataset(DatasetAdapter):
     """Named presets of generated scenes; each preset is a dict of `load_synthetic` settings."""
 
     name = "synthetic"
+    # 1 still: the truths are drawn at each view's size, so the resize rule that version 2
+    # changed (datasets.base.PROTOCOL_VERSION) never reaches them
+    protocol_version = 1
 
     def __init__(
         self, presets: dict[str, dict], scenes: list[str] | None = None, device: str = "cpu"
@@ -114,9 +117,7 @@ class SyntheticDataset(DatasetAdapter):
 
     @property
     def protocol(self) -> str:
-        """Version 1 still: the truths are drawn at each view's size, so the resize rule that
-        version 2 changed (datasets.base.PROTOCOL_VERSION) never reaches them."""
-        return "synthetic/held-out-views@1"
+        return f"synthetic/held-out-views@{self.protocol_version}"
 
     def describe(self) -> dict:
         return {
