@@ -220,6 +220,14 @@ def same_run_or_refuse(out_dir, previous, fingerprint, flat_cfg, adapter, scenes
     old_flat = finished_config(previous.config, flat_cfg)
     if previous.config_fingerprint != fingerprint and old_flat != flat_cfg:
         refuse(out_dir, ["made with another config:", *config_difference(old_flat, flat_cfg)])
+    if previous.protocol_id and previous.protocol_id != adapter.protocol:
+        refuse(
+            out_dir,
+            [
+                f"scored by protocol {previous.protocol_id}; this code scores "
+                f'{adapter.protocol} (docs/datasets.md, "Protocol versions")'
+            ],
+        )
     changed = []
     recorded = {s["scene"]: s.get("inputs") or {} for s in previous.scenes}
     for scene in scenes:

@@ -251,3 +251,26 @@ def test_a_skipped_run_made_by_other_code_says_so(tmp_path, capsys):
     assert f"stage versions {stage} -1 -> " in out and "overwrite=true reruns it" in out
     previous = RunMetrics.read(run / "metrics.json")
     assert code_difference(previous, {"commit": None}, {}) == ""  # no git here: say nothing
+
+
+def test_a_finished_run_of_another_protocol_version_is_never_taken_for_this_one(tmp_path, capsys):
+    """A finished run scored by another protocol version (same config and inputs) is neither
+    skipped as this run, whose numbers would then be the old rule's, nor replaced: the rerun
+    stops naming both ids, and the run's files are as they were."""
+    from bench.runners.eval import evaluate
+
+    run = tmp_path / "run"
+    cfg = cfg_with("dataset=synthetic_ff", "record=false")
+    evaluate(cfg, run)
+    record = json.loads((run / "metrics.json").read_text())
+    record["protocol_id"] = record["protocol_id"].replace("@1", "@0")
+    (run / "metrics.json").write_text(json.dumps(record))
+    before = (run / "metrics.json").read_bytes()
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as exc:
+        evaluate(cfg, run)
+    err = capsys.readouterr().err
+    assert exc.value.code == 2
+    assert "scored by protocol synthetic/held-out-views@0; this code scores " in err
+    assert "synthetic/held-out-views@1" in err and "overwrite=true" in err
+    assert (run / "metrics.json").read_bytes() == before
