@@ -44,12 +44,12 @@ def read_rules(gt_dir: Path) -> ScoringRules:
         raise DatasetError(
             f"{path}: unknown key {unknown[0]!r} (protocol_id, resize, ignore_label, nearest)"
         )
-    nearest = raw.get("nearest", "corner")  # absent: written by a protocol 1 run
-    if not isinstance(nearest, str) or nearest not in NEAREST_SAMPLING:
-        raise DatasetError(f"{path}: nearest {nearest!r} is not one of {sorted(NEAREST_SAMPLING)}")
     protocol, resize, ignore = (raw.get(k) for k in ("protocol_id", "resize", "ignore_label"))
     if protocol is not None and not isinstance(protocol, str):
         raise DatasetError(f"{path}: protocol_id must be a string, got {protocol!r}")
+    nearest = raw.get("nearest", implied_nearest(protocol))
+    if not isinstance(nearest, str) or nearest not in NEAREST_SAMPLING:
+        raise DatasetError(f"{path}: nearest {nearest!r} is not one of {sorted(NEAREST_SAMPLING)}")
     if resize is not None and (not isinstance(resize, str) or resize not in RESIZE_RULES):
         raise DatasetError(f"{path}: resize {resize!r} is not one of {sorted(RESIZE_RULES)}")
     if ignore is not None and (isinstance(ignore, bool) or not isinstance(ignore, int)):
@@ -60,6 +60,15 @@ def read_rules(gt_dir: Path) -> ScoringRules:
     if ignore is not None and not 0 <= ignore <= 65535:
         raise DatasetError(f"{path}: ignore_label {ignore} is not a label id in [0, 65535]")
     return ScoringRules(protocol, resize, ignore, nearest)
+
+
+def implied_nearest(protocol: str | None) -> str:
+    """Which source pixel a scoring.json without `nearest` was resized by: its protocol
+    version's rule. Version 2 reads each target pixel's centre; its first runs were scored so
+    before the key was written. Version 1, and an id with no version, read the top-left
+    corner."""
+    version = (protocol or "").rpartition("@")[2]
+    return "centre" if version.isdigit() and int(version) >= 2 else "corner"
 
 
 def score_folders(

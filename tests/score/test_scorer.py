@@ -134,9 +134,10 @@ def test_scoring_rules_are_checked_against_their_schema(tmp_path, rules, message
 
 
 def test_a_protocol_1_run_is_rescored_by_the_resize_it_was_scored_with(tmp_path, capsys):
-    """A scoring.json without `nearest` was written by a protocol 1 run: its prediction is drawn
-    up to the truth reading each target pixel's top-left source pixel, as it was scored then.
-    Today's files say `centre`; --nearest overrides either."""
+    """A scoring.json without `nearest` is re-scored by its protocol version's resize: a
+    protocol 1 run's prediction is drawn up to the truth reading each target pixel's top-left
+    source pixel, as it was scored then; a protocol 2 run's, the centre's (its first runs wrote
+    no `nearest`). Today's files say `centre`; --nearest overrides either."""
     from sagonline.score.metrics import view_metrics
 
     rng = np.random.default_rng(1)
@@ -156,6 +157,10 @@ def test_a_protocol_1_run_is_rescored_by_the_resize_it_was_scored_with(tmp_path,
     scoring.write_text(json.dumps(rules | {"nearest": "centre"}))
     assert _score(tmp_path / "pred", tmp_path / "gt")["miou"] == centre
     assert _score(tmp_path / "pred", tmp_path / "gt", "--nearest", "corner")["miou"] == corner
+    # the first protocol 2 runs wrote no `nearest`: their version says how they were scored
+    for protocol, rule in (("cap/all-views@2", centre), ("cap/all-views", corner)):
+        scoring.write_text(json.dumps(rules | {"protocol_id": protocol}))
+        assert _score(tmp_path / "pred", tmp_path / "gt")["miou"] == rule, protocol
 
 
 def test_the_scorer_checks_a_runs_digests(tmp_path, capsys):
