@@ -14,10 +14,15 @@ prediction's (`resize="gt_to_pred"`); nearest neighbour reads each target pixel'
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import torch
 
 from sagonline.scene.io.images import NEAREST_SAMPLING, resize_nearest
+
+# the 3D metrics take tensors; the 2D scoring (`sagonline score`) needs no PyTorch
+if TYPE_CHECKING:
+    import torch
 
 RESIZE_RULES = {
     "pred_to_gt": "prediction resized to the ground truth's resolution (nearest neighbour)",

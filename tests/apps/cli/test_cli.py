@@ -173,9 +173,9 @@ def test_the_preview_shows_the_views_on_the_colour_the_segmenter_sees(tmp_path, 
 
 
 def test_the_overview_and_a_light_commands_help_import_no_torch():
-    """`sagonline --help`, no command, a misspelt one and `--help` of `info`, `render` and
-    `figure` build only what they show: PyTorch (about 2 s) is not imported, and the overview
-    lists every command with the line the full parser gives it."""
+    """`sagonline --help`, no command, a misspelt one and `--help` of `info`, `render`,
+    `figure` and `score` build only what they show: PyTorch (about 2 s) is not imported, and
+    the overview lists every command with the line the full parser gives it."""
     import subprocess
     import sys
 
@@ -192,7 +192,7 @@ def test_the_overview_and_a_light_commands_help_import_no_torch():
         "print('torch imported:', 'torch' in sys.modules, 'status:', status, file=sys.stderr)\n"
     )
     light = (["--help"], 0), ([], 2), (["rendr", "x"], 2), (["info", "--help"], 0)
-    light += (["render", "--help"], 0), (["figure", "--help"], 0)
+    light += (["render", "--help"], 0), (["figure", "--help"], 0), (["score", "--help"], 0)
     for argv, status in light:
         run = subprocess.run(
             [sys.executable, "-c", code, *argv], cwd=ROOT, capture_output=True, text=True
