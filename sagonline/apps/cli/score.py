@@ -9,8 +9,8 @@ writes them (`predictions/`, `ground_truth/`; see sagonline/score/predictions.py
 predictions can be scored by our protocol, and ours by theirs. Every ground-truth view needs a
 prediction. The rules come from GT_DIR/scoring.json (checked against its schema: the protocol
 id, the resize rule, which source pixel a resize reads, the ignored label), flags override them;
-a scoring.json without `nearest` was written by a protocol 1 run, whose resizes read each target
-pixel's top-left corner, and is re-scored so. The rules are strict:
+a scoring.json without `nearest` is re-scored by its protocol id's version (`@1`, or no version:
+each target pixel's top-left corner; `@2`: its centre). The rules are strict:
 - sizes must match unless a resize rule is given, and aspect ratios must match always;
 - `gt_to_pred` never shrinks the ground truth to a smaller prediction;
 - a view whose ground truth is all ignored pixels is skipped and reported, never scored;
