@@ -44,6 +44,7 @@ if TYPE_CHECKING:
 
 
 def __getattr__(name: str):
+    """A name of this package, imported from its module on first read (then kept here)."""
     if name not in WHERE:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
     value = getattr(importlib.import_module(f"{__name__}.{WHERE[name]}"), name)
