@@ -26,7 +26,7 @@ from bench import OUT_HELP, REPORTS, ROOT
 from sagonline.core.files import atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.fitting import FitConfig, SceneFitter
-from sagonline.render import rasterize
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.generator import make_scene
 
 FASTDEPTH = ROOT / "weights" / "fastdepth" / "fastdepth.onnx"

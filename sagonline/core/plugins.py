@@ -14,7 +14,7 @@ settings; the class always comes from here, never from a name read out of the fi
 Plug-ins outside this package register from a module of their own, imported when a registry
 is first read: named in the environment variable `SAGONLINE_PLUGINS` (comma-separated module
 names, e.g. `SAGONLINE_PLUGINS=my_segmenter make eval ARGS=segmenter=colour`), or declared
-by an installed package under the entry-point groups `sagonline.segment`,
+by an installed package under the entry-point groups `sagonline.segmenters`,
 `sagonline.datasets` or `sagonline.vote_rules` (docs/extending.md).
 """
 
@@ -70,8 +70,12 @@ class Plugin(Generic[C]):
 class Registry(Generic[C]):
     """Plug-ins of one kind (`what`: "segmenter", "dataset", "vote rule") under their keys."""
 
-    def __init__(self, what: str, entry_point_group: str, builtins: tuple[str, ...] = ()):
-        self.what, self.group, self.builtins = what, entry_point_group, builtins
+    def __init__(
+        self, what: str, entry_point_group: str, builtins: Mapping[str, tuple[str, ...]]
+    ) -> None:
+        """builtins: each built-in module -> the keys it registers (read by `names` without
+        importing it; checked when it is imported)."""
+        self.what, self.group, self.builtins = what, entry_point_group, dict(builtins)
         self._plugins: dict[str, Plugin] = {}
         self._loaded = False
 
@@ -116,8 +120,14 @@ class Registry(Generic[C]):
         if self._loaded:
             return
         self._loaded = True
-        for module in self.builtins:
+        for module, keys in self.builtins.items():
             self._import(module, f"the built-in {self.what} module")
+            registered = sorted(p.key for p in self._plugins.values() if p.module == module)
+            if registered != sorted(keys):
+                raise PluginError(
+                    f"the built-in {self.what} module {module} registers {registered}, but "
+                    f"`core.plugins` declares {sorted(keys)} for it: make them agree"
+                )
         from importlib.metadata import entry_points
 
         for ep in entry_points(group=self.group):
@@ -172,6 +182,27 @@ class Registry(Generic[C]):
     def keys(self) -> list[str]:
         self._load()
         return sorted(self._plugins)
+
+    def names(self) -> list[str]:
+        """The keys, as `keys`, read from the built-ins' declarations where nothing else can
+        register (no entry point of the group, no SAGONLINE_PLUGINS): a command line's choices
+        then cost no import of PyTorch or of a model's runtime."""
+        if not self.declared_only():
+            return self.keys()
+        return sorted(key for keys in self.builtins.values() for key in keys)
+
+    def declared_only(self) -> bool:
+        """Whether the built-ins' declarations are all there is: nothing registered yet (in this
+        process, by any module) and no module outside the package may register."""
+        return not self._loaded and not self._plugins and not self.outside_modules()
+
+    def outside_modules(self) -> bool:
+        """Whether a module outside the package may register here: an installed entry point of
+        the group, or a module SAGONLINE_PLUGINS names."""
+        from importlib.metadata import entry_points
+
+        named = os.environ.get("SAGONLINE_PLUGINS", "").replace(",", "").strip()
+        return bool(named) or bool(entry_points(group=self.group))
 
     def build(self, key: str, values: Mapping[str, Any] | None = None, *, where: str = ""):
         """The plug-in `key` built from `values` (checked against its config first)."""
@@ -275,20 +306,38 @@ def one_line(exc: BaseException) -> str:
 SEGMENTERS: Registry = Registry(
     "segmenter",
     "sagonline.segmenters",
-    (
-        "sagonline.segment.classical",
-        "sagonline.segment.sam_family",
-        "sagonline.segment.oracle",
-        "sagonline.segment.sam2_video",
-        "sagonline.segment.sam3_text",
-        "sagonline.segment.yolo",
-    ),
+    {
+        "sagonline.segment.classical": ("classical",),
+        "sagonline.segment.sam_family": ("minisam", "sam2_tiny"),
+        "sagonline.segment.oracle": ("oracle",),
+        "sagonline.segment.sam2_video": ("sam2",),
+        "sagonline.segment.sam3_text": ("sam3",),
+        "sagonline.segment.yolo": ("yolo",),
+    },
 )
 DATASETS: Registry = Registry(
     "dataset",
     "sagonline.datasets",
-    ("sagonline.datasets.registry",),
+    {
+        "sagonline.datasets.registry": (
+            "capture",
+            "desktop360",
+            "generic",
+            "kitti360",
+            "lerf_mask",
+            "mip360",
+            "nerds360",
+            "nvos",
+            "spinnerf",
+            "synthetic",
+            "udd",
+        )
+    },
 )
-VOTE_RULES: Registry = Registry("vote rule", "sagonline.vote_rules", ("sagonline.vote.methods",))
+VOTE_RULES: Registry = Registry(
+    "vote rule",
+    "sagonline.vote_rules",
+    {"sagonline.vote.methods": ("flashsplat", "rgc", "weighted_mean")},
+)
 
 __all__ = ["DATASETS", "SEGMENTERS", "VOTE_RULES", "Plugin", "PluginError", "Registry"]

@@ -24,12 +24,12 @@ import importlib
 import json
 import math
 import struct
+import sys
 import warnings
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from sagonline.core.files import atomic_write
 
@@ -91,7 +91,9 @@ class _Encoder:
         if isinstance(value, (float, np.floating)):
             v = float(value)
             return v if math.isfinite(v) else {"$": "float", "v": repr(v)}
-        if isinstance(value, torch.Tensor):
+        if is_tensor(value):
+            import torch
+
             t = value.detach().cpu().contiguous()
             if t.dtype == torch.bfloat16:
                 return self.array(t.view(torch.int16).numpy(), "bfloat16")
@@ -199,6 +201,13 @@ def _array(payload: memoryview, meta: dict) -> np.ndarray:
     return np.frombuffer(payload[offset : offset + nbytes], dtype=dtype).reshape(shape)
 
 
+def is_tensor(value: Any) -> bool:
+    """Whether `value` is a PyTorch tensor, asked without importing PyTorch (a tensor exists only
+    once it is imported; the stored format itself never needs it)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(value, torch.Tensor)
+
+
 class _Decoder:
     def __init__(self, arrays: list[np.ndarray]) -> None:
         self.arrays = arrays
@@ -214,6 +223,8 @@ class _Decoder:
         if kind == "ndarray":
             return self.arrays[node["i"]]
         if kind == "tensor":
+            import torch
+
             a = self.arrays[node["i"]]
             if node["torch_dtype"] == "bfloat16":
                 return torch.from_numpy(a).view(torch.bfloat16)

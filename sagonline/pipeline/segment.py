@@ -37,7 +37,7 @@ from sagonline.pipeline.stage_one import (
     StageOneConfig,
 )
 from sagonline.pipeline.stages import SegmenterRun
-from sagonline.render.api import LABEL_MIN_WEIGHT
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import VideoSegmenter

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 
 from sagonline.core.machine import DEVICE_DEFAULT, resolve_device
 from sagonline.core.settings import check_settings
-from sagonline.render.api import LABEL_MIN_WEIGHT
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.score.metrics import RESIZE_RULES
 from sagonline.vote.feedback import FeedbackConfig

@@ -17,7 +17,8 @@ import numpy as np
 import torch
 
 from sagonline.refine.trainer import RefinementTrainer
-from sagonline.render.api import LABEL_MIN_WEIGHT, render, render_labels, to_uint8
+from sagonline.render.api import render, render_labels, to_uint8
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.novel_view import NovelViewSegmenter

@@ -9,6 +9,7 @@ import torch
 
 from sagonline.render.backends import resolve_backend, resolve_vote_backend
 from sagonline.render.rasterize import RenderOutput, rasterize
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 
@@ -106,11 +107,6 @@ def to_uint8(
 ) -> np.ndarray:
     """(H, W, 3) linear RGB in [0, 1] -> uint8 image (clipped, rounded)."""
     return (rgb.clamp(0, 1) * 255 + 0.5).to(torch.uint8).cpu().numpy()
-
-
-LABEL_MIN_WEIGHT = 0.2
-"""The label render's default: a pixel takes a label where labelled Gaussians make up this much
-of it (the project's choice; the real captures' chosen setting is 0.5, docs/real_captures.md)."""
 
 
 def render_labels(

@@ -1,4 +1,5 @@
-"""The vote's rule: which (pixel, Gaussian) pairs of one view vote, and for how much.
+"""The vote's rule: which (pixel, Gaussian) pairs of one view vote, and for how much; and the
+label render's: how much of a pixel its labelled Gaussians must make up (`LABEL_MIN_WEIGHT`).
 
 One frozen `VoteRule` travels unchanged from the vote's settings (`consensus.eps`, `consensus.delta`
 on the command line; `vote.consensus.VoteConfig.rule`) through the op (`render.vote.vote_into`)
@@ -22,7 +23,7 @@ class VoteRule:
     per pair, the paper's RGC) or blend (alpha_i T_i, FlashSplat and the weighted mean).
 
     The paper's eps and delta are defined here and nowhere else: rgc's settings
-    (`vote.methods.RgcSettings`, and through them the `consensus.*` settings) take their
+    (`vote.settings.RgcSettings`, and through them the `consensus.*` settings) take their
     defaults from these. How a histogram becomes labels (min_votes, margin) is the vote
     method's business, not the kernels'."""
 
@@ -39,4 +40,8 @@ class VoteRule:
             raise ValueError(f"vote rule weighting={self.weighting!r}: one of {WEIGHTINGS}")
 
 
-__all__ = ["WEIGHTINGS", "VoteRule"]
+LABEL_MIN_WEIGHT = 0.2
+"""The label render's default: a pixel takes a label where labelled Gaussians make up this much
+of it (the project's choice; the real captures' chosen setting is 0.5, docs/real_captures.md)."""
+
+__all__ = ["LABEL_MIN_WEIGHT", "WEIGHTINGS", "VoteRule"]

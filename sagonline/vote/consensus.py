@@ -16,157 +16,19 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
-from dataclasses import MISSING, dataclass, field, fields, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 import torch
 
-from sagonline.core.plugins import VOTE_RULES
-from sagonline.core.settings import check_settings
 from sagonline.core.store import stored
-from sagonline.render.rule import VoteRule
 from sagonline.render.vote import vote_into
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.vote.body import extents, keep_bodies
 from sagonline.vote.fill import fill_from_neighbours
 from sagonline.vote.masks import MaskError, check_mask
-from sagonline.vote.methods import (
-    FlashSplatSettings,
-    RgcSettings,
-    SettingSpec,
-    VoteMethod,
-    WeightedMeanSettings,
-    method_specs,
-)
-
-
-@dataclass
-class VoteConfig:
-    """Settings of the vote: its method and every method's settings under one flat name each
-    (`consensus.*`; each method's own dataclass in `vote.methods` holds their defaults, rules
-    and documentation), then which frames vote (`num_masks`/`stride`/`selection`) and the fill
-    and body rules after it."""
-
-    method: str = "rgc"
-    """A registered vote rule: rgc (the paper's), flashsplat or weighted_mean
-    (`python -m sagonline plugins vote-rules`)."""
-    eps: float = RgcSettings.eps
-    """rgc: `vote.methods.RgcSettings.eps`."""
-    delta: float | None = RgcSettings.delta
-    """rgc: `vote.methods.RgcSettings.delta` (null: no distance rule)."""
-    weighting: str = RgcSettings.weighting
-    """rgc: `vote.methods.RgcSettings.weighting`."""
-    min_votes: int = RgcSettings.min_votes
-    """rgc: `vote.methods.RgcSettings.min_votes`."""
-    margin: float = RgcSettings.margin
-    """rgc: `vote.methods.RgcSettings.margin`."""
-    background_slack: float = FlashSplatSettings.background_slack
-    """flashsplat: `vote.methods.FlashSplatSettings.background_slack`."""
-    threshold: float = WeightedMeanSettings.threshold
-    """weighted_mean: `vote.methods.WeightedMeanSettings.threshold`."""
-    num_masks: int | None = None
-    """How many masks vote (None: all of those `stride` picks)."""
-    stride: int = 1
-    """Every stride-th mask is a candidate to vote."""
-    selection: str = "uniform"
-    """Which num_masks of the candidates: uniform (evenly spaced), first, or random (seeded)."""
-    seed: int = 0
-    """Seeds `selection=random`."""
-    fill: int = 0
-    """Unlabelled Gaussians take the label a strict majority of their `fill` nearest labelled
-    neighbours in 3D share (neighbours within 4x the labelled Gaussians' median spacing);
-    0: off, the paper's protocol (`fill_from_neighbours`)."""
-    body: bool = False
-    """Each object's labels kept on its body, the largest cluster of its touching Gaussians
-    (centres nearer than the sum of their largest scales); those touching nothing of it are
-    left unlabelled. Off: the paper's protocol (`vote.body.keep_bodies`)."""
-
-    def __post_init__(self) -> None:
-        n = self.num_masks
-        methods = VOTE_RULES.keys()
-        check_settings(
-            "consensus",
-            method=(self.method in methods, self.method, f"one of {methods}"),
-            selection=(
-                self.selection in ("uniform", "first", "random"),
-                self.selection,
-                "uniform, first or random",
-            ),
-            num_masks=(n is None or n > 0, n, "> 0, or null for all masks"),
-            stride=(self.stride >= 1, self.stride, ">= 1"),
-            fill=(0 <= self.fill <= 64, self.fill, "in [0, 64] neighbours (0: off)"),
-        )
-        self.check_reads()
-        self.settings()  # the method's own rules
-
-    def reads(self) -> tuple[str, ...]:
-        """The settings its method reads (its settings dataclass's fields)."""
-        return tuple(f.name for f in fields(VOTE_RULES[self.method].config))
-
-    def check_reads(self) -> None:
-        """Refuse a setting the method does not read that differs from its default (it would be
-        ignored without a word), and a method setting that is not a `consensus.*` setting."""
-        reads, defaults = self.reads(), VoteConfig.__dataclass_fields__
-        missing = [name for name in reads if name not in defaults]
-        if missing:
-            raise ValueError(
-                f"consensus.method={self.method!r}: its settings {missing} are not consensus "
-                "settings (a vote rule reads settings VoteConfig holds)"
-            )
-        plugin = VOTE_RULES[self.method]
-        for f in fields(plugin.config):
-            if f.default is not MISSING and f.default != defaults[f.name].default:
-                raise ValueError(
-                    f"consensus.method={self.method!r}: its setting {f.name} defaults to "
-                    f"{f.default!r}, consensus.{f.name} to {defaults[f.name].default!r} "
-                    "(one default per setting: give it VoteConfig's)"
-                )
-        for f in fields(self):
-            if f.name in SELECTION or f.name in reads:
-                continue
-            if getattr(self, f.name) != defaults[f.name].default:
-                raise ValueError(
-                    f"consensus.{f.name}={getattr(self, f.name)!r}: the method {self.method} "
-                    f"does not read {f.name} (it reads {', '.join(reads) or 'nothing'})"
-                )
-
-    def settings(self):
-        """Its method's typed settings (`vote.methods`), filled from these."""
-        plugin = VOTE_RULES[self.method]
-        return plugin.config(**{name: getattr(self, name) for name in self.reads()})
-
-    def method_rule(self) -> VoteMethod:
-        """The registered method this config names."""
-        plugin = VOTE_RULES[self.method]
-        return plugin.build(self.settings())
-
-    @property
-    def rule(self) -> VoteRule:
-        """The rule the kernels apply, built once from these settings by the method."""
-        return self.method_rule().rule(self.settings())
-
-
-# The settings every method reads: which masks vote, and the fill and body rule after it.
-SELECTION = ("method", "num_masks", "stride", "selection", "seed", "fill", "body")
-
-
-def vote_setting_specs() -> list[SettingSpec]:
-    """Every registered method's settings as one list of controls (the command line's vote
-    flags, the viewer's vote panel), in VoteConfig's order, each once, its documentation led
-    by the methods that read it (`readers`)."""
-    readers: dict[str, list[str]] = {}
-    specs: dict[str, SettingSpec] = {}
-    for method, method_settings in method_specs().items():
-        for spec in method_settings:
-            specs.setdefault(spec.name, spec)
-            readers.setdefault(spec.name, []).append(method)
-    order = [f for f in VoteConfig.__dataclass_fields__ if f in specs]
-    order += [name for name in specs if name not in order]
-    return [
-        replace(specs[n], doc=f"{', '.join(readers[n])}: {specs[n].doc}", readers=tuple(readers[n]))
-        for n in order
-    ]
+from sagonline.vote.settings import VoteConfig
 
 
 @stored

@@ -17,8 +17,8 @@ from sagonline.fitting.depth_prior import (
     depth_correlation,
     pearson,
 )
-from sagonline.render import rasterize
 from sagonline.render.api import render
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.generator import make_scene
 from tests.fixtures import ROOT, shared_data
 

@@ -15,8 +15,8 @@ import torch
 
 from sagonline.core import store
 from sagonline.fitting import FitConfig, SceneFitter, split_views, ssim
-from sagonline.render import rasterize
 from sagonline.render.gsplat_backend import gsplat_available
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.generator import make_scene
 from tests.fixtures import ROOT, compose_config
 
@@ -605,7 +605,7 @@ FIT_DIGEST = """
 import hashlib, sys, torch
 torch.set_num_threads(int(sys.argv[1]))
 from sagonline.fitting import FitConfig, SceneFitter
-from sagonline.render import rasterize
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.generator import make_scene
 s = make_scene(layout="forward", num_gaussians=2000, width=48, height=36, num_train_views=9)
 imgs = [rasterize(s.gaussians, c).rgb.clamp(0, 1) for c in s.train_cameras]

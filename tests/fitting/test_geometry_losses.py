@@ -17,7 +17,7 @@ from sagonline.fitting.losses import (
     normal_consistency,
     splat_geometry,
 )
-from sagonline.render import rasterize
+from sagonline.render.rasterize import rasterize
 from sagonline.render.reference import reference_render
 from sagonline.scene.cameras import intrinsics, make_camera
 from sagonline.scene.gaussians import Gaussians

@@ -10,8 +10,8 @@ from scipy.spatial import cKDTree
 
 from sagonline.core.files import atomic_write_image
 from sagonline.fitting.triangulate import triangulate_known_poses
-from sagonline.render import rasterize
 from sagonline.render.api import to_uint8
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.generator import make_scene
 
 

@@ -5,8 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from sagonline.render import TraceRequest, project, rasterize, render
+from sagonline.render import TraceRequest, project, render
 from sagonline.render.gsplat_backend import gsplat_available, trace_step
+from sagonline.render.rasterize import rasterize
 from tests.fixtures import random_gaussians, small_camera
 
 

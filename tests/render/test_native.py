@@ -8,7 +8,8 @@ import shutil
 import pytest
 import torch
 
-from sagonline.render import TraceRequest, rasterize, render
+from sagonline.render import TraceRequest, render
+from sagonline.render.rasterize import rasterize
 from sagonline.scene.gaussians import Gaussians
 from tests.fixtures import random_gaussians, small_camera
 

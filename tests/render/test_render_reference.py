@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 import torch
 
-from sagonline.render import RasterStats, TraceRequest, rasterize
+from sagonline.render import RasterStats, TraceRequest
+from sagonline.render.rasterize import rasterize
 from sagonline.render.reference import reference_render
 from tests.fixtures import random_gaussians, small_camera
 

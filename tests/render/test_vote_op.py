@@ -12,7 +12,8 @@ from functools import partial
 import pytest
 import torch
 
-from sagonline.render import rasterize, vote_histogram
+from sagonline.render import vote_histogram
+from sagonline.render.rasterize import rasterize
 from sagonline.render.rule import VoteRule
 from sagonline.scene.gaussians import Gaussians
 from tests.fixtures import random_gaussians, small_camera

@@ -127,18 +127,3 @@ def test_the_resize_is_pils_nearest_neighbour():
         resized = resize_nearest(labels, (int(th), int(tw)))
         expected = Image.fromarray(labels.astype(np.uint8)).resize((int(tw), int(th)), 0)
         assert resized.dtype == np.int64 and np.array_equal(resized, np.asarray(expected))
-
-
-def test_scene_io_offers_each_name_from_its_module():
-    """`sagonline.scene.io` imports its names on first read: each one listed resolves to its
-    module's own object, and the list and the map agree."""
-    import importlib
-
-    import sagonline.scene.io as io
-
-    assert sorted(io.__all__) == sorted(io.WHERE)
-    for name, module in io.WHERE.items():
-        own = getattr(importlib.import_module(f"sagonline.scene.io.{module}"), name)
-        assert getattr(io, name) is own, name
-    with pytest.raises(AttributeError):
-        io.no_such_reader  # noqa: B018

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 from dataclasses import fields
 
-from sagonline.render.api import LABEL_MIN_WEIGHT
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.segment.base import DEFAULT_SEGMENTER
 
 
@@ -21,7 +21,7 @@ def add_segmenter_arguments(parser, default: str | None = DEFAULT_SEGMENTER) -> 
     parser.add_argument(
         "--segmenter",
         default=default,
-        choices=SEGMENTERS.keys(),
+        choices=SEGMENTERS.names(),
         help=None if default else f"default: {DEFAULT_SEGMENTER}",
     )
     parser.add_argument("--checkpoint", help="the model's local checkpoint (sam2, sam3, yolo)")
@@ -38,10 +38,10 @@ def add_vote_arguments(parser) -> None:
     """--method, one flag per method setting (its type, choices and help from its field;
     'none' for a setting that can be off), and --body."""
     from sagonline.core.plugins import VOTE_RULES
-    from sagonline.vote.consensus import vote_setting_specs
+    from sagonline.vote.settings import vote_setting_specs
 
     group = parser.add_argument_group("vote (defaults: each method's settings, vote/methods.py)")
-    group.add_argument("--method", choices=VOTE_RULES.keys() or None)
+    group.add_argument("--method", choices=VOTE_RULES.names() or None)
     for spec in vote_setting_specs():
         kind = optional_number(spec.kind) if spec.optional else spec.kind
         flag = f"--{spec.name.replace('_', '-')}"
@@ -74,7 +74,7 @@ def optional_number(kind: type):
 def vote_config(args, replay=None):
     """The vote's settings: the method's defaults (or the --prompts file's), with what the
     command line gave; a refusal names the flag or the labels.json field."""
-    from sagonline.vote.consensus import VoteConfig, vote_setting_specs
+    from sagonline.vote.settings import VoteConfig, vote_setting_specs
 
     recorded = dict(replay.vote) if replay is not None else {}
     names = ["method", "body", *(spec.name for spec in vote_setting_specs())]

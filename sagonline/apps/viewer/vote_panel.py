@@ -1,5 +1,5 @@
 """The viewer's vote controls, generated from each vote method's settings dataclass
-(`vote.methods`, through `vote.consensus.vote_setting_specs`): a method dropdown, one control
+(`vote.settings`, through `vote_setting_specs`): a method dropdown, one control
 per setting (a number, a choice, or an on/off box beside a number for a setting that can be
 off), each enabled only while the chosen method reads it, and the body rule."""
 
@@ -8,7 +8,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import Any
 
-from sagonline.vote.consensus import SELECTION, VoteConfig, vote_setting_specs
+from sagonline.vote.settings import SELECTION, VoteConfig, field_docs, vote_setting_specs
 
 
 class VotePanel:
@@ -77,6 +77,4 @@ def control(gui, spec, value):
 
 def field_doc(name: str) -> str:
     """A VoteConfig field's documentation, as one line."""
-    from sagonline.vote.methods import field_docs
-
     return field_docs(VoteConfig).get(name, "")

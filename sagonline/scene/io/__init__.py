@@ -5,8 +5,9 @@ or PLY readers (`sagonline score --help`) does not import PyTorch with the camer
 
 from __future__ import annotations
 
-import importlib
 from typing import TYPE_CHECKING
+
+from sagonline.core.lazy import lazy_names
 
 # name -> the module of this package that defines it
 WHERE = {
@@ -43,13 +44,7 @@ if TYPE_CHECKING:
     from sagonline.scene.io.splat import read_splat
 
 
-def __getattr__(name: str):
-    """A name of this package, imported from its module on first read (then kept here)."""
-    if name not in WHERE:
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    value = getattr(importlib.import_module(f"{__name__}.{WHERE[name]}"), name)
-    globals()[name] = value
-    return value
+__getattr__ = lazy_names(__name__, WHERE)
 
 
 __all__ = [
