@@ -180,6 +180,21 @@ def test_the_environment_is_changed_only_where_the_docs_say():
     assert all(var in docs for _, var in ENVIRONMENT_WRITES)
 
 
+def test_every_environment_variable_the_code_reads_is_listed_in_the_docs():
+    """docs/development.md lists each `SAGONLINE_*` variable that the library, the harness, the
+    scripts or the C++ kernels read, and no other."""
+    import re
+
+    sources = [*PACKAGE.rglob("*.py"), *PACKAGE.rglob("*.cpp"), *(ROOT / "bench").rglob("*.py")]
+    sources += [p for p in (ROOT / "scripts").rglob("*") if p.suffix in (".py", ".sh")]
+    read = {m for p in sources for m in re.findall(r"SAGONLINE_[A-Z_]*[A-Z]", p.read_text())}
+    docs = (ROOT / "docs" / "development.md").read_text()
+    section = docs[docs.index("## Environment variables the harness reads") :]
+    section = section[: section.index("\n## ")]
+    listed = set(re.findall(r"^\| `(SAGONLINE_[A-Z_]+)`", section, re.M))
+    assert read == listed, (sorted(read - listed), sorted(listed - read))
+
+
 def test_public_functions_say_the_shapes_of_their_tensors():
     """gsplat's habit: every tensor a public function takes or returns has a shape comment on
     its line of the signature (`means: Tensor,  # [N, 3]`)."""
