@@ -11,6 +11,10 @@ Makefile's lists (`python -m sagonline plugins`) are read from these registries.
 run, a cache or another user wrote (metrics.json, a cache entry) names a registry key and
 settings; the class always comes from here, never from a name read out of the file.
 
+Each registry declares its built-in modules with the keys each registers (checked when the
+module is imported): `Registry.names` answers from these without importing anything while no
+outside module can register, so `sagonline segment --help` costs no import of PyTorch.
+
 Plug-ins outside this package register from a module of their own, imported when a registry
 is first read: named in the environment variable `SAGONLINE_PLUGINS` (comma-separated module
 names, e.g. `SAGONLINE_PLUGINS=my_segmenter make eval ARGS=segmenter=colour`), or declared
