@@ -4,9 +4,10 @@ The vote walks, for every pixel of every selected mask, its Gaussians front to b
 the pairs its method's rule lets vote to one histogram per Gaussian (`render.vote.vote_into`);
 the method then turns the histogram into labels. The methods (`vote.methods`: rgc, the paper's
 Rasterization-aware Geometric Consensus, and the flashsplat and weighted_mean baselines) are
-plug-ins of `plugins.VOTE_RULES`, each with its own typed settings; `VoteConfig` holds them
-under flat names (`consensus.eps`, ...) and refuses a setting its method does not read when it
-is built (`consensus=flashsplat consensus.delta=1.5` stops, naming delta).
+plug-ins of `plugins.VOTE_RULES`, each with its own typed settings; `VoteConfig` (in
+`vote.settings`, without PyTorch) holds them under flat names (`consensus.eps`, ...) and
+refuses a setting its method does not read when it is built (`consensus=flashsplat
+consensus.delta=1.5` stops, naming delta).
 
 Labels: (N,) int64, -1 unlabelled, 0 background, 1.. the objects, from the vote to every
 output (`VoteResult.labels`).

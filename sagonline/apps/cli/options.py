@@ -40,7 +40,7 @@ def add_vote_arguments(parser) -> None:
     from sagonline.core.plugins import VOTE_RULES
     from sagonline.vote.settings import vote_setting_specs
 
-    group = parser.add_argument_group("vote (defaults: each method's settings, vote/methods.py)")
+    group = parser.add_argument_group("vote (defaults: each method's settings, vote/settings.py)")
     group.add_argument("--method", choices=VOTE_RULES.names() or None)
     for spec in vote_setting_specs():
         kind = optional_number(spec.kind) if spec.optional else spec.kind
