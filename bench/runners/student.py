@@ -1,6 +1,7 @@
 """Stage II on the real captures: the refinement student's answers against the coarse render's.
 
-    python -m bench.runners.student [--captures all] [--sources sam2_tiny] [--out reports]
+    python -m bench.runners.student [--captures all] [--sources sam2_tiny]
+        [--votes defaults,chosen] [--training-seeds 0] [--out reports]
 
 The student (`refine=student`, docs/method.md) trains in the background on the segmenter's 2D
 masks of the trajectory and then answers every scored view from the view's RGB render and its
@@ -11,7 +12,11 @@ mIoU, the coarse render's (the vote's) and the student's, on the same views, and
 training ended. Each run goes to `multirun/real/<capture>/<source>@refine-student[+...]`; a
 rerun reads the finished ones. Tables: <out>/student.md and .csv; <out>/student_views.md and
 .csv, the student's gain over the coarse render view by view (from each run's per_view.csv),
-by angle to the nearest photograph.
+by angle to the nearest photograph. With more than one training seed (`--training-seeds 0,1,2`:
+the student's `refine.seed`, on the same fit, Stage I and teacher masks; 0 is the default runs'
+seed), each setting is trained once per seed, in `...@refine-student[+...]+refine.seed-<k>`,
+and <out>/student_seeds.md and .csv give each setting's spread over them: how much of a gain
+or loss is the training's draw.
 """
 
 from __future__ import annotations
@@ -29,15 +34,21 @@ from bench.tables.views import refined_gain
 from sagonline.score.run_metrics import RunMetrics
 
 STUDENT = ("refine=student",)
+VOTES = ("defaults", "chosen")  # the paper's vote and the one chosen leave-one-capture-out
 SOURCES = captures.EVERY_MASK_VOTES  # whose every mask votes and trains the student
 
 
-def settings(source: str) -> dict[str, tuple[str, ...]]:
-    """The vote settings a source is scored with: the paper's defaults and its chosen ones."""
-    return {"defaults": STUDENT, "chosen": (*STUDENT, *captures.CHOSEN.get(source, ()))}
+def settings(source: str, training_seed: int = 0) -> dict[str, tuple[str, ...]]:
+    """The vote settings a source is scored with: the paper's defaults and its chosen ones,
+    with the student trained from `training_seed` (0: the default, named by no override)."""
+    seed = (f"refine.seed={training_seed}",) if training_seed else ()
+    return {
+        "defaults": (*STUDENT, *seed),
+        "chosen": (*STUDENT, *captures.CHOSEN.get(source, ()), *seed),
+    }
 
 
-def row(capture: str, source: str, vote: str, m: RunMetrics) -> dict:
+def row(capture: str, source: str, vote: str, m: RunMetrics, training_seed: int = 0) -> dict:
     """One run's line: the three answers' mIoU (fractions: the table shows them in percent), the
     student's gain over the coarse render in points, and how its training ended."""
     refine = m.scene_extra("refine")
@@ -49,6 +60,7 @@ def row(capture: str, source: str, vote: str, m: RunMetrics) -> dict:
         "capture": capture,
         "source": source,
         "vote": vote,
+        "training seed": training_seed,
         "segmenter alone mIoU": m.segmenter_miou,
         "coarse mIoU": m.miou,
         "student mIoU": m.refined_miou,
@@ -66,23 +78,42 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     )
     ap.add_argument("--captures", default="all", help="comma-separated, or all (the fitted)")
     ap.add_argument("--sources", default="sam2_tiny", help=f"comma-separated, of {SOURCES}")
+    ap.add_argument(
+        "--votes", default="defaults,chosen", help="comma-separated, of defaults, chosen"
+    )
+    ap.add_argument(
+        "--training-seeds",
+        default="0",
+        help="comma-separated student seeds (refine.seed) per setting; more than one also "
+        "writes <out>/student_seeds.{md,csv}, each setting's spread over them",
+    )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
     sources = args.sources.split(",")
     if not set(sources) <= set(SOURCES):
         bad = sorted(set(sources) - set(SOURCES))[0]
         ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
+    training_seeds = parse_seeds(args.training_seeds, ap.error)
+    votes = args.votes.split(",")
+    if not set(votes) <= set(VOTES):
+        ap.error(f"--votes: {sorted(set(votes) - set(VOTES))[0]!r} is not one of defaults, chosen")
     names = captures.fitted_named(args.captures, ap.error)
     runs, rows, gains, commands = Evaluations(), [], [], []
     for capture in names:
         for source in sources:
-            for vote, setting in settings(source).items():
-                commands.append(" ".join(captures.command(capture, source, 0, setting)))
-                m = runs.run(capture, source, 0, setting)
-                if m is not None:
-                    rows.append(row(capture, source, vote, m))
-                    gains.append(view_gains(capture, source, vote, setting))
+            for seed in training_seeds:
+                for vote in votes:
+                    setting = settings(source, seed)[vote]
+                    commands.append(" ".join(captures.command(capture, source, 0, setting)))
+                    m = runs.run(capture, source, 0, setting)
+                    if m is not None:
+                        rows.append(row(capture, source, vote, m, seed))
+                        gains.append(view_gains(capture, source, vote, setting, seed))
     df = pd.DataFrame(rows)
+    built = (
+        f"`python -m bench.runners.student --captures {args.captures} --sources {args.sources}"
+        f" --votes {args.votes} --training-seeds {args.training_seeds}`"
+    )
     notes = [
         "mIoU in percent on every masked view but the reference, fit seed 0; segmenter alone: "
         "its masks' own, on the trajectory's views; coarse: the fused labels rendered (the "
@@ -91,7 +122,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "vote: defaults, the paper's; chosen: `"
         + " ".join(captures.KEPT)
         + "` (chosen leave-one-capture-out, reports/real_captures_loo.md)",
-        "built by `python -m bench.runners.student`; each run:",
+        f"built by {built}; each run:",
         *(f"`python -m bench.runners.eval {c}`" for c in commands),
     ]
     write_table(df, args.out, "student", title="Stage II on the real captures", notes=notes)
@@ -105,19 +136,81 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             "run's per_view.csv, its `refined` rows against its `coarse` ones); better / worse: "
             "the views that gain / lose more than 0.1 point; by the angle from the view to the "
             "nearest photograph (at photo: a photographed view): the mean gain and the views",
-            "the runs of student.md (`python -m bench.runners.student`)",
+            f"the runs of student.md ({built})",
         ],
     )
     print(in_percent(df).to_string(index=False))
+    if len(training_seeds) > 1 and not df.empty:
+        spread = seed_spread(df)
+        write_table(
+            spread,
+            args.out,
+            "student_seeds",
+            title="Stage II on the real captures, over the student's training seeds",
+            notes=[
+                "each setting of student.md trained once per seed (`refine.seed`), on the same "
+                "fit, Stage I labels and teacher masks; mean, min and max over the seeds of the "
+                "student's mIoU and of its gain over the coarse render (points); coarse spread: "
+                "the coarse render's max - min over the same runs (0: Stage I did not move)",
+                f"the runs of student.md, built by {built}",
+            ],
+        )
+        print(in_percent(spread).to_string(index=False))
     return df
 
 
-def view_gains(capture: str, source: str, vote: str, setting: tuple[str, ...]) -> dict:
+def parse_seeds(text: str, error) -> list[int]:
+    """`--training-seeds`: distinct non-negative integers, in the order given."""
+    try:
+        seeds = [int(s) for s in text.split(",")]
+    except ValueError:
+        error(f"--training-seeds: {text!r} is not a comma-separated list of integers")
+    if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
+        error(f"--training-seeds: {text!r} must be distinct integers >= 0")
+    return seeds
+
+
+def seed_spread(df: pd.DataFrame) -> pd.DataFrame:
+    """One line per (capture, source, vote) of student.md's rows: the student's mIoU and gain
+    over the training seeds (mean, min, max), and how far the coarse render moved."""
+    lines = []
+    for (capture, source, vote), runs in df.groupby(["capture", "source", "vote"], sort=False):
+        student, gain = runs["student mIoU"].astype(float), runs["student - coarse, points"]
+        coarse = runs["coarse mIoU"].astype(float)
+        lines.append(
+            {
+                "capture": capture,
+                "source": source,
+                "vote": vote,
+                "training seeds": ",".join(map(str, runs["training seed"])),
+                "coarse mIoU": coarse.mean(),
+                "coarse spread, points": round(100 * (coarse.max() - coarse.min()), 2),
+                "student mean mIoU": student.mean(),
+                "student min mIoU": student.min(),
+                "student max mIoU": student.max(),
+                "gain mean, points": round(gain.astype(float).mean(), 2),
+                "gain min, points": gain.min(),
+                "gain max, points": gain.max(),
+                "steps": f"{runs['steps'].min()}-{runs['steps'].max()}",
+            }
+        )
+    return pd.DataFrame(lines)
+
+
+def view_gains(
+    capture: str, source: str, vote: str, setting: tuple[str, ...], training_seed: int = 0
+) -> dict:
     """One run's line of student_views: its per-view gains (`views.refined_gain`)."""
     run = ROOT / captures.folder(capture, source, 0, captures.same_scene(capture, 0, setting))
     per_view = run / "per_view.csv"
     found = refined_gain(pd.read_csv(per_view)) if per_view.is_file() else {}
-    return {"capture": capture, "source": source, "vote": vote, **found}
+    return {
+        "capture": capture,
+        "source": source,
+        "vote": vote,
+        "training seed": training_seed,
+        **found,
+    }
 
 
 if __name__ == "__main__":

@@ -111,3 +111,64 @@ def test_an_unknown_source_or_capture_is_refused_and_an_unfitted_one_left_out(
     monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): False)
     assert student.main(["--captures", "cap", "--out", str(tmp_path)]).empty
     assert "cap: no fit (make scenes DATASET=cap); left out" in capsys.readouterr().out
+
+
+def test_training_seeds_train_each_setting_again_and_the_spread_table_says_how_far_they_move(
+    tmp_path, monkeypatch, capsys
+):
+    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
+    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    asked = []
+    student_by_seed = {0: 0.87, 3: 0.80, 5: 0.84}  # the student's draw; Stage I does not move
+
+    def run(self, capture, source, seed=0, setting=()):
+        asked.append(setting)
+        trained = [int(o.split("=")[1]) for o in setting if o.startswith("refine.seed=")]
+        return finished(source, 0.85, student_by_seed[trained[0] if trained else 0])
+
+    monkeypatch.setattr(real.Evaluations, "run", run)
+    out = tmp_path / "out"
+    df = student.main(["--captures", "cap", "--training-seeds", "0,3,5", "--out", str(out)])
+    assert asked[:3] == [
+        ("refine=student",),  # seed 0: the default runs' folder, named by no override
+        ("refine=student", *captures.KEPT),
+        ("refine=student", "refine.seed=3"),
+    ]
+    assert captures.folder("cap", "sam2_tiny", 0, asked[2]).endswith(
+        "sam2_tiny@refine-student+refine.seed-3"
+    )
+    assert df["training seed"].tolist() == [0, 0, 3, 3, 5, 5]
+    spread = pd.read_csv(out / "student_seeds.csv")
+    defaults = spread[spread.vote == "defaults"].iloc[0]
+    assert defaults["training seeds"] == "0,3,5" and defaults["coarse spread, points"] == 0
+    assert (defaults["student min mIoU"], defaults["student max mIoU"]) == (80.0, 87.0)
+    assert (defaults["gain min, points"], defaults["gain max, points"]) == (-5.0, 2.0)
+    assert defaults["gain mean, points"] == pytest.approx(-1.33)
+    views = pd.read_csv(out / "student_views.csv")
+    assert views["training seed"].tolist() == [0, 0, 3, 3, 5, 5]
+    # one seed: no spread table; a bad list is refused before anything runs
+    student.main(["--captures", "cap", "--out", str(tmp_path / "one")])
+    assert not (tmp_path / "one" / "student_seeds.csv").exists()
+    for bad in ("0,x", "1,1", "-1"):
+        with pytest.raises(SystemExit) as exc:
+            student.main(["--captures", "cap", "--training-seeds", bad, "--out", str(out)])
+        assert exc.value.code == 2 and "--training-seeds" in capsys.readouterr().err
+
+
+def test_votes_picks_the_settings_and_an_unknown_one_is_refused(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
+    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    monkeypatch.setattr(
+        real.Evaluations,
+        "run",
+        lambda self, c, source, seed=0, setting=(): finished(source, 0.9, 0.9),
+    )
+    out = tmp_path / "out"
+    df = student.main(["--captures", "cap", "--votes", "defaults", "--out", str(out)])
+    assert df.vote.tolist() == ["defaults"]
+    assert "--votes defaults --training-seeds 0`" in (out / "student.md").read_text()
+    with pytest.raises(SystemExit) as exc:
+        student.main(["--captures", "cap", "--votes", "paper", "--out", str(out)])
+    assert exc.value.code == 2 and "'paper' is not one of defaults, chosen" in (
+        capsys.readouterr().err
+    )
