@@ -50,7 +50,6 @@ def kernel_root() -> Path:
 @functools.cache
 def load_extension():
     """Compile (once per environment) and import the C++ rasterizer and vote."""
-    import hashlib
     import logging
 
     # A CUDA build of PyTorch on a machine without a GPU warns at this import that it found no
@@ -63,13 +62,9 @@ def load_extension():
     finally:
         importing.setLevel(level)
 
-    # The source's digest in the name: each version of the kernel gets its own build folder, so
-    # a build of another version is never loaded by mistake (torch's loader trusts file times,
-    # and a newer build of other source looks up to date).
-    digest = hashlib.blake2b(digest_size=6)
-    for path in SOURCES + HEADERS:
-        digest.update(path.read_bytes())
-    name = f"sagonline_raster_cpu_{digest.hexdigest()}"
+    import torch
+
+    name = build_name(Path(torch.__file__).parent)
     build_dir = kernel_root() / name
 
     def build():
@@ -79,6 +74,24 @@ def load_extension():
         return build_once(build_dir, name, build)
     except Exception as exc:  # compiler missing, ninja missing, build error
         raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
+
+
+def build_name(torch_dir: Path) -> str:
+    """The kernels' build folder's name. The source's digest is in it: each version of the
+    kernel gets its own folder, so a build of another version is never loaded by mistake
+    (torch's loader trusts file times, and a newer build of other source looks up to date).
+    `torch_dir` is where this process imported PyTorch from: torch's compile command names it,
+    so an environment reached through a link (a worktree's `.venv` linking to the checkout's)
+    gets a folder of its own; sharing one, the two paths rebuilt each other's kernels in turn, a
+    minute each time. Reached by its own path, the name is the source's digest alone."""
+    import hashlib
+
+    digest = hashlib.blake2b(digest_size=6)
+    for path in SOURCES + HEADERS:
+        digest.update(path.read_bytes())
+    if torch_dir.resolve() != torch_dir.absolute():
+        digest.update(str(torch_dir.absolute()).encode())
+    return f"sagonline_raster_cpu_{digest.hexdigest()}"
 
 
 def load_arguments(build_dir: Path, name: str) -> dict:

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 
 def test_a_truncated_kernel_library_is_built_again_not_loaded(tmp_path):
     """A truncated library in the kernels folder killed every later render with SIGBUS and no
@@ -115,3 +117,27 @@ def test_the_kernels_compile_from_a_copy_of_their_sources_in_the_build_folder(tm
     assert load_arguments(build_dir, "sagonline_raster_cpu_x") == arguments
     assert header.stat().st_mtime_ns == before
     assert vote_source.read_bytes() == SOURCES[-1].read_bytes()
+
+
+def test_an_environment_reached_through_a_link_builds_in_a_folder_of_its_own(tmp_path):
+    """torch's compile command names the path PyTorch was imported from: a worktree whose
+    `.venv` links to the checkout's shared the checkout's build folder under another command,
+    and the two rebuilt the kernels in turn, a minute each time. Through a link the folder's
+    name differs; through the environment's own path it is the sources' digest alone, as
+    before."""
+    import hashlib
+
+    import torch
+
+    from sagonline.render.kernels import HEADERS, SOURCES, build_name
+
+    torch_dir = Path(torch.__file__).parent.resolve()
+    digest = hashlib.blake2b(digest_size=6)
+    for path in SOURCES + HEADERS:
+        digest.update(path.read_bytes())
+    assert build_name(torch_dir) == f"sagonline_raster_cpu_{digest.hexdigest()}"
+    (tmp_path / "one").symlink_to(torch_dir.parent)
+    (tmp_path / "two").symlink_to(torch_dir.parent)
+    linked = [build_name(tmp_path / link / torch_dir.name) for link in ("one", "two")]
+    assert len({build_name(torch_dir), *linked}) == 3
+    assert build_name(tmp_path / "one" / torch_dir.name) == linked[0]  # the same path, the same
