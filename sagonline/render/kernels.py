@@ -2,7 +2,8 @@
 
 `load_extension` compiles them through torch's extension loader the first time (saying so, and
 how long it took) into a folder of the environment itself (`kernel_root`), so checkouts with
-environments of their own never rebuild each other's. One process builds while the others
+environments of their own never rebuild each other's, nor do two paths to one environment (a
+link to it: `build_name`). One process builds while the others
 wait and say so (`build_once`); a build that was killed midway is noticed and its leftover
 lock cleared, instead of every later run waiting on it forever.
 """
