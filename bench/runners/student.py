@@ -79,7 +79,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     ap.add_argument("--captures", default="all", help="comma-separated, or all (the fitted)")
     ap.add_argument("--sources", default="sam2_tiny", help=f"comma-separated, of {SOURCES}")
     ap.add_argument(
-        "--votes", default="defaults,chosen", help="comma-separated, of defaults, chosen"
+        "--votes", default=",".join(VOTES), help=f"comma-separated, of {', '.join(VOTES)}"
     )
     ap.add_argument(
         "--training-seeds",
@@ -96,7 +96,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     training_seeds = parse_seeds(args.training_seeds, ap.error)
     votes = args.votes.split(",")
     if not set(votes) <= set(VOTES):
-        ap.error(f"--votes: {sorted(set(votes) - set(VOTES))[0]!r} is not one of defaults, chosen")
+        bad = sorted(set(votes) - set(VOTES))[0]
+        ap.error(f"--votes: {bad!r} is not one of {', '.join(VOTES)}")
     names = captures.fitted_named(args.captures, ap.error)
     runs, rows, gains, commands = Evaluations(), [], [], []
     for capture in names:

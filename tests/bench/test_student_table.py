@@ -25,11 +25,16 @@ def finished(source: str, coarse: float, refined: float | None) -> RunMetrics:
     )
 
 
+def one_fitted_capture(monkeypatch, tmp_path) -> None:
+    """The captures are one, `cap`, fitted for every seed and setting."""
+    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
+    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+
+
 def test_each_source_runs_with_both_votes_and_the_student_and_gives_one_row_each(
     tmp_path, monkeypatch
 ):
-    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
-    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    one_fitted_capture(monkeypatch, tmp_path)
     asked = []
 
     def run(self, capture, source, seed=0, setting=()):
@@ -69,8 +74,7 @@ def per_view(coarse: list[float], refined: list[float], angles: list[float]) -> 
 def test_the_views_table_says_where_the_student_gains_by_angle_to_a_photograph(
     tmp_path, monkeypatch
 ):
-    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
-    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    one_fitted_capture(monkeypatch, tmp_path)
     monkeypatch.setattr(student, "ROOT", tmp_path)
     monkeypatch.setattr(
         real.Evaluations,
@@ -116,8 +120,7 @@ def test_an_unknown_source_or_capture_is_refused_and_an_unfitted_one_left_out(
 def test_training_seeds_train_each_setting_again_and_the_spread_table_says_how_far_they_move(
     tmp_path, monkeypatch, capsys
 ):
-    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
-    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    one_fitted_capture(monkeypatch, tmp_path)
     asked = []
     student_by_seed = {0: 0.87, 3: 0.80, 5: 0.84}  # the student's draw; Stage I does not move
 
@@ -156,8 +159,7 @@ def test_training_seeds_train_each_setting_again_and_the_spread_table_says_how_f
 
 
 def test_votes_picks_the_settings_and_an_unknown_one_is_refused(tmp_path, monkeypatch, capsys):
-    monkeypatch.setattr(captures, "capture_roots", lambda: {"cap": tmp_path / "cap"})
-    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    one_fitted_capture(monkeypatch, tmp_path)
     monkeypatch.setattr(
         real.Evaluations,
         "run",
