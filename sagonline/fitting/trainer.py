@@ -261,11 +261,20 @@ class SceneFitter:
         return dropped
 
     # --- the loop -----------------------------------------------------------------------------
+    def view_draws(self) -> np.random.Generator:
+        """The draw of each step's training view, at the current step: seeded by the fit's seed
+        and advanced past the steps already trained (one draw each), so a fit resumed from a
+        checkpoint draws the views that one run straight through draws."""
+        rng = np.random.default_rng(self.cfg.seed)
+        for _ in range(self.step):
+            rng.integers(len(self.train_idx))
+        return rng
+
     @on_one_torch_thread
     def fit(self, progress: bool = True, checkpoint: Path | None = None) -> dict:
         """Train to `cfg.iterations` (or the time budget); returns `evaluate()`'s metrics."""
         cfg = self.cfg
-        rng = np.random.default_rng(cfg.seed + self.step)
+        rng = self.view_draws()
         bar = Progress("fit", cfg.iterations, enabled=progress, initial=self.step)
         start = time.perf_counter() - self.elapsed
         recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar

@@ -9,7 +9,8 @@ when one is set, at `time_budget_s` seconds of training ("time_budget": then the
 on how busy the machine was). The same seed and settings give the same weights on a quiet and on
 a loaded machine. A checkpoint (model, optimiser, step, loss, status) is
 written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
-path resumes from it, and one that finds a finished checkpoint does not train again.
+path resumes from it, drawing the batches that one training run straight through draws (so it
+ends with the same weights), and one that finds a finished checkpoint does not train again.
 """
 
 from __future__ import annotations
@@ -247,7 +248,7 @@ class RefinementTrainer:
     def run(self) -> str:
         cfg = self.cfg
         self.status = "training"
-        gen = torch.Generator().manual_seed(cfg.seed + self.step)
+        gen = self._batch_draws()
         start, session_start = time.perf_counter(), self.train_s
         while True:
             if self.step >= cfg.max_steps:
@@ -278,16 +279,29 @@ class RefinementTrainer:
         self.done.set()
         return self.status
 
-    def _batch(self, gen: torch.Generator):
-        """A batch of random views, each cropped at a random place to `crop` px."""
-        cfg = self.cfg
-        n = min(cfg.batch_size, len(self.rgb))
+    def _batch_draws(self) -> torch.Generator:
+        """The batches' draw at the current step: seeded by `seed` and advanced past the
+        steps already trained, so a training resumed from a checkpoint draws the batches that
+        one run straight through draws."""
+        gen = torch.Generator().manual_seed(self.cfg.seed)
+        for _ in range(self.step):
+            self._picks(gen)
+        return gen
+
+    def _picks(self, gen: torch.Generator) -> tuple[list[tuple[int, int, int]], int, int]:
+        """One batch's (view, top, left) crops drawn from `gen`, and the crops' height and
+        width."""
+        n = min(self.cfg.batch_size, len(self.rgb))
         idx = torch.randint(len(self.rgb), (n,), generator=gen)
         H, W = self.rgb.shape[-2:]
-        ch, cw = min(cfg.crop, H), min(cfg.crop, W)
+        ch, cw = min(self.cfg.crop, H), min(self.cfg.crop, W)
         ys = torch.randint(H - ch + 1, (n,), generator=gen).tolist()
         xs = torch.randint(W - cw + 1, (n,), generator=gen).tolist()
-        picks = list(zip(idx.tolist(), ys, xs, strict=True))
+        return list(zip(idx.tolist(), ys, xs, strict=True)), ch, cw
+
+    def _batch(self, gen: torch.Generator):
+        """A batch of random views, each cropped at a random place to `crop` px."""
+        picks, ch, cw = self._picks(gen)
 
         def crop(t: torch.Tensor) -> torch.Tensor:
             return torch.stack([t[i, ..., y : y + ch, x : x + cw] for i, y, x in picks])

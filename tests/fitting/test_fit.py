@@ -1030,3 +1030,34 @@ def test_co_pruning_reads_the_other_seeds_finished_fit_and_needs_finish_from(tmp
     none, _ = tiny_capture(root, "variant=copr4", "fit.co_prune_seed=2", "finish_from=default")
     with pytest.raises(DatasetError, match="holds no fit of ours"):
         fit_scene(none, adapter, "cap")
+
+
+def test_a_fit_interrupted_between_checkpoints_resumes_to_the_uninterrupted_fit(views, tmp_path):
+    """Stopped at step 13 (its checkpoint at 10) and resumed, the fit draws the same training
+    views from step 10 on as one that ran through (it drew others before), and densifies at 15
+    and 25 from the same statistics, so both end with the same Gaussians."""
+    cams, imgs = views
+    cfg = tiny(iterations=30, densify_from=5, densify_every=10)
+    whole = SceneFitter(cfg, cams, imgs)
+    started_with = len(whole)
+    whole.fit(progress=False)
+    assert len(whole) != started_with  # the densification ran
+
+    ckpt = tmp_path / "fit.store"
+    cut = SceneFitter(cfg, cams, imgs)
+    step_once = cut.train_step
+
+    def interrupted(view, progress):
+        if cut.step == 13:
+            raise KeyboardInterrupt
+        return step_once(view, progress)
+
+    cut.train_step = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        cut.fit(progress=False, checkpoint=ckpt)
+    resumed = SceneFitter(cfg, cams, imgs)
+    assert resumed.resume(ckpt) and resumed.step == 10
+    resumed.fit(progress=False, checkpoint=ckpt)
+    assert resumed.history == whole.history
+    for name, value in whole.params.items():
+        assert torch.equal(resumed.params[name], value), name

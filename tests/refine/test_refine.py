@@ -130,6 +130,34 @@ def test_checkpoint_resume_and_finished_run(tmp_path):
     assert other.step == 0  # a different setting starts over
 
 
+@pytest.mark.slow
+def test_a_training_interrupted_between_checkpoints_resumes_to_the_uninterrupted_one(tmp_path):
+    """Stopped at step 3 (its checkpoint at 2) and resumed, the student draws the batches of
+    steps 2 and 3 that one trained straight through draws, and ends with the same weights."""
+    frames, coarse, teacher = _toy(3)
+    cfg = RefineConfig(max_steps=5, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
+    whole = RefinementTrainer(cfg, 2, frames, coarse, teacher)
+    whole.run()
+
+    cut = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    batch = cut._batch
+
+    def interrupted(gen):
+        if cut.step == 3:
+            raise KeyboardInterrupt
+        return batch(gen)
+
+    cut._batch = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        cut.run()
+    resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert resumed.step == 2
+    resumed.run()
+    assert resumed.losses == whole.losses and resumed.status == whole.status == "steps"
+    for name, value in whole.model.state_dict().items():
+        assert torch.equal(resumed.model.state_dict()[name], value), name
+
+
 def test_teacher_label_out_of_range():
     frames, coarse, teacher = _toy(2)
     teacher[1][0, 0] = 5
