@@ -1,5 +1,6 @@
-"""Where a fit starts: the training/held-out split, random points in the training frusta, and
-the start points completed with random ones behind what sparse points already explain."""
+"""Where a fit starts: the training/held-out split and the draw of the training views, random
+points in the training frusta, and the start points completed with random ones behind what
+sparse points already explain."""
 
 from __future__ import annotations
 
@@ -26,6 +27,16 @@ def split_views(
             f"{len(cameras)}; a fit needs at least 2"
         )
     return train, held
+
+
+def view_draws(seed: int, step: int, num_views: int) -> np.random.Generator:
+    """The draw of each step's training view (one of `num_views`) at `step`: seeded by the
+    fit's seed and advanced past the steps already trained, one draw each, so a fit resumed
+    from a checkpoint draws the views that one run straight through draws."""
+    rng = np.random.default_rng(seed)
+    for _ in range(step):
+        rng.integers(num_views)
+    return rng
 
 
 def init_from_views(

@@ -46,7 +46,7 @@ from sagonline.fitting.losses import (
     psnr,
     splat_geometry,
 )
-from sagonline.fitting.start_points import initial_params, split_views, start_points
+from sagonline.fitting.start_points import initial_params, split_views, start_points, view_draws
 from sagonline.fitting.strategy import DensifyStrategy, Params
 from sagonline.fitting.threads import on_one_torch_thread
 from sagonline.render.api import render
@@ -261,20 +261,11 @@ class SceneFitter:
         return dropped
 
     # --- the loop -----------------------------------------------------------------------------
-    def view_draws(self) -> np.random.Generator:
-        """The draw of each step's training view, at the current step: seeded by the fit's seed
-        and advanced past the steps already trained (one draw each), so a fit resumed from a
-        checkpoint draws the views that one run straight through draws."""
-        rng = np.random.default_rng(self.cfg.seed)
-        for _ in range(self.step):
-            rng.integers(len(self.train_idx))
-        return rng
-
     @on_one_torch_thread
     def fit(self, progress: bool = True, checkpoint: Path | None = None) -> dict:
         """Train to `cfg.iterations` (or the time budget); returns `evaluate()`'s metrics."""
         cfg = self.cfg
-        rng = self.view_draws()
+        rng = view_draws(cfg.seed, self.step, len(self.train_idx))
         bar = Progress("fit", cfg.iterations, enabled=progress, initial=self.step)
         start = time.perf_counter() - self.elapsed
         recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
