@@ -16,7 +16,11 @@ by angle to the nearest photograph. With more than one training seed (`--trainin
 the student's `refine.seed`, on the same fit, Stage I and teacher masks; 0 is the default runs'
 seed), each setting is trained once per seed, in `...@refine-student[+...]+refine.seed-<k>`,
 and <out>/student_seeds.md and .csv give each setting's spread over them: how much of a gain
-or loss is the training's draw.
+or loss is the training's draw. With `--curve-every 25`, each setting is trained once more to
+`--curve-steps` (400) whatever its loss does (`refine.curve_every=25 refine.max_steps=400
+refine.patience=400`), its student scored every 25 steps, and <out>/student_curve.md and .csv
+set that curve beside where the plateau rule stopped the default training and what it scored:
+whether a longer training would have answered better.
 """
 
 from __future__ import annotations
@@ -45,6 +49,31 @@ def settings(source: str, training_seed: int = 0) -> dict[str, tuple[str, ...]]:
     return {
         "defaults": (*STUDENT, *seed),
         "chosen": (*STUDENT, *captures.CHOSEN.get(source, ()), *seed),
+    }
+
+
+def curve_setting(setting: tuple[str, ...], every: int, steps: int) -> tuple[str, ...]:
+    """`setting` trained to `steps` whatever its loss does, scored every `every` steps."""
+    return (
+        *setting,
+        f"refine.curve_every={every}",
+        f"refine.max_steps={steps}",
+        f"refine.patience={steps}",
+    )
+
+
+def curve_row(stopped: dict, curve: RunMetrics) -> dict:
+    """One setting's line of student_curve: where the plateau rule stopped its default training
+    (`stopped`: its line of student.md) and the student's mIoU at each point of the curve
+    run (fractions: the table shows them in percent)."""
+    points = curve.scene_extra("refine").get("curve") or []
+    return {
+        **{k: stopped[k] for k in ("capture", "source", "vote", "training seed")},
+        "coarse mIoU": stopped["coarse mIoU"],
+        "plateau rule: steps": stopped["steps"],
+        "plateau rule: student mIoU": stopped["student mIoU"],
+        "best of the curve: step": max(points, key=lambda p: p["miou"])["step"] if points else None,
+        **{f"step {p['step']} mIoU": p["miou"] for p in points},
     }
 
 
@@ -87,8 +116,18 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         help="comma-separated student seeds (refine.seed) per setting; more than one also "
         "writes <out>/student_seeds.{md,csv}, each setting's spread over them",
     )
+    ap.add_argument(
+        "--curve-every",
+        type=int,
+        default=0,
+        help="also train each setting to --curve-steps, its student scored every this many "
+        "steps: <out>/student_curve.{md,csv} (default 0: no curve)",
+    )
+    ap.add_argument("--curve-steps", type=int, default=400, help="the curve's length (400)")
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
+    if args.curve_every < 0 or args.curve_steps < max(args.curve_every, 1):
+        ap.error("--curve-every must be >= 0 and --curve-steps >= 1 and >= --curve-every")
     sources = args.sources.split(",")
     if not set(sources) <= set(SOURCES):
         bad = sorted(set(sources) - set(SOURCES))[0]
@@ -99,7 +138,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(votes) - set(VOTES))[0]
         ap.error(f"--votes: {bad!r} is not one of {', '.join(VOTES)}")
     names = captures.fitted_named(args.captures, ap.error)
-    runs, rows, gains, commands = Evaluations(), [], [], []
+    runs, rows, gains, commands, curves = Evaluations(), [], [], [], []
     for capture in names:
         for source in sources:
             for seed in training_seeds:
@@ -107,13 +146,26 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                     setting = settings(source, seed)[vote]
                     commands.append(" ".join(captures.command(capture, source, 0, setting)))
                     m = runs.run(capture, source, 0, setting)
-                    if m is not None:
-                        rows.append(row(capture, source, vote, m, seed))
-                        gains.append(view_gains(capture, source, vote, setting, seed))
+                    if m is None:
+                        continue
+                    rows.append(row(capture, source, vote, m, seed))
+                    gains.append(view_gains(capture, source, vote, setting, seed))
+                    if args.curve_every:
+                        longer = curve_setting(setting, args.curve_every, args.curve_steps)
+                        commands.append(" ".join(captures.command(capture, source, 0, longer)))
+                        curve = runs.run(capture, source, 0, longer)
+                        if curve is not None:
+                            curves.append(curve_row(rows[-1], curve))
     df = pd.DataFrame(rows)
     built = (
         f"`python -m bench.runners.student --captures {args.captures} --sources {args.sources}"
-        f" --votes {args.votes} --training-seeds {args.training_seeds}`"
+        f" --votes {args.votes} --training-seeds {args.training_seeds}"
+        + (
+            f" --curve-every {args.curve_every} --curve-steps {args.curve_steps}"
+            if args.curve_every
+            else ""
+        )
+        + "`"
     )
     notes = [
         "mIoU in percent on every masked view but the reference, fit seed 0; segmenter alone: "
@@ -157,6 +209,25 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             ],
         )
         print(in_percent(spread).to_string(index=False))
+    if curves:
+        table = pd.DataFrame(curves)
+        write_table(
+            table,
+            args.out,
+            "student_curve",
+            title="Stage II on the real captures, along the student's training",
+            notes=[
+                "plateau rule: the default training (student.md's run), stopped by the plateau "
+                f"rule; step k: the student trained {args.curve_steps} steps whatever its loss "
+                f"did (`{' '.join(curve_setting((), args.curve_every, args.curve_steps))}`), "
+                "scored every "
+                f"{args.curve_every} steps at the same views (step 0: the untrained student, "
+                "which answers the coarse render); the training is the same as the default's "
+                "up to where that stopped (one seed draws the same batches whatever the rule)",
+                f"the runs of student.md, built by {built}",
+            ],
+        )
+        print(in_percent(table).to_string(index=False))
     return df
 
 

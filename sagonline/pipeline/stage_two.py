@@ -15,6 +15,7 @@ import logging
 import sys
 import time
 import warnings
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -69,6 +70,25 @@ def answer_alone(service: OnlineSegmentation, views, mode: str, settings: Pipeli
         size = (scored.height, scored.width) if mode == "refined" else None
         answers.append(service.answer(view.camera, mode, view.gt, size))
     return answers
+
+
+def curve_scorer(
+    task: SceneTask, service: OnlineSegmentation, trainer: RefinementTrainer, settings
+) -> Callable[[], float | None]:
+    """The student's mIoU at the eval views as it is when called (`refine.curve_every`): their
+    RGB and coarse renders made once here, answered at the size the refined answers are scored
+    at, scored as they are."""
+    inputs = []
+    for view in task.eval_views:
+        scored = settings.scored_camera(view)
+        inputs.append((service.rgb(view.camera), service.coarse(view.camera), scored))
+    truths = [view.gt for view in task.eval_views]
+
+    def score_now() -> float | None:
+        preds = [trainer.predict(rgb, coarse, (c.height, c.width)) for rgb, coarse, c in inputs]
+        return mean_iou(task, preds, truths, settings.metrics.resize)
+
+    return score_now
 
 
 def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig) -> None:
@@ -144,6 +164,8 @@ def run_stage_two(
         checkpoint,
     )
     service.trainer = trainer
+    if cfg.curve_every:
+        trainer.score_now = curve_scorer(task, service, trainer, settings)
     start = time.perf_counter()
     resumed_done = trainer.done.is_set()
     trainer.start()
@@ -170,6 +192,8 @@ def run_stage_two(
         "answers_while_training": {mode: len(v) for mode, v in during.items()},
         "encoder": cfg.encoder,
     }
+    if cfg.curve_every:
+        report.extra["refine"]["curve"] = trainer.curve
     if novel is not None:
         initial = [a.mask for a in alone["initial"]]
         truths = [v.gt for v in task.eval_views]

@@ -18,6 +18,7 @@ from __future__ import annotations
 import threading
 import time
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -89,6 +90,10 @@ class RefineConfig:
     """The smoothed loss's least gain that counts."""
     checkpoint_every: int = 25
     """Steps between checkpoints (a resumed training starts from the last)."""
+    curve_every: int = 0
+    """Every this many steps (and at the first and the last), the student as it is then is
+    scored at the eval views (metrics.json `extra.refine.curve`); 0: never. The weights are
+    those of a training without it; its scoring pauses the training."""
     coarse_smoothing: float = 0.1
     """Label smoothing of the coarse render fed to the mask branch."""
     seed: int = 0
@@ -110,6 +115,7 @@ class RefineConfig:
             patience=(self.patience >= 1, self.patience, ">= 1"),
             min_delta=(self.min_delta >= 0, self.min_delta, ">= 0"),
             checkpoint_every=(self.checkpoint_every >= 1, self.checkpoint_every, ">= 1"),
+            curve_every=(self.curve_every >= 0, self.curve_every, ">= 0 (0: no curve)"),
             coarse_smoothing=(
                 0 <= self.coarse_smoothing < 1,
                 self.coarse_smoothing,
@@ -172,6 +178,8 @@ class RefinementTrainer:
         self.step = 0
         self.plateau = Plateau(cfg.patience, cfg.min_delta, warmup=cfg.patience)
         self.status, self.train_s, self.losses = "idle", 0.0, []
+        self.curve: list[dict] = []  # {step, loss, miou} every `curve_every` steps
+        self.score_now: Callable[[], float | None] | None = None  # the curve's scorer
         self.done = threading.Event()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -202,6 +210,7 @@ class RefinementTrainer:
         self.optim.load_state_dict(state["optim"])
         self.step, self.train_s = state["step"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
+        self.curve = state.get("curve", [])
         for loss in self.losses:  # the plateau rule replayed: the same state as before
             self.plateau.add(loss)
         if self.status in STOPS:
@@ -219,6 +228,7 @@ class RefinementTrainer:
                 "train_s": self.train_s,
                 "losses": self.losses,
                 "status": self.status,
+                "curve": self.curve,
                 "config": asdict(self.cfg),
                 "classes": self.num_classes,
                 "file": self.checkpoint.name,  # its stage and key: never resumed under another
@@ -250,6 +260,8 @@ class RefinementTrainer:
         self.status = "training"
         gen = self._batch_draws()
         start, session_start = time.perf_counter(), self.train_s
+        if self.step == 0:
+            self._curve_point()
         while True:
             if self.step >= cfg.max_steps:
                 self.status = "steps"
@@ -273,11 +285,24 @@ class RefinementTrainer:
             self.plateau.add(value)
             self.step += 1
             self.train_s = session_start + time.perf_counter() - start
+            if cfg.curve_every and self.step % cfg.curve_every == 0:
+                self._curve_point()
+                start = time.perf_counter() - (self.train_s - session_start)  # not training
             if self.step % cfg.checkpoint_every == 0:
                 self.save()
+        if not self.curve or self.curve[-1]["step"] != self.step:
+            self._curve_point()  # where it stopped
         self.save()
         self.done.set()
         return self.status
+
+    def _curve_point(self) -> None:
+        """The student as it is now, scored (`score_now`) into the curve; with `curve_every`
+        set and a scorer given only."""
+        if not self.cfg.curve_every or self.score_now is None:
+            return
+        miou = self.score_now()
+        self.curve.append({"step": self.step, "loss": self.plateau.ema, "miou": miou})
 
     def _batch_draws(self) -> torch.Generator:
         """The batches' draw at the current step: seeded by `seed` and advanced past the

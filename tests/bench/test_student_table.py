@@ -174,3 +174,51 @@ def test_votes_picks_the_settings_and_an_unknown_one_is_refused(tmp_path, monkey
     assert exc.value.code == 2 and "'paper' is not one of defaults, chosen" in (
         capsys.readouterr().err
     )
+
+
+def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rules_stop(
+    tmp_path, monkeypatch
+):
+    one_fitted_capture(monkeypatch, tmp_path)
+    asked = []
+
+    def run(self, capture, source, seed=0, setting=()):
+        asked.append(setting)
+        m = finished(source, 0.85, 0.84)
+        if "refine.curve_every=50" in setting:
+            points = [(0, 0.85), (50, 0.83), (100, 0.88), (120, 0.87)]
+            curve = [{"step": k, "loss": None, "miou": v} for k, v in points]
+            m.scenes[0]["extra"]["refine"] = {"status": "steps", "steps": 120, "curve": curve}
+        return m
+
+    monkeypatch.setattr(real.Evaluations, "run", run)
+    out = tmp_path / "out"
+    student.main(
+        ["--captures", "cap", "--sources", "minisam", "--votes", "defaults"]
+        + ["--curve-every", "50", "--curve-steps", "120", "--out", str(out)]
+    )
+    longer = ("refine=student", "refine.curve_every=50", "refine.max_steps=120")
+    assert asked == [("refine=student",), (*longer, "refine.patience=120")]
+    table = pd.read_csv(out / "student_curve.csv")
+    assert table["plateau rule: steps"].tolist() == [61]
+    assert table["plateau rule: student mIoU"].tolist() == [84.0]  # in percent
+    assert table["best of the curve: step"].tolist() == [100]
+    steps = [c for c in table.columns if c.startswith("step ")]
+    assert steps == ["step 0 mIoU", "step 50 mIoU", "step 100 mIoU", "step 120 mIoU"]
+    assert table[steps].iloc[0].tolist() == [85.0, 83.0, 88.0, 87.0]
+    page = (out / "student_curve.md").read_text()
+    assert "--curve-every 50 --curve-steps 120`" in page
+    runs = (out / "student.md").read_text()  # each run's command, the curve's among them
+    assert "minisam@refine-student+refine.curve_every-50+refine.max_steps-120" in runs
+    student.main(["--captures", "cap", "--sources", "minisam", "--out", str(tmp_path / "plain")])
+    assert not (tmp_path / "plain" / "student_curve.csv").exists()
+
+
+@pytest.mark.parametrize(
+    "args", [["--curve-every", "-1"], ["--curve-every", "50", "--curve-steps", "10"]]
+)
+def test_a_curve_that_cannot_be_drawn_is_refused(args, capsys):
+    with pytest.raises(SystemExit) as stop:
+        student.main(args)
+    assert stop.value.code == 2
+    assert "--curve-every must be >= 0" in capsys.readouterr().err

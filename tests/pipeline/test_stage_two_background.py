@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pytest
 
 from sagonline.datasets.generic import PosedMasksDataset
 from sagonline.pipeline import PipelineSettings, run_scene
@@ -88,3 +89,22 @@ def test_the_recordings_eval_views_show_the_renders_stage_one_made(tmp_path):
     record_eval_views(task, Shown(), preds, report, g, backend, background=task.background)
     assert shown.keys() == frames.keys()
     assert all(np.array_equal(shown[name], frames[name]) for name in shown)
+
+
+def test_the_students_curve_ends_at_the_score_of_its_refined_answers(tmp_path):
+    """refine.curve_every: the student scored at the eval views every few steps, from step 0
+    (the untrained student answers the coarse render) to where it stopped, whose point is the
+    score of the refined answers."""
+    task, settings, segmenter, _, _ = white_capture(tmp_path)
+    report, stage_one = run_scene(task, segmenter, VoteConfig(), settings)  # scores the coarse
+    cfg = RefineConfig(max_steps=3, batch_size=2, crop=32, curve_every=2)
+    run_stage_two(task, stage_one, cfg, settings, report, Recorder(None), segmenter=segmenter)
+    curve = report.extra["refine"]["curve"]
+    assert [p["step"] for p in curve] == [0, 2, 3]
+    assert curve[0]["miou"] == pytest.approx(report.miou)  # the coarse render's answer
+    assert curve[-1]["miou"] == pytest.approx(report.refined_miou)
+    plain = SceneReport(scene="cap")
+    cfg = RefineConfig(max_steps=3, batch_size=2, crop=32)
+    run_stage_two(task, stage_one, cfg, settings, plain, Recorder(None), segmenter=segmenter)
+    assert "curve" not in plain.extra["refine"]
+    assert plain.refined_miou == pytest.approx(report.refined_miou)

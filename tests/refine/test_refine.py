@@ -158,6 +158,68 @@ def test_a_training_interrupted_between_checkpoints_resumes_to_the_uninterrupted
         assert torch.equal(resumed.model.state_dict()[name], value), name
 
 
+@pytest.mark.slow
+def test_the_curve_scores_the_student_every_few_steps_and_survives_a_resume(tmp_path):
+    """curve_every=2 over 5 steps: points at 0, 2, 4 and 5 (where it stopped), each with the
+    smoothed loss of then; the weights are those of a training without the curve; a training
+    resumed from step 2 keeps the points it had and adds the rest."""
+    frames, coarse, teacher = _toy(3)
+    base = dict(max_steps=5, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
+    plain = RefinementTrainer(RefineConfig(**base), 2, frames, coarse, teacher)
+    plain.run()
+    assert plain.curve == []
+
+    cfg = RefineConfig(**base, curve_every=2)
+    scored: list[int] = []
+
+    def scorer(trainer):
+        def score_now():
+            scored.append(trainer.step)
+            return trainer.step / 10
+
+        return score_now
+
+    with_curve = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    with_curve.score_now = scorer(with_curve)
+    batch = with_curve._batch
+
+    def interrupted(gen):
+        if with_curve.step == 3:
+            raise KeyboardInterrupt
+        return batch(gen)
+
+    with_curve._batch = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        with_curve.run()
+    resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert [p["step"] for p in resumed.curve] == [0, 2]
+    resumed.score_now = scorer(resumed)
+    resumed.run()
+    assert scored == [0, 2, 4, 5]  # step 2 scored once: kept in the checkpoint
+    assert [p["step"] for p in resumed.curve] == [0, 2, 4, 5]
+    assert [p["miou"] for p in resumed.curve] == [0.0, 0.2, 0.4, 0.5]
+    assert resumed.curve[0]["loss"] is None
+    assert [p["loss"] for p in resumed.curve[1:]] == [
+        pytest.approx(ema) for ema in smoothed(plain.losses, [2, 4, 5])
+    ]
+    for name, value in plain.model.state_dict().items():
+        assert torch.equal(resumed.model.state_dict()[name], value), name
+    finished = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert finished.done.is_set() and finished.curve == resumed.curve
+    with pytest.raises(ValueError, match="curve_every"):
+        RefineConfig(curve_every=-1)
+
+
+def smoothed(losses: list[float], steps: list[int]) -> list[float]:
+    """The plateau rule's moving average of `losses` after each of `steps` steps."""
+    ema, out = None, []
+    for i, loss in enumerate(losses, start=1):
+        ema = loss if ema is None else 0.9 * ema + 0.1 * loss
+        if i in steps:
+            out.append(ema)
+    return out
+
+
 def test_teacher_label_out_of_range():
     frames, coarse, teacher = _toy(2)
     teacher[1][0, 0] = 5
