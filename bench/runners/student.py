@@ -138,7 +138,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(votes) - set(VOTES))[0]
         ap.error(f"--votes: {bad!r} is not one of {', '.join(VOTES)}")
     names = captures.fitted_named(args.captures, ap.error)
-    runs, rows, gains, commands, curves = Evaluations(), [], [], [], []
+    runs, rows, gains, commands, curves, curve_commands = Evaluations(), [], [], [], [], []
     for capture in names:
         for source in sources:
             for seed in training_seeds:
@@ -152,7 +152,9 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                     gains.append(view_gains(capture, source, vote, setting, seed))
                     if args.curve_every:
                         longer = curve_setting(setting, args.curve_every, args.curve_steps)
-                        commands.append(" ".join(captures.command(capture, source, 0, longer)))
+                        command = " ".join(captures.command(capture, source, 0, longer))
+                        commands.append(command)
+                        curve_commands += [commands[-2], command]
                         curve = runs.run(capture, source, 0, longer)
                         if curve is not None:
                             curves.append(curve_row(rows[-1], curve))
@@ -224,7 +226,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 f"{args.curve_every} steps at the same views (step 0: the untrained student, "
                 "which answers the coarse render); the training is the same as the default's "
                 "up to where that stopped (one seed draws the same batches whatever the rule)",
-                f"the runs of student.md, built by {built}",
+                f"built by {built}; each run (the default's, then the curve's):",
+                *(f"`python -m bench.runners.eval {c}`" for c in curve_commands),
             ],
         )
         print(in_percent(table).to_string(index=False))

@@ -7,7 +7,8 @@ improved by `min_delta` for `patience` steps after a warm-up of `patience` steps
 `Plateau`), at `max_steps` ("steps"), or, only
 when one is set, at `time_budget_s` seconds of training ("time_budget": then the result depends
 on how busy the machine was). The same seed and settings give the same weights on a quiet and on
-a loaded machine. A checkpoint (model, optimiser, step, loss, status) is
+a loaded machine, with the same number of torch threads (another count sums in another order:
+another draw). A checkpoint (model, optimiser, step, loss, status) is
 written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
 path resumes from it, drawing the batches that one training run straight through draws (so it
 ends with the same weights), and one that finds a finished checkpoint does not train again.

@@ -208,8 +208,9 @@ def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rul
     assert table[steps].iloc[0].tolist() == [85.0, 83.0, 88.0, 87.0]
     page = (out / "student_curve.md").read_text()
     assert "--curve-every 50 --curve-steps 120`" in page
-    runs = (out / "student.md").read_text()  # each run's command, the curve's among them
-    assert "minisam@refine-student+refine.curve_every-50+refine.max_steps-120" in runs
+    default, curve = [line for line in page.splitlines() if "bench.runners.eval" in line]
+    assert default.endswith("hydra.run.dir=multirun/real/cap/minisam@refine-student`")
+    assert "minisam@refine-student+refine.curve_every-50+refine.max_steps-120+" in curve
     student.main(["--captures", "cap", "--sources", "minisam", "--out", str(tmp_path / "plain")])
     assert not (tmp_path / "plain" / "student_curve.csv").exists()
 
