@@ -130,6 +130,20 @@ def test_checkpoint_resume_and_finished_run(tmp_path):
     assert other.step == 0  # a different setting starts over
 
 
+def interrupt_at(trainer: RefinementTrainer, step: int) -> None:
+    """Train until `step`, then stop as a Ctrl-C would (its last checkpoint stays)."""
+    batch = trainer._batch
+
+    def interrupted(gen):
+        if trainer.step == step:
+            raise KeyboardInterrupt
+        return batch(gen)
+
+    trainer._batch = interrupted
+    with pytest.raises(KeyboardInterrupt):
+        trainer.run()
+
+
 @pytest.mark.slow
 def test_a_training_interrupted_between_checkpoints_resumes_to_the_uninterrupted_one(tmp_path):
     """Stopped at step 3 (its checkpoint at 2) and resumed, the student draws the batches of
@@ -139,17 +153,7 @@ def test_a_training_interrupted_between_checkpoints_resumes_to_the_uninterrupted
     whole = RefinementTrainer(cfg, 2, frames, coarse, teacher)
     whole.run()
 
-    cut = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
-    batch = cut._batch
-
-    def interrupted(gen):
-        if cut.step == 3:
-            raise KeyboardInterrupt
-        return batch(gen)
-
-    cut._batch = interrupted
-    with pytest.raises(KeyboardInterrupt):
-        cut.run()
+    interrupt_at(RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt"), 3)
     resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
     assert resumed.step == 2
     resumed.run()
@@ -181,16 +185,7 @@ def test_the_curve_scores_the_student_every_few_steps_and_survives_a_resume(tmp_
 
     with_curve = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
     with_curve.score_now = scorer(with_curve)
-    batch = with_curve._batch
-
-    def interrupted(gen):
-        if with_curve.step == 3:
-            raise KeyboardInterrupt
-        return batch(gen)
-
-    with_curve._batch = interrupted
-    with pytest.raises(KeyboardInterrupt):
-        with_curve.run()
+    interrupt_at(with_curve, 3)
     resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
     assert [p["step"] for p in resumed.curve] == [0, 2]
     resumed.score_now = scorer(resumed)
