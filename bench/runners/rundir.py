@@ -39,6 +39,8 @@ ADDED_SETTINGS = {
     "consensus.body": False,
     "consensus.weighting": "count",
     "label_render.size": "render",
+    "refine.curve_every": 0,
+    "refine.ema_span": 0,
     "segmenter.max_growth": None,
 }
 

@@ -1,7 +1,7 @@
 """Stage II on the real captures: the refinement student's answers against the coarse render's.
 
     python -m bench.runners.student [--captures all] [--sources sam2_tiny]
-        [--votes defaults,chosen] [--training-seeds 0] [--out reports]
+        [--votes defaults,chosen] [--training-seeds 0] [--set refine.ema_span=60] [--out reports]
 
 The student (`refine=student`, docs/method.md) trains in the background on the segmenter's 2D
 masks of the trajectory and then answers every scored view from the view's RGB render and its
@@ -20,7 +20,8 @@ or loss is the training's draw. With `--curve-every 25`, each setting is trained
 `--curve-steps` (400) whatever its loss does (`refine.curve_every=25 refine.max_steps=400
 refine.patience=400`), its student scored every 25 steps, and <out>/student_curve.md and .csv
 set that curve beside where the plateau rule stopped the default training and what it scored:
-whether a longer training would have answered better.
+whether a longer training would have answered better. Each `--set KEY=VALUE` is added to every
+run (the student's settings to compare: `--set refine.ema_span=60`, in folders of their own).
 """
 
 from __future__ import annotations
@@ -124,6 +125,13 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "steps: <out>/student_curve.{md,csv} (default 0: no curve)",
     )
     ap.add_argument("--curve-steps", type=int, default=400, help="the curve's length (400)")
+    ap.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="an override added to every run, e.g. refine.ema_span=60 (repeatable)",
+    )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
     if args.curve_every < 0 or args.curve_steps < max(args.curve_every, 1):
@@ -133,6 +141,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(sources) - set(SOURCES))[0]
         ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
     training_seeds = parse_seeds(args.training_seeds, ap.error)
+    if not all("=" in o.strip("=") for o in args.set):
+        ap.error(f"--set: {[o for o in args.set if '=' not in o.strip('=')][0]!r} is not KEY=VALUE")
     votes = args.votes.split(",")
     if not set(votes) <= set(VOTES):
         bad = sorted(set(votes) - set(VOTES))[0]
@@ -143,7 +153,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         for source in sources:
             for seed in training_seeds:
                 for vote in votes:
-                    setting = settings(source, seed)[vote]
+                    setting = (*settings(source, seed)[vote], *args.set)
                     commands.append(" ".join(captures.command(capture, source, 0, setting)))
                     m = runs.run(capture, source, 0, setting)
                     if m is None:
@@ -167,6 +177,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             if args.curve_every
             else ""
         )
+        + "".join(f" --set {o}" for o in args.set)
         + "`"
     )
     notes = [

@@ -74,18 +74,20 @@ def answer_alone(service: OnlineSegmentation, views, mode: str, settings: Pipeli
 
 def curve_scorer(
     task: SceneTask, service: OnlineSegmentation, trainer: RefinementTrainer, settings
-) -> Callable[[], float | None]:
+) -> Callable[[bool], float | None]:
     """The student's mIoU at the eval views as it is when called (`refine.curve_every`): their
     RGB and coarse renders made once here, answered at the size the refined answers are scored
-    at, scored as they are."""
+    at, scored as they are; its answers', or (`trained=True`) its trained weights'."""
     inputs = []
     for view in task.eval_views:
         scored = settings.scored_camera(view)
         inputs.append((service.rgb(view.camera), service.coarse(view.camera), scored))
     truths = [view.gt for view in task.eval_views]
 
-    def score_now() -> float | None:
-        preds = [trainer.predict(rgb, coarse, (c.height, c.width)) for rgb, coarse, c in inputs]
+    def score_now(trained: bool = False) -> float | None:
+        preds = [
+            trainer.predict(rgb, coarse, (c.height, c.width), trained) for rgb, coarse, c in inputs
+        ]
         return mean_iou(task, preds, truths, settings.metrics.resize)
 
     return score_now
@@ -191,6 +193,7 @@ def run_stage_two(
         "resumed_finished": resumed_done,
         "answers_while_training": {mode: len(v) for mode, v in during.items()},
         "encoder": cfg.encoder,
+        "ema_span": cfg.ema_span,
     }
     if cfg.curve_every:
         report.extra["refine"]["curve"] = trainer.curve

@@ -8,7 +8,9 @@ improved by `min_delta` for `patience` steps after a warm-up of `patience` steps
 when one is set, at `time_budget_s` seconds of training ("time_budget": then the result depends
 on how busy the machine was). The same seed and settings give the same weights on a quiet and on
 a loaded machine, with the same number of torch threads (another count sums in another order:
-another draw). A checkpoint (model, optimiser, step, loss, status) is
+another draw). With `ema_span`, the student answers from a moving average of its weights
+(`WeightAverage`), which the training itself never reads. A checkpoint (model, optimiser, the
+average, step, loss, status) is
 written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
 path resumes from it, drawing the batches that one training run straight through draws (so it
 ends with the same weights), and one that finds a finished checkpoint does not train again.
@@ -31,6 +33,7 @@ from sagonline.core import store
 from sagonline.core.settings import check_settings
 from sagonline.core.tensors import tensor_view
 from sagonline.refine.network import ARCHS, DualBranchRefiner
+from sagonline.refine.weight_average import WeightAverage
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
 
@@ -95,6 +98,11 @@ class RefineConfig:
     """Every this many steps (and at the first and the last), the student as it is then is
     scored at the eval views (metrics.json `extra.refine.curve`); 0: never. The weights are
     those of a training without it; its scoring pauses the training."""
+    ema_span: int = 0
+    """The student answers from an exponential moving average of its weights (and norm
+    statistics) over about this many steps (each step weighs 2 / (span + 1); the plain mean of
+    all steps until that is smaller); 0: from its weights as they are. The training is the
+    same either way."""
     coarse_smoothing: float = 0.1
     """Label smoothing of the coarse render fed to the mask branch."""
     seed: int = 0
@@ -117,6 +125,7 @@ class RefineConfig:
             min_delta=(self.min_delta >= 0, self.min_delta, ">= 0"),
             checkpoint_every=(self.checkpoint_every >= 1, self.checkpoint_every, ">= 1"),
             curve_every=(self.curve_every >= 0, self.curve_every, ">= 0 (0: no curve)"),
+            ema_span=(self.ema_span >= 0, self.ema_span, ">= 0 steps (0: no average)"),
             coarse_smoothing=(
                 0 <= self.coarse_smoothing < 1,
                 self.coarse_smoothing,
@@ -164,6 +173,7 @@ class RefinementTrainer:
             num_classes, cfg.encoder, cfg.pretrained, decoder_width=cfg.decoder_width
         ).to(cfg.device)
         self.optim = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
+        self.average = WeightAverage(self.model, cfg.ema_span) if cfg.ema_span else None
         self.rgb = torch.stack([rgb_input(f) for f in frames])
         self.coarse = torch.stack(
             [coarse_input(c, num_classes, cfg.coarse_smoothing) for c in coarse]
@@ -179,8 +189,10 @@ class RefinementTrainer:
         self.step = 0
         self.plateau = Plateau(cfg.patience, cfg.min_delta, warmup=cfg.patience)
         self.status, self.train_s, self.losses = "idle", 0.0, []
-        self.curve: list[dict] = []  # {step, loss, miou} every `curve_every` steps
-        self.score_now: Callable[[], float | None] | None = None  # the curve's scorer
+        self.curve: list[dict] = []  # {step, loss, miou[, miou_trained]} every `curve_every`
+        # the curve's scorer: the eval views' mIoU of the answers (trained=False) or of the
+        # trained weights as they are (trained=True)
+        self.score_now: Callable[[bool], float | None] | None = None
         self.done = threading.Event()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -209,6 +221,8 @@ class RefinementTrainer:
             return  # another setting: start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
+        if self.average is not None:
+            self.average.load_state_dict(state["average"])
         self.step, self.train_s = state["step"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
         self.curve = state.get("curve", [])
@@ -224,6 +238,7 @@ class RefinementTrainer:
             state = {
                 "model": self.model.state_dict(),
                 "optim": self.optim.state_dict(),
+                "average": self.average.state_dict() if self.average is not None else None,
                 "step": self.step,
                 "best_step": self.plateau.best_step,
                 "train_s": self.train_s,
@@ -281,6 +296,8 @@ class RefinementTrainer:
                 self.optim.zero_grad(set_to_none=True)
                 loss.backward()
                 self.optim.step()
+                if self.average is not None:
+                    self.average.update(self.model)
             value = loss.item()
             self.losses.append(value)
             self.plateau.add(value)
@@ -299,11 +316,14 @@ class RefinementTrainer:
 
     def _curve_point(self) -> None:
         """The student as it is now, scored (`score_now`) into the curve; with `curve_every`
-        set and a scorer given only."""
+        set and a scorer given only. With `ema_span`, `miou` scores its answers (the average)
+        and `miou_trained` its trained weights."""
         if not self.cfg.curve_every or self.score_now is None:
             return
-        miou = self.score_now()
-        self.curve.append({"step": self.step, "loss": self.plateau.ema, "miou": miou})
+        point = {"step": self.step, "loss": self.plateau.ema, "miou": self.score_now(False)}
+        if self.average is not None:
+            point["miou_trained"] = self.score_now(True)
+        self.curve.append(point)
 
     def _batch_draws(self) -> torch.Generator:
         """The batches' draw at the current step: seeded by `seed` and advanced past the
@@ -341,14 +361,19 @@ class RefinementTrainer:
         frame: np.ndarray,  # [H, W, 3] uint8 RGB render
         coarse: np.ndarray,  # [H, W] coarse label render
         size: tuple[int, int] | None = None,  # (H', W') to answer at; None: (H, W)
+        trained: bool = False,  # answer with the trained weights, not their average
     ) -> np.ndarray:  # [H', W'] labels
         """Labels for one view from its RGB render and coarse label render; at another `size`
         (the scored label render's, `label_render.size=truth`) the student's class scores are
         drawn up bilinearly before the argmax, so its outline is not the render's pixel
-        grid blown up."""
+        grid blown up. With `ema_span`, from the weights' average (before the first step: the
+        weights as they are)."""
         with self._lock:
-            self.model.eval()
-            logits = self.model(
+            model = self.model
+            if self.average is not None and self.average.steps and not trained:
+                model = self.average.model
+            model.eval()
+            logits = model(
                 rgb_input(frame)[None].to(self.cfg.device),
                 coarse_input(coarse, self.num_classes, self.cfg.coarse_smoothing)[None].to(
                     self.cfg.device

@@ -177,7 +177,7 @@ def test_the_curve_scores_the_student_every_few_steps_and_survives_a_resume(tmp_
     scored: list[int] = []
 
     def scorer(trainer):
-        def score_now():
+        def score_now(trained=False):
             scored.append(trainer.step)
             return trainer.step / 10
 
