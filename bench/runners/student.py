@@ -66,15 +66,22 @@ def curve_setting(setting: tuple[str, ...], every: int, steps: int) -> tuple[str
 def curve_row(stopped: dict, curve: RunMetrics) -> dict:
     """One setting's line of student_curve: where the plateau rule stopped its default training
     (`stopped`: its line of student.md) and the student's mIoU at each point of the curve
-    run (fractions: the table shows them in percent)."""
+    run (fractions: the table shows them in percent); with a weight average, its trained
+    weights' too."""
     points = curve.scene_extra("refine").get("curve") or []
+    scored = [p for p in points if p["miou"] is not None]
     return {
         **{k: stopped[k] for k in ("capture", "source", "vote", "training seed")},
         "coarse mIoU": stopped["coarse mIoU"],
         "plateau rule: steps": stopped["steps"],
         "plateau rule: student mIoU": stopped["student mIoU"],
-        "best of the curve: step": max(points, key=lambda p: p["miou"])["step"] if points else None,
+        "best of the curve: step": max(scored, key=lambda p: p["miou"])["step"] if scored else None,
         **{f"step {p['step']} mIoU": p["miou"] for p in points},
+        **{  # with refine.ema_span: the trained weights' own answers beside the average's
+            f"step {p['step']} trained mIoU": p["miou_trained"]
+            for p in points
+            if "miou_trained" in p
+        },
     }
 
 

@@ -223,3 +223,42 @@ def test_a_curve_that_cannot_be_drawn_is_refused(args, capsys):
         student.main(args)
     assert stop.value.code == 2
     assert "--curve-every must be >= 0" in capsys.readouterr().err
+
+
+def test_set_adds_an_override_to_every_run_and_a_bad_one_is_refused(tmp_path, monkeypatch, capsys):
+    """`--set refine.ema_span=60` goes to the default runs and the curve's, in folders of their
+    own; the curve of an averaged student shows its trained weights' points beside; an
+    override without `=` is refused."""
+    one_fitted_capture(monkeypatch, tmp_path)
+    asked = []
+
+    def run(self, capture, source, seed=0, setting=()):
+        asked.append(setting)
+        m = finished(source, 0.85, 0.84)
+        if "refine.curve_every=50" in setting:
+            curve = [
+                {"step": 0, "loss": None, "miou": 0.85, "miou_trained": 0.85},
+                {"step": 50, "loss": 0.3, "miou": None, "miou_trained": 0.8},
+                {"step": 60, "loss": 0.2, "miou": 0.86, "miou_trained": 0.82},
+            ]
+            m.scenes[0]["extra"]["refine"] = {"status": "steps", "steps": 60, "curve": curve}
+        return m
+
+    monkeypatch.setattr(real.Evaluations, "run", run)
+    out = tmp_path / "out"
+    student.main(
+        ["--captures", "cap", "--sources", "minisam", "--votes", "defaults", "--set"]
+        + ["refine.ema_span=60", "--curve-every", "50", "--curve-steps", "60", "--out", str(out)]
+    )
+    assert asked[0] == ("refine=student", "refine.ema_span=60")
+    assert asked[1][:2] == asked[0] and "refine.curve_every=50" in asked[1]
+    table = pd.read_csv(out / "student_curve.csv")
+    assert table["best of the curve: step"].tolist() == [60]  # the unscored point left out
+    assert table[["step 60 mIoU", "step 60 trained mIoU"]].iloc[0].tolist() == [86.0, 82.0]
+    page = (out / "student.md").read_text()
+    assert "--set refine.ema_span=60`" in page
+    assert "hydra.run.dir=multirun/real/cap/minisam@refine-student+refine.ema_span-60`" in page
+    with pytest.raises(SystemExit) as stop:
+        student.main(["--set", "refine.ema_span"])
+    assert stop.value.code == 2
+    assert "--set: 'refine.ema_span' is not KEY=VALUE" in capsys.readouterr().err

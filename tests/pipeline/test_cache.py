@@ -337,23 +337,26 @@ def test_weights_digest_joins_the_masks_key(tmp_path):
 
 
 def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same():
-    """A finished run recorded before consensus.body, consensus.weighting, label_render.size
-    and the SAM family's segmenter.max_growth existed compares equal to this config with the
-    rule off, the paper's count, labels rendered at the view's size and no growth bound, and
-    differs from it with any of them changed; a plug-in without the setting (the classical
-    segmenter) is compared without it."""
+    """A finished run recorded before consensus.body, consensus.weighting, label_render.size,
+    the SAM family's segmenter.max_growth, refine.curve_every and refine.ema_span existed
+    compares equal to this config with the rule off, the paper's count, labels rendered at the
+    view's size, no growth bound, no curve and no weight average, and differs from it with any
+    of them changed; a plug-in without the setting (the classical segmenter) is compared
+    without it."""
     from bench.runners.rundir import ADDED_SETTINGS, comparable_config, finished_config
 
     now = {
         "consensus": {"method": "rgc", "body": False, "weighting": "count"},
         "label_render": {"min_weight": 0.2, "size": "render"},
         "segmenter": {"name": "minisam", "max_growth": None},
+        "refine": {"seed": 0, "curve_every": 0, "ema_span": 0},
         "dataset": {"name": "x"},
     }
     before = {
         "consensus": {"method": "rgc"},
         "label_render": {"min_weight": 0.2},
         "segmenter": {"name": "minisam"},
+        "refine": {"seed": 0},
         "dataset": {"name": "x"},
     }
     assert {"consensus.body", "consensus.weighting", "label_render.size"} <= set(ADDED_SETTINGS)
@@ -373,5 +376,11 @@ def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same
     now["label_render"]["size"] = "render"
     now["segmenter"]["max_growth"] = 3.0
     assert not same()
+    now["segmenter"]["max_growth"] = None
+    for key, value in (("curve_every", 25), ("ema_span", 60)):
+        now["refine"][key] = value
+        assert not same()
+        now["refine"][key] = 0
+    assert same()
     now["segmenter"] = before["segmenter"] = {"name": "classical", "recover": 0.5}
     assert same()
