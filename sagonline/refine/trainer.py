@@ -98,11 +98,12 @@ class RefineConfig:
     """Every this many steps (and at the first and the last), the student as it is then is
     scored at the eval views (metrics.json `extra.refine.curve`); 0: never. The weights are
     those of a training without it; its scoring pauses the training."""
-    ema_span: int = 0
+    ema_span: int = 60
     """The student answers from an exponential moving average of its weights (and norm
     statistics) over about this many steps (each step weighs 2 / (span + 1); the plain mean of
-    all steps until that is smaller); 0: from its weights as they are. The training is the
-    same either way."""
+    all steps until that is smaller); 0: from its weights as they are (the default until the
+    average was measured, docs/real_captures.md). The training is the same either way. 60:
+    the plateau rule's patience, chosen before any capture was scored."""
     coarse_smoothing: float = 0.1
     """Label smoothing of the coarse render fed to the mask branch."""
     seed: int = 0

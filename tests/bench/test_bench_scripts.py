@@ -170,6 +170,16 @@ def test_bench_label_size_quick(tmp_path):
 
 
 @pytest.mark.skipif(not FASTDEPTH.is_file(), reason=f"{FASTDEPTH} not found (make weights)")
+def test_bench_student_step_quick(tmp_path):
+    out = tmp_path / "student_step.csv"
+    text = _run("student_step", "--out", str(out))
+    table = pd.read_csv(out)
+    assert table.student.tolist() == ["trained weights", "with ema_span=60"]
+    assert table.ratio_to_plain[0] == 1.0 and (table.ms_per_step > 0).all()
+    assert pd.isna(table.average_update_ms[0]) and table.average_update_ms[1] > 0
+    assert "wrote" in text
+
+
 def test_bench_fit_step_quick(tmp_path):
     out = tmp_path / "fit_step.csv"
     text = _run("fit_step", "--out", str(out))

