@@ -106,6 +106,8 @@ def say_why_it_stopped(scene: str, trainer: RefinementTrainer, cfg: RefineConfig
         "time_budget": f"its time budget (refine.time_budget_s={cfg.time_budget_s})",
     }.get(trainer.status, trainer.status)
     line = f"{scene}: the student stopped at step {trainer.step} ({trainer.train_s:.1f} s): {why}"
+    if trainer.average is not None:
+        line += f"; it answers from the average of its weights over about {cfg.ema_span} steps"
     if trainer.status == "time_budget":
         warnings.warn(
             f"{line}; its answers depend on how busy the machine was (drop "

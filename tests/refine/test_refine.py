@@ -290,6 +290,7 @@ def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):
     assert m["scenes"][0]["extra"]["refine"]["status"] == "time_budget"
     err = capsys.readouterr().err
     assert "the student stopped at step" in err and "its time budget" in err
+    assert "it answers from the average of its weights over about 60 steps" in err
     assert "depend on how busy the machine was" in (tmp_path / "eval.log").read_text()
 
 
