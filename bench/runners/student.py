@@ -148,8 +148,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(sources) - set(SOURCES))[0]
         ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
     training_seeds = parse_seeds(args.training_seeds, ap.error)
-    if not all("=" in o.strip("=") for o in args.set):
-        ap.error(f"--set: {[o for o in args.set if '=' not in o.strip('=')][0]!r} is not KEY=VALUE")
+    if bad_sets := [o for o in args.set if "=" not in o.strip("=")]:
+        ap.error(f"--set: {bad_sets[0]!r} is not KEY=VALUE")
     votes = args.votes.split(",")
     if not set(votes) <= set(VOTES):
         bad = sorted(set(votes) - set(VOTES))[0]

@@ -3,12 +3,12 @@
     python -m bench.speed.student_step [--span 60] [--batch 8] [--crop 128] [--steps 10]
                                        [--rounds 3] [--out reports/bench_student_step.csv]
 
-Two students of the default architecture (`refine.encoder=resnet18`, two classes) train on the
-same random batches, one of them folding its weights into a `WeightAverage` of `--span` steps
-after each step (`refine.ema_span`); they take turns, `--steps` steps each per round, for
-`--rounds` rounds. A row's figure is the median of its rounds' ms per step, and the average's
-own update is timed apart. --quick: 32 px crops, batch 2, 2 steps, one round (what the tests
-run).
+Two of the project's students (`RefinementTrainer.train_step`, the default architecture, two
+classes) train on the same batch of random views, one of them folding its weights into their
+average over `--span` steps after each step (`refine.ema_span`); they take turns, `--steps`
+steps each per round, for `--rounds` rounds. A row's figure is the median of its rounds' ms per
+step, and the average's own update is timed apart. --quick: 32 px crops, batch 2, 2 steps, one
+round (what the tests run).
 """
 
 from __future__ import annotations
@@ -17,40 +17,43 @@ import argparse
 import statistics
 import time
 
+import numpy as np
 import pandas as pd
 import torch
-import torch.nn.functional as F
 
 from bench import OUT_HELP
 from sagonline.core.files import atomic_write_text
 from sagonline.core.machine import describe_device
-from sagonline.refine.network import DualBranchRefiner
-from sagonline.refine.weight_average import WeightAverage
+from sagonline.refine import RefineConfig, RefinementTrainer
 
 
 class Student:
-    """A student and its optimiser, with or without a weight average."""
+    """The project's student trainer on one batch of random views, with or without a weight
+    average, its update timed apart."""
 
-    def __init__(self, span: int):
-        torch.manual_seed(0)
-        self.net = DualBranchRefiner(2)
-        self.optim = torch.optim.Adam(self.net.parameters(), lr=1e-3)
-        self.average = WeightAverage(self.net, span) if span else None
+    def __init__(self, span: int, batch: int, crop: int):
+        gen = np.random.default_rng(0)
+        frames = list(gen.integers(0, 256, (batch, crop, crop, 3), dtype=np.uint8))
+        masks = list(gen.integers(0, 2, (batch, crop, crop)))
+        cfg = RefineConfig(batch_size=batch, crop=crop, ema_span=span)
+        self.trainer = RefinementTrainer(cfg, 2, frames, masks, masks)
+        self.batch = (self.trainer.rgb, self.trainer.coarse, self.trainer.teacher)
         self.update_s: list[float] = []
+        if self.trainer.average is not None:
+            update = self.trainer.average.update
 
-    def steps(self, batch: tuple[torch.Tensor, ...], n: int) -> float:
+            def timed(model) -> None:
+                t = time.perf_counter()
+                update(model)
+                self.update_s.append(time.perf_counter() - t)
+
+            self.trainer.average.update = timed
+
+    def steps(self, n: int) -> float:
         """Seconds per step over `n` steps, the average's update included."""
-        rgb, coarse, target = batch
         start = time.perf_counter()
         for _ in range(n):
-            loss = F.cross_entropy(self.net(rgb, coarse), target)
-            self.optim.zero_grad(set_to_none=True)
-            loss.backward()
-            self.optim.step()
-            if self.average is not None:
-                t = time.perf_counter()
-                self.average.update(self.net)
-                self.update_s.append(time.perf_counter() - t)
+            self.trainer.train_step(*self.batch)
         return (time.perf_counter() - start) / n
 
 
@@ -68,20 +71,16 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         args.batch, args.crop, args.steps, args.rounds = 2, 32, 2, 1
     if args.span < 1:
         ap.error("--span must be >= 1")
-    gen = torch.Generator().manual_seed(0)
-    size = (args.batch, args.crop, args.crop)
-    batch = (
-        torch.rand(args.batch, 3, args.crop, args.crop, generator=gen),
-        torch.rand(args.batch, 2, args.crop, args.crop, generator=gen),
-        torch.randint(0, 2, size, generator=gen),
-    )
-    students = {"trained weights": Student(0), f"with ema_span={args.span}": Student(args.span)}
+    students = {
+        "trained weights": Student(0, args.batch, args.crop),
+        f"with ema_span={args.span}": Student(args.span, args.batch, args.crop),
+    }
     for student in students.values():
-        student.steps(batch, 1)  # warm up
+        student.steps(1)  # warm up
     times: dict[str, list[float]] = {name: [] for name in students}
     for _ in range(args.rounds):
         for name, student in students.items():
-            times[name].append(student.steps(batch, args.steps))
+            times[name].append(student.steps(args.steps))
     plain = statistics.median(times["trained weights"])
     machine = describe_device()
     rows = [

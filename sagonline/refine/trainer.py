@@ -289,17 +289,7 @@ class RefinementTrainer:
             if self.plateau.converged:
                 self.status = "converged"
                 break
-            rgb, coarse, teacher = self._batch(gen)
-            with self._lock:
-                self.model.train()
-                logits = self.model(rgb.to(cfg.device), coarse.to(cfg.device))
-                loss = F.cross_entropy(logits, teacher.to(cfg.device))
-                self.optim.zero_grad(set_to_none=True)
-                loss.backward()
-                self.optim.step()
-                if self.average is not None:
-                    self.average.update(self.model)
-            value = loss.item()
+            value = self.train_step(*self._batch(gen))
             self.losses.append(value)
             self.plateau.add(value)
             self.step += 1
@@ -314,6 +304,25 @@ class RefinementTrainer:
         self.save()
         self.done.set()
         return self.status
+
+    def train_step(
+        self,
+        rgb: torch.Tensor,  # [B, 3, h, w] in [0, 1]
+        coarse: torch.Tensor,  # [B, C, h, w] smoothed one-hot
+        teacher: torch.Tensor,  # [B, h, w] labels
+    ) -> float:  # the batch's loss
+        """One optimiser step on a batch, the weights' average updated after it."""
+        device = self.cfg.device
+        with self._lock:
+            self.model.train()
+            logits = self.model(rgb.to(device), coarse.to(device))
+            loss = F.cross_entropy(logits, teacher.to(device))
+            self.optim.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optim.step()
+            if self.average is not None:
+                self.average.update(self.model)
+        return loss.item()
 
     def _curve_point(self) -> None:
         """The student as it is now, scored (`score_now`) into the curve; with `curve_every`
