@@ -71,8 +71,11 @@ def captures() -> list[str]:
 
 
 def slug(setting: tuple[str, ...]) -> str:
-    """A folder-safe name of a setting (overrides), '' for the baseline."""
-    return "+".join(o.replace("=", "-").replace("/", "_") for o in setting)
+    """A folder-safe name of a setting (overrides), '' for the baseline; a list's brackets
+    left out and its commas dashes (`refine.scored_spans=[30,120]`: `...-30-120`), so the name
+    is no list to Hydra's `hydra.run.dir=`."""
+    table = str.maketrans({"=": "-", "/": "_", ",": "-", "[": None, "]": None})
+    return "+".join(o.translate(table) for o in setting)
 
 
 def folder(capture: str, source: str, seed: int = 0, setting: tuple[str, ...] = ()) -> str:

@@ -41,6 +41,7 @@ ADDED_SETTINGS = {
     "label_render.size": "render",
     "refine.curve_every": 0,
     "refine.ema_span": 0,
+    "refine.scored_spans": [],
     "segmenter.max_growth": None,
 }
 

@@ -22,6 +22,10 @@ refine.patience=400`), its student scored every 25 steps, and <out>/student_curv
 set that curve beside where the plateau rule stopped the default training and what it scored:
 whether a longer training would have answered better. Each `--set KEY=VALUE` is added to every
 run (the student's settings to compare: `--set refine.ema_span=60`, in folders of their own).
+With `--spans 15,30,120,240`, each run also keeps averages of the student's weights over those
+spans (`refine.scored_spans`), each scored where it stopped beside its answers and its trained
+weights: <out>/student_spans.md and .csv, and <out>/student_spans_loo.md and .csv, the span
+chosen leave-one-capture-out against the default `refine.ema_span`.
 """
 
 from __future__ import annotations
@@ -35,7 +39,9 @@ from bench import OUT_HELP, REPORTS, ROOT
 from bench.runners import captures
 from bench.runners.real import Evaluations
 from bench.tables.report import in_percent, write_table
+from bench.tables.spans import span_choice, span_row
 from bench.tables.views import refined_gain
+from sagonline.refine import RefineConfig
 from sagonline.score.run_metrics import RunMetrics
 
 STUDENT = ("refine=student",)
@@ -139,6 +145,12 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         metavar="KEY=VALUE",
         help="an override added to every run, e.g. refine.ema_span=60 (repeatable)",
     )
+    ap.add_argument(
+        "--spans",
+        default="",
+        help="comma-separated spans of weight averages each run also scores "
+        "(refine.scored_spans): <out>/student_spans{,_loo}.{md,csv}",
+    )
     ap.add_argument("--out", type=Path, default=REPORTS, help=OUT_HELP)
     args = ap.parse_args(argv)
     if args.curve_every < 0 or args.curve_steps < max(args.curve_every, 1):
@@ -148,6 +160,10 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         bad = sorted(set(sources) - set(SOURCES))[0]
         ap.error(f"--sources: {bad!r} is not one of {', '.join(SOURCES)}")
     training_seeds = parse_seeds(args.training_seeds, ap.error)
+    spans = parse_seeds(args.spans, ap.error, "--spans") if args.spans else []
+    if 0 in spans:
+        ap.error("--spans: 0 is the trained weights, scored with any span; give spans >= 1")
+    scored = (f"refine.scored_spans=[{','.join(map(str, spans))}]",) if spans else ()
     if bad_sets := [o for o in args.set if "=" not in o.strip("=")]:
         ap.error(f"--set: {bad_sets[0]!r} is not KEY=VALUE")
     votes = args.votes.split(",")
@@ -156,17 +172,20 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         ap.error(f"--votes: {bad!r} is not one of {', '.join(VOTES)}")
     names = captures.fitted_named(args.captures, ap.error)
     runs, rows, gains, commands, curves, curve_commands = Evaluations(), [], [], [], [], []
+    span_rows = []
     for capture in names:
         for source in sources:
             for seed in training_seeds:
                 for vote in votes:
-                    setting = (*settings(source, seed)[vote], *args.set)
+                    setting = (*settings(source, seed)[vote], *args.set, *scored)
                     commands.append(" ".join(captures.command(capture, source, 0, setting)))
                     m = runs.run(capture, source, 0, setting)
                     if m is None:
                         continue
                     rows.append(row(capture, source, vote, m, seed))
                     gains.append(view_gains(capture, source, vote, setting, seed))
+                    if spans:
+                        span_rows.append(span_row(rows[-1], m))
                     if args.curve_every:
                         longer = curve_setting(setting, args.curve_every, args.curve_steps)
                         command = " ".join(captures.command(capture, source, 0, longer))
@@ -185,6 +204,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
             else ""
         )
         + "".join(f" --set {o}" for o in args.set)
+        + (f" --spans {args.spans}" if spans else "")
         + "`"
     )
     notes = [
@@ -213,6 +233,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         ],
     )
     print(in_percent(df).to_string(index=False))
+    if span_rows:
+        write_span_tables(pd.DataFrame(span_rows), args.out, built)
     if len(training_seeds) > 1 and not df.empty:
         spread = seed_spread(df)
         write_table(
@@ -252,15 +274,52 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     return df
 
 
-def parse_seeds(text: str, error) -> list[int]:
-    """`--training-seeds`: distinct non-negative integers, in the order given."""
+def parse_seeds(text: str, error, option: str = "--training-seeds") -> list[int]:
+    """`--training-seeds` (or `option`): distinct non-negative integers, in the order given."""
     try:
         seeds = [int(s) for s in text.split(",")]
     except ValueError:
-        error(f"--training-seeds: {text!r} is not a comma-separated list of integers")
+        error(f"{option}: {text!r} is not a comma-separated list of integers")
     if any(s < 0 for s in seeds) or len(set(seeds)) != len(seeds):
-        error(f"--training-seeds: {text!r} must be distinct integers >= 0")
+        error(f"{option}: {text!r} must be distinct integers >= 0")
     return seeds
+
+
+def write_span_tables(df: pd.DataFrame, out: Path, built: str) -> None:
+    """<out>/student_spans (each run's answers from each span's average) and
+    <out>/student_spans_loo (the span chosen leave-one-capture-out)."""
+    answers = RefineConfig().ema_span
+    write_table(
+        df,
+        out,
+        "student_spans",
+        title="Stage II on the real captures, the student's weights averaged over other spans",
+        notes=[
+            "each run of student.md kept averages of the student's weights over these spans "
+            "(`refine.scored_spans`), updated at every step of the same training, and scored "
+            "each where the plateau rule stopped it, at the same views; span k: the average "
+            f"over about k steps; span 0: the trained weights; span {answers}: the answers "
+            f"(the default `refine.ema_span`, whose mIoU is student.md's)",
+            f"built by {built}",
+        ],
+    )
+    choice, kept_lines = span_choice(df, answers)
+    write_table(
+        choice,
+        out,
+        "student_spans_loo",
+        title="Stage II on the real captures, the span chosen leave-one-capture-out",
+        notes=[
+            "per source and vote: each capture held out in turn, the span of the best mean "
+            "mIoU over the other captures (each capture the mean over its training seeds) is "
+            f"chosen and reported on it against span {answers}, the default (`held out, "
+            "chosen`: the leave-one-out figure, percent)",
+            *kept_lines,
+            f"the runs of student_spans.md, built by {built}",
+        ],
+    )
+    print(in_percent(df).to_string(index=False))
+    print(choice.to_string(index=False))
 
 
 def seed_spread(df: pd.DataFrame) -> pd.DataFrame:

@@ -75,18 +75,19 @@ def answer_alone(service: OnlineSegmentation, views, mode: str, settings: Pipeli
 def curve_scorer(
     task: SceneTask, service: OnlineSegmentation, trainer: RefinementTrainer, settings
 ) -> Callable[[bool], float | None]:
-    """The student's mIoU at the eval views as it is when called (`refine.curve_every`): their
-    RGB and coarse renders made once here, answered at the size the refined answers are scored
-    at, scored as they are; its answers', or (`trained=True`) its trained weights'."""
+    """The student's mIoU at the eval views as it is when called (`refine.curve_every`,
+    `refine.scored_spans`): their RGB and coarse renders made once here, answered at the size
+    the refined answers are scored at, scored as they are; its answers', or those of the
+    weights `span` names (`RefinementTrainer.predict`)."""
     inputs = []
     for view in task.eval_views:
         scored = settings.scored_camera(view)
         inputs.append((service.rgb(view.camera), service.coarse(view.camera), scored))
     truths = [view.gt for view in task.eval_views]
 
-    def score_now(trained: bool = False) -> float | None:
+    def score_now(span: int | None = None) -> float | None:
         preds = [
-            trainer.predict(rgb, coarse, (c.height, c.width), trained) for rgb, coarse, c in inputs
+            trainer.predict(rgb, coarse, (c.height, c.width), span) for rgb, coarse, c in inputs
         ]
         return mean_iou(task, preds, truths, settings.metrics.resize)
 
@@ -199,6 +200,10 @@ def run_stage_two(
     }
     if cfg.curve_every:
         report.extra["refine"]["curve"] = trainer.curve
+    if cfg.scored_spans:  # by span, 0: the trained weights
+        score = trainer.score_now or curve_scorer(task, service, trainer, settings)
+        spans = sorted({0, cfg.ema_span, *cfg.scored_spans})
+        report.extra["refine"]["span_miou"] = {str(span): score(span) for span in spans}
     if novel is not None:
         initial = [a.mask for a in alone["initial"]]
         truths = [v.gt for v in task.eval_views]

@@ -9,9 +9,9 @@ when one is set, at `time_budget_s` seconds of training ("time_budget": then the
 on how busy the machine was). The same seed and settings give the same weights on a quiet and on
 a loaded machine, with the same number of torch threads (another count sums in another order:
 another draw). With `ema_span`, the student answers from a moving average of its weights
-(`WeightAverage`), which the training itself never reads. A checkpoint (model, optimiser, the
-average, step, loss, status) is
-written atomically every `checkpoint_every` steps and at the end; a new trainer given the same
+(`WeightAverage`), which the training itself never reads; `scored_spans` keeps more averages,
+to compare. A checkpoint (model, optimiser, the averages, step, loss, status) is written
+atomically every `checkpoint_every` steps and at the end; a new trainer given the same
 path resumes from it, drawing the batches that one training run straight through draws (so it
 ends with the same weights), and one that finds a finished checkpoint does not train again.
 """
@@ -22,7 +22,7 @@ import threading
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -33,41 +33,10 @@ from sagonline.core import store
 from sagonline.core.settings import check_settings
 from sagonline.core.tensors import tensor_view
 from sagonline.refine.network import ARCHS, DualBranchRefiner
+from sagonline.refine.plateau import Plateau
 from sagonline.refine.weight_average import WeightAverage
 
 STOPS = ("converged", "steps", "time_budget")  # why a training stopped
-
-
-@dataclass
-class Plateau:
-    """When the smoothed loss stops improving. The loss is smoothed by an exponential moving
-    average (0.9); its best value counts only after `warmup` steps, so one lucky first batch
-    cannot set a best that the noisy steps after it never beat (which made "converged" mean
-    "the first `patience` steps ended"); then `patience` steps without a gain of `min_delta`
-    over the best mean converged. `best_step` is the step of the best smoothed loss."""
-
-    patience: int
-    min_delta: float
-    warmup: int
-    ema: float | None = None
-    best: float = float("inf")
-    best_step: int = -1
-    since_best: int = 0
-    steps: int = 0
-
-    def add(self, loss: float) -> None:
-        self.ema = loss if self.ema is None else 0.9 * self.ema + 0.1 * loss
-        self.steps += 1
-        if self.steps < self.warmup:
-            return
-        if self.ema < self.best - self.min_delta:
-            self.best, self.best_step, self.since_best = self.ema, self.steps - 1, 0
-        else:
-            self.since_best += 1
-
-    @property
-    def converged(self) -> bool:
-        return self.steps >= self.warmup and self.since_best >= self.patience
 
 
 @dataclass
@@ -104,6 +73,12 @@ class RefineConfig:
     all steps until that is smaller); 0: from its weights as they are (the default until the
     average was measured, docs/real_captures.md). The training is the same either way. 60:
     the plateau rule's patience, chosen before any capture was scored."""
+    scored_spans: list[int] = field(default_factory=list)
+    """Spans of further weight averages kept beside the answers' (each costs one more update a
+    step), to compare: where the student stopped, the eval views are scored with each, with
+    the answers' and with the trained weights (metrics.json `extra.refine.span_miou`, by span;
+    0: the trained weights). The answers stay the `ema_span` average's. For choosing
+    `ema_span` (`bench.runners.student --spans`)."""
     coarse_smoothing: float = 0.1
     """Label smoothing of the coarse render fed to the mask branch."""
     seed: int = 0
@@ -127,6 +102,12 @@ class RefineConfig:
             checkpoint_every=(self.checkpoint_every >= 1, self.checkpoint_every, ">= 1"),
             curve_every=(self.curve_every >= 0, self.curve_every, ">= 0 (0: no curve)"),
             ema_span=(self.ema_span >= 0, self.ema_span, ">= 0 steps (0: no average)"),
+            scored_spans=(
+                all(s >= 1 for s in self.scored_spans)
+                and len(set(self.scored_spans)) == len(self.scored_spans),
+                self.scored_spans,
+                "distinct spans >= 1 step",
+            ),
             coarse_smoothing=(
                 0 <= self.coarse_smoothing < 1,
                 self.coarse_smoothing,
@@ -175,6 +156,11 @@ class RefinementTrainer:
         ).to(cfg.device)
         self.optim = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
         self.average = WeightAverage(self.model, cfg.ema_span) if cfg.ema_span else None
+        self.span_averages = {  # the scored spans' averages (the answers' is `average`)
+            span: WeightAverage(self.model, span)
+            for span in cfg.scored_spans
+            if span != cfg.ema_span
+        }
         self.rgb = torch.stack([rgb_input(f) for f in frames])
         self.coarse = torch.stack(
             [coarse_input(c, num_classes, cfg.coarse_smoothing) for c in coarse]
@@ -191,9 +177,8 @@ class RefinementTrainer:
         self.plateau = Plateau(cfg.patience, cfg.min_delta, warmup=cfg.patience)
         self.status, self.train_s, self.losses = "idle", 0.0, []
         self.curve: list[dict] = []  # {step, loss, miou[, miou_trained]} every `curve_every`
-        # the curve's scorer: the eval views' mIoU of the answers (trained=False) or of the
-        # trained weights as they are (trained=True)
-        self.score_now: Callable[[bool], float | None] | None = None
+        # the curve's scorer: the eval views' mIoU of the weights `predict`'s `span` names
+        self.score_now: Callable[[int | None], float | None] | None = None
         self.done = threading.Event()
         self._lock = threading.Lock()
         self._thread: threading.Thread | None = None
@@ -224,6 +209,8 @@ class RefinementTrainer:
         self.optim.load_state_dict(state["optim"])
         if self.average is not None:
             self.average.load_state_dict(state["average"])
+        for span, average in self.span_averages.items():
+            average.load_state_dict(state["span_averages"][span])
         self.step, self.train_s = state["step"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
         self.curve = state.get("curve", [])
@@ -240,6 +227,7 @@ class RefinementTrainer:
                 "model": self.model.state_dict(),
                 "optim": self.optim.state_dict(),
                 "average": self.average.state_dict() if self.average is not None else None,
+                "span_averages": {s: a.state_dict() for s, a in self.span_averages.items()},
                 "step": self.step,
                 "best_step": self.plateau.best_step,
                 "train_s": self.train_s,
@@ -311,7 +299,7 @@ class RefinementTrainer:
         coarse: torch.Tensor,  # [B, C, h, w] smoothed one-hot
         teacher: torch.Tensor,  # [B, h, w] labels
     ) -> float:  # the batch's loss
-        """One optimiser step on a batch, the weights' average updated after it."""
+        """One optimiser step on a batch, the weights' averages updated after it."""
         device = self.cfg.device
         with self._lock:
             self.model.train()
@@ -322,6 +310,8 @@ class RefinementTrainer:
             self.optim.step()
             if self.average is not None:
                 self.average.update(self.model)
+            for average in self.span_averages.values():
+                average.update(self.model)
         return loss.item()
 
     def _curve_point(self) -> None:
@@ -330,9 +320,9 @@ class RefinementTrainer:
         and `miou_trained` its trained weights."""
         if not self.cfg.curve_every or self.score_now is None:
             return
-        point = {"step": self.step, "loss": self.plateau.ema, "miou": self.score_now(False)}
+        point = {"step": self.step, "loss": self.plateau.ema, "miou": self.score_now(None)}
         if self.average is not None:
-            point["miou_trained"] = self.score_now(True)
+            point["miou_trained"] = self.score_now(0)
         self.curve.append(point)
 
     def _batch_draws(self) -> torch.Generator:
@@ -371,17 +361,16 @@ class RefinementTrainer:
         frame: np.ndarray,  # [H, W, 3] uint8 RGB render
         coarse: np.ndarray,  # [H, W] coarse label render
         size: tuple[int, int] | None = None,  # (H', W') to answer at; None: (H, W)
-        trained: bool = False,  # answer with the trained weights, not their average
+        span: int | None = None,  # None: the answers' weights; 0: trained; k: k steps' average
     ) -> np.ndarray:  # [H', W'] labels
         """Labels for one view from its RGB render and coarse label render; at another `size`
         (the scored label render's, `label_render.size=truth`) the student's class scores are
         drawn up bilinearly before the argmax, so its outline is not the render's pixel
         grid blown up. With `ema_span`, from the weights' average (before the first step: the
-        weights as they are)."""
+        weights as they are); another `span`: the trained weights (0) or the average over that
+        many steps (`scored_spans`)."""
         with self._lock:
-            model = self.model
-            if self.average is not None and self.average.steps and not trained:
-                model = self.average.model
+            model = self.weights(self.cfg.ema_span if span is None else span)
             model.eval()
             logits = model(
                 rgb_input(frame)[None].to(self.cfg.device),
@@ -392,3 +381,16 @@ class RefinementTrainer:
             if size is not None and tuple(size) != tuple(logits.shape[-2:]):
                 logits = F.interpolate(logits, size=tuple(size), mode="bilinear")
         return logits[0].argmax(0).cpu().numpy()
+
+    def weights(self, span: int) -> torch.nn.Module:
+        """The trained weights (`span` 0), or their average over `span` steps (`ema_span` or
+        one of `scored_spans`; before the first step, the weights as they are)."""
+        if span == 0:
+            return self.model
+        average = self.average if span == self.cfg.ema_span else self.span_averages.get(span)
+        if average is None:
+            raise ValueError(
+                f"no average over {span} steps is kept (refine.ema_span={self.cfg.ema_span}, "
+                f"refine.scored_spans={self.cfg.scored_spans})"
+            )
+        return average.model if average.steps else self.model

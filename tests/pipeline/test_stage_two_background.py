@@ -108,3 +108,11 @@ def test_the_students_curve_ends_at_the_score_of_its_refined_answers(tmp_path):
     run_stage_two(task, stage_one, cfg, settings, plain, Recorder(None), segmenter=segmenter)
     assert "curve" not in plain.extra["refine"]
     assert plain.refined_miou == pytest.approx(report.refined_miou)
+    spans = SceneReport(scene="cap")  # more averages scored where it stopped, the answers kept
+    cfg = RefineConfig(max_steps=3, batch_size=2, crop=32, scored_spans=[2, 5])
+    run_stage_two(task, stage_one, cfg, settings, spans, Recorder(None), segmenter=segmenter)
+    span_miou = spans.extra["refine"]["span_miou"]
+    assert list(span_miou) == ["0", "2", "5", "60"]  # 0: the trained weights; 60: the answers'
+    assert spans.refined_miou == pytest.approx(report.refined_miou)
+    assert span_miou["60"] == pytest.approx(report.refined_miou)
+    assert span_miou["0"] == pytest.approx(curve[-1]["miou_trained"])

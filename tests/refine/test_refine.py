@@ -98,7 +98,7 @@ def test_distillation_lowers_the_loss_in_the_background(tmp_path):
     assert threads and threading.get_ident() not in threads  # trained on a thread of its own
     assert tr.status == "steps" and tr.step == 30
     assert np.mean(tr.losses[-5:]) < 0.7 * np.mean(tr.losses[:5])
-    pred = tr.predict(frames[0], coarse[0], trained=True)  # 30 steps: the average lags them
+    pred = tr.predict(frames[0], coarse[0], span=0)  # 30 steps: the average lags them
     agree = lambda a, b: (a == b).mean()  # noqa: E731
     assert agree(pred, teacher[0]) > agree(coarse[0], teacher[0])
 
@@ -177,7 +177,7 @@ def test_the_curve_scores_the_student_every_few_steps_and_survives_a_resume(tmp_
     scored: list[int] = []
 
     def scorer(trainer):
-        def score_now(trained=False):
+        def score_now(span=None):
             scored.append(trainer.step)
             return trainer.step / 10
 
@@ -297,7 +297,7 @@ def test_a_time_budget_stop_is_said_on_screen(tmp_path, capsys):
 def test_a_lucky_first_batch_does_not_end_training():
     """The old rule took the first batch's loss as the best: noisy losses that never beat it by
     min_delta "converged" at step patience + 1. The plateau counts only after a warm-up."""
-    from sagonline.refine.trainer import Plateau
+    from sagonline.refine.plateau import Plateau
 
     rng = np.random.default_rng(0)
     losses = [0.30] + list(0.50 - 0.002 * np.arange(300) + rng.normal(0, 0.02, 300))

@@ -45,7 +45,7 @@ def test_the_average_is_the_plain_mean_then_an_exponential_one_over_the_span():
 def test_the_student_answers_from_the_average_and_trains_as_without_it(tmp_path):
     """With ema_span the trained weights are those of a training without it; the average is
     that of the weights after each step, and a training interrupted between checkpoints resumes
-    to the same average; the answer comes from the average, `trained=True` from the weights."""
+    to the same average; the answer comes from the average, `span=0` from the weights."""
     frames, coarse, teacher = _toy(3)
     base = dict(max_steps=5, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
     plain = RefinementTrainer(RefineConfig(**base, ema_span=0), 2, frames, coarse, teacher)
@@ -81,7 +81,7 @@ def test_the_student_answers_from_the_average_and_trains_as_without_it(tmp_path)
         resumed.average.model.head[-1].bias.copy_(torch.tensor([-100.0, 100.0]))
         resumed.model.head[-1].bias.copy_(torch.tensor([100.0, -100.0]))
     assert (resumed.predict(frames[0], coarse[0]) == 1).all()
-    assert (resumed.predict(frames[0], coarse[0], trained=True) == 0).all()
+    assert (resumed.predict(frames[0], coarse[0], span=0) == 0).all()
     assert (
         RefinementTrainer(cfg, 2, frames, coarse, teacher).predict(frames[0], coarse[0]).tolist()
         == coarse[0].tolist()
@@ -93,10 +93,50 @@ def test_with_an_average_the_curve_scores_the_answers_and_the_trained_weights():
     frames, coarse, teacher = _toy(3)
     cfg = RefineConfig(max_steps=4, batch_size=2, crop=32, patience=1000, curve_every=2, ema_span=3)
     trainer = RefinementTrainer(cfg, 2, frames, coarse, teacher)
-    trainer.score_now = lambda trained=False: float(trainer.step) + (0.5 if trained else 0.0)
+    trainer.score_now = lambda span=None: float(trainer.step) + (0.5 if span == 0 else 0.0)
     trainer.run()
     assert [(p["step"], p["miou"], p["miou_trained"]) for p in trainer.curve] == [
         (0, 0.0, 0.5),
         (2, 2.0, 2.5),
         (4, 4.0, 4.5),
     ]
+
+
+@pytest.mark.slow
+def test_scored_spans_keep_more_averages_and_leave_the_answers_as_they_were(tmp_path):
+    """refine.scored_spans: an average per span, updated at every step, kept across a resume;
+    the answers' average and the trained weights are those of a training without them."""
+    frames, coarse, teacher = _toy(3)
+    base = dict(max_steps=4, batch_size=2, crop=32, checkpoint_every=2, patience=1000)
+    answers = RefinementTrainer(RefineConfig(**base, ema_span=3), 2, frames, coarse, teacher)
+    answers.run()
+    cfg = RefineConfig(**base, ema_span=3, scored_spans=[2, 3, 5])
+    whole = RefinementTrainer(cfg, 2, frames, coarse, teacher)
+    assert sorted(whole.span_averages) == [2, 5]  # 3 is the answers' own
+    whole.run()
+    assert whole.losses == answers.losses
+    for name, value in answers.average.state_dict().items():
+        assert torch.equal(whole.average.state_dict()[name], value), name
+    assert whole.span_averages[5].steps == 4
+    name = "head.1.bias"
+    biases = {span: whole.weights(span).state_dict()[name] for span in (0, 2, 3, 5)}
+    for a, b in ((0, 2), (2, 3), (3, 5)):  # from step 3 on, each span weighs its steps apart
+        assert not torch.equal(biases[a], biases[b]), (a, b)
+    assert torch.equal(
+        torch.as_tensor(whole.predict(frames[0], coarse[0])),
+        torch.as_tensor(answers.predict(frames[0], coarse[0])),
+    )
+
+    interrupt_at(RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt"), 3)
+    resumed = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert resumed.step == 2 and resumed.span_averages[2].steps == 2
+    resumed.run()
+    for span in (2, 5):
+        for key, value in whole.span_averages[span].state_dict().items():
+            assert torch.equal(resumed.span_averages[span].state_dict()[key], value), (span, key)
+
+    with pytest.raises(ValueError, match=r"no average over 7 steps .*scored_spans=\[2, 3, 5\]"):
+        whole.weights(7)
+    for bad in ([0], [4, 4]):
+        with pytest.raises(ValueError, match="refine.scored_spans"):
+            RefineConfig(scored_spans=bad)
