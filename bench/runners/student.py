@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     )
     print(in_percent(df).to_string(index=False))
     if span_rows:
-        write_span_tables(pd.DataFrame(span_rows), args.out, built)
+        write_span_tables(pd.DataFrame(span_rows), args.out, built, commands)
     if len(training_seeds) > 1 and not df.empty:
         spread = seed_spread(df)
         write_table(
@@ -285,9 +285,9 @@ def parse_seeds(text: str, error, option: str = "--training-seeds") -> list[int]
     return seeds
 
 
-def write_span_tables(df: pd.DataFrame, out: Path, built: str) -> None:
-    """<out>/student_spans (each run's answers from each span's average) and
-    <out>/student_spans_loo (the span chosen leave-one-capture-out)."""
+def write_span_tables(df: pd.DataFrame, out: Path, built: str, commands: list[str]) -> None:
+    """<out>/student_spans (each run's answers from each span's average; `commands`: the
+    runs') and <out>/student_spans_loo (the span chosen leave-one-capture-out)."""
     answers = RefineConfig().ema_span
     write_table(
         df,
@@ -300,7 +300,8 @@ def write_span_tables(df: pd.DataFrame, out: Path, built: str) -> None:
             "each where the plateau rule stopped it, at the same views; span k: the average "
             f"over about k steps; span 0: the trained weights; span {answers}: the answers "
             f"(the default `refine.ema_span`, whose mIoU is student.md's)",
-            f"built by {built}",
+            f"built by {built}; each run:",
+            *(f"`python -m bench.runners.eval {c}`" for c in commands),
         ],
     )
     choice, kept_lines = span_choice(df, answers)
