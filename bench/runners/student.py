@@ -25,7 +25,7 @@ run (the student's settings to compare: `--set refine.ema_span=60`, in folders o
 With `--spans 15,30,120,240`, each run also keeps averages of the student's weights over those
 spans (`refine.scored_spans`), each scored where it stopped beside its answers and its trained
 weights: <out>/student_spans.md and .csv, and <out>/student_spans_loo.md and .csv, the span
-chosen leave-one-capture-out against the default `refine.ema_span`.
+chosen leave-one-capture-out against the answers' (`refine.ema_span`, default or `--set`).
 """
 
 from __future__ import annotations

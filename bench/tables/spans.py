@@ -38,7 +38,7 @@ def span_scores(runs: pd.DataFrame) -> dict[str, dict[str, float]]:
 def span_choice(df: pd.DataFrame, answers_span: int) -> tuple[pd.DataFrame, list[str]]:
     """Per source and vote of span_row's lines (`df`): each capture held out in turn, the span
     of the best mean over the others chosen and reported on it against `answers_span` (the
-    default `refine.ema_span`), as `bench.tables.loo` chooses the vote; and a line per source
+    runs' `refine.ema_span`), as `bench.tables.loo` chooses the vote; and a line per source
     and vote saying which span the rule keeps."""
     tables, lines = [], []
     baseline = str(answers_span)

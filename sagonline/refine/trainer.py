@@ -155,11 +155,10 @@ class RefinementTrainer:
             num_classes, cfg.encoder, cfg.pretrained, decoder_width=cfg.decoder_width
         ).to(cfg.device)
         self.optim = torch.optim.Adam(self.model.parameters(), lr=cfg.lr)
-        self.average = WeightAverage(self.model, cfg.ema_span) if cfg.ema_span else None
-        self.span_averages = {  # the scored spans' averages (the answers' is `average`)
+        self.averages = {  # span -> the weights' average over it: the answers' and the scored
             span: WeightAverage(self.model, span)
-            for span in cfg.scored_spans
-            if span != cfg.ema_span
+            for span in dict.fromkeys([cfg.ema_span, *cfg.scored_spans])
+            if span
         }
         self.rgb = torch.stack([rgb_input(f) for f in frames])
         self.coarse = torch.stack(
@@ -184,6 +183,16 @@ class RefinementTrainer:
         self._thread: threading.Thread | None = None
         self._resume()
 
+    @property
+    def average(self) -> WeightAverage | None:
+        """The average the student answers from (`ema_span`; None: 0)."""
+        return self.averages.get(self.cfg.ema_span)
+
+    @property
+    def span_averages(self) -> dict[int, WeightAverage]:
+        """The scored spans' averages but the answers'."""
+        return {s: a for s, a in self.averages.items() if s != self.cfg.ema_span}
+
     # --- checkpoints --------------------------------------------------------------------------
     def _resume(self) -> None:
         state = (
@@ -207,10 +216,8 @@ class RefinementTrainer:
             return  # another setting: start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
-        if self.average is not None:
-            self.average.load_state_dict(state["average"])
-        for span, average in self.span_averages.items():
-            average.load_state_dict(state["span_averages"][span])
+        for span, average in self.averages.items():
+            average.load_state_dict(state["averages"][span])
         self.step, self.train_s = state["step"], state["train_s"]
         self.losses, self.status = state["losses"], state["status"]
         self.curve = state.get("curve", [])
@@ -226,8 +233,7 @@ class RefinementTrainer:
             state = {
                 "model": self.model.state_dict(),
                 "optim": self.optim.state_dict(),
-                "average": self.average.state_dict() if self.average is not None else None,
-                "span_averages": {s: a.state_dict() for s, a in self.span_averages.items()},
+                "averages": {span: a.state_dict() for span, a in self.averages.items()},
                 "step": self.step,
                 "best_step": self.plateau.best_step,
                 "train_s": self.train_s,
@@ -308,9 +314,7 @@ class RefinementTrainer:
             self.optim.zero_grad(set_to_none=True)
             loss.backward()
             self.optim.step()
-            if self.average is not None:
-                self.average.update(self.model)
-            for average in self.span_averages.values():
+            for average in self.averages.values():
                 average.update(self.model)
         return loss.item()
 
@@ -387,7 +391,7 @@ class RefinementTrainer:
         one of `scored_spans`; before the first step, the weights as they are)."""
         if span == 0:
             return self.model
-        average = self.average if span == self.cfg.ema_span else self.span_averages.get(span)
+        average = self.averages.get(span)
         if average is None:
             raise ValueError(
                 f"no average over {span} steps is kept (refine.ema_span={self.cfg.ema_span}, "
