@@ -1,19 +1,19 @@
 """Online distillation of the refinement student, in a background thread, resumable.
 
 Inputs per trajectory view: the rendered RGB frame and the coarse label render of the fused
-Stage I labels (one-hot, lightly smoothed); target: the 2D segmenter's mask of that frame
-(the teacher). Loss: pixel-wise cross-entropy. Training stops when the smoothed loss has not
-improved by `min_delta` for `patience` steps after a warm-up of `patience` steps ("converged":
-`Plateau`), at `max_steps` ("steps"), or, only
-when one is set, at `time_budget_s` seconds of training ("time_budget": then the result depends
-on how busy the machine was). The same seed and settings give the same weights on a quiet and on
-a loaded machine, with the same number of torch threads (another count sums in another order:
-another draw). With `ema_span`, the student answers from a moving average of its weights
-(`WeightAverage`), which the training itself never reads; `scored_spans` keeps more averages,
-to compare. A checkpoint (model, optimiser, the averages, step, loss, status) is written
-atomically every `checkpoint_every` steps and at the end; a new trainer given the same
-path resumes from it, drawing the batches that one training run straight through draws (so it
-ends with the same weights), and one that finds a finished checkpoint does not train again.
+Stage I labels (one-hot, lightly smoothed); target: the 2D segmenter's mask of that frame (the
+teacher). Loss: pixel-wise cross-entropy. Training stops when the smoothed loss has not improved
+by `min_delta` for `patience` steps after a warm-up of `patience` steps ("converged":
+`Plateau`), at `max_steps` ("steps"), or, only when one is set, at `time_budget_s` seconds of
+training ("time_budget": then the result depends on how busy the machine was). The same seed and
+settings give the same weights on a quiet and on a loaded machine, with the same number of torch
+threads (another count sums in another order: another draw). With `ema_span`, the student
+answers from a moving average of its weights (`WeightAverage`), which the training itself never
+reads; `scored_spans` keeps more averages, to compare. A checkpoint (model, optimiser, the
+averages, step, loss, status) is written atomically every `checkpoint_every` steps and at the
+end; a new trainer given the same path resumes from it, drawing the batches that one training
+run straight through draws (so it ends with the same weights), and one that finds a finished
+checkpoint does not train again.
 """
 
 from __future__ import annotations
@@ -195,11 +195,9 @@ class RefinementTrainer:
 
     # --- checkpoints --------------------------------------------------------------------------
     def _resume(self) -> None:
-        state = (
-            store.load_or_discard(self.checkpoint, "student checkpoint")
-            if self.checkpoint
-            else None
-        )
+        if self.checkpoint is None:
+            return
+        state = store.load_or_discard(self.checkpoint, "student checkpoint")
         if state is None:
             return
         if not isinstance(state, dict) or state.get("file") != self.checkpoint.name:
@@ -212,8 +210,9 @@ class RefinementTrainer:
             )
             self.checkpoint.unlink(missing_ok=True)
             return
-        if state.get("config") != asdict(self.cfg) or state.get("classes") != self.num_classes:
-            return  # another setting: start over (the old file is replaced at the first save)
+        same = (state.get("config"), state.get("classes")) == (asdict(self.cfg), self.num_classes)
+        if not same or "averages" not in state:  # another setting, or averages kept otherwise:
+            return  # start over (the old file is replaced at the first save)
         self.model.load_state_dict(state["model"])
         self.optim.load_state_dict(state["optim"])
         for span, average in self.averages.items():

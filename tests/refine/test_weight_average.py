@@ -8,6 +8,7 @@ import pytest
 import torch
 from torch import nn
 
+from sagonline.core import store
 from sagonline.refine import RefineConfig, RefinementTrainer
 from sagonline.refine.weight_average import WeightAverage
 from tests.refine.test_refine import _toy, interrupt_at
@@ -134,6 +135,10 @@ def test_scored_spans_keep_more_averages_and_leave_the_answers_as_they_were(tmp_
     for span in (2, 5):
         for key, value in whole.span_averages[span].state_dict().items():
             assert torch.equal(resumed.span_averages[span].state_dict()[key], value), (span, key)
+    finished = store.load_or_discard(tmp_path / "s.pt", "student checkpoint")
+    store.save(tmp_path / "s.pt", {k: v for k, v in finished.items() if k != "averages"})
+    older = RefinementTrainer(cfg, 2, frames, coarse, teacher, tmp_path / "s.pt")
+    assert older.step == 0  # a checkpoint without the averages by span: trained again
 
     with pytest.raises(ValueError, match=r"no average over 7 steps .*scored_spans=\[2, 3, 5\]"):
         whole.weights(7)
