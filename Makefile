@@ -43,10 +43,7 @@ install-extras: $(EXTRAS)
 
 $(EXTRAS): $(STAMP)
 	$(BIN)/python -m pip install --quiet torchvision==0.28.0
-	$(BIN)/python -m pip install --quiet -e '.[yolo]'
-	$(BIN)/python -m pip install --quiet -e '.[gsplat]'
-	$(BIN)/python -m pip install --quiet -e '.[triton]'
-	$(BIN)/python -m pip install --quiet -e '.[minisam]'
+	$(BIN)/python -m pip install --quiet -e '.[yolo,gsplat,triton,minisam]'
 	$(BIN)/python -m pip install --quiet --no-build-isolation -e '.[sam2]'
 	touch $(EXTRAS)
 
@@ -58,7 +55,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev,launchers,viewer]'
 	touch $(STAMP)
 
-# The compiled CPU kernels (sagonline/render/csrc), built here once (1-2 min on 2 cores) and again
+# The compiled CPU kernels (sagonline/render/csrc), built here once (30-45 s on 2 cores) and again
 # whenever their source or their build (sagonline/render/kernels.py) changes, so no run or test
 # waits on them. A build that fails here is said and the install goes on: a run then tries
 # again and names what is missing.

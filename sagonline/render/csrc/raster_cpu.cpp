@@ -9,6 +9,9 @@
 // [mx, my, opacity, depth, then conic a, b, c (3DGS) or the 3x3 transform M row-major (2DGS)].
 
 #include "splat_common.h"
+// the Python bindings at the end: pybind11 and its tensor casters, without the rest of
+// torch/extension.h (the C++ frontend: half of the kernels' compile time)
+#include <torch/csrc/utils/pybind.h>
 
 #include <algorithm>
 #include <cmath>
