@@ -141,3 +141,38 @@ def test_an_environment_reached_through_a_link_builds_in_a_folder_of_its_own(tmp
     linked = [build_name(tmp_path / link / torch_dir.name) for link in ("one", "two")]
     assert len({build_name(torch_dir), *linked}) == 3
     assert build_name(tmp_path / "one" / torch_dir.name) == linked[0]  # the same path, the same
+
+
+def test_the_build_benchmark_puts_back_the_header_the_kernels_included_before(
+    tmp_path, monkeypatch
+):
+    """`bench.speed.kernel_build` compiles the kernels as written and with torch/extension.h:
+    the second differs from the first in the two include lines alone (so the table compares
+    the headers, nothing else), a source whose includes changed is refused by name, and each
+    build's seconds land in the row of its variant."""
+    import pytest
+
+    from bench.speed import kernel_build
+    from sagonline.render.kernels import load_arguments
+
+    written = Path(load_arguments(tmp_path / "a", "a")["extra_include_paths"][0])
+    before = Path(load_arguments(tmp_path / "b", "b")["extra_include_paths"][0])
+    kernel_build.with_extension_h(before)
+    changed = []
+    for path in sorted(written.iterdir()):
+        old, new = path.read_text().splitlines(), (before / path.name).read_text().splitlines()
+        assert len(old) == len(new)
+        changed += [(a, b) for a, b in zip(old, new, strict=True) if a != b]
+    assert sorted(changed) == sorted(
+        (line, "#include <torch/extension.h>") for line in kernel_build.LIGHT_INCLUDES
+    )
+    with pytest.raises(ValueError, match="splat_common.h: no line"):
+        kernel_build.with_extension_h(before)  # already rewritten: its includes changed
+
+    seconds = {True: 60.0, False: 30.0}
+    monkeypatch.setattr(kernel_build, "build_seconds", lambda folder, name, ext: seconds[ext])
+    table = kernel_build.main(["--out", str(tmp_path / "build.csv")]).set_index("headers")
+    assert table.loc[kernel_build.AS_WRITTEN, "build_s"] == 30.0
+    assert table.loc[kernel_build.AS_WRITTEN, "ratio_to_before"] == 0.5
+    assert table.loc[kernel_build.EXTENSION_H, "ratio_to_before"] == 1.0
+    assert (tmp_path / "build.csv").is_file()
