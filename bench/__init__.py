@@ -16,3 +16,14 @@ OUT_HELP = (
     f"where to write (default {REPORTS.relative_to(ROOT)}/, untracked; the committed tables: "
     "--out reports)"
 )
+
+
+def print_and_write(table, out: str | None) -> None:
+    """Print a benchmark's table (a pandas DataFrame) and, where `out` names a CSV, write it
+    there (atomically) and say so."""
+    from sagonline.core.files import atomic_write_text
+
+    print(table.to_string(index=False))
+    if out:
+        atomic_write_text(out, table.to_csv(index=False))
+        print(f"wrote {out}")

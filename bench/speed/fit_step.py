@@ -22,8 +22,7 @@ import time
 import pandas as pd
 import torch
 
-from bench import OUT_HELP, REPORTS, ROOT
-from sagonline.core.files import atomic_write_text
+from bench import OUT_HELP, REPORTS, ROOT, print_and_write
 from sagonline.core.machine import describe_device
 from sagonline.fitting import FitConfig, SceneFitter
 from sagonline.render.rasterize import rasterize
@@ -121,10 +120,7 @@ def main() -> None:
         for name, t in times.items()
     ]
     table = pd.DataFrame(rows)
-    print(table.to_string(index=False))
-    if args.out:
-        atomic_write_text(args.out, table.to_csv(index=False))
-        print(f"wrote {args.out}")
+    print_and_write(table, args.out)
 
 
 if __name__ == "__main__":

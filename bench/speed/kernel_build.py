@@ -21,8 +21,7 @@ from pathlib import Path
 
 import pandas as pd
 
-from bench import OUT_HELP
-from sagonline.core.files import atomic_write_text
+from bench import OUT_HELP, print_and_write
 from sagonline.core.machine import describe_device
 from sagonline.render.kernels import load_arguments
 
@@ -88,10 +87,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         }
         for name, t in times.items()
     )
-    print(table.to_string(index=False))
-    if args.out:
-        atomic_write_text(args.out, table.to_csv(index=False))
-        print(f"wrote {args.out}")
+    print_and_write(table, args.out)
     return table
 
 

@@ -21,8 +21,7 @@ import numpy as np
 import pandas as pd
 import torch
 
-from bench import OUT_HELP
-from sagonline.core.files import atomic_write_text
+from bench import OUT_HELP, print_and_write
 from sagonline.core.machine import describe_device
 from sagonline.refine import RefineConfig, RefinementTrainer
 
@@ -102,10 +101,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         for (name, t), s in zip(times.items(), students.values(), strict=True)
     ]
     table = pd.DataFrame(rows)
-    print(table.to_string(index=False))
-    if args.out:
-        atomic_write_text(args.out, table.to_csv(index=False))
-        print(f"wrote {args.out}")
+    print_and_write(table, args.out)
     return table
 
 
