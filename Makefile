@@ -55,7 +55,7 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet -e '.[dev,launchers,viewer]'
 	touch $(STAMP)
 
-# The compiled CPU kernels (sagonline/render/csrc), built here once (30-45 s on 2 cores) and again
+# The compiled CPU kernels (sagonline/render/csrc), built here once (about 30 s on 2 cores) and again
 # whenever their source or their build (sagonline/render/kernels.py) changes, so no run or test
 # waits on them. A build that fails here is said and the install goes on: a run then tries
 # again and names what is missing.
