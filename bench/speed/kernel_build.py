@@ -27,17 +27,17 @@ from sagonline.render.kernels import load_arguments
 
 AS_WRITTEN = "as written (torch/types.h; pybind's casters for the bindings)"
 EXTENSION_H = "torch/extension.h in every source (before)"
-# the lines that include less than torch/extension.h, in splat_common.h and raster_cpu.cpp
-LIGHT_INCLUDES = ("#include <torch/types.h>", "#include <torch/csrc/utils/pybind.h>")
+# the lines that include less than torch/extension.h, by the source file holding each
+LIGHT_INCLUDES = {
+    "splat_common.h": "#include <torch/types.h>",
+    "raster_cpu.cpp": "#include <torch/csrc/utils/pybind.h>",
+}
 
 
 def with_extension_h(sources: Path) -> None:
     """Rewrite the copied sources in `sources` to include torch/extension.h where they now
     include its parts (raises if a line is missing: the kernels' includes changed)."""
-    for name, line in (
-        ("splat_common.h", LIGHT_INCLUDES[0]),
-        ("raster_cpu.cpp", LIGHT_INCLUDES[1]),
-    ):
+    for name, line in LIGHT_INCLUDES.items():
         path = sources / name
         text = path.read_text()
         if line not in text:

@@ -164,7 +164,7 @@ def test_the_build_benchmark_puts_back_the_header_the_kernels_included_before(
         assert len(old) == len(new)
         changed += [(a, b) for a, b in zip(old, new, strict=True) if a != b]
     assert sorted(changed) == sorted(
-        (line, "#include <torch/extension.h>") for line in kernel_build.LIGHT_INCLUDES
+        (line, "#include <torch/extension.h>") for line in kernel_build.LIGHT_INCLUDES.values()
     )
     with pytest.raises(ValueError, match="splat_common.h: no line"):
         kernel_build.with_extension_h(before)  # already rewritten: its includes changed
