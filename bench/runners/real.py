@@ -37,6 +37,7 @@ from bench import OUT_HELP, REPORTS, ROOT
 from bench.runners import captures
 from bench.runners.job import check_jobs
 from bench.tables import loo, real_table
+from bench.tables.report import weights_lines
 from sagonline.score.run_metrics import RunMetrics
 
 
@@ -202,7 +203,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     evaluations = Evaluations()
     if args.jobs > 1:
         evaluations.prefetch(tasks(names, seeds, candidates, base, sources), args.jobs)
-    rows, commands, scored = [], [], {}
+    rows, commands, scored, tabled = [], [], {}, []
     for capture in names:
         per_seed, used = [], []
         for seed in seeds:
@@ -227,6 +228,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 else None
                 for source, setting in captures.CHOSEN.items()
             }
+            tabled += [*results.values(), *chosen.values()]
             per_seed.append(
                 real_table.row(
                     capture,
@@ -255,7 +257,8 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     stem = ("real_captures" if len(seeds) == 1 else "real_captures_seeds") + (
         f"_{args.fit}" if args.fit else ""
     )
-    atomic_write_text(args.out / f"{stem}.md", real_table.page(df, commands, args.fit))
+    weights = weights_lines(tabled)  # the models' files, by digest
+    atomic_write_text(args.out / f"{stem}.md", real_table.page(df, commands, args.fit, weights))
     atomic_write_text(args.out / f"{stem}.csv", df.to_csv(index=False))
     print(df.to_string(index=False))
     print(f"\nwrote {args.out}/{stem}.md and .csv")

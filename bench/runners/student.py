@@ -38,7 +38,7 @@ import pandas as pd
 from bench import OUT_HELP, REPORTS, ROOT
 from bench.runners import captures
 from bench.runners.real import Evaluations
-from bench.tables.report import in_percent, write_table
+from bench.tables.report import in_percent, weights_lines, write_table
 from bench.tables.spans import span_choice, span_row
 from bench.tables.views import refined_gain
 from sagonline.refine import RefineConfig
@@ -172,7 +172,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         ap.error(f"--votes: {bad!r} is not one of {', '.join(VOTES)}")
     names = captures.fitted_named(args.captures, ap.error)
     runs, rows, gains, commands, curves, curve_commands = Evaluations(), [], [], [], [], []
-    span_rows = []
+    span_rows, records = [], []  # records: every run read, the curves' too
     for capture in names:
         for source in sources:
             for seed in training_seeds:
@@ -180,6 +180,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                     setting = (*settings(source, seed)[vote], *args.set, *scored)
                     commands.append(" ".join(captures.command(capture, source, 0, setting)))
                     m = runs.run(capture, source, 0, setting)
+                    records.append(m)
                     if m is None:
                         continue
                     rows.append(row(capture, source, vote, m, seed))
@@ -192,6 +193,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                         commands.append(command)
                         curve_commands += [commands[-2], command]
                         curve = runs.run(capture, source, 0, longer)
+                        records.append(curve)
                         if curve is not None:
                             curves.append(curve_row(rows[-1], curve))
     df = pd.DataFrame(rows)
@@ -207,6 +209,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         + (f" --spans {args.spans}" if spans else "")
         + "`"
     )
+    weights = weights_lines(records)  # the masks' model, by file and digest
     notes = [
         "mIoU in percent on every masked view but the reference, fit seed 0; segmenter alone: "
         "its masks' own, on the trajectory's views; coarse: the fused labels rendered (the "
@@ -215,6 +218,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "vote: defaults, the paper's; chosen: `"
         + " ".join(captures.KEPT)
         + "` (chosen leave-one-capture-out, reports/real_captures_loo.md)",
+        *weights,
         f"built by {built}; each run:",
         *(f"`python -m bench.runners.eval {c}`" for c in commands),
     ]
@@ -234,7 +238,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     )
     print(in_percent(df).to_string(index=False))
     if span_rows:
-        write_span_tables(pd.DataFrame(span_rows), args.out, built, commands, args.set)
+        write_span_tables(pd.DataFrame(span_rows), args.out, built, commands, args.set, weights)
     if len(training_seeds) > 1 and not df.empty:
         spread = seed_spread(df)
         write_table(
@@ -266,6 +270,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 f"{args.curve_every} steps at the same views (step 0: the untrained student, "
                 "which answers the coarse render); the training is the same as the default's "
                 "up to where that stopped (one seed draws the same batches whatever the rule)",
+                *weights,
                 f"built by {built}; each run (the default's, then the curve's):",
                 *(f"`python -m bench.runners.eval {c}`" for c in curve_commands),
             ],
@@ -286,11 +291,17 @@ def parse_seeds(text: str, error, option: str = "--training-seeds") -> list[int]
 
 
 def write_span_tables(
-    df: pd.DataFrame, out: Path, built: str, commands: list[str], overrides: list[str]
+    df: pd.DataFrame,
+    out: Path,
+    built: str,
+    commands: list[str],
+    overrides: list[str],
+    weights: list[str],
 ) -> None:
     """<out>/student_spans (each run's answers from each span's average; `commands`: the
-    runs') and <out>/student_spans_loo (the span chosen leave-one-capture-out against the
-    answers' span: `--set refine.ema_span=K` among `overrides`, else the default)."""
+    runs', `weights`: the note lines naming their model's files) and <out>/student_spans_loo
+    (the span chosen leave-one-capture-out against the answers' span: `--set
+    refine.ema_span=K` among `overrides`, else the default)."""
     given = [o.split("=", 1)[1] for o in overrides if o.startswith("refine.ema_span=")]
     answers = int(given[-1]) if given else RefineConfig().ema_span
     write_table(
@@ -304,6 +315,7 @@ def write_span_tables(
             "each where the plateau rule stopped it, at the same views; span k: the average "
             f"over about k steps; span 0: the trained weights; span {answers}: the answers "
             f"(`refine.ema_span={answers}`, whose mIoU is student.md's)",
+            *weights,
             f"built by {built}; each run:",
             *(f"`python -m bench.runners.eval {c}`" for c in commands),
         ],

@@ -116,9 +116,10 @@ def spread(capture: str, rows: list[dict], seeds: list[int]) -> dict:
     return out
 
 
-def page(df: pd.DataFrame, commands: list[str], fit: str | None) -> str:
+def page(df: pd.DataFrame, commands: list[str], fit: str | None, weights: list[str]) -> str:
     """The table's Markdown page: how to read it, the table, each run's command (`fit`: the
-    fit recipe scored, None for the default's)."""
+    fit recipe scored, None for the default's; `weights`: the lines naming the models' files,
+    `bench.tables.report.weights_lines`)."""
     text = [
         "# Real captures: one recipe, one vote configuration",
         "",
@@ -153,6 +154,7 @@ def page(df: pd.DataFrame, commands: list[str], fit: str | None) -> str:
         "- extra px by labelled Gaussians: the share of the pixels wrongly rendered as the object",
         "  that show a Gaussian labelled as it, and where those sit against the object's body",
         "  (gaussians_outside.csv in each run; runs older than the per-Gaussian diagnosis: -).",
+        *(f"- {line}." for line in weights),
         "- built by `make tables-real` (`python -m bench.runners.real`).",
         "",
         df.to_markdown(index=False),

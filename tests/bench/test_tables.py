@@ -209,3 +209,38 @@ def test_progress_is_silenced_only_when_asked(monkeypatch):
     monkeypatch.setattr("sys.stderr", io.StringIO())
     assert not quiet(types.SimpleNamespace(progress=True))
     assert quiet(types.SimpleNamespace(progress=False))
+
+
+def test_the_weights_lines_name_each_models_files_and_say_where_runs_differ():
+    """A table's note names the files a model-backed source's runs read, by the digests in
+    metrics.json; runs that read other files, or recorded none, are counted, never hidden."""
+    from bench.tables.report import weights_lines
+    from sagonline.score.run_metrics import RunMetrics
+
+    def run(source: str, encoder: str | None, weights=None) -> RunMetrics:
+        info = {"format": "sam2"}
+        if encoder:
+            info |= {
+                "encoder": "/w/sam2_tiny/encoder.ort",
+                "encoder_sha256": encoder,
+                "decoder": "/w/sam2_tiny/decoder.onnx",
+                "decoder_sha256": "4a4c8a8a53d9" + "0" * 52,
+            }
+        return RunMetrics(
+            dataset="cap", segmenter=source, segmenter_info=info, segmenter_weights=weights
+        )
+
+    same = [run("sam2_tiny", "54e9ee80bd43" + "1" * 52) for _ in range(2)]
+    assert weights_lines([*same, None, run("classical", None)]) == [
+        "sam2_tiny's weights (file, sha256): decoder.onnx 4a4c8a8a53d9, encoder.ort 54e9ee80bd43"
+    ]
+    other = run("sam2_tiny", "ffff00000000" + "2" * 52)
+    unrecorded = run("sam2_tiny", None, weights={"/w/sam2_tiny/encoder.ort": "337c"})
+    (line,) = weights_lines([*same, other, unrecorded])
+    assert line.startswith("sam2_tiny's weights DIFFER between runs (file, sha256): ")
+    assert (
+        "encoder.ort 54e9ee80bd43 (2 runs)" in line and "encoder.ort ffff00000000 (1 run)" in line
+    )
+    assert line.endswith("; no digest recorded (1 run)")
+    (line,) = weights_lines([*same, unrecorded])  # one set of files, one run without digests
+    assert "DIFFER" not in line and "encoder.ort 54e9ee80bd43 (2 runs); no digest" in line
