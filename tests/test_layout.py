@@ -394,6 +394,29 @@ def test_every_option_command_and_setting_the_docs_quote_exists():
     ]
 
 
+def test_every_module_the_reports_name_imports_or_is_listed_as_renamed():
+    """Each `python -m MODULE` and dotted name a page in reports/ quotes imports today, or is
+    an older name in reports/README.md's table, whose name today imports (pages keep the
+    commands they were built with; the table says what those are called now)."""
+    import re
+
+    readme = ROOT / "reports" / "README.md"
+    renamed = dict(re.findall(r"^\| `([\w.]+)` \| `([\w.]+)` \|$", readme.read_text(), re.M))
+    assert renamed
+    assert unknown_modules([("README.md", new) for new in renamed.values()]) == []
+    assert unknown_modules([("README.md", old) for old in renamed]) == [  # no row needed
+        f"README.md: {old}" for old in renamed
+    ]
+
+    def unlisted(spans) -> list[str]:
+        return [m for m in unknown_modules(spans) if m.split(": ", 1)[1] not in renamed]
+
+    pages = sorted((ROOT / "reports").rglob("*.md"))
+    assert unlisted(backticked(pages)) == []
+    planted = [("planted", "python -m bench.no_such x=1"), ("planted", "python -m bench.real")]
+    assert unlisted(planted) == ["planted: bench.no_such"]
+
+
 def test_the_formatter_runs_everywhere():
     """No `fmt: skip` / `fmt: off` markers: the formatter lays out every line of the library,
     the harness and the tests (a layout it would change is changed, not fenced off)."""
