@@ -24,7 +24,7 @@ import pandas as pd
 from bench import OUT_HELP, REPORTS
 from bench.runners import captures
 from bench.runners.real import Evaluations
-from bench.tables.report import in_percent, write_table
+from bench.tables.report import in_percent, weights_lines, write_table
 from sagonline.score.run_metrics import RunMetrics
 
 COLD = ("segmenter.embedding_cache=none",)  # each N pays for its own encoder passes
@@ -70,10 +70,11 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
     if any(n < 1 for n in steps):
         ap.error(f"--every {args.every}: give whole numbers of 1 or more, comma-separated")
     names = captures.fitted_named(args.captures, ap.error)
-    runs, rows = Evaluations(), []
+    runs, rows, records = Evaluations(), [], []
     for capture in names:
         for every in steps:
             m = runs.run(capture, args.segmenter, 0, setting(every))
+            records.append(m)
             if m is not None:
                 rows.append(row(capture, args.segmenter, every, m))
     df = pd.DataFrame(rows)
@@ -82,6 +83,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
         "(`dataset.adapter.every=N`); every masked view but the reference is scored (mIoU, "
         "percent); segmenter alone: its masks' own, on the views it segmented",
         "segment s: the segmenter's time (ms per view x views), embedding cache off; fit seed 0",
+        *weights_lines(records),
         "built by `python -m bench.runners.every`; each run:",
         *(
             "`python -m bench.runners.eval "

@@ -25,7 +25,7 @@ import pandas as pd
 
 from bench import OUT_HELP, REPORTS
 from bench.runners.rundir import read_run_metrics
-from bench.tables.report import device_text
+from bench.tables.report import device_text, weights_lines
 from bench.tables.views import COARSE
 from sagonline.core.files import atomic_write_text
 from sagonline.score.run_metrics import RunMetrics
@@ -359,6 +359,7 @@ def build(name: str, sweep: Path, out: Path, tag: str | None = None) -> pd.DataF
         f"renderer: {renderer_text(records)}, resize rule: {first.resize_rule}",
         "- mIoU / accuracy in percent; times are wall clock on the device above.",
         "- exact per-row config: the `overrides` column (full config in each job's metrics.json).",
+        *(f"- {line}." for line in weights_lines(records)),
         *NOTES.get(name, []),
         "",
     ]

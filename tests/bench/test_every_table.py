@@ -31,6 +31,7 @@ def test_each_n_is_one_cold_run_of_its_own_and_one_row(tmp_path, monkeypatch):
             segmenter_miou=0.8,
             protocol_id="cap/exclude-reference@1",
             scenes=[scene(views, 2000.0, 2.5)],
+            segmenter_info={"encoder": "/w/encoder.ort", "encoder_sha256": "54e9" * 16},
         )
 
     monkeypatch.setattr(real.Evaluations, "run", run)
@@ -46,6 +47,7 @@ def test_each_n_is_one_cold_run_of_its_own_and_one_row(tmp_path, monkeypatch):
     page = (tmp_path / "out" / "every.md").read_text()
     assert "dataset.adapter.every=4 segmenter.embedding_cache=none" in page
     assert "hydra.run.dir=multirun/real/cap/sam2_tiny@dataset.adapter.every-4+" in page
+    assert "- sam2_tiny's weights (file, sha256): encoder.ort 54e954e954e9\n" in page
 
 
 def test_an_unknown_capture_and_a_zero_n_are_refused(tmp_path, monkeypatch, capsys):

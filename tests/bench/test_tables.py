@@ -33,6 +33,15 @@ def test_mask_count_table_and_plots(tmp_path):
     assert "load average: " in md and "not recorded" not in md
     assert (tmp_path / "reports" / "masks_miou_syn.png").stat().st_size > 1000
     assert len(pd.read_csv(tmp_path / "reports" / "masks_syn.csv")) == 2
+    assert "weights" not in md  # the oracle reads none
+    import json  # a job that recorded its model's files: the page names them
+
+    record = json.loads((sweep / "0" / "metrics.json").read_text())
+    record["segmenter_info"] = {"encoder": "/w/e.onnx", "encoder_sha256": "18348d144bd3" * 5}
+    (sweep / "0" / "metrics.json").write_text(json.dumps(record))
+    build("masks", sweep, tmp_path / "reports", tag="syn")
+    md = (tmp_path / "reports" / "masks_syn.md").read_text()
+    assert "- oracle's weights (file, sha256): e.onnx 18348d144bd3.\n" in md
 
 
 @pytest.mark.slow
