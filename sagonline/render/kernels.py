@@ -184,7 +184,7 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
         done = threading.Event()
         start = time.perf_counter()
         if fresh:
-            say("compiling the CPU kernels, one time for this environment (about 1-3 min) ...")
+            say("compiling the CPU kernels, one time for this environment (30-60 s on 2 cores) ...")
 
         # a library already there is built again only where torch's loader finds its compile
         # command changed (a new PyTorch, another build's flags)
