@@ -251,6 +251,7 @@ def main(argv: list[str] | None = None) -> pd.DataFrame:
                 "fit, Stage I labels and teacher masks; mean, min and max over the seeds of the "
                 "student's mIoU and of its gain over the coarse render (points); coarse spread: "
                 "the coarse render's max - min over the same runs (0: Stage I did not move)",
+                *weights,
                 f"the runs of student.md, built by {built}",
             ],
         )

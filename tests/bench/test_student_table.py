@@ -150,6 +150,8 @@ def test_training_seeds_train_each_setting_again_and_the_spread_table_says_how_f
     assert (defaults["student min mIoU"], defaults["student max mIoU"]) == (80.0, 87.0)
     assert (defaults["gain min, points"], defaults["gain max, points"]) == (-5.0, 2.0)
     assert defaults["gain mean, points"] == pytest.approx(-1.33)
+    seeds_page = (out / "student_seeds.md").read_text()  # names the masks' weights too
+    assert "- sam2_tiny's weights (file, sha256): encoder.onnx abababababab\n" in seeds_page
     views = pd.read_csv(out / "student_views.csv")
     assert views["training seed"].tolist() == [0, 0, 3, 3, 5, 5]
     # one seed: no spread table; a bad list is refused before anything runs
