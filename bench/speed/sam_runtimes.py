@@ -90,7 +90,7 @@ def runtime_table(
                     "encoder": f"{base.encoder.name} (sha256 {pair.encoder_sha256[:12]})",
                     "encoder runtime": runtime,
                     "precision": precision,
-                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
+                    "device": device if runtime.startswith("torch") or pair.note == "" else "cpu",
                     "encoder ms/image": round(1000 * seconds, 1),
                     "operators per call": getattr(pair.encoder, "operators_per_call", None),
                     "max |difference| from onnxruntime": float(
@@ -169,7 +169,7 @@ def decoder_table(
                     "decoder": decoder_named,
                     "embeddings from": encoder_named,
                     "decoder runtime": runtime,
-                    "device": device if runtime == "torch" or pair.note == "" else "cpu",
+                    "device": device if runtime.startswith("torch") or pair.note == "" else "cpu",
                     "decoder ms/prompt": round(1000 * seconds, 1),
                     "operators per call": getattr(pair.decoder, "operators_per_call", None),
                     "max |logit difference| from onnxruntime": max(gaps),

@@ -1,7 +1,8 @@
 """Where the PyTorch runtime's tensors live (`segment.onnx_torch`): integer tensors (shapes,
 indices) stay on the CPU, and an operator meeting one beside a GPU tensor moves it there with
-`to_device`. A CUDA graph's capture cannot copy from the host, so while `device_copies` holds a
-dict the same CPU tensor is copied once and its copy reused (the copy the graph's kernels read).
+`to_device`. A CUDA graph's capture cannot copy from pageable host memory, so while
+`device_copies` holds a dict the same CPU tensor is copied once, from pinned memory, and its
+copy reused (the copy the graph's kernels read).
 On a CPU without native kernels for a half type, convolutions and matrix products of it run in
 float32 (`accumulated_in_float32`).
 """
@@ -42,7 +43,11 @@ def to_device(
         return x.to(device)
     key = (id(x), device)
     if key not in copies:
-        copies[key] = (x, x.to(device))  # x kept: its id is not reused while the copy stands
+        # x kept: its id is not reused while the copy stands. To a GPU from pinned memory: a
+        # capture can record that copy (never one from pageable memory), which each replay
+        # repeats from the kept buffer; x's values depend on the input shapes alone
+        source = x.pin_memory() if device.type == "cuda" else x
+        copies[key] = (x, source.to(device, non_blocking=True), source)
     return copies[key][1]
 
 

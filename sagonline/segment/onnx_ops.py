@@ -16,7 +16,12 @@ import torch.nn.functional as F
 from sagonline.segment.onnx_device import accumulated_in_float32, to_device
 from sagonline.segment.onnx_graph import TORCH_TYPES, Node
 
-__all__ = ["OPS", "softmax"]
+__all__ = ["HOST_READ", "OPS", "softmax"]
+
+# The inputs (by position) an operator reads on the host, as Python numbers: a scale, a bound,
+# a fill value. A floating weight read only so stays on the CPU (`TorchSession`): on a GPU,
+# reading it would wait on the device on every call, and a CUDA graph's capture cannot.
+HOST_READ = {"Resize": (1, 2, 3), "Clip": (1, 2), "Pad": (1, 2, 3), "Range": (0, 1, 2)}
 
 # --- the operators --------------------------------------------------------------------------------
 

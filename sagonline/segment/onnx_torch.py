@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from sagonline.segment.onnx_device import device_copies
+from sagonline.segment.onnx_device import device_copies, to_device
 from sagonline.segment.onnx_graph import Node, ValueInfo, read_graph, topological
-from sagonline.segment.onnx_ops import OPS, softmax
+from sagonline.segment.onnx_ops import HOST_READ, OPS, softmax
 
 __all__ = ["PRECISIONS", "TorchSession", "encoder_runtime", "to_host"]
 
@@ -86,6 +86,18 @@ def record_cuda_graph(
     return graph.replay, outputs
 
 
+def first_error(exc: BaseException) -> str:
+    """The first line of the error that began `exc`'s chain: a capture's end raises its own
+    ("operation failed due to a previous error during capture") over the one inside it."""
+    chain = [exc]
+    while (nxt := chain[-1].__cause__ or chain[-1].__context__) and len(chain) < 8:
+        chain.append(nxt)
+    lines = [str(e).splitlines()[0] if str(e) else type(e).__name__ for e in chain]
+    # a node's own message (`TorchSession._run`) names the node; the wrapped one below it
+    first = next((line for line in reversed(lines) if " -> " in line), lines[-1])
+    return first if first == lines[0] else f"{first}; then: {lines[0]}"
+
+
 # Input keys (shapes) a session captures at most; past them a new key runs eagerly
 MAX_GRAPHS = 16
 
@@ -132,7 +144,17 @@ class TorchSession:
                 nodes.append(node)
         read = {n for node in nodes for n in node.inputs} | {o.name for o in self.graph.outputs}
         self.nodes = nodes
-        self.weights = {k: self.place(v) for k, v in stored.items() if k in read}
+        # a weight only ever read on the host (a Resize's scales, a Clip's bounds) stays here
+        on_device = {
+            n
+            for node in nodes
+            for i, n in enumerate(node.inputs)
+            if i not in HOST_READ.get(node.op, ())
+        } | {o.name for o in self.graph.outputs}
+        self.on_host = frozenset(k for k in stored if k in read and k not in on_device)
+        self.weights = {
+            k: v if k in self.on_host else self.place(v) for k, v in stored.items() if k in read
+        }
         self.bound, self.small_inputs = self._shape_bound()
         self.bound_values: dict[tuple, dict[str, torch.Tensor]] = {}
         # of the bound nodes' values, those an unbound node or the caller reads
@@ -202,7 +224,7 @@ class TorchSession:
     ) -> torch.Tensor:  # [...] the same, floating ones on the device in the session's type
         """Floating tensors to the device in the session's type; integers stay on the CPU."""
         if t.is_floating_point():
-            return t.to(self.device, self.dtype)
+            return to_device(t, self.device).to(self.dtype)  # from pinned memory in a capture
         return t
 
     def get_inputs(self) -> list[ValueInfo]:
@@ -248,7 +270,7 @@ class TorchSession:
                 for o, e in zip(outputs, eager, strict=True)
             )
         except RuntimeError as exc:
-            return self._refuse(key, f"its capture failed ({str(exc).splitlines()[0]})")
+            return self._refuse(key, f"its capture failed ({first_error(exc)})")
         scale = max(float(e.float().abs().max()) for e in eager)
         if not gap <= 1e-3 * max(1.0, scale):
             return self._refuse(key, f"its replay differs from the eager run by {gap:.3g}")
@@ -278,9 +300,15 @@ class TorchSession:
                 for name in self.free_after[i]:
                     values.pop(name, None)
                 continue
-            outs = _run_node(node, [values[name] for name in node.inputs], opset)
+            try:
+                outs = _run_node(node, [values[name] for name in node.inputs], opset)
+            except RuntimeError as exc:  # which node: a capture's refusal names it
+                raise RuntimeError(f"{node.op} -> {node.outputs[0]}: {exc}") from exc
             if node.op in ("ConstantOfShape", "Cast"):  # Constants were folded at open
                 outs = [self.place(o) if o.is_floating_point() else o for o in outs]
+            if self.bound[i]:  # shape arithmetic's integers live on the host (a Cast of a
+                # small input on the GPU, say): a later call reads them there without waiting
+                outs = [o if o.is_floating_point() else o.cpu() for o in outs]
             for name, value in zip(node.outputs, outs, strict=True):
                 values[name] = value
                 if name in self.bound_read:

