@@ -103,14 +103,23 @@ def test_nothing_on_screen_is_no_view_and_no_votes(monkeypatch):
 
 def test_an_unknown_preparation_is_refused_and_each_keys_its_own_cache(monkeypatch):
     from sagonline.render.backends import implementation_digest
+    from sagonline.render.triton_prepare import chosen_tile_view, tile_view_fused
+    from sagonline.render.triton_vote import tile_view
 
     digests = set()
     for name in ("torch", "fused"):
         monkeypatch.setenv("SAGONLINE_TRITON_PREPARE", name)
         digests.add(implementation_digest("triton"))
     assert len(digests) == 2
+    monkeypatch.setenv("SAGONLINE_TRITON_PREPARE", "torch")
+    want = {False: implementation_digest("triton")}
+    monkeypatch.setenv("SAGONLINE_TRITON_PREPARE", "fused")
+    want[True] = implementation_digest("triton")
     monkeypatch.setenv("SAGONLINE_TRITON_PREPARE", "")
-    assert implementation_digest("triton") in digests  # unset: PyTorch's
+    for cuda in (False, True):  # unset: the fused lists where CUDA is, PyTorch's elsewhere
+        monkeypatch.setattr(torch.cuda, "is_available", lambda cuda=cuda: cuda)
+        assert implementation_digest("triton") == want[cuda]
+        assert chosen_tile_view() is (tile_view_fused if cuda else tile_view)
     monkeypatch.setenv("SAGONLINE_TRITON_PREPARE", "cuda")
     g = random_gaussians(20, "3dgs", seed=1, spread=0.5)
     cam = small_camera(20, 15)
