@@ -54,6 +54,22 @@ def parse_kernel(spec: str) -> tuple[str, str]:
     return kernel, prepare
 
 
+def vote_difference(
+    hist: torch.Tensor,  # [N, L] a kernel's votes, a row per Gaussian
+    first: torch.Tensor,  # [N, L] the first kernel's
+) -> dict:
+    """How many Gaussians' votes differ from the first kernel's, and of those how many lead
+    with another label (their most-voted label differs; a Gaussian with no vote leads with
+    none): whether a difference of a vote can change a label."""
+    other = (hist != first).any(dim=1)
+    lead = torch.where(hist.sum(1) > 0, hist.argmax(1), -1)
+    lead_first = torch.where(first.sum(1) > 0, first.argmax(1), -1)
+    return {
+        "gaussians_voting_otherwise": int(other.sum()),
+        "gaussians_leading_otherwise": int((lead != lead_first).sum()),
+    }
+
+
 def kernel_rows(
     name: str, g, views, kernels: list[str], masks: int, repeats: int, device: str, quick=False
 ):
@@ -98,6 +114,7 @@ def kernel_rows(
                 "speedup_vs_first": first_ms / ms,
                 "same_votes_as_first": bool(torch.equal(hist, first)),
                 "max_difference": float((hist - first).abs().max()),
+                **vote_difference(hist, first),
                 "error": None,
             }
         )

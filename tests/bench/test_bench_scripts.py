@@ -84,6 +84,25 @@ def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run
     assert rows[1]["error"] == "RuntimeError: no such layout"
 
 
+def test_bench_vote_kernels_counts_the_gaussians_a_difference_touches():
+    """A vote moved from one label to another counts as a Gaussian voting otherwise; only one
+    whose most-voted label changes (or that lost its only vote) leads otherwise."""
+    import torch
+
+    from bench.speed.vote_kernels import vote_difference
+
+    first = torch.tensor([[0, 3, 1], [0, 2, 2], [1, 0, 0], [0, 0, 0], [4, 0, 0]])
+    hist = torch.tensor([[0, 3, 2], [0, 1, 3], [0, 0, 0], [0, 0, 0], [4, 0, 0]])
+    assert vote_difference(hist, first) == {
+        "gaussians_voting_otherwise": 3,
+        "gaussians_leading_otherwise": 2,
+    }
+    assert vote_difference(first, first) == {
+        "gaussians_voting_otherwise": 0,
+        "gaussians_leading_otherwise": 0,
+    }
+
+
 @pytest.mark.parametrize("kernels, unknown", [("walk,chunk8", "chunk8"), ("walk+cuda", "+cuda")])
 def test_bench_vote_kernels_refuses_an_unknown_kernel(kernels, unknown):
     proc = subprocess.run(
