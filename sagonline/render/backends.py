@@ -239,8 +239,8 @@ def triton_vote_kernel() -> str:
 # or `fused` (`triton_prepare`: two kernels and a sort). bench/speed/vote_kernels.py times both:
 # on an H200 the fused lists took 1.07 and 0.88 ms against 3.14 and 3.51 ms, and the walk's
 # vote 3.10 and 2.48 ms against 5.09 and 5.47 ms on the two bench scenes
-# (reports/vote_kernels_cuda.csv), so `fused` is the default where CUDA is; on the CPU (Triton's
-# interpreter, the tests) `torch` stays the default.
+# (reports/cuda_2026-12-04/vote_kernels_cuda.csv), so `fused` is the default where CUDA is; on
+# the CPU (Triton's interpreter, the tests) `torch` stays the default.
 TRITON_PREPARES = ("torch", "fused")
 
 

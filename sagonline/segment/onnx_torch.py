@@ -87,15 +87,19 @@ def record_cuda_graph(
 
 
 def first_error(exc: BaseException) -> str:
-    """The first line of the error that began `exc`'s chain: a capture's end raises its own
-    ("operation failed due to a previous error during capture") over the one inside it."""
+    """The first line of the error that began `exc`'s chain, with the node it rose in (the note
+    `TorchSession._run` adds): a capture's end raises its own ("operation failed due to a
+    previous error during capture") over the one inside it."""
     chain = [exc]
     while (nxt := chain[-1].__cause__ or chain[-1].__context__) and len(chain) < 8:
         chain.append(nxt)
-    lines = [str(e).splitlines()[0] if str(e) else type(e).__name__ for e in chain]
-    # a node's own message (`TorchSession._run`) names the node; the wrapped one below it
-    first = next((line for line in reversed(lines) if " -> " in line), lines[-1])
-    return first if first == lines[0] else f"{first}; then: {lines[0]}"
+
+    def said(e: BaseException) -> str:
+        line = str(e).splitlines()[0] if str(e) else type(e).__name__
+        return "; ".join([*getattr(e, "__notes__", []), line])
+
+    first = chain[-1]
+    return said(first) if first is exc else f"{said(first)}; then: {said(exc)}"
 
 
 # Input keys (shapes) a session captures at most; past them a new key runs eagerly
@@ -303,7 +307,8 @@ class TorchSession:
             try:
                 outs = _run_node(node, [values[name] for name in node.inputs], opset)
             except RuntimeError as exc:  # which node: a capture's refusal names it
-                raise RuntimeError(f"{node.op} -> {node.outputs[0]}: {exc}") from exc
+                exc.add_note(f"{node.op} -> {node.outputs[0]}")
+                raise
             if node.op in ("ConstantOfShape", "Cast"):  # Constants were folded at open
                 outs = [self.place(o) if o.is_floating_point() else o for o in outs]
             if self.bound[i]:  # shape arithmetic's integers live on the host (a Cast of a
