@@ -103,6 +103,7 @@ class SamFamilySegmenter(VideoSegmenter):
 
     def describe(self) -> dict:
         """What results name: which weights ran (path and sha256), their format, the prompting."""
+        decoder_runtime = encoder_runtime(self.cfg.decoder_runtime, self.device)  # auto resolved
         return {
             "format": self.format,
             "encoder": str(self.encoder),
@@ -114,13 +115,9 @@ class SamFamilySegmenter(VideoSegmenter):
             "max_growth": self.max_growth,
             "encoder_runtime": encoder_runtime(self.cfg.encoder_runtime, self.device),
             "encoder_precision": self.cfg.encoder_precision,
-            "decoder_runtime": encoder_runtime(self.cfg.decoder_runtime, self.device),
+            "decoder_runtime": decoder_runtime,
             "cuda_graphs": self.cfg.cuda_graphs,
-            "batch_prompts": batch_decoder(
-                self.cfg.batch_prompts,
-                self.device,
-                encoder_runtime(self.cfg.decoder_runtime, self.device),
-            ),
+            "batch_prompts": batch_decoder(self.cfg.batch_prompts, self.device, decoder_runtime),
         }
 
     def prepare(self, frames: list[np.ndarray], progress: Callable | None = None) -> None:
