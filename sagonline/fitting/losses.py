@@ -45,6 +45,24 @@ def ssim(
     return (per_pixel * weights).sum() / weights.sum().clamp_min(1e-12)
 
 
+class ReadLater:
+    """Scalars computed on the device step by step, read on the host together when asked (one
+    read a step would make the host wait for the GPU at every step)."""
+
+    def __init__(self, values=()):
+        self.read: list[float] = list(values)
+        self.waiting: list[torch.Tensor] = []
+
+    def append(self, value: torch.Tensor) -> None:  # [] on any device
+        self.waiting.append(value.detach())
+
+    def values(self) -> list[float]:
+        if self.waiting:
+            self.read.extend(torch.stack(self.waiting).tolist())
+            self.waiting.clear()
+        return self.read
+
+
 def psnr_from_mse(mse: float) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 

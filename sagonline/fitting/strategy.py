@@ -91,9 +91,9 @@ class DensifyStrategy:
             return
         depth = (params["means"] @ cam.rotation.T + cam.translation)[:, 2].clamp_min(1e-3)
         g = grad.norm(dim=1) * depth
-        seen = grad.abs().sum(1) > 0
-        self.grad_accum[seen] += g[seen]
-        self.grad_count[seen] += 1
+        seen = grad.abs().sum(1) > 0  # added by arithmetic, not by a boolean index: no wait on
+        self.grad_accum += torch.where(seen, g, 0.0)  # the GPU for the count of those seen
+        self.grad_count += seen
 
     @torch.no_grad()
     def after_step(self, params: Params, step: int) -> Params | None:

@@ -16,26 +16,31 @@ stated here once: the positional gradient is taken in world space (scaled by dep
 rather than on the projected means, the optimiser state of new Gaussians starts at zero, all SH
 degrees train from the start, and the depth distortion is taken over splat-centre depths (the
 2DGS kernel uses each ray's intersection depth).
+
+A step reads nothing back on the host: its loss, regularisers and PSNR stay on the device until
+`history` or `last_terms` is read (every 10th step, for the progress bar), so on a GPU the host
+queues the next steps while the kernels run (bench/speed/host_work.py counts what a step asks of
+the host). Checkpoints: `fitting.checkpoint`.
 """
 
 from __future__ import annotations
 
 import time
 from collections import deque
-from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sagonline.core import store
 from sagonline.core.progress import Progress
 from sagonline.fitting.capture import training_background
-from sagonline.fitting.config import FitConfig, as_recorded
+from sagonline.fitting.checkpoint import resume_checkpoint, save_checkpoint
+from sagonline.fitting.config import FitConfig
 from sagonline.fitting.depth_prior import MonocularDepth, prior_term, pseudo_view_term
 from sagonline.fitting.finish import carve_and_polish
 from sagonline.fitting.losses import (
+    ReadLater,
     anisotropy_penalty,
     depth_distortion,
     nearest_views,
@@ -44,6 +49,7 @@ from sagonline.fitting.losses import (
     opacity_entropy,
     photometric_loss,
     psnr,
+    psnr_from_mse,
     splat_geometry,
 )
 from sagonline.fitting.start_points import initial_params, split_views, start_points, view_draws
@@ -133,13 +139,13 @@ class SceneFitter:
         if cfg.lambda_depth > 0:
             self.depth_model = MonocularDepth(cfg.depth_model)
             self.depth_priors = {i: self.depth_model(self.images[i]) for i in train}
-        self.step, self.history, self.elapsed = 0, [], 0.0
+        self.step, self.losses, self.elapsed = 0, ReadLater(), 0.0  # the loss at each step
         self.finished = False  # the steps after the last iteration ran (`finish`)
         self.polishing = False  # in the polish (`finish`): its own loss terms apply
         self.faded = 0  # Gaussians dropped below `prune_opacity` after the polish
         self.carved = self.co_pruned = 0  # Gaussians the carve and the co-pruning dropped
         self.partner_means = None  # [M, 3] a second draw's centres, for `co_prune_seed`
-        self.last_terms: dict[str, float] = {}  # the regularisers' values at the last step
+        self.terms: dict[str, torch.Tensor] = {}  # the regularisers' values at the last step
         self.stopped = "iterations"  # or "time_budget": the fit ended on its wall-clock budget
 
     # --- parameters ---------------------------------------------------------------------------
@@ -161,10 +167,21 @@ class SceneFitter:
             "sh_dc": cfg.lr_sh,
             "sh_rest": cfg.lr_sh / 20,
         }
-        self.optim = torch.optim.Adam(
-            [{"params": [params[k]], "lr": lr, "name": k} for k, lr in lrs.items()], eps=1e-15
-        )
+        groups = [{"params": [params[k]], "lr": lr, "name": k} for k, lr in lrs.items()]
+        # on CUDA one kernel a group (fused); on the CPU PyTorch's default, as the fits had
+        fused = True if self.params["means"].is_cuda else None
+        self.optim = torch.optim.Adam(groups, eps=1e-15, fused=fused)
         self.strategy.reset(len(self))
+
+    @property
+    def history(self) -> list[float]:
+        """The training loss of every step so far."""
+        return self.losses.values()
+
+    @property
+    def last_terms(self) -> dict[str, float]:
+        """The regularisers' values at the last step."""
+        return {k: float(v) for k, v in self.terms.items()}
 
     def __len__(self) -> int:
         return self.params["means"].shape[0]
@@ -212,7 +229,8 @@ class SceneFitter:
         gaussians: Gaussians,
         view: int,
     ) -> tuple[torch.Tensor, torch.Tensor, dict]:  # [] loss, [H, W, 3] render, values
-        """The training loss of one view, its render (H, W, 3) and the regularisers' values."""
+        """The training loss of one view, its render (H, W, 3) and the regularisers' values
+        (detached, on the device)."""
         cfg, cam = self.cfg, self.cams[view]
         use_dist = cfg.lambda_dist > 0 and self.step >= cfg.dist_from
         use_normal = cfg.lambda_normal > 0 and self.step >= cfg.normal_from
@@ -248,7 +266,7 @@ class SceneFitter:
         if pseudo is not None:
             terms["pseudo_depth"] = pseudo
             loss = loss + cfg.lambda_depth * pseudo
-        return loss, out.rgb, {k: float(v.detach()) for k, v in terms.items()}
+        return loss, out.rgb, {k: v.detach() for k, v in terms.items()}
 
     def anisotropy_penalty(self) -> torch.Tensor:  # []
         return anisotropy_penalty(self.params["log_scales"], self.cfg.max_aspect)
@@ -268,26 +286,27 @@ class SceneFitter:
         rng = view_draws(cfg.seed, self.step, len(self.train_idx))
         bar = Progress("fit", cfg.iterations, enabled=progress, initial=self.step)
         start = time.perf_counter() - self.elapsed
-        recent_psnr = deque(maxlen=10)  # training-view PSNR of the last steps, for the bar
+        recent_mse = deque(maxlen=10)  # training-view MSE of the last steps, for the bar
         while self.step < cfg.iterations:
             if cfg.time_budget_s is not None and time.perf_counter() - start > cfg.time_budget_s:
                 self.stopped = "time_budget"
                 break
             i = self.train_idx[int(rng.integers(len(self.train_idx)))]
-            rgb, terms = self.train_step(i, self.step / max(cfg.iterations, 1))
+            rgb = self.train_step(i, self.step / max(cfg.iterations, 1))
             self.step += 1
-            recent_psnr.append(psnr(rgb.clamp(0, 1), self.images[i]))
+            recent_mse.append(((rgb.clamp(0, 1) - self.images[i]) ** 2).mean())
             changed = self.strategy.after_step(self.params, self.step)
             if changed is not None:
                 self._set_params(changed)
             detail = ""
-            if self.step % 10 == 0:
+            if self.step % 10 == 0:  # the host reads the GPU's values here, not every step
+                psnrs = [psnr_from_mse(v) for v in torch.stack(list(recent_mse)).tolist()]
                 detail = ", ".join(
                     [
                         f"loss {np.mean(self.history[-10:]):.4f}",
-                        f"PSNR {np.mean(recent_psnr):.2f} dB",
+                        f"PSNR {np.mean(psnrs):.2f} dB",
                         f"{len(self)} Gaussians",
-                        *(f"{k} {v:.2e}" for k, v in terms.items()),
+                        *(f"{k} {v:.2e}" for k, v in self.last_terms.items()),
                     ]
                 )
             bar.update(1, detail)
@@ -302,23 +321,21 @@ class SceneFitter:
             self.save(checkpoint)
         return self.evaluate()
 
-    def train_step(
-        self, view: int, progress: float
-    ) -> tuple[torch.Tensor, dict]:  # [H, W, 3] render, regularisers
+    def train_step(self, view: int, progress: float) -> torch.Tensor:  # [H, W, 3] render
         """One optimiser step on training view `view`, the positions' learning rate decayed
-        to `progress` (0-1) of the schedule; its render (H, W, 3, detached) and terms."""
+        to `progress` (0-1) of the schedule; its render (H, W, 3, detached). Its loss and terms
+        stay on the device (`history` and `last_terms` read them)."""
         cfg = self.cfg
         for group in self.optim.param_groups:
             if group["name"] == "means":
                 group["lr"] = cfg.lr_means * self.extent * (0.01 ** min(progress, 1.0))
-        loss, rgb, terms = self.loss(self.gaussians(), view)
-        self.last_terms = terms
+        loss, rgb, self.terms = self.loss(self.gaussians(), view)
         self.optim.zero_grad(set_to_none=True)
         loss.backward()
         self.strategy.after_backward(self.params, self.cams[view])
         self.optim.step()
-        self.history.append(loss.item())
-        return rgb.detach(), terms
+        self.losses.append(loss)
+        return rgb.detach()
 
     def finish(self) -> None:
         """The steps after the last iteration: the camera and pose-view clearances, then the
@@ -361,34 +378,9 @@ class SceneFitter:
 
     # --- checkpoints --------------------------------------------------------------------------
     def save(self, path: Path) -> None:
-        state = {
-            "params": {k: v.detach().cpu() for k, v in self.params.items()},
-            "optim": self.optim.state_dict(),
-            "step": self.step,
-            "history": self.history,
-            "elapsed": self.elapsed,
-            "finished": self.finished,
-            "carved": self.carved,
-            "co_pruned": self.co_pruned,
-            "faded": self.faded,
-            **self.strategy.state_dict(),
-            "config": asdict(self.cfg),
-        }
-        store.save(path, state)
+        save_checkpoint(self, path)
 
     def resume(self, path: Path) -> bool:
-        """Continue an interrupted fit with the same settings (a setting the checkpoint predates
-        counts as its default); False if there is none (or it is damaged or not ours: then it
-        is named, removed, and the fit starts over)."""
-        state = store.load_or_discard(path, "fit checkpoint")
-        if state is None:
-            return False
-        if as_recorded(state["config"], asdict(FitConfig())) != asdict(self.cfg):
-            return False
-        self._set_params({k: v.to(self.cfg.device) for k, v in state["params"].items()})
-        self.optim.load_state_dict(state["optim"])
-        self.step, self.history, self.elapsed = state["step"], state["history"], state["elapsed"]
-        self.finished, self.carved = state.get("finished", False), state.get("carved", 0)
-        self.faded, self.co_pruned = state.get("faded", 0), state.get("co_pruned", 0)
-        self.strategy.load_state_dict(state)
-        return True
+        """Continue an interrupted fit with the same settings (`checkpoint.resume_checkpoint`);
+        False if there is none or it cannot serve."""
+        return resume_checkpoint(self, path)

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import torch
 
-from sagonline.render.projection import depth_rank, project, splat_response
+from sagonline.render.projection import depth_rank, project, splat_response, view_colors
 from sagonline.render.rasterize import RenderOutput, TraceChunk, TraceRequest
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
@@ -67,10 +67,12 @@ def rasterize_gsplat(
     g = gaussians
     cam = camera.to(g.device)
     viewmats, Ks = cam.world_to_cam[None], cam.K[None]
-    proj = project(g, cam, near=near, with_colors=not trace_only)
-    colors = torch.zeros(len(g), 3 if not trace_only else 1, device=g.device)
-    if not trace_only:
-        colors[proj.ids] = proj.colors
+    # every Gaussian shaded (gsplat culls what it does not draw): no projection of ours, and
+    # no wait on the GPU for its cull, unless a trace needs the projected splats
+    if trace_only:
+        colors = torch.zeros(len(g), 1, device=g.device)
+    else:
+        colors = view_colors(g, None, cam.center)
         if features is not None:
             colors = torch.cat([colors, features.to(colors)], dim=1)
     common = dict(
@@ -99,7 +101,7 @@ def rasterize_gsplat(
             indices_fn,
             meta,
             shape_key,
-            proj,
+            project(g, cam, near=near, with_colors=False),
             len(g),
             cam,
             trace,

@@ -102,13 +102,18 @@ def project(
 
 def view_colors(
     gaussians: Gaussians,
-    ids: torch.Tensor,  # [M] indices of the Gaussians to shade
+    ids: torch.Tensor | None,  # [M] indices of the Gaussians to shade; None: all of them
     center: torch.Tensor,  # [3] the camera's centre, world coordinates
 ) -> torch.Tensor:  # [M, 3]
-    """(M, 3) the SH colours of Gaussians `ids` seen from the camera's centre."""
-    dirs = gaussians.means[ids] - center
+    """(M, 3) the SH colours of Gaussians `ids` (all with None) seen from the camera's centre."""
+    means, sh = (
+        (gaussians.means, gaussians.sh)
+        if ids is None
+        else (gaussians.means[ids], gaussians.sh[ids])
+    )
+    dirs = means - center
     dirs = dirs / dirs.norm(dim=1, keepdim=True).clamp_min(1e-12)
-    return eval_sh(gaussians.sh[ids], dirs)
+    return eval_sh(sh, dirs)
 
 
 def _project_ellipsoids(g, rot, R, p_cam, fx, fy, cx, cy, cam):

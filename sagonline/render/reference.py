@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from sagonline.render.sh import eval_sh
+from sagonline.render.sh import eval_sh_terms
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 
@@ -69,7 +69,7 @@ def reference_render(
     W, H = camera.width, camera.height
     dirs = means - center
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    colors = eval_sh(g.sh.double(), torch.from_numpy(dirs)).numpy()
+    colors = eval_sh_terms(g.sh.double(), torch.from_numpy(dirs)).numpy()
     feats = None if features is None else features.double().cpu().numpy()
     p_cam = means @ Rw.T + tw
     order = np.argsort(p_cam[:, 2], kind="stable")

@@ -95,6 +95,13 @@ class Camera:
         return replace(self, K=K, width=int(width), height=int(height))
 
     def to(self, device: torch.device | str) -> Camera:
+        """The camera on `device`: itself where it is there already (a render calls this per
+        view, and a new camera's checks read its values on the host: a wait on the GPU)."""
+        where = torch.device(device)
+        if where.type == "cuda" and where.index is None:
+            where = torch.device("cuda", torch.cuda.current_device())
+        if self.K.device == where and self.world_to_cam.device == where:
+            return self
         return replace(self, K=self.K.to(device), world_to_cam=self.world_to_cam.to(device))
 
     def project(

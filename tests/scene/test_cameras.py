@@ -172,6 +172,13 @@ def test_scaled_camera_intrinsics():
     assert half.K[1, 2] == pytest.approx(cam.K[1, 2] / 2)
 
 
+def test_a_camera_already_on_the_device_is_itself():
+    """`to` its own device returns the camera itself (a render calls it per view, and a new
+    camera's checks read its values on the host, a wait on the GPU)."""
+    cam = small_camera(40, 30)
+    assert cam.to("cpu") is cam and cam.to(torch.device("cpu")) is cam
+
+
 def test_pseudo_temporal_order_and_smooth_path():
     cams = [
         small_camera(name=n, eye=e)
