@@ -8,13 +8,25 @@ the view, the compiled kernel's hand-written backward included: no kernel of the
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
 import torch.nn.functional as F
 
 from sagonline.scene.cameras import Camera
-from sagonline.scene.gaussians import Gaussians, quat_to_rotmat
+from sagonline.scene.gaussians import Gaussians, quat_to_normal, quat_to_rotmat
+
+
+@functools.lru_cache(maxsize=16)
+def ssim_window(
+    window: int, sigma: float, dtype: torch.dtype, device: torch.device
+) -> torch.Tensor:  # [3, 1, window, window]
+    """SSIM's Gaussian window, one per channel for a grouped convolution; made once per size,
+    type and device (a fit step would otherwise make it anew, a dozen launches on a GPU)."""
+    g = torch.exp(-((torch.arange(window, device=device) - window // 2) ** 2) / (2 * sigma**2))
+    g = (g / g.sum()).to(dtype)
+    return (g[:, None] * g[None, :]).expand(3, 1, window, window)
 
 
 def ssim(
@@ -27,9 +39,7 @@ def ssim(
     """Mean SSIM of two (H, W, 3) images in [0, 1] (Gaussian window, the usual constants),
     weighted per pixel by `weights` where given."""
     x, y = a.permute(2, 0, 1)[None], b.permute(2, 0, 1)[None]
-    g = torch.exp(-((torch.arange(window, device=a.device) - window // 2) ** 2) / (2 * sigma**2))
-    g = (g / g.sum()).to(a.dtype)
-    k = (g[:, None] * g[None, :]).expand(3, 1, window, window)
+    k = ssim_window(window, sigma, a.dtype, a.device)
     pad = window // 2
 
     def blur(t):
@@ -139,10 +149,10 @@ def splat_geometry(
     space, turned to face the camera (a surfel's third axis; a 3D Gaussian's shortest axis), and
     the centre depth z mapped as 2DGS maps it, m = far / (far - near) * (1 - near / z) (0 at the
     near plane, 1 at the far one), with m^2."""
-    rot = quat_to_rotmat(gaussians.quats)
     if gaussians.kind == "2dgs":
-        normal = rot[:, :, 2]
+        normal = quat_to_normal(gaussians.quats)
     else:
+        rot = quat_to_rotmat(gaussians.quats)
         axis = gaussians.scales.argmin(dim=1)
         normal = rot.gather(2, axis[:, None, None].expand(-1, 3, 1))[:, :, 0]
     R, t = camera.rotation.to(normal), camera.translation.to(normal)

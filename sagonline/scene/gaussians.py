@@ -115,6 +115,15 @@ def quat_to_rotmat(
     ).reshape(*quats.shape[:-1], 3, 3)
 
 
+def quat_to_normal(
+    quats: torch.Tensor,  # [N, 4] unit wxyz
+) -> torch.Tensor:  # [N, 3]
+    """(N, 3) the third column of `quat_to_rotmat` (a surfel's normal), by the same expressions
+    (so the same values) without the other six entries and their backward."""
+    w, x, y, z = quats.unbind(-1)
+    return torch.stack([2 * (x * z + w * y), 2 * (y * z - w * x), 1 - 2 * (x * x + y * y)], -1)
+
+
 def rotmat_to_quat(
     rot: torch.Tensor,  # [N, 3, 3]
 ) -> torch.Tensor:  # [N, 4] unit wxyz, w >= 0
