@@ -296,14 +296,14 @@ def _emit_kernel(
 
 def _camera_row(camera: Camera) -> torch.Tensor:  # [25] float32
     """R (9), t (3), K (9) and the 3DGS Jacobian's clamp limits (4), as `_project_kernel`
-    reads them (projection._project_ellipsoids: 1.3x the view frustum)."""
-    K = camera.K.detach().double().cpu()
-    pose = camera.world_to_cam.detach().double().cpu()
-    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    reads them (projection._project_ellipsoids: 1.3x the view frustum). Made where the camera
+    is, in float64 as before (the same values): reading K and the pose on the host made each
+    vote wait for the GPU twice."""
+    K, pose = camera.K.detach().double(), camera.world_to_cam.detach().double()
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     w, h = camera.width, camera.height
     gx, gy = 0.3 * w / (2 * fx), 0.3 * h / (2 * fy)  # the frustum's 0.3 margin
-    limits = [cx / fx + gx, (w - cx) / fx + gx, cy / fy + gy, (h - cy) / fy + gy]
-    limits = torch.tensor(limits, dtype=torch.float64)
+    limits = torch.stack([cx / fx + gx, (w - cx) / fx + gx, cy / fy + gy, (h - cy) / fy + gy])
     return torch.cat([pose[:3, :3].flatten(), pose[:3, 3], K.flatten(), limits]).float()
 
 

@@ -85,6 +85,25 @@ def test_the_image_walk_on_fused_tile_lists_matches_the_rasterizer(kind, monkeyp
     _check_image_walk(random_gaussians(40, kind, seed=4, spread=0.6), small_camera(20, 15))
 
 
+def test_the_camera_row_is_made_where_the_camera_is_without_a_read(monkeypatch):
+    """`_camera_row` (the projection kernel's camera constants) reads no value on the host (on
+    a GPU each read waited for it, twice a vote) and gives the frustum's limits by hand."""
+    from torch.profiler import ProfilerActivity, profile
+
+    from sagonline.render.triton_prepare import _camera_row
+
+    cam = small_camera(960, 540)
+    with profile(activities=[ProfilerActivity.CPU]) as prof:
+        row = _camera_row(cam)
+    names = {e.name for e in prof.events()}
+    assert not names & {"aten::_local_scalar_dense", "aten::item"}
+    K = cam.K.double()
+    fx, cx = float(K[0, 0]), float(K[0, 2])
+    assert row.shape == (25,) and row.dtype == torch.float32
+    assert float(row[21]) == pytest.approx(cx / fx + 0.3 * 960 / (2 * fx))
+    assert torch.equal(row[12:21], cam.K.flatten())
+
+
 def test_nothing_on_screen_is_no_view_and_no_votes(monkeypatch):
     from sagonline.render.triton_prepare import tile_view_fused
 
