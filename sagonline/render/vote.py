@@ -73,15 +73,16 @@ def vote_into(
     n, k = len(gaussians), hist.shape[1] if hist.dim() == 2 else 0
     if not isinstance(rule, VoteRule):
         raise TypeError(f"rule must be a VoteRule, got {type(rule).__name__}")
-    labels = torch.as_tensor(labels, device=gaussians.device).long()
+    labels = torch.as_tensor(labels).long()  # where they were given (a mask: the host's)
     if labels.shape != (camera.height, camera.width):
         raise ValueError(
             f"labels are {tuple(labels.shape)}; the view renders {camera.height}x{camera.width}"
         )
-    if labels.numel():  # one copy to the host on CUDA, not two
+    if labels.numel():  # read where they are: on the host no wait on a GPU; on one, one copy
         low, high = torch.stack(torch.aminmax(labels)).tolist()
         if low < 0 or high >= k:
             raise ValueError(f"label ids must lie in [0, {k})")
+    labels = labels.to(gaussians.device)
     if hist.shape != (n, k) or hist.dtype != torch.float64 or not hist.is_contiguous():
         raise ValueError(f"out must be a contiguous ({n}, {k}) float64 histogram")
     chosen = resolve_vote_backend(backend, gaussians.device)

@@ -108,9 +108,7 @@ class VoteAccumulator:
         the trajectory); returns the pairs that voted."""
         start = time.perf_counter()
         labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
-        cast = vote_into(
-            gaussians, camera, labels.to(gaussians.device), self.rule, self.hist, backend=backend
-        )
+        cast = vote_into(gaussians, camera, labels, self.rule, self.hist, backend=backend)
         self.pairs += cast
         self.frames.append(len(self.frames) if frame is None else frame)
         self.seconds += time.perf_counter() - start

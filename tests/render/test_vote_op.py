@@ -202,6 +202,19 @@ def test_the_op_rejects_bad_inputs():
         VoteRule(weighting="mean")
 
 
+def test_labels_given_on_the_host_are_checked_there():
+    """A mask comes from the segmenter on the host: its ids are checked there, before it goes to
+    the Gaussians' device (on a GPU the check there waited for it). Gaussians on PyTorch's
+    `meta` device, which holds no values, show where: a check there could not read them."""
+    from sagonline.render.vote import vote_into
+
+    g = random_gaussians(10, "3dgs").to("meta")
+    cam = small_camera(8, 6)
+    hist = torch.zeros(10, 2, dtype=torch.float64, device="meta")
+    with pytest.raises(ValueError, match=r"\[0, 2\)"):
+        vote_into(g, cam, torch.full((6, 8), 2), VoteRule(), hist)
+
+
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
 @pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "torch"])
 def test_label_walks_match_the_rasterizer(kind, backend):
