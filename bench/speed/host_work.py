@@ -102,7 +102,7 @@ def count(run, times: int) -> dict[str, tuple[float, float]]:
         part, nested, up = "rest", False, event.cpu_parent
         cpu_own = False
         while up is not None:
-            nested = nested or (up.name.startswith("aten::") and part == "rest")
+            nested = nested or up.name.startswith("aten::")
             cpu_own = cpu_own or up.name in READS_ON_THE_DEVICE_ON_CUDA
             if up.name.startswith("PART:"):
                 part = up.name[5:]

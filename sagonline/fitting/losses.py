@@ -77,11 +77,18 @@ def psnr_from_mse(mse: float) -> float:
     return 10 * math.log10(1.0 / max(mse, 1e-12))
 
 
+def mse(
+    a: torch.Tensor,  # [H, W, 3]
+    b: torch.Tensor,  # [H, W, 3]
+) -> torch.Tensor:  # [] on their device
+    return ((a - b) ** 2).mean()
+
+
 def psnr(
     a: torch.Tensor,  # [H, W, 3]
     b: torch.Tensor,  # [H, W, 3]
 ) -> float:
-    return psnr_from_mse(float(((a - b) ** 2).mean()))
+    return psnr_from_mse(float(mse(a, b)))
 
 
 def photometric_loss(

@@ -43,6 +43,7 @@ from sagonline.fitting.losses import (
     ReadLater,
     anisotropy_penalty,
     depth_distortion,
+    mse,
     nearest_views,
     neighbour_consistency,
     normal_consistency,
@@ -294,7 +295,7 @@ class SceneFitter:
             i = self.train_idx[int(rng.integers(len(self.train_idx)))]
             rgb = self.train_step(i, self.step / max(cfg.iterations, 1))
             self.step += 1
-            recent_mse.append(((rgb.clamp(0, 1) - self.images[i]) ** 2).mean())
+            recent_mse.append(mse(rgb.clamp(0, 1), self.images[i]))
             changed = self.strategy.after_step(self.params, self.step)
             if changed is not None:
                 self._set_params(changed)
