@@ -366,6 +366,10 @@ for model in minisam sam2_tiny; do
       --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" --objects $objects \
       "${DECODER_PATH[@]}" "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
+  # what fusing each half's spelled-out layers saves a call (segment.onnx_fuse): as written and
+  # fused, in turns
+  step "$model: fusion" "$PY" -m bench.speed.onnx_fusion --device "$DEVICE" --models "$model" \
+    "${BENCH_FILES[@]}" $([ "$QUICK" = 1 ] && echo "--quick") --out "$OUT/onnx_fusion_${model}_$TAG.csv"
   # and each input shape's call replayed as one CUDA graph (segmenter.cuda_graphs; CUDA only),
   # with one object and with five (whose prompts batched make as many calls as one's)
   if [ "$DEVICE" != cpu ]; then

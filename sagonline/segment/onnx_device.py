@@ -4,7 +4,8 @@ indices) stay on the CPU, and an operator meeting one beside a GPU tensor moves 
 `device_copies` holds a dict the same CPU tensor is copied once, from pinned memory, and its
 copy reused (the copy the graph's kernels read).
 On a CPU without native kernels for a half type, convolutions and matrix products of it run in
-float32 (`accumulated_in_float32`).
+float32 (`accumulated_in_float32`). `together` puts an operator's inputs on one device, `as_type`
+casts only what is not in the type already (a no-op cast is still a PyTorch call).
 """
 
 from __future__ import annotations
@@ -15,7 +16,14 @@ import functools
 
 import torch
 
-__all__ = ["accumulated_in_float32", "device_copies", "slow_on_this_cpu", "to_device"]
+__all__ = [
+    "accumulated_in_float32",
+    "as_type",
+    "device_copies",
+    "slow_on_this_cpu",
+    "to_device",
+    "together",
+]
 
 _COPIES: contextvars.ContextVar[dict | None] = contextvars.ContextVar("onnx_copies", default=None)
 
@@ -78,3 +86,17 @@ def accumulated_in_float32(fn):
         return fn(node, x.float(), *wide).to(x.dtype)
 
     return op
+
+
+def as_type(
+    t: torch.Tensor,  # [...]
+    dtype: torch.dtype,
+) -> torch.Tensor:  # [...] t's values in `dtype`
+    """t in `dtype`, itself when already (a weight in the session's type: no call at all)."""
+    return t if t.dtype == dtype else t.to(dtype)
+
+
+def together(*xs):
+    """The tensors on one device: a CPU one (a shape, an index) moves to the other's."""
+    device = next((x.device for x in xs if x is not None and x.device.type != "cpu"), None)
+    return [x if x is None or device is None else to_device(x, device) for x in xs]

