@@ -38,7 +38,7 @@ __all__ = ["FUSED_OPS", "fuse_patterns"]
 # --- the fused calls (`LayerNormalization` is among `onnx_ops.OPS` already) ----------------------
 
 
-def _channel_layer_norm(node, x, scale, bias):
+def _run_channel_layer_norm(node, x, scale, bias):
     """SAM's LayerNorm2d: x [N, C, ...] normalised over C at each place,
     scale and bias [C] (the graph's [C, 1, ...] flattened when fused)."""
     if x.dim() != node.attrs["rank"]:
@@ -53,14 +53,14 @@ def _channel_layer_norm(node, x, scale, bias):
     return moved.movedim(-1, 1)
 
 
-def _linear(node, x, w, b):
+def _run_linear(node, x, w, b):
     """MatMul by a weight, then Add b [M]: x [..., K], w [M, K] (the
     graph's [K, M], transposed when fused)."""
     x, w, b = together(x, w, b)
     return F.linear(x, w, b)
 
 
-def _attention(node, q, kt, v, bias=None):
+def _run_attention(node, q, kt, v, bias=None):
     """softmax(q @ kt * scale + bias) @ v: q [..., L, E], kt [..., E, S],
     v [..., S, Ev], bias broadcast to [..., L, S] or None."""
     q, kt, v, bias = together(q, kt, v, bias)
@@ -71,9 +71,9 @@ def _attention(node, q, kt, v, bias=None):
 
 FUSED_OPS = {  # op -> its function, as `onnx_ops.OPS` holds them
     "Gelu": lambda node, x: F.gelu(x, approximate=node.attrs.get("approximate", "none")),
-    "ChannelLayerNorm": _channel_layer_norm,
-    "Linear": accumulated_in_float32(_linear),
-    "Attention": accumulated_in_float32(_attention),
+    "ChannelLayerNorm": _run_channel_layer_norm,
+    "Linear": accumulated_in_float32(_run_linear),
+    "Attention": accumulated_in_float32(_run_attention),
 }
 
 # --- the patterns ---------------------------------------------------------------------------------
