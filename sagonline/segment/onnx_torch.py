@@ -191,6 +191,17 @@ class TorchSession:
         for name, i in last.items():
             if name not in kept:
                 self.free_after[i].append(name)
+        # a call whose shape arithmetic is known walks the other nodes alone (a decoder's are a
+        # third of them), each freeing what the bound nodes before it freed too (a Shape may be
+        # the last to read an activation)
+        self.unbound: list[tuple[int, list[str]]] = []
+        skipped: list[str] = []
+        for i, bound in enumerate(self.bound):
+            if bound:
+                skipped += self.free_after[i]
+            else:
+                self.unbound.append((i, skipped + self.free_after[i]))
+                skipped = []
 
     def _shape_bound(self) -> tuple[list[bool], list[str]]:
         """Which nodes compute the same values whenever the inputs have the same shapes and the
@@ -315,11 +326,10 @@ class TorchSession:
         values.update(known or {})
         record: dict[str, torch.Tensor] = {}  # on a new key: the bound values later nodes read
         opset = self.graph.opset
-        for i, node in enumerate(self.nodes):
-            if known is not None and self.bound[i]:  # its values came with the key
-                for name in self.free_after[i]:
-                    values.pop(name, None)
-                continue
+        # the bound nodes' values came with a known key
+        steps = self.unbound if known is not None else enumerate(self.free_after)
+        for i, free in steps:
+            node = self.nodes[i]
             try:
                 outs = _run_node(node, [values[name] for name in node.inputs], opset)
             except RuntimeError as exc:  # which node: a capture's refusal names it
@@ -334,7 +344,7 @@ class TorchSession:
                 values[name] = value
                 if name in self.bound_read:
                     record[name] = value
-            for name in self.free_after[i]:
+            for name in free:
                 values.pop(name, None)
         if known is None and self.reuse_shapes:
             if len(self.bound_values) >= 64:  # prompts of many shapes: keep the latest

@@ -291,6 +291,44 @@ def test_shape_arithmetic_runs_once_a_key_and_a_value_decided_shape_every_time(t
     assert len(session.bound_values) == 3
 
 
+def test_a_known_key_runs_the_other_nodes_alone_and_frees_what_a_shape_read_last(
+    tmp_path, monkeypatch
+):
+    """With a key's shape arithmetic known, a call runs only the nodes that depend on the
+    inputs' values; an activation whose last reader is shape arithmetic (a Shape) is still let
+    go during the call, at the next node that runs."""
+    from sagonline.segment import onnx_torch
+
+    nodes = [
+        helper.make_node("Relu", ["x"], ["r"]),
+        helper.make_node("Shape", ["r"], ["s"]),  # bound: r's shape is x's
+        helper.make_node(
+            "ConstantOfShape",
+            ["s"],
+            ["ones"],
+            value=numpy_helper.from_array(np.ones(1, np.float32)),
+        ),
+        helper.make_node("Add", ["x", "ones"], ["y"]),
+    ]
+    path = model_file(tmp_path, nodes, [tensor("x", [4, "n"])], [tensor("y", None)], (), 13)
+    session = TorchSession(path)
+    assert session.bound == [False, True, True, False]
+    assert [(session.nodes[i].op, sorted(free)) for i, free in session.unbound] == [
+        ("Relu", []),
+        ("Add", ["ones", "r", "s", "x"]),
+    ]
+    ran = []
+    real = onnx_torch._run_node
+    monkeypatch.setattr(
+        onnx_torch, "_run_node", lambda node, *a: ran.append(node.op) or real(node, *a)
+    )
+    x = np.random.default_rng(5).standard_normal((4, 5)).astype(np.float32)
+    for _ in range(2):
+        (got,) = session.run(None, {"x": x})
+        np.testing.assert_array_equal(got, x + 1)
+    assert ran == ["Relu", "Shape", "ConstantOfShape", "Add", "Relu", "Add"]
+
+
 def test_an_operator_without_a_pytorch_path_and_a_foreign_file_are_named(tmp_path):
     nodes = [helper.make_node("Selu", ["x"], ["y"])]
     path = model_file(tmp_path, nodes, [tensor("x", [2])], [tensor("y", [2])])
