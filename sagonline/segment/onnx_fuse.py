@@ -25,6 +25,7 @@ one's by float rounding.
 from __future__ import annotations
 
 import math
+import os
 from collections import Counter, defaultdict
 
 import torch
@@ -33,7 +34,18 @@ import torch.nn.functional as F
 from sagonline.segment.onnx_device import accumulated_in_float32, as_type, together
 from sagonline.segment.onnx_graph import Node
 
-__all__ = ["FUSED_OPS", "fuse_patterns"]
+__all__ = ["FUSED_OPS", "fuse_patterns", "fusing_by_default"]
+
+
+def fusing_by_default() -> bool:
+    """Whether a session fuses unless told (SAGONLINE_ONNX_FUSE: `1`, the default, or `0`:
+    every graph runs as written, say to tell a fused call's failure on a new machine from the
+    graph's own)."""
+    value = os.environ.get("SAGONLINE_ONNX_FUSE") or "1"
+    if value not in ("0", "1"):
+        raise ValueError(f"SAGONLINE_ONNX_FUSE={value!r}: use 1 (fuse, the default) or 0")
+    return value == "1"
+
 
 # --- the fused calls (`LayerNormalization` is among `onnx_ops.OPS` already) ----------------------
 

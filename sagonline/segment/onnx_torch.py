@@ -27,7 +27,7 @@ import numpy as np
 import torch
 
 from sagonline.segment.onnx_device import device_copies, to_device
-from sagonline.segment.onnx_fuse import FUSED_OPS, fuse_patterns
+from sagonline.segment.onnx_fuse import FUSED_OPS, fuse_patterns, fusing_by_default
 from sagonline.segment.onnx_graph import Node, ValueInfo, read_graph, topological
 from sagonline.segment.onnx_ops import HOST_READ, OPS, softmax
 
@@ -118,7 +118,8 @@ class TorchSession:
     fails, or whose replay differs from the eager run, is said once and that key runs eagerly.
 
     fuse: the graph's spelled-out LayerNorms, GELUs, linear layers and attentions run as one
-    call each (`segment.onnx_fuse`); False runs every node as written (what fusing saves)."""
+    call each (`segment.onnx_fuse`); False runs every node as written (what fusing saves);
+    None: as SAGONLINE_ONNX_FUSE says (fused unless it is 0)."""
 
     reuse_shapes = True  # False: shape arithmetic on every call (what reusing it saves)
     record = staticmethod(record_cuda_graph)  # how a key's graph is captured
@@ -129,7 +130,7 @@ class TorchSession:
         device: str = "cpu",
         precision: str = "fp32",
         cuda_graphs: bool = False,
-        fuse: bool = True,
+        fuse: bool | None = None,
     ):
         if precision not in PRECISIONS:
             raise ValueError(f"precision {precision!r}: use one of {', '.join(PRECISIONS)}")
@@ -158,7 +159,7 @@ class TorchSession:
             else:
                 nodes.append(node)
         self.fused = Counter()  # fused op -> how many `segment.onnx_fuse` made
-        if fuse:
+        if fusing_by_default() if fuse is None else fuse:
             outputs = {o.name for o in self.graph.outputs}
             nodes, self.fused = fuse_patterns(nodes, stored, outputs, self.graph.opset)
         read = {n for node in nodes for n in node.inputs} | {o.name for o in self.graph.outputs}

@@ -273,3 +273,15 @@ def test_a_call_reads_its_stored_shapes_and_positions_without_asking_pytorch(tmp
         and not (e.cpu_parent is not None and e.cpu_parent.name.startswith("aten::"))
     )
     assert top == Counter({"aten::reshape": 1, "aten::select": 1})
+
+
+def test_the_environment_can_turn_fusing_off_and_a_wrong_value_is_named(tmp_path, monkeypatch):
+    path, feeds = attention_graph(tmp_path, "Mul", True, -1, 17)
+    monkeypatch.setenv("SAGONLINE_ONNX_FUSE", "0")
+    assert TorchSession(path).fused == Counter()
+    assert TorchSession(path, fuse=True).fused == Counter(Attention=1)  # said outright: fused
+    monkeypatch.setenv("SAGONLINE_ONNX_FUSE", "yes")
+    with pytest.raises(ValueError, match="SAGONLINE_ONNX_FUSE='yes'"):
+        TorchSession(path)
+    monkeypatch.delenv("SAGONLINE_ONNX_FUSE")
+    assert TorchSession(path).fused == Counter(Attention=1)
