@@ -5,7 +5,7 @@ the checkout's root."""
 
 from pathlib import Path
 
-import sagonline  # noqa: F401, E402 (sets the OpenMP wait policy before torch loads)
+import sagonline  # noqa: F401, E402 (sets the OpenMP wait policy and OpenBLAS threads before they load)
 
 ROOT = Path(__file__).resolve().parents[1]
 # Where tables, reports and benchmark CSVs go by default: a user's own place, untracked (runs/ is

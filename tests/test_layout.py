@@ -163,6 +163,7 @@ def test_no_import_cycles_and_nothing_imports_the_entry_point():
 # Every environment variable the library sets, and where: docs/development.md says why.
 ENVIRONMENT_WRITES = {
     ("sagonline/__init__.py", "OMP_WAIT_POLICY"),
+    ("sagonline/__init__.py", "OPENBLAS_NUM_THREADS"),
     ("sagonline/render/triton_vote.py", "TRITON_INTERPRET"),
     ("sagonline/segment/yolo.py", "YOLO_OFFLINE"),
 }
