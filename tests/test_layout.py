@@ -181,6 +181,25 @@ def test_the_environment_is_changed_only_where_the_docs_say():
     assert all(var in docs for _, var in ENVIRONMENT_WRITES)
 
 
+def test_importing_the_package_first_sets_the_thread_defaults_unless_told():
+    """`import sagonline` before numpy and torch: OpenBLAS on one thread and OpenMP's idle
+    threads asleep, where the environment says nothing; a value given wins."""
+    import os
+
+    script = (
+        "import sagonline, os, numpy; "
+        "print(os.environ['OPENBLAS_NUM_THREADS'], os.environ['OMP_WAIT_POLICY'])"
+    )
+    env = {
+        k: v for k, v in os.environ.items() if k not in ("OPENBLAS_NUM_THREADS", "OMP_WAIT_POLICY")
+    }
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert out.stdout.split() == ["1", "PASSIVE"], out.stderr
+    env |= {"OPENBLAS_NUM_THREADS": "3", "OMP_WAIT_POLICY": "ACTIVE"}
+    out = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True)
+    assert out.stdout.split() == ["3", "ACTIVE"], out.stderr
+
+
 def test_every_environment_variable_the_code_reads_is_listed_in_the_docs():
     """docs/development.md lists each `SAGONLINE_*` variable that the library, the harness, the
     scripts or the C++ kernels read, and no other."""
