@@ -51,16 +51,18 @@ def fusing_by_default() -> bool:
 
 
 def _run_channel_layer_norm(node, x, scale, bias):
-    """SAM's LayerNorm2d: x [N, C, ...] normalised over C at each place,
-    scale and bias [C] (the graph's [C, 1, ...] flattened when fused)."""
+    """SAM's LayerNorm2d: x [N, C, ...] normalised over C at each place, scale and bias [C]
+    (the graph's [C, 1, ...] flattened when fused). An input of another rank than the one the
+    weights' shape was written for gets the written graph's values: normalised over axis 1,
+    the weights broadcast in their own shape."""
+    eps = float(node.attrs["epsilon"])
     if x.dim() != node.attrs["rank"]:
-        raise ValueError(f"ChannelLayerNorm of a {x.dim()}-D input, made for {node.attrs['rank']}")
+        centred = x - x.mean(dim=1, keepdim=True)
+        spread = torch.sqrt((centred * centred).mean(dim=1, keepdim=True) + eps)
+        shape = (-1,) + (1,) * (node.attrs["rank"] - 2)
+        return centred / spread * scale.reshape(shape) + bias.reshape(shape)
     moved = F.layer_norm(
-        x.movedim(1, -1),
-        x.shape[1:2],
-        as_type(scale, x.dtype),
-        as_type(bias, x.dtype),
-        eps=float(node.attrs["epsilon"]),
+        x.movedim(1, -1), x.shape[1:2], as_type(scale, x.dtype), as_type(bias, x.dtype), eps=eps
     )
     return moved.movedim(-1, 1)
 

@@ -285,3 +285,21 @@ def test_the_environment_can_turn_fusing_off_and_a_wrong_value_is_named(tmp_path
         TorchSession(path)
     monkeypatch.delenv("SAGONLINE_ONNX_FUSE")
     assert TorchSession(path).fused == Counter(Attention=1)
+
+
+def test_a_channel_layer_norm_of_another_rank_gives_the_written_graphs_values(tmp_path):
+    """The LayerNorm2d pattern (weights [C, 1, 1]) read by a 3-D input: its weights then
+    broadcast against axes the normalised one is not, as the written graph has them; the
+    fused call gives onnxruntime's values there too, not only for the 4-D inputs it was made
+    for."""
+    c = 4
+    nodes = layer_norm_nodes("x", "y", [1], "c_", 13)
+    inits = shared_constants() + [
+        const("c_gamma", RNG.standard_normal((c, 1, 1))),
+        const("c_beta", RNG.standard_normal((c, 1, 1))),
+        const("c_eps", 1e-6),
+    ]
+    path = model_file(tmp_path, nodes, [tensor("x", [c, 5, 3])], [tensor("y", None)], inits, 13)
+    x = RNG.standard_normal((c, 5, 3)).astype(np.float32)
+    session = fused_like_onnxruntime(path, {"x": x})
+    assert session.fused == Counter(ChannelLayerNorm=1)
