@@ -7,9 +7,10 @@ bounds it (the projection, the tile lists, the walk, the histogram's atomics).
 
 Each scene's votes run once to warm up, then `--masks` votes are profiled; the table lists the
 operators and kernels of largest self time (device time on CUDA, CPU time on the CPU) with
-their calls and share of the total. On a GPU, `scripts/gpu_check.sh` also runs one vote under
+their calls and share of the total. On a GPU, `scripts/gpu_check.sh` also runs the votes under
 Nsight Compute where `ncu` is installed (its speed-of-light and memory sections: memory,
-atomics or occupancy).
+atomics or occupancy), with `--plain`: Nsight Compute holds the GPU's counters, so
+`torch.profiler` would see no kernel there; `--plain` runs the same votes without it.
 """
 
 from __future__ import annotations
@@ -25,8 +26,12 @@ from sagonline.core.files import atomic_write_text
 from sagonline.render import vote_histogram
 
 
-def profile_votes(g, views, backend: str, masks: int, device: str) -> pd.DataFrame:
-    """The profiled votes' operators and kernels, largest self time first (ms in all)."""
+def profile_votes(
+    g, views, backend: str, masks: int, device: str, plain: bool = False
+) -> pd.DataFrame | None:
+    """The profiled votes' operators and kernels, largest self time first (ms in all); with
+    `plain`, the votes alone (for an outside profiler) and None. ValueError where the profiler
+    saw no time at all (another profiler holding the GPU's counters)."""
     from torch.profiler import ProfilerActivity, profile
 
     cams = [c.to(device) for c in views]
@@ -41,6 +46,9 @@ def profile_votes(g, views, backend: str, masks: int, device: str) -> pd.DataFra
             torch.cuda.synchronize()
 
     votes(len(cams))  # warm: compile, tile buffers
+    if plain:
+        votes(masks)
+        return None
     activities = [ProfilerActivity.CPU]
     cuda = device.startswith("cuda")
     if cuda:
@@ -53,6 +61,11 @@ def profile_votes(g, views, backend: str, masks: int, device: str) -> pd.DataFra
         if self_us <= 0:
             continue
         rows.append({"operator or kernel": e.key[:80], "calls": e.count, "self ms": self_us / 1e3})
+    if not rows:
+        raise ValueError(
+            f"torch.profiler saw no {'device' if cuda else 'CPU'} time in {masks} votes: is "
+            "another profiler (Nsight Compute) holding the counters? Under one, pass --plain"
+        )
     table = pd.DataFrame(rows).sort_values("self ms", ascending=False)
     table["share %"] = (100 * table["self ms"] / table["self ms"].sum()).round(1)
     table["self ms per vote"] = (table["self ms"] / masks).round(3)
@@ -67,17 +80,26 @@ def main() -> None:
     ap.add_argument("--top", type=int, default=12, help="rows shown per scene")
     ap.add_argument("--out", type=Path, default=None, help="also write the tables as one CSV")
     ap.add_argument("--quick", action="store_true", help="the tiny scenes (what the tests run)")
+    ap.add_argument("--plain", action="store_true", help="the votes alone, for an outside profiler")
     args = ap.parse_args()
     if not 1 <= args.masks <= 1000:
         ap.error("--masks in [1, 1000]")
     backend = args.backend or ("triton" if args.device.startswith("cuda") else "native")
     tables = []
     for name, g, _, views in scenes(args.quick):
-        table = profile_votes(g.to(args.device), views, backend, args.masks, args.device)
+        try:
+            table = profile_votes(
+                g.to(args.device), views, backend, args.masks, args.device, args.plain
+            )
+        except ValueError as err:
+            raise SystemExit(f"{name}: {err}") from None
+        if table is None:
+            print(f"{name}: {args.masks} votes, backend {backend} on {args.device}, not profiled")
+            continue
         print(f"\n## {name}: {args.masks} votes, backend {backend} on {args.device}\n")
         print(table.head(args.top).to_markdown(index=False))
         tables.append(table.assign(scene=name, backend=backend, device=args.device))
-    if args.out is not None:
+    if args.out is not None and tables:
         atomic_write_text(args.out, pd.concat(tables).to_csv(index=False))
 
 

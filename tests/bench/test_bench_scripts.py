@@ -103,6 +103,42 @@ def test_bench_vote_kernels_counts_the_gaussians_a_difference_touches():
     }
 
 
+def test_bench_vote_profile_runs_its_votes_plain_for_an_outside_profiler(tmp_path):
+    """Under Nsight Compute the GPU's counters are taken, so the check runs the votes with
+    --plain: each scene's votes run and nothing is profiled or written."""
+    out = tmp_path / "profile.csv"
+    text = _run("vote_profile", "--masks", "2", "--plain", "--out", str(out))
+    assert text.count("2 votes, backend native on cpu, not profiled") == 2
+    assert not out.exists()
+
+
+def test_bench_vote_profile_says_why_a_profile_without_events_is_empty(monkeypatch):
+    """A profiler that saw nothing (another one holding the counters) is a clear error, not a
+    pandas KeyError on an empty table."""
+    import torch.profiler
+
+    from bench.speed import render as render_bench
+    from bench.speed.vote_profile import profile_votes
+
+    class Silent:
+        def __init__(self, **_):
+            pass
+
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *_):
+            return False
+
+        def key_averages(self):
+            return []
+
+    monkeypatch.setattr(torch.profiler, "profile", Silent)
+    _, g, _, views = next(iter(render_bench.scenes(True)))
+    with pytest.raises(ValueError, match="saw no CPU time in 1 votes.*--plain"):
+        profile_votes(g, views, "native", 1, "cpu")
+
+
 @pytest.mark.parametrize("kernels, unknown", [("walk,chunk8", "chunk8"), ("walk+cuda", "+cuda")])
 def test_bench_vote_kernels_refuses_an_unknown_kernel(kernels, unknown):
     proc = subprocess.run(
