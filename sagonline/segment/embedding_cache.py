@@ -16,6 +16,7 @@ read of an entry still being written waits for it, and the process's end waits f
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
 import shutil
 import threading
@@ -26,6 +27,17 @@ from pathlib import Path
 import numpy as np
 
 from sagonline.segment.embedding import all_finite
+
+
+def digest_frame(image: np.ndarray) -> str:
+    """What the embedding cache knows a frame by: its bytes (C order) and its shape, hashed
+    where the array lies (no copy of a contiguous image), 128 bits of SHA-256 (which CPUs
+    compute in hardware: 1.3 ms for a 960x540 view here, BLAKE2b's 3.1 before; every view of
+    Stage I pays it)."""
+    hashed = hashlib.sha256(np.ascontiguousarray(image))
+    hashed.update(str(image.shape).encode())
+    return hashed.hexdigest()[:32]
+
 
 IN_FLIGHT = 4  # entries waiting to be written at most (SAM 2's: 8 MB each); a save past it waits
 

@@ -88,6 +88,12 @@ class SamPromptingConfig:
     one call each: the same masks (to about 1e-5 of the logits), a few hundred operator
     launches a call fewer per object. null: where the decoder runs on PyTorch on CUDA; true
     only with decoder_runtime=torch; false: one call a prompt."""
+    warm_up: bool | None = None
+    """When the model opens, one encoder and one decoder call on a blank 960x540 frame, kept in
+    no cache, so that the prompt view does not pay the device's first calls: on an H200 its
+    decoder calls took 2.5 s against 16 ms a view later (docs/performance.md, round three); on
+    a 2-core CPU a first decoder call took 0.32-0.46 s against 0.07-0.09 s. null: where
+    `device` is a GPU; true; false."""
     embedding_cache: str | None = "~/.cache/sagonline/embeddings"
     """Where image embeddings are kept, by the frame's and the encoder's content (each entry
     checked on read); null: in this process only."""

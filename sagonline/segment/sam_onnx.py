@@ -51,23 +51,13 @@ from sagonline.segment.embedding import (
     converted,
     widened,
 )
-from sagonline.segment.embedding_cache import EmbeddingCache
+from sagonline.segment.embedding_cache import EmbeddingCache, digest_frame
 from sagonline.segment.onnx_torch import to_host
 
 if TYPE_CHECKING:
     import torch
 
 __all__ = ["FORMATS", "FORMAT_NAMES", "GRID", "SIZE", "Answer", "Embedding", "SamPair"]
-
-
-def digest_frame(image: np.ndarray) -> str:
-    """What the embedding cache knows a frame by: its bytes (C order) and its shape, hashed
-    where the array lies (no copy of a contiguous image), 128 bits of SHA-256 (which CPUs
-    compute in hardware: 1.3 ms for a 960x540 view here, BLAKE2b's 3.1 before; every view of
-    Stage I pays it)."""
-    hashed = hashlib.sha256(np.ascontiguousarray(image))
-    hashed.update(str(image.shape).encode())
-    return hashed.hexdigest()[:32]
 
 
 @functools.cache
@@ -232,6 +222,15 @@ class SamPair:
         the background while a click's run asks for some of them)."""
         with self._lock:
             return self._embed(image)
+
+    def warm_up(self, size: tuple[int, int] = (540, 960)) -> None:
+        """One encoder and one decoder call on a blank (height, width) frame, kept in no cache:
+        a device's first calls (kernels loaded, first-call work) paid before the first view."""
+        outputs, on_device = self._encode(np.zeros((*size, 3), np.uint8))
+        emb = self.embedding_of(self.kept(outputs, "a blank frame"), size)
+        self._on_device = (emb, self.view_feeds(on_device) if on_device else {})
+        self.decode(emb, np.array([[size[1] / 2, size[0] / 2]]), np.ones(1, int))
+        self._on_device = (None, {})
 
     def _embed(self, image: np.ndarray) -> Embedding:
         frame_digest = digest_frame(image)

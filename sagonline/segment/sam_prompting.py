@@ -156,6 +156,8 @@ class SamFamilySegmenter(VideoSegmenter):
                 )
             except ModelFileError as exc:
                 raise ValueError(str(exc)) from None
+            if self.cfg.warm_up or (self.cfg.warm_up is None and self.device != "cpu"):
+                self._model.warm_up()
         return self._model
 
     # --- the video ------------------------------------------------------------------------------
