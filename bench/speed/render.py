@@ -166,6 +166,8 @@ def main() -> None:
     if args.quick:
         args.repeats, args.masks = 1, 4
     devices = [d for d in args.devices.split(",") if d == "cpu" or torch.cuda.is_available()]
+    if not devices:
+        ap.error(f"--devices {args.devices}: none of them is here (no CUDA); add cpu")
     rows = []
     for name, gaussians, cam, views in scenes(args.quick):
         for device in devices:

@@ -66,6 +66,23 @@ def test_bench_render_rows_on_cuda_follow_what_is_installed():
     ]
 
 
+def test_bench_render_refuses_devices_none_of_which_is_here():
+    """`--devices cuda` on a machine without CUDA says so (it raised IndexError)."""
+    import torch
+
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is here")
+    proc = subprocess.run(
+        [sys.executable, "-m", "bench.speed.render", "--quick", "--devices", "cuda"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert proc.returncode == 2
+    assert "--devices cuda: none of them is here (no CUDA)" in proc.stderr
+
+
 def test_a_vote_kernel_that_fails_is_a_row_that_says_so_and_the_others_still_run(monkeypatch):
     """On a GPU lent for minutes, a chunked kernel that does not compile must not cost the
     splat walk's figures."""
