@@ -1,7 +1,8 @@
 """The SAM-family models' halves on each runtime (`bench.speed.sam --parts runtimes,decoders`):
 the image encoder on onnxruntime and on PyTorch at each precision, the prompt decoder on
 onnxruntime and on PyTorch; per row the time, the largest difference from onnxruntime's outputs
-and the box IoU on the captures' photographs."""
+and the box IoU on the captures' photographs. `python -m bench.speed.sam_runtimes CSV [DEVICE]`
+prints the fastest encoder precision of such a table whose IoU holds (`fastest_precision`)."""
 
 from __future__ import annotations
 
@@ -177,3 +178,22 @@ def decoder_table(
                 }
             )
     return pd.DataFrame(rows)
+
+
+def fastest_precision(table: pd.DataFrame, device: str = "cuda", points: float = 0.5) -> str:
+    """The precision of the fastest PyTorch encoder on `device` in a `runtime_table` whose box
+    IoU lies within `points` (percentage points) of fp32's there; fp32 where none is faster.
+    ValueError where the table has no fp32 row for `device`."""
+    rows = table[(table["encoder runtime"] == "torch") & (table["device"] == device)]
+    column = next(c for c in table.columns if c.startswith("box IoU"))
+    fp32 = rows[rows["precision"] == "fp32"]
+    if fp32.empty:
+        raise ValueError(f"no PyTorch fp32 encoder row on {device} to hold the others to")
+    held = rows[100 * (fp32[column].iloc[0] - rows[column]).abs() <= points]
+    return str(held.sort_values("encoder ms/image")["precision"].iloc[0])
+
+
+if __name__ == "__main__":  # the fastest precision of a runtimes CSV (scripts/gpu_check.sh)
+    import sys
+
+    print(fastest_precision(pd.read_csv(sys.argv[1]), *sys.argv[2:3]))

@@ -340,3 +340,25 @@ def test_bench_sam_refuses_a_capture_it_does_not_know():
         cwd=ROOT,
     )
     assert refused.returncode == 2 and "--captures duck_queen,nope: some of" in refused.stderr
+
+
+def test_the_fastest_encoder_precision_is_the_fastest_whose_iou_holds():
+    """Of a runtimes table's PyTorch rows on the device: the fastest whose box IoU is within
+    0.5 points of fp32's (a faster one that loses more is passed over); fp32 where it is the
+    fastest; refused without an fp32 row to hold the others to."""
+    from bench.speed.sam_runtimes import fastest_precision
+
+    def table(rows):
+        names = ["encoder runtime", "precision", "device", "encoder ms/image", "box IoU (6 photos)"]
+        return pd.DataFrame(rows, columns=names)
+
+    rows = [
+        ("onnxruntime", "fp32", "cpu", 600.0, 0.9691),
+        ("torch", "fp32", "cuda", 9.5, 0.9691),
+        ("torch", "fp16", "cuda", 7.0, 0.9600),  # 0.91 points lower: not held
+        ("torch", "bf16", "cuda", 8.1, 0.9660),  # 0.31 points lower: held
+    ]
+    assert fastest_precision(table(rows)) == "bf16"
+    assert fastest_precision(table(rows[:2] + [("torch", "bf16", "cuda", 12.0, 0.9691)])) == "fp32"
+    with pytest.raises(ValueError, match="no PyTorch fp32 encoder row on cuda"):
+        fastest_precision(table(rows[:1] + rows[2:]))
