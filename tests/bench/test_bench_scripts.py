@@ -362,3 +362,16 @@ def test_the_fastest_encoder_precision_is_the_fastest_whose_iou_holds():
     assert fastest_precision(table(rows[:2] + [("torch", "bf16", "cuda", 12.0, 0.9691)])) == "fp32"
     with pytest.raises(ValueError, match="no PyTorch fp32 encoder row on cuda"):
         fastest_precision(table(rows[:1] + rows[2:]))
+
+
+def test_the_fastest_encoder_precision_is_printed_for_the_gpu_check(tmp_path):
+    """`python -m bench.speed.sam_runtimes CSV [DEVICE]`, as scripts/gpu_check.sh calls it
+    (in a branch its CPU run does not enter): the precision alone on stdout."""
+    columns = ["encoder runtime", "precision", "device", "encoder ms/image", "box IoU (6 photos)"]
+    rows = [("torch", "fp32", "cuda", 13.5, 0.966), ("torch", "fp16", "cuda", 9.6, 0.966)]
+    csv = tmp_path / "encoder_runtimes_sam2_tiny_cuda.csv"
+    pd.DataFrame(rows, columns=columns).to_csv(csv, index=False)
+    command = [sys.executable, "-m", "bench.speed.sam_runtimes", str(csv), "cuda"]
+    proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout == "fp16\n"
