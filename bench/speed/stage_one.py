@@ -124,17 +124,24 @@ def build(name: str, device: str, settings: dict):
     return segmenter
 
 
-def time_encoder_parts(model, clock: Clock) -> None:
-    """Time the encoder column's parts apart (`ENCODER_PARTS`): the frame the model gets
-    (`preprocess`, `preprocess_on`) and the model's call (onnxruntime's `run`, PyTorch's
-    `forward`), each synchronised like the columns."""
-    for name in ("preprocess", "preprocess_on"):
-        made = getattr(model, name)
-        setattr(model, name, lambda *a, _f=made, **kw: clock.timed("encoder_frame", _f, *a, **kw))
+def timed_as(owner, method: str, part: str, clock: Clock) -> None:
+    """`owner.method` timed under `part` from now on (synchronised like the columns)."""
+    call = getattr(owner, method)
+    setattr(owner, method, lambda *a, **kw: clock.timed(part, call, *a, **kw))
+
+
+def time_model(model, clock: Clock) -> None:
+    """A model's columns timed: its encoder and decoder (their calls counted), and within the
+    encoder column (`ENCODER_PARTS`) the frame the model gets (`preprocess`, `preprocess_on`)
+    and the model's call (onnxruntime's `run`, PyTorch's `forward`)."""
+    timed_as(model, "embed", "encoder", clock)
+    timed_as(model, "decode_many", "decoder", clock)
+    run_decoder = model.run_decoder
+    model.run_decoder = lambda *a, **kw: clock.counted("decoder_calls", run_decoder, *a, **kw)
+    timed_as(model, "preprocess", "encoder_frame", clock)
+    timed_as(model, "preprocess_on", "encoder_frame", clock)
     encoder = model.encoder
-    name = "forward" if hasattr(encoder, "forward") else "run"
-    call = getattr(encoder, name)
-    setattr(encoder, name, lambda *a, **kw: clock.timed("encoder_model", call, *a, **kw))
+    timed_as(encoder, "forward" if hasattr(encoder, "forward") else "run", "encoder_model", clock)
 
 
 def time_views(
@@ -163,11 +170,7 @@ def time_views(
     clock = Clock(device)
     model = segmenter.model() if hasattr(segmenter, "model") else None
     if model is not None:  # the encoder's and the decoder's share of each view, timed apart
-        embed, decode_many, run_decoder = model.embed, model.decode_many, model.run_decoder
-        model.embed = lambda *a, **kw: clock.timed("encoder", embed, *a, **kw)
-        model.decode_many = lambda *a, **kw: clock.timed("decoder", decode_many, *a, **kw)
-        model.run_decoder = lambda *a, **kw: clock.counted("decoder_calls", run_decoder, *a, **kw)
-        time_encoder_parts(model, clock)
+        time_model(model, clock)
     frames = RenderedOnAsk(g, cams, plan.images, clock)
     votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
     stream = iter(segmenter.stream(frames, prompt))
