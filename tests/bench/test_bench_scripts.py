@@ -66,6 +66,23 @@ def test_bench_render_rows_on_cuda_follow_what_is_installed():
     ]
 
 
+def test_bench_render_asks_for_the_cpu_walk_only_where_the_cpu_was_timed(monkeypatch):
+    """Its header's SIMD name builds the CPU kernels: on a GPU machine timing CUDA alone that
+    cost the check's render step its deadline (round three), so a CUDA-only run never asks."""
+    from bench.speed import render as render_bench
+
+    def must_not_build():
+        raise AssertionError("the CPU kernels were asked for")
+
+    monkeypatch.setattr(render_bench, "native_available", must_not_build)
+    assert render_bench.cpu_walk_simd(["cuda"]) == "-"
+    monkeypatch.setattr(render_bench, "native_available", lambda: True)
+    monkeypatch.setattr(render_bench, "vote_simd", lambda: "avx2")
+    assert render_bench.cpu_walk_simd(["cpu", "cuda"]) == "avx2"
+    monkeypatch.setattr(render_bench, "native_available", lambda: False)
+    assert render_bench.cpu_walk_simd(["cpu"]) == "-"
+
+
 def test_bench_render_refuses_devices_none_of_which_is_here():
     """`--devices cuda` on a machine without CUDA says so (it raised IndexError)."""
     import torch
