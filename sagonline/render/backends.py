@@ -211,11 +211,11 @@ _SOURCES = {
 
 
 # The Triton vote's kernels: (splats a step of its loop takes, warps per tile) (0: the splat
-# walk, one splat on 4 warps): `walk` (triton_vote, the default and the one measured on a GPU),
-# `chunk16`, `chunk32` and `chunk16w16` (triton_vote_chunk on 8 or 16 warps: the compiler gives
-# it one block an SM at 8 warps, `bench.speed.kernel_resources`); SAGONLINE_TRITON_VOTE chooses,
-# read at each vote, so that a benchmark times them side by side in one process
-# (bench/speed/vote_kernels.py).
+# walk, one splat on 4 warps): `walk` (triton_vote) and `chunk16`, `chunk32` and `chunk16w16`
+# (triton_vote_chunk on 8 or 16 warps: the compiler gives it one block an SM at 8 warps,
+# `bench.speed.kernel_resources`). SAGONLINE_TRITON_VOTE chooses one, read at each vote, so that
+# a benchmark times them side by side in one process (bench/speed/vote_kernels.py); unset, the
+# rule's default (`DEFAULT_TRITON_VOTE`).
 TRITON_VOTE_KERNELS = {
     "walk": (0, 4),
     "chunk16": (16, 8),
@@ -224,14 +224,28 @@ TRITON_VOTE_KERNELS = {
 }
 
 
-def triton_vote_kernel() -> str:
-    """The Triton vote kernel this process launches (SAGONLINE_TRITON_VOTE, default walk)."""
-    name = os.environ.get("SAGONLINE_TRITON_VOTE") or "walk"
-    if name not in TRITON_VOTE_KERNELS:
+# Unset, the vote kernel by the rule's weighting where CUDA is: `chunk16` counts, on two H200
+# leases 1.81 and 1.91 ms a vote against the walk's 2.65 and 2.54 (round three), 1.88 and 1.86
+# against 3.10 and 2.48 (round two), with the walk's votes (reports/cuda_2026-12-04b/
+# vote_kernels_cuda.csv); its blend variant spills registers and was never timed, so blends
+# walk. On the CPU (Triton's interpreter, the tests) the walk.
+DEFAULT_TRITON_VOTE = {"count": "chunk16", "blend": "walk"}
+
+
+def triton_vote_kernel(weighting: str | None = None) -> str:
+    """The Triton vote kernel this process launches for a rule of `weighting` (count, blend):
+    SAGONLINE_TRITON_VOTE where it is set, else `DEFAULT_TRITON_VOTE` where CUDA is and the walk
+    on the CPU; weighting None: the setting as text (`auto` where unset: by the rule)."""
+    name = os.environ.get("SAGONLINE_TRITON_VOTE") or ""
+    if name and name not in TRITON_VOTE_KERNELS:
         raise BackendError(
             f"SAGONLINE_TRITON_VOTE={name!r}: use one of {tuple(TRITON_VOTE_KERNELS)}"
         )
-    return name
+    if name:
+        return name
+    if weighting is None:
+        return "auto"
+    return DEFAULT_TRITON_VOTE[weighting] if torch.cuda.is_available() else "walk"
 
 
 # How the Triton walks' tile lists are made (SAGONLINE_TRITON_PREPARE, read at each view):

@@ -14,9 +14,9 @@ One kernel, `_walk_kernel`: a program per 16x16 tile walks the tile's depth-sort
   image renderer of a CUDA machine without gsplat (`triton_composite.py`; no gradients).
 
 A second vote kernel, `triton_vote_chunk._vote_chunk_kernel`, takes the same tile lists CHUNK
-splats at a time; which one the vote op launches is `backends.triton_vote_kernel()`
-(SAGONLINE_TRITON_VOTE: walk, the default, chunk16, chunk32 or chunk16w16; docs/performance.md,
-"The chunked vote").
+splats at a time; which one the vote op launches is `backends.triton_vote_kernel(weighting)`
+(SAGONLINE_TRITON_VOTE: walk, chunk16, chunk32 or chunk16w16; unset, chunk16 for counts and the
+walk for blends on CUDA, the walk on the CPU; docs/performance.md, "The chunked vote").
 
 Alpha is `projection.splat_response`'s (3DGS conics, 2DGS ray-splat intersection). The kernel
 is compiled by `triton.jit` for CUDA tensors at run time (no CUDA toolkit needed) or, in a

@@ -5,9 +5,10 @@ walk's vote gives (the (N, K) histogram and the pairs that voted per tile), by t
 a chunk's parameters are loaded together, alpha is a (256 pixels, CHUNK) block, the
 transmittance before each splat a running product along the chunk (tl.cumprod), and the
 chunk's votes per label one (CHUNK, 256) x (256, KP) product (tl.dot). `triton_vote.vote_into`
-launches it when SAGONLINE_TRITON_VOTE is chunk16, chunk32 or chunk16w16 (16 warps a tile;
-`backends.triton_vote_kernel`).
-Which kernel is faster on a GPU is not measured yet (docs/performance.md, "The chunked vote").
+launches it when SAGONLINE_TRITON_VOTE is chunk16, chunk32 or chunk16w16 (16 warps a tile),
+and, with it unset, chunk16 for a counting rule on CUDA: faster than the walk there on both
+bench scenes in two GPU runs (`backends.DEFAULT_TRITON_VOTE`; docs/performance.md, "The chunked
+vote").
 """
 
 from __future__ import annotations

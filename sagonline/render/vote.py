@@ -16,8 +16,8 @@ rule) -> pairs voted` (as gsplat pairs `_wrapper.py` with `_torch_impl.py`):
 - native (`native.py`): the compiled CPU pass (csrc/prepare_view.cpp: projection and tile
   lists; csrc/vote_cpu.cpp: an 8-pixel-wide walk in C++, AVX2 chosen at run time);
 - triton (`triton_vote.py`): the fused trace-and-vote kernel, one launch per view, on CUDA; the
-  tests run the same kernel on the CPU through Triton's interpreter (SAGONLINE_TRITON_VOTE=
-  chunk16, chunk32 or chunk16w16: `triton_vote_chunk.py`'s chunked vote instead);
+  tests run the same kernel on the CPU through Triton's interpreter; `triton_vote_chunk.py`'s
+  chunked vote counts on CUDA (`backends.triton_vote_kernel`; SAGONLINE_TRITON_VOTE chooses);
 - gsplat (`_torch_impl.py`, `via="gsplat"`): gsplat's per-pixel ids walked in depth batches
   from Python (CUDA; the former path, kept to compare against).
 """
@@ -89,11 +89,12 @@ def vote_into(
     if n == 0:
         return 0
     with torch.profiler.record_function(f"vote_into ({chosen})"):  # named in a profile
-        return int(implementation(chosen)(gaussians, camera, labels, hist, rule))
+        return int(implementation(chosen, rule.weighting)(gaussians, camera, labels, hist, rule))
 
 
-def implementation(backend: str):
-    """The `vote_into(gaussians, camera, labels, hist, rule)` of a backend."""
+def implementation(backend: str, weighting: str = "count"):
+    """The `vote_into(gaussians, camera, labels, hist, rule)` of a backend, for a rule of
+    `weighting` (which Triton kernel votes: `backends.triton_vote_kernel`)."""
     if backend == "native":
         from sagonline.render.native import vote_into
 
@@ -102,7 +103,7 @@ def implementation(backend: str):
         from sagonline.render import triton_vote
         from sagonline.render.triton_prepare import chosen_tile_view
 
-        chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel()]
+        chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel(weighting)]
         prepare = chosen_tile_view()  # PyTorch's tile lists or the fused kernels'
         if chunk:
             from sagonline.render.triton_vote_chunk import vote_chunks

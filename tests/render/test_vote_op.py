@@ -349,10 +349,46 @@ def test_an_unknown_triton_vote_kernel_is_refused_and_each_kernel_keys_its_own_c
         digests.add(implementation_digest("triton"))
     assert len(digests) == len(TRITON_VOTE_KERNELS)  # a vote cached by one is not another's
     monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "")
-    assert implementation_digest("triton") in digests  # unset: the walk
+    assert implementation_digest("triton") not in digests  # unset: by the rule, keyed apart
     monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk8")
     with pytest.raises(ValueError, match=r"SAGONLINE_TRITON_VOTE='chunk8'.*walk"):
         vote_histogram(g, cams[0], _masks(cams[0], 3, 0), 3, RULES["rgc"], backend="triton")
+
+
+def test_unset_the_vote_kernel_follows_the_rule_on_cuda_and_walks_on_the_cpu(monkeypatch):
+    """Where CUDA is, counts take the chunked vote (faster on both bench scenes in two GPU
+    runs, the same votes) and blends the walk (the chunked blend spills registers, untimed); on
+    the CPU the walk; SAGONLINE_TRITON_VOTE overrides both."""
+    import torch
+
+    from sagonline.render import backends
+
+    monkeypatch.delenv("SAGONLINE_TRITON_VOTE", raising=False)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert backends.triton_vote_kernel("count") == "chunk16"
+    assert backends.triton_vote_kernel("blend") == "walk"
+    assert backends.triton_vote_kernel() == "auto"
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk32")
+    assert backends.triton_vote_kernel("count") == backends.triton_vote_kernel("blend") == "chunk32"
+    monkeypatch.delenv("SAGONLINE_TRITON_VOTE")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert backends.triton_vote_kernel("count") == backends.triton_vote_kernel("blend") == "walk"
+
+
+def test_the_vote_op_launches_the_kernel_its_rule_chooses(monkeypatch):
+    """`render.vote.implementation` hands the rule's weighting to the choice: a count launches
+    the chunked vote where it is chosen, a blend the walk."""
+    from sagonline.render import backends
+    from sagonline.render import vote as vote_op
+    from sagonline.render.triton_vote_chunk import vote_chunks
+
+    chosen = {"count": "chunk16", "blend": "walk"}
+    monkeypatch.setattr(vote_op, "triton_vote_kernel", lambda weighting: chosen[weighting])
+    count, blend = (vote_op.implementation("triton", w) for w in ("count", "blend"))
+    assert count.keywords["launch"].func is vote_chunks
+    assert count.keywords["launch"].keywords == {"chunk": 16, "warps": 8}
+    assert "launch" not in blend.keywords
+    assert backends.TRITON_VOTE_KERNELS["chunk16"] == (16, 8)
 
 
 @pytest.mark.slow
