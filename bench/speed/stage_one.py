@@ -14,7 +14,10 @@ stops. The segmenter sees each view as it is rendered (the frames are rendered w
 them), so a view's total is what an online Stage I spends on it; "render" ends with the view
 as the segmenter reads it, an 8-bit image on the host. With a model, the encoder's column is
 also split (`encoder_frame_ms`: the frame made for the model; `encoder_model_ms`: the model's
-call; the rest is the frame's digest and the outputs' rounding, copy and checks). The first
+call; the rest is the frame's digest and the outputs' rounding, copy and checks), and so is the
+vote's (`vote_check_ms`: the mask checked on the host; `vote_op_ms`: the vote op's own call, the
+tile lists, the kernel and its count of pairs; the rest is the mask's copy to the device and
+the op's checks). The first
 view (the prompt's, with the model's warm-up) is listed but left out of the mean and the median
 (the median also sets aside a later view's one-off cost, such as a CUDA graph's capture). A
 segmenter without an encoder (classical) has its whole time under "segment"; the oracle reads
@@ -26,7 +29,7 @@ from __future__ import annotations
 
 import argparse
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import fields
 from pathlib import Path
 
@@ -49,6 +52,10 @@ PARTS = ("render", "encoder", "decoder", "segment", "vote", "labels")
 # model (resized, normalised, on its device) and the model's call; the rest of the column is the
 # frame's digest, the outputs' rounding, copy to the host and checks
 ENCODER_PARTS = ("encoder_frame", "encoder_model")
+# the vote column's own parts: the mask checked (ids in range, its view's size) and the vote
+# op's call (tile lists, kernel, pairs counted); the rest is the mask's copy and the op's checks
+VOTE_PARTS = ("vote_check", "vote_op")
+INNER_PARTS = (*ENCODER_PARTS, *VOTE_PARTS)
 
 
 class Clock:
@@ -57,8 +64,8 @@ class Clock:
 
     def __init__(self, device: str):
         self.cuda = device.startswith("cuda")
-        self.total = dict.fromkeys((*PARTS, *ENCODER_PARTS), 0.0)
-        self.calls = dict.fromkeys((*PARTS, *ENCODER_PARTS, "decoder_calls"), 0)
+        self.total = dict.fromkeys((*PARTS, *INNER_PARTS), 0.0)
+        self.calls = dict.fromkeys((*PARTS, *INNER_PARTS, "decoder_calls"), 0)
 
     def counted(self, what: str, fn, *args, **kwargs):
         self.calls[what] += 1
@@ -144,6 +151,27 @@ def time_model(model, clock: Clock) -> None:
     timed_as(encoder, "forward" if hasattr(encoder, "forward") else "run", "encoder_model", clock)
 
 
+def time_vote(clock: Clock) -> Callable[[], None]:
+    """The vote column's parts timed (`VOTE_PARTS`): the accumulator's mask check and the vote
+    op's implementation call, wrapped where they are looked up; returns what undoes it."""
+    from sagonline.render import vote as vote_op
+    from sagonline.vote import consensus
+
+    check, implementation = consensus.check_mask, vote_op.implementation
+
+    def timed_implementation(*args, **kwargs):
+        run = implementation(*args, **kwargs)
+        return lambda *a, **kw: clock.timed("vote_op", run, *a, **kw)
+
+    consensus.check_mask = lambda *a, **kw: clock.timed("vote_check", check, *a, **kw)
+    vote_op.implementation = timed_implementation
+
+    def undo() -> None:
+        consensus.check_mask, vote_op.implementation = check, implementation
+
+    return undo
+
+
 def time_views(
     segmenter_name: str, views: int, size, gaussians: int, objects: int, device: str, settings
 ):
@@ -174,6 +202,21 @@ def time_views(
     frames = RenderedOnAsk(g, cams, plan.images, clock)
     votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
     stream = iter(segmenter.stream(frames, prompt))
+    untime_vote = time_vote(clock)
+    try:
+        rows = views_timed(stream, votes, g, cams, plan.vote, clock, model is not None)
+    finally:
+        untime_vote()
+    weights = ", ".join(
+        f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()
+    )
+    batched = bool(getattr(model, "batch_prompts", False))
+    return pd.DataFrame(rows), plan, weights or "none", batched
+
+
+def views_timed(stream, votes, g, cams, vote_backend: str, clock: Clock, model: bool) -> list:
+    """Each view's row as the segmenter's `stream` gives its mask: the parts' milliseconds,
+    the total, the decoder's calls and the inner parts (the encoder's with a `model`)."""
     rows = []
     while True:  # a view's parts: what the segmenter spent to give its mask, then its vote
         before, decodes = dict(clock.total), clock.calls["decoder_calls"]
@@ -185,21 +228,17 @@ def time_views(
         elapsed = time.perf_counter() - start
         index, mask, _ = item
         votes.grow(int(mask.max()) + 1)
-        clock.timed("vote", votes.add_view, g, cams[index], mask, plan.vote, frame=index)
+        clock.timed("vote", votes.add_view, g, cams[index], mask, vote_backend, frame=index)
         clock.timed("labels", votes.labels)
         ms = {part: 1000 * (clock.total[part] - before[part]) for part in PARTS}
         ms["segment"] = 1000 * elapsed - ms["render"] - ms["encoder"] - ms["decoder"]
-        inner = {f"{p}_ms": 1000 * (clock.total[p] - before[p]) for p in ENCODER_PARTS}
+        inner = {f"{p}_ms": 1000 * (clock.total[p] - before[p]) for p in INNER_PARTS}
         rows.append(
             {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}
             | {"decoder_calls": clock.calls["decoder_calls"] - decodes}
-            | (inner if model is not None else {})
+            | {k: v for k, v in inner.items() if model or not k.startswith("encoder")}
         )
-    weights = ", ".join(
-        f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()
-    )
-    batched = bool(getattr(model, "batch_prompts", False))
-    return pd.DataFrame(rows), plan, weights or "none", batched
+    return rows
 
 
 def main() -> None:

