@@ -2,7 +2,7 @@
 thread, the stack frame their spilled registers take, shared memory, and the blocks an SM can
 hold, per kernel and rule.
 
-    python -m bench.speed.kernel_resources [--arch 90] [--out F.csv] [--quick]
+    python -m bench.speed.kernel_resources [--arch 90] [--labels 3] [--out F.csv] [--quick]
 
 Triton compiles for a named target on any machine (its wheel carries ptxas and cuobjdump), so
 this runs on the CPU: a kernel that does not compile for CUDA is caught here, and what bounds
@@ -11,6 +11,8 @@ warps, the chunked vote as many as `backends.TRITON_VOTE_KERNELS` names. "blocks
 an sm_90 SM's limits (65,536 registers, 2,048 threads, 32 blocks, 228 KB shared memory;
 registers allocated per warp in units of 256). --quick: the 3DGS count vote of the walk and
 chunk16, and both kinds' projection and the emission of `triton_prepare` (what the tests run).
+--labels: the vote's labels (its histogram's columns; the chunked vote holds a tile's one-hot
+block of them in shared memory, so past `backends.CHUNKED_MAX_LABELS` no block fits an SM).
 """
 
 from __future__ import annotations
@@ -112,9 +114,12 @@ def blocks_per_sm(registers: int, shared: int, warps: int) -> int:
     return min(by_registers, by_shared, THREADS // (32 * warps), BLOCKS)
 
 
-def variants(quick: bool):
-    """(kernel, variant, function, constants, warps) of each vote kernel and rule form, then
-    of `triton_prepare`'s projection (per kind) and emission."""
+def variants(quick: bool, labels: int = 3):
+    """(kernel, variant, function, constants, warps) of each vote kernel and rule form over
+    `labels` labels (padded as the launches pad them), then of `triton_prepare`'s projection
+    (per kind) and emission."""
+    import triton
+
     from sagonline.render import triton_prepare as prepare
     from sagonline.render.backends import TRITON_VOTE_KERNELS
     from sagonline.render.triton_vote import CHECK_EVERY, TILE, _walk_kernel
@@ -126,11 +131,13 @@ def variants(quick: bool):
         for weighting, weighted in weightings:
             rule = {"SURFEL": surfel, "WEIGHTED": weighted, "USE_DISTANCE": not weighted}
             shape = {"TILE": TILE, "NP": 13 if surfel else 7}
-            walk = {"COMPOSITE": False, "IMAGE": False, "KP": 4, "CHECK_EVERY": CHECK_EVERY}
+            padded = triton.next_power_of_2(labels)
+            walk = {"COMPOSITE": False, "IMAGE": False, "KP": max(2, padded)}
+            walk["CHECK_EVERY"] = CHECK_EVERY
             yield "walk", f"{kind} {weighting}", _walk_kernel, rule | shape | walk, 4
             for name, (chunk, warps) in TRITON_VOTE_KERNELS.items():
                 if chunk and (name == "chunk16" or not quick):
-                    chunked = rule | shape | {"KP": 16, "CHUNK": chunk}
+                    chunked = rule | shape | {"KP": max(16, padded), "CHUNK": chunk}
                     yield name, f"{kind} {weighting}", _vote_chunk_kernel, chunked, warps
     for kind, surfel in [("3dgs", False), ("2dgs", True)]:  # both kinds' branches, --quick too
         shape = {"SURFEL": surfel, "NP": 13 if surfel else 7, "TILE": TILE}
@@ -144,10 +151,13 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--arch", type=int, default=90, help="CUDA compute capability, e.g. 90")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")
+    ap.add_argument("--labels", type=int, default=3, help="the vote's labels (default 3)")
     ap.add_argument("--quick", action="store_true", help="the 3DGS count vote only")
     args = ap.parse_args()
+    if args.labels < 1:
+        ap.error("--labels: at least 1")
     rows = []
-    for kernel, variant, fn, constants, warps in variants(args.quick):
+    for kernel, variant, fn, constants, warps in variants(args.quick, args.labels):
         used = resources(compile_for(fn, constants, warps, args.arch))
         rows.append(
             {"kernel": kernel, "variant": variant, "warps": warps}
@@ -156,7 +166,9 @@ def main() -> None:
         )
     table = pd.DataFrame(rows)
     table["occupancy %"] = (100 * table.blocks_per_sm * 32 * table.warps / THREADS).round(1)
-    print(f"Triton vote kernels compiled for sm_{args.arch} (no GPU needed)\n")
+    print(
+        f"Triton vote kernels compiled for sm_{args.arch}, {args.labels} labels (no GPU needed)\n"
+    )
     print(table.to_markdown(index=False))
     if args.out is not None:
         atomic_write_text(args.out, table.assign(arch=args.arch).to_csv(index=False))

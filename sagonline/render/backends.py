@@ -229,13 +229,18 @@ TRITON_VOTE_KERNELS = {
 # against 3.10 and 2.48 (round two), with the walk's votes (reports/cuda_2026-12-04b/
 # vote_kernels_cuda.csv); its blend variant spills registers and was never timed, so blends
 # walk. On the CPU (Triton's interpreter, the tests) the walk.
+# chunk16 holds a tile's (256 pixels, labels) one-hot block in shared memory: 132 KB at 256
+# labels, 263 KB at 512, past an sm_90 SM's 228 KB (`bench.speed.kernel_resources`), so more
+# labels than CHUNKED_MAX_LABELS walk.
 DEFAULT_TRITON_VOTE = {"count": "chunk16", "blend": "walk"}
+CHUNKED_MAX_LABELS = 256
 
 
-def triton_vote_kernel(weighting: str | None = None) -> str:
-    """The Triton vote kernel this process launches for a rule of `weighting` (count, blend):
-    SAGONLINE_TRITON_VOTE where it is set, else `DEFAULT_TRITON_VOTE` where CUDA is and the walk
-    on the CPU; weighting None: the setting as text (`auto` where unset: by the rule)."""
+def triton_vote_kernel(weighting: str | None = None, num_labels: int = 0) -> str:
+    """The Triton vote kernel this process launches for a rule of `weighting` (count, blend)
+    over `num_labels` labels: SAGONLINE_TRITON_VOTE where it is set, else `DEFAULT_TRITON_VOTE`
+    where CUDA is (the walk past `CHUNKED_MAX_LABELS`) and the walk on the CPU; weighting None:
+    the setting as text (`auto` where unset: by the rule)."""
     name = os.environ.get("SAGONLINE_TRITON_VOTE") or ""
     if name and name not in TRITON_VOTE_KERNELS:
         raise BackendError(
@@ -245,7 +250,9 @@ def triton_vote_kernel(weighting: str | None = None) -> str:
         return name
     if weighting is None:
         return "auto"
-    return DEFAULT_TRITON_VOTE[weighting] if torch.cuda.is_available() else "walk"
+    if not torch.cuda.is_available() or num_labels > CHUNKED_MAX_LABELS:
+        return "walk"
+    return DEFAULT_TRITON_VOTE[weighting]
 
 
 # How the Triton walks' tile lists are made (SAGONLINE_TRITON_PREPARE, read at each view):

@@ -89,12 +89,14 @@ def vote_into(
     if n == 0:
         return 0
     with torch.profiler.record_function(f"vote_into ({chosen})"):  # named in a profile
-        return int(implementation(chosen, rule.weighting)(gaussians, camera, labels, hist, rule))
+        run = implementation(chosen, rule.weighting, k)
+        return int(run(gaussians, camera, labels, hist, rule))
 
 
-def implementation(backend: str, weighting: str = "count"):
+def implementation(backend: str, weighting: str = "count", num_labels: int = 0):
     """The `vote_into(gaussians, camera, labels, hist, rule)` of a backend, for a rule of
-    `weighting` (which Triton kernel votes: `backends.triton_vote_kernel`)."""
+    `weighting` over `num_labels` labels (which Triton kernel votes:
+    `backends.triton_vote_kernel`)."""
     if backend == "native":
         from sagonline.render.native import vote_into
 
@@ -103,7 +105,7 @@ def implementation(backend: str, weighting: str = "count"):
         from sagonline.render import triton_vote
         from sagonline.render.triton_prepare import chosen_tile_view
 
-        chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel(weighting)]
+        chunk, warps = TRITON_VOTE_KERNELS[triton_vote_kernel(weighting, num_labels)]
         prepare = chosen_tile_view()  # PyTorch's tile lists or the fused kernels'
         if chunk:
             from sagonline.render.triton_vote_chunk import vote_chunks

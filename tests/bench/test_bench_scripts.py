@@ -397,3 +397,21 @@ def test_the_fastest_encoder_precision_is_printed_for_the_gpu_check(tmp_path):
     proc = subprocess.run(command, cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout == "fp16\n"
+
+
+@pytest.mark.slow
+def test_the_chunked_vote_fits_an_sm_up_to_its_label_bound_and_no_further(tmp_path):
+    """`backends.CHUNKED_MAX_LABELS` is the most labels whose chunked count vote an sm_90 SM
+    holds (its one-hot block in shared memory); twice as many do not fit, so the default walks
+    there. Compiled for the GPU on this CPU (Triton's wheel carries ptxas)."""
+    pytest.importorskip("triton")
+    from sagonline.render.backends import CHUNKED_MAX_LABELS
+
+    blocks = []
+    for labels in (CHUNKED_MAX_LABELS, 2 * CHUNKED_MAX_LABELS):
+        out = tmp_path / f"resources_{labels}.csv"
+        text = _run("kernel_resources", "--labels", str(labels), "--out", str(out))
+        assert f"{labels} labels" in text
+        table = pd.read_csv(out).set_index("kernel")
+        blocks.append(int(table.loc["chunk16", "blocks_per_sm"]))
+    assert blocks[0] >= 1 and blocks[1] == 0

@@ -337,6 +337,21 @@ def test_the_chunked_vote_on_the_gpu_tests_inputs_in_the_interpreter(case, monke
 
 
 @needs_triton
+def test_the_chunked_count_over_many_labels_is_the_references(monkeypatch):
+    """The default count kernel on CUDA with more labels than tl.dot's smallest side (40:
+    padded to 64 columns), in the interpreter: the reference's counts exactly."""
+    if torch.cuda.is_available():
+        pytest.skip("CUDA is here: the gpu tests run the kernels compiled")
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk16")
+    g, cams = _scene_views("2dgs", 0, 800, 48, 36)
+    labels = _masks(cams[0], 40, 1)
+    ref = vote_histogram(g, cams[0], labels, 40, RULES["rgc"], backend="torch")
+    got = vote_histogram(g, cams[0], labels, 40, RULES["rgc"], backend="triton")
+    assert (ref[:, 16:] > 0).any()  # labels past the first 16 voted
+    _same(got, ref, "count")
+
+
+@needs_triton
 def test_an_unknown_triton_vote_kernel_is_refused_and_each_kernel_keys_its_own_cache(
     monkeypatch,
 ):
@@ -357,8 +372,9 @@ def test_an_unknown_triton_vote_kernel_is_refused_and_each_kernel_keys_its_own_c
 
 def test_unset_the_vote_kernel_follows_the_rule_on_cuda_and_walks_on_the_cpu(monkeypatch):
     """Where CUDA is, counts take the chunked vote (faster on both bench scenes in two GPU
-    runs, the same votes) and blends the walk (the chunked blend spills registers, untimed); on
-    the CPU the walk; SAGONLINE_TRITON_VOTE overrides both."""
+    runs, the same votes) up to the labels its shared memory holds, and blends the walk (the
+    chunked blend spills registers, untimed); on the CPU the walk; SAGONLINE_TRITON_VOTE
+    overrides both."""
     import torch
 
     from sagonline.render import backends
@@ -366,6 +382,8 @@ def test_unset_the_vote_kernel_follows_the_rule_on_cuda_and_walks_on_the_cpu(mon
     monkeypatch.delenv("SAGONLINE_TRITON_VOTE", raising=False)
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     assert backends.triton_vote_kernel("count") == "chunk16"
+    assert backends.triton_vote_kernel("count", backends.CHUNKED_MAX_LABELS) == "chunk16"
+    assert backends.triton_vote_kernel("count", backends.CHUNKED_MAX_LABELS + 1) == "walk"
     assert backends.triton_vote_kernel("blend") == "walk"
     assert backends.triton_vote_kernel() == "auto"
     monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk32")
@@ -383,8 +401,8 @@ def test_the_vote_op_launches_the_kernel_its_rule_chooses(monkeypatch):
     from sagonline.render.triton_vote_chunk import vote_chunks
 
     chosen = {"count": "chunk16", "blend": "walk"}
-    monkeypatch.setattr(vote_op, "triton_vote_kernel", lambda weighting: chosen[weighting])
-    count, blend = (vote_op.implementation("triton", w) for w in ("count", "blend"))
+    monkeypatch.setattr(vote_op, "triton_vote_kernel", lambda weighting, k: chosen[weighting])
+    count, blend = (vote_op.implementation("triton", w, 3) for w in ("count", "blend"))
     assert count.keywords["launch"].func is vote_chunks
     assert count.keywords["launch"].keywords == {"chunk": 16, "warps": 8}
     assert "launch" not in blend.keywords
