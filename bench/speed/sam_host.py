@@ -29,10 +29,13 @@ size of the synthetic scene's), as first written and now: an advised object's in
 (the distance transform of the whole image, then within the mask's box and a ring of one
 pixel), the cells the image covers (made for each view, then once a geometry), a SAM 2
 prompt's answer of which following reads one level (its three masks enlarged to the image, then
-the read one alone), the objects painted into one label map (indexed, then `np.copyto`).
+the read one alone), the objects painted into one label map (indexed, then `np.copyto`), an
+object's mean feature and a view's similarity to it, each a view's first (the normalised
+features' strided cells gathered, then one product with the features as they lie).
 
 Per row: ms (median of --repeats, synchronised on CUDA), MB copied to the device, and whether
-the values are those of the first-written way, bit for bit. Any image and outputs of the size
+the values are those of the first-written way, bit for bit (the mean feature and the
+similarity, float32 sums in another order: within 1e-6). Any image and outputs of the size
 will do: the work does not depend on their values. Times on this machine; say what else ran.
 """
 
@@ -290,6 +293,29 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             0
         ]
 
+    features = rng.standard_normal((256, 64, 64), np.float32)  # a view's embedding
+    cells, unit = grid_cells(found[1][0], cover), np.ones(256, np.float32) / 16
+    read = Embedding(features, (1.0, 1.0), (height, width), cover)  # read once before: warm
+    normalized = read.normalized()
+    read.mean_feature(found[1][0], cells)
+
+    def unit_mean(rows: np.ndarray) -> np.ndarray:  # [M, C] -> [C]
+        mean = rows.mean(0)
+        return mean / np.linalg.norm(mean)
+
+    def first_mean_feature() -> np.ndarray:  # the normalised features' strided cells gathered
+        f = features.transpose(1, 2, 0)
+        return unit_mean((f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6))[cells])
+
+    def first_similarity() -> np.ndarray:
+        f = features.transpose(1, 2, 0)
+        return (f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)) @ unit
+
+    def fresh(method: str, *args):  # on an embedding not yet read: its first call in a view
+        return lambda: getattr(Embedding(features, (1.0, 1.0), (height, width), cover), method)(
+            *args
+        )
+
     pairs = {
         "interior point": (
             lambda: first_interior_point(found[1][0]),
@@ -308,10 +334,25 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             lambda: first_paint(found, (height, width)),
             lambda: SamFamilySegmenter.paint(found, (height, width)),
         ),
+        "mean feature of an object, a view's first": (
+            first_mean_feature,
+            fresh("mean_feature", found[1][0], cells),
+        ),
+        "mean feature of an object, later in a view": (
+            lambda: unit_mean(normalized[cells]),
+            lambda: read.mean_feature(found[1][0], cells),
+        ),
+        "similarity to an object, a view's first": (
+            first_similarity,
+            fresh("similarity", unit),
+        ),
     }
     rows = []
     for part, (first, now) in pairs.items():
         want = first()
+        # the features' parts sum float32 in another order: the same to 1e-6
+        close = "feature" in part or "similarity" in part
+        same = functools.partial(np.allclose, rtol=0, atol=1e-6) if close else np.array_equal
         for when, make in (("as first written", first), ("now", now)):
             rows.append(
                 {
@@ -319,7 +360,7 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
                     "way": f"{part}, {when}",
                     "ms": 1000 * timed(make, repeats, "cpu"),
                     "MB_to_device": 0.0,
-                    "same_as_first_written": bool(np.array_equal(make(), want)),
+                    "same_as_first_written": bool(same(make(), want)),
                 }
             )
     return rows

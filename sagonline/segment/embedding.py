@@ -86,17 +86,38 @@ class Embedding:
             )
         return self._derived["normalized"]
 
+    def _by_cell(self) -> tuple[np.ndarray, np.ndarray]:  # [C, 64*64], [64*64], computed once
+        """The features with a column a cell (a view of `features`, no copy) and each cell's
+        1 / norm: what the similarities and the mean features read, in place of `normalized`,
+        whose (64, 64, C) layout strides a cell's values 16 KB apart."""
+        if "by_cell" not in self._derived:
+            flat = self.features.reshape(len(self.features), -1)
+            norms = np.sqrt(np.einsum("cn,cn->n", flat, flat))  # no (C, 64*64) square made
+            inverse = 1.0 / np.maximum(norms, 1e-6)
+            self._derived["by_cell"] = (flat, inverse.astype(np.float32))
+        return self._derived["by_cell"]
+
+    def similarity(self, unit: np.ndarray) -> np.ndarray:  # [C] -> [64, 64]
+        """Each cell's cosine similarity to a unit feature (`normalized() @ unit`, in a tenth
+        of its time for a view's first call and a third after)."""
+        flat, inverse = self._by_cell()
+        return ((unit.astype(np.float32) @ flat) * inverse).reshape(GRID, GRID)
+
     def mean_feature(
         self,
         mask: np.ndarray,  # [H, W] bool
         cells: np.ndarray | None = None,  # [64, 64] bool, its `grid_mask` where known
     ) -> np.ndarray | None:  # [256] unit, or None
         """The mean of the normalised features in the mask's cells, made unit (None where it
-        covers none)."""
+        covers none): one product of the features with each cell's weight (1 / its norm in
+        the mask, 0 elsewhere), not a gather of `normalized`'s strided cells (a tenth of the
+        time; `bench.speed.sam_host`)."""
         cells = self.grid_mask(mask) if cells is None else cells
-        if not cells.any():
+        count = np.count_nonzero(cells)
+        if not count:
             return None
-        mean = self.normalized()[cells].mean(axis=0)
+        flat, inverse = self._by_cell()
+        mean = flat @ np.where(cells.ravel(), inverse, np.float32(0)) / np.float32(count)
         norm = float(np.linalg.norm(mean))
         return mean / norm if np.isfinite(norm) and norm > 1e-6 else None
 

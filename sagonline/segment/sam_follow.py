@@ -76,7 +76,7 @@ def follow(emb: Embedding, track: Track, levels: int, rules: Rules) -> Rounds:
     empty: Found = (np.zeros(emb.size, bool), None)
     if track.prototype is None:
         return empty
-    sim = np.where(emb.valid(), emb.normalized() @ track.prototype, np.nan)
+    sim = np.where(emb.valid(), emb.similarity(track.prototype), np.nan)
     if not np.isfinite(sim).any():
         return empty
     best, worst = int(np.nanargmax(sim)), int(np.nanargmin(sim))

@@ -277,7 +277,7 @@ class SamFamilySegmenter(VideoSegmenter):
         positive = np.asarray(obj.points)[np.asarray(labels) > 0]
         clicked = emb.mean_feature(disc(frame.shape[:2], positive[0]))
         if clicked is not None:
-            sim = np.where(emb.valid(), emb.normalized() @ clicked, np.nan)
+            sim = np.where(emb.valid(), emb.similarity(clicked), np.nan)
             part = part_prompt(emb, sim, positive[0], emb.grid_mask(candidates[0]))
             if part is not None:
                 candidates += [a.mask for a in model.decode_many(emb, [part])[0]]
