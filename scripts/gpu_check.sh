@@ -402,8 +402,8 @@ done
 # Compute installed, the walk kernel's speed-of-light, memory and occupancy sections too
 step "vote profile" "$PY" -m bench.speed.vote_profile --device "$DEVICE" "${PROFILE_ARGS[@]}" \
   --out "$OUT/vote_profile_$TAG.csv"
-# the Triton vote kernels side by side (the splat walk, the default, and the chunked vote, on
-# PyTorch's tile lists and, +fused, triton_prepare's): ms for one view's tile lists, ms per
+# the Triton vote kernels side by side (the splat walk and the chunked vote, the default for
+# counts, on PyTorch's tile lists and, +fused, triton_prepare's): ms for one view's tile lists, ms per
 # vote, 206 votes in a row, and whether their votes agree (--quick: the chunked ones in the
 # interpreter; the walk takes minutes there)
 step "vote kernels" "$PY" -m bench.speed.vote_kernels --device "$DEVICE" "${KERNEL_ARGS[@]}" \
