@@ -302,6 +302,6 @@ def _implementation_digest(backend: str, kernel: str) -> str:
 
         with contextlib.suppress(PackageNotFoundError):
             digest.update(version(backend).encode())
-    if kernel not in ("", "walk"):  # the default's digest is the one before the choice
+    if kernel not in ("", "walk"):  # the walk keeps the digest of before the kernels were a choice
         digest.update(kernel.encode())
     return digest.hexdigest()
