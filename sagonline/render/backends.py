@@ -229,9 +229,9 @@ TRITON_VOTE_KERNELS = {
 # against 3.10 and 2.48 (round two), with the walk's votes (reports/cuda_2026-12-04b/
 # vote_kernels_cuda.csv); its blend variant spills registers and was never timed, so blends
 # walk. On the CPU (Triton's interpreter, the tests) the walk.
-# chunk16 holds a tile's (256 pixels, labels) one-hot block in shared memory: 132 KB at 256
-# labels, 263 KB at 512, past an sm_90 SM's 228 KB (`bench.speed.kernel_resources`), so more
-# labels than CHUNKED_MAX_LABELS walk.
+# The chunked votes hold a tile's (256 pixels, labels) one-hot block in shared memory: 132 KB at
+# 256 labels, 263 KB at 512, past an sm_90 SM's 228 KB (`bench.speed.kernel_resources`), so more
+# labels than CHUNKED_MAX_LABELS walk (and naming a chunked vote for them is refused).
 DEFAULT_TRITON_VOTE = {"count": "chunk16", "blend": "walk"}
 CHUNKED_MAX_LABELS = 256
 
@@ -245,6 +245,12 @@ def triton_vote_kernel(weighting: str | None = None, num_labels: int = 0) -> str
     if name and name not in TRITON_VOTE_KERNELS:
         raise BackendError(
             f"SAGONLINE_TRITON_VOTE={name!r}: use one of {tuple(TRITON_VOTE_KERNELS)}"
+        )
+    if name and TRITON_VOTE_KERNELS[name][0] and num_labels > CHUNKED_MAX_LABELS:
+        raise BackendError(
+            f"SAGONLINE_TRITON_VOTE={name}: a chunked vote holds at most {CHUNKED_MAX_LABELS} "
+            f"labels (a tile's one-hot block in shared memory), this vote has {num_labels}; "
+            "unset it (the walk takes these) or set walk"
         )
     if name:
         return name

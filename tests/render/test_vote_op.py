@@ -388,6 +388,10 @@ def test_unset_the_vote_kernel_follows_the_rule_on_cuda_and_walks_on_the_cpu(mon
     assert backends.triton_vote_kernel() == "auto"
     monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "chunk32")
     assert backends.triton_vote_kernel("count") == backends.triton_vote_kernel("blend") == "chunk32"
+    with pytest.raises(ValueError, match="chunk32: a chunked vote holds at most 256 labels.*257"):
+        backends.triton_vote_kernel("count", backends.CHUNKED_MAX_LABELS + 1)
+    monkeypatch.setenv("SAGONLINE_TRITON_VOTE", "walk")
+    assert backends.triton_vote_kernel("count", 1000) == "walk"
     monkeypatch.delenv("SAGONLINE_TRITON_VOTE")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
     assert backends.triton_vote_kernel("count") == backends.triton_vote_kernel("blend") == "walk"
