@@ -23,6 +23,7 @@ from pathlib import Path
 
 import pandas as pd
 import torch
+from torch.autograd import DeviceType
 
 from bench.speed.stage_one import INNER_PARTS, PARTS, PROFILED, time_views
 from sagonline.core.files import atomic_write_text
@@ -31,17 +32,23 @@ from sagonline.core.files import atomic_write_text
 def profile_views(
     segmenter: str, views: int, size, gaussians: int, objects: int, device: str, settings, top: int
 ) -> pd.DataFrame:
-    """Rows of kind "part" (each timed part: host and device ms a view, and its wall ms under
-    the profiler), "cpu" (the operators of most self CPU time) and "device" (the kernels of most
-    self device time), ms a view over views 1..: what began after the prompt view's last range
-    (its labels)."""
+    """`profile_table` of the views (`bench.speed.stage_one.time_views`'s) run under
+    torch.profiler (its CUDA activity too on `device` cuda)."""
     from torch.profiler import ProfilerActivity, profile
 
     cuda = device.startswith("cuda")
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities) as prof:
         table, *_ = time_views(segmenter, views, size, gaussians, objects, device, settings)
-    events = list(prof.events())
+    return profile_table(list(prof.events()), table, cuda, top)
+
+
+def profile_table(events: list, table: pd.DataFrame, cuda: bool, top: int) -> pd.DataFrame:
+    """Rows of kind "part" (each timed part's range: host ms, its CPU time with what it waited
+    for; device ms, the kernels launched in it; wall ms, `table`'s under the profiler), "cpu"
+    (the operators of most self CPU time) and "device" (the kernels and copies of most device
+    time, then "all kernels"), ms a view over `table`'s views 1..: the events (torch.profiler's
+    `FunctionEvent`s) that began after the prompt view's last range (its labels) ended."""
     prompt_end = min(e.time_range.end for e in events if e.name == f"{PROFILED}labels")
     later = [e for e in events if e.time_range.start >= prompt_end]
     n = int((table.view != 0).sum())
@@ -71,12 +78,15 @@ def profile_views(
                 "calls": sum(e.name == name for e in later) / n if part != "segment" else None,
             }
         )
-    ops = [e for e in later if not e.name.startswith(PROFILED)]
-    for kind, field in (("cpu", "self_cpu_time_total"), ("device", "self_device_time_total")):
-        if kind == "device" and not cuda:
-            continue
+    on_host = [e for e in later if e.device_type == DeviceType.CPU]
+    # a kernel's time is its CPU operator's device time too: the device's own events alone
+    kernels = [e for e in later if e.device_type != DeviceType.CPU]
+    for kind, chosen, field in (
+        ("cpu", [e for e in on_host if not e.name.startswith(PROFILED)], "self_cpu_time_total"),
+        ("device", kernels, "device_time_total"),
+    ):
         by_name: dict[str, list] = {}
-        for e in ops:
+        for e in chosen:
             if getattr(e, field) > 0:
                 by_name.setdefault(e.name, []).append(getattr(e, field))
         largest = sorted(by_name.items(), key=lambda item: sum(item[1]), reverse=True)[:top]
@@ -85,7 +95,7 @@ def profile_views(
             rows.append({"kind": kind, "name": name[:90], unit: sum(times) / 1e3 / n})
             rows[-1]["calls"] = len(times) / n
     if cuda:
-        busy = sum(e.self_device_time_total for e in ops) / 1e3 / n
+        busy = sum(e.device_time_total for e in kernels) / 1e3 / n
         rows.append({"kind": "device", "name": "all kernels", "device ms": busy})
     return pd.DataFrame(rows)
 

