@@ -2,7 +2,8 @@
 thread, the stack frame their spilled registers take, shared memory, and the blocks an SM can
 hold, per kernel and rule.
 
-    python -m bench.speed.kernel_resources [--arch 90] [--labels 3] [--out F.csv] [--quick]
+    python -m bench.speed.kernel_resources [--arch 90] [--labels 3] [--kernels walk,chunk16]
+                                           [--out F.csv] [--quick]
 
 Triton compiles for a named target on any machine (its wheel carries ptxas and cuobjdump), so
 this runs on the CPU: a kernel that does not compile for CUDA is caught here, and what bounds
@@ -13,6 +14,7 @@ registers allocated per warp in units of 256). --quick: the 3DGS count vote of t
 chunk16, and both kinds' projection and the emission of `triton_prepare` (what the tests run).
 --labels: the vote's labels (its histogram's columns; the chunked vote holds a tile's one-hot
 block of them in shared memory, so past `backends.CHUNKED_MAX_LABELS` no block fits an SM).
+--kernels: only these (walk, chunk16, chunk32, chunk16w16, prepare).
 """
 
 from __future__ import annotations
@@ -152,12 +154,19 @@ def main() -> None:
     ap.add_argument("--arch", type=int, default=90, help="CUDA compute capability, e.g. 90")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")
     ap.add_argument("--labels", type=int, default=3, help="the vote's labels (default 3)")
+    ap.add_argument("--kernels", default=None, help="only these, comma-separated (default all)")
     ap.add_argument("--quick", action="store_true", help="the 3DGS count vote only")
     args = ap.parse_args()
     if args.labels < 1:
         ap.error("--labels: at least 1")
+    known = ("walk", "chunk16", "chunk32", "chunk16w16", "prepare")
+    chosen = known if args.kernels is None else tuple(args.kernels.split(","))
+    if not chosen or set(chosen) - set(known):
+        ap.error(f"--kernels {args.kernels}: name some of {', '.join(known)}")
     rows = []
     for kernel, variant, fn, constants, warps in variants(args.quick, args.labels):
+        if kernel.split(":")[0] not in chosen:  # "prepare: project" is of prepare
+            continue
         used = resources(compile_for(fn, constants, warps, args.arch))
         rows.append(
             {"kernel": kernel, "variant": variant, "warps": warps}
