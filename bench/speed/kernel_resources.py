@@ -159,7 +159,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.labels < 1:
         ap.error("--labels: at least 1")
-    known = ("walk", "chunk16", "chunk32", "chunk16w16", "prepare")
+    from sagonline.render.backends import TRITON_VOTE_KERNELS
+
+    known = (*TRITON_VOTE_KERNELS, "prepare")
     chosen = known if args.kernels is None else tuple(args.kernels.split(","))
     if not chosen or set(chosen) - set(known):
         ap.error(f"--kernels {args.kernels}: name some of {', '.join(known)}")

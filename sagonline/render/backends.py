@@ -241,24 +241,24 @@ def triton_vote_kernel(weighting: str | None = None, num_labels: int = 0) -> str
     over `num_labels` labels: SAGONLINE_TRITON_VOTE where it is set, else `DEFAULT_TRITON_VOTE`
     where CUDA is (the walk past `CHUNKED_MAX_LABELS`) and the walk on the CPU; weighting None:
     the setting as text (`auto` where unset: by the rule)."""
-    name = os.environ.get("SAGONLINE_TRITON_VOTE") or ""
-    if name and name not in TRITON_VOTE_KERNELS:
+    name = os.environ.get("SAGONLINE_TRITON_VOTE")
+    if not name:
+        if weighting is None:
+            return "auto"
+        if not torch.cuda.is_available() or num_labels > CHUNKED_MAX_LABELS:
+            return "walk"
+        return DEFAULT_TRITON_VOTE[weighting]
+    if name not in TRITON_VOTE_KERNELS:
         raise BackendError(
             f"SAGONLINE_TRITON_VOTE={name!r}: use one of {tuple(TRITON_VOTE_KERNELS)}"
         )
-    if name and TRITON_VOTE_KERNELS[name][0] and num_labels > CHUNKED_MAX_LABELS:
+    if TRITON_VOTE_KERNELS[name][0] and num_labels > CHUNKED_MAX_LABELS:
         raise BackendError(
             f"SAGONLINE_TRITON_VOTE={name}: a chunked vote holds at most {CHUNKED_MAX_LABELS} "
             f"labels (a tile's one-hot block in shared memory), this vote has {num_labels}; "
             "unset it (the walk takes these) or set walk"
         )
-    if name:
-        return name
-    if weighting is None:
-        return "auto"
-    if not torch.cuda.is_available() or num_labels > CHUNKED_MAX_LABELS:
-        return "walk"
-    return DEFAULT_TRITON_VOTE[weighting]
+    return name
 
 
 # How the Triton walks' tile lists are made (SAGONLINE_TRITON_PREPARE, read at each view):

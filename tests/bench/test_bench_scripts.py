@@ -238,61 +238,35 @@ def test_stage_one_profile_counts_a_kernel_once_and_leaves_the_prompt_view_out()
 
     from bench.speed.stage_one_profile import profile_table
 
-    def event(name, start, end, cpu=0.0, device=0.0, self_cpu=0.0, kind=DeviceType.CPU):
+    ms = 1000.0  # the events' times are in microseconds
+
+    def event(name, start, end, cpu=0, device=0, self_cpu=0, kind=DeviceType.CPU):  # times in ms
         return SimpleNamespace(
             name=name,
             time_range=SimpleNamespace(start=start, end=end),
-            cpu_time_total=cpu,
-            device_time_total=device,
-            self_cpu_time_total=self_cpu,
+            cpu_time_total=cpu * ms,
+            device_time_total=device * ms,
+            self_cpu_time_total=self_cpu * ms,
             device_type=kind,
         )
 
-    ms = 1000.0  # the events' times are in microseconds
+    cuda = DeviceType.CUDA
+    per_view = [  # (name, start, end within the view; its times)
+        ("stage one: segmenter", 0, 50, {"cpu": 30, "device": 20}),
+        ("stage one: encoder", 1, 20, {"cpu": 18, "device": 12}),
+        ("stage one: vote", 60, 70, {"cpu": 6, "device": 2}),
+        ("stage one: labels", 71, 72, {"cpu": 1}),
+        ("aten::mm", 2, 3, {"cpu": 1, "device": 12, "self_cpu": 1}),
+        ("gemm_kernel", 5, 15, {"device": 12, "kind": cuda}),
+        ("vote_kernel", 61, 62, {"device": 2, "kind": cuda}),
+    ]
     events = [
-        event("stage one: labels", 0, 10, cpu=9 * ms),  # the prompt view's: left out
-        event("gemm_kernel", 2, 3, device=50 * ms, kind=DeviceType.CUDA),  # the prompt view's
+        event("stage one: labels", 0, 10, cpu=9),  # the prompt view's: left out
+        event("gemm_kernel", 2, 3, device=50, kind=cuda),  # the prompt view's
         *(
-            e
+            event(name, 100 * view + start, 100 * view + end, **times)
             for view in (1, 2)
-            for e in (
-                event(
-                    "stage one: segmenter", 100 * view, 100 * view + 50, cpu=30 * ms, device=20 * ms
-                ),
-                event(
-                    "stage one: encoder",
-                    100 * view + 1,
-                    100 * view + 20,
-                    cpu=18 * ms,
-                    device=12 * ms,
-                ),
-                event(
-                    "stage one: vote", 100 * view + 60, 100 * view + 70, cpu=6 * ms, device=2 * ms
-                ),
-                event("stage one: labels", 100 * view + 71, 100 * view + 72, cpu=1 * ms),
-                event(
-                    "aten::mm",
-                    100 * view + 2,
-                    100 * view + 3,
-                    cpu=1 * ms,
-                    device=12 * ms,
-                    self_cpu=1 * ms,
-                ),
-                event(
-                    "gemm_kernel",
-                    100 * view + 5,
-                    100 * view + 15,
-                    device=12 * ms,
-                    kind=DeviceType.CUDA,
-                ),
-                event(
-                    "vote_kernel",
-                    100 * view + 61,
-                    100 * view + 62,
-                    device=2 * ms,
-                    kind=DeviceType.CUDA,
-                ),
-            )
+            for name, start, end, times in per_view
         ),
     ]
     table = pd.DataFrame(
