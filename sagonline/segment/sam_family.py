@@ -83,6 +83,12 @@ class SamPromptingConfig:
     points) captured as one CUDA graph on its first call and replayed after, one launch
     instead of hundreds; a capture that fails or replays other values is said and runs
     eagerly. Refused off CUDA or with neither half on PyTorch."""
+    encode_ahead: bool = False
+    """Each next view's image encoder started before this view's prompts are decoded
+    (`segment.encode_ahead`): on CUDA its kernels run on a side stream under the host's
+    prompting, the decoder's calls and the vote, so that a view costs about the larger of the
+    encoder and the rest, not their sum; elsewhere the encoder runs then, with the same masks.
+    Off by default until a GPU has timed it (`bench.speed.stage_one_ahead`)."""
     batch_prompts: bool | None = None
     """A view's decoder prompts of one shape (its objects' candidates) in one decoder call, not
     one call each: the same masks (to about 1e-5 of the logits), a few hundred operator

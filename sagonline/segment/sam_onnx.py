@@ -52,6 +52,7 @@ from sagonline.segment.embedding import (
     widened,
 )
 from sagonline.segment.embedding_cache import EmbeddingCache, digest_frame
+from sagonline.segment.encode_ahead import EncodeAhead, queue_encoder
 from sagonline.segment.onnx_torch import to_host
 
 if TYPE_CHECKING:
@@ -107,6 +108,7 @@ class SamPair:
         self.outputs = [o.name for o in encoder.get_outputs()]
         self._lock = threading.Lock()
         self._on_device: tuple[Embedding | None, dict] = (None, {})  # the last view's, placed
+        self.ahead = EncodeAhead(getattr(encoder, "device", None))  # `embed_ahead`'s calls
 
     # --- the two formats differ here ------------------------------------------------------------
 
@@ -232,11 +234,24 @@ class SamPair:
         self.decode(emb, np.array([[size[1] / 2, size[0] / 2]]), np.ones(1, int))
         self._on_device = (None, {})
 
-    def _embed(self, image: np.ndarray) -> Embedding:
+    def embed_ahead(self, image: np.ndarray) -> None:
+        """Start the encoder on an RGB uint8 (H, W, 3) frame that a later `embed` asks for
+        (`segment.encode_ahead`: on CUDA queued on a side stream, elsewhere now); nothing for
+        a frame held in memory or on disk."""
+        with self._lock:
+            frame_digest, key = self._key(image)
+            path = self.cache.path(key)
+            if key not in self.memory and not (path is not None and path.exists()):
+                self.ahead.start(key, lambda: queue_encoder(self, image))
+
+    def _key(self, image: np.ndarray) -> tuple[str, str]:
+        """The frame's digest, and the key of its embedding by this encoder."""
         frame_digest = digest_frame(image)
-        key = hashlib.blake2b(
-            f"{frame_digest}:{self.encoder_id}".encode(), digest_size=16
-        ).hexdigest()
+        key = hashlib.blake2b(f"{frame_digest}:{self.encoder_id}".encode(), digest_size=16)
+        return frame_digest, key.hexdigest()
+
+    def _embed(self, image: np.ndarray) -> Embedding:
+        frame_digest, key = self._key(image)
         if key in self.memory:
             self.memory.move_to_end(key)
             return self.memory[key]
@@ -250,10 +265,15 @@ class SamPair:
                 for o in self.encoder.get_outputs()
             },
         }
-        arrays, on_device = self.cache.load(key, expected), None
+        ahead = self.ahead.take(key)  # started by `embed_ahead`
+        arrays = self.cache.load(key, expected) if ahead is None else None
+        on_device = None
         if arrays is None:
             start = time.perf_counter()
-            outputs, on_device = self._encode(image)
+            if ahead is None:
+                self.ahead.before_encoding()
+                ahead = queue_encoder(self, image)
+            outputs, on_device = ahead.arrays(), ahead.on_device
             self.encode_s += time.perf_counter() - start
             arrays = self.kept(outputs, f"a {w}x{h} frame")
             self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
@@ -297,29 +317,10 @@ class SamPair:
         return outputs
 
     def _encode(self, image: np.ndarray) -> tuple[list[np.ndarray], dict]:
-        """The encoder's outputs for an RGB uint8 (H, W, 3) image, as numpy (rounded to the
-        stored type); and where both halves run on PyTorch on one device, the same values there
-        in float32 by output name (what the decoder reads: no copy to the host and back). A
-        PyTorch encoder off the CPU gets its frame made on its device (`preprocess_on`); on the
-        CPU, the host's (numpy's per-plane work is faster there, and nothing is copied)."""
-        name = self.encoder.get_inputs()[0].name
-        device = getattr(self.encoder, "device", None)
-        if device is None:  # onnxruntime
-            return self.encoder.run(None, {name: self.preprocess(image)}), {}
-        import torch
-
-        if device.type == "cpu":
-            frame = torch.from_numpy(self.preprocess(image))
-        else:
-            frame = self.preprocess_on(image, device)
-        outputs = self.encoder.forward({name: frame})
-        if self.decoder_runtime != "torch" or device != getattr(self.decoder, "device", None):
-            return to_host([o.float() for o in outputs]), {}
-
-        stored = getattr(torch, np.dtype(self.stored_dtype).name)  # float16 or float32
-        rounded = [o.float().to(stored) for o in outputs]
-        on_device = {n: r.float() for n, r in zip(self.outputs, rounded, strict=True)}
-        return to_host(rounded), on_device
+        """The encoder's outputs for an RGB uint8 (H, W, 3) image as numpy (rounded to the
+        stored type), and their float32 twins where the decoder reads them (`queue_encoder`)."""
+        encoded = queue_encoder(self, image)
+        return encoded.arrays(), encoded.on_device
 
 
 class Sam1Pair(SamPair):

