@@ -82,7 +82,7 @@ def vote_into(
         low, high = torch.stack(torch.aminmax(labels)).tolist()
         if low < 0 or high >= k:
             raise ValueError(f"label ids must lie in [0, {k})")
-    labels = labels.to(gaussians.device)
+    labels = on_device(labels, gaussians.device, k)
     if hist.shape != (n, k) or hist.dtype != torch.float64 or not hist.is_contiguous():
         raise ValueError(f"out must be a contiguous ({n}, {k}) float64 histogram")
     chosen = resolve_vote_backend(backend, gaussians.device)
@@ -91,6 +91,24 @@ def vote_into(
     with torch.profiler.record_function(f"vote_into ({chosen})"):  # named in a profile
         run = implementation(chosen, rule.weighting, k)
         return int(run(gaussians, camera, labels, hist, rule))
+
+
+def label_type(num_labels: int) -> torch.dtype:
+    """The narrowest integer type that holds label ids in [0, num_labels)."""
+    return torch.uint8 if num_labels <= 256 else torch.int32
+
+
+def on_device(
+    labels: torch.Tensor,  # [H, W] long label ids in [0, num_labels), checked
+    device: torch.device,
+    num_labels: int,
+) -> torch.Tensor:  # [H, W] long on `device`
+    """The view's mask where the Gaussians are. To another device it crosses in `label_type`
+    (a byte a pixel for up to 256 labels: 0.5 MB of a 960x540 view, not 4.1 MB of int64) and is
+    widened there; where it already is, it is the same tensor."""
+    if labels.device == torch.device(device):
+        return labels
+    return labels.to(label_type(num_labels)).to(device).long()
 
 
 def implementation(backend: str, weighting: str = "count", num_labels: int = 0):

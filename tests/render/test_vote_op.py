@@ -215,6 +215,25 @@ def test_labels_given_on_the_host_are_checked_there():
         vote_into(g, cam, torch.full((6, 8), 2), VoteRule(), hist)
 
 
+def test_a_mask_crosses_to_the_gaussians_device_in_the_narrowest_type(monkeypatch):
+    """To another device a mask crosses as bytes for up to 256 labels (int32 past them) and is
+    widened there; on the Gaussians' own device it is the tensor given. `meta` stands for the
+    GPU here (the CUDA tests vote host masks on CUDA: tests/render/test_vote_op.py, -m gpu)."""
+    from sagonline.render.vote import label_type, on_device
+
+    assert label_type(2) == label_type(256) == torch.uint8 and label_type(257) == torch.int32
+    labels = torch.randint(0, 3, (6, 8))
+    assert on_device(labels, torch.device("cpu"), 3) is labels
+    crossed = []
+    to = torch.Tensor.to
+    monkeypatch.setattr(
+        torch.Tensor, "to", lambda t, *a, **k: crossed.append(t.dtype) or to(t, *a, **k)
+    )
+    there = on_device(labels, torch.device("meta"), 3)
+    assert there.device.type == "meta" and there.dtype == torch.long and there.shape == (6, 8)
+    assert crossed == [torch.int64, torch.uint8]  # narrowed on the host, then moved as bytes
+
+
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
 @pytest.mark.parametrize("backend", [b for b in BACKENDS if b != "torch"])
 def test_label_walks_match_the_rasterizer(kind, backend):
