@@ -11,8 +11,8 @@ the segmenter asks for them, the embedding cache off and the model's embeddings 
 before each pass); its per-part columns wait for the GPU after every part, which would hide the
 overlap, so here only each view's total is timed. A first round of both is run untimed (the
 CUDA graphs' captures, the first calls of each path). Started ahead, a view's time holds the
-next view's encoder (the prompt view's two, the last view's none), so the passes compare by
-their whole time a view; the median of views 1.. is the steady state.
+next view's encoder (the first view after the prompt's holds two, the last none), so the passes
+compare by their whole time a view; the median of views 1.. is the steady state.
 --quick: 3 views at 96x54, 4k surfels, one round (the tests').
 """
 
@@ -82,7 +82,8 @@ def time_arms(
 def summary(table: pd.DataFrame) -> pd.DataFrame:
     """Per pass kind: the median ms of views 1.. and the whole pass's ms a view, the prompt
     view's included (where started ahead, a view's time holds the next view's encoder, not its
-    own: the prompt view holds two, the last none; the whole pass counts each once), and that
+    own: the first after the prompt view's holds two, the last none; the whole pass counts each
+    once), and that
     over the plain passes' (ratio)."""
     rows = []
     for ahead, part in table.groupby("encode_ahead", sort=True):

@@ -239,7 +239,7 @@ class SamPair:
         (`segment.encode_ahead`: on CUDA queued on a side stream, elsewhere now); nothing for
         a frame held in memory or on disk."""
         with self._lock:
-            frame_digest, key = self._key(image)
+            _, key = self._key(image)
             path = self.cache.path(key)
             if key not in self.memory and not (path is not None and path.exists()):
                 self.ahead.start(key, lambda: queue_encoder(self, image))
@@ -271,9 +271,9 @@ class SamPair:
         if arrays is None:
             start = time.perf_counter()
             if ahead is None:
-                self.ahead.before_encoding()
-                ahead = queue_encoder(self, image)
-            outputs, on_device = ahead.arrays(), ahead.on_device
+                outputs, on_device = self._encode(image)
+            else:  # waited for here: what of its call the view before did not hide
+                outputs, on_device = ahead.arrays(), ahead.on_device
             self.encode_s += time.perf_counter() - start
             arrays = self.kept(outputs, f"a {w}x{h} frame")
             self.cache.save(key, {k: expected[k] for k in ("format", "frame", "encoder")}, arrays)
@@ -318,7 +318,9 @@ class SamPair:
 
     def _encode(self, image: np.ndarray) -> tuple[list[np.ndarray], dict]:
         """The encoder's outputs for an RGB uint8 (H, W, 3) image as numpy (rounded to the
-        stored type), and their float32 twins where the decoder reads them (`queue_encoder`)."""
+        stored type), and their float32 twins where the decoder reads them (`queue_encoder`), on
+        the current stream after any call started ahead."""
+        self.ahead.before_encoding()
         encoded = queue_encoder(self, image)
         return encoded.arrays(), encoded.on_device
 

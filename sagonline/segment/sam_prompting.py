@@ -181,10 +181,11 @@ class SamFamilySegmenter(VideoSegmenter):
         rules = Rules(self.prompts, self.refine, self.min_similarity)
         n, p = len(frames), prompt.frame
         order = list(range(p + 1, n)) + list(range(p - 1, -1, -1))  # the views after p's
-        ahead = dict(zip([p, *order], order, strict=False)) if self.cfg.encode_ahead else {}
+        # each view's next, its encoder started once the view's own embedding is in hand (not
+        # from the prompt view, whose mask, the first, waits for nothing more)
+        ahead = dict(zip(order, order[1:], strict=False)) if self.cfg.encode_ahead else {}
         start = time.perf_counter()
-        following = frames[ahead[p]] if p in ahead else None  # the first view after p's
-        first = self.prompt_view(model, frames[p], prompt, following)
+        first = self.prompt_view(model, frames[p], prompt)
         levels = {k: level for k, (_, _, level) in first.items()}
         # each object's prototypes (origin, last) and last mask's area at the prompt view
         prompt_prototypes = {k: (proto, proto) for k, (_, proto, _) in first.items()}
@@ -215,18 +216,10 @@ class SamFamilySegmenter(VideoSegmenter):
                     areas[k] = np.count_nonzero(mask)
             yield t, self.paint(found, frames[t].shape[:2]), time.perf_counter() - start
 
-    def prompt_view(
-        self,
-        model: SamPair,
-        frame: np.ndarray,  # [H, W, 3] uint8
-        prompt: Prompt,
-        next_frame: np.ndarray | None = None,  # [H, W, 3] uint8, encoded ahead where given
-    ) -> dict:
+    def prompt_view(self, model: SamPair, frame: np.ndarray, prompt: Prompt) -> dict:
         """Each object's mask on the prompt view, its prototype feature (None where the mask
         covers no cell of the feature grid: the object is then not followed) and its level."""
         emb = model.embed(frame)
-        if next_frame is not None:
-            model.embed_ahead(next_frame)
         colour = functools.cache(lambda: chromaticity_and_brightness(frame))  # once, if asked
         out = {}
         for obj in prompt.objects:

@@ -305,14 +305,14 @@ def test_bench_stage_one_splits_a_models_encoder_column():
 
 
 def test_stage_one_ahead_compares_whole_passes_where_a_view_holds_the_next_ones_encoder():
-    """Started ahead, the prompt view holds two encoder calls and the last none: a median of
-    views 1.. alone would credit the overlap with what was only moved; the whole pass counts
-    each call once (here the same total, ratio 1)."""
+    """Started ahead, the first view after the prompt's holds two encoder calls and the last
+    none: a median of views 1.. alone would credit the overlap with what was only moved; the
+    whole pass counts each call once (here the same total, ratio 1)."""
     from bench.speed.stage_one_ahead import summary
 
     encoder, follow = 30.0, 10.0
-    plain = [encoder + follow] * 4
-    ahead = [2 * encoder + follow, encoder + follow, encoder + follow, follow]
+    plain = [encoder + follow] * 5
+    ahead = [encoder + follow, 2 * encoder + follow, encoder + follow, encoder + follow, follow]
     table = pd.DataFrame(
         [
             {"round": 1, "encode_ahead": on, "view": view, "ms": ms}
