@@ -6,8 +6,8 @@ to three dependent rounds, then its vote. Only the encoder's input, the rendered
 a view early. With encode_ahead, the encoder's kernels of the next view (and the copies of its
 outputs to the host) are queued on a side stream of the GPU before this view's prompts are
 decoded, and `SamPair.embed` of that view later waits for them (an event), not for the GPU: the
-encoder's GPU time runs under the host's prompting, the decoder's small calls and the vote,
-which leave the GPU idle most of a view. Without CUDA the call runs when it is started (the same
+encoder's GPU time can run under the host's prompting, the decoder's small calls and the vote,
+whose own GPU work is a few ms of a view's. Without CUDA the call runs when it is started (the same
 embeddings, in another order; nothing overlaps).
 
 Streams: the side stream waits for the work queued before each start, an encoder call on the
