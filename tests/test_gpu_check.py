@@ -115,9 +115,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         parts = profiled[profiled.kind == "part"].set_index("name")
         assert {"render", "encoder", "decoder", "segment", "vote", "labels"} <= set(parts.index)
         assert (parts["host ms"] > 0).all() and (profiled.kind == "cpu").any()
+        assert profiled.weights.str.contains(r"encoder\.\S+ [0-9a-f]{12}").all()
         # each next view encoded ahead and not, in turns: every view of both passes timed
         ahead = pd.read_csv(tmp_path / "stage_one_ahead_minisam_cpu_check.csv")
         assert sorted(ahead.encode_ahead.unique()) == [False, True] and (ahead.ms > 0).all()
+        assert ahead.weights.str.contains(r"encoder\.\S+ [0-9a-f]{12}").all()  # named, sha256
         assert ahead.groupby("encode_ahead").view.apply(sorted).map(list).tolist() == [
             [0, 1, 2],
             [0, 1, 2],

@@ -215,11 +215,14 @@ def time_views(
         rows = views_timed(stream, votes, g, cams, plan.vote, clock, model is not None)
     finally:
         untime_vote()
-    weights = ", ".join(
-        f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()
-    )
     batched = bool(getattr(model, "batch_prompts", False))
-    return pd.DataFrame(rows), plan, weights or "none", batched
+    return pd.DataFrame(rows), plan, weights_named(segmenter), batched
+
+
+def weights_named(segmenter) -> str:
+    """The weights that ran, each file's name and sha256 prefix ("none" without any)."""
+    named = [f"{Path(w['path']).name} {w['sha256'][:12]}" for w in segmenter.weights_record()]
+    return ", ".join(named) or "none"
 
 
 def views_timed(stream, votes, g, cams, vote_backend: str, clock: Clock, model: bool) -> list:

@@ -33,6 +33,7 @@ from bench.speed.stage_one import (
     scene_and_prompt,
     view_arguments,
     views_asked,
+    weights_named,
 )
 from sagonline.core.files import atomic_write_text
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig
@@ -47,9 +48,10 @@ def time_arms(
     device: str,
     settings: dict,
     rounds: int,
-) -> pd.DataFrame:
+) -> tuple[pd.DataFrame, str]:
     """Rows (round, encode_ahead, view, ms) of `rounds` timed rounds, each a pass without and
-    a pass with encoding ahead, after one untimed round."""
+    a pass with encoding ahead, after one untimed round; and the weights that ran (each file's
+    name and sha256 prefix)."""
     g, cams, plan, prompt = scene_and_prompt(views, size, gaussians, objects, device)
     segmenter = build(segmenter_name, device, settings)
     model = segmenter.model() if hasattr(segmenter, "model") else None
@@ -76,7 +78,7 @@ def time_arms(
                         | {"ms": 1000 * (now - last)}
                     )
                 last = now
-    return pd.DataFrame(rows)
+    return pd.DataFrame(rows), weights_named(segmenter)
 
 
 def summary(table: pd.DataFrame) -> pd.DataFrame:
@@ -110,19 +112,21 @@ def main() -> None:
     if rounds < 1:
         ap.error("--rounds >= 1")
     try:
-        table = time_arms(*asked, rounds)
+        table, weights = time_arms(*asked, rounds)
     except ValueError as exc:  # a missing model file names the option and `make weights`
         raise SystemExit(f"stage_one_ahead: {exc}") from None
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     print(
-        f"Stage I per view, the next view encoded ahead or not: {args.segmenter}"
+        f"Stage I per view, the next view encoded ahead or not: {args.segmenter} (weights: "
+        f"{weights})"
         + "".join(f", {o}" for o in args.option)
         + f" on {gpu or args.device}, {args.views} views at {args.size}, {args.gaussians:,} "
         f"surfels, {args.objects} object(s), {rounds} round(s) after an untimed one\n"
     )
     print(summary(table).round(3).to_markdown(index=False))
     if args.out is not None:
-        named = {"segmenter": args.segmenter, "options": " ".join(args.option)}
+        named = {"segmenter": args.segmenter, "weights": weights}
+        named |= {"options": " ".join(args.option)}
         named |= {"objects": args.objects, "size": args.size, "gpu": gpu}
         atomic_write_text(args.out, table.assign(**named).to_csv(index=False))
 

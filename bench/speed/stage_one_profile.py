@@ -38,16 +38,18 @@ from sagonline.core.files import atomic_write_text
 
 def profile_views(
     segmenter: str, views: int, size, gaussians: int, objects: int, device: str, settings, top: int
-) -> pd.DataFrame:
+) -> tuple[pd.DataFrame, str]:
     """`profile_table` of the views (`bench.speed.stage_one.time_views`'s) run under
-    torch.profiler (its CUDA activity too on `device` cuda)."""
+    torch.profiler (its CUDA activity too on `device` cuda), and the weights that ran."""
     from torch.profiler import ProfilerActivity, profile
 
     cuda = device.startswith("cuda")
     activities = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
     with profile(activities=activities) as prof:
-        table, *_ = time_views(segmenter, views, size, gaussians, objects, device, settings)
-    return profile_table(list(prof.events()), table, cuda, top)
+        table, _, weights, _ = time_views(
+            segmenter, views, size, gaussians, objects, device, settings
+        )
+    return profile_table(list(prof.events()), table, cuda, top), weights
 
 
 def profile_table(events: list, table: pd.DataFrame, cuda: bool, top: int) -> pd.DataFrame:
@@ -115,18 +117,20 @@ def main() -> None:
     args = ap.parse_args()
     asked = views_asked(ap, args)
     try:
-        table = profile_views(*asked, args.top)
+        table, weights = profile_views(*asked, args.top)
     except ValueError as exc:  # a missing model file names the option and `make weights`
         raise SystemExit(f"stage_one_profile: {exc}") from None
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     print(
-        f"Stage I under torch.profiler: {args.segmenter} on {gpu or args.device}, "
+        f"Stage I under torch.profiler: {args.segmenter} (weights: {weights}) on "
+        f"{gpu or args.device}, "
         f"{args.views} views at {args.size}, {args.objects} object(s); ms a view over views "
         f"1-{args.views - 1}\n"
     )
     print(table.round(3).to_markdown(index=False))
     if args.out is not None:
-        named = {"segmenter": args.segmenter, "options": " ".join(args.option), "gpu": gpu}
+        named = {"segmenter": args.segmenter, "weights": weights}
+        named |= {"options": " ".join(args.option), "gpu": gpu}
         atomic_write_text(args.out, table.assign(**named).to_csv(index=False))
 
 

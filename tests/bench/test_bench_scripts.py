@@ -225,6 +225,7 @@ def test_bench_stage_one_profile_says_each_parts_host_time(tmp_path):
     assert parts["host ms"]["vote_check"] + parts["host ms"]["vote_op"] <= parts["host ms"]["vote"]
     assert (parts["host ms"] <= parts["wall ms"] * 1.5 + 0.5).all()
     assert (table.kind == "cpu").sum() == 15 and (table.segmenter == "classical").all()
+    assert (table.weights == "none").all()  # no model, no weights to name
 
 
 def test_stage_one_profile_counts_a_kernel_once_and_leaves_the_prompt_view_out():
