@@ -237,12 +237,13 @@ class SamPair:
     def embed_ahead(self, image: np.ndarray) -> None:
         """Start the encoder on an RGB uint8 (H, W, 3) frame that a later `embed` asks for
         (`segment.encode_ahead`: on CUDA queued on a side stream, elsewhere now); nothing for
-        a frame held in memory or on disk."""
+        a frame held in memory or on disk. The frame is known by identity until its `embed`
+        (not digested again): it must not change in between."""
         with self._lock:
-            _, key = self._key(image)
+            frame_digest, key = self._key(image)
             path = self.cache.path(key)
             if key not in self.memory and not (path is not None and path.exists()):
-                self.ahead.start(key, lambda: queue_encoder(self, image))
+                self.ahead.start(key, lambda: queue_encoder(self, image), image, frame_digest)
 
     def _key(self, image: np.ndarray) -> tuple[str, str]:
         """The frame's digest, and the key of its embedding by this encoder."""
@@ -251,7 +252,7 @@ class SamPair:
         return frame_digest, key.hexdigest()
 
     def _embed(self, image: np.ndarray) -> Embedding:
-        frame_digest, key = self._key(image)
+        frame_digest, key = self.ahead.named(image) or self._key(image)
         if key in self.memory:
             self.memory.move_to_end(key)
             return self.memory[key]

