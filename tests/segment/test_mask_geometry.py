@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from bench.speed.sam_host import first_shares
+from bench.speed.follow_host import first_shares
 from sagonline.segment.embedding import GRID, SIZE, Embedding
 from sagonline.segment.mask_geometry import box_of, interior_point, iou
 
