@@ -272,17 +272,14 @@ def main() -> None:
         opencv, torch_threads = default if count == "default" else (int(count), int(count))
         cv2.setNumThreads(opencv)
         torch.set_num_threads(torch_threads)
-        rows += [
-            {**row, "threads": count, "opencv_threads": opencv, "torch_threads": torch_threads}
-            for row in [
-                *(
-                    row
-                    for pair_type in (Sam1Pair, Sam2Pair)
-                    for row in format_rows(pair_type, image, args.device, args.repeats)
-                ),
-                *follow_rows(int(height), int(width), args.repeats),
-            ]
+        made = [
+            row
+            for pair_type in (Sam1Pair, Sam2Pair)
+            for row in format_rows(pair_type, image, args.device, args.repeats)
         ]
+        made += follow_rows(int(height), int(width), args.repeats)
+        threads = {"threads": count, "opencv_threads": opencv, "torch_threads": torch_threads}
+        rows += [{**row, **threads} for row in made]
     cv2.setNumThreads(default[0])
     torch.set_num_threads(default[1])
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
