@@ -144,3 +144,10 @@ def test_export_says_when_the_run_read_other_weights():
     )
     said = other_weights({"/a/encoder.onnx": "1"}, {"/b/encoder.onnx": "9"})
     assert said and "encoder.onnx" in said[0]
+
+
+@pytest.mark.parametrize("threads", ["0", "two", "default,-1"])
+def test_a_thread_count_that_is_not_default_or_positive_is_refused(threads, tmp_path):
+    done = run("bench.speed.sam_host", "--threads", threads, "--out", str(tmp_path / "t.csv"))
+    assert done.returncode == 2 and "--threads: 'default' or counts >= 1" in done.stderr
+    assert not (tmp_path / "t.csv").exists()
