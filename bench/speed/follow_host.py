@@ -41,11 +41,18 @@ def first_paint(found: dict, size) -> np.ndarray:  # [H, W] int64
     return out
 
 
+def first_enlarged(ids: np.ndarray, height: int, width: int) -> np.ndarray:  # [H, W]
+    rows = (np.arange(height) + 0.5) * ids.shape[0] // height
+    cols = (np.arange(width) + 0.5) * ids.shape[1] // width
+    return ids[np.ix_(rows.astype(int), cols.astype(int))]
+
+
 def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
     """Each part of following objects into a view, as first written and now."""
     from sagonline.segment.embedding import Embedding, grid_cells
     from sagonline.segment.mask_geometry import interior_point
     from sagonline.segment.sam_prompting import SamFamilySegmenter
+    from sagonline.vote.feedback import ADVICE_SIDE, enlarged
 
     rng = np.random.default_rng(2)
     found = {}
@@ -84,7 +91,15 @@ def follow_rows(height: int, width: int, repeats: int) -> list[dict]:
             *args
         )
 
+    scale = min(1.0, ADVICE_SIDE / max(height, width))  # the advice's render of the objects
+    small_size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    painted = SamFamilySegmenter.paint(found, (height, width)).astype(np.int32)
+    small = cv2.resize(painted, small_size, interpolation=cv2.INTER_NEAREST).astype(np.int64)
     pairs = {
+        "advice enlarged to the view": (
+            lambda: first_enlarged(small, height, width),
+            lambda: enlarged(small, height, width),
+        ),
         "interior point": (
             lambda: first_interior_point(found[1][0]),
             lambda: interior_point(found[1][0]),

@@ -26,7 +26,9 @@ widened to float32; SAM 2's are 3.1 million values in float16):
 - outputs now, decoder on the host: the same, and `Embedding.extras` widened.
 
 And the host work of following objects into a view (format "follow"; five objects the
-size of the synthetic scene's), as first written and now: an advised object's interior point
+size of the synthetic scene's), as first written and now: the fused labels' advice, rendered
+at 256 px at most, enlarged to the view (one 2D index, then rows and columns apart), an
+advised object's interior point
 (the distance transform of the whole image, then within the mask's box and a ring of one
 pixel), the cells the image covers (made for each view, then once a geometry), a SAM 2
 prompt's answer of which following reads one level (its three masks enlarged to the image, then

@@ -12,7 +12,13 @@ one another); the views are its orbit, the prompt one click per object at the po
 true mask farthest from the edge in view 0. Every part is synchronised on CUDA before its clock
 stops. The segmenter sees each view as it is rendered (the frames are rendered when it asks for
 them), so a view's total is what an online Stage I spends on it; "render" ends with the view
-as the segmenter reads it, an 8-bit image on the host. With a model, the encoder's column is
+as the segmenter reads it, an 8-bit image on the host. A segmenter that reads the fused labels
+(`wants_advice`: SAM-family ones, whose default prompts are match+3d) gets them as the
+evaluation's Stage I gives them, once `advise_after` views voted: "advice" is their render into
+the view (`vote.feedback.FusedRender`; the labels it reads are the "labels" column's, decided
+once per vote), and where it advises, a view's objects are followed with one round of decoder
+prompts fewer (`segmenter.refine=before-advice`). `--option prompts=match` times a segmenter
+without it. With a model, the encoder's column is
 also split (`encoder_frame_ms`: the frame made for the model; `encoder_model_ms`: the model's
 call; the rest is the frame's digest and the outputs' rounding, copy and checks), and so is the
 vote's (`vote_check_ms`: the mask checked on the host; `vote_op_ms`: the vote op's own call, the
@@ -42,12 +48,16 @@ from sagonline.core.plugins import SEGMENTERS
 from sagonline.render import render, render_labels
 from sagonline.render.api import to_uint8
 from sagonline.render.backends import plan_backends
+from sagonline.render.rule import LABEL_MIN_WEIGHT
 from sagonline.scene.generator import make_scene
 from sagonline.segment.mask_geometry import interior_point
 from sagonline.segment.prompts import ObjectPrompt, Prompt
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig
+from sagonline.vote.feedback import FusedRender, advice_inputs
 
-PARTS = ("render", "encoder", "decoder", "segment", "vote", "labels")
+PARTS = ("render", "encoder", "decoder", "advice", "segment", "vote", "labels")
+# the parts timed inside the segmenter's own call for a view ("segment" is the rest of it)
+SEGMENTER_PARTS = ("render", "encoder", "decoder", "advice")
 # the encoder column's own parts (not added again into a view's total): the frame made for the
 # model (resized, normalised, on its device) and the model's call; the rest of the column is the
 # frame's digest, the outputs' rounding, copy to the host and checks
@@ -209,7 +219,8 @@ def time_views(
         time_model(model, clock)
     frames = RenderedOnAsk(g, cams, plan.images, clock)
     votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
-    stream = iter(segmenter.stream(frames, prompt))
+    advice = advice_for(segmenter, g, cams, votes, plan.vote, clock)
+    stream = iter(segmenter.stream(frames, prompt, advice=advice))
     untime_vote = time_vote(clock)
     try:
         rows = views_timed(stream, votes, g, cams, plan.vote, clock, model is not None)
@@ -217,6 +228,21 @@ def time_views(
         untime_vote()
     batched = bool(getattr(model, "batch_prompts", False))
     return pd.DataFrame(rows), plan, weights_named(segmenter), batched
+
+
+def advice_for(
+    segmenter, g, cams, votes: VoteAccumulator, backend: str, clock: Clock
+) -> Callable[[int], np.ndarray | None] | None:
+    """The advice Stage I gives a segmenter that asks for it (`wants_advice`; SAM-family ones
+    with prompts match+3d, their default): the fused labels rendered into view t once enough
+    views voted, as `pipeline.stages` sets it up, timed under "advice"; None for a segmenter
+    that does not ask."""
+    after = getattr(segmenter, "wants_advice", None)
+    if after is None:
+        return None
+    setup = advice_inputs(after, votes.cfg, g, cams, votes.k, LABEL_MIN_WEIGHT, backend)
+    fused = FusedRender(setup, votes, after)
+    return lambda t: clock.timed("advice", fused, t)
 
 
 def weights_named(segmenter) -> str:
@@ -243,7 +269,7 @@ def views_timed(stream, votes, g, cams, vote_backend: str, clock: Clock, model: 
         clock.timed("vote", votes.add_view, g, cams[index], mask, vote_backend, frame=index)
         clock.timed("labels", votes.labels)
         ms = {part: 1000 * (clock.total[part] - before[part]) for part in PARTS}
-        ms["segment"] = 1000 * elapsed - ms["render"] - ms["encoder"] - ms["decoder"]
+        ms["segment"] = 1000 * elapsed - sum(ms[part] for part in SEGMENTER_PARTS)
         inner = {f"{p}_ms": 1000 * (clock.total[p] - before[p]) for p in INNER_PARTS}
         rows.append(
             {"view": index, **{f"{p}_ms": ms[p] for p in PARTS}, "total_ms": sum(ms.values())}

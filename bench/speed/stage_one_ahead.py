@@ -6,13 +6,13 @@ synchronised in between, so that what the side stream overlaps shows.
     python -m bench.speed.stage_one_ahead [--device cuda] [--segmenter sam2_tiny]
         [--objects 1] [--views 24] [--rounds 2] [--option KEY=VALUE] [--out F.csv] [--quick]
 
-The scene, the prompt and the options are `bench.speed.stage_one`'s (the frames rendered when
-the segmenter asks for them, the embedding cache off and the model's embeddings forgotten
-before each pass); its per-part columns wait for the GPU after every part, which would hide the
-overlap, so here only each view's total is timed. A first round of both is run untimed (the
-CUDA graphs' captures, the first calls of each path). Started ahead, a view's time holds the
-next view's encoder (the first view after the prompt's holds two, the last none), so the passes
-compare by their whole time a view; the median of views 1.. is the steady state.
+The scene, the prompt, the options and the fused labels' advice are `bench.speed.stage_one`'s
+(the frames rendered when the segmenter asks for them, the embedding cache off and the model's
+embeddings forgotten before each pass); its per-part columns wait for the GPU after every part,
+which would hide the overlap, so here only each view's total is timed. A first round of both is
+run untimed (the CUDA graphs' captures, the first calls of each path). Started ahead, a view's
+time holds the next view's encoder (the first view after the prompt's holds two, the last none),
+so the passes compare by their whole time a view; the median of views 1.. is the steady state.
 --quick: 3 views at 96x54, 4k surfels, one round (the tests').
 """
 
@@ -29,6 +29,7 @@ import torch
 from bench.speed.stage_one import (
     Clock,
     RenderedOnAsk,
+    advice_for,
     build,
     scene_and_prompt,
     view_arguments,
@@ -62,12 +63,14 @@ def time_arms(
         for ahead in (False, True):
             model.memory.clear()  # every view encoded again, as in the pass before
             segmenter.cfg.encode_ahead = ahead
-            frames = RenderedOnAsk(g, cams, plan.images, Clock(device, synced=False))
+            clock = Clock(device, synced=False)  # nothing waits for the GPU within a pass
+            frames = RenderedOnAsk(g, cams, plan.images, clock)
             votes = VoteAccumulator(len(g), prompt.num_labels, VoteConfig(), device=device)
+            advice = advice_for(segmenter, g, cams, votes, plan.vote, clock)  # as Stage I's
             if device.startswith("cuda"):
                 torch.cuda.synchronize()  # between passes only
             last = time.perf_counter()
-            for index, mask, _ in segmenter.stream(frames, prompt):
+            for index, mask, _ in segmenter.stream(frames, prompt, advice=advice):
                 votes.grow(int(mask.max()) + 1)
                 votes.add_view(g, cams[index], mask, plan.vote, frame=index)
                 votes.labels().cpu()  # read back, as Stage I publishes them

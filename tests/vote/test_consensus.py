@@ -59,6 +59,35 @@ def test_rgc_votes_only_visible_aligned_gaussians():
     assert acc.labels().tolist() == [1, -1, -1, 2]  # -1: unlabelled, the one encoding
 
 
+def test_labels_are_decided_once_per_histogram_and_again_after_any_change(monkeypatch):
+    """Stage I reads the labels after each view's vote and again for the next view's advice:
+    the second read is the first's tensor; a vote, more labels, a histogram changed in place or
+    replaced, and other settings each decide them again."""
+    from sagonline.vote import consensus
+
+    acc = VoteAccumulator(4, 3, VoteConfig(margin=0.0))
+    stream_four_gaussians(acc)
+    first = acc.labels()
+    assert acc.labels() is first and first.tolist() == [1, -1, -1, 2]
+    acc.hist[1, 2] += 5  # in place
+    assert acc.labels().tolist() == [1, 2, -1, 2]
+    acc.hist = torch.tensor([[0, 3, 0], [1, 1, 0], [0, 3, 2], [0, 2, 0]], dtype=torch.float64)
+    assert acc.labels().tolist() == [1, -1, 1, 1]  # replaced
+    acc.cfg = VoteConfig(margin=0.3)  # other settings: 3:2 is now ambiguous
+    assert acc.labels().tolist() == [1, -1, -1, 1]
+    acc.grow(4)
+    assert acc.labels().tolist() == [1, -1, -1, 1] and acc.hist.shape == (4, 4)
+
+    def vote_unseen(gaussians, camera, labels, rule, hist, backend):  # as a GPU kernel writes:
+        hist.numpy()[1, 3] += 9  # behind PyTorch's back (no in-place version counted)
+        return 1
+
+    monkeypatch.setattr(consensus, "vote_into", vote_unseen)
+    camera = small_camera()
+    acc.add_view(None, camera, np.zeros((camera.height, camera.width), np.int64), "native")
+    assert acc.labels().tolist() == [1, 3, -1, 1]
+
+
 def test_rgc_blend_weighs_the_same_pairs_by_alpha_times_transmittance():
     """weighting=blend: the same visible, aligned pairs as the paper's count, each adding its
     blend weight alpha_i T_i; min_votes is then a total weight (gaussian 0's 0.5 is too little

@@ -76,6 +76,8 @@ def test_the_advice_is_rendered_small_and_enlarged_to_the_view():
     small = FusedRender(replace(setup, render_side=48), votes, after=4)(5)  # half the view
     assert full is not None and small is not None
     assert small.shape == full.shape == (64, 96)
+    # enlarged twice, nearest: each rendered pixel fills its 2 x 2 block of the view
+    assert (small == small[::2, ::2].repeat(2, axis=0).repeat(2, axis=1)).all()
     assert set(np.unique(small)) <= set(np.unique(full))
     assert foreground_iou(small, full) > 0.7
     for k in np.unique(full[full > 0]):  # each object's box within two rendered pixels
