@@ -6,7 +6,8 @@ Parallel sweeps (`LAUNCHER=local`), Stage II training beside the initial mode an
 nodes all run a vote beside other work. For each backend (torch: the tiled PyTorch trace reduced
 by the vote's accumulator; native: the compiled trace-and-vote kernel) and thread count, the
 vote pass on the donut at 960x540 (the generated 200k-surfel scene when the donut is absent) is
-timed alone in this process, then in two processes started together; "slowdown" is the median
+timed alone in this process, then in two processes started together (each waits at a barrier
+until both have loaded the scene and warmed up); "slowdown" is the median
 per-mask time together over alone. Numbers depend on what else the machine runs: the table's
 header says how many cores there are and the load before it started. --quick: the small
 scenes of `bench.speed.render --quick`, 2 masks, one thread count (what the tests run).
@@ -18,7 +19,6 @@ import argparse
 import multiprocessing as mp
 import os
 import statistics
-import time
 
 import pandas as pd
 
@@ -33,11 +33,9 @@ def scene(quick: bool = False):
     return next(scenes(quick))
 
 
-def vote_times(
-    backend: str, threads: int, masks: int, start_at: float | None = None, quick: bool = False
-) -> list:
-    """ms per mask of `masks` RGC votes (after one warm-up), optionally waiting until
-    `start_at` (time.time()) so that two processes start together."""
+def vote_times(backend: str, threads: int, masks: int, start=None, quick: bool = False) -> list:
+    """ms per mask of `masks` RGC votes (after one warm-up), optionally waiting at the
+    `start` barrier first, so that two processes start together once both are ready."""
     import torch
 
     from sagonline.vote.consensus import VoteConfig, consensus_vote
@@ -48,8 +46,8 @@ def vote_times(
     mask = torch.randint(0, 3, (cam.height, cam.width), generator=gen).numpy()
     run = lambda n: consensus_vote(g, [cam] * n, [mask] * n, 3, VoteConfig(), backend=backend)  # noqa: E731
     run(1)
-    if start_at is not None:
-        time.sleep(max(0.0, start_at - time.time()))
+    if start is not None:
+        start.wait()
     return [run(1).stats["ms_per_mask"] for _ in range(masks)]
 
 
@@ -77,8 +75,8 @@ def main() -> None:
         for threads in [1] if args.quick else sorted({1, cores}):
             alone = statistics.median(vote_times(backend, threads, args.masks, quick=args.quick))
             queue = ctx.Queue()
-            start_at = time.time() + 8.0  # both children have loaded the scene by then
-            job = (backend, threads, args.masks, start_at, args.quick)
+            start = ctx.Barrier(2)  # each child passes once it has loaded and warmed up
+            job = (backend, threads, args.masks, start, args.quick)
             procs = [ctx.Process(target=_child, args=(job, queue)) for _ in range(2)]
             for p in procs:
                 p.start()
