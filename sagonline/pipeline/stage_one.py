@@ -339,7 +339,7 @@ class StageOne:
             since += 1
             if c.publish_every and (len(self._acc.frames) == 1 or since >= c.publish_every):
                 since = 0
-                self._labels = np.array(self._acc.labels().cpu())  # a copy: the vote keeps its own
+                self._labels = self._acc.labels().cpu().numpy().copy()  # the vote keeps its own
                 yield LabelsUpdated(self._labels, len(self._acc.frames), total)
         name = c.segmenter.segmenter.name
         info = {"order": order, **c.segmenter.segmenter.describe()}
