@@ -13,7 +13,7 @@ which would hide the overlap, so here only each view's total is timed. A first r
 run untimed (the CUDA graphs' captures, the first calls of each path). Started ahead, a view's
 time holds the next view's encoder (the first view after the prompt's holds two, the last none),
 so the passes compare by their whole time a view; the median of views 1.. is the steady state.
---quick: 3 views at 96x54, 4k surfels, one round (the tests').
+--quick: 3 views at 96x54, 4k surfels, one round and no untimed one (the tests').
 """
 
 from __future__ import annotations
@@ -49,17 +49,18 @@ def time_arms(
     device: str,
     settings: dict,
     rounds: int,
+    untimed: int = 1,
 ) -> tuple[pd.DataFrame, str]:
     """Rows (round, encode_ahead, view, ms) of `rounds` timed rounds, each a pass without and
-    a pass with encoding ahead, after one untimed round; and the weights that ran (each file's
-    name and sha256 prefix)."""
+    a pass with encoding ahead, after `untimed` rounds (0 or 1); and the weights that ran (each
+    file's name and sha256 prefix)."""
     g, cams, plan, prompt = scene_and_prompt(views, size, gaussians, objects, device)
     segmenter = build(segmenter_name, device, settings)
     model = segmenter.model() if hasattr(segmenter, "model") else None
     if model is None:
         raise ValueError(f"segmenter {segmenter_name} has no image encoder to start ahead")
     rows = []
-    for round_ in range(rounds + 1):
+    for round_ in range(1 - untimed, rounds + 1):
         for ahead in (False, True):
             model.memory.clear()  # every view encoded again, as in the pass before
             segmenter.cfg.encode_ahead = ahead
@@ -111,11 +112,11 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="also write the per-view CSV")
     args = ap.parse_args()
     asked = views_asked(ap, args)
-    rounds = 1 if args.quick else args.rounds
+    rounds, untimed = (1, 0) if args.quick else (args.rounds, 1)
     if rounds < 1:
         ap.error("--rounds >= 1")
     try:
-        table, weights = time_arms(*asked, rounds)
+        table, weights = time_arms(*asked, rounds, untimed)
     except ValueError as exc:  # a missing model file names the option and `make weights`
         raise SystemExit(f"stage_one_ahead: {exc}") from None
     gpu = torch.cuda.get_device_name(0) if args.device.startswith("cuda") else None
@@ -124,7 +125,7 @@ def main() -> None:
         f"{weights})"
         + "".join(f", {o}" for o in args.option)
         + f" on {gpu or args.device}, {args.views} views at {args.size}, {args.gaussians:,} "
-        f"surfels, {args.objects} object(s), {rounds} round(s) after an untimed one\n"
+        f"surfels, {args.objects} object(s), {rounds} round(s) after {untimed} untimed\n"
     )
     print(summary(table).round(3).to_markdown(index=False))
     if args.out is not None:

