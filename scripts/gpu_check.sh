@@ -517,7 +517,7 @@ if [ "$SKIP_FIT" = 0 ] && [ -d "$FIT_DATA" ] \
   done
   # fit=paper's seconds per 1,000 iterations: the paper's recipe, its schedule unchanged, stopped
   # at a time budget (the first PAPER_S seconds of it; --quick: at 64 px)
-  PAPER_S=$([ "$QUICK" = 1 ] && echo 5 || echo 20)
+  PAPER_S=$([ "$QUICK" = 1 ] && echo 2 || echo 20)
   PAPER_SIZE=(); [ "$QUICK" = 1 ] && PAPER_SIZE=(fit.max_side=64)
   step "GPU fit: fit=paper probe" "$PY" -m bench.runners.scenes "${FIT_ON[@]}" device="$DEVICE" \
     variant="paper_probe_$TAG" overwrite=true progress=false fit=paper fit.time_budget_s=$PAPER_S \

@@ -167,7 +167,7 @@ def test_the_gpu_check_runs_each_step_on_the_cpu(tmp_path):
         fit = pd.read_csv(second / "gpu_fit_cpu_check.csv").set_index("fit")
         assert fit.loc["gpu", "iterations"] == 30 and 0 <= fit.loc["gpu", "real mIoU"] <= 100
         assert fit.loc["gpu", "stopped"] == "iterations"  # the deadline's budget left it alone
-        paper = fit.loc["fit=paper (its first 5 s)"]  # the paper recipe, stopped by its budget
+        paper = fit.loc["fit=paper (its first 2 s)"]  # the paper recipe, stopped by its budget
         assert paper["stopped"] == "time_budget" and paper["s per 1k iterations"] > 0
     # --core's prefixes each name a step of the check (a renamed step would drop out of it
     # unseen), and none names a step beyond the GPU issue's items
