@@ -119,6 +119,16 @@ def may_fit(cfg: ScenesConfig, out: Path, scene: str) -> bool:
     return True
 
 
+def other_fits(out: Path, seed: int) -> list[Path]:
+    """The capture's fits beside `out` whose start points it may share: the seed's fit of the
+    default recipe first, then the others (another recipe, or the same one stopped at a budget);
+    `initial_points` takes the first whose cached points were triangulated from the same
+    views, seed and detector settings."""
+    default = out.with_name(fit_folder(fit_variant(None, seed)))
+    siblings = sorted(p for p in out.parent.glob(fit_folder() + "-*") if p.is_dir())
+    return [p for p in dict.fromkeys([default, *siblings]) if p != out]
+
+
 def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
     """The fitter of one capture: images at the fitting size, start points, clearances."""
     fit_cfg = dataclasses.replace(cfg.fit)  # this scene's copy (its clearance is set below)
@@ -129,8 +139,9 @@ def build_fitter(cfg: ScenesConfig, scene_dir: Path, cams, images, out: Path):
         b = load_llff_bounds(scene_dir)
         bounds = (float(b[:, 0].min()), float(b[:, 1].max()))
         near_far = (bounds[0] * 0.9, bounds[1] * 1.1)  # random start points: a little beyond
-    seeds_fit = out.with_name(fit_folder(fit_variant(None, cfg.seed)))
-    points, init = initial_points(fit_cfg, scene_dir, train_cams, images, out, seeds_fit)
+    points, init = initial_points(
+        fit_cfg, scene_dir, train_cams, images, out, other_fits(out, cfg.seed)
+    )
     if fit_cfg.camera_clearance is None:  # auto: half the nearest depth the capture records
         fit_cfg.camera_clearance = 0.5 * near_depth(train_cams, points, bounds)
     fitter = SceneFitter(

@@ -4,6 +4,7 @@ cached beside the scene), and the nearest depth it records (for the camera clear
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -115,13 +116,13 @@ def initial_points(
     cams,
     images: dict[str, Path],
     out: Path,
-    shared: Path | None = None,
+    shared: Sequence[Path] = (),
 ):
     """Start points for the fit and what they are: the capture's COLMAP points, else SIFT
     matches triangulated with the training cameras fixed (cached in `out`; also read from
-    `shared`, the folder of the seed's fit of the default recipe, whose start points a variant
-    recipe of the same seed shares), else None (random points in the frusta). Returns
-    ((xyz, rgb) or None, description)."""
+    the folders in `shared`, the capture's other fits: a fit of the same training views, seed
+    and detector settings, of any recipe, triangulated the same points), else None (random
+    points in the frusta). Returns ((xyz, rgb) or None, description)."""
     if cfg.init not in ("auto", "colmap", "triangulate", "random"):
         raise DatasetError(f"fit.init={cfg.init!r}: use auto, colmap, triangulate or random")
     if cfg.init in ("auto", "colmap"):
@@ -136,7 +137,7 @@ def initial_points(
         train = [cams[i] for i in train_idx]
         cache = out / "init_points.store"
         key = ",".join(c.name for c in train) + f"|seed={cfg.seed}" + detector_key(cfg)
-        for folder in [out] if shared is None else [out, shared]:
+        for folder in [out, *shared]:
             path = folder / "init_points.store"
             cached = store.load_or_discard(path, "triangulated start points")
             if cached is not None and cached["views"] == key:

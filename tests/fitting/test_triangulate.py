@@ -103,15 +103,57 @@ def test_a_machine_without_pycolmap_fits_from_cached_start_points_or_says_why(
     monkeypatch.setitem(sys.modules, "pycolmap", None)  # `import pycolmap` raises ImportError
     out, shared = tmp_path / "gaussians-gpu", tmp_path / "gaussians"
 
-    points, init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, shared)
+    points, init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, [shared])
     assert points is None and init == "random in frusta (no pycolmap)"
     with pytest.raises(DatasetError, match=r"needs pycolmap.*init_points\.store"):
-        initial_points(FitConfig(init="triangulate"), tmp_path, cams, images, out, shared)
+        initial_points(FitConfig(init="triangulate"), tmp_path, cams, images, out, [shared])
 
     train, _ = split_views(cams, FitConfig().holdout_every, FitConfig().train_every)
     xyz = np.random.default_rng(0).random((150, 3)).astype(np.float32)
     key = ",".join(cams[i].name for i in train) + "|seed=0"
     shared.mkdir()
     store.save(shared / "init_points.store", {"xyz": xyz, "rgb": xyz, "views": key})
-    (got, _), init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, shared)
+    (got, _), init = initial_points(FitConfig(init="auto"), tmp_path, cams, images, out, [shared])
     assert np.array_equal(got, xyz) and "cached in gaussians" in init
+
+
+def test_a_fit_shares_the_start_points_any_other_fit_of_its_views_and_seed_triangulated(
+    tmp_path, monkeypatch
+):
+    """Another recipe's fit (the paper recipe's probe after the check's fit) reads the points a
+    sibling fit of the same views and seed cached, the default recipe's first; another seed's
+    points are not taken."""
+    from bench.runners.scenes import other_fits
+    from sagonline.core import store
+    from sagonline.fitting import FitConfig
+    from sagonline.fitting.capture import initial_points
+    from sagonline.fitting.start_points import split_views
+
+    for name in ("gaussians-seed1", "gaussians-gpu", "gaussians-paper_probe", "gaussians"):
+        (tmp_path / name).mkdir()
+    (tmp_path / "gaussians-notes.txt").write_text("")  # not a folder
+    out = tmp_path / "gaussians-paper_probe"
+    assert [p.name for p in other_fits(out, seed=0)] == [
+        "gaussians",
+        "gaussians-gpu",
+        "gaussians-seed1",
+    ]
+    assert other_fits(tmp_path / "gaussians-x-seed1", seed=1)[0].name == "gaussians-seed1"
+
+    s = make_scene(layout="forward", num_gaussians=500, width=32, height=24, num_train_views=4)
+    cams = s.train_cameras
+    images = {c.name: tmp_path / f"{c.name}.png" for c in cams}
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # no triangulation: the cache or nothing
+    train, _ = split_views(cams, FitConfig().holdout_every, FitConfig().train_every)
+    views = ",".join(cams[i].name for i in train)
+    xyz = np.random.default_rng(0).random((150, 3)).astype(np.float32)
+    store.save(
+        tmp_path / "gaussians-seed1" / "init_points.store",
+        {"xyz": -xyz, "rgb": xyz, "views": views + "|seed=1"},
+    )
+    store.save(
+        tmp_path / "gaussians-gpu" / "init_points.store",
+        {"xyz": xyz, "rgb": xyz, "views": views + "|seed=0"},
+    )
+    (got, _), init = initial_points(FitConfig(), tmp_path, cams, images, out, other_fits(out, 0))
+    assert np.array_equal(got, xyz) and "cached in gaussians-gpu" in init
