@@ -127,3 +127,22 @@ def test_the_resize_is_pils_nearest_neighbour():
         resized = resize_nearest(labels, (int(th), int(tw)))
         expected = Image.fromarray(labels.astype(np.uint8)).resize((int(tw), int(th)), 0)
         assert resized.dtype == np.int64 and np.array_equal(resized, np.asarray(expected))
+
+
+@pytest.mark.parametrize(
+    "plane",
+    [
+        np.random.default_rng(0).integers(0, 256, (37, 53)).astype(np.uint8),
+        np.random.default_rng(1).choice([0, 3, 65535], (40, 30)).astype(np.uint16),
+        np.dstack([np.full((9, 7), 5, np.uint8), np.eye(9, 7, dtype=np.uint8) * 200])[..., 1],
+        np.zeros((0, 4), np.uint8),
+        np.array([[-1, 4], [4, 9]], np.int64),
+    ],
+    ids=["uint8", "uint16", "a channel's strided view", "empty", "int64"],
+)
+def test_a_planes_distinct_values_are_numpys(plane):
+    """The histogram's values (8- and 16-bit planes) are `np.unique`'s, in its dtype."""
+    from sagonline.scene.io.masks import distinct_values
+
+    got, want = distinct_values(plane), np.unique(plane)
+    assert got.dtype == want.dtype and np.array_equal(got, want)

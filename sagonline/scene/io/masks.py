@@ -62,7 +62,7 @@ def read_mask(
     if mode not in MODES:
         raise ValueError(f"mask mode {mode!r} is not one of {MODES}")
     image, seen = _load(path, max_pixels)
-    if mode == "auto" and seen.startswith("a palette") and len(np.unique(image)) > 2:
+    if mode == "auto" and seen.startswith("a palette") and len(distinct_values(image)) > 2:
         mode = "ids"  # a palette's indices are label ids
     try:
         plane = _one_plane(image, path, seen)
@@ -96,7 +96,7 @@ def decide(
     threshold: float | None = None,
 ) -> MaskFile:
     """A single (H, W) plane of integer values -> the mask, by the rules of `read_mask`."""
-    values = np.unique(plane)
+    values = distinct_values(plane)
     seen = f"{seen}, {len(values)} distinct value{'s' if len(values) != 1 else ''}"
     if mode == "binary" or (mode == "auto" and _binary(plane, values)):
         lo, hi = int(values[0]), int(values[-1])
@@ -118,6 +118,16 @@ def decide(
             + (", or anti-aliased edges between them" if mode == "auto" else "")
         )
     return MaskFile(plane.astype(np.int64), "label map", seen)
+
+
+def distinct_values(plane: np.ndarray) -> np.ndarray:  # [K] of plane's dtype, ascending
+    """`np.unique(plane)`; for 8- and 16-bit planes (every mask file) from OpenCV's histogram,
+    which counts a 1296x972 mask in 0.3 ms where the sort takes 6."""
+    levels = {np.dtype(np.uint8): 256, np.dtype(np.uint16): 65536}.get(plane.dtype)
+    if levels is None or plane.ndim != 2 or not plane.size:
+        return np.unique(plane)
+    counts = cv2.calcHist([np.ascontiguousarray(plane)], [0], None, [levels], [0, levels])
+    return np.flatnonzero(counts.ravel()).astype(plane.dtype)
 
 
 def _load(path: Path, max_pixels: int | None = None) -> tuple[np.ndarray, str]:
@@ -191,4 +201,12 @@ def _binary(plane: np.ndarray, values: np.ndarray, edge_px: int = 8) -> bool:
     return bool(edge[between].mean() >= 0.99)
 
 
-__all__ = ["MAX_LABELS", "MaskFile", "MaskFileError", "decide", "read_mask", "read_mask_colours"]
+__all__ = [
+    "MAX_LABELS",
+    "MaskFile",
+    "MaskFileError",
+    "decide",
+    "distinct_values",
+    "read_mask",
+    "read_mask_colours",
+]
