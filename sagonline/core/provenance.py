@@ -40,20 +40,32 @@ def digest_json(*parts) -> str:
     return hashlib.blake2b(blob.encode(), digest_size=16).hexdigest()
 
 
-def _update_array(h, array) -> None:
+def _update_array(h, array, as_int64: bool = False) -> None:
     if isinstance(array, torch.Tensor):
         array = array.detach().cpu().contiguous().numpy()
     array = np.ascontiguousarray(array)
+    if as_int64 and array.dtype.kind in "iu" and array.dtype != np.int64 and array.size:
+        # the bytes the values have as int64, a block of rows at a time (no int64 copy whole)
+        h.update(f"{np.dtype(np.int64).str}{array.shape}".encode())
+        rows = array.reshape(array.shape[0], -1) if array.ndim else array.reshape(1, 1)
+        step = max(1, (1 << 20) // rows.shape[1])
+        for start in range(0, len(rows), step):
+            h.update(rows[start : start + step].astype(np.int64).view(np.uint8).reshape(-1).data)
+        return
     h.update(f"{array.dtype.str}{array.shape}".encode())
     h.update(array.view(np.uint8).reshape(-1).data if array.size else b"")
 
 
-def digest_arrays(arrays: Iterable) -> str:
+def digest_arrays(arrays: Iterable, as_int64: bool = False) -> str:
     """Digest of a sequence of arrays/tensors: their dtypes, shapes and bytes (None allowed).
     A sequence of read-only NumPy arrays (the ground truth, `datasets.base.read_only`) is
-    hashed once per process: the same arrays give their remembered digest."""
+    hashed once per process: the same arrays give their remembered digest. `as_int64`: integer
+    arrays are hashed as their values in int64 (label maps, read at their files' 8 or 16 bits,
+    keep the digests they had when they were read as int64)."""
     arrays = list(arrays)
     key = _frozen_key(arrays)
+    if key is not None and as_int64:
+        key = (*key, -1)
     if key is not None:
         hit = _ARRAYS_MEMO.get(key)
         if hit is not None and all(r() is a for r, a in zip(hit[0], arrays, strict=True)):
@@ -63,7 +75,7 @@ def digest_arrays(arrays: Iterable) -> str:
         if a is None:
             h.update(b"none")
         else:
-            _update_array(h, a)
+            _update_array(h, a, as_int64)
     digest = h.hexdigest()
     if key is not None:
         if len(_ARRAYS_MEMO) >= 64:

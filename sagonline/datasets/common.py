@@ -52,7 +52,7 @@ def scene_cameras(
 def load_mask(
     path: Path, threshold: int = 127, mode: str = "binary", max_labels: int = MAX_LABELS
 ) -> np.ndarray:
-    """A ground-truth mask as (H, W) int64, through the one mask reader (`io.masks`).
+    """A ground-truth mask as (H, W) uint8 or uint16 ids, through the one mask reader (`io.masks`).
 
     mode "binary": foreground where the mask's channel exceeds `threshold` (a colour mask:
     where any channel does; JPEG masks need this); mode "ids": the file's integer values are

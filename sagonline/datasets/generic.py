@@ -284,7 +284,7 @@ class PosedMasksDataset(DatasetAdapter):
         return scene_dir, cams, images
 
     def read_label_map(self, path: Path) -> np.ndarray:
-        """One view's (H, W) int64 label map (a folder of per-object masks for per_object)."""
+        """One view's (H, W) label map of integer ids (per_object: a folder of masks)."""
         return self.labels.read(path)
 
     # --- task ---------------------------------------------------------------------------------
@@ -330,7 +330,8 @@ class PosedMasksDataset(DatasetAdapter):
         view_groups = group_by_photographs(evals, views, photographs)
         traj_gt = None
         if all(c.name in gts for c in cams):
-            traj_gt = [resize_nearest(gts[c.name], (c.height, c.width)) for c in cams]
+            size = {c.name: (c.height, c.width) for c in cams}  # int64: as the masks stage keys it
+            traj_gt = [resize_nearest(gts[c.name], size[c.name]).astype(np.int64) for c in cams]
         return SceneTask(
             dataset=self.name,
             name=scene,

@@ -26,7 +26,7 @@ from sagonline.scene.io.images import IMAGE_SUFFIXES
 
 KITTI360_VEHICLES = (26, 27, 28, 29, 30, 31)  # car truck bus caravan trailer train
 
-Maps = dict[str, np.ndarray]  # view name -> (H, W) int64 label map
+Maps = dict[str, np.ndarray]  # view name -> (H, W) label map of non-negative integer ids
 
 
 @dataclass
@@ -96,7 +96,8 @@ class PerObjectLabels:
         out = None
         for p in parts:
             m = load_mask(p, self.threshold)
-            out = np.zeros_like(m) if out is None else out
+            if out is None:  # ids 1..len(names): the narrowest type that holds them
+                out = np.zeros(m.shape, np.uint8 if len(names) < 256 else np.uint16)
             out[m > 0] = names.index(p.stem) + 1
         return out
 

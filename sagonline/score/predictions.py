@@ -43,8 +43,8 @@ def write_label_map(path: Path, labels: np.ndarray) -> None:
 
 
 def read_label_map(path: Path, max_pixels: int | None = None) -> np.ndarray:
-    """A label-map PNG -> (H, W) int64 ids, through the one mask reader (`io.masks`, "ids":
-    ids are kept as they are, 8- or 16-bit); a colour or unreadable file, or one of more than
+    """A label-map PNG -> (H, W) uint8 or uint16 ids, through the one mask reader (`io.masks`,
+    "ids": ids are kept as they are, 8- or 16-bit); a colour or unreadable file, or one of more than
     `max_pixels` pixels (checked before decoding), is a clear error."""
     from sagonline.scene.io.masks import read_mask
 

@@ -48,3 +48,25 @@ def test_ground_truth_digest_is_remembered_only_while_nothing_can_change_it():
     assert digest_arrays(writable) != before
     with pytest.raises(ValueError, match="read-only"):
         frozen[0][0, 0] = 7
+
+
+def test_label_maps_read_narrow_keep_the_digests_they_had_as_int64():
+    """Masks are read at their files' 8 or 16 bits; `as_int64` hashes their values as int64,
+    a block of rows at a time, so a finished run's recorded ground-truth digest still matches
+    (and so does a map of more rows than one block)."""
+    from sagonline.core.provenance import digest_arrays
+
+    rng = np.random.default_rng(0)
+    maps = [
+        rng.integers(0, 3, (24, 31)).astype(np.uint8),
+        rng.integers(0, 60000, (2100, 700)).astype(np.uint16),  # 3 blocks of rows
+        rng.integers(0, 2, (5,)).astype(np.uint8),
+    ]
+    wide = [m.astype(np.int64) for m in maps]
+    assert digest_arrays(maps, as_int64=True) == digest_arrays(wide)
+    assert digest_arrays(maps, as_int64=True) != digest_arrays(maps)
+    frames = [rng.integers(0, 255, (4, 4, 3)).astype(np.float32)]  # not integers: as they are
+    assert digest_arrays(frames, as_int64=True) == digest_arrays(frames)
+    for m in maps:  # the read-only ground truth is remembered apart from its plain digest
+        m.flags.writeable = False
+    assert digest_arrays(maps) != digest_arrays(maps, as_int64=True) == digest_arrays(wide)
