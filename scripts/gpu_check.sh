@@ -111,6 +111,9 @@ if [ "$AS_GPU_MACHINE" = 1 ]; then
   export PYTHONPATH="$ROOT/scripts/gpu_machine:$PYTHONPATH" SAGONLINE_AS_GPU_MACHINE=1 \
     PYTEST_DISABLE_PLUGIN_AUTOLOAD=1
 fi
+# the project's modules compiled once (where PYTHONDONTWRITEBYTECODE is set, each step's
+# Python compiled them again: the CPU's quick check took 141 -> 134 s with them compiled)
+"$PY" -m compileall -q sagonline bench scripts >/dev/null 2>&1 || true
 mkdir -p "$OUT"
 OUT=$(cd "$OUT" && pwd)
 WORK=$(mktemp -d "${TMPDIR:-/tmp}/gpu_check.XXXXXX")

