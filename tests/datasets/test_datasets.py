@@ -444,3 +444,22 @@ def test_a_fit_of_every_second_photograph_has_a_protocol_of_its_own(tmp_path):
     assert ds.protocol == "generic/all-views-photos1of2@2"
     config.write_text("not json")
     assert ds.protocol == "generic/all-views@2"
+
+
+def test_a_label_map_read_narrow_with_an_id_past_the_names_is_refused(tmp_path):
+    """Label maps keep their files' 8 bits; an id past the dataset's label names is still
+    named with its file, and the ids in range load as they are."""
+    cams, scene = llff_scene(tmp_path / "ids", NAMES[:2])
+    for n in NAMES[:2]:
+        m = np.zeros((24, 32), np.uint8)
+        m[4:10, 4:12] = 1
+        write_image(tmp_path / "ids" / "ids" / f"{n}.png", m)
+    settings = dict(
+        name="ids", mask_dir="ids", label_format="ids", label_names=["bg", "a"], prompt="none"
+    )
+    task = PosedMasksDataset(tmp_path / "ids", **settings).load_scene("ids")
+    assert task.eval_views[0].gt.dtype == np.uint8 and task.eval_views[0].gt[5, 5] == 1
+    m[0, 0] = 2
+    write_image(tmp_path / "ids" / "ids" / f"{NAMES[1]}.png", m)
+    with pytest.raises(DatasetError, match=rf"{NAMES[1]}\.png: label ids outside \[0, 2\)"):
+        PosedMasksDataset(tmp_path / "ids", **settings).load_scene("ids")
