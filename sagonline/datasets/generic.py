@@ -330,8 +330,8 @@ class PosedMasksDataset(DatasetAdapter):
         view_groups = group_by_photographs(evals, views, photographs)
         traj_gt = None
         if all(c.name in gts for c in cams):
-            size = {c.name: (c.height, c.width) for c in cams}  # int64: as the masks stage keys it
-            traj_gt = [resize_nearest(gts[c.name], size[c.name]).astype(np.int64) for c in cams]
+            traj_gt = [resize_nearest(gts[c.name], (c.height, c.width)) for c in cams]
+            traj_gt = [g.astype(np.int64) for g in traj_gt]  # int64: as the masks stage keys it
         return SceneTask(
             dataset=self.name,
             name=scene,

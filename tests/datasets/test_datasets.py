@@ -463,3 +463,18 @@ def test_a_label_map_read_narrow_with_an_id_past_the_names_is_refused(tmp_path):
     write_image(tmp_path / "ids" / "ids" / f"{NAMES[1]}.png", m)
     with pytest.raises(DatasetError, match=rf"{NAMES[1]}\.png: label ids outside \[0, 2\)"):
         PosedMasksDataset(tmp_path / "ids", **settings).load_scene("ids")
+
+
+def test_per_object_masks_past_255_objects_keep_every_id(tmp_path):
+    """A view's per-object masks are merged into the narrowest type that holds their ids:
+    uint16 once there are 256 objects, so the last object's id is not wrapped."""
+    from sagonline.datasets.labels import PerObjectLabels
+
+    view = tmp_path / "masks" / "view0"
+    for k in range(256):
+        m = np.zeros((4, 4), np.uint8)
+        if k in (0, 255):
+            m[k // 255, 1] = 255
+        write_image(view / f"obj{k:03d}.png", m)
+    merged = PerObjectLabels().read(view)
+    assert merged.dtype == np.uint16 and merged[0, 1] == 1 and merged[1, 1] == 256
