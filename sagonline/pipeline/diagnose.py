@@ -13,12 +13,13 @@ from dataclasses import replace
 
 import numpy as np
 
-from sagonline.datasets.base import SceneTask
+from sagonline.datasets.base import EvalView, SceneTask
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import SceneReport
 from sagonline.pipeline.settings import PipelineSettings
 from sagonline.pipeline.stage_one import StageOneOutput, compose_stage_one
 from sagonline.pipeline.stages import SegmenterRun, segmenter_run
+from sagonline.render.rasterize import RenderOutput
 from sagonline.scene.gaussians import Gaussians
 from sagonline.score.alignment import SHIFT_KEYS, displaced
 from sagonline.score.diagnosis import (
@@ -66,50 +67,68 @@ def truth_vote(
     return truth.vote.value
 
 
-def diagnose_scene(
-    task: SceneTask,
-    gaussians: Gaussians,
-    stage_one: StageOneOutput,
-    preds: list[np.ndarray],
-    segmenter: SegmenterRun,
-    vote: VoteConfig,
-    settings: PipelineSettings,
-    report: SceneReport,
-    cache: StageCache,
-) -> list[np.ndarray]:
-    """Add each eval view's cause counts to its per-view row, the scene's shares to
-    report.extra["diagnosis"] (with the views whose object is rendered displaced,
-    `score.alignment`) and the labelled Gaussians shown outside the object's silhouette to
-    report.outside (their summary under diagnosis["outside"]); returns the (H, W, 3) cause
-    images (for the recording)."""
-    truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
-    causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
-    rows = {(r["view"], r["mode"]): r for r in report.views}
-    counts, images, outside = [], [], OutsideTally()
-    for view, pred in zip(task.eval_views, preds, strict=True):
-        row = rows[(view.name, "coarse")]
-        c, kinds = diagnose_view(
-            gaussians,
+class SceneDiagnosis:
+    """A scored scene's diagnosis, one eval view at a time (`view`), then `finish`: each view's
+    cause counts in its per-view row, the scene's shares in report.extra["diagnosis"] (with the
+    views whose object is rendered displaced, `score.alignment`) and the labelled Gaussians
+    shown outside the object's silhouette in report.outside (their summary under
+    diagnosis["outside"])."""
+
+    def __init__(
+        self,
+        task: SceneTask,
+        gaussians: Gaussians,
+        stage_one: StageOneOutput,
+        segmenter: SegmenterRun,
+        vote: VoteConfig,
+        settings: PipelineSettings,
+        report: SceneReport,
+        cache: StageCache,
+    ) -> None:
+        truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
+        self.causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
+        self.counterfactual = "truth's masks" if truth is not None else None
+        self.task, self.gaussians, self.report = task, gaussians, report
+        self.backend = settings.renderer.backend
+        self.rows = {(r["view"], r["mode"]): r for r in report.views}
+        self.counts: list[dict] = []
+        self.outside = OutsideTally()
+
+    def view(
+        self, view: EvalView, pred: np.ndarray, whole: RenderOutput | None = None
+    ) -> np.ndarray:  # [H, W, 3] uint8
+        """Diagnose the next eval view (pred: its coarse label render; whole: the scene's
+        render there with ids, if the caller has it); returns its cause image."""
+        row = self.rows[(view.name, "coarse")]
+        counts, kinds = diagnose_view(
+            self.gaussians,
             view.camera,
             view.gt,
             pred,
-            causes,
-            ignore=task.ignore_label,
-            backend=settings.renderer.backend,
-            outside=outside,
+            self.causes,
+            ignore=self.task.ignore_label,
+            backend=self.backend,
+            outside=self.outside,
             voted=bool(row.get("voted")),
+            whole=whole,
         )
-        row.update(c)
-        counts.append(c)
-        images.append(cause_image(kinds))
-    report.outside = outside.rows(gaussians, causes)
-    report.extra["diagnosis"] = shares(counts) | {
-        "counterfactual": "truth's masks" if truth is not None else None,
-        "outside": outside_summary(report.outside, sum(c["extra_px"] for c in counts)),
-        "displaced": [
-            {"view": view.name, **{k: c[k] for k in SHIFT_KEYS}}
-            for view, c in zip(task.eval_views, counts, strict=True)
-            if displaced(c, view.camera.width, view.camera.height)
-        ],
-    }
-    return images
+        row.update(counts)
+        self.counts.append(counts)
+        return cause_image(kinds)
+
+    def finish(self) -> None:
+        """Write the scene's shares and the Gaussians shown outside into the report."""
+        counts, views = self.counts, self.task.eval_views
+        if len(counts) != len(views):
+            raise RuntimeError(f"diagnosed {len(counts)} of {len(views)} eval views")
+        report = self.report
+        report.outside = self.outside.rows(self.gaussians, self.causes)
+        report.extra["diagnosis"] = shares(counts) | {
+            "counterfactual": self.counterfactual,
+            "outside": outside_summary(report.outside, sum(c["extra_px"] for c in counts)),
+            "displaced": [
+                {"view": view.name, **{k: c[k] for k in SHIFT_KEYS}}
+                for view, c in zip(views, counts, strict=True)
+                if displaced(c, view.camera.width, view.camera.height)
+            ],
+        }

@@ -20,7 +20,7 @@ import torch
 from sagonline.core.progress import progress
 from sagonline.core.provenance import digest_arrays, digest_cameras, digest_gaussians
 from sagonline.datasets.base import SceneTask
-from sagonline.pipeline.diagnose import diagnose_scene
+from sagonline.pipeline.diagnose import SceneDiagnosis
 from sagonline.pipeline.events import StageOneBars
 from sagonline.pipeline.graph import StageCache
 from sagonline.pipeline.scoring import (
@@ -39,7 +39,10 @@ from sagonline.pipeline.stage_one import (
 )
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.record.recording import Recorder
-from sagonline.render.api import render, render_labels, to_uint8
+from sagonline.render.api import capable_backend, render, render_labels, to_uint8
+from sagonline.render.backends import resolve_backend
+from sagonline.render.rasterize import RenderOutput
+from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.score.metrics import labels3d_metrics
 from sagonline.segment.base import VideoSegmenter
@@ -118,10 +121,10 @@ def run_scene(
     )
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(result.labels, task.gt_labels3d, num_labels)
-    causes = None
+    diagnosis = None
     if settings.diagnose and not is_automatic(task):
-        causes = diagnose_scene(task, g, stage_one, preds, segmenter, vote, settings, report, cache)
-    record_eval_views(task, recorder, preds, report, g, plan.images, causes, settings.background)
+        diagnosis = SceneDiagnosis(task, g, stage_one, segmenter, vote, settings, report, cache)
+    record_eval_views(task, recorder, preds, report, g, plan.images, diagnosis, settings.background)
     recorder.gaussians(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
     )
@@ -239,27 +242,52 @@ def score_views(
 
 
 def record_eval_views(
-    task, recorder, preds, report, gaussians, backend, causes=None, background=(0.0, 0.0, 0.0)
+    task: SceneTask,
+    recorder: Recorder,
+    preds: list[np.ndarray],
+    report: SceneReport,
+    gaussians: Gaussians,
+    backend: str,
+    diagnosis: SceneDiagnosis | None = None,
+    background=(0.0, 0.0, 0.0),
 ) -> None:
-    """Each eval view's render (on `background`, Stage I's colour), prediction, ground truth and
-    (with a diagnosis) the causes of its wrong pixels, at its nearest trajectory frame."""
-    if not recorder.enabled:
+    """Each eval view rendered once (on `background`, Stage I's colour, by `backend`): with a
+    diagnosis, its wrong pixels sorted by cause from that render's ids; with a recording, the
+    render, prediction, ground truth and causes at its nearest trajectory frame."""
+    if not recorder.enabled and diagnosis is None:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
     frames = nearest_frames(task)
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
-        rgb = to_uint8(render(gaussians, view.camera, background=background, backend=backend).rgb)
-        recorder.eval_view(
-            task.name,
-            i,
-            rgb,
-            pred,
-            view.gt,
-            camera=view.camera,
-            iou=ious[i],
-            frame=frames[i],
-            diagnosis=None if causes is None else causes[i],
-        )
+        whole = eval_render(gaussians, view.camera, background, backend, diagnosis is not None)
+        causes = None if diagnosis is None else diagnosis.view(view, pred, whole)
+        if recorder.enabled:
+            recorder.eval_view(
+                task.name,
+                i,
+                to_uint8(whole.rgb),
+                pred,
+                view.gt,
+                camera=view.camera,
+                iou=ious[i],
+                frame=frames[i],
+                diagnosis=causes,
+            )
+    if diagnosis is not None:
+        diagnosis.finish()
+
+
+def eval_render(
+    gaussians: Gaussians, camera: Camera, background, backend: str, ids: bool
+) -> RenderOutput:
+    """One eval view's render by `backend` (its colours as Stage I saw them), with the most
+    visible Gaussian per pixel where `ids` asks: a backend that draws none (gsplat) leaves the
+    ids to another (`render`'s choice) and keeps its own colours."""
+    out = render(gaussians, camera, background=background, backend=backend, return_ids=ids)
+    chosen = resolve_backend(backend, gaussians.device)
+    if ids and capable_backend(chosen, {"return_ids": True}, gaussians.device) != chosen:
+        out.rgb = render(gaussians, camera, background=background, backend=backend).rgb
+    return out
 
 
 def nearest_frames(task: SceneTask) -> list[int]:

@@ -102,6 +102,20 @@ def _backend_function(name: str):
     return rasterize
 
 
+def render_coverage(
+    gaussians: Gaussians, camera: Camera, *, backend: str = "torch"
+) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W] alpha, [H, W] alpha-weighted depth
+    """A view's alpha and alpha-weighted depth (divide by alpha for the surface's depth), as
+    `render` gives them. On the CPU's compiled kernel without colours (`coverage_native`: no
+    SH, no autograd, about half a render's time); elsewhere by `render`."""
+    if resolve_backend(backend, gaussians.device) == "native":
+        from sagonline.render.native import coverage_native
+
+        return coverage_native(gaussians, camera)
+    out = render(gaussians, camera, backend=backend)
+    return out.alpha, out.depth
+
+
 def to_uint8(
     rgb: torch.Tensor,  # [H, W, 3] linear in [0, 1]
 ) -> np.ndarray:

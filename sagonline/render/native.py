@@ -7,9 +7,10 @@ as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per
 tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
 use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
 most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
-`render.vote_histogram`) and the label renders (`label_weights_native`) walk a view prepared in
-C++ (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/prepare_view.cpp); a
-streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
+`render.vote_histogram`), the label renders (`label_weights_native`) and alpha and depth alone
+(`coverage_native`) walk a view prepared in C++ (`prepare_view`: projection without autograd,
+depth sort, tile lists; csrc/prepare_view.cpp); a streamed trace (`rasterize(trace=...)`) is
+the PyTorch path's. `torch_on_one_thread` gives the
 kernels their own thread count while torch's ops run on one (fits use it).
 """
 
@@ -219,6 +220,41 @@ def vote_into(
     )
 
 
+def walk_prepared(
+    view: PreparedView,
+    camera: Camera,
+    channels: torch.Tensor,  # [M, C] per splat of the view, C may be 0
+    t_stop: float = T_STOP,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:  # [H, W, C], 3x [H, W]
+    """The compositing walk on a prepared view, no shading and no autograd: (H, W, C) the
+    composited channels, (H, W) alpha-weighted depth, (H, W) final transmittance and (H, W)
+    the most visible Gaussian (-1: none)."""
+    feat, depth, final_T, _, best = load_extension().forward(
+        view.surfel,
+        view.params,
+        channels.float().contiguous(),
+        view.boxes,
+        view.order,
+        view.offsets,
+        view.counts,
+        camera.width,
+        camera.height,
+        8,
+        float(t_stop),
+    )
+    return feat, depth, final_T, _gaussian_ids(best, view.ids)
+
+
+def coverage_native(
+    gaussians: Gaussians, camera: Camera, *, t_stop: float = T_STOP
+) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W] alpha, [H, W] alpha-weighted depth
+    """`rasterize_native`'s alpha and depth without its colours: the walk on a `prepare_view`
+    view with no channels (no SH, no autograd)."""
+    view = prepare_view(gaussians, camera)
+    _, depth, final_T, _ = walk_prepared(view, camera, torch.zeros(len(view.ids), 0), t_stop)
+    return 1.0 - final_T, depth
+
+
 def label_weights_native(
     gaussians: Gaussians,
     camera: Camera,
@@ -238,20 +274,8 @@ def label_weights_native(
     if k and len(view.ids):
         known = lab >= 0
         onehot[known.nonzero().squeeze(1), lab[known]] = 1.0
-    feat, _, _, _, best = load_extension().forward(
-        view.surfel,
-        view.params,
-        onehot,
-        view.boxes,
-        view.order,
-        view.offsets,
-        view.counts,
-        camera.width,
-        camera.height,
-        8,
-        float(t_stop),
-    )
-    return (feat if with_weights else None), _gaussian_ids(best, view.ids)
+    feat, _, _, ids = walk_prepared(view, camera, onehot, t_stop)
+    return (feat if with_weights else None), ids
 
 
 @contextlib.contextmanager
@@ -283,10 +307,12 @@ __all__ = [
     "NativeBuildError",
     "load_extension",
     "native_available",
+    "coverage_native",
     "label_weights_native",
     "rasterize_native",
     "PreparedView",
     "prepare_view",
     "vote_into",
     "vote_simd",
+    "walk_prepared",
 ]

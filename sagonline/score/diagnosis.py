@@ -54,6 +54,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 
+from sagonline.render.rasterize import RenderOutput
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
 from sagonline.scene.io.images import resize_nearest
@@ -140,17 +141,34 @@ def object_depths(
 ) -> tuple[np.ndarray, np.ndarray]:  # [H, W] alpha, [H, W] depth
     """The fitted object alone in one view: (H, W) alpha and expected depth (NaN where it
     renders nothing). members: (N,) bool, the object's Gaussians."""
-    from sagonline.render.api import render
+    from sagonline.render.api import render_coverage
 
     if not bool(members.any()):
         shape = (camera.height, camera.width)
         return np.zeros(shape, np.float32), np.full(shape, np.nan, np.float32)
-    out = render(gaussians.subset(members.to(gaussians.device)), camera, backend=backend)
-    alpha = out.alpha.detach().cpu().numpy()
-    depth = np.where(
-        alpha > 1e-6, out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6), np.nan
+    subset = gaussians.subset(members.to(gaussians.device))
+    alpha, depth = (
+        t.detach().cpu().numpy() for t in render_coverage(subset, camera, backend=backend)
     )
-    return alpha, depth
+    return alpha, np.where(alpha > 1e-6, depth / np.maximum(alpha, 1e-6), np.nan)
+
+
+def scene_surface(
+    gaussians: Gaussians, camera: Camera, backend: str, whole: RenderOutput | None = None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # [H, W] alpha, depth, int64 ids
+    """The whole scene in one view: (H, W) alpha, expected depth (alpha-weighted depth over
+    alpha) and the most visible Gaussian (-1: none), from `whole` where the caller rendered it
+    with ids, else rendered here."""
+    from sagonline.render.api import render
+
+    out = (
+        whole if whole is not None else render(gaussians, camera, backend=backend, return_ids=True)
+    )
+    if out.ids is None or out.alpha.shape != (camera.height, camera.width):
+        raise ValueError(f"the view's render must carry ids at {camera.width}x{camera.height}")
+    alpha = out.alpha.detach().cpu().numpy()
+    depth = out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6)
+    return alpha, depth, out.ids.cpu().numpy().astype(np.int64)
 
 
 def diagnose_view(
@@ -164,20 +182,18 @@ def diagnose_view(
     backend: str = "auto",
     outside: OutsideTally | None = None,
     voted: bool = False,
+    whole: RenderOutput | None = None,
 ) -> tuple[dict[str, int | float], np.ndarray]:
     """Counts of one view's wrong pixels by cause, its `best_shift`, and an (H, W) uint8 map of
     the causes (index into MISSED + EXTRA, +1; 0: right). gt: the view's ground truth (any size
     of the camera's aspect); pred: the label render at the camera's size. `outside`: adds this
-    view's extra pixels to it, per labelled Gaussian shown there (`voted`: the view voted)."""
-    from sagonline.render.api import render
-
+    view's extra pixels to it, per labelled Gaussian shown there (`voted`: the view voted).
+    `whole`: the scene's render at the camera with its ids, when the caller has it (rendered
+    here otherwise)."""
     h, w = camera.height, camera.width
     truth = resize_nearest(np.asarray(gt), (h, w)).astype(np.int64)
     pred = resize_nearest(np.asarray(pred), (h, w)).astype(np.int64)
-    out = render(gaussians, camera, backend=backend, return_ids=True)
-    alpha = out.alpha.detach().cpu().numpy()
-    depth = out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6)
-    ids = out.ids.cpu().numpy().astype(np.int64)
+    alpha, depth, ids = scene_surface(gaussians, camera, backend, whole)
     valid = np.ones_like(truth, bool) if ignore is None else truth != ignore
     missed = valid & (truth > 0) & (pred != truth)
     extra = valid & (truth == 0) & (pred > 0)

@@ -150,15 +150,11 @@ def _tiny_stage_one_inputs():
     return g, [cam], prompt, SegmenterRun(OracleSegmenter()), VoteConfig()
 
 
-def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
-    """With gsplat installed (the usual GPU setup) `auto` and `gsplat` render images with gsplat,
-    which draws no ids: the per-view diagnosis asks for ids and gets them from another backend
-    (triton on CUDA, the compiled kernel or torch on the CPU), never a refusal. Simulated on
-    the CPU: the resolution answers gsplat, gsplat's function is a stub that must not be
-    called for ids."""
+def _gsplat_everywhere(monkeypatch) -> list[str]:
+    """Simulate gsplat installed on the CPU: the resolution answers gsplat, and gsplat's
+    function renders with `rasterize` (no ids) noting each call in the returned list."""
+    from sagonline.pipeline import scene as scene_module
     from sagonline.render import api
-    from sagonline.render.backends import _device_type
-    from tests.fixtures import random_gaussians, small_camera
 
     calls = []
 
@@ -177,10 +173,25 @@ def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
         return api.rasterize(gaussians, camera, background=background, features=features)
 
     real = api._backend_function
-    monkeypatch.setattr(api, "resolve_backend", lambda backend, device: "gsplat")
+    for module in (api, scene_module):
+        monkeypatch.setattr(module, "resolve_backend", lambda backend, device: "gsplat")
     monkeypatch.setattr(
         api, "_backend_function", lambda name: fake_gsplat if name == "gsplat" else real(name)
     )
+    return calls
+
+
+def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
+    """With gsplat installed (the usual GPU setup) `auto` and `gsplat` render images with gsplat,
+    which draws no ids: the per-view diagnosis asks for ids and gets them from another backend
+    (triton on CUDA, the compiled kernel or torch on the CPU), never a refusal. Simulated on
+    the CPU: the resolution answers gsplat, gsplat's function is a stub that must not be
+    called for ids."""
+    from sagonline.render import api
+    from sagonline.render.backends import _device_type
+    from tests.fixtures import random_gaussians, small_camera
+
+    calls = _gsplat_everywhere(monkeypatch)
     g, cam = random_gaussians(200, seed=3), small_camera(32, 24)
     out = api.render(g, cam, backend="auto", return_ids=True)
     assert out.ids is not None and out.ids.shape == (24, 32) and calls == []
@@ -189,6 +200,25 @@ def test_a_render_that_needs_ids_takes_a_backend_that_draws_them(monkeypatch):
     on = "cuda" if _device_type(g.means.device) == "cuda" else "cpu"
     assert api.capable_backend("gsplat", {"return_ids": True}, on) in ("native", "torch")
     assert api.capable_backend("gsplat", {"return_ids": True}, "cuda") in ("triton", "torch")
+
+
+def test_an_eval_view_with_gsplat_keeps_its_colours_and_takes_ids_elsewhere(monkeypatch):
+    """The eval views' render (diagnosed and recorded from one render where the images backend
+    draws ids): with gsplat, the ids come from another backend and the colours stay gsplat's,
+    as the recording showed them before; without ids, one gsplat render."""
+    from sagonline.pipeline.scene import eval_render
+    from sagonline.render import api
+    from tests.fixtures import random_gaussians, small_camera
+
+    calls = _gsplat_everywhere(monkeypatch)
+    g, cam = random_gaussians(200, seed=5), small_camera(32, 24)
+    white = torch.ones(3)
+    out = eval_render(g, cam, white, "auto", ids=True)
+    gsplat = api.rasterize(g, cam, background=white)
+    assert calls == ["gsplat"] and out.ids is not None and out.ids.shape == (24, 32)
+    assert torch.equal(out.rgb, gsplat.rgb)
+    assert torch.equal(out.ids, api.rasterize(g, cam, return_ids=True).ids)
+    assert eval_render(g, cam, white, "auto", ids=False).ids is None and len(calls) == 2
 
 
 def test_an_installed_backend_can_be_hidden_for_a_run(monkeypatch):

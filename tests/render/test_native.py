@@ -152,3 +152,22 @@ def test_native_most_visible_ids_and_label_renders_match(kind, seed):
         a = render_labels(g, cam, labels, 4, mode=mode, backend="torch")
         b = render_labels(g, cam, labels, 4, mode=mode, backend="native")
         assert torch.equal(a, b), mode
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_coverage_is_the_renders_alpha_and_depth_without_its_colours(kind):
+    """`render_coverage` on the compiled kernel (an unshaded walk on a prepared view) gives the
+    alpha and depth of a full render, on both primitive kinds; on torch it is that render's."""
+    from sagonline.render.api import render, render_coverage
+
+    g = random_gaussians(300, kind, seed=4, spread=0.8)
+    cam = small_camera(37, 29)
+    full = rasterize_native(g, cam)
+    alpha, depth = render_coverage(g, cam, backend="native")
+    assert alpha.shape == depth.shape == (29, 37)
+    assert (full.alpha > 0.5).any() and (full.alpha < 0.01).any()
+    torch.testing.assert_close(alpha, full.alpha, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(depth, full.depth, atol=1e-4, rtol=1e-5)
+    ref = render(g, cam, backend="torch")
+    alpha, depth = render_coverage(g, cam, backend="torch")
+    assert torch.equal(alpha, ref.alpha) and torch.equal(depth, ref.depth)

@@ -231,3 +231,50 @@ def test_the_body_rule_is_off_by_default_and_runs_through_the_pipeline(scene):
         scene, OracleSegmenter(), VoteConfig(body=True), PipelineSettings(progress=False)
     )
     assert report.miou is not None and "fraction_off_body" in out.vote.value.stats
+
+
+def test_each_eval_view_is_rendered_once_for_its_diagnosis_and_its_recording(scene, monkeypatch):
+    """With a recording and a diagnosis, `run_scene` renders each eval view once: its colours
+    are recorded and its ids diagnosed. The counts and cause images are those of a diagnosis
+    that renders each view itself."""
+    from sagonline.pipeline import scene as scene_module
+    from sagonline.pipeline.diagnose import SceneDiagnosis
+    from sagonline.pipeline.graph import StageCache
+    from sagonline.pipeline.scoring import SceneReport
+    from sagonline.pipeline.stages import SegmenterRun
+    from sagonline.render.api import render, to_uint8
+
+    calls, shown = [], {}
+
+    def counted(g, camera, **options):
+        calls.append((camera.name, bool(options.get("return_ids"))))
+        return render(g, camera, **options)
+
+    class Shown:
+        enabled = True
+
+        def eval_view(self, name, i, rgb, pred, gt, *, diagnosis, **named):
+            shown[i] = (rgb, pred, diagnosis)
+
+        def __getattr__(self, name):
+            return lambda *args, **named: None
+
+    monkeypatch.setattr(scene_module, "render", counted)
+    settings, segmenter = PipelineSettings(progress=False), OracleSegmenter(flicker=0.3, seed=1)
+    report, stage_one = run_scene(scene, segmenter, VoteConfig(), settings, recorder=Shown())
+    assert calls == [(view.camera.name, True) for view in scene.eval_views]
+    assert sum(r["missed_px"] for r in report.views if r["mode"] == "coarse") > 0
+
+    again = SceneReport(scene=scene.name)
+    again.views = [dict(r) for r in report.views]
+    g, cache = scene.gaussians, StageCache(None)
+    diagnosis = SceneDiagnosis(
+        scene, g, stage_one, SegmenterRun(segmenter), VoteConfig(), settings, again, cache
+    )
+    for i, view in enumerate(scene.eval_views):
+        rgb, pred, causes = shown[i]
+        assert np.array_equal(rgb, to_uint8(render(g, view.camera, backend="auto").rgb))
+        assert np.array_equal(diagnosis.view(view, pred), causes)  # rendered by the diagnosis
+    diagnosis.finish()
+    assert again.views == report.views
+    assert again.extra["diagnosis"] == report.extra["diagnosis"]
