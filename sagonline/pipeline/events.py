@@ -25,7 +25,8 @@ class FrameRendered:
 
 @dataclass(frozen=True)
 class MaskReady:
-    """The mask frame `index` votes with ((H, W) int64 label ids) and the segmenter's seconds."""
+    """The mask frame `index` votes with ((H, W) label ids, `segment.base.label_map`'s width) and
+    the segmenter's seconds."""
 
     index: int
     mask: np.ndarray

@@ -190,7 +190,7 @@ def note_stage_one(
     described = {k: v for k, v in seg.info.items() if k not in ("order", "feedback")}
     if described:  # what the segmenter says of itself: its weights' SHA-256, its prompting
         report.extra["segmenter"] = described
-    report.inputs["masks"] = digest_arrays(seg.masks)
+    report.inputs["masks"] = digest_arrays(seg.masks, as_int64=True)  # as before narrow masks
     report.add_timings(("frames",), render_ms_per_frame=1000 * sec)
     report.add_timings(("masks",), segment_ms_per_frame=seg.ms_per_frame)
     # Time to first mask: render the prompt frame, then the segmenter answers on it.

@@ -59,7 +59,7 @@ from sagonline.render.api import render, to_uint8
 from sagonline.render.backends import implementation_digest, plan_backends
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.segment.base import SegmentationResult
+from sagonline.segment.base import SegmentationResult, label_map
 from sagonline.segment.prompts import Prompt, add_to_prompt
 from sagonline.vote.body import extents
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig, VoteResult, select_frames
@@ -350,9 +350,7 @@ class StageOne:
         if cached_masks is not None:
             seg = cached_masks
         else:
-            seg = SegmentationResult(
-                [np.asarray(m, np.int64) for m in self.masks], seconds, name, info
-            )
+            seg = SegmentationResult([label_map(m) for m in self.masks], seconds, name, info)
             self.cache.save(MASKS, masks_key, seg)
         vote = cached_vote if cached_vote is not None else self._acc.result()
         if cached_vote is None:

@@ -23,10 +23,30 @@ from sagonline.segment.prompts import Prompt
 DEFAULT_SEGMENTER = "classical"
 
 
+def label_map(mask: np.ndarray) -> np.ndarray:  # [H, W] uint8, uint16 or int64
+    """A segmenter's answer (H, W) at the narrowest width that holds its ids: uint8 for ids in
+    [0, 255] (a byte a pixel: 0.5 MB of a 960x540 view, not 4.1 MB of int64), uint16 up to
+    65535, int64 otherwise (a negative id stays, for the vote's check to name). Values as
+    `np.asarray(mask, np.int64)` reads them."""
+    m = np.asarray(mask)
+    if m.dtype in (np.uint8, np.uint16):
+        return m
+    if m.dtype == np.bool_:
+        return m.view(np.uint8)
+    m = np.asarray(m, np.int64)
+    if m.size == 0:
+        return m.astype(np.uint8)
+    low, high = int(m.min()), int(m.max())
+    if low < 0 or high > 65535:
+        return m
+    return m.astype(np.uint8 if high <= 255 else np.uint16)
+
+
 @stored
 @dataclass
 class SegmentationResult:
-    """masks: T label maps (H, W) int64; seconds: wall time per frame; name: who made them;
+    """masks: T label maps (H, W), `label_map`'s width (uint8 for up to 256 labels; an entry
+    cached before holds int64); seconds: wall time per frame; name: who made them;
     info: what else the run reports (e.g. the consensus feedback's restarts)."""
 
     masks: list[np.ndarray]
@@ -114,9 +134,7 @@ class VideoSegmenter(ABC):
         for i, (m, f) in enumerate(zip(masks, frames, strict=True)):
             if m.shape != f.shape[:2]:
                 raise RuntimeError(f"{self.name}: mask {i} is {m.shape}, frame is {f.shape[:2]}")
-        return SegmentationResult(
-            [np.asarray(m, dtype=np.int64) for m in masks], seconds, self.name
-        )
+        return SegmentationResult([label_map(m) for m in masks], seconds, self.name)
 
     def stream(
         self,
@@ -125,7 +143,7 @@ class VideoSegmenter(ABC):
         *,
         ground_truth: list[np.ndarray] | None = None,
         advice=None,
-    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] int64 mask, seconds)
+    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] `label_map`, seconds)
         """The masks one by one as they are made, the prompt frame's first, each with the
         seconds it took (Stage I votes each as it comes). Segmenters that propagate frame by
         frame override `_stream`; the others answer the whole video first. `ground_truth` is
@@ -154,7 +172,7 @@ class VideoSegmenter(ABC):
                     f"{self.name}: mask {i} is {mask.shape}, frame is {frames[i].shape[:2]}"
                 )
             seen.add(i)
-            yield i, np.asarray(mask, dtype=np.int64), float(seconds)
+            yield i, label_map(mask), float(seconds)
             start = time.perf_counter()
         if len(seen) != len(frames):
             raise RuntimeError(f"{self.name}: answered {len(seen)} of {len(frames)} frames")

@@ -21,7 +21,7 @@ from sagonline.segment.prompts import ObjectPrompt, Prompt
 class NovelViewSegmenter:
     """A segmenter plus what it saw along the trajectory.
 
-    frames: T (H, W, 3) uint8 renders; masks: T (H, W) int64 answers of the segmenter on them;
+    frames: T (H, W, 3) uint8 renders; masks: T (H, W) label-id answers of the segmenter on them;
     cameras: their T cameras; prompt: the scene's prompt; ground_truth: T (H, W) label maps
     (the oracle reads them)."""
 

@@ -24,7 +24,7 @@ import torch
 from sagonline.render.api import render_labels
 from sagonline.scene.cameras import Camera
 from sagonline.scene.gaussians import Gaussians
-from sagonline.segment.base import VideoSegmenter
+from sagonline.segment.base import VideoSegmenter, label_map
 from sagonline.segment.prompts import ObjectPrompt, Prompt
 from sagonline.vote.consensus import VoteAccumulator, VoteConfig
 
@@ -187,7 +187,7 @@ class FeedbackPolicy:
         prompt: Prompt,
         votes: VoteAccumulator,
         ground_truth: list[np.ndarray] | None = None,
-    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] int64 mask, seconds)
+    ) -> Iterator[tuple[int, np.ndarray, float]]:  # (frame, [H, W] `label_map`, seconds)
         """The masks the views vote with, one by one, in the feedback's order (see the class
         docstring); `votes` is the engine's running vote, read between two blocks."""
         cfg, start = self.setup.config, time.perf_counter()
@@ -225,7 +225,7 @@ class FeedbackPolicy:
                 masks[i], seconds[i] = m, seconds[i] + s
             masks[t] = fused  # the re-prompt itself is what the segmenter was told
 
-        yield p, np.asarray(masks[p], np.int64), seconds[p]
+        yield p, label_map(masks[p]), seconds[p]
         for forward in (True, False):
             order = list(range(p + 1, n)) if forward else list(range(p - 1, -1, -1))
             for b in range(0, len(order), step):
@@ -241,7 +241,7 @@ class FeedbackPolicy:
                             resegment(t, forward, fused)
                             break  # the rest of the block was segmented again from t
                 for t in block:
-                    yield t, np.asarray(masks[t], np.int64), seconds[t]
+                    yield t, label_map(masks[t]), seconds[t]
         self.stats = {
             "restarts": len(restarts),
             "restarted_frames": [r["frame"] for r in restarts],

@@ -384,3 +384,27 @@ def test_a_setting_added_since_a_run_at_its_old_behaviour_keeps_the_run_the_same
     assert same()
     now["segmenter"] = before["segmenter"] = {"name": "classical", "recover": 0.5}
     assert same()
+
+
+def test_masks_are_cached_narrow_and_an_int64_entry_from_before_still_serves(tiny_task, tmp_path):
+    """The masks stage keeps the segmenter's answers at a byte a pixel; an entry written when
+    they were int64 is served as it is, with the same vote and the same masks digest."""
+    from sagonline.pipeline.stages import MASKS
+
+    settings = PipelineSettings(progress=False)
+    report, stage_one = run_scene(
+        tiny_task, OracleSegmenter(), VoteConfig(), settings, cache_dir=tmp_path
+    )
+    narrow = stage_one.masks.value
+    assert {m.dtype for m in narrow.masks} == {np.dtype(np.uint8)}
+    wide = dataclasses.replace(narrow, masks=[m.astype(np.int64) for m in narrow.masks])
+    StageCache(tmp_path).save(MASKS, stage_one.keys["masks"], wide)
+    for entry in tmp_path.glob(f"{VOTE.name}-*"):
+        entry.unlink()  # the vote is made again, from the int64 masks
+    again, served = run_scene(
+        tiny_task, OracleSegmenter(), VoteConfig(), settings, cache_dir=tmp_path
+    )
+    assert again.stages["masks"] == "cached" and again.stages["vote"] == "computed"
+    assert {m.dtype for m in served.masks.value.masks} == {np.dtype(np.int64)}
+    assert again.inputs["masks"] == report.inputs["masks"]
+    assert torch.equal(served.vote.value.histogram, stage_one.vote.value.histogram)

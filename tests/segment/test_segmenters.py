@@ -257,3 +257,40 @@ def test_sam3_label_map_and_requirements(tmp_path):
     seg = SAM3TextSegmenter(checkpoint=str(ckpt), device="cpu")
     with pytest.raises(RuntimeError, match="needs CUDA"):
         seg.build()
+
+
+def test_a_segmenters_answers_are_kept_at_the_narrowest_width_that_holds_their_ids():
+    """`label_map`: uint8 for ids in [0, 255], uint16 up to 65535, int64 otherwise (a negative
+    id stays for the vote to refuse); the values never change. `segment` and `stream` keep
+    their answers so (a byte a pixel, not eight), and the run's masks digest is the one int64
+    masks had."""
+    from sagonline.core.provenance import digest_arrays
+    from sagonline.segment.base import VideoSegmenter, label_map
+
+    cases = {
+        np.uint8: np.array([[0, 3], [255, 1]], np.int64),
+        np.uint16: np.array([[0, 256], [65535, 1]], np.int32),
+        np.int64: np.array([[0, -1], [2, 1]], np.int64),
+    }
+    for dtype, ids in cases.items():
+        narrow = label_map(ids)
+        assert narrow.dtype == dtype and np.array_equal(narrow, ids)
+    assert label_map(np.array([[0, 65536]])).dtype == np.int64
+    assert label_map(np.array([[True, False]])).dtype == np.uint8
+    kept = np.zeros((2, 2), np.uint8)
+    assert label_map(kept) is kept
+
+    class Answers(VideoSegmenter):
+        name = "answers"
+
+        def _segment(self, frames, prompt, ground_truth):
+            return [np.full(f.shape[:2], 300 * t, np.int64) for t, f in enumerate(frames)], None
+
+    frames = [np.zeros((4, 5, 3), np.uint8)] * 2
+    prompt = Prompt(frame=0, objects=[ObjectPrompt(label=1, points=np.array([[1.0, 1.0]]))])
+    result = Answers().segment(frames, prompt)
+    assert [m.dtype for m in result.masks] == [np.uint8, np.uint16]
+    streamed = {i: m for i, m, _ in Answers().stream(frames, prompt)}
+    assert streamed[0].dtype == np.uint8 and int(streamed[1].max()) == 300
+    wide = [np.asarray(m, np.int64) for m in result.masks]
+    assert digest_arrays(result.masks, as_int64=True) == digest_arrays(wide)
