@@ -63,6 +63,7 @@ def truth_vote(
         num_labels=task.num_labels,
         trajectory_gt=task.trajectory_gt,
         cache=cache,
+        rendered=stage_one.frames,  # the run's frames: never rendered twice
     )
     return truth.vote.value
 

@@ -74,7 +74,8 @@ class StageOneConfig:
     masks may add more); trajectory_gt: T (H, W) label maps, read by the oracle only; cache:
     where stages are cached (None: nowhere); publish_every: a LabelsUpdated event after the
     first voted view and every that many (None: only at the end); keep_depth: keep each
-    rendered frame's opacity and depth (a viewer picks clicks with them)."""
+    rendered frame's opacity and depth (a viewer picks clicks with them); rendered: another
+    Stage I's frames, taken where their key is these inputs' (no render, no cache read)."""
 
     gaussians: Gaussians
     cameras: list[Camera]
@@ -86,6 +87,7 @@ class StageOneConfig:
     cache: StageCache | None = None
     publish_every: int | None = None
     keep_depth: bool = False
+    rendered: Output[Frames] | None = None
 
 
 # --- the engine ---------------------------------------------------------------------------
@@ -254,7 +256,8 @@ class StageOne:
             self.device,
         )
         key, start = FRAMES.key(inputs), time.perf_counter()
-        cached = None if c.keep_depth else self.cache.load(FRAMES, key)
+        given = c.rendered.value if c.rendered is not None and c.rendered.key == key else None
+        cached = None if c.keep_depth else given or self.cache.load(FRAMES, key)
         if cached is not None:
             for i, image in enumerate(cached.images):
                 yield FrameRendered(i, image, cached=True)
@@ -385,10 +388,11 @@ def compose_stage_one(
     num_labels: int,
     trajectory_gt: list[np.ndarray] | None = None,
     cache: StageCache | None = None,
+    rendered: Output[Frames] | None = None,
 ) -> StageOneOutput:
     """Stage I drained in one call (`StageOne(...).run()`), for callers that want its outputs
-    and no events."""
+    and no events (`rendered`: another run's frames, `StageOneConfig`)."""
     config = StageOneConfig(
         gaussians, list(trajectory), segmenter, vote, settings, num_labels, trajectory_gt, cache
     )
-    return StageOne(config, prompt).run()
+    return StageOne(replace(config, rendered=rendered), prompt).run()

@@ -278,3 +278,36 @@ def test_each_eval_view_is_rendered_once_for_its_diagnosis_and_its_recording(sce
     diagnosis.finish()
     assert again.views == report.views
     assert again.extra["diagnosis"] == report.extra["diagnosis"]
+
+
+def test_the_truths_vote_takes_the_runs_frames_and_ignores_frames_of_other_inputs(
+    scene, monkeypatch
+):
+    """Without a cache, the diagnosis's counterfactual (the truth's masks voting on the same
+    views) votes on the frames the run rendered: each trajectory view is rendered once. Frames
+    handed over under another key are not taken."""
+    from sagonline.pipeline import stage_one as stage_one_module
+    from sagonline.pipeline.graph import Output
+    from sagonline.pipeline.stage_one import StageOne, StageOneConfig
+    from sagonline.pipeline.stages import SegmenterRun
+
+    rendered = []
+    real = stage_one_module.render
+
+    def counted(g, camera, **options):
+        rendered.append(camera.name)
+        return real(g, camera, **options)
+
+    monkeypatch.setattr(stage_one_module, "render", counted)
+    flicker = OracleSegmenter(flicker=0.45, seed=3)
+    report, stage_one = run_scene(scene, flicker, VoteConfig(), PipelineSettings(progress=False))
+    assert report.extra["diagnosis"]["counterfactual"] == "truth's masks"
+    assert rendered == [c.name for c in scene.trajectory]  # the run's; none for the truth
+
+    rendered.clear()
+    other = Output("another key", stage_one.frames.value)
+    config = StageOneConfig(
+        scene.gaussians, scene.trajectory, SegmenterRun(OracleSegmenter()), rendered=other
+    )
+    StageOne(config).render()
+    assert len(rendered) == len(scene.trajectory)
