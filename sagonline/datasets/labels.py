@@ -68,16 +68,23 @@ class PaletteLabels(IdLabels):
             for k, v in self.palette.items()
         }
 
-    def read(self, path: Path) -> np.ndarray:
+    def read(self, path: Path) -> np.ndarray:  # [H, W] uint8, uint16 past 255 ids
+        """The label map of a colour-coded mask, at the narrowest width its palette's ids need
+        (as `io.masks` reads id maps); a colour outside the palette is refused naming it."""
         from sagonline.scene.io.masks import read_mask_colours
 
-        rgb = read_mask_colours(path).astype(np.int64)
-        key = (rgb[..., 0] << 16) | (rgb[..., 1] << 8) | rgb[..., 2]
-        out = np.full(key.shape, -1, np.int64)
+        rgb = read_mask_colours(path)
+        key = (rgb[..., 0].astype(np.uint32) << 16) | (rgb[..., 1].astype(np.uint32) << 8)
+        key |= rgb[..., 2]
+        ids = list(self.palette.values()) or [0]
+        wide = min(ids) < 0 or max(ids) > 65535
+        out = np.zeros(key.shape, np.int64 if wide else np.uint8 if max(ids) < 256 else np.uint16)
+        known = np.zeros(key.shape, bool)
         for color, label in self.palette.items():
-            out[key == ((color[0] << 16) | (color[1] << 8) | color[2])] = label
-        if (out < 0).any():
-            bad = rgb[out < 0][0]
+            hit = key == ((color[0] << 16) | (color[1] << 8) | color[2])
+            out[hit], known = label, known | hit
+        if not known.all():
+            bad = rgb[~known][0]
             raise DatasetError(
                 f"{path}: colour {tuple(int(v) for v in bad)} is not in the dataset palette"
             )

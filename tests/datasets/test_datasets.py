@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import cv2
@@ -227,6 +228,9 @@ def test_palette_and_per_object_formats(tmp_path):
     )
     task = ds.load_scene("u")
     assert task.eval_views[0].gt[0, 20] == 1 and task.prompt.texts == ["facade"]
+    assert task.eval_views[0].gt.dtype == np.uint8 and task.eval_views[0].gt[0, 0] == 0
+    wide = dataclasses.replace(ds.labels, palette={"0,0,0": 0, "102,102,156": 300})
+    assert wide.read(tmp_path / "u" / "gt" / f"{NAMES[0]}.png").dtype == np.uint16
     img[0, 0] = (1, 2, 3)
     write_image(tmp_path / "u" / "gt" / f"{NAMES[0]}.png", img)
     with pytest.raises(DatasetError, match=r"colour \(3, 2, 1\) is not in the dataset palette"):
