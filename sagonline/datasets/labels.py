@@ -82,7 +82,8 @@ class PaletteLabels(IdLabels):
         known = np.zeros(key.shape, bool)
         for color, label in self.palette.items():
             hit = key == ((color[0] << 16) | (color[1] << 8) | color[2])
-            out[hit], known = label, known | hit
+            out[hit] = label
+            known |= hit
         if not known.all():
             bad = rgb[~known][0]
             raise DatasetError(

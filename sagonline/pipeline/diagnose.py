@@ -88,7 +88,6 @@ class SceneDiagnosis:
     ) -> None:
         truth = truth_vote(task, gaussians, stage_one, segmenter, vote, settings, cache)
         self.causes = GaussianCauses.of(stage_one.vote.value, vote, truth)
-        self.counterfactual = "truth's masks" if truth is not None else None
         self.task, self.gaussians, self.report = task, gaussians, report
         self.backend = settings.renderer.backend
         self.rows = {(r["view"], r["mode"]): r for r in report.views}
@@ -125,7 +124,7 @@ class SceneDiagnosis:
         report = self.report
         report.outside = self.outside.rows(self.gaussians, self.causes)
         report.extra["diagnosis"] = shares(counts) | {
-            "counterfactual": self.counterfactual,
+            "counterfactual": "truth's masks" if self.causes.truth is not None else None,
             "outside": outside_summary(report.outside, sum(c["extra_px"] for c in counts)),
             "displaced": [
                 {"view": view.name, **{k: c[k] for k in SHIFT_KEYS}}
