@@ -103,17 +103,34 @@ def _backend_function(name: str):
 
 
 def render_coverage(
-    gaussians: Gaussians, camera: Camera, *, backend: str = "torch"
-) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W] alpha, [H, W] alpha-weighted depth
-    """A view's alpha and alpha-weighted depth (divide by alpha for the surface's depth), as
-    `render` gives them. On the CPU's compiled kernel without colours (`coverage_native`: no
-    SH, no autograd, about half a render's time); elsewhere by `render`."""
+    gaussians: Gaussians,
+    camera: Camera,
+    groups: torch.Tensor,  # [G, N] bool, the Gaussians of each group
+    *,
+    backend: str = "torch",
+) -> tuple[torch.Tensor, torch.Tensor]:  # [G, H, W] alpha, [G, H, W] alpha-weighted depth
+    """Each group of Gaussians drawn alone: its alpha and alpha-weighted depth (divide by alpha
+    for the surface's depth), as `render` gives them for that group's Gaussians. On the CPU's
+    compiled kernel, 8 groups a walk without colours (`coverage_native`: no SH, no autograd);
+    elsewhere one `render` per group."""
     if resolve_backend(backend, gaussians.device) == "native":
         from sagonline.render.native import coverage_native
 
-        return coverage_native(gaussians, camera)
-    out = render(gaussians, camera, backend=backend)
-    return out.alpha, out.depth
+        drawn = [
+            coverage_native(gaussians, camera, groups[i : i + 8]) for i in range(0, len(groups), 8)
+        ]
+        return torch.cat([a for a, _ in drawn]), torch.cat([d for _, d in drawn])
+    alphas, depths = [], []
+    for members in groups.to(gaussians.device):
+        if not bool(members.any()):  # nothing to draw: no coverage, no depth
+            empty = torch.zeros(camera.height, camera.width, device=gaussians.device)
+            alphas.append(empty)
+            depths.append(empty)
+            continue
+        out = render(gaussians.subset(members), camera, backend=backend)
+        alphas.append(out.alpha)
+        depths.append(out.depth)
+    return torch.stack(alphas), torch.stack(depths)
 
 
 def to_uint8(

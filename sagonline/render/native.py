@@ -1,16 +1,15 @@
 """The compiled CPU rasterizer: `rasterize`'s compositing in C++ with a hand-written backward.
 
 Same projection (`project`, autograd), same tile lists (`bin_tiles`'s, built by a counting sort
-in C++), same compositing rules
-as the PyTorch path; the per-pixel walk and its gradient run in one C++ loop per tile
-(csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile, splat, pixel)
-tensors. This is what makes CPU scene fitting practical. The extension is compiled on first
-use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also renders the
-most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
-`render.vote_histogram`), the label renders (`label_weights_native`) and alpha and depth alone
-(`coverage_native`) walk a view prepared in C++ (`prepare_view`: projection without autograd,
-depth sort, tile lists; csrc/prepare_view.cpp); a streamed trace (`rasterize(trace=...)`) is
-the PyTorch path's. `torch_on_one_thread` gives the
+in C++), same compositing rules as the PyTorch path; the per-pixel walk and its gradient run in
+one C++ loop per tile (csrc/raster_cpu.cpp, threads over tiles) instead of autograd over (tile,
+splat, pixel) tensors. This is what makes CPU scene fitting practical. The extension is compiled
+on first use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also
+renders the most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
+`render.vote_histogram`), the label renders (`label_weights_native`) and groups of Gaussians'
+alpha and depth, each group alone (`coverage_native`), walk a view prepared in C++
+(`prepare_view`: projection without autograd, depth sort, tile lists; csrc/prepare_view.cpp); a
+streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
 kernels their own thread count while torch's ops run on one (fits use it).
 """
 
@@ -246,13 +245,43 @@ def walk_prepared(
 
 
 def coverage_native(
-    gaussians: Gaussians, camera: Camera, *, t_stop: float = T_STOP
-) -> tuple[torch.Tensor, torch.Tensor]:  # [H, W] alpha, [H, W] alpha-weighted depth
-    """`rasterize_native`'s alpha and depth without its colours: the walk on a `prepare_view`
-    view with no channels (no SH, no autograd)."""
-    view = prepare_view(gaussians, camera)
-    _, depth, final_T, _ = walk_prepared(view, camera, torch.zeros(len(view.ids), 0), t_stop)
-    return 1.0 - final_T, depth
+    gaussians: Gaussians,
+    camera: Camera,
+    groups: torch.Tensor,  # [G, N] bool, G <= 8: the Gaussians of each group
+    *,
+    t_stop: float = T_STOP,
+) -> tuple[torch.Tensor, torch.Tensor]:  # [G, H, W] alpha, [G, H, W] alpha-weighted depth
+    """Each group of Gaussians drawn alone, `rasterize_native`'s alpha and depth without its
+    colours: one unshaded walk (no SH, no autograd) over a `prepare_view` view of all the
+    groups' Gaussians, each splat compositing into the groups it belongs to, each group with a
+    transmittance of its own. The depth sort is stable, so a group's splats meet each pixel in
+    the order a view of that group alone gives them."""
+    if groups.ndim != 2 or groups.shape[1] != len(gaussians) or not 1 <= len(groups) <= 8:
+        raise ValueError(f"groups must be (1..8, {len(gaussians)}) bool, got {tuple(groups.shape)}")
+    groups = groups.to(device="cpu", dtype=torch.bool)
+    union = groups.any(0)
+    if not bool(union.any()):  # nothing to draw: no coverage, no depth
+        empty = torch.zeros(len(groups), camera.height, camera.width)
+        return empty, empty.clone()
+    subset = gaussians if bool(union.all()) else gaussians.subset(union)
+    view = prepare_view(subset, camera)
+    weights = 1 << torch.arange(len(groups), dtype=torch.int64)
+    bits = (groups[:, union].long() * weights[:, None]).sum(0).to(torch.uint8)
+    depth, final_t = load_extension().coverage(
+        view.surfel,
+        view.params,
+        view.boxes,
+        view.order,
+        view.offsets,
+        view.counts,
+        bits[view.ids].contiguous(),
+        len(groups),
+        camera.width,
+        camera.height,
+        8,
+        float(t_stop),
+    )
+    return 1.0 - final_t, depth
 
 
 def label_weights_native(

@@ -116,6 +116,15 @@ class GaussianCauses:
             self.bodies[k] = Body.of(means, extents(gaussians), self.members(k).numpy())
         return self.bodies[k]
 
+    def drawn(self, k: int, gaussians: Gaussians, body: bool) -> torch.Tensor:  # [1 | 2, N] bool
+        """What the diagnosis draws of object k alone: its members, then (with `body`) its body
+        where that differs from them."""
+        members = self.members(k)
+        if not body:
+            return members[None]
+        kept = torch.from_numpy(self.body(k, gaussians).members)
+        return members[None] if torch.equal(kept, members) else torch.stack([members, kept])
+
     def members(self, k: int) -> torch.Tensor:  # [N] bool
         """The fitted object k: its Gaussians by the truth's vote where known, else the run's."""
         if self.truth is not None:
@@ -136,21 +145,20 @@ class GaussianCauses:
 def object_depths(
     gaussians: Gaussians,
     camera: Camera,
-    members: torch.Tensor,  # [N] bool
+    groups: torch.Tensor,  # [G, N] bool, the Gaussians of each fitted object (or its body)
     backend: str,
-) -> tuple[np.ndarray, np.ndarray]:  # [H, W] alpha, [H, W] depth
-    """The fitted object alone in one view: (H, W) alpha and expected depth (NaN where it
-    renders nothing). members: (N,) bool, the object's Gaussians."""
+) -> list[tuple[np.ndarray, np.ndarray]]:  # G x ([H, W] alpha, [H, W] depth)
+    """Each fitted object alone in one view, in one walk where the backend can: per group its
+    (H, W) alpha and expected depth (NaN where it renders nothing)."""
     from sagonline.render.api import render_coverage
 
-    if not bool(members.any()):
-        shape = (camera.height, camera.width)
-        return np.zeros(shape, np.float32), np.full(shape, np.nan, np.float32)
-    subset = gaussians.subset(members.to(gaussians.device))
-    alpha, depth = (
-        t.detach().cpu().numpy() for t in render_coverage(subset, camera, backend=backend)
+    alphas, depths = (
+        t.detach().cpu().numpy()
+        for t in render_coverage(gaussians, camera, groups, backend=backend)
     )
-    return alpha, np.where(alpha > 1e-6, depth / np.maximum(alpha, 1e-6), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        surface = np.where(alphas > 1e-6, depths / np.maximum(alphas, 1e-6), np.nan)
+    return list(zip(alphas, surface, strict=True))
 
 
 def scene_surface(
@@ -216,7 +224,10 @@ def diagnose_view(
     for k in sorted(set(in_truth + np.unique(pred[extra]).tolist())):
         if k <= 0:
             continue
-        obj_alpha, obj_depth = object_depths(gaussians, camera, causes.members(k), backend)
+        culprit = extra & (pred == k) & labelled & (run_label == k)
+        groups = causes.drawn(k, gaussians, body=outside is not None and bool(culprit.any()))
+        drawn = object_depths(gaussians, camera, groups, backend)
+        obj_alpha, obj_depth = drawn[0]
         with np.errstate(invalid="ignore"):
             covered = depth < (1 - OCCLUSION) * obj_depth  # False where the object renders nothing
         hidden |= valid & (truth == k) & covered
@@ -225,14 +236,9 @@ def diagnose_view(
         mark("fit_missing", at_k & (obj_alpha < 0.5))
         mark("fit_occluded", at_k & covered)
         mark("extra_fit", extra & (pred == k) & (obj_alpha >= 0.5))
-        if outside is not None:
-            culprit = extra & (pred == k) & labelled & (run_label == k)
-            if culprit.any():
-                body = torch.from_numpy(causes.body(k, gaussians).members)
-                body_alpha, body_depth = obj_alpha, obj_depth  # the object is its body, mostly
-                if not torch.equal(body, causes.members(k)):
-                    body_alpha, body_depth = object_depths(gaussians, camera, body, backend)
-                outside.add(ids[culprit], depth[culprit], body_alpha, body_depth, voted)
+        if outside is not None and culprit.any():
+            body_alpha, body_depth = drawn[-1]  # the object itself where it is its body
+            outside.add(ids[culprit], depth[culprit], body_alpha, body_depth, voted)
     mark("label_render", missed & labelled & (run_label == truth))
     unlabelled = missed & ~labelled
     mark("vote_unseen", unlabelled & (votes == 0))

@@ -155,19 +155,41 @@ def test_native_most_visible_ids_and_label_renders_match(kind, seed):
 
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
-def test_coverage_is_the_renders_alpha_and_depth_without_its_colours(kind):
-    """`render_coverage` on the compiled kernel (an unshaded walk on a prepared view) gives the
-    alpha and depth of a full render, on both primitive kinds; on torch it is that render's."""
+def test_coverage_draws_each_group_alone_in_one_walk(kind):
+    """`render_coverage` on the compiled kernel (one unshaded walk for all the groups) gives
+    each group the alpha and depth of its Gaussians' walk alone, bit for bit (and a full
+    render's, to rounding): a group, a group inside it, one that overlaps both, an empty one
+    and all of them, 8 groups a walk; on torch it is those renders'."""
     from sagonline.render.api import render, render_coverage
+    from sagonline.render.native import coverage_native, prepare_view, walk_prepared
 
     g = random_gaussians(300, kind, seed=4, spread=0.8)
     cam = small_camera(37, 29)
-    full = rasterize_native(g, cam)
-    alpha, depth = render_coverage(g, cam, backend="native")
-    assert alpha.shape == depth.shape == (29, 37)
-    assert (full.alpha > 0.5).any() and (full.alpha < 0.01).any()
-    torch.testing.assert_close(alpha, full.alpha, atol=1e-5, rtol=1e-5)
-    torch.testing.assert_close(depth, full.depth, atol=1e-4, rtol=1e-5)
-    ref = render(g, cam, backend="torch")
-    alpha, depth = render_coverage(g, cam, backend="torch")
-    assert torch.equal(alpha, ref.alpha) and torch.equal(depth, ref.depth)
+    pick = torch.Generator().manual_seed(1)
+    some = torch.rand(len(g), generator=pick) < 0.6
+    inside = some & (torch.rand(len(g), generator=pick) < 0.5)
+    across = torch.rand(len(g), generator=pick) < 0.3
+    groups = torch.stack([some, inside, across, torch.zeros_like(some), torch.ones_like(some)])
+    alpha, depth = render_coverage(g, cam, groups, backend="native")
+    assert alpha.shape == depth.shape == (5, 29, 37)
+    for i, members in enumerate(groups):
+        if not members.any():
+            assert not alpha[i].any() and not depth[i].any()
+            continue
+        alone = prepare_view(g.subset(members), cam)  # the group's own walk, no colours
+        _, own_depth, own_t, _ = walk_prepared(alone, cam, torch.zeros(len(alone.ids), 0))
+        assert torch.equal(alpha[i], 1.0 - own_t) and torch.equal(depth[i], own_depth), i
+        full = rasterize_native(g.subset(members), cam)  # projected with autograd: close
+        assert (full.alpha > 0.5).any() and (full.alpha < 0.01).any()
+        torch.testing.assert_close(alpha[i], full.alpha, atol=1e-5, rtol=1e-5)
+        torch.testing.assert_close(depth[i], full.depth, atol=1e-4, rtol=1e-5)
+    torch_alpha, torch_depth = render_coverage(g, cam, groups[:2], backend="torch")
+    for i, members in enumerate(groups[:2]):
+        ref = render(g.subset(members), cam, backend="torch")
+        assert torch.equal(torch_alpha[i], ref.alpha) and torch.equal(torch_depth[i], ref.depth)
+    with pytest.raises(ValueError, match="groups must be"):  # a bit a group: 8 at most
+        coverage_native(g, cam, torch.ones(9, len(g), dtype=torch.bool))
+    nine = render_coverage(g, cam, groups[[0] * 9], backend="native")[0]  # in two walks
+    assert nine.shape == (9, 29, 37) and torch.equal(nine[8], alpha[0])
+    nothing = render_coverage(g, cam, groups[3:4], backend="native")  # no Gaussian at all
+    assert not nothing[0].any() and not nothing[1].any()

@@ -201,6 +201,65 @@ void forward_tile(const Raster& R, int64_t ti, float stop, float* F, float* D, f
   }
 }
 
+// Walk one tile front to back for up to 8 groups of splats at once (`groups`: a bit per group
+// per splat): per group and pixel its alpha-weighted depth and final T, each group composited as
+// forward_tile composites a render of its own splats alone (the same order, stop and arithmetic;
+// a splat's response is computed once for all its groups).
+void coverage_tile(const Raster& R, int64_t ti, float stop, const uint8_t* groups, int G,
+                   float* D, float* TT) {
+  const int tile = static_cast<int>(R.tile);
+  const int64_t tx0 = (ti % R.tiles_x) * R.tile, ty0 = (ti / R.tiles_x) * R.tile;
+  const int npix = tile * tile;
+  std::vector<float> T(G * npix, 1.f), dep(G * npix, 0.f);
+  std::vector<char> done(G * npix, 0);
+  int64_t active = 0;
+  for (int q = 0; q < npix; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    for (int g = 0; g < G; ++g) done[g * npix + q] = x >= R.width || y >= R.height;
+    if (x < R.width && y < R.height) active += G;
+  }
+  const int64_t n = R.counts[ti], base = R.offsets[ti];
+  for (int64_t j = 0; j < n && active > 0; ++j) {
+    const int64_t s = R.order[base + j];
+    const uint8_t bits = groups[s];
+    if (bits == 0) continue;
+    const float* p = R.params + s * R.K;
+    const Span sp = clip(R.boxes + s * 4, tx0, ty0, tile);
+    for (int ly = sp.y0; ly < sp.y1; ++ly) {
+      for (int lx = sp.x0; lx < sp.x1; ++lx) {
+        const int q = ly * tile + lx;
+        bool walking = false;
+        for (int g = 0; g < G; ++g) walking |= ((bits >> g) & 1) && !done[g * npix + q];
+        if (!walking) continue;
+        const Response r = respond(R.surfel, p, tx0 + lx + 0.5f, ty0 + ly + 0.5f);
+        if (r.alpha <= 0.f) continue;
+        for (int g = 0; g < G; ++g) {
+          const int i = g * npix + q;
+          if (!((bits >> g) & 1) || done[i]) continue;
+          const float next = T[i] * (1.f - r.alpha);
+          if (next < stop) {  // T only falls: this group is finished at this pixel
+            done[i] = 1;
+            --active;
+            continue;
+          }
+          const float w = r.alpha * T[i];
+          dep[i] += w * r.depth;
+          T[i] = next;
+        }
+      }
+    }
+  }
+  const int64_t plane = R.width * R.height;
+  for (int q = 0; q < npix; ++q) {
+    const int64_t x = tx0 + q % tile, y = ty0 + q / tile;
+    if (x >= R.width || y >= R.height) continue;
+    for (int g = 0; g < G; ++g) {
+      D[g * plane + y * R.width + x] = dep[g * npix + q];
+      TT[g * plane + y * R.width + x] = T[g * npix + q];
+    }
+  }
+}
+
 // Walk one tile back to front, adding parameter and colour gradients into GP, GC.
 void backward_tile(const Raster& R, int64_t ti, const float* TT, const int32_t* L,
                    const float* GF, const float* GD, const float* GT, float* GP, float* GC) {
@@ -309,6 +368,36 @@ std::vector<torch::Tensor> forward(bool surfel, torch::Tensor params, torch::Ten
     if (R.counts[ti] > 0) forward_tile(R, ti, stop, F, D, TT, L, BI);
   });
   return {feat, depth, final_T, last, best};
+}
+
+// Returns, per group of splats (`groups` (M,) uint8, a bit per group, G <= 8 groups), the
+// alpha-weighted depth (G, H, W) and final transmittance (G, H, W) that `forward` gives for a
+// render of that group's splats alone, from one walk over the tile lists of all of them.
+std::vector<torch::Tensor> coverage(bool surfel, torch::Tensor params, torch::Tensor boxes,
+                                    torch::Tensor order, torch::Tensor offsets,
+                                    torch::Tensor counts, torch::Tensor groups,
+                                    int64_t num_groups, int64_t width, int64_t height,
+                                    int64_t tile, double t_stop) {
+  params = params.contiguous();
+  boxes = boxes.contiguous();
+  groups = groups.contiguous();
+  TORCH_CHECK(num_groups >= 1 && num_groups <= 8, "coverage: 1 to 8 groups");
+  TORCH_CHECK(groups.dtype() == torch::kUInt8 && groups.size(0) == params.size(0),
+              "coverage: groups must be uint8, one per splat");
+  const auto colors = torch::zeros({params.size(0), 0}, params.options());
+  const Raster R =
+      make_raster(surfel, params, colors, boxes, order, offsets, counts, width, height, tile);
+  auto depth = torch::zeros({num_groups, height, width}, params.options());
+  auto final_T = torch::ones({num_groups, height, width}, params.options());
+  float* D = depth.data_ptr<float>();
+  float* TT = final_T.data_ptr<float>();
+  const uint8_t* Gp = groups.data_ptr<uint8_t>();
+  const int G = static_cast<int>(num_groups);
+  const float stop = static_cast<float>(t_stop);
+  for_each_tile(counts.size(0), [&](int64_t ti) {
+    if (R.counts[ti] > 0) coverage_tile(R, ti, stop, Gp, G, D, TT);
+  });
+  return {depth, final_T};
 }
 
 constexpr int64_t kParts = 16;  // runs of tiles with a gradient buffer each (see backward)
@@ -444,5 +533,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("vote", &vote, "trace-and-vote pass into a per-Gaussian label histogram (CPU)");
   m.def("vote_simd", &vote_simd, "the instruction set the vote's walk runs with");
   m.def("forward", &forward, "tile rasterizer forward (CPU)");
+  m.def("coverage", &coverage, "each group of splats' depth and final T, one walk (CPU)");
   m.def("backward", &backward, "tile rasterizer backward (CPU)");
 }
