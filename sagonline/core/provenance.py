@@ -34,6 +34,37 @@ def _hasher():
     return hashlib.blake2b(digest_size=16)
 
 
+def source_code(path: Path) -> bytes:
+    """What a source file computes, for a digest that a comment or a docstring never moves:
+    Python as its syntax tree without docstrings (`ast.dump`: no comments, no layout), C++ and
+    headers without comments, trailing spaces and blank lines; any other file as its bytes."""
+    text = path.read_text()
+    if path.suffix == ".py":
+        import ast
+
+        tree = ast.parse(text, filename=str(path))
+        for node in ast.walk(tree):
+            body = getattr(node, "body", None)
+            if (
+                isinstance(node, ast.Module | ast.ClassDef | ast.FunctionDef | ast.AsyncFunctionDef)
+                and body
+                and isinstance(body[0], ast.Expr)
+                and isinstance(body[0].value, ast.Constant)
+                and isinstance(body[0].value.value, str)
+            ):
+                node.body = body[1:] or [ast.Pass()]
+        return ast.dump(tree).encode()
+    if path.suffix in (".cpp", ".h", ".cu", ".cuh"):
+        import re
+
+        # a string or character literal is kept whole; a comment outside one is dropped
+        literal_or_comment = r'("(?:\\.|[^"\\\n])*"|\'(?:\\.|[^\'\\\n])*\')|//[^\n]*|/\*.*?\*/'
+        code = re.sub(literal_or_comment, lambda m: m.group(1) or " ", text, flags=re.S)
+        lines = (line.rstrip() for line in code.splitlines())
+        return "\n".join(line for line in lines if line).encode()
+    return path.read_bytes()
+
+
 def digest_json(*parts) -> str:
     """Digest of JSON-able settings (keys sorted, so dict order never matters)."""
     blob = json.dumps(parts, sort_keys=True, default=str)

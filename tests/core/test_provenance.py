@@ -70,3 +70,57 @@ def test_label_maps_read_narrow_keep_the_digests_they_had_as_int64():
     for m in maps:  # the read-only ground truth is remembered apart from its plain digest
         m.flags.writeable = False
     assert digest_arrays(maps) != digest_arrays(maps, as_int64=True) == digest_arrays(wide)
+
+
+PY = '''"""A module."""
+
+import math
+
+
+def area(r):
+    """The disc's area."""
+    return math.pi * r * r  # pi r squared
+'''
+CPP = """// A kernel.
+#include <cmath>
+/* the area
+   of a disc */
+float area(float r) { return 3.14159f * r * r; }  // pi r squared
+const char* name() { return "a // not a comment /* nor this */"; }
+"""
+
+
+@pytest.mark.parametrize(
+    "suffix, text, same, other",
+    [
+        (
+            ".py",
+            PY,
+            PY.replace('"""The disc\'s area."""', "# the area\n    # of a disc").replace(
+                "\n\n\ndef", "\n\n\n\ndef"
+            ),
+            PY.replace("r * r", "r ** 2"),
+        ),
+        (
+            ".cpp",
+            CPP,
+            CPP.replace("// A kernel.", "// A kernel, said otherwise.\n\n").replace(
+                "of a disc */", "of a circle */   "
+            ),
+            CPP.replace("/* nor this */", "/* nor that */"),
+        ),
+    ],
+)
+def test_a_sources_digest_reads_its_code_not_its_comments(tmp_path, suffix, text, same, other):
+    """The implementation digest in every render stage's key (`render.backends`) reads each
+    source's code: a comment, a docstring or a blank line moves nothing; a change to the code
+    (or to a string literal that looks like a comment) does."""
+    from sagonline.core.provenance import source_code
+
+    def code(source: str) -> bytes:
+        path = tmp_path / f"kernel{suffix}"
+        path.write_text(source)
+        return source_code(path)
+
+    assert code(same) == code(text) and same != text
+    assert code(other) != code(text)
