@@ -38,6 +38,8 @@ def source_code(path: Path) -> bytes:
     """What a source file computes, for a digest that a comment or a docstring never moves:
     Python as its syntax tree without docstrings (`ast.dump`: no comments, no layout), C++ and
     headers without comments, trailing spaces and blank lines; any other file as its bytes."""
+    if path.suffix not in (".py", ".cpp", ".h"):
+        return path.read_bytes()
     text = path.read_text()
     if path.suffix == ".py":
         import ast
@@ -54,15 +56,13 @@ def source_code(path: Path) -> bytes:
             ):
                 node.body = body[1:] or [ast.Pass()]
         return ast.dump(tree).encode()
-    if path.suffix in (".cpp", ".h", ".cu", ".cuh"):
-        import re
+    import re
 
-        # a string or character literal is kept whole; a comment outside one is dropped
-        literal_or_comment = r'("(?:\\.|[^"\\\n])*"|\'(?:\\.|[^\'\\\n])*\')|//[^\n]*|/\*.*?\*/'
-        code = re.sub(literal_or_comment, lambda m: m.group(1) or " ", text, flags=re.S)
-        lines = (line.rstrip() for line in code.splitlines())
-        return "\n".join(line for line in lines if line).encode()
-    return path.read_bytes()
+    # C++: a string or character literal is kept whole; a comment outside one is dropped
+    literal_or_comment = r'("(?:\\.|[^"\\\n])*"|\'(?:\\.|[^\'\\\n])*\')|//[^\n]*|/\*.*?\*/'
+    code = re.sub(literal_or_comment, lambda m: m.group(1) or " ", text, flags=re.S)
+    lines = (line.rstrip() for line in code.splitlines())
+    return "\n".join(line for line in lines if line).encode()
 
 
 def digest_json(*parts) -> str:
