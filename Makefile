@@ -26,7 +26,7 @@ SWEEP_CACHE = .cache/stages
 SWEEP     = $(BIN)/python -m bench.runners.eval --multirun hydra/launcher=$(LAUNCHER) record=false \
             cache_dir=$(SWEEP_CACHE)
 
-.PHONY: install install-extras weights eval test test-fast report report-fits bench lint format clean-runs \
+.PHONY: install install-extras weights browser eval test test-fast report report-fits bench lint format clean-runs \
         clean-cache \
         gpu-bundle gsplat-prebuilt gpu-check \
         tables table-timing table-masks table-ablation table-robustness scenes tables-real \
@@ -73,7 +73,8 @@ eval: install
 weights: $(EXTRAS)
 	$(BIN)/python scripts/fetch_weights.py --out weights
 
-# The viewer's browser test needs chromium and its driver: installed here where apt-get can.
+# The viewer's browser test needs chromium and its driver: installed here where apt-get can
+# (`browser`, a system install that reads nothing of the project's, side by side with pip's).
 # What the tests need is made side by side (-j3): the CPU kernels compile while pip installs the
 # extras and the weights download (from a fresh clone 158 and 162 s, against 178 and 187 s one
 # after the other). The extras only add packages, none that the kernels' build imports.
@@ -82,9 +83,11 @@ weights: $(EXTRAS)
 # modules it imports again (0.4 s for an evaluation's); stale files are ignored by Python.
 COMPILE = $(BIN)/python -m compileall -q sagonline bench tests scripts >/dev/null
 
-test:
-	@$(MAKE) --no-print-directory -j3 install install-extras weights
+browser:
 	-@scripts/ensure_browser.sh
+
+test:
+	@$(MAKE) --no-print-directory -j3 install install-extras weights browser
 	@$(COMPILE)
 	$(BIN)/python -m pytest -q -n auto --dist loadgroup -m "not gpu" $(ARGS)
 
