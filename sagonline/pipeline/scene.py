@@ -39,7 +39,7 @@ from sagonline.pipeline.stage_one import (
 )
 from sagonline.pipeline.stages import SegmenterRun
 from sagonline.record.recording import Recorder
-from sagonline.render.api import capable_backend, render, render_labels, to_uint8
+from sagonline.render.api import capable_backend, render, render_labels_and_surface, to_uint8
 from sagonline.render.backends import resolve_backend
 from sagonline.render.rasterize import RenderOutput
 from sagonline.scene.cameras import Camera
@@ -108,7 +108,8 @@ def run_scene(
     report.stage_keys = stage_one.keys
     num_labels, result = stage_one.num_labels, stage_one.vote.value
     note_stage_one(task, report, stage_one, settings.metrics.resize)
-    preds = score_views(
+    diagnose = settings.diagnose and not is_automatic(task)
+    preds, surfaces = score_views(
         task,
         g,
         result,
@@ -118,13 +119,16 @@ def run_scene(
         stage_one.voted,
         predictions_to,
         backend=plan.labels,
+        keep_surfaces=diagnose,
     )
     if task.gt_labels3d is not None and not is_automatic(task):
         report.labels3d = labels3d_metrics(result.labels, task.gt_labels3d, num_labels)
     diagnosis = None
-    if settings.diagnose and not is_automatic(task):
+    if diagnose:
         diagnosis = SceneDiagnosis(task, g, stage_one, segmenter, vote, settings, report, cache)
-    record_eval_views(task, recorder, preds, report, g, plan.images, diagnosis, settings.background)
+    record_eval_views(
+        task, recorder, preds, report, g, plan.images, diagnosis, settings.background, surfaces
+    )
     recorder.gaussians(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
     )
@@ -206,6 +210,11 @@ def note_stage_one(
     )
 
 
+# The eval views' surfaces `score_views` keeps for their diagnosis, at most (a 1 MP view's is
+# 16 MB); past it the diagnosis draws each again, a walk a view
+SURFACES_KEPT_BYTES = 512 * 2**20
+
+
 def score_views(
     task: SceneTask,
     g: Gaussians,
@@ -217,18 +226,23 @@ def score_views(
     save_to: str | Path | None = None,
     *,
     backend: str = "auto",
-) -> list[np.ndarray]:
+    keep_surfaces: bool = False,
+) -> tuple[list[np.ndarray], list[RenderOutput | None]]:
     """Render the fused labels at every eval view (by `backend`'s label walk, at the size
     `settings.label_render.size` names), score them (the coarse mode) and time the label render;
-    returns the (H, W) predictions. g: the scene on `settings.device`."""
-    preds, seconds = [], []
+    returns the (H, W) predictions and, with `keep_surfaces`, each view's surface for its
+    diagnosis where the compiled kernel's label walk drew it at the eval camera (alpha, depth
+    and ids, no colours; None elsewhere and past SURFACES_KEPT_BYTES in all, where the diagnosis
+    draws them again). g: the scene on `settings.device`."""
+    preds, seconds, surfaces, kept = [], [], [], 0
     for view in progress(
         task.eval_views, f"{task.name}: score", len(task.eval_views), enabled=settings.progress
     ):
         start = time.perf_counter()
-        pred = render_labels(
+        camera = settings.scored_camera(view)
+        pred, surface = render_labels_and_surface(
             g,
-            settings.scored_camera(view),
+            camera,
             vote.labels,
             num_labels,
             min_weight=settings.label_render.min_weight,
@@ -236,9 +250,26 @@ def score_views(
         )
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)
+        size = 16 * camera.width * camera.height  # alpha and depth float32, ids int64
+        if surface is None or not keep_surfaces or kept + size > SURFACES_KEPT_BYTES:
+            surfaces.append(None)
+        elif same_camera(camera, view.camera):
+            alpha, depth, ids = surface
+            surfaces.append(RenderOutput(torch.empty(0), alpha, depth, ids=ids))
+            kept += size
+        else:
+            surfaces.append(None)
     record_scores(task, preds, settings.metrics.resize, report, "coarse", voted, save_to)
     report.timings["label_render_ms_per_frame"] = 1000 * float(np.mean(seconds)) if seconds else 0
-    return preds
+    return preds, surfaces
+
+
+def same_camera(a: Camera, b: Camera) -> bool:
+    """Whether two cameras draw the same pixels (size, intrinsics and pose)."""
+    return (a.width, a.height) == (b.width, b.height) and all(
+        torch.equal(x, y)
+        for x, y in ((a.K, b.K), (a.rotation, b.rotation), (a.translation, b.translation))
+    )
 
 
 def record_eval_views(
@@ -250,18 +281,26 @@ def record_eval_views(
     backend: str,
     diagnosis: SceneDiagnosis | None = None,
     background=(0.0, 0.0, 0.0),
+    surfaces: list[RenderOutput | None] | None = None,
 ) -> None:
-    """Each eval view rendered once (on `background`, Stage I's colour, by `backend`): with a
-    diagnosis, its wrong pixels sorted by cause from that render's ids; with a recording, the
-    render, prediction, ground truth and causes at its nearest trajectory frame."""
+    """Each eval view: with a diagnosis, its wrong pixels sorted by cause; with a recording,
+    the render (on `background`, Stage I's colour, by `backend`), prediction, ground truth and
+    causes at its nearest trajectory frame. The diagnosis reads the recorded render's ids,
+    except on the compiled kernel, whose unshaded walk it reads: the view's label walk's
+    (`surfaces`, from `score_views`) or, where none was kept, one it draws (the same bits, with
+    a recording or without: a run that records nothing shades nothing)."""
     if not recorder.enabled and diagnosis is None:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
     frames = nearest_frames(task)
+    ids = diagnosis is not None and resolve_backend(backend, gaussians.device) != "native"
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
-        whole = eval_render(gaussians, view.camera, background, backend, diagnosis is not None)
-        causes = None if diagnosis is None else diagnosis.view(view, pred, whole)
-        if recorder.enabled:
+        whole = None
+        if recorder.enabled or ids:
+            whole = eval_render(gaussians, view.camera, background, backend, ids)
+        surface = whole if ids else (surfaces[i] if surfaces else None)
+        causes = None if diagnosis is None else diagnosis.view(view, pred, surface)
+        if whole is not None and recorder.enabled:
             recorder.eval_view(
                 task.name,
                 i,

@@ -160,6 +160,26 @@ def render_labels(
     shading; the torch backend (and gsplat without Triton) composite one-hot features with the
     PyTorch rasterizer.
     """
+    return _labels_and_surface(gaussians, camera, labels, num_labels, min_weight, mode, backend)[0]
+
+
+def render_labels_and_surface(
+    gaussians: Gaussians,
+    camera: Camera,
+    labels: torch.Tensor,  # [N] long in [-1, num_labels)
+    num_labels: int,
+    *,
+    min_weight: float = LABEL_MIN_WEIGHT,
+    backend: str = "torch",
+) -> tuple[torch.Tensor, tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None]:  # 4x [H, W]
+    """`render_labels`' (H, W) mask (mode "onehot") and, where its walk is the compiled
+    kernel's, the view's surface from that same walk: (H, W) alpha, alpha-weighted depth and
+    most visible Gaussians, `native.surface_native`'s bits; None on any other backend."""
+    return _labels_and_surface(gaussians, camera, labels, num_labels, min_weight, "onehot", backend)
+
+
+def _labels_and_surface(gaussians, camera, labels, num_labels, min_weight, mode, backend):
+    """`render_labels_and_surface` in either mode, the labels checked first."""
     labels = labels.to(gaussians.device).long()
     if labels.shape != (len(gaussians),):
         raise ValueError(f"labels has shape {tuple(labels.shape)}, expected ({len(gaussians)},)")
@@ -170,28 +190,31 @@ def render_labels(
         )
     if mode not in ("onehot", "ids"):
         raise ValueError(f"label render mode {mode!r} is not 'onehot' or 'ids'")
-    weights, ids = _label_walk(gaussians, camera, labels, num_labels, mode, backend)
+    weights, ids, surface = _label_walk(gaussians, camera, labels, num_labels, mode, backend)
     if mode == "ids":
-        return torch.where(ids >= 0, labels[ids.clamp_min(0)].clamp_min(0), torch.zeros_like(ids))
+        chosen = labels[ids.clamp_min(0)].clamp_min(0)
+        return torch.where(ids >= 0, chosen, torch.zeros_like(ids)), surface
     best = weights.argmax(dim=-1)
-    return torch.where(weights.sum(-1) >= min_weight, best, torch.zeros_like(best))
+    return torch.where(weights.sum(-1) >= min_weight, best, torch.zeros_like(best)), surface
 
 
 def _label_walk(gaussians, camera, splat_labels, num_labels, mode, backend):
-    """(H, W, K) one-hot weights (None for mode 'ids') and (H, W) most visible Gaussians."""
+    """(H, W, K) one-hot weights (None for mode 'ids'), (H, W) most visible Gaussians and, on
+    the compiled kernel, the surface (alpha, depth, ids; None elsewhere)."""
     chosen = resolve_vote_backend(backend, gaussians.device)
     if chosen == "native":
-        from sagonline.render.native import label_weights_native
+        from sagonline.render.native import label_walk_native
 
-        return label_weights_native(
+        weights, ids, alpha, depth = label_walk_native(
             gaussians, camera, splat_labels, num_labels, with_weights=mode == "onehot"
         )
+        return weights, ids, (alpha, depth, ids)
     if chosen == "triton":
         from sagonline.render.triton_composite import label_weights_triton
 
-        return label_weights_triton(gaussians, camera, splat_labels, num_labels)
+        return *label_weights_triton(gaussians, camera, splat_labels, num_labels), None
     if mode == "ids":  # gsplat keeps no per-pixel argmax: the tiled PyTorch path
-        return None, rasterize(gaussians, camera, return_ids=True).ids
+        return None, rasterize(gaussians, camera, return_ids=True).ids, None
     onehot = torch.nn.functional.one_hot(splat_labels.clamp_min(0), num_labels).float()
     onehot *= (splat_labels >= 0)[:, None].float()
-    return render(gaussians, camera, features=onehot, backend=backend).features, None
+    return render(gaussians, camera, features=onehot, backend=backend).features, None, None

@@ -6,7 +6,7 @@ one C++ loop per tile (csrc/raster_cpu.cpp, threads over tiles) instead of autog
 splat, pixel) tensors. This is what makes CPU scene fitting practical. The extension is compiled
 on first use (torch.utils.cpp_extension, needs a C++ compiler and ninja) and cached. It also
 renders the most-visible Gaussian per pixel (`return_ids`). The vote's pass (`vote_into`, behind
-`render.vote_histogram`), the label renders (`label_weights_native`) and groups of Gaussians'
+`render.vote_histogram`), the label renders (`label_walk_native`) and groups of Gaussians'
 alpha and depth, each group alone (`coverage_native`), walk a view prepared in C++
 (`prepare_view`: projection without autograd, depth sort, tile lists; csrc/prepare_view.cpp); a
 streamed trace (`rasterize(trace=...)`) is the PyTorch path's. `torch_on_one_thread` gives the
@@ -284,7 +284,19 @@ def coverage_native(
     return 1.0 - final_t, depth
 
 
-def label_weights_native(
+def surface_native(
+    gaussians: Gaussians, camera: Camera, *, t_stop: float = T_STOP
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:  # [H, W] alpha, depth, ids
+    """The whole scene in one view, unshaded: (H, W) alpha, alpha-weighted depth and the most
+    visible Gaussian (-1: none), by the walk of the label renders and the coverage (a
+    `prepare_view` view, no SH, no autograd), whose alpha, depth and ids are the same whatever
+    channels it composites: a label render's (`label_walk_native`) are these."""
+    view = prepare_view(gaussians, camera)
+    _, depth, final_t, ids = walk_prepared(view, camera, torch.zeros(len(view.ids), 0), t_stop)
+    return 1.0 - final_t, depth, ids
+
+
+def label_walk_native(
     gaussians: Gaussians,
     camera: Camera,
     splat_labels: torch.Tensor,  # [N] long, -1 none
@@ -292,10 +304,11 @@ def label_weights_native(
     *,
     with_weights: bool = True,
     t_stop: float = T_STOP,
-) -> tuple[torch.Tensor | None, torch.Tensor]:  # [H, W, K] weights or None, [H, W] ids
+) -> tuple[torch.Tensor | None, torch.Tensor, torch.Tensor, torch.Tensor]:  # [H, W, K], 3x [H, W]
     """The label renders' walk in C++ on a `prepare_view` view (no SH, no autograd): (H, W, K)
     composited one-hot weights of the Gaussians whose label (splat_labels (N,), -1: none) is
-    >= 0 (None without `with_weights`), and (H, W) the most visible Gaussian (-1: none)."""
+    >= 0 (None without `with_weights`), and the view's surface, `surface_native`'s: (H, W)
+    most visible Gaussians (-1: none), alpha and alpha-weighted depth."""
     view = prepare_view(gaussians, camera)
     k = num_labels if with_weights else 0
     lab = splat_labels[view.ids].long()
@@ -303,8 +316,8 @@ def label_weights_native(
     if k and len(view.ids):
         known = lab >= 0
         onehot[known.nonzero().squeeze(1), lab[known]] = 1.0
-    feat, _, _, ids = walk_prepared(view, camera, onehot, t_stop)
-    return (feat if with_weights else None), ids
+    feat, depth, final_t, ids = walk_prepared(view, camera, onehot, t_stop)
+    return (feat if with_weights else None), ids, 1.0 - final_t, depth
 
 
 @contextlib.contextmanager
@@ -337,8 +350,9 @@ __all__ = [
     "load_extension",
     "native_available",
     "coverage_native",
-    "label_weights_native",
+    "label_walk_native",
     "rasterize_native",
+    "surface_native",
     "PreparedView",
     "prepare_view",
     "vote_into",

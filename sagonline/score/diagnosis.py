@@ -166,17 +166,25 @@ def scene_surface(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # [H, W] alpha, depth, int64 ids
     """The whole scene in one view: (H, W) alpha, expected depth (alpha-weighted depth over
     alpha) and the most visible Gaussian (-1: none), from `whole` where the caller rendered it
-    with ids, else rendered here."""
+    with ids, else drawn here: unshaded by the compiled kernel (the walk `object_depths` draws
+    the objects with), by `render` with ids elsewhere."""
     from sagonline.render.api import render
+    from sagonline.render.backends import resolve_backend
 
-    out = (
-        whole if whole is not None else render(gaussians, camera, backend=backend, return_ids=True)
-    )
-    if out.ids is None or out.alpha.shape != (camera.height, camera.width):
+    if whole is not None:
+        alpha, depth, ids = whole.alpha, whole.depth, whole.ids
+    elif resolve_backend(backend, gaussians.device) == "native":
+        from sagonline.render.native import surface_native
+
+        alpha, depth, ids = surface_native(gaussians, camera)
+    else:
+        out = render(gaussians, camera, backend=backend, return_ids=True)
+        alpha, depth, ids = out.alpha, out.depth, out.ids
+    if ids is None or alpha.shape != (camera.height, camera.width):
         raise ValueError(f"the view's render must carry ids at {camera.width}x{camera.height}")
-    alpha = out.alpha.detach().cpu().numpy()
-    depth = out.depth.detach().cpu().numpy() / np.maximum(alpha, 1e-6)
-    return alpha, depth, out.ids.cpu().numpy().astype(np.int64)
+    cover = alpha.detach().cpu().numpy()
+    expected = depth.detach().cpu().numpy() / np.maximum(cover, 1e-6)
+    return cover, expected, ids.cpu().numpy().astype(np.int64)
 
 
 def diagnose_view(

@@ -155,6 +155,39 @@ def test_native_most_visible_ids_and_label_renders_match(kind, seed):
 
 
 @pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
+def test_the_unshaded_surface_is_the_shaded_walks_and_the_label_walks(kind):
+    """`surface_native` (the diagnosis's whole view without colours): the alpha, depth and ids of
+    the same walk compositing the view's SH colours and of the label render's walk (which hands
+    them to the diagnosis), bit for bit, and a full render's to rounding."""
+    from sagonline.render.native import (
+        label_walk_native,
+        prepare_view,
+        surface_native,
+        walk_prepared,
+    )
+    from sagonline.render.projection import view_colors
+
+    g = random_gaussians(300, kind, seed=6, spread=0.8)
+    cam = small_camera(37, 29)
+    alpha, depth, ids = surface_native(g, cam)
+    view = prepare_view(g, cam)
+    rgb, shaded_depth, shaded_t, shaded_ids = walk_prepared(
+        view, cam, view_colors(g, view.ids, cam.center)
+    )
+    assert rgb.shape == (29, 37, 3) and rgb.abs().sum() > 0
+    assert torch.equal(alpha, 1.0 - shaded_t) and torch.equal(depth, shaded_depth)
+    assert torch.equal(ids, shaded_ids) and (ids >= 0).any() and (ids < 0).any()
+    labels = torch.randint(-1, 3, (len(g),), generator=torch.Generator().manual_seed(2))
+    weights, label_ids, label_alpha, label_depth = label_walk_native(g, cam, labels, 3)
+    assert weights.shape == (29, 37, 3) and torch.equal(label_ids, ids)
+    assert torch.equal(label_alpha, alpha) and torch.equal(label_depth, depth)
+    full = rasterize_native(g, cam, return_ids=True)
+    torch.testing.assert_close(alpha, full.alpha, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(depth, full.depth, atol=1e-4, rtol=1e-5)
+    assert (ids != full.ids).float().mean() < 0.01
+
+
+@pytest.mark.parametrize("kind", ["3dgs", "2dgs"])
 def test_coverage_draws_each_group_alone_in_one_walk(kind):
     """`render_coverage` on the compiled kernel (one unshaded walk for all the groups) gives
     each group the alpha and depth of its Gaussians' walk alone, bit for bit (and a full

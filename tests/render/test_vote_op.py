@@ -247,7 +247,7 @@ def test_label_walks_match_the_rasterizer(kind, backend):
     onehot = torch.nn.functional.one_hot(splat_labels.clamp_min(0), 3).float()
     onehot *= (splat_labels >= 0)[:, None].float()
     ref = rasterize(g, cam, features=onehot, return_ids=True)
-    weights, ids = _label_walk(g, cam, splat_labels, 3, "onehot", backend)
+    weights, ids, _ = _label_walk(g, cam, splat_labels, 3, "onehot", backend)
     torch.testing.assert_close(weights, ref.features, rtol=1e-5, atol=1e-6)
     assert float(ref.features.max()) > 0.5
     assert torch.equal(ids, ref.ids)

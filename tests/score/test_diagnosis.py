@@ -233,22 +233,32 @@ def test_the_body_rule_is_off_by_default_and_runs_through_the_pipeline(scene):
     assert report.miou is not None and "fraction_off_body" in out.vote.value.stats
 
 
-def test_each_eval_view_is_rendered_once_for_its_diagnosis_and_its_recording(scene, monkeypatch):
-    """With a recording and a diagnosis, `run_scene` renders each eval view once: its colours
-    are recorded and its ids diagnosed. The counts and cause images are those of a diagnosis
-    that renders each view itself."""
+def test_a_recording_renders_each_eval_views_colours_once_and_moves_no_diagnosis(
+    scene, monkeypatch
+):
+    """On the compiled kernel the diagnosis reads each eval view's surface from its label
+    render's walk, unshaded: with a recording, `run_scene` renders each eval view's colours once
+    (no ids) for it; without one, it shades nothing; neither draws the surface again. The
+    counts, the shares and the cause images are the same both ways, and those of a diagnosis
+    that draws each view's surface itself."""
     from sagonline.pipeline import scene as scene_module
     from sagonline.pipeline.diagnose import SceneDiagnosis
     from sagonline.pipeline.graph import StageCache
     from sagonline.pipeline.scoring import SceneReport
     from sagonline.pipeline.stages import SegmenterRun
+    from sagonline.render import native
     from sagonline.render.api import render, to_uint8
 
-    calls, shown = [], {}
+    calls, shown, drawn = [], {}, []
 
     def counted(g, camera, **options):
         calls.append((camera.name, bool(options.get("return_ids"))))
         return render(g, camera, **options)
+
+    surface = native.surface_native
+    monkeypatch.setattr(
+        native, "surface_native", lambda g, cam: drawn.append(cam.name) or surface(g, cam)
+    )
 
     class Shown:
         enabled = True
@@ -262,8 +272,19 @@ def test_each_eval_view_is_rendered_once_for_its_diagnosis_and_its_recording(sce
     monkeypatch.setattr(scene_module, "render", counted)
     settings, segmenter = PipelineSettings(progress=False), OracleSegmenter(flicker=0.3, seed=1)
     report, stage_one = run_scene(scene, segmenter, VoteConfig(), settings, recorder=Shown())
-    assert calls == [(view.camera.name, True) for view in scene.eval_views]
+    assert calls == [(view.camera.name, False) for view in scene.eval_views]
     assert sum(r["missed_px"] for r in report.views if r["mode"] == "coarse") > 0
+    calls.clear()
+    unrecorded, _ = run_scene(scene, segmenter, VoteConfig(), settings)
+    assert calls == []  # nothing shaded
+    assert unrecorded.views == report.views
+    assert unrecorded.extra["diagnosis"] == report.extra["diagnosis"]
+    assert drawn == []  # each surface the label render's
+    names = [view.camera.name for view in scene.eval_views]
+    monkeypatch.setattr(scene_module, "SURFACES_KEPT_BYTES", 0)  # none kept: each drawn again
+    bounded, _ = run_scene(scene, segmenter, VoteConfig(), settings)
+    assert drawn == names and bounded.views == report.views
+    drawn.clear()
 
     again = SceneReport(scene=scene.name)
     again.views = [dict(r) for r in report.views]
@@ -274,8 +295,9 @@ def test_each_eval_view_is_rendered_once_for_its_diagnosis_and_its_recording(sce
     for i, view in enumerate(scene.eval_views):
         rgb, pred, causes = shown[i]
         assert np.array_equal(rgb, to_uint8(render(g, view.camera, backend="auto").rgb))
-        assert np.array_equal(diagnosis.view(view, pred), causes)  # rendered by the diagnosis
+        assert np.array_equal(diagnosis.view(view, pred), causes)  # drawn by the diagnosis
     diagnosis.finish()
+    assert drawn == names
     assert again.views == report.views
     assert again.extra["diagnosis"] == report.extra["diagnosis"]
 
