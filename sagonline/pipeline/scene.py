@@ -251,9 +251,8 @@ def score_views(
         preds.append(pred.cpu().numpy())
         seconds.append(time.perf_counter() - start)
         size = 16 * camera.width * camera.height  # alpha and depth float32, ids int64
-        if surface is None or not keep_surfaces or kept + size > SURFACES_KEPT_BYTES:
-            surfaces.append(None)
-        elif same_camera(camera, view.camera):
+        keep = keep_surfaces and surface is not None and kept + size <= SURFACES_KEPT_BYTES
+        if keep and same_camera(camera, view.camera):
             alpha, depth, ids = surface
             surfaces.append(RenderOutput(torch.empty(0), alpha, depth, ids=ids))
             kept += size
@@ -266,10 +265,8 @@ def score_views(
 
 def same_camera(a: Camera, b: Camera) -> bool:
     """Whether two cameras draw the same pixels (size, intrinsics and pose)."""
-    return (a.width, a.height) == (b.width, b.height) and all(
-        torch.equal(x, y)
-        for x, y in ((a.K, b.K), (a.rotation, b.rotation), (a.translation, b.translation))
-    )
+    same_size = (a.width, a.height) == (b.width, b.height)
+    return same_size and torch.equal(a.K, b.K) and torch.equal(a.world_to_cam, b.world_to_cam)
 
 
 def record_eval_views(
