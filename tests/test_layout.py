@@ -164,6 +164,7 @@ def test_no_import_cycles_and_nothing_imports_the_entry_point():
 ENVIRONMENT_WRITES = {
     ("sagonline/__init__.py", "OMP_WAIT_POLICY"),
     ("sagonline/__init__.py", "OPENBLAS_NUM_THREADS"),
+    ("sagonline/render/kernels.py", "PATH"),
     ("sagonline/render/triton_vote.py", "TRITON_INTERPRET"),
     ("sagonline/segment/yolo.py", "YOLO_OFFLINE"),
 }

@@ -5,13 +5,16 @@ how long it took) into a folder of the environment itself (`kernel_root`), so ch
 environments of their own never rebuild each other's, nor do two paths to one environment (a
 link to it: `build_name`). One process builds while the others
 wait and say so (`build_once`); a build that was killed midway is noticed and its leftover
-lock cleared, instead of every later run waiting on it forever.
+lock cleared, instead of every later run waiting on it forever. Every build runs the `ninja`
+that the project's environment installed (`project_ninja`), whatever PATH finds first.
 """
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
+import shutil
 import sys
 import time
 from pathlib import Path
@@ -69,12 +72,42 @@ def load_extension():
     build_dir = kernel_root() / name
 
     def build():
-        return cpp_extension.load(**load_arguments(build_dir, name))
+        with project_ninja():
+            return cpp_extension.load(**load_arguments(build_dir, name))
 
     try:
         return build_once(build_dir, name, build)
     except Exception as exc:  # compiler missing, ninja missing, build error
         raise NativeBuildError(f"could not build {CSRC}: {exc}") from exc
+
+
+@contextlib.contextmanager
+def project_ninja():
+    """PATH with the folder of the `ninja` that the environment installed (the `ninja` package,
+    a requirement of the project) first, put back after: torch's loader runs whichever `ninja`
+    PATH finds. A machine without a system ninja then builds the kernels from a shell where the
+    environment is not activated (`make install`, `.venv/bin/python -m ...`), where it failed
+    ("Ninja is required") and every run fell back to the PyTorch reference; and where a system
+    ninja of another version is there too, the two no longer rebuild the kernels in turn (each
+    hashes the same compile command its own way, so each found it changed: 20-60 s a switch
+    between an activated shell and one that is not). Without the package: PATH as it is."""
+    try:
+        import ninja
+    except ImportError:
+        ninja = None
+    folder = getattr(ninja, "BIN_DIR", None)
+    before = os.environ.get("PATH")
+    if folder is None or shutil.which("ninja", path=folder) is None:
+        yield
+        return
+    os.environ["PATH"] = os.pathsep.join([folder, before]) if before else folder
+    try:
+        yield
+    finally:
+        if before is None:
+            os.environ.pop("PATH", None)
+        else:
+            os.environ["PATH"] = before
 
 
 def build_name(torch_dir: Path) -> str:
@@ -217,7 +250,7 @@ def build_once(build_dir: Path, name: str, build, say=None, every: float = 20.0)
         os.close(fd)
 
 
-__all__ = ["NativeBuildError", "build_once", "kernel_root", "load_extension"]
+__all__ = ["NativeBuildError", "build_once", "kernel_root", "load_extension", "project_ninja"]
 
 
 # `make install`: build them now (or find them built), not at a first run

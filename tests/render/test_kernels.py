@@ -156,3 +156,42 @@ def test_the_install_step_builds_them_and_names_a_place_it_cannot_use(
         runpy.run_module("sagonline.render.kernels", run_name="__main__")
     assert stop.value.code == 1
     assert f"SAGONLINE_KERNEL_DIR={tmp_path / 'f'} is a file" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("package", [True, False], ids=["ninja package", "no ninja package"])
+def test_the_kernels_build_with_the_environments_ninja_whatever_path_finds_first(
+    tmp_path, monkeypatch, package
+):
+    """torch's loader runs the `ninja` PATH finds: from a shell where the environment is not
+    activated, none on a machine without a system ninja (the build failed), or a system one of
+    another version, which hashes the same compile command its own way, so the two rebuilt the
+    kernels in turn (21 s a switch here). The build runs the environment's own (`ninja`
+    package), PATH is put back after it, and without the package PATH is left as it is."""
+    import os
+    import shutil
+
+    import ninja
+    from torch.utils import cpp_extension
+
+    from sagonline.render import kernels
+
+    other = tmp_path / "bin"
+    other.mkdir()
+    (other / "ninja").write_text("#!/bin/sh\necho 1.11.1\n")
+    (other / "ninja").chmod(0o755)
+    monkeypatch.setenv("PATH", str(other))
+    monkeypatch.setenv("SAGONLINE_KERNEL_DIR", str(tmp_path / "kernels"))
+    if not package:
+        monkeypatch.setitem(sys.modules, "ninja", None)  # import ninja raises ImportError
+    found = []
+
+    def load(**arguments):  # torch's loader: which ninja would it run?
+        found.append(shutil.which("ninja"))
+        return "module"
+
+    monkeypatch.setattr(cpp_extension, "load", load)
+    assert kernels.load_extension.__wrapped__() == "module"
+    own = shutil.which("ninja", path=ninja.BIN_DIR)
+    assert own is not None and own != str(other / "ninja")
+    assert found == [own if package else str(other / "ninja")]
+    assert os.environ["PATH"] == str(other)
