@@ -13,6 +13,7 @@ from sagonline.core.files import atomic_write_json, atomic_write_text
 from sagonline.core.machine import describe_device
 from sagonline.pipeline import SceneReport
 from sagonline.pipeline.evaluate import FILE_ONLY
+from sagonline.record.recording import viewer_command
 from sagonline.score.run_metrics import METRICS_VERSION, RunMetrics
 
 
@@ -152,7 +153,7 @@ def print_summary(
 ) -> None:
     """One screen: per-scene rows, overall numbers, where the outputs are (`shown_as`: the
     folder they will be in, where `out_dir` is a replacement staged beside it)."""
-    plan = metrics.get("backends") or {}
+    plan, shown = metrics.get("backends") or {}, shown_as or out_dir
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
         f"consensus {metrics['consensus']['method']}  renderer {metrics['renderer']}",
@@ -189,10 +190,10 @@ def print_summary(
         + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
         + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
         f"resize rule: {metrics['resize_rule']}",
-        f"outputs: {shown_as or out_dir}/metrics.json, per_view.csv"
+        f"outputs: {shown}/metrics.json, per_view.csv"
         + (", predictions/ (sagonline score)" if (out_dir / "predictions").is_dir() else "")
         + (
-            ", recording.rrd (open with: rerun recording.rrd)"
+            f", recording.rrd (open with: {viewer_command(shown / 'recording.rrd')})"
             if (out_dir / "recording.rrd").exists()
             else ""
         ),

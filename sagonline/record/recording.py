@@ -14,7 +14,7 @@ Entity layout (one recording per run, every scene under `scenes/<name>`):
 All masks are SegmentationImages under one AnnotationContext per scene, so a label has one colour
 everywhere. The default blueprint shows, per scene, RGB | segmenter | fused labels | ground truth
 (| refined), the per-view IoU below, and the 3D view beside them. Open with
-`rerun recording.rrd`.
+`rerun recording.rrd` (the environment's own viewer: `viewer_command`).
 
 The trajectory's frames are logged by a thread of the recorder's own, as the masks come: each
 JPEG-encoded frame and mask took about 7 ms of a Stage I view on the host otherwise. Every
@@ -35,6 +35,27 @@ from sagonline.labels.colours import BACKGROUND_3D, label_colors
 
 ELLIPSOID_LIMIT = 50_000  # larger scenes are drawn as points: ellipsoids would drown the viewer
 FRAMES_WAITING = 8  # trajectory frames handed to the recorder's thread and not yet logged
+
+
+def viewer_command(recording: Path) -> str:
+    """The shell command that opens `recording` in the rerun viewer this environment installed
+    (rerun-sdk's `rerun`, of the version that wrote it): `rerun` where PATH finds that one, else
+    its path (relative to the working folder where it lies below it: `.venv/bin/rerun`, for a
+    shell where the environment is not activated, which found no `rerun` or another one)."""
+    import os
+    import shlex
+    import shutil
+    import sysconfig
+
+    own = Path(sysconfig.get_path("scripts")) / "rerun"
+    found = shutil.which("rerun")
+    if not own.is_file() or (found is not None and Path(found).resolve() == own.resolve()):
+        viewer = "rerun"
+    else:
+        absolute = own.absolute()
+        inside = absolute.is_relative_to(Path.cwd())
+        viewer = os.path.relpath(absolute) if inside else str(absolute)
+    return f"{shlex.quote(viewer)} {shlex.quote(str(recording))}"
 
 
 class Recorder:

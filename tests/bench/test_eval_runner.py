@@ -13,7 +13,9 @@ from tests.fixtures import cfg_with
 
 
 @pytest.mark.slow
-def test_eval_writes_metrics_csv_and_recording(tmp_path):
+def test_eval_writes_metrics_csv_and_recording(tmp_path, capsys):
+    from sagonline.record.recording import viewer_command
+
     metrics = evaluate(cfg_with(), tmp_path)
     saved = json.loads((tmp_path / "metrics.json").read_text())
     for key in (
@@ -42,6 +44,8 @@ def test_eval_writes_metrics_csv_and_recording(tmp_path):
     rows = pd.read_csv(tmp_path / "per_view.csv")
     assert len(rows) == 6 and set(rows.columns) >= {"scene", "view", "iou", "acc"}
     assert (tmp_path / "recording.rrd").stat().st_size > 10_000
+    # the summary names the command that opens it, whichever shell reads it
+    assert f"(open with: {viewer_command(tmp_path / 'recording.rrd')})" in capsys.readouterr().out
 
 
 @pytest.mark.slow

@@ -129,3 +129,35 @@ def test_progress_off_a_terminal_says_a_line_every_so_often():
     assert lines[0] == "fit: 6 to do" and lines[-1].startswith("fit: 5 of 6 done in")
     middle = lines[1:-1]
     assert middle and all("left" in ln and "loss 0.1" in ln for ln in middle)
+
+
+def test_the_command_that_opens_a_recording_runs_the_environments_viewer(tmp_path, monkeypatch):
+    """A run says how to open its recording: `rerun` where PATH finds the environment's own (a
+    shell where it is activated), else that viewer's path, since a shell where it is not found
+    no `rerun` (`make eval` said `rerun recording.rrd`: command not found) or another install's,
+    of another version than the one that wrote the file. Relative to the working folder where
+    the environment lies below it (`.venv/bin/rerun` in the checkout), quoted for the shell."""
+    import os
+    import sysconfig
+    from pathlib import Path
+
+    from sagonline.record.recording import viewer_command
+
+    own = Path(sysconfig.get_path("scripts")) / "rerun"
+    if not own.is_file():
+        pytest.skip("rerun-sdk's viewer is not installed in this environment")
+    recording = tmp_path / "a run" / "recording.rrd"
+    quoted = f"'{recording}'"
+    other = tmp_path / "bin"
+    other.mkdir()
+    (other / "rerun").write_text("#!/bin/sh\n")
+    (other / "rerun").chmod(0o755)
+    monkeypatch.chdir(tmp_path)  # the environment does not lie below it: its absolute path
+    for path in (str(other), str(tmp_path / "none"), f"{other}{os.pathsep}{own.parent}"):
+        monkeypatch.setenv("PATH", path)
+        assert viewer_command(recording) == f"{own.absolute()} {quoted}"
+    monkeypatch.setenv("PATH", f"{own.parent}{os.pathsep}{other}")
+    assert viewer_command(recording) == f"rerun {quoted}"
+    monkeypatch.setenv("PATH", str(other))
+    monkeypatch.chdir(own.parents[1])  # the environment's folder, as the checkout holds .venv
+    assert viewer_command(recording) == f"{Path(own.parent.name, 'rerun')} {quoted}"
