@@ -32,7 +32,6 @@ Prints Markdown tables; times on this machine, say what else ran.
 from __future__ import annotations
 
 import argparse
-import subprocess
 import tempfile
 import time
 from pathlib import Path
@@ -43,6 +42,7 @@ import pandas as pd
 
 from bench import ROOT
 from sagonline.core.files import atomic_write_text
+from sagonline.core.machine import load_averages
 from sagonline.core.plugins import SEGMENTERS
 from sagonline.scene.io.images import resize_nearest
 from sagonline.segment.mask_geometry import box_of, interior_point, iou
@@ -256,10 +256,6 @@ def reopen(pair, encoder: Path, decoder: Path, threads: int, level):
     return pair
 
 
-def uptime() -> str:
-    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--photos", type=int, default=6, help="photographs per capture (1-40)")
@@ -303,7 +299,7 @@ def main() -> None:
     parts = set(args.parts.split(","))
     for m in models:  # the weights are there (else: make weights), before any work
         segmenter(m, **(options if {"runtimes", "decoders"} & parts else {})).check()
-    print(f"before: {uptime()}")
+    print(f"before: {load_averages()}")
     if "photos" in parts:
         print("\n## One photograph, one prompt\n")
         print(photo_table(models, args.photos).to_markdown(index=False))
@@ -338,7 +334,7 @@ def main() -> None:
             print(table.to_markdown(index=False))
             if out is not None:
                 atomic_write_text(out, table.to_csv(index=False))
-    print(f"\nafter: {uptime()}")
+    print(f"\nafter: {load_averages()}")
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import subprocess
 import time
 from pathlib import Path
 
@@ -31,6 +30,7 @@ import torch
 
 from bench import ROOT
 from sagonline.apps.viewer.session import SegmentSession
+from sagonline.core.machine import load_averages
 from sagonline.scene.io import read_scene
 from sagonline.scene.views import load_views
 from sagonline.segment.base import DEFAULT_SEGMENTER
@@ -221,10 +221,6 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
     return pd.DataFrame(rows).set_index("repeat")
 
 
-def uptime() -> str:
-    return subprocess.run(["uptime"], capture_output=True, text=True).stdout.strip()
-
-
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--repeats", type=int, default=3)
@@ -239,7 +235,7 @@ def main() -> None:
         args.repeats = 1
     g = read_scene(args.data / "point_cloud.ply")
     views = load_views(args.data / "transforms.json", g, orbit=orbit, width=width, height=height)
-    print(f"before: {uptime()}")
+    print(f"before: {load_averages()}")
     from sagonline.core.plugins import SEGMENTERS
 
     start = time.perf_counter()
@@ -264,7 +260,7 @@ def main() -> None:
                 "canvas: longest frame gap": 1.0,
             }.get(name)
             print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
-        print(f"after: {uptime()}")
+        print(f"after: {load_averages()}")
         return
     rows = []
     for repeat in range(args.repeats):
@@ -289,7 +285,7 @@ def main() -> None:
         target = TARGETS.get(name)
         print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
     print(f"labelled object: {int((session.labels == 1).sum())} of {len(g)} Gaussians")
-    print(f"after: {uptime()}")
+    print(f"after: {load_averages()}")
     if args.screenshot:
         shoot(session, args.screenshot)
 

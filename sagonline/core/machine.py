@@ -27,6 +27,15 @@ def describe_device(device: str = "cpu") -> dict:
     return info
 
 
+def load_averages() -> str:
+    """The system's load averages over 1, 5 and 15 minutes, as `uptime` shows them (what else
+    ran beside a timing), from the kernel, without starting `uptime` (a slim system has none);
+    "load average: -" where the system gives none."""
+    if not hasattr(os, "getloadavg"):
+        return "load average: -"
+    return "load average: " + ", ".join(f"{load:.2f}" for load in os.getloadavg())
+
+
 DEVICE_DEFAULT = "auto"
 """Every front end's device when none is given: `device=` (Hydra), `--device` (the commands),
 `PipelineSettings.device`."""
