@@ -177,7 +177,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
         metrics = write_outputs(out_dir, cfg, reports, summary, provenance)
         print_summary(out_dir, metrics, reports, cache_root(cfg, home), shown_as=home)
         if status == "failed":
-            log.error("no scene was scored; %s/metrics.json records why", out_dir)
+            log.error("no scene was scored; %s/metrics.json records why", out_dir, extra=FILE_ONLY)
             print(
                 f"error: no scene was scored ({', '.join(summary['scenes_failed'])} failed); "
                 "fix the data and rerun the same command",
@@ -188,8 +188,9 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
 
 
 def warn(words: str) -> None:
-    """A scene's failure said on the console and in the run's log."""
-    log.warning(words)
+    """A scene's failure said once on the console and in the run's log (the log's record kept
+    off the console, where Hydra's handler said it a second time)."""
+    log.warning(words, extra=FILE_ONLY)
     print(f"warning: {words}", file=sys.stderr)
 
 

@@ -188,7 +188,10 @@ def print_summary(
         f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "
         f"segmenter mIoU {fmt(metrics['segmenter_miou'])}"
         + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
-        + ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""),
+        + (
+            ("   (FAILED: no scene was scored)" if not metrics.get("scenes_scored") else "")
+            or ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else "")
+        ),
         f"resize rule: {metrics['resize_rule']}",
         f"outputs: {shown}/metrics.json, per_view.csv"
         + (", predictions/ (sagonline score)" if (out_dir / "predictions").is_dir() else "")

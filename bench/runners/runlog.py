@@ -28,6 +28,7 @@ def run_log(out_dir: Path):
         console = logging.StreamHandler(sys.stderr)
         console.setLevel(logging.WARNING)
         console.setFormatter(logging.Formatter("%(levelname)s: %(message)s"))
+        console.addFilter(_not_file_only)
         handlers.append(console)
     old_level = root.level
     root.setLevel(logging.INFO)
