@@ -163,7 +163,7 @@ def every_line(cams: list[Camera], every: int, keep: int, length: int | None = N
     """'50 of 198 views (every 4th, and the prompt's view 7)', '198 views' for every view;
     with the trajectory's `length`, the views slerped in between too ('... and 49 in between')."""
     picked = len(segmented_views(cams, every, keep))
-    line = f"{len(cams)} views"
+    line = f"{len(cams)} view" + ("" if len(cams) == 1 else "s")
     if every > 1:
         extra = f", and the prompt's view {keep}" if keep % every else ""
         line = f"{picked} of {len(cams)} views (every {ordinal(every)}{extra})"

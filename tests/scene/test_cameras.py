@@ -262,6 +262,7 @@ def test_every_nth_view_keeps_the_prompts_view_and_the_order():
     assert every_line(cams, 4, 5) == "4 of 10 views (every 4th, and the prompt's view 5)"
     assert every_line(cams, 2, 0) == "5 of 10 views (every 2nd)"
     assert every_line(cams, 1, 3) == "10 views"
+    assert every_line(cams[:1], 1, 0) == "1 view"
     traj = trajectory(cams, every=4, keep=0, inbetween=1)
     assert [c.name for c in traj] == ["v00", "v00+1", "v04", "v04+1", "v08"]
     assert every_line(cams, 4, 0, len(traj)) == "3 of 10 views (every 4th) and 2 in between"
