@@ -154,6 +154,9 @@ def print_summary(
     """One screen: per-scene rows, overall numbers, where the outputs are (`shown_as`: the
     folder they will be in, where `out_dir` is a replacement staged beside it)."""
     plan, shown = metrics.get("backends") or {}, shown_as or out_dir
+    verdict = "   (PARTIAL: some scenes failed)" if metrics.get("partial") else ""
+    if not metrics.get("scenes_scored"):
+        verdict = "   (FAILED: no scene was scored)"
     lines = [
         f"dataset {metrics['dataset']}  segmenter {metrics['segmenter']}  "
         f"consensus {metrics['consensus']['method']}  renderer {metrics['renderer']}",
@@ -188,10 +191,7 @@ def print_summary(
         f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "
         f"segmenter mIoU {fmt(metrics['segmenter_miou'])}"
         + (f"  refined mIoU {fmt(metrics['refined_miou'])}" if metrics.get("refined_miou") else "")
-        + (
-            ("   (FAILED: no scene was scored)" if not metrics.get("scenes_scored") else "")
-            or ("   (PARTIAL: some scenes failed)" if metrics.get("partial") else "")
-        ),
+        + verdict,
         f"resize rule: {metrics['resize_rule']}",
         f"outputs: {shown}/metrics.json, per_view.csv"
         + (", predictions/ (sagonline score)" if (out_dir / "predictions").is_dir() else "")

@@ -92,10 +92,9 @@ def project_ninja():
     hashes the same compile command its own way, so each found it changed: 20-60 s a switch
     between an activated shell and one that is not). Without the package: PATH as it is."""
     try:
-        import ninja
+        from ninja import BIN_DIR as folder
     except ImportError:
-        ninja = None
-    folder = getattr(ninja, "BIN_DIR", None)
+        folder = None
     before = os.environ.get("PATH")
     if folder is None or shutil.which("ninja", path=folder) is None:
         yield
