@@ -33,6 +33,10 @@ def sweep(launcher: str, folder: Path) -> dict[str, dict]:
     ]
     done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True)
     assert done.returncode == 0, done.stdout[-2000:] + done.stderr[-2000:]
+    # the sweep's table, printed once its jobs have ended, whichever launcher ran them
+    table = done.stdout[done.stdout.index(f"sweep {folder}: 2 job(s), 2 with a record") :]
+    rows = [line.split()[:3] for line in table.splitlines()[2:4]]
+    assert rows == [["0", "0.01", "complete"], ["1", "0.1", "complete"]], table
     out = {}
     for path in sorted(folder.glob("*/metrics.json")):
         m = json.loads(path.read_text())
