@@ -80,6 +80,19 @@ def _read(job: Path) -> tuple[RunMetrics | None, str, list[str] | None]:
     return metrics, metrics.status or "complete", metrics.overrides
 
 
+def vote_time(m: RunMetrics) -> str:
+    """The run's vote ms a mask; where every scene's vote came from the stage cache, the time of
+    the run that filled it, marked `*`; `-` where neither was recorded."""
+    if m.timings.get("vote_ms_per_mask") is not None:
+        return fmt(m.timings["vote_ms_per_mask"], False)
+    cached = [
+        s["cached_timings"]["vote_ms_per_mask"]
+        for s in m.scenes
+        if isinstance(s, dict) and (s.get("cached_timings") or {}).get("vote_ms_per_mask")
+    ]
+    return f"{fmt(sum(cached) / len(cached), False)}*" if cached else "-"
+
+
 def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
     """The sweep in `sweep_dir` (of `size` jobs, where known) as lines of text: a row per job,
     the differing settings as columns, then the job of the highest mIoU and the command that
@@ -104,7 +117,7 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
             + "".join(f"{c:<{w}}" for c, w in zip(row, widths, strict=True))
             + (
                 f"{status:<11}{fmt(m.miou):>8}{fmt(m.macc):>8}{fmt(m.segmenter_miou):>10}"
-                f"{fmt(m.timings.get('vote_ms_per_mask'), False):>14}"
+                f"{vote_time(m):>14}"
                 if m
                 else status
             )
@@ -120,6 +133,8 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
         lines.append(
             f"highest mIoU {fmt(miou)}: job {job.name}" + (f" ({settings})" if settings else "")
         )
+    if any(m and vote_time(m).endswith("*") for m, _, _ in read):
+        lines.append("* a vote served from the stage cache: the time of the run that made it")
     lines.append(f"its tables: make report ARGS={sweep_dir}")
     return "\n".join(lines)
 

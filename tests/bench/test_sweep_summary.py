@@ -11,6 +11,7 @@ from sagonline.score.run_metrics import RunMetrics
 
 
 def _job(sweep: Path, num: int, overrides: list[str], miou: float | None, status="complete"):
+    cached = num == 1  # its vote came from the stage cache: the time of the run that made it
     record = RunMetrics(
         dataset="synthetic",
         segmenter="oracle",
@@ -19,7 +20,8 @@ def _job(sweep: Path, num: int, overrides: list[str], miou: float | None, status
         segmenter_miou=1.0,
         overrides=overrides,
         status=status,
-        timings={"vote_ms_per_mask": 5.25},
+        timings={} if cached else {"vote_ms_per_mask": 5.25},
+        scenes=[{"scene": "a", "cached_timings": {"vote_ms_per_mask": 7.0 + k}} for k in (0, 2)],
     )
     atomic_write_json(sweep / str(num) / "metrics.json", record.to_json())
 
@@ -65,12 +67,13 @@ def test_the_table_names_every_job_and_the_highest_miou(tmp_path):
         "ms/mask",
     ]
     assert lines[2].split() == ["0", "0.01", "complete", "80.00", "80.00", "100.00", "5.2"]
-    assert lines[3].split()[:4] == ["1", "0.1", "complete", "90.00"]
+    assert lines[3].split() == ["1", "0.1", "complete", "90.00", "90.00", "100.00", "8.0*"]
     assert lines[4].split()[:4] == ["2", "0.5", "failed", "-"]
     assert "3/metrics.json: unreadable" in lines[5]
     assert lines[6].startswith("10 ") and "no record" in lines[6] and "10/eval.log" in lines[6]
     assert lines[7] == "highest mIoU 90.00: job 1 (consensus.eps=0.1)"
-    assert lines[8] == f"its tables: make report ARGS={sweep}"
+    assert lines[8].startswith("* a vote served from the stage cache")
+    assert lines[9] == f"its tables: make report ARGS={sweep}"
     # a sweep of 2 jobs into a folder a longer one filled: only its own jobs
     assert sweep_table(sweep, size=2).splitlines()[0] == f"sweep {sweep}: 2 job(s), 2 with a record"
 
