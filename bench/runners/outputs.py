@@ -113,6 +113,17 @@ def fmt(x, pct: bool = True) -> str:
     return f"{100 * x:.2f}" if pct else f"{x:.1f}"
 
 
+def timed(timings: dict, cached: dict, key: str) -> str:
+    """A time this run took (`timings[key]`, ms); else the one a run that filled the stage cache
+    took for the stage this run was served (`cached[key]`), marked `*` (CACHED_NOTE); else `-`."""
+    if timings.get(key) is not None:
+        return fmt(timings[key], False)
+    return f"{fmt(cached[key], False)}*" if cached.get(key) is not None else "-"
+
+
+CACHED_NOTE = "* a vote served from the stage cache: the time of the run that made it"
+
+
 def diagnosis_lines(d: dict) -> list[str]:
     """A scene's diagnosis (`score.diagnosis` shares, `report.extra["diagnosis"]`) as summary
     lines: where the missed pixels were lost, what the fit hides, the views rendered displaced."""
@@ -176,7 +187,8 @@ def print_summary(
             f"{r.scene:<22}{r.status:<9}{fmt(r.miou):>8}{fmt(r.macc):>8}"
             f"{fmt(r.segmenter_miou):>10}{fmt(l3.get('accuracy')):>8}"
             f"{fmt(l3.get('coverage')):>8}"
-            f"{fmt(r.timings.get('vote_ms_per_mask'), False):>14}{fmt(r.refined_miou):>9}"
+            f"{timed(r.timings, r.cached_timings, 'vote_ms_per_mask'):>14}"
+            f"{fmt(r.refined_miou):>9}"
         )
         if r.error:
             lines.append(f"    {r.error}")
@@ -186,6 +198,8 @@ def print_summary(
             if key.endswith("_miou") and value is not None:
                 views = groups.get(key.removesuffix("_miou") + "_views")
                 lines.append(f"    {key.removesuffix('_miou')}: mIoU {fmt(value)} ({views} views)")
+    if any(timed(r.timings, r.cached_timings, "vote_ms_per_mask").endswith("*") for r in reports):
+        lines.append(CACHED_NOTE)
     lines += [
         "",
         f"overall mIoU {fmt(metrics['miou'])}  mAcc {fmt(metrics['macc'])}  "

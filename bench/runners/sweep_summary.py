@@ -10,7 +10,7 @@ from pathlib import Path
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, OmegaConf
 
-from bench.runners.outputs import fmt
+from bench.runners.outputs import CACHED_NOTE, fmt, timed
 from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
 
 # Overrides that change how a run is shown, not what it measures: never a column.
@@ -81,16 +81,15 @@ def _read(job: Path) -> tuple[RunMetrics | None, str, list[str] | None]:
 
 
 def vote_time(m: RunMetrics) -> str:
-    """The run's vote ms a mask; where every scene's vote came from the stage cache, the time of
-    the run that filled it, marked `*`; `-` where neither was recorded."""
-    if m.timings.get("vote_ms_per_mask") is not None:
-        return fmt(m.timings["vote_ms_per_mask"], False)
+    """The run's vote ms a mask (`outputs.timed`); where every scene's vote came from the stage
+    cache, the mean time of the runs that filled it, marked `*`."""
     cached = [
         s["cached_timings"]["vote_ms_per_mask"]
         for s in m.scenes
         if isinstance(s, dict) and (s.get("cached_timings") or {}).get("vote_ms_per_mask")
     ]
-    return f"{fmt(sum(cached) / len(cached), False)}*" if cached else "-"
+    mean = {"vote_ms_per_mask": sum(cached) / len(cached)} if cached else {}
+    return timed(m.timings, mean, "vote_ms_per_mask")
 
 
 def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
@@ -134,7 +133,7 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
             f"highest mIoU {fmt(miou)}: job {job.name}" + (f" ({settings})" if settings else "")
         )
     if any(m and vote_time(m).endswith("*") for m, _, _ in read):
-        lines.append("* a vote served from the stage cache: the time of the run that made it")
+        lines.append(CACHED_NOTE)
     lines.append(f"its tables: make report ARGS={sweep_dir}")
     return "\n".join(lines)
 

@@ -49,7 +49,7 @@ def test_eval_writes_metrics_csv_and_recording(tmp_path, capsys):
 
 
 @pytest.mark.slow
-def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
+def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path, capsys):
     cfg = cfg_with("record=false", "dataset=synthetic_ff")
     first = evaluate(cfg, tmp_path)
     saved = (tmp_path / "metrics.json").read_bytes()
@@ -62,8 +62,12 @@ def test_skips_same_run_refuses_another_and_resumes_from_cache(tmp_path):
     stamps = {p: p.stat().st_mtime_ns for p in caches}
     # an interrupted run: metrics never written; the next run reuses every cached stage
     (tmp_path / "metrics.json").unlink()
+    capsys.readouterr()
     resumed = evaluate(cfg, tmp_path)
     assert resumed["scenes"][0]["stages"] == dict.fromkeys(("frames", "masks", "vote"), "cached")
+    # its vote's time is the one the first run took, marked as such
+    row = next(x for x in capsys.readouterr().out.splitlines() if x.startswith("forward_single"))
+    assert row.split()[7] == f"{first['scenes'][0]['timings']['vote_ms_per_mask']:.1f}*", row
     assert all(p.stat().st_mtime_ns == t for p, t in stamps.items())
     # a changed vote setting recomputes only the vote
     evaluate(
