@@ -127,7 +127,16 @@ def run_scene(
     if diagnose:
         diagnosis = SceneDiagnosis(task, g, stage_one, segmenter, vote, settings, report, cache)
     record_eval_views(
-        task, recorder, preds, report, g, plan.images, diagnosis, settings.background, surfaces
+        task,
+        recorder,
+        preds,
+        report,
+        g,
+        plan.images,
+        diagnosis,
+        settings.background,
+        surfaces,
+        stage_one.frames.value.images,
     )
     recorder.gaussians(
         task.name, task.gaussians, result.labels.cpu().numpy(), result.histogram.cpu().numpy()
@@ -279,29 +288,35 @@ def record_eval_views(
     diagnosis: SceneDiagnosis | None = None,
     background=(0.0, 0.0, 0.0),
     surfaces: list[RenderOutput | None] | None = None,
+    rendered: list[np.ndarray] | None = None,  # T x [H, W, 3] uint8, Stage I's frames
 ) -> None:
     """Each eval view: with a diagnosis, its wrong pixels sorted by cause; with a recording,
     the render (on `background`, Stage I's colour, by `backend`), prediction, ground truth and
-    causes at its nearest trajectory frame. The diagnosis reads the recorded render's ids,
-    except on the compiled kernel, whose unshaded walk it reads: the view's label walk's
-    (`surfaces`, from `score_views`) or, where none was kept, one it draws (the same bits, with
-    a recording or without: a run that records nothing shades nothing)."""
+    causes at its nearest trajectory frame. The render is that frame's (`rendered`) where the
+    frame's camera is the view's (a capture's photographs: the same pixels, not drawn again).
+    The diagnosis reads the recorded render's ids, except on the compiled kernel, whose
+    unshaded walk it reads: the view's label walk's (`surfaces`, from `score_views`) or, where
+    none was kept, one it draws (the same bits, with a recording or without: a run that records
+    nothing shades nothing)."""
     if not recorder.enabled and diagnosis is None:
         return
     ious = [r["iou"] for r in report.views[-len(preds) :]] if preds else []
     frames = nearest_frames(task)
     ids = diagnosis is not None and resolve_backend(backend, gaussians.device) != "native"
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
+        at = frames[i]
+        same = rendered is not None and same_camera(view.camera, task.trajectory[at])
+        drawn = rendered[at] if recorder.enabled and same else None
         whole = None
-        if recorder.enabled or ids:
+        if ids or (recorder.enabled and drawn is None):
             whole = eval_render(gaussians, view.camera, background, backend, ids)
         surface = whole if ids else (surfaces[i] if surfaces else None)
         causes = None if diagnosis is None else diagnosis.view(view, pred, surface)
-        if whole is not None and recorder.enabled:
+        if recorder.enabled:
             recorder.eval_view(
                 task.name,
                 i,
-                to_uint8(whole.rgb),
+                drawn if drawn is not None else to_uint8(whole.rgb),
                 pred,
                 view.gt,
                 camera=view.camera,

@@ -4,6 +4,7 @@ of the initial mode sees the frames its prompts were set on."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -72,7 +73,11 @@ def test_the_student_and_the_segmenter_answer_on_the_renders_stage_one_made(tmp_
             assert np.array_equal(image, frames[view.name]), (mode, view.name)
 
 
-def test_the_recordings_eval_views_show_the_renders_stage_one_made(tmp_path):
+def test_the_recordings_eval_views_show_the_renders_stage_one_made(tmp_path, monkeypatch):
+    """Drawn again, or taken from Stage I's frames where the view's camera is a frame's (then
+    not drawn at all): the same pixels."""
+    import sagonline.pipeline.scene as scene_module
+
     task, settings, _, stage_one, frames = white_capture(tmp_path)
     shown = {}
 
@@ -89,6 +94,26 @@ def test_the_recordings_eval_views_show_the_renders_stage_one_made(tmp_path):
     record_eval_views(task, Shown(), preds, report, g, backend, background=task.background)
     assert shown.keys() == frames.keys()
     assert all(np.array_equal(shown[name], frames[name]) for name in shown)
+    drawn_again = dict(shown)
+
+    shown.clear()
+    calls = []
+    eval_render = scene_module.eval_render
+    monkeypatch.setattr(scene_module, "eval_render", lambda *a: calls.append(a) or eval_render(*a))
+    images = stage_one.frames.value.images
+    record_eval_views(task, Shown(), preds, report, g, backend, None, task.background, None, images)
+    assert not calls and shown.keys() == drawn_again.keys()
+    assert all(np.array_equal(shown[name], drawn_again[name]) for name in shown)
+    # a view whose camera no frame has is drawn, at its own pose
+    first = task.eval_views[0]
+    pose = first.camera.world_to_cam.clone()
+    pose[0, 3] += 0.05
+    task.eval_views[0] = dataclasses.replace(
+        first, camera=dataclasses.replace(first.camera, world_to_cam=pose)
+    )
+    record_eval_views(task, Shown(), preds, report, g, backend, None, task.background, None, images)
+    assert len(calls) == 1 and calls[0][1] is task.eval_views[0].camera
+    assert not np.array_equal(shown[first.name], drawn_again[first.name])
 
 
 def test_the_students_curve_ends_at_the_score_of_its_refined_answers(tmp_path):
