@@ -131,3 +131,80 @@ def test_unreadable_yolo_weights_fail_before_rendering(tmp_path, capsys):
     bad.write_bytes(b"\x00 not a checkpoint\n" * 200)  # the same bytes every run
     _fails_before_rendering(tmp_path, "segmenter=yolo", f"segmenter.weights={bad}")
     assert f"segmenter.weights={bad}" in capsys.readouterr().err
+
+
+def _checked(schema, argv: list[str]) -> str:
+    """check_override_keys' one line for `argv` ('' where it lets them through)."""
+    import contextlib
+    import io
+
+    from bench.runners.overrides import check_override_keys
+
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err):
+        try:
+            check_override_keys(schema, argv, "cmd")
+        except SystemExit as exc:
+            assert exc.code == 2 and err.getvalue().count("\n") == 1, err.getvalue()
+    return err.getvalue()
+
+
+@pytest.mark.parametrize(
+    ("argv", "message"),
+    [
+        (["consensus.epz=0.1"], "consensus.epz: no such setting; did you mean consensus.eps?"),
+        (["+segmenter=oracle_noisy", "+segmenter.flickr=0.1"], "did you mean segmenter.flicker?"),
+        (
+            ["segmenter=minisam", "segmenter.weights=w.onnx"],
+            "segmenter.weights: no such setting of segmenter minisam; its settings: advise_after,",
+        ),
+        (
+            ["dataset=mold_cape", "dataset.adapter.expected_photo=3"],
+            "did you mean dataset.adapter.expected_photos?",
+        ),
+        (
+            ["dataset.adapter.forward_single.widht=3"],
+            "did you mean dataset.adapter.forward_single.width?",
+        ),
+        (["refine=student", "refine.max_step=3"], "did you mean refine.max_steps?"),
+        (["consensus.eps=abc"], "consensus.eps=abc: consensus.eps is a number"),
+        (["seed=x"], "seed=x: seed is an integer"),
+    ],
+)
+def test_a_misspelt_nested_key_or_a_number_that_is_none_is_one_line(argv, message):
+    """Before Hydra composes (its refusal is several lines and suggests a '+' that is refused
+    next): the key, the nearest setting or the node's settings."""
+    from bench.runners.config import EvalConfig
+
+    assert message in _checked(EvalConfig, argv)
+
+
+def test_the_nested_check_lets_every_real_setting_through():
+    from bench.runners.config import EvalConfig, ScenesConfig
+
+    fine = [
+        "--multirun",
+        "hydra/launcher=joblib",
+        "hydra.sweep.dir=multirun/x",
+        "consensus=flashsplat",
+        "consensus.eps=0.01,0.1",
+        "consensus.delta=null",
+        "consensus.min_votes=3",
+        "seed=range(0,3)",
+        "refine=student",
+        "refine.max_steps=3",
+        "renderer.backend=torch",
+        "label_render.size=truth",
+        "corrupt.flicker=0.1",
+        "dataset=mold_cape",
+        "dataset.root=/data/mold_cape",
+        "dataset.adapter.exclude_reference=true",
+        "segmenter=minisam",
+        "segmenter.encoder=/w/encoder.onnx",
+        "segmenter.encoder_precision=bf16",
+    ]
+    assert _checked(EvalConfig, fine) == ""
+    # a sweep of segmenters: their settings are Hydra's to check, one composition each
+    assert _checked(EvalConfig, ["segmenter=classical,oracle", "segmenter.sigma=2"]) == ""
+    assert _checked(ScenesConfig, ["fit.iterations=7000", "dataset=duck_queen"]) == ""
+    assert "did you mean fit.iterations?" in _checked(ScenesConfig, ["fit.iteration=3"])
