@@ -7,8 +7,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import yaml
 from hydra.experimental.callback import Callback
-from omegaconf import DictConfig, OmegaConf
+from omegaconf import DictConfig, ListConfig, OmegaConf
 
 from bench.runners.outputs import CACHED_NOTE, fmt, timed
 from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
@@ -73,11 +74,19 @@ def _read(job: Path) -> tuple[RunMetrics | None, str, list[str] | None]:
         metrics = RunMetrics.of_run(job)
     except MetricsFileError as exc:
         missing = not (job / METRICS_FILE).exists()
-        written = job / ".hydra" / "overrides.yaml"
-        overrides = [str(o) for o in OmegaConf.load(written)] if written.is_file() else None
+        overrides = _overrides_written(job / ".hydra" / "overrides.yaml")
         why = f"no record (failed or cut short: see {job / 'eval.log'})" if missing else str(exc)
         return None, why, overrides
     return metrics, metrics.status or "complete", metrics.overrides
+
+
+def _overrides_written(path: Path) -> list[str] | None:
+    """The overrides a job wrote into `.hydra/` before it stopped; None where unreadable."""
+    try:
+        written = OmegaConf.load(path) if path.is_file() else None
+    except (OSError, ValueError, yaml.YAMLError):
+        return None
+    return [str(o) for o in written] if isinstance(written, ListConfig) else None
 
 
 def vote_time(m: RunMetrics) -> str:
@@ -126,7 +135,7 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
         for job, (m, _, _), row in zip(jobs, read, cells, strict=True)
         if m and m.miou is not None
     ]
-    if scored:
+    if scored and len({r[0].dataset for r in read if r[0]}) == 1:  # one dataset: comparable
         miou, job, row = max(scored, key=lambda s: s[0])
         settings = " ".join(f"{k}={v}" for k, v in zip(keys, row, strict=True))
         lines.append(

@@ -49,7 +49,8 @@ def test_the_table_names_every_job_and_the_highest_miou(tmp_path):
     _job(sweep, 2, ["consensus.eps=0.5", "progress=false"], None, status="failed")
     (sweep / "3").mkdir()
     (sweep / "3" / "metrics.json").write_text('{"dataset": ')  # cut short
-    (sweep / "10").mkdir()
+    (sweep / "10" / ".hydra").mkdir(parents=True)
+    (sweep / "10" / ".hydra" / "overrides.yaml").write_text("- consensus.eps=0.9\n")
     (sweep / "10" / "eval.log").write_text("")  # started, never finished
     (sweep / "cache").mkdir()  # a sweep's stage cache is no job
 
@@ -70,12 +71,26 @@ def test_the_table_names_every_job_and_the_highest_miou(tmp_path):
     assert lines[3].split() == ["1", "0.1", "complete", "90.00", "90.00", "100.00", "8.0*"]
     assert lines[4].split()[:4] == ["2", "0.5", "failed", "-"]
     assert "3/metrics.json: unreadable" in lines[5]
-    assert lines[6].startswith("10 ") and "no record" in lines[6] and "10/eval.log" in lines[6]
+    assert (
+        lines[6].split()[:2] == ["10", "0.9"]
+        and "no record" in lines[6]
+        and "10/eval.log" in lines[6]
+    )
     assert lines[7] == "highest mIoU 90.00: job 1 (consensus.eps=0.1)"
     assert lines[8].startswith("* a vote served from the stage cache")
     assert lines[9] == f"its tables: make report ARGS={sweep}"
     # a sweep of 2 jobs into a folder a longer one filled: only its own jobs
     assert sweep_table(sweep, size=2).splitlines()[0] == f"sweep {sweep}: 2 job(s), 2 with a record"
+
+
+def test_runs_of_other_datasets_name_no_highest_miou(tmp_path):
+    _job(tmp_path, 0, ["dataset=nvos"], 0.8)
+    _job(tmp_path, 1, ["dataset=mold_cape"], 0.9)
+    record = RunMetrics.of_run(tmp_path / "1")
+    record.dataset = "mold_cape"
+    atomic_write_json(tmp_path / "1" / "metrics.json", record.to_json())
+    table = sweep_table(tmp_path)
+    assert "highest" not in table and table.splitlines()[2].split()[:2] == ["0", "nvos"]
 
 
 def test_an_empty_or_missing_sweep_folder_is_a_table_of_no_jobs(tmp_path):
