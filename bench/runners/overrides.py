@@ -108,14 +108,18 @@ PLUGIN_GROUPS = ("segmenter", "dataset")
 
 def plugin_settings(group: str, chosen: dict[str, str | None]) -> Settings | None:
     """The settings of the chosen plug-in's node (its config's and the node's own keys); None
-    where the option is not known here (Hydra checks it as it composes)."""
-    from sagonline.core.plugins import DATASETS, NODE_KEYS, SEGMENTERS
+    where the option is not known here (Hydra checks it as it composes), or where a plug-in
+    cannot be loaded (`register_schemas_or_exit` says why, in one line)."""
+    from sagonline.core.plugins import DATASETS, NODE_KEYS, SEGMENTERS, PluginError
 
     registry = SEGMENTERS if group == "segmenter" else DATASETS
-    kind = plugin_kind(group, chosen.get(group), registry)
-    if kind is None:
+    try:
+        kind = plugin_kind(group, chosen.get(group), registry)
+        own = dataclass_settings(registry[kind].config) if kind is not None else None
+    except PluginError:
         return None
-    own = dataclass_settings(registry[kind].config)
+    if own is None:
+        return None
     if group == "segmenter":
         return {**own, **dict.fromkeys(NODE_KEYS, str)}
     return {"kind": str, "name": str, "root": str, "adapter": own}
