@@ -68,9 +68,9 @@ def _fields_of_other(schema: type) -> set[str]:
 def check_nested_keys(schema: type, argv: list[str], command: str) -> None:
     """`section.key=value` overrides (`+` or not) whose key is no setting of the node it names,
     a typed section's (consensus.*, fit.*, ...) or the chosen segmenter's or dataset's config's,
-    and numbers that do not read as one, stop here in one line naming the key and the nearest
-    setting (Hydra's refusal is several lines, and for a key suggests a `+`, which
-    `refuse_unknown_keys` refuses next)."""
+    and values that are not the number or true / false their setting holds, stop here in one
+    line naming the key and the nearest setting (Hydra's refusal is several lines, and for a key
+    suggests a `+`, which `refuse_unknown_keys` refuses next)."""
     chosen = chosen_options(schema, argv)
     root = dataclass_settings(schema)
     root |= {g: plugin_settings(g, chosen) for g in PLUGIN_GROUPS if g in root}
