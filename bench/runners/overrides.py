@@ -90,7 +90,7 @@ def check_nested_keys(schema: type, argv: list[str], command: str) -> None:
             and settings in VALUE_WORDS
             and not _reads_as(value, settings)
         ):
-            print(f"error: {command}: {arg}: {key} is {VALUE_WORDS[settings]}", file=sys.stderr)
+            print(f"error: {command}: {arg}: must be {VALUE_WORDS[settings]}", file=sys.stderr)
             raise SystemExit(2)
 
 

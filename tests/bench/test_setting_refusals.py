@@ -167,12 +167,12 @@ def _checked(schema, argv: list[str]) -> str:
             "did you mean dataset.adapter.forward_single.width?",
         ),
         (["refine=student", "refine.max_step=3"], "did you mean refine.max_steps?"),
-        (["consensus.eps=abc"], "consensus.eps=abc: consensus.eps is a number"),
-        (["seed=x"], "seed=x: seed is an integer"),
-        (["record=maybe"], "record=maybe: record is true or false"),
+        (["consensus.eps=abc"], "consensus.eps=abc: must be a number"),
+        (["seed=x"], "seed=x: must be an integer"),
+        (["record=maybe"], "record=maybe: must be true or false"),
         (
             ["dataset=mold_cape", "dataset.adapter.exclude_reference=1"],
-            "exclude_reference=1: dataset.adapter.exclude_reference is true or false",
+            "dataset.adapter.exclude_reference=1: must be true or false",
         ),
     ],
 )
