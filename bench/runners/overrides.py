@@ -7,6 +7,7 @@ import dataclasses
 import difflib
 import re
 import sys
+import types
 import typing
 from collections.abc import Mapping
 from typing import Any
@@ -177,7 +178,12 @@ def plugin_kind(group: str, option: str | None, registry) -> str | None:
 
 def dataclass_settings(kind: Any) -> Any:
     """A dataclass's fields, each with its own settings where it is a dataclass, else its type
-    (`int | None` and the like are not one type: None); `kind` itself where it is no dataclass."""
+    (`X | None` is X's: `null` always reads; another union is no one type: None); `kind`
+    itself where it is no dataclass."""
+    args = typing.get_args(kind)
+    if typing.get_origin(kind) in (typing.Union, types.UnionType) and type(None) in args:
+        rest = [a for a in args if a is not type(None)]
+        kind = rest[0] if len(rest) == 1 else None
     if not (isinstance(kind, type) and dataclasses.is_dataclass(kind)):
         return kind if isinstance(kind, type) else None
     hints = typing.get_type_hints(kind)

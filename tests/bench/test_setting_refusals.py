@@ -169,6 +169,7 @@ def _checked(schema, argv: list[str]) -> str:
         (["refine=student", "refine.max_step=3"], "did you mean refine.max_steps?"),
         (["consensus.eps=abc"], "consensus.eps=abc: must be a number"),
         (["seed=x"], "seed=x: must be an integer"),
+        (["consensus.num_masks=2.5"], "consensus.num_masks=2.5: must be an integer"),  # int | None
         (["record=maybe"], "record=maybe: must be true or false"),
         (
             ["dataset=mold_cape", "dataset.adapter.exclude_reference=1"],
@@ -195,6 +196,8 @@ def test_the_nested_check_lets_every_real_setting_through():
         "consensus.eps=0.01,0.1",
         "consensus.delta=null",
         "consensus.min_votes=3",
+        "consensus.num_masks=null",
+        "refine.pretrained=/w/student.pt",
         "seed=range(0,3)",
         "refine=student",
         "refine.max_steps=3",
