@@ -181,13 +181,14 @@ def print_summary(
         f"{'scene':<22}{'status':<9}{'mIoU':>8}{'mAcc':>8}{'seg mIoU':>10}"
         f"{'3D acc':>8}{'3D cov':>8}{'vote ms/mask':>14}{'refined':>9}"
     )
-    for r in reports:
+    votes = [timed(r.timings, r.cached_timings, "vote_ms_per_mask") for r in reports]
+    for r, vote in zip(reports, votes, strict=True):
         l3 = r.labels3d or {}
         lines.append(
             f"{r.scene:<22}{r.status:<9}{fmt(r.miou):>8}{fmt(r.macc):>8}"
             f"{fmt(r.segmenter_miou):>10}{fmt(l3.get('accuracy')):>8}"
             f"{fmt(l3.get('coverage')):>8}"
-            f"{timed(r.timings, r.cached_timings, 'vote_ms_per_mask'):>14}"
+            f"{vote:>14}"
             f"{fmt(r.refined_miou):>9}"
         )
         if r.error:
@@ -198,7 +199,7 @@ def print_summary(
             if key.endswith("_miou") and value is not None:
                 views = groups.get(key.removesuffix("_miou") + "_views")
                 lines.append(f"    {key.removesuffix('_miou')}: mIoU {fmt(value)} ({views} views)")
-    if any(timed(r.timings, r.cached_timings, "vote_ms_per_mask").endswith("*") for r in reports):
+    if any(vote.endswith("*") for vote in votes):
         lines.append(CACHED_NOTE)
     lines += [
         "",

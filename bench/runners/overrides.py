@@ -119,10 +119,10 @@ def plugin_settings(group: str, chosen: dict[str, str | None]) -> Settings | Non
     registry = SEGMENTERS if group == "segmenter" else DATASETS
     try:
         kind = plugin_kind(group, chosen.get(group), registry)
-        own = dataclass_settings(registry[kind].config) if kind is not None else None
+        if kind is None:
+            return None
+        own = dataclass_settings(registry[kind].config)
     except PluginError:
-        return None
-    if own is None:
         return None
     if group == "segmenter":
         return {**own, **dict.fromkeys(NODE_KEYS, str)}

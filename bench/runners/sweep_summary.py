@@ -119,13 +119,13 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
         "with a record",
         head + f"{'status':<11}{'mIoU':>8}{'mAcc':>8}{'seg mIoU':>10}{'vote ms/mask':>14}",
     ]
-    for job, (m, status, _), row in zip(jobs, read, cells, strict=True):
+    votes = [vote_time(m) if m else "" for m, _, _ in read]
+    for job, (m, status, _), row, vote in zip(jobs, read, cells, votes, strict=True):
         lines.append(
             f"{job.name:<6}"
             + "".join(f"{c:<{w}}" for c, w in zip(row, widths, strict=True))
             + (
-                f"{status:<11}{fmt(m.miou):>8}{fmt(m.macc):>8}{fmt(m.segmenter_miou):>10}"
-                f"{vote_time(m):>14}"
+                f"{status:<11}{fmt(m.miou):>8}{fmt(m.macc):>8}{fmt(m.segmenter_miou):>10}{vote:>14}"
                 if m
                 else status
             )
@@ -141,7 +141,7 @@ def sweep_table(sweep_dir: Path, size: int | None = None) -> str:
         lines.append(
             f"highest mIoU {fmt(miou)}: job {job.name}" + (f" ({settings})" if settings else "")
         )
-    if any(m and vote_time(m).endswith("*") for m, _, _ in read):
+    if any(vote.endswith("*") for vote in votes):
         lines.append(CACHED_NOTE)
     lines.append(f"its tables: make report ARGS={sweep_dir}")
     return "\n".join(lines)

@@ -305,8 +305,8 @@ def record_eval_views(
     ids = diagnosis is not None and resolve_backend(backend, gaussians.device) != "native"
     for i, (view, pred) in enumerate(zip(task.eval_views, preds, strict=True)):
         at = frames[i]
-        same = rendered is not None and same_camera(view.camera, task.trajectory[at])
-        drawn = rendered[at] if recorder.enabled and same else None
+        shared = recorder.enabled and rendered is not None
+        drawn = rendered[at] if shared and same_camera(view.camera, task.trajectory[at]) else None
         whole = None
         if ids or (recorder.enabled and drawn is None):
             whole = eval_render(gaussians, view.camera, background, backend, ids)
