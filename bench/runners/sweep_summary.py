@@ -11,7 +11,7 @@ import yaml
 from hydra.experimental.callback import Callback
 from omegaconf import DictConfig, ListConfig, OmegaConf
 
-from bench.runners.outputs import CACHED_NOTE, fmt, timed
+from bench.runners.outputs import CACHED_NOTE, fmt
 from sagonline.score.run_metrics import METRICS_FILE, MetricsFileError, RunMetrics
 
 # Overrides that change how a run is shown, not what it measures: never a column.
@@ -90,15 +90,10 @@ def _overrides_written(path: Path) -> list[str] | None:
 
 
 def vote_time(m: RunMetrics) -> str:
-    """The run's vote ms a mask (`outputs.timed`); where every scene's vote came from the stage
-    cache, the mean time of the runs that filled it, marked `*`."""
-    cached = [
-        s["cached_timings"]["vote_ms_per_mask"]
-        for s in m.scenes
-        if isinstance(s, dict) and (s.get("cached_timings") or {}).get("vote_ms_per_mask")
-    ]
-    mean = {"vote_ms_per_mask": sum(cached) / len(cached)} if cached else {}
-    return timed(m.timings, mean, "vote_ms_per_mask")
+    """The run's vote ms a mask (`RunMetrics.vote_ms_per_mask`), one of the stage cache's
+    makers marked `*` (CACHED_NOTE)."""
+    ms, cached = m.vote_ms_per_mask()
+    return fmt(ms, False) + ("*" if cached and ms is not None else "")
 
 
 def sweep_table(sweep_dir: Path, size: int | None = None) -> str:

@@ -63,6 +63,7 @@ def run_rows(runs: dict[Path, RunMetrics]) -> tuple[pd.DataFrame, pd.DataFrame]:
             "overrides": " ".join(m.overrides),
         }
         l3 = [s["labels3d"]["accuracy"] for s in m.scenes if s.get("labels3d")]
+        vote_ms, vote_cached = m.vote_ms_per_mask()
         runs_rows.append(
             {
                 **base,
@@ -71,7 +72,8 @@ def run_rows(runs: dict[Path, RunMetrics]) -> tuple[pd.DataFrame, pd.DataFrame]:
                 "segmenter_mIoU": m.segmenter_miou,
                 "refined_mIoU": m.refined_miou,
                 "labels3d_acc": sum(l3) / len(l3) if l3 else None,
-                "vote_ms_per_mask": m.timings.get("vote_ms_per_mask"),
+                "vote_ms_per_mask": None if vote_cached else vote_ms,
+                "cached_vote_ms_per_mask": vote_ms if vote_cached else None,
                 "partial": m.partial,
                 "re-scored": rescore_words(run),
                 "device": device_text(m.device),
@@ -277,6 +279,8 @@ def main(argv: list[str] | None = None) -> None:
         "settings and results; timings are their median).",
         "re-scored: whether the recorded mIoU / mAcc are what the run's own label maps give "
         "again (`sagonline score RUN`); CONTRADICTED rows are not results.",
+        "cached_vote_ms_per_mask: a run whose votes were all served from the stage cache has no "
+        "vote time of its own; this is the mean time of the runs that filled the cache.",
     ]
     write_table(runs_df, args.out, "runs", "Runs", notes)
     write_table(scenes_df, args.out, "scenes", "Scenes", notes)

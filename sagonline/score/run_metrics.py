@@ -138,6 +138,20 @@ class RunMetrics:
         """The first scene's entry ({} for a run without scenes)."""
         return self.scenes[0] if self.scenes and isinstance(self.scenes[0], dict) else {}
 
+    def vote_ms_per_mask(self) -> tuple[float | None, bool]:
+        """The run's vote time, ms a mask, and whether it is the stage cache's: this run's own
+        time (False); else, where its scenes' votes were served from the stage cache, the mean
+        time of the runs that filled it (True); else (None, False)."""
+        if self.timings.get("vote_ms_per_mask") is not None:
+            return float(self.timings["vote_ms_per_mask"]), False
+        cached = [
+            float(s["cached_timings"]["vote_ms_per_mask"])
+            for s in self.scenes
+            if isinstance(s, dict)
+            and (s.get("cached_timings") or {}).get("vote_ms_per_mask") is not None
+        ]
+        return (sum(cached) / len(cached), True) if cached else (None, False)
+
     def scene_extra(self, key: str) -> dict:
         """The first scene's `extra[key]` ({} where absent): its `diagnosis`, `fit`, ..."""
         return (self.first_scene().get("extra") or {}).get(key) or {}

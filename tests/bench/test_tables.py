@@ -163,6 +163,7 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
     (runs / "c").mkdir()
     (runs / "c" / "metrics.json").write_text(json.dumps(metrics))
     other = dict(metrics, miou=0.5, overrides=["dataset=d", "consensus.eps=0.1"])
+    other["scenes"] = [dict(metrics["scenes"][0], cached_timings={"vote_ms_per_mask": 2.5})]
     (runs / "d").mkdir()
     (runs / "d" / "metrics.json").write_text(json.dumps(other))
     out = tmp_path / "reports"
@@ -182,6 +183,8 @@ def test_report_writes_runs_and_scenes_only_merges_identical_runs_in_percent(tmp
     merged = table[table["runs"] == 3].iloc[0]
     assert merged["mIoU"] == 81.25 and merged["vote_ms_per_mask"] == 3.0
     assert merged["run"].endswith("(+2 identical)")
+    served = table[table["runs"] == 1].iloc[0]  # its vote from the stage cache: the makers' time
+    assert pd.isna(served["vote_ms_per_mask"]) and served["cached_vote_ms_per_mask"] == 2.5
     scenes = pd.read_csv(out / "scenes.csv")
     assert sorted(scenes["runs"]) == [1, 3] and set(scenes["mIoU"]) == {81.25}
     md = (out / "runs.md").read_text()
