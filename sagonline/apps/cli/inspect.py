@@ -16,7 +16,9 @@ def add_parsers(sub) -> None:
     info.set_defaults(func=cmd_info)
     cams = command_parser(sub, "cameras")
     cams.add_argument(
-        "cameras", help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz"
+        "cameras",
+        help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder, .npz; or a "
+        "scene file (.ply, .splat): the camera file beside it, as render, segment and view read",
     )
     cams.set_defaults(func=cmd_cameras)
     plugins = command_parser(sub, "plugins")
@@ -46,10 +48,27 @@ def cmd_info(args: argparse.Namespace) -> int:
     return 0
 
 
+def scene_cameras(path: Path) -> Path:
+    """`path`, or for a scene file (.ply, .splat) the camera file beside it (`cameras_beside`);
+    CameraFileError for a scene file without one."""
+    from sagonline.scene.io.cameras import CameraFileError, cameras_beside
+
+    if path.suffix.lower() not in (".ply", ".splat"):
+        return path
+    found = cameras_beside(path)
+    if found is None:
+        raise CameraFileError(
+            f"{path}: a scene file, and no camera file lies beside it (in its folder, or two "
+            "up from a 3DGS output's point_cloud/iteration_<N>/): give its cameras.json, "
+            "transforms.json, poses_bounds.npy or COLMAP folder"
+        )
+    return found
+
+
 def cmd_cameras(args: argparse.Namespace) -> int:
     from sagonline.scene.views import load_views
 
-    views = load_views(args.cameras)
+    views = load_views(scene_cameras(Path(args.cameras)))
     print(f"# {views.source}: VIEW in render --view, segment --click VIEW:X,Y, --preview VIEW")
     print(f"{'index':>5}  {'name':<32} size")
     for i, cam in enumerate(views.cameras):

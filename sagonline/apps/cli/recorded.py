@@ -8,6 +8,7 @@ import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from sagonline.apps.cli.render import NO_CAMERAS
 from sagonline.core.errors import PromptError
 
 
@@ -46,6 +47,8 @@ def apply_recorded_prompts(args) -> Replay:
     args.prompt_items = recorded_items(field, prompt, view)
     if args.cameras is None and not args.orbit and record.get("cameras"):
         args.cameras = field.get("cameras", str)
+    elif args.cameras is None and "cameras" in record and record["cameras"] is None:
+        args.cameras = NO_CAMERAS  # recorded without cameras: its orbit, not any found beside
     if not args.orbit and record.get("orbit"):
         args.orbit = field.get("orbit", int)
     if not getattr(args, "inside", False) and record.get("inside"):

@@ -11,6 +11,7 @@ from sagonline.apps.cli import CLICK_HELP
 from sagonline.core.machine import BACKENDS, DEVICE_DEFAULT, DEVICE_HELP
 
 OUT_SUFFIXES = (".png", ".jpg", ".jpeg", ".npy")
+NO_CAMERAS = "none"  # --cameras none: an orbit around the scene, whatever camera file lies beside
 
 
 def add_parsers(sub) -> None:
@@ -47,7 +48,9 @@ def add_view_arguments(parser) -> None:
     parser.add_argument(
         "--cameras",
         help="cameras.json, transforms.json, poses_bounds.npy, COLMAP folder or .npz; without "
-        "it, an orbit around the scene's bounds",
+        "it, the camera file beside the scene (its folder's, or a 3DGS output's cameras.json), "
+        f"else an orbit around the scene's bounds; {NO_CAMERAS}: that orbit, whatever lies "
+        "beside it",
     )
     parser.add_argument(
         "--orbit",
@@ -84,11 +87,27 @@ def add_every_argument(parser, picks: str) -> None:
     )
 
 
+def find_cameras(args: argparse.Namespace, scene: Path) -> None:
+    """Where the command line names no --cameras, set `args.cameras` to the camera file beside
+    the scene file `scene` (`cameras_beside`: the views it was fitted or trained on), and
+    `args.cameras_found` to whether it did; `--cameras none` or --inside: none (an orbit
+    around the scene's bounds, or the turn from its centre)."""
+    from sagonline.scene.io.cameras import cameras_beside
+
+    args.cameras_found = False
+    if args.cameras is not None and str(args.cameras).lower() == NO_CAMERAS:
+        args.cameras = None
+    elif args.cameras is None and not args.inside:
+        args.cameras = cameras_beside(scene)
+        args.cameras_found = args.cameras is not None
+
+
 def views_of(args: argparse.Namespace, scene):
-    """The views the view arguments (`add_view_arguments`) pick for `scene`."""
+    """The views the view arguments (`add_view_arguments`, after `find_cameras`) pick for
+    `scene`."""
     from sagonline.scene.views import load_views
 
-    return load_views(
+    views = load_views(
         args.cameras,
         scene,
         orbit=args.orbit,
@@ -96,6 +115,9 @@ def views_of(args: argparse.Namespace, scene):
         height=args.height,
         inside=args.inside,
     )
+    if getattr(args, "cameras_found", False):
+        views.source += f" (found beside the scene; --cameras {NO_CAMERAS}: an orbit around it)"
+    return views
 
 
 def parse_background(text: str) -> list[float]:
@@ -135,6 +157,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     from sagonline.scene.views import view_index
 
     scene = scene_file(args.scene)
+    find_cameras(args, scene)
     out = Path(args.out)
     inputs = [scene, *(camera_input_files(args.cameras) if args.cameras else [])]
     check_not_input(out, inputs)

@@ -19,7 +19,12 @@ from sagonline.apps.cli.options import (
     segmenter_options,
     vote_config,
 )
-from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
+from sagonline.apps.cli.render import (
+    add_every_argument,
+    add_view_arguments,
+    find_cameras,
+    views_of,
+)
 from sagonline.core.machine import BACKENDS
 from sagonline.segment.base import DEFAULT_SEGMENTER
 from sagonline.segment.clicks import parse_prompt, to_prompt
@@ -93,6 +98,7 @@ def add_parsers(sub) -> None:
 
 
 def cmd_segment(args) -> int:
+    from sagonline.apps.cli.recorded import apply_recorded_prompts
     from sagonline.core.machine import check_device
     from sagonline.pipeline.segment import (
         check_cameras_see_scene,
@@ -106,13 +112,10 @@ def cmd_segment(args) -> int:
     from sagonline.scene.views import check_trajectory, every_line, trajectory
 
     started = time.perf_counter()
-    replay = None
-    if args.prompts:
-        from sagonline.apps.cli.recorded import apply_recorded_prompts
-
-        replay = apply_recorded_prompts(args)
+    replay = apply_recorded_prompts(args) if args.prompts else None
     args.segmenter = args.segmenter or DEFAULT_SEGMENTER
     scene = scene_file(args.scene)
+    find_cameras(args, scene)
     args.device = check_device(args.device)
     resolve_backend(args.backend, args.device)
     check_trajectory_options(args)
@@ -123,7 +126,7 @@ def cmd_segment(args) -> int:
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     background = fitted_background(scene) or (0.0, 0.0, 0.0)  # the colour it was fitted on
     views = views_of(args, g)
-    if args.cameras is None or args.orbit:
+    if args.cameras is None or args.orbit or args.cameras_found:
         print(f"views: {views.source}", file=sys.stderr)
     given = views.cameras
     if args.preview is not None:

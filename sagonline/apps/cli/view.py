@@ -13,7 +13,12 @@ from sagonline.apps.cli.options import (
     label_min_weight,
     segmenter_options,
 )
-from sagonline.apps.cli.render import add_every_argument, add_view_arguments, views_of
+from sagonline.apps.cli.render import (
+    add_every_argument,
+    add_view_arguments,
+    find_cameras,
+    views_of,
+)
 from sagonline.core.machine import BACKENDS
 
 
@@ -120,6 +125,7 @@ def cmd_view(args) -> int:
     from sagonline.scene.views import check_every, check_trajectory, every_line, segmented_views
 
     scene = scene_file(args.scene)
+    find_cameras(args, scene)
     every = check_every(args.every)  # refused before the scene is read
     stem = scene.parent.name if scene.name == "point_cloud.ply" else scene.stem
     out = args.out or f"segment-{stem}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -26,6 +26,7 @@ __all__ = [
     "CameraFileError",
     "camera_input_files",
     "camera_source",
+    "cameras_beside",
     "llff_image_folder",
     "load_cameras",
     "load_colmap",
@@ -94,6 +95,21 @@ def camera_source(path: str | Path) -> Path:
         f"{path}: no cameras found (looked for cameras.json, transforms.json, "
         "poses_bounds.npy, sparse/0 with cameras+images)"
     )
+
+
+def cameras_beside(scene: str | Path) -> Path | None:
+    """The camera file a scene file was fitted or trained with, where one lies beside it: in
+    the scene file's folder (a `make scenes` fit's cameras.json), else two folders up from a
+    3DGS training output's point_cloud/iteration_<N>/point_cloud.ply (its cameras.json); the
+    first of CAMERA_FILES there (`camera_source`), None where neither holds one."""
+    folder = Path(scene).parent
+    places = [folder, folder.parent.parent] if folder.parent.name == "point_cloud" else [folder]
+    for place in (p for p in places if p.is_dir()):
+        try:
+            return camera_source(place)
+        except CameraFileError:  # none there (or a COLMAP model without its poses)
+            continue
+    return None
 
 
 def camera_input_files(path: str | Path) -> list[Path]:

@@ -283,3 +283,56 @@ def test_segment_and_view_take_the_label_renders_threshold():
         assert label_min_weight(parser.parse_args([command, "s.ply", "--min-weight", "0.5"])) == 0.5
         with pytest.raises(ValueError, match=r"--min-weight -0.1: must be a blend weight"):
             label_min_weight(parser.parse_args([command, "s.ply", "--min-weight", "-0.1"]))
+
+
+def test_a_scenes_own_cameras_are_found_beside_it(tmp_path, capsys):
+    """A 3DGS training output (<model>/point_cloud/iteration_<N>/point_cloud.ply beside
+    <model>/cameras.json) and a fit's folder (the camera file beside the PLY): render, segment
+    and cameras take its views without --cameras, say where they came from and record the
+    file; --cameras none gives the orbit; a labels.json recorded with none replays its orbit."""
+    import shutil
+
+    from sagonline.apps.cli import main
+    from sagonline.scene.io.cameras import write_3dgs_cameras_json
+    from tests.fixtures import own_scene
+
+    folder, _, cams, _ = own_scene(tmp_path / "fit", views=4)
+    model = tmp_path / "model"
+    (model / "point_cloud" / "iteration_30").mkdir(parents=True)
+    shutil.copy(folder / "point_cloud.ply", model / "point_cloud" / "iteration_30")
+    write_3dgs_cameras_json(model / "cameras.json", cams)
+
+    def render(*args: str) -> np.ndarray:
+        out = tmp_path / f"{len(list(tmp_path.glob('*.png')))}.png"
+        assert main(["render", *args, "--view", "r_2", "--out", str(out)]) == 0
+        return np.asarray(Image.open(out))
+
+    given = render(str(folder / "point_cloud.ply"), "--cameras", str(folder / "transforms.json"))
+    assert "found beside" not in capsys.readouterr().out
+    for scene, cameras in (
+        (folder / "point_cloud.ply", "transforms.json"),
+        (model, "cameras.json"),
+    ):
+        assert np.array_equal(render(str(scene)), given)
+        said = capsys.readouterr().out
+        assert f"cameras of {scene if scene.is_dir() else folder}/{cameras}" in said, said
+        assert "(found beside the scene; --cameras none: an orbit around it)" in said
+    none = ["render", str(model), "--cameras", "none", "--view", "r_2", "--out", "x.png"]
+    assert main(none) == 2  # the orbit's views, orbit_000 ...
+    assert "no view named 'r_2' (views: orbit_000 ... orbit_023" in capsys.readouterr().err
+    assert main(["cameras", str(model / "point_cloud" / "iteration_30" / "point_cloud.ply")]) == 0
+    assert f"4 cameras of {model}/cameras.json" in capsys.readouterr().out
+    out = tmp_path / "seg"
+    assert (
+        main(["segment", str(model), "--click", "r_2:24,18", "--out", str(out), "--no-record"]) == 0
+    )
+    record = json.loads((out / "labels.json").read_text())
+    assert record["cameras"] == str(model / "cameras.json") and record["prompt"]["view"] == 2
+    assert "found beside the scene" in capsys.readouterr().err
+    record["cameras"], record["prompt"]["view_name"] = None, "orbit_003"  # made without cameras
+    (out / "labels.json").write_text(json.dumps(record))
+    again = tmp_path / "again"
+    argv = ["segment", str(model), "--prompts", str(out / "labels.json"), "--out", str(again)]
+    assert main([*argv, "--no-record"]) == 0
+    assert json.loads((again / "labels.json").read_text())["cameras"] is None
+    assert "views: no --cameras given: an orbit" in capsys.readouterr().err

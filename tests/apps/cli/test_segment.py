@@ -263,13 +263,14 @@ def test_a_scene_without_cameras_gets_an_orbit_said_out_loud(tmp_path, capsys):
 
     sc, _, _ = _scene(tmp_path, "360")
     scan = sc.gaussians.subset(sc.instance == 1)  # an object scan, as a capture app gives it
-    write_ply(tmp_path / "scene.ply", scan)
+    (tmp_path / "scan").mkdir()  # its own folder: no camera file beside it
+    write_ply(tmp_path / "scan" / "scene.ply", scan)
     ring, _ = orbit_around(scan.means, 24, 64, 48)
     view0 = render(scan, ring[0], backend="native").alpha.reshape(48, 64).numpy() > 0.5
     out = tmp_path / "out"
     argv = [
         "segment",
-        str(tmp_path / "scene.ply"),
+        str(tmp_path / "scan" / "scene.ply"),
         "--width",
         "64",
         "--height",
