@@ -105,17 +105,27 @@ def find_cameras(args: argparse.Namespace, scene: Path) -> None:
 def views_of(args: argparse.Namespace, scene):
     """The views the view arguments (`add_view_arguments`, after `find_cameras`) pick for
     `scene`."""
+    from sagonline.core.errors import CameraFileError
     from sagonline.scene.views import load_views
 
-    views = load_views(
-        args.cameras,
-        scene,
-        orbit=args.orbit,
-        width=args.width,
-        height=args.height,
-        inside=args.inside,
-    )
-    if getattr(args, "cameras_found", False):
+    found = getattr(args, "cameras_found", False)
+    try:
+        views = load_views(
+            args.cameras,
+            scene,
+            orbit=args.orbit,
+            width=args.width,
+            height=args.height,
+            inside=args.inside,
+        )
+    except CameraFileError as exc:
+        if not found:
+            raise
+        raise CameraFileError(
+            f"{exc} (found beside the scene, as no --cameras was given: --cameras {NO_CAMERAS} "
+            "for an orbit around it, or --cameras naming its camera file)"
+        ) from None
+    if found:
         views.source += f" (found beside the scene; --cameras {NO_CAMERAS}: an orbit around it)"
     return views
 

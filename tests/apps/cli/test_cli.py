@@ -320,6 +320,11 @@ def test_a_scenes_own_cameras_are_found_beside_it(tmp_path, capsys):
     none = ["render", str(model), "--cameras", "none", "--view", "r_2", "--out", "x.png"]
     assert main(none) == 2  # the orbit's views, orbit_000 ...
     assert "no view named 'r_2' (views: orbit_000 ... orbit_023" in capsys.readouterr().err
+    (folder / "transforms.json").write_text("{}")  # a broken file beside: named, and the way out
+    assert main(["render", str(folder / "point_cloud.ply"), "--out", str(tmp_path / "x.png")]) == 2
+    assert "(found beside the scene, as no --cameras was given: --cameras none for an orbit" in (
+        capsys.readouterr().err
+    )
     assert main(["cameras", str(model / "point_cloud" / "iteration_30" / "point_cloud.ply")]) == 0
     assert f"4 cameras of {model}/cameras.json" in capsys.readouterr().out
     out = tmp_path / "seg"
