@@ -32,7 +32,7 @@ from bench.runners.job import (
     settings_from,
 )
 from bench.runners.outputs import print_summary, write_outputs
-from bench.runners.overrides import check_override_keys
+from bench.runners.overrides import check_override_keys, options_first
 from bench.runners.rundir import (
     check_writable,
     code_difference,
@@ -277,6 +277,7 @@ def main(cfg: DictConfig) -> None:
 
 
 if __name__ == "__main__":
+    sys.argv[1:] = options_first(sys.argv[1:])
     check_override_keys(EvalConfig, sys.argv[1:], "bench.runners.eval")
     register_schemas_or_exit()
     main()

@@ -17,6 +17,35 @@ from omegaconf import OmegaConf
 from bench import ROOT
 from bench.runners.config import EvalConfig, ScenesConfig
 
+# Hydra's options that take a value (the next word, unless written `--option=value`), and the
+# words `--info` takes as its optional one (hydra/_internal/utils.py, `get_args_parser`)
+VALUE_OPTIONS = {"--cfg", "-c", "--package", "-p", "--config-path", "-cp", "--config-name"}
+VALUE_OPTIONS |= {"-cn", "--config-dir", "-cd", "--experimental-rerun"}
+INFO_WORDS = {"all", "config", "defaults", "defaults-tree", "plugins", "searchpath"}
+
+
+def options_first(argv: list[str]) -> list[str]:
+    """`argv` with Hydra's options (and their values) before the overrides, each in its order:
+    Hydra's parser takes no override after an option that follows one (`dataset=x --multirun
+    a=1,2`: "unrecognized arguments"), which `make eval ARGS="--multirun ..."` writes."""
+    options: list[str] = []
+    overrides: list[str] = []
+    words = iter(argv)
+    for word in words:
+        if not word.startswith("-"):
+            overrides.append(word)
+            continue
+        options.append(word)
+        takes = word in VALUE_OPTIONS or word in ("--info", "-i")
+        value = next(words, None) if takes else None
+        if value is None:
+            continue
+        if word in VALUE_OPTIONS or value in INFO_WORDS:
+            options.append(value)
+        else:  # --info without a value: the word after it is an override
+            overrides.append(value)
+    return options + overrides
+
 
 def check_override_keys(schema: type, argv: list[str], command: str) -> None:
     """A command line's `key=value` overrides whose first part is no setting of `schema`, or

@@ -42,7 +42,7 @@ from bench.runners.config import (
     to_config,
 )
 from bench.runners.job import build_dataset, quiet
-from bench.runners.overrides import check_override_keys
+from bench.runners.overrides import check_override_keys, options_first
 from bench.runners.scenes_finish import (
     finish_scene,
     finished_base,
@@ -339,6 +339,7 @@ def fit_all(dict_cfg: DictConfig) -> None:
 
 if __name__ == "__main__":
     os.environ.setdefault("HYDRA_FULL_ERROR", "0")
+    sys.argv[1:] = options_first(sys.argv[1:])
     check_override_keys(ScenesConfig, sys.argv[1:], "bench.runners.scenes")
     register_schemas_or_exit()
     main()
