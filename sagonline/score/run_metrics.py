@@ -58,6 +58,9 @@ class RunMetrics:
     segmenter_info: dict = field(default_factory=dict)
     protocol: dict = field(default_factory=dict)
     cache_root: str | None = None
+    # the folder the run was started in, which its relative paths (dataset roots, weights,
+    # cache_dir) are relative to
+    workdir: str | None = None
     version: int = METRICS_VERSION
     # keys of another writer that this schema does not know: kept, written back as they were
     unknown: dict = field(default_factory=dict)
@@ -151,6 +154,19 @@ class RunMetrics:
             and (s.get("cached_timings") or {}).get("vote_ms_per_mask") is not None
         ]
         return (sum(cached) / len(cached), True) if cached else (None, False)
+
+    def run_from(self) -> Path | None:
+        """The folder the run was started in (`workdir`); for a run that did not record it,
+        the one its absolute `cache_root` less its relative `cache_dir` names; else None."""
+        if self.workdir:
+            return Path(self.workdir)
+        relative = self.config.get("cache_dir")
+        if not (self.cache_root and isinstance(relative, str) and relative):
+            return None
+        root, parts = Path(self.cache_root), Path(relative).parts
+        if Path(relative).is_absolute() or root.parts[-len(parts) :] != parts:
+            return None
+        return root.parents[len(parts) - 1]
 
     def scene_extra(self, key: str) -> dict:
         """The first scene's `extra[key]` ({} where absent): its `diagnosis`, `fit`, ..."""

@@ -35,6 +35,38 @@ def default_out(run: Path) -> Path:
 
 
 def cmd_export(args) -> int:
+    """Export from the folder the run was started in (`RunMetrics.run_from`), where its
+    relative paths (dataset roots, weights, the stage cache) lead, whatever folder this
+    command runs in; `--out` and the run folder as given here."""
+    import contextlib
+    import os
+
+    from sagonline.pipeline.recorded import read_metrics
+
+    here = Path.cwd()
+    run = Path(args.run_dir).absolute()
+    out_root = (Path(args.out) if args.out else default_out(run)).absolute()
+    started = read_metrics(run).run_from() if run.is_dir() else None
+    if started is not None and not started.is_dir():
+        print(
+            f"note: the run was started in {started}, which is not here: its relative paths "
+            "(dataset roots, weights) are read from this folder",
+            file=sys.stderr,
+        )
+        started = None
+    elif started is not None and started.resolve() != here.resolve():
+        print(
+            f"note: the run's relative paths (dataset roots, weights, the stage cache) are read "
+            f"from {started}, where it was started",
+            file=sys.stderr,
+        )
+    with contextlib.chdir(started or here):
+        return export_run(run, out_root, args, shown=lambda p: os.path.relpath(p, here))
+
+
+def export_run(run: Path, out_root: Path, args, shown) -> int:
+    """Each finished scene of the run (an absolute folder) into out_root/<scene>; `shown`
+    gives a path as the command prints it."""
     from sagonline.core.machine import check_device
     from sagonline.core.outputs import check_not_input, check_replaceable
     from sagonline.labels.export import write_segmentation
@@ -43,12 +75,10 @@ def cmd_export(args) -> int:
     from sagonline.pipeline.scene import task_settings
     from sagonline.pipeline.stage_one import compose_stage_one
 
-    run = Path(args.run_dir)
     recorded = read_recorded_run(run, device=args.device)
     check_device(recorded.settings.device)
     for note in recorded.notes:
         print(f"note: {note}", file=sys.stderr)
-    out_root = Path(args.out) if args.out else default_out(run)
     metrics_file = run / "metrics.json"
     done = 0
     for row in recorded.scenes:
@@ -100,9 +130,10 @@ def cmd_export(args) -> int:
             on_clash="suffix",
         )
         done += 1
-        print(f"{scene}: {int((labels >= 0).sum())} of {len(labels)} Gaussians labelled -> {out}")
+        labelled = f"{int((labels >= 0).sum())} of {len(labels)} Gaussians labelled"
+        print(f"{scene}: {labelled} -> {shown(out)}")
     if not done:
-        print(f"error: {run}: no scene of the run could be exported", file=sys.stderr)
+        print(f"error: {shown(run)}: no scene of the run could be exported", file=sys.stderr)
     return 0 if done else 1
 
 

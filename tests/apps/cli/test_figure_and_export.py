@@ -4,6 +4,7 @@ refused, export beside the run."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -15,6 +16,8 @@ from tests.fixtures import (
     tree_digest,
 )
 from tests.refusals import (
+    generic_capture,
+    generic_cfg,
     one_error_line,
     user_scene_files,
 )
@@ -89,6 +92,41 @@ def test_export_writes_beside_the_run_not_into_it(tmp_path, monkeypatch):
     assert main(["export", str(run)]) == 0
     assert tree_digest(run) == before
     assert (tmp_path / "export-runs-r1" / "forward_single" / "labels.npy").is_file()
+
+
+@pytest.mark.slow
+def test_export_reads_the_runs_relative_paths_from_where_it_was_started(
+    tmp_path, monkeypatch, capsys
+):
+    """A run of a capture named by a relative root, exported from another folder: its paths
+    are read from where it was started (metrics.json's `workdir`; for a run without one, its
+    cache_root less its cache_dir), the output goes where this command runs."""
+    from bench.runners.eval import evaluate
+
+    work, elsewhere = tmp_path / "work", tmp_path / "elsewhere"
+    generic_capture(work / "capture")
+    elsewhere.mkdir()
+    monkeypatch.chdir(work)
+    run = work / "runs" / "r1"
+    evaluate(generic_cfg(Path("capture"), "record=false", "cache_dir=.cache/stages"), run)
+    metrics = json.loads((run / "metrics.json").read_text())
+    assert metrics["workdir"] == str(work) and metrics["config"]["dataset"]["root"] == "capture"
+    monkeypatch.chdir(elsewhere)
+    for inferred in (False, True):
+        if inferred:  # a run from before `workdir`
+            (run / "metrics.json").write_text(json.dumps({**metrics, "workdir": None}))
+        out = f"out{int(inferred)}"
+        assert main(["export", str(run), "--out", out]) == 0, capsys.readouterr().err
+        said = capsys.readouterr()
+        assert f"read from {work}, where it was started" in said.err
+        assert (
+            f"-> {out}/capture" in said.out
+            and (elsewhere / out / "capture" / "labels.npy").is_file()
+        )
+    (run / "metrics.json").write_text(json.dumps({**metrics, "workdir": str(tmp_path / "gone")}))
+    assert main(["export", str(run), "--out", "out2"]) == 2  # not here: read from this folder
+    err = capsys.readouterr().err
+    assert f"started in {tmp_path / 'gone'}, which is not here" in err and "capture" in err
 
 
 def test_figure_draws_the_scene_on_the_colour_it_was_fitted_on(segment_folder, capsys):
