@@ -158,10 +158,10 @@ class RunMetrics:
     def run_from(self) -> Path | None:
         """The folder the run was started in (`workdir`); for a run that did not record it,
         the one its absolute `cache_root` less its relative `cache_dir` names; else None."""
-        if self.workdir:
+        if isinstance(self.workdir, str) and self.workdir:  # another writer's value: ignored
             return Path(self.workdir)
         relative = self.config.get("cache_dir")
-        if not (self.cache_root and isinstance(relative, str) and relative):
+        if not (isinstance(self.cache_root, str) and isinstance(relative, str) and relative):
             return None
         root, parts = Path(self.cache_root), Path(relative).parts
         if Path(relative).is_absolute() or root.parts[-len(parts) :] != parts:

@@ -5,6 +5,7 @@ ones refused naming the file and the problem, other writers' keys kept."""
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 
@@ -65,3 +66,21 @@ def test_a_truncated_file_is_refused_naming_it(tmp_path):
     path.write_text(json.dumps(OLD)[:20])
     with pytest.raises(MetricsFileError, match="unreadable"):
         RunMetrics.read(path)
+
+
+def test_where_a_run_was_started_is_its_workdir_or_its_cache_root_less_its_cache_dir():
+    """`run_from`: the recorded workdir; for an older run its absolute cache_root less its
+    relative cache_dir; None where neither tells (no cache, an absolute or foreign cache_dir,
+    values of the wrong type)."""
+
+    def started(**fields):
+        return RunMetrics(dataset="d", segmenter="s", **fields).run_from()
+
+    shared = {"cache_dir": ".cache/stages"}
+    assert started(workdir="/w", cache_root="/x/.cache/stages", config=shared) == Path("/w")
+    assert started(cache_root="/x/.cache/stages", config=shared) == Path("/x")
+    assert started(cache_root="/x/a/../c", config={"cache_dir": "a/../c"}) == Path("/x")
+    assert started(cache_root="/x/runs/r/cache", config={"cache_dir": None}) is None
+    assert started(cache_root="/elsewhere/cache", config=shared) is None
+    assert started(cache_root="/c", config={"cache_dir": "/c"}) is None
+    assert started(workdir=5, cache_root=7, config=shared) is None
