@@ -7,6 +7,8 @@ what each builds from them. A `--prompts` replay's settings come in as a typed
 from __future__ import annotations
 
 import argparse
+import contextlib
+import re
 from dataclasses import fields
 
 from sagonline.render.rule import LABEL_MIN_WEIGHT
@@ -136,7 +138,8 @@ def build_segmenter(args, prompt, replay=None):
     }
     if "device" in names:
         values.setdefault("device", args.device)
-    segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
+    with command_line_words():
+        segmenter = plugin.build(plugin.settings(values, where=f"segmenter {args.segmenter}"))
     wants = set(getattr(segmenter, "reads", ()))
     given = {"text"} if prompt.texts else {"clicks"}
     if "ground_truth" in wants:
@@ -148,12 +151,33 @@ def build_segmenter(args, prompt, replay=None):
         what = "text (--text)" if prompt.texts else "clicks and masks"
         reads = ", ".join(sorted(wants)) or "no prompt (it segments automatically)"
         raise ValueError(f"--segmenter {args.segmenter} does not read {what}; it reads {reads}")
-    segmenter.check()
+    with command_line_words():
+        segmenter.check()
     if replay is not None and replay.weights is not None:
         from sagonline.apps.cli.recorded import say_if_other_weights
 
         say_if_other_weights(replay, segmenter)
     return segmenter
+
+
+@contextlib.contextmanager
+def command_line_words():
+    """A segmenter's refusal (ValueError, OSError) as a ValueError in this command line's
+    words (`in_command_line_words`): a plug-in names its settings as the evaluation does."""
+    try:
+        yield
+    except (ValueError, OSError) as exc:
+        raise ValueError(in_command_line_words(str(exc))) from None
+
+
+def in_command_line_words(text: str) -> str:
+    """A segmenter's message in this command line's words: `segmenter.checkpoint` and
+    `segmenter.weights` are --checkpoint, another `segmenter.KEY` is --segmenter-option KEY,
+    and `segmenter=NAME` is --segmenter NAME (the evaluation's Hydra spellings)."""
+    text = re.sub(r"\bsegmenter\.(?:checkpoint|weights)=", "--checkpoint ", text)
+    text = re.sub(r"\bsegmenter\.(?:checkpoint|weights)\b", "--checkpoint", text)
+    text = re.sub(r"\bsegmenter\.(\w+)", r"--segmenter-option \1", text)
+    return re.sub(r"(?<![-.\w])segmenter=(\w+)", r"--segmenter \1", text)
 
 
 def label_min_weight(args, replay=None) -> float:

@@ -30,6 +30,16 @@ def test_the_small_refusals_say_what_to_do(tmp_path, capsys):
     assert "consensus.eps" not in line
     assert main(["export", str(scene)]) == 2
     one_error_line(capsys.readouterr().err, "a file; export takes a finished evaluation's run")
+    # a model without its weights: the flag that names them, not the evaluation's setting
+    for segmenter, weights in (("yolo", "yolo11n-seg.pt"), ("sam2", "sam2.1_hiera_tiny.pt")):
+        assert main([*base, "--text", "cup", "--segmenter", segmenter]) == 2
+        line = one_error_line(capsys.readouterr().err, f"set --checkpoint /path/to/{weights}")
+        assert "segmenter." not in line and "segmenter=" not in line
+    assert "--segmenter sam2_tiny, after `make weights`" in line
+    missing = ["--segmenter-option", f"encoder={tmp_path}/x.onnx"]
+    assert main([*base, "--click", "0:20,12", "--segmenter", "minisam", *missing]) == 2
+    line = one_error_line(capsys.readouterr().err, f"--segmenter-option encoder={tmp_path}/x")
+    assert "point --segmenter-option encoder and --segmenter-option decoder at" in line
     empty = tmp_path / "colmap"
     write_colmap_text(empty, [])
     assert main(["cameras", str(empty)]) == 2
