@@ -81,7 +81,8 @@ def load_views(
     cams = pseudo_temporal_order(load_cameras(cameras))
     if not cams:
         raise ViewError(f"{cameras}: holds no cameras (no images in the model?)")
-    source = f"{len(cams)} cameras of {cameras}{sized_by_images(cameras)}, sorted by name"
+    count = f"{len(cams)} camera{'' if len(cams) == 1 else 's'}"
+    source = f"{count} of {cameras}{sized_by_images(cameras)}, sorted by name"
     if orbit:
         if gaussians is None:
             raise ViewError("--orbit needs the scene")

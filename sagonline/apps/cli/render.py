@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -102,9 +103,9 @@ def find_cameras(args: argparse.Namespace, scene: Path) -> None:
         args.cameras_found = args.cameras is not None
 
 
-def views_of(args: argparse.Namespace, scene):
+def views_of(args: argparse.Namespace, scene, say: bool = False):
     """The views the view arguments (`add_view_arguments`, after `find_cameras`) pick for
-    `scene`."""
+    `scene`; `say`: where they are not simply the --cameras file's, a line saying which."""
     from sagonline.core.errors import CameraFileError
     from sagonline.scene.views import load_views
 
@@ -127,6 +128,11 @@ def views_of(args: argparse.Namespace, scene):
         ) from None
     if found:
         views.source += f" (found beside the scene; --cameras {NO_CAMERAS}: an orbit around it)"
+    single = len(views.cameras) == 1 and not args.orbit
+    if single:  # a vote from one side only: most Gaussians unseen
+        views.source += "; one view only: --orbit N makes a ring of N views from it"
+    if say and (args.cameras is None or args.orbit or found or single):
+        print(f"views: {views.source}", file=sys.stderr)
     return views
 
 

@@ -125,9 +125,7 @@ def cmd_segment(args) -> int:
     vote, min_weight = vote_config(args, replay), label_min_weight(args, replay)
     g = read_scene(scene, drop_nonfinite=args.drop_nonfinite)
     background = fitted_background(scene) or (0.0, 0.0, 0.0)  # the colour it was fitted on
-    views = views_of(args, g)
-    if args.cameras is None or args.orbit or args.cameras_found:
-        print(f"views: {views.source}", file=sys.stderr)
+    views = views_of(args, g, say=True)
     given = views.cameras
     if args.preview is not None:
         from sagonline.apps.cli.preview import write_preview

@@ -341,3 +341,10 @@ def test_a_scenes_own_cameras_are_found_beside_it(tmp_path, capsys):
     assert main([*argv, "--no-record"]) == 0
     assert json.loads((again / "labels.json").read_text())["cameras"] is None
     assert "views: no --cameras given: an orbit" in capsys.readouterr().err
+    single = tmp_path / "single"  # a camera file of one view: said, with the way to a ring
+    single.mkdir()
+    shutil.copy(folder / "point_cloud.ply", single)
+    write_3dgs_cameras_json(single / "cameras.json", cams[:1])
+    argv = ["segment", str(single), "--click", "0:24,18", "--out", str(tmp_path / "s1")]
+    assert main([*argv, "--no-record"]) == 0
+    assert "1 camera of" in (err := capsys.readouterr().err) and "one view only: --orbit N" in err
