@@ -103,6 +103,14 @@ def find_cameras(args: argparse.Namespace, scene: Path) -> None:
         args.cameras_found = args.cameras is not None
 
 
+def recorded_path(path) -> str | None:
+    """A path as a segment folder's labels.json records it: absolute, so that a figure or a
+    replay run from another folder reads the same file (None stays None)."""
+    import os
+
+    return None if path is None else os.path.abspath(path)
+
+
 def views_of(args: argparse.Namespace, scene, say: bool = False):
     """The views the view arguments (`add_view_arguments`, after `find_cameras`) pick for
     `scene`; `say`: where they are not simply the --cameras file's, a line saying which."""

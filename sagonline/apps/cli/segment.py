@@ -23,6 +23,7 @@ from sagonline.apps.cli.render import (
     add_every_argument,
     add_view_arguments,
     find_cameras,
+    recorded_path,
     views_of,
 )
 from sagonline.core.machine import BACKENDS
@@ -205,8 +206,8 @@ def segment_record(args, scene, views, parsed, given, out, masks, segmenter, vot
     """What labels.json records of a `segment` run: the scene, views, prompt, inputs'
     digests, the segmenter with its options and weights, the vote and the timings."""
     return {
-        "scene": str(scene),
-        "cameras": str(args.cameras) if args.cameras else None,
+        "scene": recorded_path(scene),
+        "cameras": recorded_path(args.cameras),
         "views": views.source,
         "orbit": args.orbit,
         "inside": args.inside,

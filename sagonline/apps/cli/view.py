@@ -17,6 +17,7 @@ from sagonline.apps.cli.render import (
     add_every_argument,
     add_view_arguments,
     find_cameras,
+    recorded_path,
     views_of,
 )
 from sagonline.core.machine import BACKENDS
@@ -155,7 +156,7 @@ def cmd_view(args) -> int:
         min_weight=min_weight,
     )
     info = {
-        "cameras": str(args.cameras) if args.cameras else None,
+        "cameras": recorded_path(args.cameras),
         "views": views.source,
         "orbit": args.orbit,
         "inside": args.inside,
@@ -165,7 +166,7 @@ def cmd_view(args) -> int:
     }
     app = ViewerApp(
         session,
-        scene=scene,
+        scene=scene.absolute(),  # labels.json records it so (`recorded_path`)
         info=info,
         host=args.host,
         port=args.port,

@@ -129,6 +129,32 @@ def test_export_reads_the_runs_relative_paths_from_where_it_was_started(
     assert f"started in {tmp_path / 'gone'}, which is not here" in err and "capture" in err
 
 
+def test_a_segment_folder_made_with_relative_paths_is_read_from_another_folder(
+    tmp_path, monkeypatch
+):
+    """labels.json records the scene and its cameras (found beside it) as absolute paths: its
+    figure and its replay run from another folder read the same files."""
+    from tests.fixtures import own_scene
+
+    own_scene(tmp_path / "work" / "scene", views=4)
+    monkeypatch.chdir(tmp_path / "work")
+    argv = ["segment", "scene/point_cloud.ply", "--click", "0:24,18", "--no-record"]
+    assert main([*argv, "--out", "seg"]) == 0
+    info = json.loads((tmp_path / "work" / "seg" / "labels.json").read_text())
+    scene = tmp_path / "work" / "scene"
+    assert (info["scene"], info["cameras"]) == (
+        str(scene / "point_cloud.ply"),
+        str(scene / "transforms.json"),
+    )
+    monkeypatch.chdir(tmp_path)
+    assert main(["figure", "work/seg", "--out", "f.png"]) == 0 and (tmp_path / "f.png").is_file()
+    replay = ["segment", "work/scene/point_cloud.ply", "--prompts", "work/seg/labels.json"]
+    assert main([*replay, "--out", "again", "--no-record"]) == 0
+    assert (tmp_path / "again" / "labels.npy").read_bytes() == (
+        tmp_path / "work" / "seg" / "labels.npy"
+    ).read_bytes()
+
+
 def test_figure_draws_the_scene_on_the_colour_it_was_fitted_on(segment_folder, capsys):
     """With a fit_config.json of white beside the scene (as `make scenes` writes), the scene's
     tile is drawn on white, as `segment` renders its frames; its view name stays legible."""
