@@ -144,6 +144,11 @@ def cmd_figure(args) -> int:
     if out.suffix.lower() not in (".png", ".jpg", ".jpeg"):
         raise ValueError(f"--out {out}: a figure is a .png or .jpg file")
     info = read_folder_record(folder)
+    if not Path(info["scene"]).exists():
+        raise ValueError(
+            f"{folder}/labels.json: its scene {info['scene']} is not here (a folder written "
+            "before its paths were recorded absolute: run figure from the folder it was made in)"
+        )
     check_not_input(
         out, [folder, info["scene"], *([info["cameras"]] if info.get("cameras") else [])]
     )

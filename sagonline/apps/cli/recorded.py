@@ -46,7 +46,7 @@ def apply_recorded_prompts(args) -> Replay:
     view = field.get("prompt.view_name", str, prompt.get("view_name"))
     args.prompt_items = recorded_items(field, prompt, view)
     if args.cameras is None and not args.orbit and record.get("cameras"):
-        args.cameras = field.get("cameras", str)
+        args.cameras = recorded_cameras(field, record, args.scene)
     elif args.cameras is None and "cameras" in record and record["cameras"] is None:
         args.cameras = NO_CAMERAS  # recorded without cameras: its orbit, not any found beside
     if not args.orbit and record.get("orbit"):
@@ -87,6 +87,33 @@ def apply_recorded_prompts(args) -> Replay:
 
     say_if_another_scene(replay, scene_file(args.scene))
     return replay
+
+
+def recorded_cameras(field: RecordFields, record: dict, scene: str) -> str:
+    """labels.json's camera file where it is; else (the relative path of a folder written
+    before paths were recorded absolute, replayed from another folder) the camera file beside
+    `scene` whose digests labels.json records (`inputs`); else refused, naming --cameras."""
+    from sagonline.core.provenance import digest_file
+    from sagonline.scene.io import scene_file
+    from sagonline.scene.io.cameras import camera_input_files, cameras_beside
+
+    recorded = field.get("cameras", str)
+    if Path(recorded).exists():
+        return recorded
+    beside = cameras_beside(scene_file(scene))
+    inputs = record.get("inputs") if isinstance(record.get("inputs"), dict) else {}
+    files = camera_input_files(beside) if beside is not None else []
+    if files and all(inputs.get(f"cameras:{f.name}") == digest_file(f) for f in files):
+        print(
+            f"note: {field.path}: its camera file {recorded} is not here; the same file lies "
+            f"beside the scene: {beside}",
+            file=sys.stderr,
+        )
+        return str(beside)
+    raise PromptError(
+        f"{field.path}: its camera file {recorded} is not here (a path relative to the folder "
+        "it was made in?); pass --cameras naming it"
+    )
 
 
 def recorded_items(field: RecordFields, prompt: dict, view: str) -> list[tuple]:

@@ -130,7 +130,7 @@ def test_export_reads_the_runs_relative_paths_from_where_it_was_started(
 
 
 def test_a_segment_folder_made_with_relative_paths_is_read_from_another_folder(
-    tmp_path, monkeypatch
+    tmp_path, monkeypatch, capsys
 ):
     """labels.json records the scene and its cameras (found beside it) as absolute paths: its
     figure and its replay run from another folder read the same files."""
@@ -153,6 +153,21 @@ def test_a_segment_folder_made_with_relative_paths_is_read_from_another_folder(
     assert (tmp_path / "again" / "labels.npy").read_bytes() == (
         tmp_path / "work" / "seg" / "labels.npy"
     ).read_bytes()
+    # a folder written before paths were absolute: its cameras, where the same file lies beside
+    old = tmp_path / "work" / "seg" / "labels.json"
+    old.write_text(json.dumps({**info, "cameras": "scene/transforms.json"}))
+    stale = {**info, "scene": "scene/point_cloud.ply"}  # and its figure: where to run it
+    (tmp_path / "work" / "stale").mkdir()
+    (tmp_path / "work" / "stale" / "labels.json").write_text(json.dumps(stale))
+    assert main(["figure", "work/stale", "--out", "g.png"]) == 2
+    assert "run figure from the folder it was made in" in capsys.readouterr().err
+    assert main([*replay, "--out", "old", "--no-record"]) == 0
+    assert "its camera file scene/transforms.json is not here; the same file lies" in (
+        capsys.readouterr().err
+    )
+    (scene / "transforms.json").write_text((scene / "transforms.json").read_text() + " ")
+    assert main([*replay, "--out", "changed", "--no-record"]) == 2  # not the file it was made on
+    assert "pass --cameras naming it" in capsys.readouterr().err
 
 
 def test_figure_draws_the_scene_on_the_colour_it_was_fitted_on(segment_folder, capsys):
