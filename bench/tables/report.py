@@ -133,7 +133,7 @@ def merge_identical(df: pd.DataFrame) -> pd.DataFrame:
             row["run"] = f"{row['run']} (+{len(part) - 1} identical)"
         for c in timing:
             values = pd.to_numeric(part[c], errors="coerce").dropna()
-            row[c] = float(values.median()) if len(values) else None
+            row[c] = float(values.median()) if len(values) else float("nan")  # a number column
         rows.append(row)
     merged = pd.DataFrame(rows, columns=[*df.columns, "runs"]).reset_index(drop=True)
     return merged[["run", "runs", *[c for c in df.columns if c != "run"]]]
