@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -106,8 +107,6 @@ def find_cameras(args: argparse.Namespace, scene: Path) -> None:
 def recorded_path(path) -> str | None:
     """A path as a segment folder's labels.json records it: absolute, so that a figure or a
     replay run from another folder reads the same file (None stays None)."""
-    import os
-
     return None if path is None else os.path.abspath(path)
 
 
