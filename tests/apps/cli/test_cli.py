@@ -317,7 +317,16 @@ def test_a_scenes_own_cameras_are_found_beside_it(tmp_path, capsys):
         said = capsys.readouterr().out
         assert f"cameras of {scene if scene.is_dir() else folder}/{cameras}" in said, said
         assert "(found beside the scene; --cameras none: an orbit around it)" in said
-    none = ["render", str(model), "--cameras", "none", "--view", "r_2", "--out", "x.png"]
+    none = [
+        "render",
+        str(model),
+        "--cameras",
+        "none",
+        "--view",
+        "r_2",
+        "--out",
+        str(tmp_path / "n.png"),
+    ]
     assert main(none) == 2  # the orbit's views, orbit_000 ...
     assert "no view named 'r_2' (views: orbit_000 ... orbit_023" in capsys.readouterr().err
     (folder / "transforms.json").write_text("{}")  # a broken file beside: named, and the way out
