@@ -93,17 +93,16 @@ def recorded_cameras(field: RecordFields, record: dict, scene: str) -> str:
     """labels.json's camera file where it is; else (the relative path of a folder written
     before paths were recorded absolute, replayed from another folder) the camera file beside
     `scene` whose digests labels.json records (`inputs`); else refused, naming --cameras."""
-    from sagonline.core.provenance import digest_file
     from sagonline.scene.io import scene_file
-    from sagonline.scene.io.cameras import camera_input_files, cameras_beside
+    from sagonline.scene.io.cameras import camera_digests, cameras_beside
 
     recorded = field.get("cameras", str)
     if Path(recorded).exists():
         return recorded
     beside = cameras_beside(scene_file(scene))
     inputs = record.get("inputs") if isinstance(record.get("inputs"), dict) else {}
-    files = camera_input_files(beside) if beside is not None else []
-    if files and all(inputs.get(f"cameras:{f.name}") == digest_file(f) for f in files):
+    digests = camera_digests(beside) if beside is not None else {}
+    if digests and all(inputs.get(name) == digest for name, digest in digests.items()):
         print(
             f"note: {field.path}: its camera file {recorded} is not here; the same file lies "
             f"beside the scene: {beside}",

@@ -116,7 +116,7 @@ def views_of(args: argparse.Namespace, scene, say: bool = False):
     from sagonline.core.errors import CameraFileError
     from sagonline.scene.views import load_views
 
-    found = getattr(args, "cameras_found", False)
+    found = args.cameras_found
     try:
         views = load_views(
             args.cameras,

@@ -239,11 +239,9 @@ def check_clicks_hit_the_scene(g, cam, parsed, args) -> None:
 
 def input_digests(scene: Path, cameras: str | None, masks: list[Path]) -> dict:
     from sagonline.core.provenance import digest_file
-    from sagonline.scene.io.cameras import camera_input_files
+    from sagonline.scene.io.cameras import camera_digests
 
-    out = {"scene": digest_file(scene)}
-    if cameras:
-        out |= {f"cameras:{p.name}": digest_file(p) for p in camera_input_files(cameras)}
+    out = {"scene": digest_file(scene), **(camera_digests(cameras) if cameras else {})}
     return out | {f"mask:{p.name}": digest_file(p) for p in masks}
 
 

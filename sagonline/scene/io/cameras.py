@@ -24,6 +24,7 @@ from sagonline.scene.io.pose import check_count, check_unique_names, checked_cam
 
 __all__ = [
     "CameraFileError",
+    "camera_digests",
     "camera_input_files",
     "camera_source",
     "cameras_beside",
@@ -120,6 +121,14 @@ def camera_input_files(path: str | Path) -> list[Path]:
         return sorted(p for p in source.iterdir() if p.is_file())
     folder = llff_image_folder(source)
     return [source, *(list_images(folder) if folder else [])]
+
+
+def camera_digests(path: str | Path) -> dict[str, str]:
+    """Each file `load_cameras(path)` reads, as a segment folder's labels.json records it among
+    its `inputs`: `cameras:<name>` -> its digest."""
+    from sagonline.core.provenance import digest_file
+
+    return {f"cameras:{p.name}": digest_file(p) for p in camera_input_files(path)}
 
 
 def llff_image_folder(path: str | Path) -> Path | None:
