@@ -12,9 +12,12 @@ Chromium (the browser test's code), after a click, saved as a PNG. --browser: th
 sent through headless Chromium (software WebGL) to the viewer's page, timed on both sides: the
 browser's clock from its pointerdown to the panel's text showing the object's splat count
 (first labels) and to "done", and to the labels first drawn on the canvas (its pixels read on
-every frame) with the longest gap between frames until "done"; the server's clock from just
-before the click to the click's arrival and to the first and last recolour sent. --quick: 6
-views at 240x135, one repeat (what the tests run).
+every frame, in a worker) with the longest gap between frames until "done"; the server's clock
+from just before the click to the click's arrival and to the first and last recolour sent. Each
+click waits for the cleared page to stand still. The page's first click, then each repeat
+twice, with the canvas read and without it (in turns), the medians given for both: what the
+read costs the page shows in the columns that do not need it. --quick: 6 views at 240x135, one
+repeat (what the tests run).
 """
 
 from __future__ import annotations
@@ -69,51 +72,87 @@ new MutationObserver(() => {
 """
 
 
-# Installed once in the page: on every animation frame after the click, the time of the frame
-# and, until they show, whether the labels are on the canvas: the canvas (drawn earlier in the
-# same frame, so its buffer is whole) shrunk into a 2D probe and compared with the first frame
-# after the click; labels are drawn where more than CHANGED of the probe's pixels differ by
-# more than 60 (sum over RGB) from it (the click's marker alone changes about 0.1%).
+# Installed once in the page: the time of every animation frame after the click, and the
+# canvas read in a worker, off the page's thread (reading it on the page's thread, as first
+# written, waited 1.2-1.6 s a frame for the software WebGL rasterizer and held up the page it
+# timed). Each frame's canvas (viser keeps its drawing buffer) is taken as an ImageBitmap, at
+# most two in flight, shrunk into a 200x140 probe and compared with the last one read: before
+# the click, window.__c.still is when the page last changed (by more than MOVED of the probe's
+# pixels), and the click waits until it has not for STILL seconds; that last image is the
+# reference. After the click (window.__c.probe on), the labels are drawn in the first frame
+# where more than CHANGED of the pixels differ by more than 60 (sum over RGB) from the
+# reference (the click's marker alone changes about 0.1%); a frame that takes no image can
+# only delay the time found, never advance it. window.__c.probe off: no reads after the click.
 CANVAS_JS = """
-window.__c = {frames: [], reference: null, labels: undefined};
+window.__c = {frames: [], labels: undefined, probe: true, pending: 0, still: undefined};
 const canvases = Array.from(document.getElementsByTagName('canvas'));
 const scene = canvases.reduce((a, b) => (a.width * a.height >= b.width * b.height ? a : b));
-const probe = document.createElement('canvas');
-probe.width = 200; probe.height = 140;
+const reader = `
+const probe = new OffscreenCanvas(200, 140);
 const ctx = probe.getContext('2d', {willReadFrequently: true});
+let last = null, reference = null, click = null;
+function differing(a, b) {
+  let n = 0;
+  for (let i = 0; i < a.length; i += 4) {
+    const diff = Math.abs(a[i] - b[i]) + Math.abs(a[i + 1] - b[i + 1])
+      + Math.abs(a[i + 2] - b[i + 2]);
+    if (diff > 60) n++;
+  }
+  return n / (probe.width * probe.height);
+}
+onmessage = (e) => {
+  const m = e.data;
+  ctx.drawImage(m.bitmap, 0, 0, probe.width, probe.height);
+  m.bitmap.close();
+  const d = ctx.getImageData(0, 0, probe.width, probe.height).data;
+  if (m.click === null) {
+    const moved = last === null || differing(d, last) > MOVED;
+    last = d;
+    postMessage({time: m.time, click: null, moved});
+    return;
+  }
+  if (m.click !== click) { click = m.click; reference = last; }
+  postMessage({time: m.time, click: m.click, drawn: differing(d, reference) > CHANGED});
+};`;
+const worker = new Worker(URL.createObjectURL(new Blob([reader], {type: 'text/javascript'})));
+worker.onmessage = (e) => {
+  const c = window.__c, m = e.data;
+  c.pending -= 1;
+  if (m.click === null) {
+    if (m.moved || c.still === undefined) c.still = m.time;
+  } else if (m.click === (window.__t || {}).click && m.drawn && !(c.labels <= m.time)) {
+    c.labels = m.time;
+  }
+};
 function tick(now) {
   const c = window.__c, t = window.__t || {};
-  if (t.click !== undefined && c.labels === undefined) {
-    c.frames.push(now);
-    ctx.drawImage(scene, 0, 0, probe.width, probe.height);
-    const d = ctx.getImageData(0, 0, probe.width, probe.height).data;
-    if (c.reference === null) { c.reference = d; }
-    else {
-      let n = 0;
-      for (let i = 0; i < d.length; i += 4) {
-        const diff = Math.abs(d[i] - c.reference[i]) + Math.abs(d[i + 1] - c.reference[i + 1])
-          + Math.abs(d[i + 2] - c.reference[i + 2]);
-        if (diff > 60) n++;
-      }
-      if (n > CHANGED * probe.width * probe.height) c.labels = now;
-    }
-  } else if (t.click !== undefined) { c.frames.push(now); }
+  if (t.click !== undefined) c.frames.push(now);
+  const reading = t.click === undefined || (c.probe && c.labels === undefined);
+  if (reading && c.pending < 2) {
+    c.pending += 1;
+    const click = t.click === undefined ? null : t.click;
+    createImageBitmap(scene).then(
+      (bitmap) => worker.postMessage({bitmap, time: now, click}, [bitmap]));
+  }
   requestAnimationFrame(tick);
 }
 requestAnimationFrame(tick);
 """
 CHANGED = 0.005
+MOVED = 0.001
+STILL = 1.5  # seconds; the page redraws an idle scene about once a second
 
 
-def canvas_times(chrome, seen: dict) -> dict:
+def canvas_times(chrome, seen: dict, probe: bool) -> dict:
     """From the page's frame log: seconds from the click to the labels first drawn on the
-    canvas (NaN where they never were), and the longest gap between drawn frames from the
-    click to the panel's "done". Waits up to 60 s for the labels to be drawn."""
+    canvas (NaN where they never were, or the probe was off), and the longest gap between
+    frames and their count from the click to the panel's "done". Waits up to 60 s for the
+    labels where the probe is on."""
     from bench.speed import browser
 
     with contextlib.suppress(TimeoutError):  # never drawn: NaN below
         browser.wait_for(
-            lambda: chrome.execute_script("return window.__c.labels !== undefined;"),
+            lambda: not probe or chrome.execute_script("return window.__c.labels !== undefined;"),
             60,
             "the labels on the canvas",
         )
@@ -146,9 +185,46 @@ def wait_for_done(chrome, app, timeout: float = 60) -> dict:
         ) from exc
 
 
+def one_click(chrome, app, session: SegmentSession, server: dict, probe: bool) -> dict:
+    """One click through the page on the cleared scene, once the page has stood still for
+    STILL seconds, the canvas probe on or off: its times on the server's clock (from just
+    before the click) and on the browser's (from pointerdown)."""
+    from bench.speed import browser
+
+    app.clear()
+    session.wait()
+    for times in server.values():
+        times.clear()
+    chrome.execute_script(
+        "window.__t = {}; window.__c.frames = []; window.__c.labels = undefined; "
+        f"window.__c.probe = {str(probe).lower()}; window.__c.still = undefined;"
+    )
+    still = (  # the page has not changed for STILL seconds: the cleared scene is what it shows
+        "const c = window.__c; "
+        f"return c.still !== undefined && performance.now() - c.still > {1000 * STILL};"
+    )
+    browser.wait_for(lambda: chrome.execute_script(still), 60, "the cleared page to stand still")
+    start = time.perf_counter()
+    browser.click_canvas(chrome)
+    browser.wait_for(
+        lambda: session.progress.state == "done" and server["click"], 120, "all views voted"
+    )
+    seen = wait_for_done(chrome, app)
+    return {
+        "server: click arrived": server["click"][0] - start,
+        "server: first labels sent": server["update"][0] - start,
+        "server: all views voted": server["update"][-1] - start,
+        "browser: first labels shown": (seen["labels"] - seen["click"]) / 1000,
+        "browser: done shown": (seen["done"] - seen["click"]) / 1000,
+        **canvas_times(chrome, seen, probe),
+    }
+
+
 def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
-    """The click at `xy` of view 0, sent `repeats` times through headless Chromium to the
-    viewer's page (labels cleared between), timed in the browser and on the server."""
+    """The click at `xy` of view 0 sent through headless Chromium to the viewer's page (labels
+    cleared between), timed in the browser and on the server: the page's first click (repeat
+    -1), then `repeats` times with the canvas probe and without it (in turns: what reading the
+    canvas costs the page shows in the columns that do not need it). Rows by (repeat, probe)."""
     import socket
 
     from bench.speed import browser
@@ -176,7 +252,9 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
         browser.wait_for(lambda: app.server.get_clients(), 60, "the page to connect")
         browser.wait_for(lambda: browser.canvas(chrome), 60, "the scene's canvas")
         chrome.execute_script(WATCH_JS)
-        chrome.execute_script(CANVAS_JS.replace("CHANGED", str(CHANGED)))
+        chrome.execute_script(
+            CANVAS_JS.replace("CHANGED", str(CHANGED)).replace("MOVED", str(MOVED))
+        )
         for client in app.server.get_clients().values():  # look at the point from behind view 0
             client.camera.position = target + 1.5 * (centre - target)
             client.camera.look_at = target
@@ -189,36 +267,45 @@ def browser_clicks(session: SegmentSession, repeats: int, xy) -> pd.DataFrame:
             "the camera to move",
         )
         time.sleep(2.0)  # let the page settle after the move
-        for repeat in range(repeats):
-            app.clear()
-            session.wait()
-            for times in server.values():
-                times.clear()
-            chrome.execute_script(
-                "window.__t = {}; window.__c.frames = []; window.__c.reference = null; "
-                "window.__c.labels = undefined;"
-            )
-            start = time.perf_counter()
-            browser.click_canvas(chrome)
-            browser.wait_for(
-                lambda: session.progress.state == "done" and server["click"], 120, "all views voted"
-            )
-            seen = wait_for_done(chrome, app)
-            rows.append(
-                {
-                    "repeat": repeat,
-                    "server: click arrived": server["click"][0] - start,
-                    "server: first labels sent": server["update"][0] - start,
-                    "server: all views voted": server["update"][-1] - start,
-                    "browser: first labels shown": (seen["labels"] - seen["click"]) / 1000,
-                    "browser: done shown": (seen["done"] - seen["click"]) / 1000,
-                    **canvas_times(chrome, seen),
-                }
-            )
+        # the page's first click (repeat -1): printed, left out of the medians, so that the turns
+        # with the probe and without it all follow a click
+        for repeat in range(-1, repeats):  # then with the probe and without it, in turns
+            turns = (True,) if repeat < 0 else (True, False) if repeat % 2 == 0 else (False, True)
+            for probe in turns:
+                row = {"repeat": repeat, "canvas probe": probe}
+                rows.append({**row, **one_click(chrome, app, session, server, probe)})
     finally:
         chrome.quit()
         app.server.stop()
-    return pd.DataFrame(rows).set_index("repeat")
+    return pd.DataFrame(rows).set_index(["repeat", "canvas probe"])
+
+
+BROWSER_TARGETS = {
+    "browser: first labels shown": 1.5,
+    "canvas: first labels drawn": 2.0,
+    "canvas: longest frame gap": 1.0,
+}
+
+
+def browser_medians(table: pd.DataFrame) -> str:
+    """`browser_clicks`' rows as a markdown table: each latency's median over the clicks after
+    the page's first, with the canvas probe and without it, and its target."""
+    timed = table[table.index.get_level_values("repeat") >= 0]
+    medians = timed.groupby(level="canvas probe").median()
+    lines = [
+        "| latency (browser) | median s, canvas probe on | median s, off | target s |",
+        "|---|---|---|---|",
+    ]
+    for name in medians.columns:
+        on, off = (
+            medians.loc[probe, name] if probe in medians.index else np.nan
+            for probe in (True, False)
+        )
+        target = BROWSER_TARGETS.get(name)
+        lines.append(
+            f"| {name} | {on:.2f} | {off:.2f} | {'<= ' + str(target) if target else '-'} |"
+        )
+    return "\n" + "\n".join(lines)
 
 
 def main() -> None:
@@ -252,14 +339,7 @@ def main() -> None:
         scale = width / 480
         table = browser_clicks(session, args.repeats, [v * scale for v in ICING[0]])
         print(table.round(2).to_markdown())
-        print("\n| latency (browser) | median s | target s |\n|---|---|---|")
-        for name, value in table.median().items():
-            target = {
-                "browser: first labels shown": 1.5,
-                "canvas: first labels drawn": 2.0,
-                "canvas: longest frame gap": 1.0,
-            }.get(name)
-            print(f"| {name} | {value:.2f} | {'<= ' + str(target) if target else '-'} |")
+        print(browser_medians(table))
         print(f"after: {load_averages()}")
         return
     rows = []

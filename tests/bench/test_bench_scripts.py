@@ -396,10 +396,13 @@ def test_bench_viewer_times_a_click_in_the_browser():
     reason = missing_browser_reason()
     if reason:
         pytest.skip(reason)
-    text = _run("viewer", "--browser")
+    text = _run("viewer", "--browser", "--repeats", "1")
     assert "browser: first labels shown" in text and "server: click arrived" in text
+    clicks = [line for line in text.splitlines() if line.startswith("| (")]
+    assert [c.split("|")[1].strip() for c in clicks] == ["(-1, True)", "(0, True)", "(0, False)"]
     drawn = next(line for line in text.splitlines() if line.startswith("| canvas: first labels"))
-    assert float(drawn.split("|")[2]) > 0  # the labels were seen on the canvas itself
+    on, off = (cell.strip() for cell in drawn.split("|")[2:4])
+    assert float(on) > 0 and off == "nan"  # seen on the canvas itself, where the probe read it
 
 
 def test_bench_label_size_quick(tmp_path):
